@@ -1,0 +1,1 @@
+//! Engines: how fields are computed.

@@ -1,0 +1,9 @@
+//! zrak: train neural radiance fields while you watch.
+//!
+//! Data flows one way: [`scene`] makes rays and target colours, [`engine`]
+//! computes on them, [`metrics`] scores the results. See `DESIGN.md` in the
+//! shared folder for the whole picture.
+
+pub mod engine;
+pub mod metrics;
+pub mod scene;

@@ -1,0 +1,311 @@
+//! Pinhole cameras and the rays through their pixels.
+//!
+//! Convention (DESIGN.md): the pose is camera-to-world as in the
+//! `transform_matrix` of NeRF-synthetic and instant-ngp files, OpenGL axes
+//! (x right, y up, the camera looks down -z). Pixel (i, j) has its centre at
+//! (i + 0.5, j + 0.5), with j counting rows from the top of the image.
+
+use glam::{Mat3, Mat4, Vec3};
+
+/// Pinhole intrinsics in pixels.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Intrinsics {
+    pub width: u32,
+    pub height: u32,
+    pub fx: f32,
+    pub fy: f32,
+    pub cx: f32,
+    pub cy: f32,
+}
+
+impl Intrinsics {
+    /// Intrinsics from a horizontal field of view, as NeRF-synthetic files
+    /// give it: focal = 0.5 W / tan(0.5 camera_angle_x), square pixels,
+    /// principal point at the image centre.
+    pub fn from_fov_x(width: u32, height: u32, camera_angle_x: f32) -> Self {
+        let focal = focal_from_fov(width, camera_angle_x);
+        Self {
+            width,
+            height,
+            fx: focal,
+            fy: focal,
+            cx: 0.5 * width as f32,
+            cy: 0.5 * height as f32,
+        }
+    }
+
+    /// The same camera seen at 1/`factor` of the resolution (integer
+    /// downscale): the image plane keeps its extent, so focal lengths and the
+    /// principal point shrink by the same factor.
+    pub fn downscaled(&self, factor: u32) -> Self {
+        let k = factor as f32;
+        Self {
+            width: self.width / factor,
+            height: self.height / factor,
+            fx: self.fx / k,
+            fy: self.fy / k,
+            cx: self.cx / k,
+            cy: self.cy / k,
+        }
+    }
+
+    /// Horizontal field of view in radians.
+    pub fn fov_x(&self) -> f32 {
+        2.0 * (0.5 * self.width as f32 / self.fx).atan()
+    }
+
+    /// Vertical field of view in radians.
+    pub fn fov_y(&self) -> f32 {
+        2.0 * (0.5 * self.height as f32 / self.fy).atan()
+    }
+}
+
+/// Focal length in pixels for an image `size` pixels across that spans
+/// `angle` radians: 0.5 · size / tan(0.5 · angle).
+pub fn focal_from_fov(size: u32, angle: f32) -> f32 {
+    0.5 * size as f32 / (0.5 * angle).tan()
+}
+
+/// A ray `origin + t · direction`, with what Mip-NeRF needs besides.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Ray {
+    pub origin: Vec3,
+    /// Unit length.
+    pub direction: Vec3,
+    /// The un-normalised direction: the camera-space direction with z = -1
+    /// rotated into the world, so `t` along it is depth along the optical
+    /// axis. Mip-NeRF builds its cones along this vector.
+    pub direction_unnormalised: Vec3,
+    /// Radius of the pixel's cone at unit distance along
+    /// `direction_unnormalised`: 2/√12 of the pixel width there (Mip-NeRF,
+    /// Barron et al. 2021, section 3.1), which gives the cone the variance of
+    /// the pixel's square footprint.
+    pub cone_radius: f32,
+}
+
+impl Ray {
+    pub fn at(&self, t: f32) -> Vec3 {
+        self.origin + t * self.direction
+    }
+}
+
+/// A pinhole camera: intrinsics and a camera-to-world pose.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Camera {
+    pub intrinsics: Intrinsics,
+    pub camera_to_world: Mat4,
+}
+
+impl Camera {
+    pub fn new(intrinsics: Intrinsics, camera_to_world: Mat4) -> Self {
+        Self {
+            intrinsics,
+            camera_to_world,
+        }
+    }
+
+    /// The camera centre in world space.
+    pub fn position(&self) -> Vec3 {
+        self.camera_to_world.w_axis.truncate()
+    }
+
+    /// The rotation part of the pose (camera axes in world space as columns).
+    pub fn rotation(&self) -> Mat3 {
+        Mat3::from_mat4(self.camera_to_world)
+    }
+
+    /// Viewing direction (unit length) in world space: the camera's -z axis.
+    pub fn forward(&self) -> Vec3 {
+        -self.camera_to_world.z_axis.truncate().normalize()
+    }
+
+    /// The camera-space direction (z = -1) through image point (u, v) in
+    /// pixel units, v counting down from the top edge.
+    fn camera_space_direction(&self, u: f32, v: f32) -> Vec3 {
+        let k = &self.intrinsics;
+        Vec3::new((u - k.cx) / k.fx, -(v - k.cy) / k.fy, -1.0)
+    }
+
+    /// The ray through image point (u, v) in pixel units; the centre of
+    /// pixel (i, j) is (i + 0.5, j + 0.5).
+    pub fn ray_through(&self, u: f32, v: f32) -> Ray {
+        let direction_unnormalised = self.rotation() * self.camera_space_direction(u, v);
+        Ray {
+            origin: self.position(),
+            direction: direction_unnormalised.normalize(),
+            direction_unnormalised,
+            // The pixel is 1/fx wide at unit depth (mean of both axes for
+            // non-square pixels).
+            cone_radius: pixel_width_at_unit_depth(&self.intrinsics) * 2.0 / 12f32.sqrt(),
+        }
+    }
+
+    /// The ray through the centre of pixel (column `i`, row `j`).
+    pub fn pixel_ray(&self, i: u32, j: u32) -> Ray {
+        self.ray_through(i as f32 + 0.5, j as f32 + 0.5)
+    }
+
+    /// Rays through the centre of every pixel, row by row from the top.
+    pub fn all_rays(&self) -> Vec<Ray> {
+        let k = &self.intrinsics;
+        (0..k.height)
+            .flat_map(|j| (0..k.width).map(move |i| (i, j)))
+            .map(|(i, j)| self.pixel_ray(i, j))
+            .collect()
+    }
+
+    /// Projects a world-space point to image coordinates (u, v) in pixels, or
+    /// `None` when it lies on or behind the camera plane.
+    pub fn project(&self, point: Vec3) -> Option<(f32, f32)> {
+        let in_camera = self.camera_to_world.inverse().transform_point3(point);
+        if in_camera.z >= 0.0 {
+            return None;
+        }
+        let depth = -in_camera.z;
+        let k = &self.intrinsics;
+        Some((
+            k.cx + k.fx * in_camera.x / depth,
+            k.cy - k.fy * in_camera.y / depth,
+        ))
+    }
+
+    /// A camera at `eye` looking at `target`, with `up` roughly up, in the
+    /// OpenGL convention.
+    pub fn look_at(intrinsics: Intrinsics, eye: Vec3, target: Vec3, up: Vec3) -> Self {
+        let back = (eye - target).normalize();
+        let right = up.cross(back).normalize();
+        let true_up = back.cross(right);
+        let camera_to_world = Mat4::from_cols(
+            right.extend(0.0),
+            true_up.extend(0.0),
+            back.extend(0.0),
+            eye.extend(1.0),
+        );
+        Self::new(intrinsics, camera_to_world)
+    }
+}
+
+fn pixel_width_at_unit_depth(k: &Intrinsics) -> f32 {
+    0.5 * (1.0 / k.fx + 1.0 / k.fy)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn test_camera() -> Camera {
+        let intrinsics = Intrinsics {
+            width: 64,
+            height: 48,
+            fx: 70.0,
+            fy: 72.0,
+            cx: 31.3,
+            cy: 24.9,
+        };
+        Camera::look_at(
+            intrinsics,
+            Vec3::new(2.0, -3.0, 1.5),
+            Vec3::new(0.1, 0.2, -0.3),
+            Vec3::Z,
+        )
+    }
+
+    #[test]
+    fn focal_from_camera_angle_x_matches_formula() {
+        // lego's camera_angle_x at 400 px: 0.5 * 400 / tan(0.5 * 0.6911112)
+        let angle = 0.691_111_2_f32;
+        let expected = 0.5 * 400.0 / (0.5f64 * angle as f64).tan();
+        let k = Intrinsics::from_fov_x(400, 400, angle);
+        assert!((k.fx as f64 - expected).abs() < 1e-3, "{} vs {expected}", k.fx);
+        assert!((k.fx - 555.555).abs() < 1e-3);
+        assert_eq!(k.fx, k.fy);
+        assert!((k.fov_x() - angle).abs() < 1e-6);
+    }
+
+    #[test]
+    fn projected_point_lies_on_its_pixel_ray() {
+        let camera = test_camera();
+        let points = [
+            Vec3::new(0.0, 0.0, 0.0),
+            Vec3::new(0.3, -0.2, 0.1),
+            Vec3::new(-0.4, 0.5, -0.6),
+        ];
+        for point in points {
+            let (u, v) = camera.project(point).expect("point in front of camera");
+            let ray = camera.ray_through(u, v);
+            // Distance from the point to the ray.
+            let t = (point - ray.origin).dot(ray.direction);
+            let closest = ray.at(t);
+            assert!(
+                (closest - point).length() < 1e-5,
+                "point {point} is {} from its ray",
+                (closest - point).length()
+            );
+            // And the un-normalised direction reaches the point at its depth.
+            let depth = camera.camera_to_world.inverse().transform_point3(point).z.abs();
+            let reached = ray.origin + depth * ray.direction_unnormalised;
+            assert!((reached - point).length() < 1e-5);
+        }
+    }
+
+    #[test]
+    fn pixel_centre_projects_back_to_its_centre() {
+        let camera = test_camera();
+        let ray = camera.pixel_ray(10, 7);
+        let (u, v) = camera.project(ray.at(3.0)).unwrap();
+        assert!((u - 10.5).abs() < 1e-4 && (v - 7.5).abs() < 1e-4, "({u}, {v})");
+    }
+
+    #[test]
+    fn corner_rays_point_where_expected() {
+        // Identity pose: camera at the origin looking down -z, y up.
+        let intrinsics = Intrinsics::from_fov_x(4, 2, std::f32::consts::FRAC_PI_2);
+        let camera = Camera::new(intrinsics, Mat4::IDENTITY);
+        let rays = camera.all_rays();
+        assert_eq!(rays.len(), 8);
+        // fx = 0.5 * 4 / tan(pi/4) = 2; pixel centres at x = 0.5..3.5,
+        // so the corner directions are ((0.5 - 2)/2, ±(1 - 0.5)/2, -1).
+        let expect = |x: f32, y: f32| Vec3::new(x, y, -1.0).normalize();
+        let top_left = expect(-0.75, 0.25);
+        let top_right = expect(0.75, 0.25);
+        let bottom_left = expect(-0.75, -0.25);
+        let bottom_right = expect(0.75, -0.25);
+        for (ray, want) in [
+            (rays[0], top_left),
+            (rays[3], top_right),
+            (rays[4], bottom_left),
+            (rays[7], bottom_right),
+        ] {
+            assert!((ray.direction - want).length() < 1e-6, "{} vs {want}", ray.direction);
+            assert_eq!(ray.origin, Vec3::ZERO);
+            assert!((ray.direction_unnormalised.z + 1.0).abs() < 1e-7);
+        }
+        // Every ray has unit length and points forward.
+        for ray in &rays {
+            assert!((ray.direction.length() - 1.0).abs() < 1e-6);
+            assert!(ray.direction.z < 0.0);
+        }
+    }
+
+    #[test]
+    fn cone_radius_is_pixel_footprint() {
+        let intrinsics = Intrinsics::from_fov_x(100, 100, 1.0);
+        let camera = Camera::new(intrinsics, Mat4::IDENTITY);
+        let ray = camera.pixel_ray(0, 0);
+        let pixel_width = 1.0 / intrinsics.fx;
+        assert!((ray.cone_radius - pixel_width * 2.0 / 12f32.sqrt()).abs() < 1e-9);
+        // Neighbouring pixel rays (un-normalised) are one pixel width apart.
+        let next = camera.pixel_ray(1, 0);
+        let gap = (next.direction_unnormalised - ray.direction_unnormalised).length();
+        assert!((gap - pixel_width).abs() < 1e-6);
+    }
+
+    #[test]
+    fn downscale_keeps_field_of_view() {
+        let k = Intrinsics::from_fov_x(400, 400, 0.69);
+        let half = k.downscaled(2);
+        assert_eq!((half.width, half.height), (200, 200));
+        assert!((half.fov_x() - k.fov_x()).abs() < 1e-6);
+        assert!((half.cx - 100.0).abs() < 1e-6);
+    }
+}

@@ -1,0 +1,178 @@
+//! What was photographed: cameras, rays, images, the dataset formats and the
+//! built-in demo scene.
+
+pub mod bounds;
+pub mod camera;
+pub mod error;
+pub mod image;
+
+use std::path::{Path, PathBuf};
+
+use glam::Vec3;
+
+pub use bounds::Aabb;
+pub use camera::{Camera, Intrinsics, Ray};
+pub use error::{SceneError, SceneResult};
+pub use image::ImageRgba8;
+
+/// Options for loading a scene from disk.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LoadOptions {
+    /// Integer downscale of every image (1 keeps full resolution).
+    pub downscale: u32,
+}
+
+impl Default for LoadOptions {
+    fn default() -> Self {
+        Self { downscale: 1 }
+    }
+}
+
+/// Where a scene came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SceneFormat {
+    /// NeRF-synthetic: `transforms_{train,val,test}.json`.
+    Blender,
+    /// instant-ngp / nerfstudio: one `transforms.json`.
+    InstantNgp,
+    /// zrak's built-in procedural scene, built in memory.
+    Demo,
+}
+
+/// The splits of a scene.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Split {
+    Train,
+    Val,
+    Test,
+}
+
+impl Split {
+    pub const ALL: [Split; 3] = [Split::Train, Split::Val, Split::Test];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Split::Train => "train",
+            Split::Val => "val",
+            Split::Test => "test",
+        }
+    }
+}
+
+/// One photograph and the camera that took it.
+#[derive(Debug, Clone)]
+pub struct Frame {
+    pub camera: Camera,
+    pub image: ImageRgba8,
+    /// The image file it was read from (empty for in-memory scenes).
+    pub image_path: PathBuf,
+}
+
+/// How world coordinates map into the unit cube that grid-based models work
+/// in: `unit = world · scale + offset`. The scene's content lies in the cube
+/// of side `aabb_scale` centred at (0.5, 0.5, 0.5) in unit coordinates
+/// (instant-ngp's convention).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct UnitCubeMapping {
+    pub scale: f32,
+    pub offset: Vec3,
+    pub aabb_scale: f32,
+}
+
+impl UnitCubeMapping {
+    /// instant-ngp's defaults for NeRF-synthetic scenes: scale 0.33, offset
+    /// 0.5, aabb_scale 1 (instant-ngp `src/nerf_loader.cu`, `NERF_SCALE`).
+    pub const BLENDER: Self = Self {
+        scale: 0.33,
+        offset: Vec3::splat(0.5),
+        aabb_scale: 1.0,
+    };
+
+    pub fn to_unit(&self, world: Vec3) -> Vec3 {
+        world * self.scale + self.offset
+    }
+
+    pub fn to_world(&self, unit: Vec3) -> Vec3 {
+        (unit - self.offset) / self.scale
+    }
+
+    /// The box holding the scene's content, in world coordinates.
+    pub fn world_bounds(&self) -> Aabb {
+        let half = 0.5 * self.aabb_scale;
+        Aabb::new(
+            self.to_world(Vec3::splat(0.5 - half)),
+            self.to_world(Vec3::splat(0.5 + half)),
+        )
+    }
+}
+
+/// A scene: frames per split, with what every model needs to know about
+/// where the content is.
+#[derive(Debug, Clone)]
+pub struct Scene {
+    /// A short name (the folder name, or "demo").
+    pub name: String,
+    /// The folder it was loaded from (empty for in-memory scenes).
+    pub root: PathBuf,
+    pub format: SceneFormat,
+    pub train: Vec<Frame>,
+    pub val: Vec<Frame>,
+    pub test: Vec<Frame>,
+    /// Whether the image files carry an alpha channel.
+    pub has_alpha: bool,
+    pub unit_cube: UnitCubeMapping,
+    /// The box that contains the object, in world coordinates.
+    pub bounds: Aabb,
+}
+
+impl Scene {
+    pub fn split(&self, split: Split) -> &[Frame] {
+        match split {
+            Split::Train => &self.train,
+            Split::Val => &self.val,
+            Split::Test => &self.test,
+        }
+    }
+
+    /// All frames of all splits.
+    pub fn frames(&self) -> impl Iterator<Item = &Frame> {
+        self.train.iter().chain(&self.val).chain(&self.test)
+    }
+
+    /// Width and height shared by every frame.
+    pub fn resolution(&self) -> Option<(u32, u32)> {
+        self.frames()
+            .next()
+            .map(|f| (f.camera.intrinsics.width, f.camera.intrinsics.height))
+    }
+
+    /// Near and far distances (along the unit direction) for a ray: where it
+    /// enters and leaves the scene box, or `None` when it misses the box.
+    pub fn ray_near_far(&self, ray: &Ray) -> Option<(f32, f32)> {
+        self.bounds.intersect_ray(ray, 0.0)
+    }
+}
+
+/// Checks that every frame has the same resolution, naming the first that
+/// differs.
+pub fn check_same_size(frames: &[(PathBuf, usize, u32, u32)]) -> SceneResult<()> {
+    if let Some((_, _, w0, h0)) = frames.first() {
+        for (path, index, w, h) in frames {
+            if (w, h) != (w0, h0) {
+                return Err(SceneError::in_frame(
+                    path,
+                    *index,
+                    format!("frames of different sizes: this one is {w}×{h}, the first is {w0}×{h0}"),
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The folder name of `path`, for display.
+pub fn folder_name(path: &Path) -> String {
+    path.file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| path.display().to_string())
+}
