@@ -1,0 +1,174 @@
+//! The wgpu device every `gpu` stage runs on: the adapter chosen, the limits
+//! and optional features requested, and what kind of adapter it is.
+
+use wgpu::{Adapter, AdapterInfo, Backends, Device, DeviceType, Features, Limits, Queue};
+
+/// Optional features the engine uses when the adapter has them:
+/// float atomics for the hash-grid backward pass (a fallback exists for
+/// adapters without them), timestamps for per-stage timing, and f16.
+pub const WANTED_FEATURES: Features = Features::SHADER_FLOAT32_ATOMIC
+    .union(Features::TIMESTAMP_QUERY)
+    .union(Features::SHADER_F16);
+
+/// Why no GPU context could be made.
+#[derive(Debug, thiserror::Error)]
+pub enum GpuError {
+    #[error(
+        "no graphics adapter found (backends tried: {backends:?}); install a Vulkan, Metal or \
+         DX12 driver, or on Linux without a GPU `apt-get install mesa-vulkan-drivers \
+         libvulkan1`, or use `--engine cpu`"
+    )]
+    NoAdapter { backends: Backends },
+    #[error("the adapter {adapter} refused to create a device: {source}")]
+    RequestDevice {
+        adapter: String,
+        #[source]
+        source: wgpu::RequestDeviceError,
+    },
+}
+
+/// A device and queue on the best adapter available, with what it offers.
+pub struct GpuContext {
+    pub adapter: Adapter,
+    pub device: Device,
+    pub queue: Queue,
+    pub info: AdapterInfo,
+    /// The optional features (of [`WANTED_FEATURES`]) the device has.
+    pub features: Features,
+    pub limits: Limits,
+}
+
+impl std::fmt::Debug for GpuContext {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GpuContext")
+            .field("info", &self.info)
+            .field("features", &self.features)
+            .finish_non_exhaustive()
+    }
+}
+
+impl GpuContext {
+    /// A context on the best adapter of any backend wgpu was built with
+    /// (`WGPU_BACKEND` narrows the search, as in every wgpu program).
+    pub fn new() -> Result<Self, GpuError> {
+        let descriptor = wgpu::InstanceDescriptor::new_without_display_handle_from_env();
+        let backends = if descriptor.backends.is_empty() {
+            Backends::all()
+        } else {
+            descriptor.backends
+        };
+        Self::with_backends(descriptor, backends)
+    }
+
+    /// A context on the best adapter among `backends`.
+    pub fn with_backends(
+        descriptor: wgpu::InstanceDescriptor,
+        backends: Backends,
+    ) -> Result<Self, GpuError> {
+        let instance = wgpu::Instance::new(descriptor);
+        let adapters = pollster::block_on(instance.enumerate_adapters(backends));
+        let adapter = adapters
+            .into_iter()
+            .max_by_key(|a| {
+                let info = a.get_info();
+                adapter_preference(info.device_type, info.backend)
+            })
+            .ok_or(GpuError::NoAdapter { backends })?;
+        Self::on_adapter(adapter)
+    }
+
+    /// A device on `adapter` with the adapter's own limits (egui-wgpu and
+    /// wgpu default to `Limits::default()`, which caps storage bindings well
+    /// below what the engine's large buffers need) and every wanted feature
+    /// it supports.
+    pub fn on_adapter(adapter: Adapter) -> Result<Self, GpuError> {
+        let info = adapter.get_info();
+        let features = adapter.features() & WANTED_FEATURES;
+        let limits = adapter.limits();
+        let descriptor = wgpu::DeviceDescriptor {
+            label: Some("zrak"),
+            required_features: features,
+            required_limits: limits.clone(),
+            ..Default::default()
+        };
+        let (device, queue) = pollster::block_on(adapter.request_device(&descriptor)).map_err(
+            |source| GpuError::RequestDevice {
+                adapter: info.name.clone(),
+                source,
+            },
+        )?;
+        Ok(Self {
+            adapter,
+            device,
+            queue,
+            info,
+            features,
+            limits,
+        })
+    }
+
+    /// True when the adapter is a software rasteriser (e.g. Mesa lavapipe or
+    /// llvmpipe), where the `cpu` engine is much faster.
+    pub fn is_software(&self) -> bool {
+        self.info.device_type == DeviceType::Cpu
+    }
+
+    /// One line for logs and the viewer's stats panel.
+    pub fn describe(&self) -> String {
+        format!(
+            "{} ({:?}, {:?}{})",
+            self.info.name,
+            self.info.backend,
+            self.info.device_type,
+            if self.is_software() {
+                ", software"
+            } else {
+                ""
+            }
+        )
+    }
+
+    pub fn has_float_atomics(&self) -> bool {
+        self.features.contains(Features::SHADER_FLOAT32_ATOMIC)
+    }
+}
+
+/// Higher is better: real GPUs before virtual and software ones, and among
+/// equals the native APIs before OpenGL.
+fn adapter_preference(device_type: DeviceType, backend: wgpu::Backend) -> (u8, u8) {
+    let kind = match device_type {
+        DeviceType::DiscreteGpu => 4,
+        DeviceType::IntegratedGpu => 3,
+        DeviceType::VirtualGpu => 2,
+        DeviceType::Other => 1,
+        DeviceType::Cpu => 0,
+    };
+    let api = match backend {
+        wgpu::Backend::Vulkan | wgpu::Backend::Metal | wgpu::Backend::Dx12 => 1,
+        _ => 0,
+    };
+    (kind, api)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn no_backend_gives_a_clear_error() {
+        let descriptor = wgpu::InstanceDescriptor::new_without_display_handle();
+        let error = GpuContext::with_backends(descriptor, Backends::empty()).unwrap_err();
+        let message = error.to_string();
+        assert!(message.contains("no graphics adapter found"), "{message}");
+        assert!(message.contains("mesa-vulkan-drivers"), "{message}");
+    }
+
+    #[test]
+    fn real_gpus_rank_above_software() {
+        use wgpu::Backend::{Gl, Vulkan};
+        let software = adapter_preference(DeviceType::Cpu, Vulkan);
+        assert!(adapter_preference(DeviceType::IntegratedGpu, Gl) > software);
+        assert!(adapter_preference(DeviceType::DiscreteGpu, Vulkan) > adapter_preference(DeviceType::IntegratedGpu, Vulkan));
+        assert!(adapter_preference(DeviceType::Cpu, Vulkan) > adapter_preference(DeviceType::Cpu, Gl));
+    }
+}
