@@ -5,5 +5,6 @@
 //! shared folder for the whole picture.
 
 pub mod engine;
+pub mod field;
 pub mod metrics;
 pub mod scene;

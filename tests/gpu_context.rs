@@ -1,8 +1,8 @@
 //! The wgpu context runs WGSL on whatever adapter the machine has (lavapipe in
 //! CI) and returns what the cpu computes.
 
-use wgpu::util::DeviceExt;
 use zrak::engine::gpu::GpuContext;
+use zrak::engine::gpu::kernel::{Kernel, groups_for, read_buffer, storage_buffer, uniform_buffer};
 
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -27,74 +27,18 @@ fn compute_shader_matches_cpu() {
     let y: Vec<f32> = (0..count).map(|i| 0.5 * i as f32).collect();
     let a = 1.75f32;
 
-    let device = &context.device;
-    let module = device.create_shader_module(wgpu::include_wgsl!("../shaders/scale_add.wgsl"));
-    let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-        label: Some("scale_add"),
-        layout: None,
-        module: &module,
-        entry_point: Some("main"),
-        compilation_options: Default::default(),
-        cache: None,
-    });
-    let params = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-        label: Some("params"),
-        contents: bytemuck::bytes_of(&Params {
-            a,
-            count: count as u32,
-        }),
-        usage: wgpu::BufferUsages::UNIFORM,
-    });
-    let x_buffer = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-        label: Some("x"),
-        contents: bytemuck::cast_slice(&x),
-        usage: wgpu::BufferUsages::STORAGE,
-    });
-    let y_buffer = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-        label: Some("y"),
-        contents: bytemuck::cast_slice(&y),
-        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-    });
-    let readback = device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("readback"),
-        size: (count * 4) as u64,
-        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-        mapped_at_creation: false,
-    });
-    let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-        label: Some("scale_add"),
-        layout: &pipeline.get_bind_group_layout(0),
-        entries: &[
-            wgpu::BindGroupEntry {
-                binding: 0,
-                resource: params.as_entire_binding(),
-            },
-            wgpu::BindGroupEntry {
-                binding: 1,
-                resource: x_buffer.as_entire_binding(),
-            },
-            wgpu::BindGroupEntry {
-                binding: 2,
-                resource: y_buffer.as_entire_binding(),
-            },
-        ],
-    });
-    let mut encoder = device.create_command_encoder(&Default::default());
-    {
-        let mut pass = encoder.begin_compute_pass(&Default::default());
-        pass.set_pipeline(&pipeline);
-        pass.set_bind_group(0, &bind_group, &[]);
-        pass.dispatch_workgroups((count as u32).div_ceil(64), 1, 1);
-    }
-    encoder.copy_buffer_to_buffer(&y_buffer, 0, &readback, 0, (count * 4) as u64);
-    context.queue.submit([encoder.finish()]);
-
-    let slice = readback.slice(..);
-    slice.map_async(wgpu::MapMode::Read, |result| result.expect("map readback"));
-    device
-        .poll(wgpu::PollType::wait_indefinitely())
-        .expect("device poll");
-    let result: Vec<f32> = bytemuck::cast_slice(&slice.get_mapped_range().unwrap()).to_vec();
+    let kernel = Kernel::new(
+        &context,
+        "scale_add",
+        include_str!("../shaders/scale_add.wgsl"),
+        "main",
+    )
+    .unwrap();
+    let params = uniform_buffer(&context, "params", &Params { a, count: count as u32 });
+    let x_buffer = storage_buffer(&context, "x", &x);
+    let y_buffer = storage_buffer(&context, "y", &y);
+    kernel.dispatch(&context, &[&params, &x_buffer, &y_buffer], [groups_for(count, 64), 1, 1]);
+    let result: Vec<f32> = read_buffer(&context, &y_buffer, count);
 
     for i in 0..count {
         let want = a * x[i] + y[i];
@@ -106,4 +50,13 @@ fn compute_shader_matches_cpu() {
             result[i]
         );
     }
+}
+
+#[test]
+fn shader_errors_are_reported_not_panicked() {
+    let context = GpuContext::new().expect("an adapter exists");
+    let broken = "@compute @workgroup_size(1) fn main() { let x: f32 = undefined_name; }";
+    let error = Kernel::new(&context, "broken", broken, "main").err().expect("must not compile");
+    let message = error.to_string();
+    assert!(message.contains("broken") && message.contains("undefined_name"), "{message}");
 }

@@ -19,6 +19,8 @@ pub enum GpuError {
          libvulkan1`, or use `--engine cpu`"
     )]
     NoAdapter { backends: Backends },
+    #[error("WGSL kernel `{name}` failed to compile: {message}")]
+    Shader { name: String, message: String },
     #[error("the adapter {adapter} refused to create a device: {source}")]
     RequestDevice {
         adapter: String,

@@ -1,0 +1,173 @@
+//! A compute kernel: one WGSL entry point, its bindings, dispatch and
+//! read-back. Every `gpu` stage is built from these.
+
+use bytemuck::Pod;
+use wgpu::util::DeviceExt;
+
+use super::context::{GpuContext, GpuError};
+
+/// A compiled compute pipeline. Bindings are taken in order: binding `i` of
+/// group 0 is the `i`-th buffer passed to [`Kernel::dispatch`].
+pub struct Kernel {
+    pub name: String,
+    pipeline: wgpu::ComputePipeline,
+}
+
+impl Kernel {
+    /// Compiles `entry_point` of the WGSL `source`. Shader errors come back
+    /// as [`GpuError::Shader`] instead of wgpu's default panic.
+    pub fn new(
+        context: &GpuContext,
+        name: &str,
+        source: &str,
+        entry_point: &str,
+    ) -> Result<Self, GpuError> {
+        let device = &context.device;
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some(name),
+            source: wgpu::ShaderSource::Wgsl(source.into()),
+        });
+        let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some(name),
+            layout: None,
+            module: &module,
+            entry_point: Some(entry_point),
+            compilation_options: Default::default(),
+            cache: None,
+        });
+        if let Some(error) = pollster::block_on(scope.pop()) {
+            return Err(GpuError::Shader {
+                name: name.to_string(),
+                message: error.to_string(),
+            });
+        }
+        Ok(Self {
+            name: name.to_string(),
+            pipeline,
+        })
+    }
+
+    /// Records one dispatch of `workgroups` with `buffers` bound in order to
+    /// group 0, into `encoder`.
+    pub fn record(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        buffers: &[&wgpu::Buffer],
+        workgroups: [u32; 3],
+    ) {
+        let layout = self.pipeline.get_bind_group_layout(0);
+        let entries: Vec<wgpu::BindGroupEntry> = buffers
+            .iter()
+            .enumerate()
+            .map(|(i, buffer)| wgpu::BindGroupEntry {
+                binding: i as u32,
+                resource: buffer.as_entire_binding(),
+            })
+            .collect();
+        let bind_group = context
+            .device
+            .create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some(&self.name),
+                layout: &layout,
+                entries: &entries,
+            });
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(&self.name),
+            timestamp_writes: None,
+        });
+        pass.set_pipeline(&self.pipeline);
+        pass.set_bind_group(0, &bind_group, &[]);
+        pass.dispatch_workgroups(workgroups[0], workgroups[1], workgroups[2]);
+    }
+
+    /// Records, submits and waits for one dispatch.
+    pub fn dispatch(&self, context: &GpuContext, buffers: &[&wgpu::Buffer], workgroups: [u32; 3]) {
+        let mut encoder = context.device.create_command_encoder(&Default::default());
+        self.record(context, &mut encoder, buffers, workgroups);
+        context.queue.submit([encoder.finish()]);
+    }
+}
+
+/// Workgroups needed to cover `count` items at `workgroup_size` per group.
+pub fn groups_for(count: usize, workgroup_size: u32) -> u32 {
+    (count as u32).div_ceil(workgroup_size).max(1)
+}
+
+/// A storage buffer holding `data`, readable back and writable from the CPU.
+pub fn storage_buffer<T: Pod>(context: &GpuContext, label: &str, data: &[T]) -> wgpu::Buffer {
+    let bytes: &[u8] = bytemuck::cast_slice(data);
+    // wgpu rejects zero-sized bindings; an empty input still gets 4 bytes.
+    let padded;
+    let contents = if bytes.is_empty() {
+        padded = [0u8; 4];
+        &padded[..]
+    } else {
+        bytes
+    };
+    context
+        .device
+        .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents,
+            usage: wgpu::BufferUsages::STORAGE
+                | wgpu::BufferUsages::COPY_SRC
+                | wgpu::BufferUsages::COPY_DST,
+        })
+}
+
+/// A zero-filled storage buffer of `count` elements of `T`.
+pub fn zeroed_storage_buffer<T: Pod>(context: &GpuContext, label: &str, count: usize) -> wgpu::Buffer {
+    let size = (count * std::mem::size_of::<T>()).max(4) as u64;
+    context.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size,
+        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    })
+}
+
+/// A uniform buffer holding `value`.
+pub fn uniform_buffer<T: Pod>(context: &GpuContext, label: &str, value: &T) -> wgpu::Buffer {
+    context
+        .device
+        .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents: bytemuck::bytes_of(value),
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+        })
+}
+
+/// Copies `count` elements of `T` out of a storage buffer, waiting for the
+/// GPU.
+pub fn read_buffer<T: Pod>(context: &GpuContext, buffer: &wgpu::Buffer, count: usize) -> Vec<T> {
+    let size = (count * std::mem::size_of::<T>()) as u64;
+    if size == 0 {
+        return Vec::new();
+    }
+    let staging = context.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("read back"),
+        size,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let mut encoder = context.device.create_command_encoder(&Default::default());
+    encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, size);
+    context.queue.submit([encoder.finish()]);
+    let slice = staging.slice(..);
+    let (sender, receiver) = std::sync::mpsc::channel();
+    slice.map_async(wgpu::MapMode::Read, move |result| {
+        let _ = sender.send(result);
+    });
+    context
+        .device
+        .poll(wgpu::PollType::wait_indefinitely())
+        .expect("waiting for the GPU");
+    receiver
+        .recv()
+        .expect("map callback ran")
+        .expect("mapping the read-back buffer");
+    let view = slice.get_mapped_range().expect("mapped range");
+    bytemuck::cast_slice(&view).to_vec()
+}

@@ -1,0 +1,232 @@
+//! Instant-NGP (Müller, Evans, Schied, Keller 2022, "Instant Neural Graphics
+//! Primitives with a Multiresolution Hash Encoding"): every constant of the
+//! model, with where it comes from. "Paper" is the paper; "config" is
+//! instant-ngp's `configs/nerf/base.json`; "testbed" is instant-ngp's NeRF
+//! training code (`src/testbed_nerf.cu`).
+
+/// Multiresolution hash encoding (paper, section 3 and table 1).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HashGridConfig {
+    /// L, the number of resolution levels.
+    pub levels: u32,
+    /// F, features per table entry.
+    pub features_per_level: u32,
+    /// log2 of T, the entries per level.
+    pub log2_table_size: u32,
+    /// N_min, the coarsest grid resolution.
+    pub base_resolution: u32,
+    /// N_max, the finest grid resolution.
+    pub finest_resolution: u32,
+    /// Entries start uniform in ±this (paper, section 4: U(−1e-4, 1e-4)).
+    pub init_range: f32,
+}
+
+impl HashGridConfig {
+    /// Table 1 of the paper for NeRF: L = 16, F = 2, T = 2^19, N_min = 16,
+    /// N_max = 2048 · aabb_scale (paper, section 5.4).
+    pub fn paper(aabb_scale: f32) -> Self {
+        Self {
+            levels: 16,
+            features_per_level: 2,
+            log2_table_size: 19,
+            base_resolution: 16,
+            finest_resolution: (2048.0 * aabb_scale).round() as u32,
+            init_range: 1e-4,
+        }
+    }
+
+    /// b = exp((ln N_max − ln N_min) / (L − 1)) (paper, eq. 3).
+    pub fn growth_factor(&self) -> f64 {
+        if self.levels <= 1 {
+            return 1.0;
+        }
+        (((self.finest_resolution as f64).ln() - (self.base_resolution as f64).ln())
+            / (self.levels - 1) as f64)
+            .exp()
+    }
+
+    /// Encoded width: L · F.
+    pub fn output_width(&self) -> usize {
+        (self.levels * self.features_per_level) as usize
+    }
+
+    pub fn table_size(&self) -> usize {
+        1 << self.log2_table_size
+    }
+}
+
+/// The tiny MLPs (paper, section 5.4; config "network" and "rgb_network").
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NetworkConfig {
+    /// Density network: 32 → 64 → 16, ReLU hidden layer (one hidden layer).
+    pub density_hidden_width: usize,
+    pub density_hidden_layers: usize,
+    /// The density network's output: the first is log-density, all 16 feed
+    /// the colour network (paper, section 5.4).
+    pub density_output_width: usize,
+    /// Colour network: 16 + 16 → 64 → 64 → 3, two hidden layers, sigmoid.
+    pub colour_hidden_width: usize,
+    pub colour_hidden_layers: usize,
+    /// Spherical-harmonics degree of the view direction encoding (config
+    /// "dir_encoding": SphericalHarmonics, degree 4 → 16 coefficients).
+    pub sh_degree: u32,
+}
+
+impl NetworkConfig {
+    pub const PAPER: Self = Self {
+        density_hidden_width: 64,
+        density_hidden_layers: 1,
+        density_output_width: 16,
+        colour_hidden_width: 64,
+        colour_hidden_layers: 2,
+        sh_degree: 4,
+    };
+
+    pub fn sh_coefficients(&self) -> usize {
+        (self.sh_degree * self.sh_degree) as usize
+    }
+}
+
+/// σ = exp(x) with x clamped, so a large raw output can neither overflow
+/// nor send a huge gradient back (testbed: `network_to_density`, "Exponential"
+/// activation; the clamp is zrak's). exp(15) ≈ 3.3e6 is far denser than any
+/// surface needs at step √3/1024.
+pub const DENSITY_EXP_CLAMP: f32 = 15.0;
+
+/// Occupancy grid (paper, appendix E.2; testbed).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OccupancyConfig {
+    /// Cells per side of each cascade.
+    pub resolution: u32,
+    /// EMA decay of the stored density per update.
+    pub decay: f32,
+    /// A cell is occupied where its optical thickness (σ · smallest step)
+    /// exceeds min(this, mean over the grid) (testbed:
+    /// NERF_MIN_OPTICAL_THICKNESS).
+    pub min_optical_thickness: f32,
+    /// Steps between grid updates.
+    pub update_interval: u32,
+    /// During the first this many steps every cell is updated; afterwards
+    /// a random quarter plus a quarter drawn from occupied cells.
+    pub warmup_steps: u32,
+}
+
+impl OccupancyConfig {
+    pub const PAPER: Self = Self {
+        resolution: 128,
+        decay: 0.95,
+        min_optical_thickness: 0.01,
+        update_interval: 16,
+        warmup_steps: 256,
+    };
+
+    /// Cascades needed to cover aabb_scale: each doubles the extent
+    /// (paper, appendix E.2: K = 1 + ceil(log2(aabb_scale))).
+    pub fn cascades(aabb_scale: f32) -> u32 {
+        1 + aabb_scale.max(1.0).log2().ceil() as u32
+    }
+}
+
+/// Ray marching (paper, appendix E.1; testbed).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MarchConfig {
+    /// Step length in unit-cube coordinates: √3 / 1024 (testbed:
+    /// MIN_CONE_STEPSIZE for the Blender scenes, cone angle 0).
+    pub step: f32,
+    /// At most this many samples per ray (testbed: NERF_STEPS()).
+    pub max_steps: u32,
+    /// Stop marching once transmittance falls below this (testbed: 1e-4).
+    pub min_transmittance: f32,
+}
+
+impl MarchConfig {
+    pub const PAPER: Self = Self {
+        step: 1.732_050_8 / 1024.0,
+        max_steps: 1024,
+        min_transmittance: 1e-4,
+    };
+}
+
+/// Loss on pixel colours.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub enum LossKind {
+    /// Huber with δ = 0.1: instant-ngp's default for NeRF (config "loss").
+    Huber,
+    L2,
+}
+
+/// Huber's δ (config "loss": Huber; tiny-cuda-nn's default, also used by
+/// JNeRF's port).
+pub const HUBER_DELTA: f32 = 0.1;
+
+/// The optimiser (config "optimizer": Ema → ExponentialDecay → Adam).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OptimiserConfig {
+    pub learning_rate: f32,
+    pub beta1: f32,
+    pub beta2: f32,
+    pub epsilon: f32,
+    /// L2 regularisation on network weights only, not on hash entries.
+    pub l2_weights: f32,
+    /// From decay_start on, the learning rate is multiplied by
+    /// decay_base^⌊(step − decay_start) / decay_interval⌋.
+    pub decay_start: u32,
+    pub decay_interval: u32,
+    pub decay_base: f32,
+}
+
+impl OptimiserConfig {
+    pub const PAPER: Self = Self {
+        learning_rate: 1e-2,
+        beta1: 0.9,
+        beta2: 0.99,
+        epsilon: 1e-15,
+        l2_weights: 1e-6,
+        decay_start: 20_000,
+        decay_interval: 10_000,
+        decay_base: 0.33,
+    };
+
+    /// The learning rate at `step`.
+    pub fn learning_rate_at(&self, step: u32) -> f32 {
+        if step < self.decay_start {
+            return self.learning_rate;
+        }
+        let decays = (step - self.decay_start) / self.decay_interval;
+        self.learning_rate * self.decay_base.powi(decays as i32)
+    }
+}
+
+/// Samples per training batch (paper, section 5.4: 2^18).
+pub const SAMPLES_PER_BATCH: usize = 1 << 18;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn growth_factor_reaches_finest_resolution() {
+        let grid = HashGridConfig::paper(1.0);
+        let b = grid.growth_factor();
+        let finest = grid.base_resolution as f64 * b.powi(grid.levels as i32 - 1);
+        assert!((finest - 2048.0).abs() < 1e-6);
+        // Paper, table 1 footnote: b ≈ 1.38 for N_max 2048, L 16.
+        assert!((b - 1.3819).abs() < 1e-3, "{b}");
+    }
+
+    #[test]
+    fn learning_rate_decays_in_steps() {
+        let o = OptimiserConfig::PAPER;
+        assert_eq!(o.learning_rate_at(29_999), 1e-2);
+        assert!((o.learning_rate_at(30_000) - 3.3e-3).abs() < 1e-9);
+        assert!((o.learning_rate_at(39_999) - 3.3e-3).abs() < 1e-9);
+        assert!((o.learning_rate_at(40_000) - 1e-2 * 0.33 * 0.33).abs() < 1e-9);
+    }
+
+    #[test]
+    fn cascades_cover_aabb_scale() {
+        assert_eq!(OccupancyConfig::cascades(1.0), 1);
+        assert_eq!(OccupancyConfig::cascades(16.0), 5);
+        assert_eq!(OccupancyConfig::cascades(3.0), 3);
+    }
+}
