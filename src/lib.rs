@@ -8,3 +8,4 @@ pub mod engine;
 pub mod field;
 pub mod metrics;
 pub mod scene;
+pub mod train;

@@ -1,0 +1,4 @@
+//! The training loop: batches, schedules, the optimiser, the occupancy grid,
+//! evaluation, checkpoints and events.
+
+pub mod checkpoint;
