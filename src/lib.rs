@@ -7,5 +7,6 @@
 pub mod engine;
 pub mod field;
 pub mod metrics;
+pub mod rng;
 pub mod scene;
 pub mod train;

@@ -1,4 +1,5 @@
 //! The training loop: batches, schedules, the optimiser, the occupancy grid,
 //! evaluation, checkpoints and events.
 
+pub mod batch;
 pub mod checkpoint;
