@@ -7,6 +7,7 @@
 pub mod engine;
 pub mod field;
 pub mod metrics;
+pub mod render;
 pub mod rng;
 pub mod scene;
 pub mod train;

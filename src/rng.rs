@@ -69,9 +69,24 @@ mod tests {
 
     #[test]
     fn same_seed_same_sequence_different_stream_different_sequence() {
-        let a: Vec<u32> = (0..8).map({ let mut r = Pcg32::new(7, 1); move |_| r.next_u32() }).collect();
-        let b: Vec<u32> = (0..8).map({ let mut r = Pcg32::new(7, 1); move |_| r.next_u32() }).collect();
-        let c: Vec<u32> = (0..8).map({ let mut r = Pcg32::new(7, 2); move |_| r.next_u32() }).collect();
+        let a: Vec<u32> = (0..8)
+            .map({
+                let mut r = Pcg32::new(7, 1);
+                move |_| r.next_u32()
+            })
+            .collect();
+        let b: Vec<u32> = (0..8)
+            .map({
+                let mut r = Pcg32::new(7, 1);
+                move |_| r.next_u32()
+            })
+            .collect();
+        let c: Vec<u32> = (0..8)
+            .map({
+                let mut r = Pcg32::new(7, 2);
+                move |_| r.next_u32()
+            })
+            .collect();
         assert_eq!(a, b);
         assert_ne!(a, c);
     }
@@ -95,6 +110,9 @@ mod tests {
             counts[rng.below(7) as usize] += 1;
         }
         // Expected 10 000 each, standard deviation ≈ 93; 6σ.
-        assert!(counts.iter().all(|&c| (c as i32 - 10_000).abs() < 560), "{counts:?}");
+        assert!(
+            counts.iter().all(|&c| (c as i32 - 10_000).abs() < 560),
+            "{counts:?}"
+        );
     }
 }

@@ -34,10 +34,21 @@ fn compute_shader_matches_cpu() {
         "main",
     )
     .unwrap();
-    let params = uniform_buffer(&context, "params", &Params { a, count: count as u32 });
+    let params = uniform_buffer(
+        &context,
+        "params",
+        &Params {
+            a,
+            count: count as u32,
+        },
+    );
     let x_buffer = storage_buffer(&context, "x", &x);
     let y_buffer = storage_buffer(&context, "y", &y);
-    kernel.dispatch(&context, &[&params, &x_buffer, &y_buffer], [groups_for(count, 64), 1, 1]);
+    kernel.dispatch(
+        &context,
+        &[&params, &x_buffer, &y_buffer],
+        [groups_for(count, 64), 1, 1],
+    );
     let result: Vec<f32> = read_buffer(&context, &y_buffer, count);
 
     for i in 0..count {
@@ -56,7 +67,12 @@ fn compute_shader_matches_cpu() {
 fn shader_errors_are_reported_not_panicked() {
     let context = GpuContext::new().expect("an adapter exists");
     let broken = "@compute @workgroup_size(1) fn main() { let x: f32 = undefined_name; }";
-    let error = Kernel::new(&context, "broken", broken, "main").err().expect("must not compile");
+    let error = Kernel::new(&context, "broken", broken, "main")
+        .err()
+        .expect("must not compile");
     let message = error.to_string();
-    assert!(message.contains("broken") && message.contains("undefined_name"), "{message}");
+    assert!(
+        message.contains("broken") && message.contains("undefined_name"),
+        "{message}"
+    );
 }

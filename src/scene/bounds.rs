@@ -73,16 +73,24 @@ mod tests {
     #[test]
     fn ray_through_centre_enters_and_leaves_at_faces() {
         let b = Aabb::cube(Vec3::ZERO, 1.0);
-        let (t0, t1) = b.intersect(Vec3::new(0.0, 0.0, 5.0), -Vec3::Z, 0.0).unwrap();
+        let (t0, t1) = b
+            .intersect(Vec3::new(0.0, 0.0, 5.0), -Vec3::Z, 0.0)
+            .unwrap();
         assert!((t0 - 4.0).abs() < 1e-6 && (t1 - 6.0).abs() < 1e-6);
     }
 
     #[test]
     fn ray_missing_box_is_none() {
         let b = Aabb::cube(Vec3::ZERO, 1.0);
-        assert!(b.intersect(Vec3::new(3.0, 0.0, 5.0), -Vec3::Z, 0.0).is_none());
+        assert!(
+            b.intersect(Vec3::new(3.0, 0.0, 5.0), -Vec3::Z, 0.0)
+                .is_none()
+        );
         // Pointing away.
-        assert!(b.intersect(Vec3::new(0.0, 0.0, 5.0), Vec3::Z, 0.0).is_none());
+        assert!(
+            b.intersect(Vec3::new(0.0, 0.0, 5.0), Vec3::Z, 0.0)
+                .is_none()
+        );
     }
 
     #[test]
@@ -97,9 +105,14 @@ mod tests {
     fn axis_parallel_ray_on_a_face_plane() {
         let b = Aabb::cube(Vec3::ZERO, 1.0);
         // Runs along the face x = 1: inside (boxes are closed).
-        let hit = b.intersect(Vec3::new(1.0, 0.0, 5.0), -Vec3::Z, 0.0).unwrap();
+        let hit = b
+            .intersect(Vec3::new(1.0, 0.0, 5.0), -Vec3::Z, 0.0)
+            .unwrap();
         assert!(hit.0.is_finite() && hit.1.is_finite());
         // Just outside that face: a miss, and no NaN anywhere.
-        assert!(b.intersect(Vec3::new(1.0001, 0.0, 5.0), -Vec3::Z, 0.0).is_none());
+        assert!(
+            b.intersect(Vec3::new(1.0001, 0.0, 5.0), -Vec3::Z, 0.0)
+                .is_none()
+        );
     }
 }

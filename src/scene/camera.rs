@@ -216,7 +216,11 @@ mod tests {
         let angle = 0.691_111_2_f32;
         let expected = 0.5 * 400.0 / (0.5f64 * angle as f64).tan();
         let k = Intrinsics::from_fov_x(400, 400, angle);
-        assert!((k.fx as f64 - expected).abs() < 1e-3, "{} vs {expected}", k.fx);
+        assert!(
+            (k.fx as f64 - expected).abs() < 1e-3,
+            "{} vs {expected}",
+            k.fx
+        );
         assert!((k.fx - 555.555).abs() < 1e-3);
         assert_eq!(k.fx, k.fy);
         assert!((k.fov_x() - angle).abs() < 1e-6);
@@ -242,7 +246,12 @@ mod tests {
                 (closest - point).length()
             );
             // And the un-normalised direction reaches the point at its depth.
-            let depth = camera.camera_to_world.inverse().transform_point3(point).z.abs();
+            let depth = camera
+                .camera_to_world
+                .inverse()
+                .transform_point3(point)
+                .z
+                .abs();
             let reached = ray.origin + depth * ray.direction_unnormalised;
             assert!((reached - point).length() < 1e-5);
         }
@@ -253,7 +262,10 @@ mod tests {
         let camera = test_camera();
         let ray = camera.pixel_ray(10, 7);
         let (u, v) = camera.project(ray.at(3.0)).unwrap();
-        assert!((u - 10.5).abs() < 1e-4 && (v - 7.5).abs() < 1e-4, "({u}, {v})");
+        assert!(
+            (u - 10.5).abs() < 1e-4 && (v - 7.5).abs() < 1e-4,
+            "({u}, {v})"
+        );
     }
 
     #[test]
@@ -276,7 +288,11 @@ mod tests {
             (rays[4], bottom_left),
             (rays[7], bottom_right),
         ] {
-            assert!((ray.direction - want).length() < 1e-6, "{} vs {want}", ray.direction);
+            assert!(
+                (ray.direction - want).length() < 1e-6,
+                "{} vs {want}",
+                ray.direction
+            );
             assert_eq!(ray.origin, Vec3::ZERO);
             assert!((ray.direction_unnormalised.z + 1.0).abs() < 1e-7);
         }

@@ -36,7 +36,13 @@ impl SceneError {
 impl fmt::Display for SceneError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self.frame {
-            Some(frame) => write!(f, "{}: frame {}: {}", self.path.display(), frame, self.problem),
+            Some(frame) => write!(
+                f,
+                "{}: frame {}: {}",
+                self.path.display(),
+                frame,
+                self.problem
+            ),
             None => write!(f, "{}: {}", self.path.display(), self.problem),
         }
     }

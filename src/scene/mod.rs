@@ -1,10 +1,14 @@
 //! What was photographed: cameras, rays, images, the dataset formats and the
 //! built-in demo scene.
 
+pub mod blender;
 pub mod bounds;
 pub mod camera;
+pub mod demo;
 pub mod error;
 pub mod image;
+pub mod instant_ngp;
+pub mod pose;
 
 use std::path::{Path, PathBuf};
 
@@ -153,6 +157,43 @@ impl Scene {
     }
 }
 
+impl Scene {
+    /// Loads a scene from disk: a folder in the NeRF-synthetic layout
+    /// (`transforms_{train,val,test}.json`, see [`blender`]) or the
+    /// instant-ngp / nerfstudio layout (`transforms.json`, see
+    /// [`instant_ngp`]), or the path of one of those JSON files. A folder
+    /// with both prefers the split files, because they carry the dataset's
+    /// own train/val/test division.
+    pub fn load(path: &Path, options: LoadOptions) -> SceneResult<Scene> {
+        pose::check_downscale(path, options.downscale)?;
+        if path.is_file() {
+            let is_split_file = Split::ALL
+                .iter()
+                .any(|&split| path.file_name() == Some(blender::split_file_name(split).as_ref()));
+            return if is_split_file {
+                let folder = path.parent().filter(|p| !p.as_os_str().is_empty());
+                blender::load(folder.unwrap_or(Path::new(".")), options)
+            } else {
+                instant_ngp::load(path, options)
+            };
+        }
+        if !path.is_dir() {
+            return Err(SceneError::new(path, "folder not found"));
+        }
+        if blender::is_blender_folder(path) {
+            blender::load(path, options)
+        } else if path.join(instant_ngp::FILE_NAME).is_file() {
+            instant_ngp::load(path, options)
+        } else {
+            Err(SceneError::new(
+                path,
+                "not a scene folder: it holds none of transforms_train.json, \
+                 transforms_val.json, transforms_test.json or transforms.json",
+            ))
+        }
+    }
+}
+
 /// Checks that every frame has the same resolution, naming the first that
 /// differs.
 pub fn check_same_size(frames: &[(PathBuf, usize, u32, u32)]) -> SceneResult<()> {
@@ -162,7 +203,9 @@ pub fn check_same_size(frames: &[(PathBuf, usize, u32, u32)]) -> SceneResult<()>
                 return Err(SceneError::in_frame(
                     path,
                     *index,
-                    format!("frames of different sizes: this one is {w}×{h}, the first is {w0}×{h0}"),
+                    format!(
+                        "frames of different sizes: this one is {w}×{h}, the first is {w0}×{h0}"
+                    ),
                 ));
             }
         }

@@ -102,11 +102,21 @@ mod tests {
         let frames = [frame([255, 0, 0, 128])];
         let mut batch = RayBatch::default();
         let mut rng = Pcg32::new(5, 0);
-        sample_rays(&frames, 500, TrainingBackground::Random, &mut rng, &mut batch);
+        sample_rays(
+            &frames,
+            500,
+            TrainingBackground::Random,
+            &mut rng,
+            &mut batch,
+        );
         assert_eq!(batch.len(), 500);
         let alpha = 128.0 / 255.0;
         for (target, bg) in batch.targets.iter().zip(&batch.backgrounds) {
-            let want = [alpha + bg[0] * (1.0 - alpha), bg[1] * (1.0 - alpha), bg[2] * (1.0 - alpha)];
+            let want = [
+                alpha + bg[0] * (1.0 - alpha),
+                bg[1] * (1.0 - alpha),
+                bg[2] * (1.0 - alpha),
+            ];
             for c in 0..3 {
                 assert!((target[c] - want[c]).abs() < 1e-6);
             }
@@ -122,8 +132,20 @@ mod tests {
         let frames = [frame([10, 20, 30, 255]), frame([40, 50, 60, 255])];
         let mut a = RayBatch::default();
         let mut b = RayBatch::default();
-        sample_rays(&frames, 64, TrainingBackground::Random, &mut Pcg32::new(9, 1), &mut a);
-        sample_rays(&frames, 64, TrainingBackground::Random, &mut Pcg32::new(9, 1), &mut b);
+        sample_rays(
+            &frames,
+            64,
+            TrainingBackground::Random,
+            &mut Pcg32::new(9, 1),
+            &mut a,
+        );
+        sample_rays(
+            &frames,
+            64,
+            TrainingBackground::Random,
+            &mut Pcg32::new(9, 1),
+            &mut b,
+        );
         assert_eq!(a.directions, b.directions);
         assert_eq!(a.targets, b.targets);
     }

@@ -166,7 +166,9 @@ impl Checkpoint {
             return Err(format("wrong magic bytes"));
         }
         let mut word = [0u8; 4];
-        input.read_exact(&mut word).map_err(|_| format("file too short"))?;
+        input
+            .read_exact(&mut word)
+            .map_err(|_| format("file too short"))?;
         let version = u32::from_le_bytes(word);
         if version != FORMAT_VERSION {
             return Err(format(&format!(
@@ -174,7 +176,9 @@ impl Checkpoint {
             )));
         }
         let mut long = [0u8; 8];
-        input.read_exact(&mut long).map_err(|_| format("file too short"))?;
+        input
+            .read_exact(&mut long)
+            .map_err(|_| format("file too short"))?;
         let header_length = u64::from_le_bytes(long) as usize;
         if header_length > 64 << 20 {
             return Err(format("header length is implausible"));
@@ -183,8 +187,8 @@ impl Checkpoint {
         input
             .read_exact(&mut header)
             .map_err(|_| format("truncated header"))?;
-        let stored: StoredHeader = serde_json::from_slice(&header)
-            .map_err(|e| format(&format!("bad header: {e}")))?;
+        let stored: StoredHeader =
+            serde_json::from_slice(&header).map_err(|e| format(&format!("bad header: {e}")))?;
         let mut tensors = Vec::with_capacity(stored.tensors.len());
         for (name, length) in stored.tensors {
             let mut values = vec![0f32; length];
@@ -233,7 +237,10 @@ mod tests {
         let mut newer = sample();
         newer.header = serde_json::json!({"step": 43});
         let error = newer.save(&path).unwrap_err().to_string();
-        assert!(error.contains("checkpoint.zrak") && error.contains("cannot write"), "{error}");
+        assert!(
+            error.contains("checkpoint.zrak") && error.contains("cannot write"),
+            "{error}"
+        );
         assert_eq!(Checkpoint::load(&path).unwrap(), sample());
     }
 

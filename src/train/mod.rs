@@ -3,3 +3,8 @@
 
 pub mod batch;
 pub mod checkpoint;
+pub mod eval;
+pub mod log;
+pub mod model;
+pub mod run;
+pub mod trainer;

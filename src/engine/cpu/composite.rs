@@ -192,7 +192,9 @@ mod tests {
 
     /// A deterministic pseudo-random sequence in [0, 1) for test inputs.
     fn sequence(seed: u64, n: usize) -> Vec<f64> {
-        let mut state = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        let mut state = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         (0..n)
             .map(|_| {
                 state = state
@@ -307,7 +309,10 @@ mod tests {
                 let numeric = (loss(&plus) - loss(&minus)) / (2.0 * h);
                 worst = worst.max(relative_error(analytic.background[c], numeric));
             }
-            assert!(worst < 1e-6, "density scale {density_scale}: worst relative error {worst:e}");
+            assert!(
+                worst < 1e-6,
+                "density scale {density_scale}: worst relative error {worst:e}"
+            );
         }
     }
 
@@ -319,21 +324,37 @@ mod tests {
                 let colour = vec![[0.2, 0.5, 0.8]; n];
                 let delta = vec![1.0; n];
                 let t: Vec<f64> = (0..n).map(|i| i as f64 + 0.5).collect();
-                let samples = RaySamples { density: &density, colour: &colour, delta: &delta, t: &t };
+                let samples = RaySamples {
+                    density: &density,
+                    colour: &colour,
+                    delta: &delta,
+                    t: &t,
+                };
                 let mut w = vec![0.0; n];
                 let final_t = weights(&samples, &mut w);
-                assert!(w.iter().all(|w| w.is_finite() && (0.0..=1.0).contains(w)), "tau {tau}: {w:?}");
+                assert!(
+                    w.iter().all(|w| w.is_finite() && (0.0..=1.0).contains(w)),
+                    "tau {tau}: {w:?}"
+                );
                 let sum: f64 = w.iter().sum();
                 assert!(sum <= 1.0 + 1e-12, "tau {tau}, n {n}: Σw = {sum}");
                 assert!((sum + final_t - 1.0).abs() < 1e-12);
                 let out = composite(&samples, [1.0; 3]);
-                assert!(out.colour.iter().all(|c| c.is_finite() && (0.0..=1.0).contains(c)));
+                assert!(
+                    out.colour
+                        .iter()
+                        .all(|c| c.is_finite() && (0.0..=1.0).contains(c))
+                );
                 assert!((0.0..=1.0).contains(&out.opacity) && out.depth.is_finite());
                 // The smallest τ must not be lost to rounding: α ≈ τ.
                 if tau == 1e-12 && n == 1 {
                     assert!((w[0] - 1e-12).abs() < 1e-22, "{}", w[0]);
                 }
-                let grad = OutputGradients { colour: [1.0, -1.0, 0.5], opacity: 1.0, depth: 0.1 };
+                let grad = OutputGradients {
+                    colour: [1.0, -1.0, 0.5],
+                    opacity: 1.0,
+                    depth: 0.1,
+                };
                 let g = composite_backward(&samples, [1.0; 3], &grad);
                 assert!(g.density.iter().all(|x| x.is_finite()));
                 assert!(g.colour.iter().flatten().all(|x| x.is_finite()));
@@ -344,7 +365,12 @@ mod tests {
         let colour = [[0.3f32; 3]; 3];
         let delta = [1.0f32; 3];
         let t = [0.5f32, 1.5, 2.5];
-        let samples = RaySamples { density: &density, colour: &colour, delta: &delta, t: &t };
+        let samples = RaySamples {
+            density: &density,
+            colour: &colour,
+            delta: &delta,
+            t: &t,
+        };
         let mut w = [0f32; 3];
         weights(&samples, &mut w);
         assert!(w[0] > 0.0 && w[0] < 2e-12 && (w[1] - 1.0).abs() < 1e-6 && w[2] == 0.0);
@@ -352,11 +378,23 @@ mod tests {
 
     #[test]
     fn empty_ray_is_background() {
-        let samples: RaySamples<f64> = RaySamples { density: &[], colour: &[], delta: &[], t: &[] };
+        let samples: RaySamples<f64> = RaySamples {
+            density: &[],
+            colour: &[],
+            delta: &[],
+            t: &[],
+        };
         let out = composite(&samples, [0.25, 0.5, 0.75]);
         assert_eq!(out.colour, [0.25, 0.5, 0.75]);
-        assert_eq!((out.opacity, out.depth, out.final_transmittance), (0.0, 0.0, 1.0));
-        let grad = OutputGradients { colour: [1.0, 2.0, 3.0], opacity: 1.0, depth: 1.0 };
+        assert_eq!(
+            (out.opacity, out.depth, out.final_transmittance),
+            (0.0, 0.0, 1.0)
+        );
+        let grad = OutputGradients {
+            colour: [1.0, 2.0, 3.0],
+            opacity: 1.0,
+            depth: 1.0,
+        };
         let g = composite_backward(&samples, [0.25, 0.5, 0.75], &grad);
         assert!(g.density.is_empty() && g.colour.is_empty());
         assert_eq!(g.background, [1.0, 2.0, 3.0]);
@@ -370,11 +408,18 @@ mod tests {
         // opacity = 1 − e^{−σL}, colour = c (1 − e^{−σL}) + bg e^{−σL}.
         let (sigma, length, t0, n) = (1.7f64, 2.0f64, 1.0f64, 400usize);
         let delta = vec![length / n as f64; n];
-        let t: Vec<f64> = (0..n).map(|i| t0 + (i as f64 + 0.5) * length / n as f64).collect();
+        let t: Vec<f64> = (0..n)
+            .map(|i| t0 + (i as f64 + 0.5) * length / n as f64)
+            .collect();
         let density = vec![sigma; n];
         let colour = vec![[0.9, 0.4, 0.1]; n];
         let background = [1.0, 1.0, 1.0];
-        let samples = RaySamples { density: &density, colour: &colour, delta: &delta, t: &t };
+        let samples = RaySamples {
+            density: &density,
+            colour: &colour,
+            delta: &delta,
+            t: &t,
+        };
         let out = composite(&samples, background);
         let absorbed = 1.0 - (-sigma * length).exp();
         assert!((out.opacity - absorbed).abs() < 1e-14);
@@ -388,6 +433,10 @@ mod tests {
         // O(δ²) ≈ (L/N)² = 2.5e-5 relative, so 1e-4 bounds it.
         let want_depth =
             t0 * absorbed + (1.0 - (-sigma * length).exp() * (1.0 + sigma * length)) / sigma;
-        assert!(((out.depth - want_depth) / want_depth).abs() < 1e-4, "{} vs {want_depth}", out.depth);
+        assert!(
+            ((out.depth - want_depth) / want_depth).abs() < 1e-4,
+            "{} vs {want_depth}",
+            out.depth
+        );
     }
 }

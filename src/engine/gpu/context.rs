@@ -93,12 +93,13 @@ impl GpuContext {
             required_limits: limits.clone(),
             ..Default::default()
         };
-        let (device, queue) = pollster::block_on(adapter.request_device(&descriptor)).map_err(
-            |source| GpuError::RequestDevice {
-                adapter: info.name.clone(),
-                source,
-            },
-        )?;
+        let (device, queue) =
+            pollster::block_on(adapter.request_device(&descriptor)).map_err(|source| {
+                GpuError::RequestDevice {
+                    adapter: info.name.clone(),
+                    source,
+                }
+            })?;
         Ok(Self {
             adapter,
             device,
@@ -122,11 +123,7 @@ impl GpuContext {
             self.info.name,
             self.info.backend,
             self.info.device_type,
-            if self.is_software() {
-                ", software"
-            } else {
-                ""
-            }
+            if self.is_software() { ", software" } else { "" }
         )
     }
 
@@ -170,7 +167,12 @@ mod tests {
         use wgpu::Backend::{Gl, Vulkan};
         let software = adapter_preference(DeviceType::Cpu, Vulkan);
         assert!(adapter_preference(DeviceType::IntegratedGpu, Gl) > software);
-        assert!(adapter_preference(DeviceType::DiscreteGpu, Vulkan) > adapter_preference(DeviceType::IntegratedGpu, Vulkan));
-        assert!(adapter_preference(DeviceType::Cpu, Vulkan) > adapter_preference(DeviceType::Cpu, Gl));
+        assert!(
+            adapter_preference(DeviceType::DiscreteGpu, Vulkan)
+                > adapter_preference(DeviceType::IntegratedGpu, Vulkan)
+        );
+        assert!(
+            adapter_preference(DeviceType::Cpu, Vulkan) > adapter_preference(DeviceType::Cpu, Gl)
+        );
     }
 }

@@ -118,12 +118,18 @@ pub fn storage_buffer<T: Pod>(context: &GpuContext, label: &str, data: &[T]) -> 
 }
 
 /// A zero-filled storage buffer of `count` elements of `T`.
-pub fn zeroed_storage_buffer<T: Pod>(context: &GpuContext, label: &str, count: usize) -> wgpu::Buffer {
+pub fn zeroed_storage_buffer<T: Pod>(
+    context: &GpuContext,
+    label: &str,
+    count: usize,
+) -> wgpu::Buffer {
     let size = (count * std::mem::size_of::<T>()).max(4) as u64;
     context.device.create_buffer(&wgpu::BufferDescriptor {
         label: Some(label),
         size,
-        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
+        usage: wgpu::BufferUsages::STORAGE
+            | wgpu::BufferUsages::COPY_SRC
+            | wgpu::BufferUsages::COPY_DST,
         mapped_at_creation: false,
     })
 }

@@ -1,0 +1,97 @@
+//! Evaluation: render held-out views on white and score them against the
+//! photographs composited on white (the reference protocol).
+
+use serde::{Deserialize, Serialize};
+
+use crate::metrics::{self, ImageScores, RgbImage, WHITE};
+use crate::render::{render_pixels, rgb_of};
+use crate::scene::Frame;
+
+use super::model::RadianceModel;
+
+/// Scores of one view.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct ViewScores {
+    pub index: usize,
+    pub image: String,
+    pub psnr: f64,
+    pub ssim: f64,
+}
+
+/// Scores of a split: per view and means (per-image PSNR, then the mean).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct SplitScores {
+    pub split: String,
+    pub views: Vec<ViewScores>,
+    pub mean_psnr: f64,
+    pub mean_ssim: f64,
+    pub render_seconds: f64,
+}
+
+/// Renders `frame`'s camera over white and scores it against the image.
+pub fn score_view(model: &dyn RadianceModel, frame: &Frame, with_ssim: bool) -> ImageScores {
+    let k = frame.camera.intrinsics;
+    let rendered = render_pixels(model, &frame.camera, WHITE);
+    let (w, h) = (k.width as usize, k.height as usize);
+    let prediction = RgbImage::new(w, h, rgb_of(&rendered)).expect("one pixel per ray");
+    let truth = RgbImage::from_rgba8_over(&frame.image, WHITE);
+    let psnr = metrics::psnr(&prediction, &truth).expect("same size");
+    let ssim = if with_ssim {
+        metrics::ssim(&prediction, &truth).unwrap_or(f64::NAN)
+    } else {
+        f64::NAN
+    };
+    ImageScores { psnr, ssim }
+}
+
+/// Mean PSNR over `frames` (no SSIM), for progress reports.
+pub fn mean_psnr(model: &dyn RadianceModel, frames: &[&Frame]) -> f64 {
+    if frames.is_empty() {
+        return f64::NAN;
+    }
+    frames
+        .iter()
+        .map(|f| score_view(model, f, false).psnr)
+        .sum::<f64>()
+        / frames.len() as f64
+}
+
+/// Full evaluation of a split, with a callback per view for progress.
+pub fn evaluate_split(
+    model: &dyn RadianceModel,
+    split: &str,
+    frames: &[Frame],
+    mut on_view: impl FnMut(&ViewScores),
+) -> SplitScores {
+    let started = std::time::Instant::now();
+    let mut views = Vec::with_capacity(frames.len());
+    for (index, frame) in frames.iter().enumerate() {
+        let scores = score_view(model, frame, true);
+        let view = ViewScores {
+            index,
+            image: frame.image_path.display().to_string(),
+            psnr: scores.psnr,
+            ssim: scores.ssim,
+        };
+        on_view(&view);
+        views.push(view);
+    }
+    let n = views.len().max(1) as f64;
+    SplitScores {
+        split: split.to_string(),
+        mean_psnr: views.iter().map(|v| v.psnr).sum::<f64>() / n,
+        mean_ssim: views.iter().map(|v| v.ssim).sum::<f64>() / n,
+        views,
+        render_seconds: started.elapsed().as_secs_f64(),
+    }
+}
+
+/// `count` views spread evenly over `frames` (all when there are fewer).
+pub fn spread_views(frames: &[Frame], count: usize) -> Vec<&Frame> {
+    if frames.len() <= count {
+        return frames.iter().collect();
+    }
+    (0..count)
+        .map(|i| &frames[i * frames.len() / count])
+        .collect()
+}

@@ -1,0 +1,121 @@
+//! What the training loop, the renderer and the viewer need from a model on
+//! an engine. Each (model, engine) pair implements it; nothing above this
+//! trait knows which one it drives.
+
+use glam::Vec3;
+
+use super::batch::RayBatch;
+use super::checkpoint::Checkpoint;
+
+/// Seconds spent in each stage of one training step.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StageTimes {
+    pub march: f64,
+    pub encode: f64,
+    pub networks_forward: f64,
+    pub composite: f64,
+    pub networks_backward: f64,
+    pub encode_backward: f64,
+    pub optimiser: f64,
+    pub grid_update: f64,
+}
+
+impl StageTimes {
+    pub fn total(&self) -> f64 {
+        self.march
+            + self.encode
+            + self.networks_forward
+            + self.composite
+            + self.networks_backward
+            + self.encode_backward
+            + self.optimiser
+            + self.grid_update
+    }
+
+    pub fn named(&self) -> [(&'static str, f64); 8] {
+        [
+            ("march", self.march),
+            ("encode", self.encode),
+            ("networks forward", self.networks_forward),
+            ("composite + loss", self.composite),
+            ("networks backward", self.networks_backward),
+            ("encode backward", self.encode_backward),
+            ("optimiser", self.optimiser),
+            ("grid update", self.grid_update),
+        ]
+    }
+
+    pub fn add(&mut self, other: &StageTimes) {
+        self.march += other.march;
+        self.encode += other.encode;
+        self.networks_forward += other.networks_forward;
+        self.composite += other.composite;
+        self.networks_backward += other.networks_backward;
+        self.encode_backward += other.encode_backward;
+        self.optimiser += other.optimiser;
+        self.grid_update += other.grid_update;
+    }
+}
+
+/// What one training step did.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StepStats {
+    /// Mean loss over the batch's rays.
+    pub loss: f32,
+    pub rays: usize,
+    /// Samples the networks were evaluated on.
+    pub samples: usize,
+    pub times: StageTimes,
+}
+
+impl StepStats {
+    pub fn samples_per_ray(&self) -> f32 {
+        if self.rays == 0 {
+            0.0
+        } else {
+            self.samples as f32 / self.rays as f32
+        }
+    }
+}
+
+/// One rendered pixel.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct RenderedPixel {
+    pub rgb: [f32; 3],
+    pub opacity: f32,
+    /// Expected depth Σ wᵢ tᵢ along the unit direction (world units).
+    pub depth: f32,
+}
+
+/// A model being trained on one engine.
+pub trait RadianceModel: Send {
+    /// e.g. "Instant-NGP (cpu)".
+    fn describe(&self) -> String;
+
+    /// How many rays the next batch should hold (models that adapt the
+    /// batch to a sample budget change it as training goes).
+    fn rays_for_next_batch(&self) -> usize;
+
+    /// One optimisation step on `batch`; `step` counts from 0 and seeds
+    /// every random choice inside the step.
+    fn step(&mut self, batch: &RayBatch, step: u32) -> StepStats;
+
+    /// Inference: composites each ray over `background`.
+    fn render(
+        &self,
+        origins: &[Vec3],
+        directions: &[Vec3],
+        background: [f32; 3],
+        out: &mut [RenderedPixel],
+    );
+
+    /// Everything needed to resume bit for bit: parameters, optimiser state,
+    /// grids, counters. The header holds small values as JSON.
+    fn save(&self) -> Checkpoint;
+
+    /// Restores what [`Self::save`] wrote.
+    fn load(&mut self, checkpoint: &Checkpoint) -> Result<(), String>;
+
+    /// Bytes held by parameters, optimiser state and workspaces.
+    fn memory_bytes(&self) -> usize;
+}
