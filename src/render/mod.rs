@@ -1,5 +1,7 @@
 //! Novel views from a trained model: whole images in tiles, render modes.
 
+pub mod path;
+
 use rayon::prelude::*;
 
 use crate::scene::{Camera, ImageRgba8, image::to_u8};

@@ -1,0 +1,957 @@
+//! The built-in demo scene: a handful of coloured primitives on a checkered
+//! stand, rendered by an exact ray tracer into the NeRF-synthetic layout.
+//!
+//! It exists so that the viewer has something to open and the tests have
+//! something to train on without any dataset on disk. It is deliberately
+//! small (content within a radius of about 1.2 of the origin, inside
+//! [`UnitCubeMapping::BLENDER`]'s box), deterministic (no randomness
+//! anywhere: fixed supersampling pattern, fixed camera placement), and
+//! learnable (flat colours, one texture, one glossy object so that view
+//! dependence matters, a transparent background like the Blender scenes).
+//!
+//! World axes follow Blender: z is up. Cameras sit on the upper hemisphere
+//! at distance [`CAMERA_DISTANCE`] looking at the origin, like
+//! NeRF-synthetic's cameras at about 4.03.
+
+use std::path::{Path, PathBuf};
+
+use glam::Vec3;
+use rayon::prelude::*;
+use serde::Serialize;
+
+use super::image::to_u8;
+use super::{
+    Camera, Frame, ImageRgba8, Intrinsics, Scene, SceneError, SceneFormat, SceneResult, Split,
+    UnitCubeMapping,
+};
+
+/// Horizontal field of view of every demo camera, NeRF-synthetic's value.
+pub const CAMERA_ANGLE_X: f32 = 0.691_111_2;
+
+/// Distance of every demo camera from the origin.
+pub const CAMERA_DISTANCE: f32 = 4.0;
+
+/// Lowest and highest camera elevation of the training spiral, in degrees.
+/// Below 10° the stand hides most of itself; above 80° the views stop adding
+/// parallax.
+const MIN_ELEVATION_DEG: f32 = 10.0;
+const MAX_ELEVATION_DEG: f32 = 80.0;
+
+/// Supersampling grid per pixel side: 4×4 = 16 samples, enough for smooth
+/// alpha edges and an unaliased checkerboard at 128 px.
+const SAMPLES_PER_SIDE: u32 = 4;
+
+/// How large the demo scene is and how many views each split gets.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct DemoConfig {
+    /// Width and height of every image, in pixels.
+    pub size: u32,
+    pub train_views: usize,
+    pub val_views: usize,
+    pub test_views: usize,
+}
+
+impl Default for DemoConfig {
+    fn default() -> Self {
+        Self {
+            size: 128,
+            train_views: 100,
+            val_views: 10,
+            test_views: 10,
+        }
+    }
+}
+
+impl DemoConfig {
+    fn views(&self, split: Split) -> usize {
+        match split {
+            Split::Train => self.train_views,
+            Split::Val => self.val_views,
+            Split::Test => self.test_views,
+        }
+    }
+}
+
+/// Builds the scene in memory: every view of every split rendered.
+pub fn build(config: &DemoConfig) -> Scene {
+    let mut frames = Split::ALL.map(|split| {
+        split_cameras(config, split)
+            .par_iter()
+            .map(|camera| Frame {
+                camera: *camera,
+                image: render_view(camera),
+                image_path: PathBuf::new(),
+            })
+            .collect::<Vec<_>>()
+    });
+    let unit_cube = UnitCubeMapping::BLENDER;
+    Scene {
+        name: "demo".to_string(),
+        root: PathBuf::new(),
+        format: SceneFormat::Demo,
+        train: std::mem::take(&mut frames[0]),
+        val: std::mem::take(&mut frames[1]),
+        test: std::mem::take(&mut frames[2]),
+        has_alpha: true,
+        unit_cube,
+        bounds: unit_cube.world_bounds(),
+    }
+}
+
+/// Writes the scene in the NeRF-synthetic (Blender) layout under `dir`:
+/// `transforms_{train,val,test}.json` and `{train,val,test}/r_N.png`.
+pub fn write(config: &DemoConfig, dir: &Path) -> SceneResult<()> {
+    let scene = build(config);
+    for split in Split::ALL {
+        let frames = scene.split(split);
+        let folder = dir.join(split.name());
+        std::fs::create_dir_all(&folder)
+            .map_err(|e| SceneError::new(&folder, format!("cannot create folder: {e}")))?;
+        frames
+            .par_iter()
+            .enumerate()
+            .try_for_each(|(index, frame)| {
+                frame.image.save_png(&folder.join(format!("r_{index}.png")))
+            })?;
+        let file = TransformsFile {
+            camera_angle_x: CAMERA_ANGLE_X,
+            frames: frames
+                .iter()
+                .enumerate()
+                .map(|(index, frame)| FrameEntry {
+                    file_path: format!("./{}/r_{index}", split.name()),
+                    transform_matrix: std::array::from_fn(|row| {
+                        frame.camera.camera_to_world.row(row).to_array()
+                    }),
+                })
+                .collect(),
+        };
+        let path = dir.join(format!("transforms_{}.json", split.name()));
+        let text = serde_json::to_string_pretty(&file)
+            .map_err(|e| SceneError::new(&path, format!("cannot encode JSON: {e}")))?;
+        std::fs::write(&path, text)
+            .map_err(|e| SceneError::new(&path, format!("cannot write file: {e}")))?;
+    }
+    Ok(())
+}
+
+#[derive(Serialize)]
+struct TransformsFile {
+    camera_angle_x: f32,
+    frames: Vec<FrameEntry>,
+}
+
+#[derive(Serialize)]
+struct FrameEntry {
+    file_path: String,
+    transform_matrix: [[f32; 4]; 4],
+}
+
+/// The cameras of one split, in file order, without rendering anything.
+///
+/// Training views lie on a golden-angle spiral whose heights are spaced
+/// evenly (so the views cover the band of the hemisphere evenly in area).
+/// Validation and test views lie on the same spiral half-way between two
+/// training views, spread along its whole length (validation a quarter of
+/// the way into each stretch, test three quarters): the same distribution
+/// of viewpoints, but never one the model was trained on.
+pub fn split_cameras(config: &DemoConfig, split: Split) -> Vec<Camera> {
+    let count = config.views(split);
+    // With no training views there is nothing to avoid; the held-out views
+    // then make their own spiral.
+    let spiral_length = if config.train_views > 0 {
+        config.train_views
+    } else {
+        count
+    };
+    let stretch = spiral_length as f32 / count as f32;
+    let positions: Vec<Vec3> = match split {
+        Split::Train => (0..count)
+            .map(|k| spiral_position(k as f32, spiral_length))
+            .collect(),
+        Split::Val | Split::Test => {
+            let phase = if split == Split::Val { 0.25 } else { 0.75 };
+            (0..count)
+                .map(|k| {
+                    let index = ((k as f32 + phase) * stretch)
+                        .floor()
+                        .min(spiral_length as f32 - 1.0);
+                    spiral_position(index + 0.5, spiral_length)
+                })
+                .collect()
+        }
+    };
+    let intrinsics = Intrinsics::from_fov_x(config.size, config.size, CAMERA_ANGLE_X);
+    positions
+        .into_iter()
+        .map(|eye| Camera::look_at(intrinsics, eye, Vec3::ZERO, Vec3::Z))
+        .collect()
+}
+
+/// A point at `CAMERA_DISTANCE` with the given elevation and azimuth.
+fn on_hemisphere(elevation: f32, azimuth: f32) -> Vec3 {
+    CAMERA_DISTANCE
+        * Vec3::new(
+            elevation.cos() * azimuth.cos(),
+            elevation.cos() * azimuth.sin(),
+            elevation.sin(),
+        )
+}
+
+/// The point at (possibly fractional) `index` of a spiral of `length`
+/// views from `MIN_ELEVATION_DEG` up to `MAX_ELEVATION_DEG`.
+fn spiral_position(index: f32, length: usize) -> Vec3 {
+    // The golden angle never repeats a direction, so consecutive views are
+    // far apart in azimuth while all views together fill the band evenly.
+    let golden_angle = std::f32::consts::PI * (3.0 - 5f32.sqrt());
+    let low = MIN_ELEVATION_DEG.to_radians().sin();
+    let high = MAX_ELEVATION_DEG.to_radians().sin();
+    let t = (index + 0.5) / length as f32;
+    let elevation = (low + t * (high - low)).asin();
+    on_hemisphere(elevation, index * golden_angle)
+}
+
+/// Renders the demo scene exactly (analytic intersections, 16 samples per
+/// pixel) as seen by any camera. Where no sample hits anything the pixel is
+/// fully transparent.
+pub fn render_view(camera: &Camera) -> ImageRgba8 {
+    let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
+    let world = World::new();
+    let mut data = vec![0u8; width as usize * height as usize * 4];
+    if data.is_empty() {
+        return ImageRgba8::new(width, height, data);
+    }
+    let n = SAMPLES_PER_SIDE;
+    let offsets: Vec<(f32, f32)> = (0..n * n)
+        .map(|s| {
+            let (a, b) = (s % n, s / n);
+            ((a as f32 + 0.5) / n as f32, (b as f32 + 0.5) / n as f32)
+        })
+        .collect();
+    data.par_chunks_mut(width as usize * 4)
+        .enumerate()
+        .for_each(|(row, pixels)| {
+            for (column, pixel) in pixels.chunks_exact_mut(4).enumerate() {
+                let mut colour = Vec3::ZERO;
+                let mut hits = 0u32;
+                for &(dx, dy) in &offsets {
+                    let ray = camera.ray_through(column as f32 + dx, row as f32 + dy);
+                    if let Some(c) = world.trace(ray.origin, ray.direction) {
+                        colour += c;
+                        hits += 1;
+                    }
+                }
+                // Every sample is either fully covered or empty, so the mean
+                // of the hit colours is already the straight (not
+                // premultiplied) colour, and coverage is the alpha.
+                if hits > 0 {
+                    let straight = colour / hits as f32;
+                    pixel[0] = to_u8(straight.x);
+                    pixel[1] = to_u8(straight.y);
+                    pixel[2] = to_u8(straight.z);
+                    pixel[3] = to_u8(hits as f32 / offsets.len() as f32);
+                }
+            }
+        });
+    ImageRgba8::new(width, height, data)
+}
+
+// ---------------------------------------------------------------------------
+// The scene's content.
+
+/// Height of the stand's top face: everything else rests on it.
+const GROUND_Z: f32 = -0.42;
+const GROUND_RADIUS: f32 = 1.1;
+const GROUND_THICKNESS: f32 = 0.08;
+const CHECKER_SIZE: f32 = 0.22;
+
+/// Radius of a sphere around the origin that holds all content, used to
+/// skip the per-object tests for rays that miss everything.
+const CONTENT_RADIUS: f32 = 1.25;
+
+/// Offset along the normal for secondary rays, so they do not hit the
+/// surface they start on.
+const SURFACE_EPSILON: f32 = 1e-3;
+
+const AMBIENT: f32 = 0.2;
+const KEY_INTENSITY: f32 = 0.8;
+const FILL_INTENSITY: f32 = 0.25;
+
+#[derive(Debug, Clone, Copy)]
+enum Shape {
+    Sphere {
+        centre: Vec3,
+        radius: f32,
+    },
+    /// A box turned by an angle (given as its cosine and sine) about the
+    /// vertical axis through its centre.
+    Block {
+        centre: Vec3,
+        half: Vec3,
+        cos: f32,
+        sin: f32,
+    },
+    /// An upright cylinder with flat caps, from `bottom` up to
+    /// `bottom + height`.
+    Cylinder {
+        bottom: Vec3,
+        radius: f32,
+        height: f32,
+    },
+}
+
+#[derive(Debug, Clone, Copy)]
+enum Pigment {
+    Solid(Vec3),
+    /// Squares on the upward-facing part of the surface, a plain colour on
+    /// the rest (the stand's rim).
+    Checker {
+        light: Vec3,
+        dark: Vec3,
+        rim: Vec3,
+    },
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Material {
+    pigment: Pigment,
+    /// Glossy surfaces get a Blinn-Phong highlight from the key light and a
+    /// Fresnel-weighted mirror reflection; matte ones only diffuse light.
+    glossy: bool,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Object {
+    shape: Shape,
+    material: Material,
+}
+
+struct Hit {
+    t: f32,
+    normal: Vec3,
+    object: usize,
+}
+
+/// Glossy model parameters: a lacquered ball. The exponent keeps the
+/// highlight a few pixels wide at 128 px so that a field can learn it; the
+/// base reflectance of 0.06 is plastic-like, and Schlick's term raises it
+/// towards grazing angles.
+const SPECULAR_STRENGTH: f32 = 0.9;
+const SHININESS: f32 = 60.0;
+const FRESNEL_BASE: f32 = 0.06;
+
+// Where the objects are; the tests look at them too.
+const RED_CENTRE: Vec3 = Vec3::new(0.3, -0.25, GROUND_Z + 0.42);
+const RED_RADIUS: f32 = 0.42;
+const GREEN_CENTRE: Vec3 = Vec3::new(-0.58, -0.38, GROUND_Z + 0.24);
+const GREEN_HALF: f32 = 0.24;
+const GREEN_TURN_DEG: f32 = 25.0;
+const BLUE_BOTTOM: Vec3 = Vec3::new(-0.3, 0.55, GROUND_Z);
+const BLUE_RADIUS: f32 = 0.2;
+const BLUE_HEIGHT: f32 = 0.8;
+const YELLOW_CENTRE: Vec3 = Vec3::new(0.55, 0.55, GROUND_Z + 0.17);
+const YELLOW_RADIUS: f32 = 0.17;
+
+const RED: Vec3 = Vec3::new(0.85, 0.1, 0.08);
+const GREEN: Vec3 = Vec3::new(0.15, 0.7, 0.2);
+const BLUE: Vec3 = Vec3::new(0.12, 0.3, 0.85);
+const YELLOW: Vec3 = Vec3::new(0.95, 0.8, 0.1);
+
+struct World {
+    objects: Vec<Object>,
+    /// Unit vectors towards the lights.
+    key: Vec3,
+    fill: Vec3,
+}
+
+impl World {
+    fn new() -> Self {
+        let matte = |colour| Material {
+            pigment: Pigment::Solid(colour),
+            glossy: false,
+        };
+        let turn = GREEN_TURN_DEG.to_radians();
+        let objects = vec![
+            Object {
+                shape: Shape::Cylinder {
+                    bottom: Vec3::new(0.0, 0.0, GROUND_Z - GROUND_THICKNESS),
+                    radius: GROUND_RADIUS,
+                    height: GROUND_THICKNESS,
+                },
+                material: Material {
+                    pigment: Pigment::Checker {
+                        light: Vec3::new(0.9, 0.87, 0.8),
+                        dark: Vec3::new(0.3, 0.33, 0.4),
+                        rim: Vec3::new(0.45, 0.45, 0.5),
+                    },
+                    glossy: false,
+                },
+            },
+            Object {
+                shape: Shape::Sphere {
+                    centre: RED_CENTRE,
+                    radius: RED_RADIUS,
+                },
+                material: Material {
+                    pigment: Pigment::Solid(RED),
+                    glossy: true,
+                },
+            },
+            Object {
+                shape: Shape::Block {
+                    centre: GREEN_CENTRE,
+                    half: Vec3::splat(GREEN_HALF),
+                    cos: turn.cos(),
+                    sin: turn.sin(),
+                },
+                material: matte(GREEN),
+            },
+            Object {
+                shape: Shape::Cylinder {
+                    bottom: BLUE_BOTTOM,
+                    radius: BLUE_RADIUS,
+                    height: BLUE_HEIGHT,
+                },
+                material: matte(BLUE),
+            },
+            Object {
+                shape: Shape::Sphere {
+                    centre: YELLOW_CENTRE,
+                    radius: YELLOW_RADIUS,
+                },
+                material: matte(YELLOW),
+            },
+        ];
+        Self {
+            objects,
+            key: key_light(),
+            fill: Vec3::new(-0.6, 0.55, 0.45).normalize(),
+        }
+    }
+
+    /// The nearest surface along `origin + t · direction` with `t > 0`.
+    fn intersect(&self, origin: Vec3, direction: Vec3) -> Option<Hit> {
+        let mut nearest: Option<Hit> = None;
+        for (index, object) in self.objects.iter().enumerate() {
+            let limit = nearest.as_ref().map_or(f32::INFINITY, |h| h.t);
+            if let Some((t, normal)) = intersect_shape(&object.shape, origin, direction, limit) {
+                nearest = Some(Hit {
+                    t,
+                    normal,
+                    object: index,
+                });
+            }
+        }
+        nearest
+    }
+
+    /// Whether anything lies along `origin + t · direction` for `t > 0`.
+    fn occluded(&self, origin: Vec3, direction: Vec3) -> bool {
+        self.objects
+            .iter()
+            .any(|o| intersect_shape(&o.shape, origin, direction, f32::INFINITY).is_some())
+    }
+
+    /// The colour seen along a camera ray, or `None` when it hits nothing.
+    fn trace(&self, origin: Vec3, direction: Vec3) -> Option<Vec3> {
+        if !hits_sphere(origin, direction, Vec3::ZERO, CONTENT_RADIUS) {
+            return None;
+        }
+        self.shade(origin, direction, true)
+    }
+
+    fn shade(&self, origin: Vec3, direction: Vec3, allow_reflection: bool) -> Option<Vec3> {
+        let hit = self.intersect(origin, direction)?;
+        let point = origin + hit.t * direction;
+        let n = hit.normal;
+        let material = self.objects[hit.object].material;
+        let base = match material.pigment {
+            Pigment::Solid(colour) => colour,
+            Pigment::Checker { light, dark, rim } => {
+                if n.z > 0.5 {
+                    let cell = (point.x / CHECKER_SIZE).floor() + (point.y / CHECKER_SIZE).floor();
+                    if cell.rem_euclid(2.0) < 0.5 {
+                        light
+                    } else {
+                        dark
+                    }
+                } else {
+                    rim
+                }
+            }
+        };
+        let lift = point + SURFACE_EPSILON * n;
+        let key_cos = n.dot(self.key).max(0.0);
+        // Hard shadows from the key light only: the fill light stands in for
+        // light bounced around a room, which casts none.
+        let key_visible = if key_cos > 0.0 && !self.occluded(lift, self.key) {
+            1.0
+        } else {
+            0.0
+        };
+        let light = AMBIENT
+            + KEY_INTENSITY * key_cos * key_visible
+            + FILL_INTENSITY * n.dot(self.fill).max(0.0);
+        let diffuse = base * light;
+        if !material.glossy {
+            return Some(diffuse.min(Vec3::ONE));
+        }
+        let to_eye = -direction;
+        let cos_view = n.dot(to_eye).clamp(0.0, 1.0);
+        let halfway = (self.key + to_eye).normalize();
+        let highlight = SPECULAR_STRENGTH
+            * KEY_INTENSITY
+            * key_visible
+            * n.dot(halfway).max(0.0).powf(SHININESS);
+        let fresnel = FRESNEL_BASE + (1.0 - FRESNEL_BASE) * (1.0 - cos_view).powi(5);
+        let mirrored = direction - 2.0 * direction.dot(n) * n;
+        // One bounce is exact here: the only glossy object is convex, so
+        // its reflections never see it again.
+        let reflected = if allow_reflection {
+            self.shade(lift, mirrored, false)
+                .unwrap_or_else(|| environment(mirrored))
+        } else {
+            environment(mirrored)
+        };
+        let colour = diffuse * (1.0 - fresnel) + reflected * fresnel + Vec3::splat(highlight);
+        Some(colour.clamp(Vec3::ZERO, Vec3::ONE))
+    }
+}
+
+/// Unit vector towards the key light: high on the -y side, so the shadows
+/// fall back and to the left in the front views.
+fn key_light() -> Vec3 {
+    let (elevation, azimuth) = (50f32.to_radians(), (-60f32).to_radians());
+    Vec3::new(
+        elevation.cos() * azimuth.cos(),
+        elevation.cos() * azimuth.sin(),
+        elevation.sin(),
+    )
+}
+
+/// What the glossy ball reflects where it sees no object: a pale sky above
+/// the horizon and a grey floor below. The background stays transparent;
+/// this only gives the reflection something to show.
+fn environment(direction: Vec3) -> Vec3 {
+    let horizon = Vec3::new(0.8, 0.8, 0.82);
+    if direction.z >= 0.0 {
+        let zenith = Vec3::new(0.45, 0.6, 0.85);
+        horizon.lerp(zenith, direction.z.sqrt())
+    } else {
+        horizon.lerp(Vec3::splat(0.3), (-direction.z).sqrt())
+    }
+}
+
+fn hits_sphere(origin: Vec3, direction: Vec3, centre: Vec3, radius: f32) -> bool {
+    let oc = origin - centre;
+    let b = oc.dot(direction);
+    let c = oc.length_squared() - radius * radius;
+    // Outside and moving away, or passing wide of it.
+    !(c > 0.0 && b > 0.0) && b * b - c >= 0.0
+}
+
+/// The nearest entry of a ray into a shape with `0 < t < limit`, and the
+/// outward unit normal there. Rays never start inside a solid (secondary rays
+/// are lifted off the surface), so only entries from outside matter.
+fn intersect_shape(
+    shape: &Shape,
+    origin: Vec3,
+    direction: Vec3,
+    limit: f32,
+) -> Option<(f32, Vec3)> {
+    match *shape {
+        Shape::Sphere { centre, radius } => {
+            let oc = origin - centre;
+            let b = oc.dot(direction);
+            let c = oc.length_squared() - radius * radius;
+            let discriminant = b * b - c;
+            if discriminant < 0.0 {
+                return None;
+            }
+            let t = -b - discriminant.sqrt();
+            (t > 0.0 && t < limit).then(|| (t, (oc + t * direction) / radius))
+        }
+        Shape::Block {
+            centre,
+            half,
+            cos,
+            sin,
+        } => {
+            // Into the box's own frame, where it is axis-aligned.
+            let to_local = |v: Vec3| Vec3::new(cos * v.x + sin * v.y, -sin * v.x + cos * v.y, v.z);
+            let o = to_local(origin - centre);
+            let d = to_local(direction);
+            let mut t_enter = f32::NEG_INFINITY;
+            let mut t_exit = f32::INFINITY;
+            let mut enter_axis = 0;
+            for axis in 0..3 {
+                if d[axis] == 0.0 {
+                    if o[axis].abs() > half[axis] {
+                        return None;
+                    }
+                    continue;
+                }
+                let t0 = (-half[axis] - o[axis]) / d[axis];
+                let t1 = (half[axis] - o[axis]) / d[axis];
+                let (near, far) = if t0 < t1 { (t0, t1) } else { (t1, t0) };
+                if near > t_enter {
+                    t_enter = near;
+                    enter_axis = axis;
+                }
+                t_exit = t_exit.min(far);
+            }
+            if t_enter > t_exit || t_enter <= 0.0 || t_enter >= limit {
+                return None;
+            }
+            let mut local_normal = Vec3::ZERO;
+            local_normal[enter_axis] = -d[enter_axis].signum();
+            let normal = Vec3::new(
+                cos * local_normal.x - sin * local_normal.y,
+                sin * local_normal.x + cos * local_normal.y,
+                local_normal.z,
+            );
+            Some((t_enter, normal))
+        }
+        Shape::Cylinder {
+            bottom,
+            radius,
+            height,
+        } => {
+            let o = origin - bottom;
+            let mut best: Option<(f32, Vec3)> = None;
+            let mut consider = |t: f32, normal: Vec3| {
+                if t > 0.0 && t < best.map_or(limit, |b| b.0) {
+                    best = Some((t, normal));
+                }
+            };
+            // The curved side, as a circle in the xy plane.
+            let a = direction.x * direction.x + direction.y * direction.y;
+            if a > 0.0 {
+                let b = o.x * direction.x + o.y * direction.y;
+                let c = o.x * o.x + o.y * o.y - radius * radius;
+                let discriminant = b * b - a * c;
+                if discriminant >= 0.0 {
+                    let t = (-b - discriminant.sqrt()) / a;
+                    let z = o.z + t * direction.z;
+                    if (0.0..=height).contains(&z) {
+                        let p = o + t * direction;
+                        consider(t, Vec3::new(p.x, p.y, 0.0) / radius);
+                    }
+                }
+            }
+            // The caps: whichever one the ray meets inside the circle.
+            if direction.z != 0.0 {
+                for (z, normal) in [(height, Vec3::Z), (0.0, -Vec3::Z)] {
+                    // Only a cap that faces the ray can be an entry.
+                    if normal.z * direction.z >= 0.0 {
+                        continue;
+                    }
+                    let t = (z - o.z) / direction.z;
+                    let p = o + t * direction;
+                    if p.x * p.x + p.y * p.y <= radius * radius {
+                        consider(t, normal);
+                    }
+                }
+            }
+            best
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn small() -> DemoConfig {
+        DemoConfig {
+            size: 64,
+            train_views: 6,
+            val_views: 2,
+            test_views: 3,
+        }
+    }
+
+    fn camera_at(size: u32, elevation_deg: f32, azimuth_deg: f32) -> Camera {
+        let intrinsics = Intrinsics::from_fov_x(size, size, CAMERA_ANGLE_X);
+        let eye = on_hemisphere(elevation_deg.to_radians(), azimuth_deg.to_radians());
+        Camera::look_at(intrinsics, eye, Vec3::ZERO, Vec3::Z)
+    }
+
+    fn pixel_at(image: &ImageRgba8, camera: &Camera, point: Vec3) -> [f32; 4] {
+        let (u, v) = camera.project(point).expect("point in front of the camera");
+        image.rgba(u as u32, v as u32)
+    }
+
+    #[test]
+    fn two_builds_are_identical() {
+        let a = build(&small());
+        let b = build(&small());
+        for (x, y) in a.frames().zip(b.frames()) {
+            assert_eq!(x.camera, y.camera);
+            assert_eq!(x.image.data, y.image.data);
+        }
+        assert_eq!(a.frames().count(), 11);
+        assert_eq!((a.train.len(), a.val.len(), a.test.len()), (6, 2, 3));
+        assert_eq!(a.resolution(), Some((64, 64)));
+        assert_eq!(a.format, SceneFormat::Demo);
+        assert_eq!(a.name, "demo");
+        assert!(a.has_alpha);
+        assert_eq!(a.bounds, UnitCubeMapping::BLENDER.world_bounds());
+    }
+
+    #[test]
+    fn cameras_look_at_origin_from_upper_hemisphere() {
+        let config = DemoConfig::default();
+        let mut all = Vec::new();
+        for split in Split::ALL {
+            let cameras = split_cameras(&config, split);
+            assert_eq!(cameras.len(), config.views(split));
+            all.extend(cameras);
+        }
+        for camera in &all {
+            let p = camera.position();
+            assert!((p.length() - CAMERA_DISTANCE).abs() < 1e-4);
+            let elevation = (p.z / p.length()).asin().to_degrees();
+            assert!((9.9..=80.1).contains(&elevation), "elevation {elevation}");
+            assert!((camera.forward() + p.normalize()).length() < 1e-5);
+            // The camera's up axis leans towards world up: images are upright.
+            assert!(camera.camera_to_world.y_axis.z > 0.0);
+            let (u, v) = camera.project(Vec3::ZERO).unwrap();
+            assert!((u - 64.0).abs() < 1e-3 && (v - 64.0).abs() < 1e-3);
+        }
+        // Validation and test views are novel: no closer to a training view
+        // than a good fraction of the spacing between training views.
+        let train = split_cameras(&config, Split::Train);
+        let nearest_train = |position: Vec3, skip: Option<usize>| {
+            train
+                .iter()
+                .enumerate()
+                .filter(|(index, _)| Some(*index) != skip)
+                .map(|(_, t)| (t.position() - position).length())
+                .fold(f32::INFINITY, f32::min)
+        };
+        let mut spacing: Vec<f32> = (0..train.len())
+            .map(|k| nearest_train(train[k].position(), Some(k)))
+            .collect();
+        spacing.sort_by(f32::total_cmp);
+        let median_spacing = spacing[spacing.len() / 2];
+        for split in [Split::Val, Split::Test] {
+            let cameras = split_cameras(&config, split);
+            for camera in &cameras {
+                let nearest = nearest_train(camera.position(), None);
+                assert!(
+                    nearest > 0.4 * median_spacing,
+                    "{split:?} view {nearest} from a training view (spacing {median_spacing})"
+                );
+            }
+            // And they are spread over the hemisphere, not bunched.
+            let elevations: Vec<f32> = cameras
+                .iter()
+                .map(|c| (c.position().z / CAMERA_DISTANCE).asin().to_degrees())
+                .collect();
+            let lowest = elevations.iter().copied().fold(f32::INFINITY, f32::min);
+            let highest = elevations.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+            assert!(lowest < 25.0 && highest > 60.0, "{split:?}: {elevations:?}");
+        }
+        // Val and test differ from each other too.
+        let val = split_cameras(&config, Split::Val);
+        for camera in split_cameras(&config, Split::Test) {
+            assert!(
+                val.iter()
+                    .all(|v| (v.position() - camera.position()).length() > 0.3)
+            );
+        }
+    }
+
+    #[test]
+    fn content_fits_in_scene_box() {
+        let bounds = UnitCubeMapping::BLENDER.world_bounds();
+        let inner = crate::scene::Aabb::new(bounds.min + 0.25, bounds.max - 0.25);
+        let world = World::new();
+        // Whatever a camera sees lies well inside the scene box, and inside
+        // the sphere that `trace` uses to skip rays that miss everything
+        // (checked without that shortcut).
+        for (elevation, azimuth) in [(10.0, 30.0), (45.0, 160.0), (80.0, -110.0)] {
+            let camera = camera_at(64, elevation, azimuth);
+            for ray in camera.all_rays() {
+                if let Some(hit) = world.intersect(ray.origin, ray.direction) {
+                    let p = ray.at(hit.t);
+                    assert!(inner.contains(p), "{p} outside the inner box");
+                    assert!(
+                        p.length() <= CONTENT_RADIUS,
+                        "{p} outside the content sphere"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn corner_is_transparent_and_centre_is_opaque() {
+        for camera in split_cameras(&small(), Split::Train) {
+            let image = render_view(&camera);
+            let last = image.width - 1;
+            for (x, y) in [(0, 0), (last, 0), (0, last), (last, last)] {
+                assert_eq!(image.rgba(x, y)[3], 0.0, "corner ({x}, {y})");
+            }
+            let mid = image.width / 2;
+            assert_eq!(image.rgba(mid, mid)[3], 1.0);
+            // And the silhouette has soft edges from supersampling.
+            assert!(image.data.chunks_exact(4).any(|p| p[3] > 0 && p[3] < 255));
+        }
+    }
+
+    #[test]
+    fn primitives_show_their_colours() {
+        // From high up every object is in plain sight.
+        let camera = camera_at(128, 75.0, -100.0);
+        let image = render_view(&camera);
+        let top_of_blue = BLUE_BOTTOM + Vec3::new(0.0, 0.0, BLUE_HEIGHT);
+        let top_of_green = GREEN_CENTRE + Vec3::new(0.0, 0.0, GREEN_HALF);
+        let [r, g, b, a] = pixel_at(&image, &camera, RED_CENTRE);
+        assert!(
+            a == 1.0 && r > 0.5 && g < 0.35 && b < 0.35,
+            "red: {r} {g} {b}"
+        );
+        let [r, g, b, a] = pixel_at(&image, &camera, top_of_green);
+        assert!(
+            a == 1.0 && g > 0.5 && r < 0.35 && b < 0.35,
+            "green: {r} {g} {b}"
+        );
+        let [r, g, b, a] = pixel_at(&image, &camera, top_of_blue);
+        assert!(
+            a == 1.0 && b > 0.5 && r < 0.35 && g < 0.45,
+            "blue: {r} {g} {b}"
+        );
+        let [r, g, b, a] = pixel_at(&image, &camera, YELLOW_CENTRE);
+        assert!(
+            a == 1.0 && r > 0.6 && g > 0.5 && b < 0.3,
+            "yellow: {r} {g} {b}"
+        );
+        // The stand shows both checker colours.
+        // Centres of two neighbouring squares at the front of the stand.
+        let light = pixel_at(&image, &camera, Vec3::new(-0.11, -0.99, GROUND_Z));
+        let dark = pixel_at(&image, &camera, Vec3::new(0.11, -0.99, GROUND_Z));
+        assert!(light[0] - dark[0] > 0.3, "checker {light:?} vs {dark:?}");
+    }
+
+    #[test]
+    fn glossy_ball_is_view_dependent_and_matte_box_is_not() {
+        let size = 128;
+        let a = camera_at(size, 35.0, -40.0);
+        let b = camera_at(size, 35.0, -140.0);
+        let world = World::new();
+        // The point of the red ball where camera `a` sees the key light's
+        // highlight: its normal halves the angle between light and eye.
+        let mut normal = (world.key + (a.position() - RED_CENTRE).normalize()).normalize();
+        for _ in 0..5 {
+            let point = RED_CENTRE + RED_RADIUS * normal;
+            normal = (world.key + (a.position() - point).normalize()).normalize();
+        }
+        let glossy_point = RED_CENTRE + RED_RADIUS * normal;
+        let matte_point = GREEN_CENTRE + Vec3::new(0.0, 0.0, GREEN_HALF);
+        let (image_a, image_b) = (render_view(&a), render_view(&b));
+        // Both cameras see both points directly.
+        for camera in [&a, &b] {
+            for (point, object) in [(glossy_point, 1), (matte_point, 2)] {
+                let (u, v) = camera.project(point).unwrap();
+                let ray = camera.ray_through(u, v);
+                let hit = world.intersect(ray.origin, ray.direction).unwrap();
+                assert_eq!(hit.object, object);
+                assert!((ray.at(hit.t) - point).length() < 1e-3);
+            }
+        }
+        let difference =
+            |p: [f32; 4], q: [f32; 4]| (0..3).map(|i| (p[i] - q[i]).abs()).fold(0.0, f32::max);
+        let glossy = difference(
+            pixel_at(&image_a, &a, glossy_point),
+            pixel_at(&image_b, &b, glossy_point),
+        );
+        let matte = difference(
+            pixel_at(&image_a, &a, matte_point),
+            pixel_at(&image_b, &b, matte_point),
+        );
+        assert!(glossy > 0.4, "glossy point changes by only {glossy}");
+        // Camera `a` sees a white highlight there, not just a brighter red.
+        let [r, g, b, _] = pixel_at(&image_a, &a, glossy_point);
+        assert!(r.min(g).min(b) > 0.75, "highlight {r} {g} {b}");
+        assert!(matte < 0.02, "matte point changes by {matte}");
+    }
+
+    #[test]
+    fn shadows_fall_away_from_the_key_light() {
+        let world = World::new();
+        // Just beyond the red ball, away from the light, the stand is in
+        // shadow; on the lit side it is not.
+        let down = |p: Vec3| world.trace(p + Vec3::Z, -Vec3::Z).unwrap();
+        let away = Vec3::new(-world.key.x, -world.key.y, 0.0).normalize();
+        let foot = Vec3::new(RED_CENTRE.x, RED_CENTRE.y, GROUND_Z);
+        let shaded = down(foot + (RED_RADIUS + 0.1) * away);
+        let lit = down(foot - (RED_RADIUS + 0.1) * away);
+        assert!(
+            lit.max_element() > shaded.max_element() + 0.3,
+            "{lit} vs {shaded}"
+        );
+    }
+
+    #[test]
+    fn write_produces_blender_layout() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().join("new").join("demo");
+        let config = small();
+        write(&config, &root).unwrap();
+        let scene = build(&config);
+        for split in Split::ALL {
+            let text =
+                std::fs::read_to_string(root.join(format!("transforms_{}.json", split.name())))
+                    .unwrap();
+            let json: serde_json::Value = serde_json::from_str(&text).unwrap();
+            let angle = json["camera_angle_x"].as_f64().unwrap();
+            assert!((angle - CAMERA_ANGLE_X as f64).abs() < 1e-7);
+            let entries = json["frames"].as_array().unwrap();
+            let frames = scene.split(split);
+            assert_eq!(entries.len(), frames.len());
+            for (index, (entry, frame)) in entries.iter().zip(frames).enumerate() {
+                let file_path = entry["file_path"].as_str().unwrap();
+                assert_eq!(file_path, format!("./{}/r_{index}", split.name()));
+                let matrix = entry["transform_matrix"].as_array().unwrap();
+                assert_eq!(matrix.len(), 4);
+                for (r, row) in matrix.iter().enumerate() {
+                    let row = row.as_array().unwrap();
+                    assert_eq!(row.len(), 4);
+                    let expected = frame.camera.camera_to_world.row(r);
+                    for c in 0..4 {
+                        let value = row[c].as_f64().unwrap() as f32;
+                        assert!(
+                            (value - expected[c]).abs() < 1e-6,
+                            "{split:?} {index} [{r}][{c}]"
+                        );
+                    }
+                }
+                let png = root.join(format!("{}.png", &file_path[2..]));
+                let loaded = crate::scene::image::load_image(&png).unwrap();
+                assert!(loaded.file_has_alpha);
+                assert_eq!(loaded.image, frame.image);
+            }
+        }
+    }
+
+    #[test]
+    fn write_into_unwritable_place_names_the_path() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("a_file");
+        std::fs::write(&file, "not a folder").unwrap();
+        let target = file.join("demo");
+        let config = DemoConfig {
+            size: 8,
+            train_views: 1,
+            val_views: 1,
+            test_views: 1,
+        };
+        let error = write(&config, &target).unwrap_err();
+        assert!(error.path.starts_with(&target), "{}", error.path.display());
+        let message = error.to_string();
+        assert!(message.contains(&target.display().to_string()), "{message}");
+        assert!(message.contains("cannot create folder"), "{message}");
+    }
+}
