@@ -56,11 +56,9 @@ pub fn turntable_cameras(scene: &Scene, turntable: &Turntable) -> Vec<Camera> {
     };
     let radius = turntable.radius.unwrap_or(mean_distance);
     let intrinsics = {
-        let base = first.map(|f| f.camera.intrinsics).unwrap_or(Intrinsics::from_fov_x(
-            128,
-            128,
-            0.691_111_2,
-        ));
+        let base = first
+            .map(|f| f.camera.intrinsics)
+            .unwrap_or(Intrinsics::from_fov_x(128, 128, 0.691_111_2));
         match turntable.size {
             Some((w, h)) => Intrinsics::from_fov_x(w, h, base.fov_x()),
             None => base,
