@@ -2,12 +2,24 @@
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::sync::Arc;
 use std::time::Instant;
 
-use anyhow::Context;
-use clap::{Parser, Subcommand};
+use anyhow::{Context, bail};
+use clap::{Args, Parser, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde::{Deserialize, Serialize};
+use zrak::engine::{EngineKind, choose_engine};
+use zrak::field::ModelKind;
+use zrak::field::ngp::LossKind;
+use zrak::render::path::{Turntable, turntable_cameras};
+use zrak::render::{RenderMode, render_pixels, to_image};
 use zrak::scene::demo::{self, DemoConfig};
-use zrak::scene::{LoadOptions, Scene, Split};
+use zrak::scene::{Camera, LoadOptions, Scene, Split};
+use zrak::train::eval::{SplitScores, evaluate_split};
+use zrak::train::run::{Limits, RunFolder, Schedule, load_checkpoint, run};
+use zrak::train::trainer::Trainer;
+use zrak::train::{ModelSettings, build_model};
 
 /// Train neural radiance fields (NeRF, Mip-NeRF, Instant-NGP) while you watch.
 #[derive(Parser)]
@@ -39,6 +51,141 @@ enum Command {
         #[arg(long, default_value_t = DemoConfig::default().train_views)]
         views: usize,
     },
+    /// Train a model on a scene, writing checkpoints and metrics to a run folder.
+    Train(TrainArgs),
+    /// Score a trained run on a split: per-image and mean PSNR and SSIM on white.
+    Eval {
+        /// The run folder written by `zrak train`.
+        run: PathBuf,
+        #[arg(long, value_enum, default_value_t = SplitArg::Val)]
+        split: SplitArg,
+        /// Force an engine (default: the run's own choice rules).
+        #[arg(long, value_enum)]
+        engine: Option<EngineKind>,
+    },
+    /// Render views of a trained run to PNG files.
+    Render(RenderArgs),
+    /// Benchmarks that print figures (throughput per stage, peak memory).
+    #[command(subcommand)]
+    Bench(BenchCommand),
+}
+
+#[derive(Subcommand)]
+enum BenchCommand {
+    /// Training-step throughput per stage on a scene (default: lego_400 when
+    /// present beside the checkout, else the demo scene).
+    Throughput {
+        #[arg(long)]
+        scene: Option<String>,
+        #[arg(long, value_enum)]
+        engine: Option<EngineKind>,
+        #[arg(long, default_value_t = 1)]
+        downscale: u32,
+        /// Unmeasured steps first (grid warm-up, allocations).
+        #[arg(long, default_value_t = 32)]
+        warmup: usize,
+        /// Measured steps.
+        #[arg(long, default_value_t = 32)]
+        steps: usize,
+    },
+}
+
+#[derive(Args)]
+struct TrainArgs {
+    /// A scene folder, or `demo` for the built-in demo scene.
+    scene: String,
+    #[arg(long, value_enum, default_value_t = ModelKind::Ngp)]
+    model: ModelKind,
+    /// Default: gpu on a real GPU, cpu otherwise.
+    #[arg(long, value_enum)]
+    engine: Option<EngineKind>,
+    /// Stop after this many steps (counted from the start of the run).
+    #[arg(long)]
+    steps: Option<u32>,
+    /// Stop after this much training time: `90s`, `10m`, `1h`.
+    #[arg(long, value_parser = parse_duration)]
+    time: Option<f64>,
+    /// Integer image downscale.
+    #[arg(long, default_value_t = 1)]
+    downscale: u32,
+    #[arg(long, value_enum, default_value_t = LossArg::Huber)]
+    loss: LossArg,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// The run folder (created; must be writable).
+    #[arg(long, required_unless_present = "resume")]
+    out: Option<PathBuf>,
+    /// Continue the run in this folder from its checkpoint.
+    #[arg(long, conflicts_with = "out")]
+    resume: Option<PathBuf>,
+    /// Training seconds between held-out evaluations.
+    #[arg(long, default_value_t = 30.0)]
+    eval_every: f64,
+}
+
+#[derive(Args)]
+struct RenderArgs {
+    /// The run folder written by `zrak train`.
+    run: PathBuf,
+    /// Render the camera of this view of `--split`.
+    #[arg(long, conflicts_with = "turntable")]
+    view: Option<usize>,
+    #[arg(long, value_enum, default_value_t = SplitArg::Val)]
+    split: SplitArg,
+    /// Render a turntable of this many frames.
+    #[arg(long)]
+    turntable: Option<usize>,
+    /// Turntable elevation in degrees.
+    #[arg(long, default_value_t = 30.0)]
+    elevation: f32,
+    /// Turntable radius (default: the training cameras' mean distance).
+    #[arg(long)]
+    radius: Option<f32>,
+    /// Turntable image size in pixels (default: the training images').
+    #[arg(long)]
+    size: Option<u32>,
+    #[arg(long, value_enum, default_value_t = RenderMode::Rgb)]
+    mode: RenderMode,
+    /// Output folder (created if missing).
+    #[arg(long)]
+    out: PathBuf,
+    #[arg(long, value_enum)]
+    engine: Option<EngineKind>,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum SplitArg {
+    Train,
+    Val,
+    Test,
+}
+
+impl From<SplitArg> for Split {
+    fn from(value: SplitArg) -> Self {
+        match value {
+            SplitArg::Train => Split::Train,
+            SplitArg::Val => Split::Val,
+            SplitArg::Test => Split::Test,
+        }
+    }
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum LossArg {
+    Huber,
+    L2,
+}
+
+/// What a run folder records about how it was made (`run.json`), so eval,
+/// render and resume rebuild the same scene and model.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct RunConfig {
+    /// The scene folder, or "demo".
+    scene: String,
+    model: ModelKind,
+    downscale: u32,
+    loss: LossKind,
+    seed: u64,
 }
 
 fn main() -> ExitCode {
@@ -46,6 +193,16 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Some(Command::Info { scene, downscale }) => info(&scene, downscale),
         Some(Command::Demo { out, size, views }) => write_demo(&out, size, views),
+        Some(Command::Train(args)) => train(args),
+        Some(Command::Eval { run, split, engine }) => eval(&run, split.into(), engine),
+        Some(Command::Render(args)) => render(args),
+        Some(Command::Bench(BenchCommand::Throughput {
+            scene,
+            engine,
+            downscale,
+            warmup,
+            steps,
+        })) => bench_throughput(scene, engine, downscale, warmup, steps),
         None => show_demo(),
     };
     match result {
@@ -55,6 +212,38 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+fn parse_duration(text: &str) -> Result<f64, String> {
+    let text = text.trim();
+    let (number, unit) = match text.find(|c: char| c.is_ascii_alphabetic()) {
+        Some(i) => text.split_at(i),
+        None => (text, "s"),
+    };
+    let value: f64 = number
+        .trim()
+        .parse()
+        .map_err(|_| format!("`{text}` is not a duration like 90s, 10m or 1h"))?;
+    let scale = match unit {
+        "s" => 1.0,
+        "m" | "min" => 60.0,
+        "h" => 3600.0,
+        _ => return Err(format!("`{text}`: unknown unit `{unit}` (use s, m or h)")),
+    };
+    if !(value > 0.0 && value.is_finite()) {
+        return Err(format!("`{text}` must be a positive duration"));
+    }
+    Ok(value * scale)
+}
+
+fn load_scene(scene: &str, downscale: u32) -> anyhow::Result<Scene> {
+    if scene == "demo" {
+        anyhow::ensure!(downscale >= 1, "--downscale must be at least 1");
+        let mut config = DemoConfig::default();
+        config.size /= downscale;
+        return Ok(demo::build(&config));
+    }
+    Ok(Scene::load(Path::new(scene), LoadOptions { downscale })?)
 }
 
 fn info(path: &Path, downscale: u32) -> anyhow::Result<()> {
@@ -80,7 +269,7 @@ fn demo_config(size: u32, views: usize) -> anyhow::Result<DemoConfig> {
 fn write_demo(out: &Path, size: u32, views: usize) -> anyhow::Result<()> {
     let config = demo_config(size, views)?;
     let started = Instant::now();
-    demo::write(&config, out).with_context(|| "writing the demo scene".to_string())?;
+    demo::write(&config, out).context("writing the demo scene")?;
     println!(
         "wrote the demo scene to {} ({} / {} / {} views at {size}×{size}) in {:.2} s",
         out.display(),
@@ -159,13 +348,14 @@ fn near_far_range(scene: &Scene) -> Option<(f32, f32)> {
     for frame in scene.frames() {
         let k = frame.camera.intrinsics;
         let (w, h) = (k.width as f32, k.height as f32);
-        for (u, v) in [
+        let points = [
             (0.5, 0.5),
             (w - 0.5, 0.5),
             (0.5, h - 0.5),
             (w - 0.5, h - 0.5),
             (0.5 * w, 0.5 * h),
-        ] {
+        ];
+        for (u, v) in points {
             if let Some((near, far)) = scene.ray_near_far(&frame.camera.ray_through(u, v)) {
                 range = Some(match range {
                     Some((n, f)) => (n.min(near), f.max(far)),
@@ -175,4 +365,266 @@ fn near_far_range(scene: &Scene) -> Option<(f32, f32)> {
         }
     }
     range
+}
+
+fn read_run_config(folder: &RunFolder) -> anyhow::Result<RunConfig> {
+    let path = folder.config_path();
+    let text = std::fs::read_to_string(&path)
+        .with_context(|| format!("{}: cannot read the run's configuration", path.display()))?;
+    serde_json::from_str(&text)
+        .with_context(|| format!("{}: malformed run configuration", path.display()))
+}
+
+/// Rebuilds a run's scene and model and restores its checkpoint.
+fn restore_run(
+    folder: &RunFolder,
+    engine: Option<EngineKind>,
+) -> anyhow::Result<(RunConfig, Trainer)> {
+    let config = read_run_config(folder)?;
+    let scene = Arc::new(load_scene(&config.scene, config.downscale)?);
+    let choice = choose_engine(engine)?;
+    eprintln!("{}", choice.reason);
+    let model = build_model(
+        config.model,
+        choice,
+        &scene,
+        &ModelSettings {
+            seed: config.seed,
+            loss: config.loss,
+        },
+    )
+    .map_err(anyhow::Error::msg)?;
+    let mut trainer = Trainer::new(model, scene, config.seed);
+    let checkpoint = load_checkpoint(folder).map_err(anyhow::Error::msg)?;
+    trainer
+        .restore(&checkpoint)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", folder.checkpoint_path().display()))?;
+    Ok((config, trainer))
+}
+
+fn train(args: TrainArgs) -> anyhow::Result<()> {
+    if args.steps.is_none() && args.time.is_none() && args.resume.is_none() {
+        bail!("give --steps N or --time DURATION (e.g. --time 10m)");
+    }
+    let (folder, config, mut trainer) = if let Some(dir) = &args.resume {
+        let folder = RunFolder::create(dir).map_err(anyhow::Error::msg)?;
+        let (config, trainer) = restore_run(&folder, args.engine)?;
+        eprintln!(
+            "resuming at step {} ({:.0} s trained)",
+            trainer.step, trainer.train_seconds
+        );
+        (folder, config, trainer)
+    } else {
+        let dir = args
+            .out
+            .as_ref()
+            .expect("clap requires --out without --resume");
+        let folder = RunFolder::create(dir).map_err(anyhow::Error::msg)?;
+        let config = RunConfig {
+            scene: if args.scene == "demo" {
+                "demo".into()
+            } else {
+                std::fs::canonicalize(&args.scene)
+                    .unwrap_or_else(|_| PathBuf::from(&args.scene))
+                    .display()
+                    .to_string()
+            },
+            model: args.model,
+            downscale: args.downscale,
+            loss: match args.loss {
+                LossArg::Huber => LossKind::Huber,
+                LossArg::L2 => LossKind::L2,
+            },
+            seed: args.seed,
+        };
+        let scene = Arc::new(load_scene(&args.scene, args.downscale)?);
+        let choice = choose_engine(args.engine)?;
+        eprintln!("{}", choice.reason);
+        let model = build_model(
+            config.model,
+            choice,
+            &scene,
+            &ModelSettings {
+                seed: config.seed,
+                loss: config.loss,
+            },
+        )
+        .map_err(anyhow::Error::msg)?;
+        std::fs::write(folder.config_path(), serde_json::to_string_pretty(&config)?)
+            .with_context(|| format!("{}: cannot write", folder.config_path().display()))?;
+        // A fresh run starts a fresh log.
+        let _ = std::fs::remove_file(folder.metrics_path());
+        let seed = config.seed;
+        (folder, config, Trainer::new(model, scene, seed))
+    };
+    eprintln!(
+        "training {} on {} ({} views, {}×{})",
+        trainer.model.describe(),
+        trainer.scene.name,
+        trainer.scene.train.len(),
+        trainer.scene.resolution().map_or(0, |r| r.0),
+        trainer.scene.resolution().map_or(0, |r| r.1),
+    );
+    let limits = Limits {
+        steps: args.steps,
+        seconds: args.time,
+    };
+    let bar = match (limits.steps, limits.seconds) {
+        (Some(steps), _) => ProgressBar::new(steps as u64),
+        (None, Some(seconds)) => ProgressBar::new(seconds.ceil() as u64),
+        (None, None) => ProgressBar::new_spinner(),
+    };
+    bar.set_style(
+        ProgressStyle::with_template("{bar:30} {pos}/{len} {msg}").expect("valid template"),
+    );
+    let by_steps = limits.steps.is_some();
+    let started = Instant::now();
+    let schedule = Schedule {
+        eval_every_seconds: args.eval_every,
+        ..Schedule::default()
+    };
+    let psnr = run(
+        &mut trainer,
+        limits,
+        schedule,
+        &folder,
+        &serde_json::to_value(&config)?,
+        |p| {
+            bar.set_position(if by_steps {
+                p.trainer.step as u64
+            } else {
+                p.trainer.train_seconds as u64
+            });
+            bar.set_message(format!(
+                "step {} | loss {:.5} | psnr {} | {:.0} samples/ray | {:.2} M samples/s | {:.0} s",
+                p.trainer.step,
+                p.stats.loss,
+                p.psnr.map_or("-".into(), |v| format!("{v:.2}")),
+                p.stats.samples_per_ray(),
+                p.samples_per_second / 1e6,
+                started.elapsed().as_secs_f64(),
+            ));
+        },
+    )
+    .map_err(anyhow::Error::msg)?;
+    bar.finish();
+    println!(
+        "trained {} steps in {:.1} s; held-out PSNR {}; run folder {}",
+        trainer.step,
+        trainer.train_seconds,
+        psnr.map_or("-".into(), |v| format!("{v:.2} dB")),
+        folder.dir.display()
+    );
+    Ok(())
+}
+
+fn eval(run_dir: &Path, split: Split, engine: Option<EngineKind>) -> anyhow::Result<()> {
+    let folder = RunFolder::create(run_dir).map_err(anyhow::Error::msg)?;
+    let (_, trainer) = restore_run(&folder, engine)?;
+    let frames = trainer.scene.split(split);
+    if frames.is_empty() {
+        bail!("the scene has no {} views", split.name());
+    }
+    println!("{:>5}  {:>8}  {:>7}  image", "view", "PSNR", "SSIM");
+    let scores: SplitScores = evaluate_split(trainer.model.as_ref(), split.name(), frames, |v| {
+        println!(
+            "{:>5}  {:>8.3}  {:>7.4}  {}",
+            v.index, v.psnr, v.ssim, v.image
+        );
+    });
+    println!(
+        "{:>5}  {:>8.3}  {:>7.4}",
+        "mean", scores.mean_psnr, scores.mean_ssim
+    );
+    let path = folder.dir.join(format!("eval_{}.json", split.name()));
+    std::fs::write(&path, serde_json::to_string_pretty(&scores)?)
+        .with_context(|| format!("{}: cannot write", path.display()))?;
+    println!("step {}; written to {}", trainer.step, path.display());
+    Ok(())
+}
+
+fn render(args: RenderArgs) -> anyhow::Result<()> {
+    let folder = RunFolder::create(&args.run).map_err(anyhow::Error::msg)?;
+    let (_, trainer) = restore_run(&folder, args.engine)?;
+    let scene = &trainer.scene;
+    let cameras: Vec<(String, Camera)> = match (args.view, args.turntable) {
+        (Some(view), None) => {
+            let split: Split = args.split.into();
+            let frames = scene.split(split);
+            let frame = frames.get(view).with_context(|| {
+                format!(
+                    "the {} split has {} views; there is no view {view}",
+                    split.name(),
+                    frames.len()
+                )
+            })?;
+            vec![(format!("{}_{view:03}", split.name()), frame.camera)]
+        }
+        (None, Some(frames)) => {
+            anyhow::ensure!(frames >= 1, "--turntable needs at least one frame");
+            let turntable = Turntable {
+                frames,
+                elevation_degrees: args.elevation,
+                radius: args.radius,
+                size: args.size.map(|s| (s, s)),
+            };
+            turntable_cameras(scene, &turntable)
+                .into_iter()
+                .enumerate()
+                .map(|(i, c)| (format!("turntable_{i:04}"), c))
+                .collect()
+        }
+        _ => bail!("give --view N or --turntable FRAMES"),
+    };
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("{}: cannot create the output folder", args.out.display()))?;
+    let depth_range = depth_range(scene);
+    let bar = ProgressBar::new(cameras.len() as u64);
+    for (name, camera) in &cameras {
+        let pixels = render_pixels(trainer.model.as_ref(), camera, [1.0; 3]);
+        let k = camera.intrinsics;
+        let image = to_image(&pixels, k.width, k.height, args.mode, depth_range);
+        let path = args.out.join(format!("{name}.png"));
+        image.save_png(&path)?;
+        bar.inc(1);
+    }
+    bar.finish();
+    println!("wrote {} images to {}", cameras.len(), args.out.display());
+    Ok(())
+}
+
+/// Near and far depth for depth images: the scene box seen from the mean
+/// camera distance.
+fn depth_range(scene: &Scene) -> (f32, f32) {
+    near_far_range(scene).unwrap_or((0.0, 1.0))
+}
+
+fn bench_throughput(
+    scene: Option<String>,
+    engine: Option<EngineKind>,
+    downscale: u32,
+    warmup: usize,
+    steps: usize,
+) -> anyhow::Result<()> {
+    let scene_name = match scene {
+        Some(name) => name,
+        None => zrak::bench::default_scene_path()
+            .map(|p| p.display().to_string())
+            .unwrap_or_else(|| "demo".into()),
+    };
+    let scene = Arc::new(load_scene(&scene_name, downscale)?);
+    let choice = choose_engine(engine)?;
+    let engine_line = choice.reason.clone();
+    let settings = ModelSettings {
+        seed: 0,
+        loss: LossKind::Huber,
+    };
+    let model =
+        build_model(ModelKind::Ngp, choice, &scene, &settings).map_err(anyhow::Error::msg)?;
+    let mut trainer = Trainer::new(model, scene.clone(), 0);
+    let peak = zrak::engine::cpu::dense::measure_peak_gflops();
+    let report = zrak::bench::throughput(&mut trainer, warmup, steps);
+    zrak::bench::print_report(&report, &scene, &engine_line);
+    println!("machine peak         {peak:.0} GFLOP/s (f32 matrix multiply, median)");
+    Ok(())
 }

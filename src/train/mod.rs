@@ -8,3 +8,37 @@ pub mod log;
 pub mod model;
 pub mod run;
 pub mod trainer;
+
+use crate::engine::{EngineChoice, EngineKind};
+use crate::field::ModelKind;
+use crate::field::ngp::LossKind;
+use crate::scene::Scene;
+use model::RadianceModel;
+
+/// Settings every model takes.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ModelSettings {
+    pub seed: u64,
+    pub loss: LossKind,
+}
+
+/// A fresh model of `kind` for `scene` on the chosen engine.
+pub fn build_model(
+    kind: ModelKind,
+    engine: EngineChoice,
+    scene: &Scene,
+    settings: &ModelSettings,
+) -> Result<Box<dyn RadianceModel>, String> {
+    match (kind, engine.kind) {
+        (ModelKind::Ngp, EngineKind::Cpu) => Ok(Box::new(crate::engine::cpu::ngp::CpuNgp::new(
+            scene,
+            settings.seed,
+            settings.loss,
+        ))),
+        (ModelKind::Ngp, EngineKind::Gpu) => Err(
+            "the gpu engine's Instant-NGP training step is not built yet: its stages exist and \
+             are tested, the chained step is not; use --engine cpu"
+                .into(),
+        ),
+    }
+}

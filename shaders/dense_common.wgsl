@@ -1,0 +1,50 @@
+// Activations shared by the dense-layer kernels (prepended to each of them
+// by src/engine/gpu/dense.rs). Codes match the Rust side: 0 none, 1 ReLU,
+// 2 sigmoid, 3 exp with the input clamped to ≤ exp_clamp.
+
+fn activate(x: f32, kind: u32, exp_clamp: f32) -> f32 {
+    switch kind {
+        case 1u: { return max(x, 0.0); }
+        case 2u: { return 1.0 / (1.0 + exp(-x)); }
+        case 3u: { return exp(min(x, exp_clamp)); }
+        default: { return x; }
+    }
+}
+
+// The derivative at the input that produced output y (every activation here
+// can be differentiated from its output, as on the cpu).
+fn activation_derivative(y: f32, kind: u32, exp_clamp: f32) -> f32 {
+    switch kind {
+        case 1u: { return select(0.0, 1.0, y > 0.0); }
+        case 2u: { return y * (1.0 - y); }
+        case 3u: { return select(0.0, y, y < exp(exp_clamp)); }
+        default: { return 1.0; }
+    }
+}
+
+struct Layer {
+    rows: u32,
+    in_width: u32,
+    out_width: u32,
+    activation: u32,
+    // Offsets into the parameter buffer, in f32s; bias_offset is
+    // 0xffffffff without a bias.
+    weight_offset: u32,
+    bias_offset: u32,
+    // Weight gradients: rows per partial sum, and partial sums.
+    rows_per_chunk: u32,
+    chunks: u32,
+    exp_clamp: f32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
+}
+
+const NO_BIAS: u32 = 0xffffffffu;
+const TILE: u32 = 16u;
+
+// Row tiles may exceed the 65535 workgroups of one dimension: they are
+// spread over y and z.
+fn row_tile(workgroup: vec3<u32>, groups: vec3<u32>) -> u32 {
+    return workgroup.y + workgroup.z * groups.y;
+}

@@ -1,0 +1,18 @@
+// Gradient accumulation on any device: the f32 is kept as its bits in an
+// atomic<u32> and added with a compare-and-swap loop, retried until no other
+// invocation wrote the entry in between. Exact f32 additions, like the
+// native atomics; only the order varies.
+
+@group(0) @binding(4) var<storage, read_write> d_params: array<atomic<u32>>;
+
+fn add_gradient(i: u32, value: f32) {
+    var old = atomicLoad(&d_params[i]);
+    loop {
+        let new_bits = bitcast<u32>(bitcast<f32>(old) + value);
+        let result = atomicCompareExchangeWeak(&d_params[i], old, new_bits);
+        if (result.exchanged) {
+            break;
+        }
+        old = result.old_value;
+    }
+}

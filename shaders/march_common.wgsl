@@ -1,0 +1,172 @@
+// Ray marching through the occupancy grid, shared by `march_count.wgsl` and
+// `march_write.wgsl` (prepended to each). The same arithmetic, in the same
+// order, as the cpu engine's `engine::cpu::march` and
+// `engine::cpu::occupancy::GridGeometry`, so both engines find the same
+// samples at the same positions. `march_params.wgsl` comes first; the entry
+// files declare `params`, `bitfield`, `origins` and `directions`.
+
+struct RayMarch {
+    entry: vec3<f32>,
+    direction: vec3<f32>,
+    inverse_direction: vec3<f32>,
+    t_enter: f32,
+    s_exit: f32,
+    jitter: f32,
+    hit: bool,
+}
+
+fn unfused(x: f32) -> f32 {
+    return bitcast<f32>(bitcast<u32>(x) ^ params.zero);
+}
+
+fn is_finite(v: vec3<f32>) -> bool {
+    return all(abs(v) <= vec3<f32>(3.4028235e38));
+}
+
+fn mix32(x0: u32) -> u32 {
+    var x = x0;
+    x ^= x >> 16u;
+    x *= 0x85ebca6bu;
+    x ^= x >> 13u;
+    x *= 0xc2b2ae35u;
+    return x ^ (x >> 16u);
+}
+
+fn ray_jitter(ray: u32) -> f32 {
+    if (params.use_jitter == 0u) {
+        return 0.0;
+    }
+    let h = mix32(params.jitter_seed ^ mix32(ray + 0x9e3779b9u));
+    return f32(h >> 8u) * (1.0 / 16777216.0);
+}
+
+fn prepare(ray: u32) -> RayMarch {
+    var m: RayMarch;
+    m.hit = false;
+    let world = vec3<f32>(origins[3u * ray], origins[3u * ray + 1u], origins[3u * ray + 2u]);
+    let d = vec3<f32>(directions[3u * ray], directions[3u * ray + 1u], directions[3u * ray + 2u]);
+    if (!is_finite(world) || !is_finite(d) || all(d == vec3<f32>(0.0))) {
+        return m;
+    }
+    let o = vec3<f32>(
+        unfused(world.x * params.scale) + params.offset.x,
+        unfused(world.y * params.scale) + params.offset.y,
+        unfused(world.z * params.scale) + params.offset.z,
+    );
+    // Slabs, as `scene::Aabb::intersect` with t_min = 0.
+    var t_enter = 0.0;
+    var t_exit = 3.4028235e38;
+    for (var axis = 0u; axis < 3u; axis++) {
+        if (d[axis] == 0.0) {
+            if (o[axis] < params.box_min || o[axis] > params.box_max) {
+                return m;
+            }
+        } else {
+            let inverse = 1.0 / d[axis];
+            var t0 = (params.box_min - o[axis]) * inverse;
+            var t1 = (params.box_max - o[axis]) * inverse;
+            if (t0 > t1) {
+                let swap = t0;
+                t0 = t1;
+                t1 = swap;
+            }
+            t_enter = max(t_enter, t0);
+            t_exit = min(t_exit, t1);
+        }
+    }
+    if (!(t_enter <= t_exit)) {
+        return m;
+    }
+    m.entry = vec3<f32>(
+        o.x + unfused(d.x * t_enter),
+        o.y + unfused(d.y * t_enter),
+        o.z + unfused(d.z * t_enter),
+    );
+    m.direction = d;
+    m.inverse_direction = select(vec3<f32>(1.0) / d, vec3<f32>(0.0), d == vec3<f32>(0.0));
+    m.t_enter = t_enter;
+    m.s_exit = t_exit - t_enter;
+    m.jitter = ray_jitter(ray);
+    m.hit = true;
+    return m;
+}
+
+fn lattice_s(m: RayMarch, k: u32) -> f32 {
+    return (m.jitter + f32(k)) * params.dt;
+}
+
+fn lattice_position(m: RayMarch, s: f32) -> vec3<f32> {
+    return vec3<f32>(
+        m.entry.x + unfused(m.direction.x * s),
+        m.entry.y + unfused(m.direction.y * s),
+        m.entry.z + unfused(m.direction.z * s),
+    );
+}
+
+// 2^e, exactly.
+fn power_of_two(e: i32) -> f32 {
+    return bitcast<f32>(u32(127 + e) << 23u);
+}
+
+// The finest cascade containing p: frexp's exponent of max|p − 0.5|, plus 1.
+fn cascade_of(p: vec3<f32>) -> u32 {
+    if (params.cascades == 1u) {
+        return 0u;
+    }
+    let q = abs(p - vec3<f32>(0.5));
+    let m = max(max(q.x, q.y), q.z);
+    let e = i32((bitcast<u32>(m) >> 23u) & 0xffu) - 126;
+    return u32(clamp(e + 1, 0, i32(params.cascades) - 1));
+}
+
+fn cell_coordinate(x: f32, scale: f32) -> u32 {
+    let half = f32(params.resolution / 2u);
+    let v = (x - 0.5) * scale + half;
+    return u32(clamp(floor(v), 0.0, f32(params.resolution - 1u)));
+}
+
+struct Cell {
+    cascade: u32,
+    xyz: vec3<u32>,
+}
+
+fn cell_of(p: vec3<f32>) -> Cell {
+    var c: Cell;
+    c.cascade = cascade_of(p);
+    let scale = f32(params.resolution) * power_of_two(-i32(c.cascade));
+    c.xyz = vec3<u32>(cell_coordinate(p.x, scale), cell_coordinate(p.y, scale), cell_coordinate(p.z, scale));
+    return c;
+}
+
+fn is_occupied(c: Cell) -> bool {
+    let res = params.resolution;
+    let index = c.cascade * res * res * res + c.xyz.x + res * (c.xyz.y + res * c.xyz.z);
+    return ((bitfield[index >> 5u] >> (index & 31u)) & 1u) != 0u;
+}
+
+fn axis_exit(lo: f32, size: f32, e: f32, d: f32, inverse: f32) -> f32 {
+    if (d > 0.0) {
+        return (lo + size - params.margin - e) * inverse;
+    }
+    if (d < 0.0) {
+        return (lo + params.margin - e) * inverse;
+    }
+    return 3.4028235e38;
+}
+
+// The first lattice index at or beyond the cell's exit face, pulled in by
+// the margin: every lattice point before it lies in the cell.
+fn exit_index(m: RayMarch, c: Cell) -> u32 {
+    let size = power_of_two(i32(c.cascade)) / f32(params.resolution);
+    let half = f32(params.resolution / 2u);
+    let lo = (vec3<f32>(c.xyz) - vec3<f32>(half)) * size + vec3<f32>(0.5);
+    let s_cell = min(
+        axis_exit(lo.x, size, m.entry.x, m.direction.x, m.inverse_direction.x),
+        min(
+            axis_exit(lo.y, size, m.entry.y, m.direction.y, m.inverse_direction.y),
+            axis_exit(lo.z, size, m.entry.z, m.direction.z, m.inverse_direction.z),
+        ),
+    );
+    let v = s_cell * params.inverse_dt - m.jitter;
+    return u32(clamp(ceil(v), 0.0, 4294967040.0));
+}

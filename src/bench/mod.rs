@@ -1,0 +1,136 @@
+//! Benchmarks that print figures: training throughput per stage, and (later)
+//! the accuracy-versus-time experiment. Nothing here asserts on time.
+
+use std::sync::Arc;
+
+use crate::scene::Scene;
+use crate::train::model::{StageTimes, StepStats};
+use crate::train::trainer::Trainer;
+
+/// Figures of a throughput run.
+#[derive(Debug, Clone)]
+pub struct ThroughputReport {
+    pub steps: usize,
+    pub median_step_seconds: f64,
+    pub samples_per_second: f64,
+    pub rays_per_second: f64,
+    pub median_samples_per_ray: f32,
+    /// Median seconds per stage.
+    pub stages: StageTimes,
+    pub peak_memory_bytes: Option<u64>,
+}
+
+fn median(values: &mut [f64]) -> f64 {
+    if values.is_empty() {
+        return f64::NAN;
+    }
+    values.sort_by(|a, b| a.total_cmp(b));
+    let n = values.len();
+    if n % 2 == 1 {
+        values[n / 2]
+    } else {
+        0.5 * (values[n / 2 - 1] + values[n / 2])
+    }
+}
+
+/// Runs `warmup` steps unmeasured (the occupancy grid's first updates and
+/// the workspaces' first allocations), then `steps` measured ones, and
+/// reports medians (these machines are shared: medians resist outliers).
+pub fn throughput(trainer: &mut Trainer, warmup: usize, steps: usize) -> ThroughputReport {
+    for _ in 0..warmup {
+        trainer.step();
+    }
+    let mut records: Vec<(f64, StepStats)> = Vec::with_capacity(steps);
+    for _ in 0..steps {
+        let before = trainer.train_seconds;
+        let stats = trainer.step();
+        records.push((trainer.train_seconds - before, stats));
+    }
+    let mut step_seconds: Vec<f64> = records.iter().map(|r| r.0).collect();
+    let total_seconds: f64 = step_seconds.iter().sum();
+    let total_samples: usize = records.iter().map(|r| r.1.samples).sum();
+    let total_rays: usize = records.iter().map(|r| r.1.rays).sum();
+    let mut spr: Vec<f64> = records
+        .iter()
+        .map(|r| r.1.samples_per_ray() as f64)
+        .collect();
+    let stage = |f: fn(&StageTimes) -> f64| {
+        let mut v: Vec<f64> = records.iter().map(|r| f(&r.1.times)).collect();
+        median(&mut v)
+    };
+    let stages = StageTimes {
+        march: stage(|t| t.march),
+        encode: stage(|t| t.encode),
+        networks_forward: stage(|t| t.networks_forward),
+        composite: stage(|t| t.composite),
+        networks_backward: stage(|t| t.networks_backward),
+        encode_backward: stage(|t| t.encode_backward),
+        optimiser: stage(|t| t.optimiser),
+        // The grid is updated every 16 steps: its mean cost per step is the
+        // fair figure, not its median (which is 0).
+        grid_update: records.iter().map(|r| r.1.times.grid_update).sum::<f64>()
+            / steps.max(1) as f64,
+    };
+    ThroughputReport {
+        steps,
+        median_step_seconds: median(&mut step_seconds),
+        samples_per_second: total_samples as f64 / total_seconds,
+        rays_per_second: total_rays as f64 / total_seconds,
+        median_samples_per_ray: median(&mut spr) as f32,
+        stages,
+        peak_memory_bytes: peak_memory_bytes(),
+    }
+}
+
+/// The process's peak resident memory (Linux: VmHWM), if known.
+pub fn peak_memory_bytes() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib * 1024)
+}
+
+/// The scene the benchmark uses by default: lego_400 beside the checkout
+/// when present, else the built-in demo scene.
+pub fn default_scene_path() -> Option<std::path::PathBuf> {
+    let candidate = std::path::Path::new("../shared/data/nerf_synthetic/lego_400");
+    candidate.is_dir().then(|| candidate.to_path_buf())
+}
+
+pub fn print_report(report: &ThroughputReport, scene: &Arc<Scene>, engine: &str) {
+    println!(
+        "scene                {} ({} training views)",
+        scene.name,
+        scene.train.len()
+    );
+    println!("engine               {engine}");
+    println!("steps measured       {}", report.steps);
+    println!(
+        "ms per step          {:.1} (median)",
+        report.median_step_seconds * 1e3
+    );
+    println!(
+        "samples/s            {:.3} M",
+        report.samples_per_second / 1e6
+    );
+    println!("rays/s               {:.3} M", report.rays_per_second / 1e6);
+    println!(
+        "samples per ray      {:.1} (median)",
+        report.median_samples_per_ray
+    );
+    println!("stages (median ms per step):");
+    let total = report.stages.total();
+    for (name, seconds) in report.stages.named() {
+        println!(
+            "  {name:<20} {:>8.2}  {:>5.1}%",
+            seconds * 1e3,
+            100.0 * seconds / total.max(1e-12)
+        );
+    }
+    if let Some(bytes) = report.peak_memory_bytes {
+        println!(
+            "peak memory          {:.0} MiB",
+            bytes as f64 / (1 << 20) as f64
+        );
+    }
+}

@@ -1,0 +1,962 @@
+//! Volume rendering for a whole batch of rays at once, forward and backward,
+//! with instant-ngp's early ray termination.
+//!
+//! The maths is that of [`super::composite`] (the single-ray reference),
+//! restated in a loop that allocates nothing and runs rayon over blocks of
+//! rays. The arithmetic is the reference's, operation for operation, so on
+//! the samples a ray uses the two agree to the last bit (tested).
+//!
+//! # Early termination is part of the model
+//!
+//! As in instant-ngp (testbed: `composite_kernel_nerf`), a ray stops
+//! accumulating at the first sample whose transmittance
+//! Tᵢ = exp(−Σ_{j<i} τⱼ) is below `min_transmittance`
+//! (`MarchConfig::PAPER.min_transmittance` = 1e-4). That sample and all
+//! after it get zero weight and zero gradient, and the background is weighted by
+//! the transmittance at the cut. The function computed here (and
+//! differentiated, and checked against finite differences) is therefore
+//! "composite the first `samples_used` samples", which differs from the
+//! untruncated sum by at most T_cut · (|colour| + |background|) < 1e-4 per
+//! channel for colours in [0, 1]. Pass `min_transmittance = 0` for the plain
+//! quadrature.
+//!
+//! # Layout
+//!
+//! Samples are flattened: sample `s` has density `density[s]`, colour
+//! `rgb[3s..3s+3]`, interval `dt[s]` and distance `t[s]`; ray `r` owns
+//! samples `ray_offsets[r]..ray_offsets[r+1]` and has its background at
+//! `background[3r..3r+3]`. Per-ray outputs are `rgb[3r..3r+3]`,
+//! `opacity[r]`, `depth[r]`, `samples_used[r]`.
+
+use std::ops::Range;
+
+use num_traits::Float;
+
+/// Rays are processed serially in blocks of at most this many samples
+/// (or a single ray if it is longer): small enough that 2^18 samples give
+/// rayon ~128 pieces to balance over the cores, large enough that the
+/// splitting costs nothing next to the work.
+const LEAF_SAMPLES: usize = 2048;
+
+/// The inputs of compositing for a batch of rays.
+#[derive(Debug, Clone, Copy)]
+pub struct RayBatch<'a, F> {
+    /// σ per sample, already activated (≥ 0; negative values are treated as
+    /// empty space, as in the reference).
+    pub density: &'a [F],
+    /// Colour per sample, S × 3, already through the sigmoid.
+    pub rgb: &'a [F],
+    /// Interval length δ per sample, in world units.
+    pub dt: &'a [F],
+    /// Distance of each sample along its ray, in world units (for depth).
+    pub t: &'a [F],
+    /// R + 1 offsets into the samples, non-decreasing.
+    pub ray_offsets: &'a [u32],
+    /// Background colour per ray, R × 3.
+    pub background: &'a [F],
+}
+
+impl<F> RayBatch<'_, F> {
+    pub fn ray_count(&self) -> usize {
+        self.ray_offsets.len().saturating_sub(1)
+    }
+
+    /// Samples covered by the rays (`ray_offsets[R]`).
+    pub fn sample_count(&self) -> usize {
+        self.ray_offsets.last().map_or(0, |&n| n as usize)
+    }
+
+    /// Panics on inconsistent lengths or decreasing offsets: either would
+    /// make the unchecked-looking slicing below index the wrong samples.
+    fn validate(&self) {
+        assert!(
+            !self.ray_offsets.is_empty(),
+            "ray_offsets needs R + 1 entries"
+        );
+        let rays = self.ray_count();
+        let samples = self.sample_count();
+        assert!(
+            self.ray_offsets.windows(2).all(|w| w[0] <= w[1]),
+            "ray_offsets must be non-decreasing"
+        );
+        assert!(
+            self.density.len() >= samples,
+            "density: {} < {samples} samples",
+            self.density.len()
+        );
+        assert!(
+            self.rgb.len() >= 3 * samples,
+            "rgb: {} < 3 × {samples}",
+            self.rgb.len()
+        );
+        assert!(
+            self.dt.len() >= samples,
+            "dt: {} < {samples} samples",
+            self.dt.len()
+        );
+        assert!(
+            self.t.len() >= samples,
+            "t: {} < {samples} samples",
+            self.t.len()
+        );
+        assert!(
+            self.background.len() >= 3 * rays,
+            "background: {} < 3 × {rays} rays",
+            self.background.len()
+        );
+    }
+
+    fn samples_of(&self, rays: &Range<usize>) -> Range<usize> {
+        self.ray_offsets[rays.start] as usize..self.ray_offsets[rays.end] as usize
+    }
+}
+
+/// Where the forward pass writes, per ray.
+#[derive(Debug)]
+pub struct CompositeOutputs<'a, F> {
+    /// R × 3: Σ wᵢ cᵢ + T_cut · background.
+    pub rgb: &'a mut [F],
+    /// R: Σ wᵢ = 1 − T_cut.
+    pub opacity: &'a mut [F],
+    /// R: Σ wᵢ tᵢ (expected depth, not divided by opacity).
+    pub depth: &'a mut [F],
+    /// R: samples before the cut (the ray's whole count if T never fell
+    /// below the threshold).
+    pub samples_used: &'a mut [u32],
+}
+
+/// Where the backward pass writes.
+#[derive(Debug)]
+pub struct CompositeGradients<'a, F> {
+    /// S: ∂L/∂σ per sample (zero after the cut).
+    pub density: &'a mut [F],
+    /// S × 3: ∂L/∂c per sample (zero after the cut).
+    pub rgb: &'a mut [F],
+    /// R × 3: ∂L/∂background, if wanted (training with random backgrounds
+    /// does not need it).
+    pub background: Option<&'a mut [F]>,
+}
+
+/// τ = σ δ with negative densities treated as empty space (as the
+/// reference does).
+#[inline(always)]
+fn optical_depth<F: Float>(density: F, dt: F) -> F {
+    (density * dt).max(F::zero())
+}
+
+/// Composites every ray of `batch` over its background.
+pub fn composite_forward<F: Float + Send + Sync>(
+    batch: &RayBatch<F>,
+    min_transmittance: F,
+    out: CompositeOutputs<F>,
+) {
+    batch.validate();
+    let rays = batch.ray_count();
+    assert!(out.rgb.len() >= 3 * rays && out.opacity.len() >= rays);
+    assert!(out.depth.len() >= rays && out.samples_used.len() >= rays);
+    forward_block(
+        batch,
+        min_transmittance,
+        0..rays,
+        &mut out.rgb[..3 * rays],
+        &mut out.opacity[..rays],
+        &mut out.depth[..rays],
+        &mut out.samples_used[..rays],
+    );
+}
+
+/// Splits the rays in two until a block is small, then composites it. The
+/// output slices cover exactly `rays`.
+fn forward_block<F: Float + Send + Sync>(
+    batch: &RayBatch<F>,
+    min_transmittance: F,
+    rays: Range<usize>,
+    rgb: &mut [F],
+    opacity: &mut [F],
+    depth: &mut [F],
+    used: &mut [u32],
+) {
+    if rays.len() > 1 && batch.samples_of(&rays).len() > LEAF_SAMPLES {
+        let mid = rays.start + rays.len() / 2;
+        let k = mid - rays.start;
+        let (rgb_a, rgb_b) = rgb.split_at_mut(3 * k);
+        let (opacity_a, opacity_b) = opacity.split_at_mut(k);
+        let (depth_a, depth_b) = depth.split_at_mut(k);
+        let (used_a, used_b) = used.split_at_mut(k);
+        rayon::join(
+            || {
+                forward_block(
+                    batch,
+                    min_transmittance,
+                    rays.start..mid,
+                    rgb_a,
+                    opacity_a,
+                    depth_a,
+                    used_a,
+                )
+            },
+            || {
+                forward_block(
+                    batch,
+                    min_transmittance,
+                    mid..rays.end,
+                    rgb_b,
+                    opacity_b,
+                    depth_b,
+                    used_b,
+                )
+            },
+        );
+        return;
+    }
+    for (local, ray) in rays.enumerate() {
+        let samples = batch.samples_of(&(ray..ray + 1));
+        let start = samples.start;
+        let mut colour = [F::zero(); 3];
+        let mut ray_depth = F::zero();
+        let mut accumulated = F::zero();
+        let mut count = samples.len();
+        for s in samples {
+            let transmittance = (-accumulated).exp();
+            if transmittance < min_transmittance {
+                count = s - start;
+                break;
+            }
+            let tau = optical_depth(batch.density[s], batch.dt[s]);
+            let weight = transmittance * -(-tau).exp_m1();
+            for (c, sample_c) in colour.iter_mut().zip(&batch.rgb[3 * s..3 * s + 3]) {
+                *c = *c + weight * *sample_c;
+            }
+            ray_depth = ray_depth + weight * batch.t[s];
+            accumulated = accumulated + tau;
+        }
+        let final_transmittance = (-accumulated).exp();
+        for c in 0..3 {
+            rgb[3 * local + c] = colour[c] + final_transmittance * batch.background[3 * ray + c];
+        }
+        opacity[local] = F::one() - final_transmittance;
+        depth[local] = ray_depth;
+        used[local] = count as u32;
+    }
+}
+
+/// The backward pass of [`composite_forward`] for a loss on the colours:
+/// given ∂L/∂rgb per ray (R × 3), writes ∂L/∂σ and ∂L/∂c per sample and,
+/// if asked, ∂L/∂background per ray.
+///
+/// The forward walk is redone here (it is two transcendental functions per
+/// sample, cheaper than storing and reading back per-sample state), with
+/// the same arithmetic, so it finds the same cut as the forward pass did.
+/// As in the reference, with gₖ = ∂L/∂rgb · cₖ:
+///
+/// ```text
+/// ∂L/∂τₖ = Tₖ₊₁ gₖ − (Σ_{k<i<cut} wᵢ gᵢ + T_cut ∂L/∂rgb · background)
+/// ```
+///
+/// with the bracket summed from the back of the ray. Tₖ for the ray is
+/// kept in `gradients.density` between the two walks, so nothing is
+/// allocated.
+pub fn composite_backward<F: Float + Send + Sync>(
+    batch: &RayBatch<F>,
+    min_transmittance: F,
+    d_rgb: &[F],
+    gradients: CompositeGradients<F>,
+) {
+    batch.validate();
+    let rays = batch.ray_count();
+    let samples = batch.sample_count();
+    assert!(
+        d_rgb.len() >= 3 * rays,
+        "d_rgb: {} < 3 × {rays} rays",
+        d_rgb.len()
+    );
+    assert!(gradients.density.len() >= samples && gradients.rgb.len() >= 3 * samples);
+    let first = batch.ray_offsets[0] as usize;
+    let background = gradients.background.map(|b| {
+        assert!(b.len() >= 3 * rays);
+        &mut b[..3 * rays]
+    });
+    backward_block(
+        batch,
+        min_transmittance,
+        d_rgb,
+        0..rays,
+        &mut gradients.density[first..samples],
+        &mut gradients.rgb[3 * first..3 * samples],
+        background,
+    );
+}
+
+/// As [`forward_block`]: `d_density` and `d_colour` cover exactly the
+/// samples of `rays`, `d_background` exactly the rays.
+fn backward_block<F: Float + Send + Sync>(
+    batch: &RayBatch<F>,
+    min_transmittance: F,
+    d_rgb: &[F],
+    rays: Range<usize>,
+    d_density: &mut [F],
+    d_colour: &mut [F],
+    d_background: Option<&mut [F]>,
+) {
+    let block = batch.samples_of(&rays);
+    if rays.len() > 1 && block.len() > LEAF_SAMPLES {
+        let mid = rays.start + rays.len() / 2;
+        let k = batch.ray_offsets[mid] as usize - block.start;
+        let (density_a, density_b) = d_density.split_at_mut(k);
+        let (colour_a, colour_b) = d_colour.split_at_mut(3 * k);
+        let (background_a, background_b) = match d_background {
+            Some(b) => {
+                let (a, b) = b.split_at_mut(3 * (mid - rays.start));
+                (Some(a), Some(b))
+            }
+            None => (None, None),
+        };
+        rayon::join(
+            || {
+                backward_block(
+                    batch,
+                    min_transmittance,
+                    d_rgb,
+                    rays.start..mid,
+                    density_a,
+                    colour_a,
+                    background_a,
+                )
+            },
+            || {
+                backward_block(
+                    batch,
+                    min_transmittance,
+                    d_rgb,
+                    mid..rays.end,
+                    density_b,
+                    colour_b,
+                    background_b,
+                )
+            },
+        );
+        return;
+    }
+    let mut d_background = d_background;
+    for (local_ray, ray) in rays.enumerate() {
+        let samples = batch.samples_of(&(ray..ray + 1));
+        let local = samples.start - block.start..samples.end - block.start;
+        let grad = [d_rgb[3 * ray], d_rgb[3 * ray + 1], d_rgb[3 * ray + 2]];
+        let transmittance_before = &mut d_density[local.clone()];
+
+        // Forward: Tₖ into the density gradient's slots, and the cut.
+        let mut accumulated = F::zero();
+        let mut used = samples.len();
+        for (k, s) in samples.clone().enumerate() {
+            let transmittance = (-accumulated).exp();
+            if transmittance < min_transmittance {
+                used = k;
+                break;
+            }
+            transmittance_before[k] = transmittance;
+            accumulated = accumulated + optical_depth(batch.density[s], batch.dt[s]);
+        }
+        let final_transmittance = (-accumulated).exp();
+        transmittance_before[used..].fill(F::zero());
+        d_colour[3 * (local.start + used)..3 * local.end].fill(F::zero());
+
+        // Backward. Tₖ₊₁ is the Tₖ read one step earlier (the same float
+        // the reference gets as exp of the same running sum), T_cut for the
+        // last sample used.
+        let background = &batch.background[3 * ray..3 * ray + 3];
+        let mut behind = final_transmittance
+            * (grad[0] * background[0] + grad[1] * background[1] + grad[2] * background[2]);
+        let mut transmittance_after = final_transmittance;
+        for k in (0..used).rev() {
+            let s = samples.start + k;
+            let transmittance = transmittance_before[k];
+            let tau = optical_depth(batch.density[s], batch.dt[s]);
+            let weight = transmittance * -(-tau).exp_m1();
+            let c = &batch.rgb[3 * s..3 * s + 3];
+            let g = grad[0] * c[0] + grad[1] * c[1] + grad[2] * c[2];
+            let d_tau = transmittance_after * g - behind;
+            // Negative densities were clamped to empty space: no gradient.
+            transmittance_before[k] = if batch.density[s] * batch.dt[s] >= F::zero() {
+                batch.dt[s] * d_tau
+            } else {
+                F::zero()
+            };
+            let out = &mut d_colour[3 * (local.start + k)..3 * (local.start + k) + 3];
+            for (o, gc) in out.iter_mut().zip(grad) {
+                *o = weight * gc;
+            }
+            behind = behind + weight * g;
+            transmittance_after = transmittance;
+        }
+        if let Some(d_background) = d_background.as_deref_mut() {
+            for c in 0..3 {
+                d_background[3 * local_ray + c] = final_transmittance * grad[c];
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::cpu::composite::{self as reference, OutputGradients, RaySamples};
+    use crate::field::ngp::MarchConfig;
+
+    /// A deterministic pseudo-random sequence in [0, 1).
+    fn sequence(seed: u64, n: usize) -> Vec<f64> {
+        let mut state = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (0..n)
+            .map(|_| {
+                state = state
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                (state >> 11) as f64 / (1u64 << 53) as f64
+            })
+            .collect()
+    }
+
+    /// An owned batch.
+    #[derive(Clone, Debug)]
+    struct Batch {
+        density: Vec<f64>,
+        rgb: Vec<f64>,
+        dt: Vec<f64>,
+        t: Vec<f64>,
+        ray_offsets: Vec<u32>,
+        background: Vec<f64>,
+    }
+
+    impl Batch {
+        /// Rays with the given sample counts; each ray gets its own density
+        /// scale from `scales`, so the batch mixes near-empty and saturating
+        /// rays.
+        fn random(seed: u64, counts: &[usize], scales: &[f64]) -> Self {
+            let total: usize = counts.iter().sum();
+            let r = sequence(seed, 6 * total + 3 * counts.len());
+            let mut ray_offsets = vec![0u32];
+            let (mut density, mut dt, mut t) = (Vec::new(), Vec::new(), Vec::new());
+            let mut s = 0;
+            for (ray, &n) in counts.iter().enumerate() {
+                let mut far = 2.0;
+                for _ in 0..n {
+                    let d = 0.01 + 0.05 * r[s];
+                    dt.push(d);
+                    t.push(far + 0.5 * d);
+                    far += d;
+                    density.push(scales[ray % scales.len()] * r[total + s]);
+                    s += 1;
+                }
+                ray_offsets.push(s as u32);
+            }
+            Self {
+                density,
+                rgb: r[2 * total..5 * total].to_vec(),
+                dt,
+                t,
+                ray_offsets,
+                background: r[6 * total..6 * total + 3 * counts.len()].to_vec(),
+            }
+        }
+
+        fn view(&self) -> RayBatch<'_, f64> {
+            RayBatch {
+                density: &self.density,
+                rgb: &self.rgb,
+                dt: &self.dt,
+                t: &self.t,
+                ray_offsets: &self.ray_offsets,
+                background: &self.background,
+            }
+        }
+
+        fn rays(&self) -> usize {
+            self.ray_offsets.len() - 1
+        }
+
+        fn forward(&self, min_transmittance: f64) -> Forward {
+            let rays = self.rays();
+            let mut out = Forward {
+                rgb: vec![f64::NAN; 3 * rays],
+                opacity: vec![f64::NAN; rays],
+                depth: vec![f64::NAN; rays],
+                used: vec![u32::MAX; rays],
+            };
+            composite_forward(
+                &self.view(),
+                min_transmittance,
+                CompositeOutputs {
+                    rgb: &mut out.rgb,
+                    opacity: &mut out.opacity,
+                    depth: &mut out.depth,
+                    samples_used: &mut out.used,
+                },
+            );
+            out
+        }
+
+        fn backward(
+            &self,
+            min_transmittance: f64,
+            d_rgb: &[f64],
+        ) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+            let n = self.density.len();
+            // NaN-filled, so a slot the backward forgets to write shows up.
+            let mut d_density = vec![f64::NAN; n];
+            let mut d_colour = vec![f64::NAN; 3 * n];
+            let mut d_background = vec![f64::NAN; 3 * self.rays()];
+            composite_backward(
+                &self.view(),
+                min_transmittance,
+                d_rgb,
+                CompositeGradients {
+                    density: &mut d_density,
+                    rgb: &mut d_colour,
+                    background: Some(&mut d_background),
+                },
+            );
+            (d_density, d_colour, d_background)
+        }
+    }
+
+    struct Forward {
+        rgb: Vec<f64>,
+        opacity: Vec<f64>,
+        depth: Vec<f64>,
+        used: Vec<u32>,
+    }
+
+    /// Varied sample counts, zeros included.
+    fn counts(n: usize, seed: u64) -> Vec<usize> {
+        sequence(seed, n)
+            .iter()
+            .enumerate()
+            .map(|(i, x)| if i % 17 == 0 { 0 } else { (x * 60.0) as usize })
+            .collect()
+    }
+
+    const PAPER_CUT: f64 = MarchConfig::PAPER.min_transmittance as f64;
+
+    #[test]
+    fn agrees_with_the_single_ray_reference() {
+        // Enough samples (~9000) that the batch is split across threads.
+        let counts = counts(300, 5);
+        let batch = Batch::random(7, &counts, &[0.5, 5.0, 40.0, 300.0, 1e4]);
+        let d_rgb: Vec<f64> = sequence(11, 3 * batch.rays())
+            .iter()
+            .map(|x| 2.0 * x - 1.0)
+            .collect();
+        for min_transmittance in [0.0, PAPER_CUT] {
+            let out = batch.forward(min_transmittance);
+            let (d_density, d_colour, d_background) = batch.backward(min_transmittance, &d_rgb);
+            let mut truncated_rays = 0;
+            for ray in 0..batch.rays() {
+                let all = batch.ray_offsets[ray] as usize..batch.ray_offsets[ray + 1] as usize;
+                let used = out.used[ray] as usize;
+                assert!(used <= all.len());
+                if min_transmittance == 0.0 {
+                    assert_eq!(used, all.len(), "no cut without a threshold");
+                }
+                truncated_rays += usize::from(used < all.len());
+                // The reference on the samples the ray used.
+                let kept = all.start..all.start + used;
+                let colour: Vec<[f64; 3]> = kept
+                    .clone()
+                    .map(|s| [batch.rgb[3 * s], batch.rgb[3 * s + 1], batch.rgb[3 * s + 2]])
+                    .collect();
+                let samples = RaySamples {
+                    density: &batch.density[kept.clone()],
+                    colour: &colour,
+                    delta: &batch.dt[kept.clone()],
+                    t: &batch.t[kept.clone()],
+                };
+                let background = [
+                    batch.background[3 * ray],
+                    batch.background[3 * ray + 1],
+                    batch.background[3 * ray + 2],
+                ];
+                let want = reference::composite(&samples, background);
+                // Same operations in the same order: identical up to the
+                // compiler's freedom, which Rust does not use (no FMA
+                // contraction), so 1e-15 relative is already generous.
+                let close = |a: f64, b: f64| (a - b).abs() <= 1e-15 * a.abs().max(b.abs()).max(1.0);
+                for c in 0..3 {
+                    assert!(close(out.rgb[3 * ray + c], want.colour[c]), "ray {ray}");
+                }
+                assert!(close(out.opacity[ray], want.opacity) && close(out.depth[ray], want.depth));
+                // The cut is where transmittance first drops below the
+                // threshold.
+                if used < all.len() {
+                    assert!(want.final_transmittance < min_transmittance);
+                    let mut before = vec![0.0; used];
+                    let t_before_last = if used > 0 {
+                        reference::weights(
+                            &RaySamples {
+                                density: &samples.density[..used - 1],
+                                colour: &colour[..used - 1],
+                                delta: &samples.delta[..used - 1],
+                                t: &samples.t[..used - 1],
+                            },
+                            &mut before,
+                        )
+                    } else {
+                        1.0
+                    };
+                    assert!(t_before_last >= min_transmittance);
+                }
+                let grad = OutputGradients {
+                    colour: [d_rgb[3 * ray], d_rgb[3 * ray + 1], d_rgb[3 * ray + 2]],
+                    opacity: 0.0,
+                    depth: 0.0,
+                };
+                let want_grad = reference::composite_backward(&samples, background, &grad);
+                for (k, s) in kept.clone().enumerate() {
+                    assert!(
+                        close(d_density[s], want_grad.density[k]),
+                        "ray {ray} sample {k}"
+                    );
+                    for c in 0..3 {
+                        assert!(close(d_colour[3 * s + c], want_grad.colour[k][c]));
+                    }
+                }
+                for s in kept.end..all.end {
+                    assert_eq!(d_density[s], 0.0);
+                    assert_eq!(&d_colour[3 * s..3 * s + 3], &[0.0; 3]);
+                }
+                for c in 0..3 {
+                    assert!(close(d_background[3 * ray + c], want_grad.background[c]));
+                }
+            }
+            if min_transmittance > 0.0 {
+                // The dense rays must exercise the cut, or this test says
+                // nothing about it.
+                assert!(truncated_rays > 50, "only {truncated_rays} rays were cut");
+            }
+        }
+    }
+
+    /// A scalar loss on the batch's colours, for finite differences.
+    fn loss(batch: &Batch, weights: &[f64]) -> f64 {
+        let out = batch.forward(PAPER_CUT);
+        out.rgb.iter().zip(weights).map(|(c, w)| c * w).sum()
+    }
+
+    #[test]
+    fn gradients_match_central_differences_with_the_cut() {
+        let counts = [0usize, 1, 3, 12, 30, 30, 45, 8];
+        // Scales from near-empty rays to rays cut after a few samples.
+        let batch = Batch::random(3, &counts, &[0.5, 30.0, 150.0, 2000.0]);
+        let weights: Vec<f64> = sequence(9, 3 * batch.rays())
+            .iter()
+            .map(|x| 2.0 * x - 1.0)
+            .collect();
+        let base = batch.forward(PAPER_CUT);
+        let cut_rays = (0..batch.rays())
+            .filter(|&r| (base.used[r] as usize) < counts[r])
+            .count();
+        assert!(
+            cut_rays >= 3,
+            "the test needs rays that are cut: {cut_rays}"
+        );
+        let (d_density, d_colour, d_background) = batch.backward(PAPER_CUT, &weights);
+
+        // Central differences with h ≤ 1e-6: truncation O(h²|L'''|) and
+        // rounding O(ε|L|/h) ≈ 1e-10 in f64, far below the 1e-6 relative
+        // bound (absolute floor 1e-9 for gradients that cancel to ~0).
+        // Each perturbation must leave every ray's cut where it was,
+        // because the function being differentiated is the truncated one;
+        // the margin to the threshold here is orders of magnitude larger
+        // than the change in T a perturbation of 1e-6 causes.
+        let check = |perturb: &dyn Fn(&mut Batch, f64), analytic: f64, h: f64, what: &str| {
+            let mut plus = batch.clone();
+            let mut minus = batch.clone();
+            perturb(&mut plus, h);
+            perturb(&mut minus, -h);
+            assert_eq!(
+                plus.forward(PAPER_CUT).used,
+                base.used,
+                "{what}: the cut moved"
+            );
+            assert_eq!(
+                minus.forward(PAPER_CUT).used,
+                base.used,
+                "{what}: the cut moved"
+            );
+            let numeric = (loss(&plus, &weights) - loss(&minus, &weights)) / (2.0 * h);
+            let error = (analytic - numeric).abs() / analytic.abs().max(numeric.abs()).max(1e-3);
+            assert!(
+                error < 1e-6,
+                "{what}: analytic {analytic:e}, numeric {numeric:e}"
+            );
+        };
+        for s in 0..batch.density.len() {
+            let h = (0.5 * batch.density[s]).min(1e-6);
+            check(
+                &|b, h| b.density[s] += h,
+                d_density[s],
+                h,
+                &format!("σ[{s}]"),
+            );
+            for c in 0..3 {
+                check(
+                    &|b, h| b.rgb[3 * s + c] += h,
+                    d_colour[3 * s + c],
+                    1e-6,
+                    &format!("c[{s}][{c}]"),
+                );
+            }
+        }
+        for (i, &analytic) in d_background.iter().enumerate() {
+            check(
+                &|b, h| b.background[i] += h,
+                analytic,
+                1e-6,
+                &format!("bg[{i}]"),
+            );
+        }
+    }
+
+    #[test]
+    fn cut_follows_instant_ngp() {
+        // One opaque first sample: T₀ = 1 is used, T₁ = e^{-100} is not.
+        let batch = Batch {
+            density: vec![100.0, 1.0, 1.0],
+            rgb: vec![0.2, 0.4, 0.6, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0],
+            dt: vec![1.0; 3],
+            t: vec![0.5, 1.5, 2.5],
+            ray_offsets: vec![0, 3],
+            background: vec![1.0; 3],
+        };
+        let out = batch.forward(PAPER_CUT);
+        assert_eq!(out.used, [1]);
+        let (d_density, d_colour, _) = batch.backward(PAPER_CUT, &[1.0, 1.0, 1.0]);
+        assert_eq!(&d_density[1..], &[0.0, 0.0]);
+        assert_eq!(&d_colour[3..], &[0.0; 6]);
+        // Transmittance exp(−Σ) drops below 1e-4 after Σ τ > ln 1e4 ≈ 9.21:
+        // with τ = 1 per sample, sample 9 sees e^{-9} ≈ 1.2e-4 (used) and
+        // sample 10 sees e^{-10} ≈ 4.5e-5 (cut).
+        let n = 20;
+        let batch = Batch {
+            density: vec![1.0; n],
+            rgb: vec![0.5; 3 * n],
+            dt: vec![1.0; n],
+            t: (0..n).map(|i| i as f64).collect(),
+            ray_offsets: vec![0, n as u32],
+            background: vec![0.0; 3],
+        };
+        let out = batch.forward(PAPER_CUT);
+        assert_eq!(out.used, [10]);
+        // The cut changes the colour by at most T_cut · (colour + bg).
+        let full = batch.forward(0.0);
+        assert!((out.rgb[0] - full.rgb[0]).abs() <= (-10f64).exp() * 0.5 + 1e-15);
+        assert!((out.opacity[0] - (1.0 - (-10f64).exp())).abs() < 1e-15);
+    }
+
+    #[test]
+    fn empty_rays_and_huge_densities_stay_finite() {
+        let batch = Batch {
+            density: vec![1e30, 3.0, 0.0, -2.0, 1e-30],
+            rgb: vec![0.5; 15],
+            dt: vec![0.1; 5],
+            t: vec![1.0, 2.0, 3.0, 4.0, 5.0],
+            ray_offsets: vec![0, 0, 2, 2, 5, 5],
+            background: vec![
+                0.25, 0.5, 0.75, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.3, 0.3, 0.3, 0.1, 0.2, 0.3,
+            ],
+        };
+        let out = batch.forward(PAPER_CUT);
+        // Rays without samples are their background, fully transparent.
+        assert_eq!(&out.rgb[0..3], &[0.25, 0.5, 0.75]);
+        assert_eq!(&out.rgb[12..15], &[0.1, 0.2, 0.3]);
+        assert_eq!((out.opacity[0], out.depth[0], out.used[0]), (0.0, 0.0, 0));
+        // An infinitely thick first sample takes everything.
+        assert_eq!(out.used[1], 1);
+        assert_eq!(&out.rgb[3..6], &[0.5; 3]);
+        assert_eq!(out.opacity[1], 1.0);
+        assert!(
+            out.rgb
+                .iter()
+                .chain(&out.opacity)
+                .chain(&out.depth)
+                .all(|x| x.is_finite())
+        );
+        let d_rgb = vec![1.0; 15];
+        let (d_density, d_colour, d_background) = batch.backward(PAPER_CUT, &d_rgb);
+        assert!(
+            d_density
+                .iter()
+                .chain(&d_colour)
+                .chain(&d_background)
+                .all(|x| x.is_finite())
+        );
+        assert_eq!(&d_background[0..3], &[1.0; 3]);
+        // The negative density is clamped to empty space, without gradient.
+        assert_eq!(d_density[3], 0.0);
+    }
+
+    #[test]
+    fn f32_matches_f64() {
+        // The engines run f32; it must agree with the f64 path to f32
+        // rounding. Per ray, the errors are those of ~60 sums of products
+        // and exps, each ~1e-7 relative, so 1e-5 absolute on values in
+        // [0, 1] (and relative to the size of the terms for gradients).
+        let counts = counts(200, 21);
+        let batch = Batch::random(23, &counts, &[1.0, 30.0, 300.0]);
+        let d_rgb: Vec<f64> = sequence(29, 3 * batch.rays())
+            .iter()
+            .map(|x| 2.0 * x - 1.0)
+            .collect();
+        let want = batch.forward(PAPER_CUT);
+        let (want_density, want_colour, _) = batch.backward(PAPER_CUT, &d_rgb);
+        let to32 = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
+        let (density, rgb, dt, t, background) = (
+            to32(&batch.density),
+            to32(&batch.rgb),
+            to32(&batch.dt),
+            to32(&batch.t),
+            to32(&batch.background),
+        );
+        let view = RayBatch {
+            density: &density,
+            rgb: &rgb,
+            dt: &dt,
+            t: &t,
+            ray_offsets: &batch.ray_offsets,
+            background: &background,
+        };
+        let rays = batch.rays();
+        let (mut out_rgb, mut opacity, mut depth, mut used) = (
+            vec![0f32; 3 * rays],
+            vec![0f32; rays],
+            vec![0f32; rays],
+            vec![0u32; rays],
+        );
+        composite_forward(
+            &view,
+            MarchConfig::PAPER.min_transmittance,
+            CompositeOutputs {
+                rgb: &mut out_rgb,
+                opacity: &mut opacity,
+                depth: &mut depth,
+                samples_used: &mut used,
+            },
+        );
+        let n = density.len();
+        let (mut d_density, mut d_colour) = (vec![0f32; n], vec![0f32; 3 * n]);
+        composite_backward(
+            &view,
+            MarchConfig::PAPER.min_transmittance,
+            &to32(&d_rgb),
+            CompositeGradients {
+                density: &mut d_density,
+                rgb: &mut d_colour,
+                background: None,
+            },
+        );
+        // A cut can move by one sample only where T is within f32 rounding
+        // (~1e-6 relative) of the threshold: rare.
+        let moved = (0..rays).filter(|&r| used[r] != want.used[r]).count();
+        assert!(moved <= rays / 100, "{moved} cuts moved");
+        for ray in 0..rays {
+            if used[ray] != want.used[ray] {
+                continue;
+            }
+            for c in 0..3 {
+                assert!((out_rgb[3 * ray + c] as f64 - want.rgb[3 * ray + c]).abs() < 1e-5);
+            }
+            assert!((opacity[ray] as f64 - want.opacity[ray]).abs() < 1e-5);
+            let samples = batch.ray_offsets[ray] as usize..batch.ray_offsets[ray + 1] as usize;
+            for s in samples {
+                // ∂L/∂σ is δ (Tg − behind) with both terms ≤ 3 in size.
+                assert!(
+                    (d_density[s] as f64 - want_density[s]).abs()
+                        < 1e-5 * (1.0 + batch.dt[s] * 3.0)
+                );
+                for c in 0..3 {
+                    assert!((d_colour[3 * s + c] as f64 - want_colour[3 * s + c]).abs() < 1e-5);
+                }
+            }
+        }
+    }
+
+    /// Prints compositing throughput for a training batch of 2^18 samples:
+    /// `cargo test --release --lib composite_batch::tests::throughput -- --ignored --nocapture`.
+    #[test]
+    #[ignore]
+    fn throughput() {
+        let samples = crate::field::ngp::SAMPLES_PER_BATCH;
+        // Rays of 1..128 samples (~64 on average), a third of them dense
+        // enough to be cut early.
+        let r = sequence(1, samples);
+        let mut counts = Vec::new();
+        let mut total = 0;
+        while total < samples {
+            let n = (1 + (r[counts.len()] * 127.0) as usize).min(samples - total);
+            counts.push(n);
+            total += n;
+        }
+        let batch = Batch::random(2, &counts, &[1.0, 10.0, 100.0]);
+        let to32 = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
+        let (density, rgb, dt, t, background) = (
+            to32(&batch.density),
+            to32(&batch.rgb),
+            to32(&batch.dt),
+            to32(&batch.t),
+            to32(&batch.background),
+        );
+        let view = RayBatch {
+            density: &density,
+            rgb: &rgb,
+            dt: &dt,
+            t: &t,
+            ray_offsets: &batch.ray_offsets,
+            background: &background,
+        };
+        let rays = batch.rays();
+        let (mut out_rgb, mut opacity, mut depth, mut used) = (
+            vec![0f32; 3 * rays],
+            vec![0f32; rays],
+            vec![0f32; rays],
+            vec![0u32; rays],
+        );
+        let (mut d_density, mut d_colour) = (vec![0f32; samples], vec![0f32; 3 * samples]);
+        let d_rgb = vec![0.1f32; 3 * rays];
+        let cut = MarchConfig::PAPER.min_transmittance;
+        let mut run = || {
+            composite_forward(
+                &view,
+                cut,
+                CompositeOutputs {
+                    rgb: &mut out_rgb,
+                    opacity: &mut opacity,
+                    depth: &mut depth,
+                    samples_used: &mut used,
+                },
+            );
+            composite_backward(
+                &view,
+                cut,
+                &d_rgb,
+                CompositeGradients {
+                    density: &mut d_density,
+                    rgb: &mut d_colour,
+                    background: None,
+                },
+            );
+        };
+        run();
+        let repeats = 20;
+        let start = std::time::Instant::now();
+        for _ in 0..repeats {
+            run();
+        }
+        let seconds = start.elapsed().as_secs_f64() / repeats as f64;
+        println!(
+            "composite forward+backward: {samples} samples, {rays} rays in {:.2} ms: {:.1} M samples/s ({} threads)",
+            seconds * 1e3,
+            samples as f64 / seconds / 1e6,
+            rayon::current_num_threads()
+        );
+    }
+}

@@ -1,0 +1,1342 @@
+//! Ray marching through the occupancy grid: Instant-NGP's sample generation
+//! (Müller et al. 2022, appendix E.1; instant-ngp testbed).
+//!
+//! Each ray is mapped into unit-cube coordinates (`unit = world · scale +
+//! offset`, so distances along the unit direction scale by `scale` too) and
+//! clipped to the scene box (side aabb_scale around 0.5, inside the
+//! outermost cascade). Samples lie on a fixed lattice from the entry point
+//! e: s_k = (u + k) · dt, position e + s_k · d, with dt = √3/1024 (cone angle
+//! 0, the Blender setting) and u a per-ray offset in [0, 1) during training
+//! (0 for rendering). A lattice point is a sample when its cell is occupied;
+//! at most 1024 samples per ray.
+//!
+//! The march goes cell by cell, like a DDA: from a lattice point it finds
+//! the first lattice point at or beyond its cell's exit face, and either
+//! emits every lattice point up to there (occupied cell) or jumps over them
+//! (empty cell; the testbed's `advance_to_next_voxel`, which also stays on
+//! the lattice). The face is pulled inside the cell by a margin of ~30 ulps
+//! of the largest coordinate, well above the few ulps of rounding in the
+//! position and the exit distance, so every lattice point emitted or jumped
+//! over lies in the cell for certain: the result is exactly the samples of
+//! a naive march that looks up every lattice point (a test checks this).
+//!
+//! Training marches every ray to its sample limit without early termination
+//! (there are no densities yet); compositing ignores samples once the
+//! transmittance falls below 1e-4. Rendering uses
+//! [`march_and_composite`], which evaluates densities in rounds and stops
+//! each ray once its transmittance falls below 1e-4.
+//!
+//! Output, for R rays: positions (S × 3, unit cube), directions (S × 3,
+//! world unit vectors), dt and t per sample in world units (for
+//! compositing), and ray_offsets (R + 1).
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+use super::occupancy::{Cell, GridGeometry, OccupancyGrid, bit_is_set};
+use crate::field::ngp::{MarchConfig, SAMPLES_PER_BATCH};
+use crate::scene::{Aabb, UnitCubeMapping};
+
+/// What a batch march needs besides the grid and the rays.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MarchParams {
+    pub config: MarchConfig,
+    pub mapping: UnitCubeMapping,
+    /// `Some(seed)`: the first sample of ray r sits at [`jitter`]`(seed, r)`
+    /// · dt past the entry point, the training setting (vary the seed per
+    /// step). `None`: at the entry point, for rendering.
+    pub jitter_seed: Option<u32>,
+    /// Samples the batch may hold in total. Rays are kept in order while
+    /// their samples fit; from the first ray that would overflow on, rays
+    /// get no samples (see [`MarchStats::rays_kept`]).
+    pub sample_budget: usize,
+}
+
+impl MarchParams {
+    /// The paper's marching with a random first offset, no budget.
+    pub fn training(mapping: UnitCubeMapping, seed: u32) -> Self {
+        Self {
+            config: MarchConfig::PAPER,
+            mapping,
+            jitter_seed: Some(seed),
+            sample_budget: usize::MAX,
+        }
+    }
+
+    /// The paper's marching from the entry point, no budget.
+    pub fn rendering(mapping: UnitCubeMapping) -> Self {
+        Self {
+            jitter_seed: None,
+            ..Self::training(mapping, 0)
+        }
+    }
+}
+
+/// The murmur3 32-bit finaliser (Appleby): a cheap bijective mixer that the
+/// shaders compute identically.
+#[inline]
+pub fn mix32(mut x: u32) -> u32 {
+    x ^= x >> 16;
+    x = x.wrapping_mul(0x85eb_ca6b);
+    x ^= x >> 13;
+    x = x.wrapping_mul(0xc2b2_ae35);
+    x ^ (x >> 16)
+}
+
+/// The first-sample offset of `ray` under `seed`, uniform in [0, 1) on a
+/// 2^-24 grid (exactly representable, so both engines agree bit for bit).
+#[inline]
+pub fn jitter(seed: u32, ray: u32) -> f32 {
+    let h = mix32(seed ^ mix32(ray.wrapping_add(0x9e37_79b9)));
+    (h >> 8) as f32 * (1.0 / 16_777_216.0)
+}
+
+/// One ray prepared for marching, in unit-cube coordinates.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RayMarch {
+    /// Where the ray enters the box (its origin when it starts inside).
+    pub entry: Vec3,
+    pub direction: Vec3,
+    inverse_direction: Vec3,
+    /// Distance from the (unit-space) origin to the entry point.
+    pub t_enter: f32,
+    /// Distance from the entry point to the exit point.
+    pub s_exit: f32,
+    /// The first-sample offset u, in steps.
+    pub jitter: f32,
+}
+
+impl RayMarch {
+    /// Distance of lattice point k past the entry point.
+    #[inline(always)]
+    pub fn s(&self, k: u32, dt: f32) -> f32 {
+        (self.jitter + k as f32) * dt
+    }
+
+    /// Lattice point k.
+    #[inline(always)]
+    pub fn position(&self, k: u32, dt: f32) -> Vec3 {
+        self.entry + self.direction * self.s(k, dt)
+    }
+}
+
+/// Marching over one occupancy grid: the grid's bits and geometry, the step,
+/// the box, and the scene's mapping.
+#[derive(Debug, Clone, Copy)]
+pub struct Marcher<'a> {
+    geometry: GridGeometry,
+    bitfield: &'a [u32],
+    mapping: UnitCubeMapping,
+    bounds: Aabb,
+    dt: f32,
+    inverse_dt: f32,
+    margin: f32,
+}
+
+impl<'a> Marcher<'a> {
+    pub fn new(grid: &'a OccupancyGrid, config: &MarchConfig, mapping: &UnitCubeMapping) -> Self {
+        Self::from_parts(grid.geometry(), grid.bitfield(), config, mapping)
+    }
+
+    /// From a bitfield laid out as [`OccupancyGrid::bitfield`].
+    pub fn from_parts(
+        geometry: GridGeometry,
+        bitfield: &'a [u32],
+        config: &MarchConfig,
+        mapping: &UnitCubeMapping,
+    ) -> Self {
+        assert_eq!(
+            bitfield.len(),
+            geometry.bitfield_words(),
+            "bitfield of the wrong size"
+        );
+        let outermost = (1u32 << (geometry.cascades - 1)) as f32;
+        let half = 0.5 * mapping.aabb_scale.min(outermost);
+        Self {
+            geometry,
+            bitfield,
+            mapping: *mapping,
+            bounds: Aabb::cube(Vec3::splat(0.5), half),
+            dt: config.step,
+            inverse_dt: 1.0 / config.step,
+            margin: skip_margin(&geometry),
+        }
+    }
+
+    pub fn dt(&self) -> f32 {
+        self.dt
+    }
+
+    /// The box rays are clipped to, in unit coordinates.
+    pub fn bounds(&self) -> Aabb {
+        self.bounds
+    }
+
+    /// Prepares a world-space ray (unit `direction`); `None` when it misses
+    /// the box or is not a valid ray (non-finite, zero direction).
+    #[inline]
+    pub fn prepare(&self, origin: Vec3, direction: Vec3, jitter: f32) -> Option<RayMarch> {
+        if !origin.is_finite() || !direction.is_finite() || direction == Vec3::ZERO {
+            return None;
+        }
+        let origin = self.mapping.to_unit(origin);
+        let (t_enter, t_exit) = self.bounds.intersect(origin, direction, 0.0)?;
+        let entry = origin + direction * t_enter;
+        let inverse = |d: f32| if d == 0.0 { 0.0 } else { 1.0 / d };
+        Some(RayMarch {
+            entry,
+            direction,
+            inverse_direction: Vec3::new(
+                inverse(direction.x),
+                inverse(direction.y),
+                inverse(direction.z),
+            ),
+            t_enter,
+            s_exit: t_exit - t_enter,
+            jitter,
+        })
+    }
+
+    /// Whether lattice point k of `ray` is a sample (its cell is occupied).
+    #[inline(always)]
+    pub fn is_sample(&self, ray: &RayMarch, k: u32) -> bool {
+        let cell = self.geometry.cell_of(ray.position(k, self.dt));
+        bit_is_set(self.bitfield, self.geometry.linear_index(cell))
+    }
+
+    /// The first lattice index at or beyond the exit face of `cell` (pulled
+    /// in by the margin, see the module documentation): every lattice point
+    /// from one inside `cell` up to this one is inside `cell` too.
+    #[inline(always)]
+    fn exit_index(&self, ray: &RayMarch, cell: Cell) -> u32 {
+        let lo = self.geometry.cell_min(cell);
+        let size = self.geometry.cell_size(cell.cascade);
+        let exit = |lo: f32, e: f32, d: f32, inverse: f32| {
+            if d > 0.0 {
+                (lo + size - self.margin - e) * inverse
+            } else if d < 0.0 {
+                (lo + self.margin - e) * inverse
+            } else {
+                f32::INFINITY
+            }
+        };
+        let s_cell = exit(lo.x, ray.entry.x, ray.direction.x, ray.inverse_direction.x)
+            .min(exit(
+                lo.y,
+                ray.entry.y,
+                ray.direction.y,
+                ray.inverse_direction.y,
+            ))
+            .min(exit(
+                lo.z,
+                ray.entry.z,
+                ray.direction.z,
+                ray.inverse_direction.z,
+            ));
+        // ceil without the libm call: `as u32` truncates and saturates
+        // (negative and NaN give 0, which callers lift past the current
+        // index).
+        let v = s_cell * self.inverse_dt - ray.jitter;
+        let truncated = v as u32;
+        truncated.saturating_add(((truncated as f32) < v) as u32)
+    }
+
+    /// Walks `ray` from lattice point `*k`, calling `emit(k)` for each
+    /// sample, until `limit` samples were emitted or the ray left the box.
+    /// `*k` is left at the next lattice point to look at; the result is
+    /// true when the ray is finished.
+    ///
+    /// One cell at a time: the cell of the current lattice point is looked
+    /// up once, and every lattice point before its exit index is emitted
+    /// (occupied) or jumped over (empty) without further look-ups.
+    #[inline]
+    pub fn walk(&self, ray: &RayMarch, k: &mut u32, limit: u32, mut emit: impl FnMut(u32)) -> bool {
+        let mut index = *k;
+        let mut emitted = 0;
+        loop {
+            let s = ray.s(index, self.dt);
+            if s > ray.s_exit {
+                *k = index;
+                return true;
+            }
+            if emitted == limit {
+                *k = index;
+                return false;
+            }
+            let cell = self.geometry.cell_of(ray.entry + ray.direction * s);
+            let next = self.exit_index(ray, cell).max(index.saturating_add(1));
+            if bit_is_set(self.bitfield, self.geometry.linear_index(cell)) {
+                while index < next {
+                    if ray.s(index, self.dt) > ray.s_exit {
+                        *k = index;
+                        return true;
+                    }
+                    if emitted == limit {
+                        *k = index;
+                        return false;
+                    }
+                    emit(index);
+                    emitted += 1;
+                    index += 1;
+                }
+            }
+            index = next;
+        }
+    }
+
+    /// World distance along the ray of lattice point k.
+    #[inline(always)]
+    pub fn world_t(&self, ray: &RayMarch, k: u32) -> f32 {
+        (ray.t_enter + ray.s(k, self.dt)) * (1.0 / self.mapping.scale)
+    }
+
+    /// The step in world units.
+    pub fn world_dt(&self) -> f32 {
+        self.dt / self.mapping.scale
+    }
+}
+
+/// How far exit faces are pulled into a cell before a skip: 4e-6 times the
+/// largest coordinate is about 33 ulps there, against at most ~10 ulps of
+/// rounding in a position, an exit distance and its conversion to a lattice
+/// index. A cell is 1/128 wide, so the margin costs nothing measurable.
+pub fn skip_margin(geometry: &GridGeometry) -> f32 {
+    4e-6 * geometry.max_coordinate()
+}
+
+/// The samples of a batch of rays.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct MarchedSamples {
+    /// S × 3, unit-cube coordinates.
+    pub positions: Vec<f32>,
+    /// S × 3, the ray's world direction (unit).
+    pub directions: Vec<f32>,
+    /// S, the step in world units.
+    pub dt: Vec<f32>,
+    /// S, distance from the ray's origin in world units.
+    pub t: Vec<f32>,
+    /// R + 1; ray r owns samples ray_offsets[r]..ray_offsets[r + 1].
+    pub ray_offsets: Vec<u32>,
+}
+
+impl MarchedSamples {
+    pub fn sample_count(&self) -> usize {
+        self.dt.len()
+    }
+
+    pub fn ray_count(&self) -> usize {
+        self.ray_offsets.len().saturating_sub(1)
+    }
+
+    pub fn ray(&self, r: usize) -> std::ops::Range<usize> {
+        self.ray_offsets[r] as usize..self.ray_offsets[r + 1] as usize
+    }
+}
+
+/// What a batch march did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct MarchStats {
+    pub rays: usize,
+    /// Rays that got their samples; the rest were over the budget.
+    pub rays_kept: usize,
+    pub samples: usize,
+}
+
+/// Per-thread scratch of [`march`], kept between calls.
+#[derive(Debug, Default)]
+pub struct MarchWorkspace {
+    blocks: Vec<Vec<u32>>,
+    rays: Vec<Option<RayMarch>>,
+    counts: Vec<u32>,
+}
+
+/// Rays per parallel task: a few hundred samples of work at least, and
+/// enough tasks for rayon to balance rays of very different lengths.
+const RAYS_PER_BLOCK: usize = 64;
+
+/// Grows or shrinks `v` to `n` without rewriting what it already holds.
+fn set_len(v: &mut Vec<f32>, n: usize) {
+    v.truncate(n);
+    v.resize(n, 0.0);
+}
+
+/// Marches R rays (`origins`, `directions`: R × 3, world space, unit
+/// directions) through `grid` into `out`.
+///
+/// Two passes, like the gpu: the first walks every ray and keeps only the
+/// lattice indices of its samples (4 bytes each) per block of rays; then the
+/// counts are scanned into offsets; the second writes each sample's
+/// position, direction, t and dt into its final place. The result does not
+/// depend on the number of threads.
+pub fn march(
+    grid: &OccupancyGrid,
+    origins: &[f32],
+    directions: &[f32],
+    params: &MarchParams,
+    workspace: &mut MarchWorkspace,
+    out: &mut MarchedSamples,
+) -> MarchStats {
+    assert_eq!(
+        origins.len(),
+        directions.len(),
+        "origins and directions differ in length"
+    );
+    assert!(origins.len().is_multiple_of(3), "rays are rows of 3 floats");
+    let ray_count = origins.len() / 3;
+    let marcher = Marcher::new(grid, &params.config, &params.mapping);
+
+    // Pass 1: lattice indices of the samples, per block.
+    let blocks = ray_count.div_ceil(RAYS_PER_BLOCK);
+    if workspace.blocks.len() < blocks {
+        workspace.blocks.resize_with(blocks, Vec::new);
+    }
+    workspace.rays.resize(ray_count, None);
+    workspace.counts.resize(ray_count, 0);
+    workspace.blocks[..blocks]
+        .par_iter_mut()
+        .zip(workspace.rays.par_chunks_mut(RAYS_PER_BLOCK))
+        .zip(workspace.counts.par_chunks_mut(RAYS_PER_BLOCK))
+        .enumerate()
+        .for_each(|(b, ((indices, rays), counts))| {
+            indices.clear();
+            for (i, (ray, count)) in rays.iter_mut().zip(counts.iter_mut()).enumerate() {
+                let r = b * RAYS_PER_BLOCK + i;
+                let origin = Vec3::from_slice(&origins[3 * r..3 * r + 3]);
+                let direction = Vec3::from_slice(&directions[3 * r..3 * r + 3]);
+                let u = params
+                    .jitter_seed
+                    .map_or(0.0, |seed| jitter(seed, r as u32));
+                *ray = marcher.prepare(origin, direction, u);
+                let before = indices.len();
+                if let Some(ray) = ray {
+                    let mut k = 0;
+                    marcher.walk(ray, &mut k, params.config.max_steps, |k| indices.push(k));
+                }
+                *count = (indices.len() - before) as u32;
+            }
+        });
+
+    // Offsets, keeping rays while they fit the budget.
+    out.ray_offsets.clear();
+    out.ray_offsets.reserve(ray_count + 1);
+    out.ray_offsets.push(0);
+    let mut total = 0usize;
+    let mut rays_kept = ray_count;
+    for (r, &count) in workspace.counts.iter().enumerate() {
+        if rays_kept == ray_count && total + count as usize > params.sample_budget {
+            rays_kept = r;
+        }
+        if r < rays_kept {
+            total += count as usize;
+        }
+        out.ray_offsets.push(total as u32);
+    }
+    assert!(
+        total <= u32::MAX as usize,
+        "more samples than u32 offsets can hold"
+    );
+
+    // Pass 2: write the samples of each block into its own slices.
+    set_len(&mut out.positions, 3 * total);
+    set_len(&mut out.directions, 3 * total);
+    set_len(&mut out.dt, total);
+    set_len(&mut out.t, total);
+    let mut positions = out.positions.as_mut_slice();
+    let mut directions_out = out.directions.as_mut_slice();
+    let mut dts = out.dt.as_mut_slice();
+    let mut ts = out.t.as_mut_slice();
+    let mut tasks = Vec::with_capacity(blocks);
+    for b in 0..blocks {
+        let first = b * RAYS_PER_BLOCK;
+        let last = (first + RAYS_PER_BLOCK).min(ray_count);
+        let n = (out.ray_offsets[last] - out.ray_offsets[first]) as usize;
+        let (p, rest_p) = positions.split_at_mut(3 * n);
+        let (d, rest_d) = directions_out.split_at_mut(3 * n);
+        let (dt, rest_dt) = dts.split_at_mut(n);
+        let (t, rest_t) = ts.split_at_mut(n);
+        (positions, directions_out, dts, ts) = (rest_p, rest_d, rest_dt, rest_t);
+        tasks.push((b, p, d, dt, t));
+    }
+    let world_dt = marcher.world_dt();
+    let dt = marcher.dt();
+    let offsets = &out.ray_offsets;
+    let rays = &workspace.rays;
+    let counts = &workspace.counts;
+    let block_indices = &workspace.blocks;
+    let inverse_scale = 1.0 / params.mapping.scale;
+    tasks
+        .into_par_iter()
+        .for_each(|(b, mut p, mut d, mut dts, mut ts)| {
+            let first = b * RAYS_PER_BLOCK;
+            let last = (first + RAYS_PER_BLOCK).min(ray_count);
+            let mut read = 0usize;
+            for r in first..last {
+                let count = counts[r] as usize;
+                let kept = (offsets[r + 1] - offsets[r]) as usize;
+                if let Some(ray) = &rays[r] {
+                    let (p_ray, p_rest) = std::mem::take(&mut p).split_at_mut(3 * kept);
+                    let (d_ray, d_rest) = std::mem::take(&mut d).split_at_mut(3 * kept);
+                    let (dt_ray, dt_rest) = std::mem::take(&mut dts).split_at_mut(kept);
+                    let (t_ray, t_rest) = std::mem::take(&mut ts).split_at_mut(kept);
+                    (p, d, dts, ts) = (p_rest, d_rest, dt_rest, t_rest);
+                    let [ex, ey, ez] = ray.entry.to_array();
+                    let [dx, dy, dz] = ray.direction.to_array();
+                    for ((((&k, p), d), dt_out), t_out) in block_indices[b][read..read + kept]
+                        .iter()
+                        .zip(p_ray.chunks_exact_mut(3))
+                        .zip(d_ray.chunks_exact_mut(3))
+                        .zip(dt_ray.iter_mut())
+                        .zip(t_ray.iter_mut())
+                    {
+                        // The same expression as `RayMarch::position`, so the
+                        // positions are the ones pass 1 looked up.
+                        let s = ray.s(k, dt);
+                        p[0] = ex + dx * s;
+                        p[1] = ey + dy * s;
+                        p[2] = ez + dz * s;
+                        d[0] = dx;
+                        d[1] = dy;
+                        d[2] = dz;
+                        *dt_out = world_dt;
+                        *t_out = (ray.t_enter + s) * inverse_scale;
+                    }
+                }
+                read += count;
+            }
+        });
+
+    MarchStats {
+        rays: ray_count,
+        rays_kept,
+        samples: total,
+    }
+}
+
+/// Renders R rays through a field with early termination: densities and
+/// colours are evaluated in rounds of about `chunk_samples` samples; each
+/// ray stops once its transmittance falls below
+/// `config.min_transmittance`, after `config.max_steps` samples, or when
+/// it leaves the box. Compositing as in [`super::composite::composite`]
+/// (wᵢ = Tᵢ(1 − e^(−σᵢδᵢ)), expected depth Σwᵢtᵢ, background weighted by the
+/// final transmittance), so up to the 1e-4 cut-off the result equals
+/// marching everything and compositing it.
+///
+/// `field(positions n×3, directions n×3, density n, rgb n×3)` fills the last
+/// two. Outputs: `colour` R × 3, `depth` R, `opacity` R (world units for
+/// depth).
+#[allow(clippy::too_many_arguments)]
+pub fn march_and_composite<F>(
+    grid: &OccupancyGrid,
+    origins: &[f32],
+    directions: &[f32],
+    mapping: &UnitCubeMapping,
+    config: &MarchConfig,
+    background: [f32; 3],
+    chunk_samples: usize,
+    mut field: F,
+    colour: &mut [f32],
+    depth: &mut [f32],
+    opacity: &mut [f32],
+) where
+    F: FnMut(&[f32], &[f32], &mut [f32], &mut [f32]),
+{
+    let ray_count = origins.len() / 3;
+    assert_eq!(directions.len(), 3 * ray_count);
+    assert!(
+        colour.len() == 3 * ray_count && depth.len() == ray_count && opacity.len() == ray_count
+    );
+    let marcher = Marcher::new(grid, config, mapping);
+
+    #[derive(Clone, Copy)]
+    struct State {
+        ray: Option<RayMarch>,
+        k: u32,
+        emitted: u32,
+        optical_depth: f32,
+        colour: [f32; 3],
+        depth: f32,
+    }
+    let mut states: Vec<State> = (0..ray_count)
+        .into_par_iter()
+        .map(|r| State {
+            ray: marcher.prepare(
+                Vec3::from_slice(&origins[3 * r..3 * r + 3]),
+                Vec3::from_slice(&directions[3 * r..3 * r + 3]),
+                0.0,
+            ),
+            k: 0,
+            emitted: 0,
+            optical_depth: 0.0,
+            colour: [0.0; 3],
+            depth: 0.0,
+        })
+        .collect();
+    let mut active: Vec<u32> = (0..ray_count as u32)
+        .filter(|&r| states[r as usize].ray.is_some())
+        .collect();
+    let stop_depth = -config.min_transmittance.ln();
+    let chunk = chunk_samples.max(1);
+
+    let mut counts: Vec<u32> = Vec::new();
+    let mut next: Vec<u32> = Vec::new();
+    let mut lattice: Vec<u32> = Vec::new();
+    let mut positions: Vec<f32> = Vec::new();
+    let mut sample_directions: Vec<f32> = Vec::new();
+    let mut sigma: Vec<f32> = Vec::new();
+    let mut rgb: Vec<f32> = Vec::new();
+    let mut finished: Vec<bool> = Vec::new();
+    while !active.is_empty() {
+        // Few samples per ray while many rays are active (most stop early on
+        // opaque surfaces), more once few are left; 4 to 64 per round.
+        let per_ray = (chunk / active.len()).clamp(4, 64);
+        let group = (chunk / per_ray).max(1);
+        for rays in active.chunks(group) {
+            counts.resize(rays.len(), 0);
+            next.resize(rays.len(), 0);
+            lattice.resize(rays.len() * per_ray, 0);
+            finished.resize(rays.len(), false);
+            // March each ray's next few samples into its own slots.
+            counts
+                .par_iter_mut()
+                .zip(next.par_iter_mut())
+                .zip(lattice.par_chunks_mut(per_ray))
+                .zip(finished.par_iter_mut())
+                .zip(rays.par_iter())
+                .for_each(|((((count, next), slots), done), &r)| {
+                    let state = &states[r as usize];
+                    let ray = state.ray.as_ref().expect("active rays hit the box");
+                    let limit = (per_ray as u32).min(config.max_steps - state.emitted);
+                    let mut k = state.k;
+                    let mut n = 0;
+                    *done = marcher.walk(ray, &mut k, limit, |k| {
+                        slots[n] = k;
+                        n += 1;
+                    });
+                    *next = k;
+                    *count = n as u32;
+                });
+            let total: usize = counts.iter().map(|&c| c as usize).sum();
+            positions.clear();
+            sample_directions.clear();
+            for (i, &r) in rays.iter().enumerate() {
+                let ray = states[r as usize].ray.as_ref().expect("active");
+                for &k in &lattice[i * per_ray..i * per_ray + counts[i] as usize] {
+                    positions.extend_from_slice(&ray.position(k, marcher.dt()).to_array());
+                    sample_directions.extend_from_slice(&ray.direction.to_array());
+                }
+            }
+            sigma.resize(total, 0.0);
+            rgb.resize(3 * total, 0.0);
+            if total > 0 {
+                field(&positions, &sample_directions, &mut sigma, &mut rgb);
+            }
+            // Composite, in order along each ray, and advance its state.
+            let world_dt = marcher.world_dt();
+            let mut offset = 0;
+            for (i, &r) in rays.iter().enumerate() {
+                let state = &mut states[r as usize];
+                let ray = state.ray.expect("active");
+                let n = counts[i] as usize;
+                for j in 0..n {
+                    if state.optical_depth > stop_depth {
+                        break;
+                    }
+                    let k = lattice[i * per_ray + j];
+                    let tau = (sigma[offset + j] * world_dt).max(0.0);
+                    let weight = (-state.optical_depth).exp() * -(-tau).exp_m1();
+                    for c in 0..3 {
+                        state.colour[c] += weight * rgb[3 * (offset + j) + c];
+                    }
+                    state.depth += weight * marcher.world_t(&ray, k);
+                    state.optical_depth += tau;
+                }
+                offset += n;
+                state.emitted += n as u32;
+                state.k = next[i];
+                if finished[i]
+                    || state.emitted >= config.max_steps
+                    || state.optical_depth > stop_depth
+                {
+                    state.ray = None;
+                }
+            }
+        }
+        active.retain(|&r| states[r as usize].ray.is_some());
+    }
+
+    for (r, state) in states.iter().enumerate() {
+        let transmittance = (-state.optical_depth).exp();
+        for c in 0..3 {
+            colour[3 * r + c] = state.colour[c] + transmittance * background[c];
+        }
+        depth[r] = state.depth;
+        opacity[r] = 1.0 - transmittance;
+    }
+}
+
+/// Chooses how many rays the next training batch takes so that it holds
+/// about `target_samples` samples (instant-ngp measures batches in samples:
+/// 2^18, paper section 5.4).
+///
+/// After each step, [`Self::record`] takes the rays and samples the step
+/// had; the samples per ray are smoothed by an exponential moving average
+/// (weight `smoothing` on the past, so about 1/(1 − smoothing) recent steps
+/// count), which keeps one unusual batch from swinging the next one while
+/// still following the grid as it empties during training. The next batch
+/// is target / average rays, rounded up to a multiple of `granularity` and
+/// clamped to [min_rays, max_rays]. With no samples at all (an empty grid)
+/// the average goes to zero and the batch grows to max_rays.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BatchSizer {
+    pub target_samples: usize,
+    pub smoothing: f64,
+    pub min_rays: usize,
+    pub max_rays: usize,
+    pub granularity: usize,
+    initial_rays: usize,
+    samples_per_ray: Option<f64>,
+}
+
+impl BatchSizer {
+    /// 2^18 samples; the testbed starts at 2^12 rays, rounds to multiples of
+    /// 256 rays (BATCH_SIZE_GRANULARITY) and caps at 2^18 rays, one sample
+    /// per ray. The smoothing 0.8 averages over about 5 steps.
+    pub fn paper() -> Self {
+        Self::new(SAMPLES_PER_BATCH)
+    }
+
+    pub fn new(target_samples: usize) -> Self {
+        Self {
+            target_samples,
+            smoothing: 0.8,
+            min_rays: 256.min(target_samples).max(1),
+            max_rays: target_samples.max(1),
+            granularity: 256,
+            initial_rays: 4096,
+            samples_per_ray: None,
+        }
+    }
+
+    /// Rays for the next batch.
+    pub fn rays(&self) -> usize {
+        let raw = match self.samples_per_ray {
+            None => self.initial_rays as f64,
+            Some(spr) if spr > 0.0 => self.target_samples as f64 / spr,
+            Some(_) => self.max_rays as f64,
+        };
+        let granularity = self.granularity.max(1);
+        let rounded =
+            (raw.min(self.max_rays as f64).ceil() as usize).div_ceil(granularity) * granularity;
+        rounded.clamp(self.min_rays, self.max_rays)
+    }
+
+    /// The smoothed samples per ray, once a step was recorded.
+    pub fn samples_per_ray(&self) -> Option<f64> {
+        self.samples_per_ray
+    }
+
+    /// Restores the smoothed samples per ray (e.g. from a checkpoint, so a
+    /// resumed run sizes its next batch as the uninterrupted run would).
+    pub fn set_samples_per_ray(&mut self, samples_per_ray: Option<f64>) {
+        self.samples_per_ray = samples_per_ray;
+    }
+
+    /// Records a step that marched `rays` rays into `samples` samples.
+    pub fn record(&mut self, rays: usize, samples: usize) {
+        if rays == 0 {
+            return;
+        }
+        let measured = samples as f64 / rays as f64;
+        self.samples_per_ray = Some(match self.samples_per_ray {
+            None => measured,
+            Some(old) => self.smoothing * old + (1.0 - self.smoothing) * measured,
+        });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::cpu::composite::{RaySamples, composite};
+    use crate::engine::cpu::occupancy::mix64;
+    use crate::field::ngp::OccupancyConfig;
+
+    const BLENDER: UnitCubeMapping = UnitCubeMapping::BLENDER;
+
+    fn uniform(key: u64) -> f32 {
+        (mix64(key) >> 40) as f32 / (1u64 << 24) as f32
+    }
+
+    fn grid_with(cascades: u32, occupied: impl Fn(usize, Vec3) -> bool) -> OccupancyGrid {
+        let mut grid = OccupancyGrid::for_scene(&BLENDER);
+        if cascades != grid.geometry().cascades {
+            grid = OccupancyGrid::new(OccupancyConfig::PAPER, cascades, MarchConfig::PAPER.step);
+        }
+        let geometry = grid.geometry();
+        for (i, v) in grid.values_mut().iter_mut().enumerate() {
+            let cell = geometry.cell_at(i);
+            let centre =
+                geometry.cell_min(cell) + Vec3::splat(0.5 / geometry.cells_per_unit(cell.cascade));
+            *v = if occupied(i, centre) { 1.0 } else { 0.0 };
+        }
+        grid.build_bitfield();
+        grid
+    }
+
+    /// Blocks of 8³ cells are empty, sparse, half or full, then each cell
+    /// is drawn: empty stretches for the skip and scattered cells for its
+    /// boundaries.
+    fn random_grid(cascades: u32, seed: u64) -> OccupancyGrid {
+        let res = OccupancyConfig::PAPER.resolution as usize;
+        grid_with(cascades, |i, _| {
+            let local = i % (res * res * res);
+            let (x, y, z) = (
+                local % res / 8,
+                local / res % res / 8,
+                local / (res * res) / 8,
+            );
+            let block = (i / (res * res * res)) * 4096 + x + 16 * (y + 16 * z);
+            let p = [0.0, 0.03, 0.5, 1.0][(mix64(seed ^ block as u64) % 4) as usize];
+            uniform(seed.wrapping_add(1) ^ mix64(i as u64)) < p
+        })
+    }
+
+    /// Rays from a sphere of radius 4 (world) at points near the centre,
+    /// and some starting inside the box.
+    fn random_rays(n: usize, seed: u64) -> (Vec<f32>, Vec<f32>) {
+        let mut origins = Vec::with_capacity(3 * n);
+        let mut directions = Vec::with_capacity(3 * n);
+        let u = |i: usize, j: u64| uniform(seed ^ mix64((i as u64) * 16 + j));
+        for i in 0..n {
+            let z = 2.0 * u(i, 0) - 1.0;
+            let phi = std::f32::consts::TAU * u(i, 1);
+            let r = (1.0 - z * z).sqrt();
+            let radius = if i % 8 == 0 { 1.2 * u(i, 2) } else { 4.0 };
+            let origin = radius * Vec3::new(r * phi.cos(), r * phi.sin(), z);
+            let target = Vec3::new(u(i, 3), u(i, 4), u(i, 5)) * 2.4 - 1.2;
+            let direction = (target - origin).normalize();
+            origins.extend_from_slice(&origin.to_array());
+            directions.extend_from_slice(&direction.to_array());
+        }
+        (origins, directions)
+    }
+
+    /// The lattice indices a march that tests every lattice point finds.
+    fn naive(marcher: &Marcher, ray: &RayMarch, max: u32) -> Vec<u32> {
+        let mut out = Vec::new();
+        let mut k = 0;
+        while ray.s(k, marcher.dt()) <= ray.s_exit && (out.len() as u32) < max {
+            if marcher.is_sample(ray, k) {
+                out.push(k);
+            }
+            k += 1;
+        }
+        out
+    }
+
+    fn march_one(
+        grid: &OccupancyGrid,
+        origin: Vec3,
+        direction: Vec3,
+        params: &MarchParams,
+    ) -> MarchedSamples {
+        let mut out = MarchedSamples::default();
+        march(
+            grid,
+            &origin.to_array(),
+            &direction.to_array(),
+            params,
+            &mut MarchWorkspace::default(),
+            &mut out,
+        );
+        out
+    }
+
+    fn all_finite(out: &MarchedSamples) -> bool {
+        [&out.positions, &out.directions, &out.dt, &out.t]
+            .iter()
+            .all(|v| v.iter().all(|x| x.is_finite()))
+    }
+
+    #[test]
+    fn rays_that_miss_give_no_samples() {
+        let grid = grid_with(1, |_, _| true);
+        let params = MarchParams::training(BLENDER, 3);
+        // The box spans ±0.5/0.33 ≈ ±1.515 in world units.
+        for (origin, direction) in [
+            (Vec3::new(0.0, 3.0, 4.0), -Vec3::Z),
+            (Vec3::new(0.0, 0.0, 4.0), Vec3::Z),
+            (Vec3::new(1.6, 0.0, 4.0), -Vec3::Z),
+            (Vec3::new(0.0, 0.0, 4.0), Vec3::ZERO),
+            (Vec3::new(f32::NAN, 0.0, 4.0), -Vec3::Z),
+        ] {
+            let out = march_one(&grid, origin, direction, &params);
+            assert_eq!(out.ray_offsets, vec![0, 0], "{origin} {direction}");
+            assert_eq!(out.sample_count(), 0);
+        }
+    }
+
+    #[test]
+    fn all_occupied_gives_evenly_spaced_samples_over_the_chord() {
+        let grid = grid_with(1, |_, _| true);
+        let dt = MarchConfig::PAPER.step;
+        for seed in 0..20u32 {
+            let (origins, directions) = random_rays(1, seed as u64 + 100);
+            let origin = Vec3::from_slice(&origins);
+            let direction = Vec3::from_slice(&directions);
+            let params = MarchParams::training(BLENDER, seed);
+            let out = march_one(&grid, origin, direction, &params);
+            assert!(all_finite(&out));
+            let unit = BLENDER.to_unit(origin);
+            let Some((t0, t1)) = Aabb::new(Vec3::ZERO, Vec3::ONE).intersect(unit, direction, 0.0)
+            else {
+                assert_eq!(out.sample_count(), 0);
+                continue;
+            };
+            // Lattice points u·dt, (u+1)·dt, … up to the chord: there are
+            // floor(chord/dt − u) + 1, capped at 1024; rounding of the chord
+            // can move the last one across the exit, hence ±1.
+            let u = jitter(seed, 0);
+            let expected = (((t1 - t0) / dt - u).floor() as i64 + 1).min(1024);
+            let n = out.sample_count() as i64;
+            assert!(
+                (n - expected).abs() <= 1,
+                "seed {seed}: {n} samples, chord says {expected}"
+            );
+            // Even spacing: consecutive positions dt·d apart (positions
+            // are < 2 in magnitude, so each carries ≤ 2 ulps ≈ 2.4e-7 of
+            // rounding), t in world steps of dt / 0.33.
+            for i in 1..out.sample_count() {
+                for a in 0..3 {
+                    let step = out.positions[3 * i + a] - out.positions[3 * i - 3 + a];
+                    assert!((step - dt * direction[a]).abs() < 1e-6);
+                }
+                assert!((out.t[i] - out.t[i - 1] - dt / 0.33).abs() < 2e-6);
+                assert_eq!(out.dt[i], dt / 0.33);
+            }
+            // The first sample sits u·dt past the entry.
+            assert!((out.t[0] - (t0 + u * dt) / 0.33).abs() < 2e-6);
+            let first = Vec3::from_slice(&out.positions[..3]);
+            assert!(
+                (first - (unit + direction * (t0 + u * dt)))
+                    .abs()
+                    .max_element()
+                    < 1e-6
+            );
+        }
+    }
+
+    #[test]
+    fn rays_starting_inside_and_axis_parallel_rays() {
+        let grid = grid_with(1, |_, _| true);
+        let dt = MarchConfig::PAPER.step;
+        let params = MarchParams::rendering(BLENDER);
+        // From the centre along +x: samples at k·dt for k·dt ≤ 0.5, the
+        // exit; 0.5 / (√3/1024) = 295.6, so k = 0..=295.
+        let out = march_one(&grid, Vec3::ZERO, Vec3::X, &params);
+        assert_eq!(out.sample_count(), 296);
+        assert!(all_finite(&out));
+        assert_eq!(out.t[0], 0.0);
+        assert_eq!(&out.positions[..3], &[0.5, 0.5, 0.5]);
+        for i in 0..296 {
+            // y and z stay exactly 0.5: the direction's zero components add
+            // exact zeros.
+            assert_eq!(out.positions[3 * i + 1], 0.5);
+            assert_eq!(out.positions[3 * i + 2], 0.5);
+            assert!((out.positions[3 * i] - (0.5 + i as f32 * dt)).abs() < 1e-6);
+        }
+
+        // From outside along −z, on the cell boundary x = y = 0.5: the whole
+        // chord of length 1 gives floor(1/dt) + 1 = 592 samples.
+        let out = march_one(&grid, Vec3::new(0.0, 0.0, 4.0), -Vec3::Z, &params);
+        assert_eq!(out.sample_count(), 592);
+        assert!(all_finite(&out));
+        assert!((out.t[0] - (4.0 - 0.5 / 0.33)).abs() < 1e-5);
+        // Along a face of the box (x = 1 in unit coordinates): the closed
+        // box holds it, clamped into the last column of cells.
+        let face = BLENDER.to_world(Vec3::new(1.0, 0.25, 0.5));
+        let out = march_one(&grid, Vec3::new(face.x, face.y, 4.0), -Vec3::Z, &params);
+        assert_eq!(out.sample_count(), 592);
+        assert!(out.positions.chunks(3).all(|p| p[0] == 1.0));
+
+        // Axis-parallel through a grid where only the cells with z index
+        // 100 are occupied: the march skips to that slab and samples it:
+        // z in [100/128, 101/128) from the entry at z = 1 holds the lattice
+        // points k with 27/128 < k·dt ≤ 28/128, i.e. 124.7 < k ≤ 129.3.
+        let res = 128;
+        let grid = grid_with(1, |i, _| i / (res * res) == 100);
+        let out = march_one(&grid, Vec3::new(0.1, -0.2, 4.0), -Vec3::Z, &params);
+        assert_eq!(out.sample_count(), 5);
+        assert!((out.t[0] - (4.0 - 0.5 / 0.33 + 125.0 * dt / 0.33)).abs() < 1e-5);
+        for p in out.positions.chunks(3) {
+            assert!((100.0 / 128.0..101.0 / 128.0).contains(&p[2]), "{p:?}");
+        }
+    }
+
+    #[test]
+    fn an_empty_grid_gives_no_samples() {
+        let grid = grid_with(1, |_, _| false);
+        let (origins, directions) = random_rays(500, 1);
+        let mut out = MarchedSamples::default();
+        let stats = march(
+            &grid,
+            &origins,
+            &directions,
+            &MarchParams::training(BLENDER, 1),
+            &mut MarchWorkspace::default(),
+            &mut out,
+        );
+        assert_eq!(stats.samples, 0);
+        assert_eq!(out.ray_offsets, vec![0; 501]);
+    }
+
+    #[test]
+    fn skipping_gives_exactly_the_naive_samples() {
+        for (cascades, aabb_scale, seed) in [(1, 1.0, 5u64), (1, 1.0, 6), (2, 2.0, 7), (3, 3.0, 8)]
+        {
+            let grid = random_grid(cascades, seed);
+            let mapping = UnitCubeMapping {
+                aabb_scale,
+                ..BLENDER
+            };
+            let params = MarchParams::training(mapping, seed as u32);
+            let (origins, directions) = random_rays(400, seed);
+            let mut out = MarchedSamples::default();
+            march(
+                &grid,
+                &origins,
+                &directions,
+                &params,
+                &mut MarchWorkspace::default(),
+                &mut out,
+            );
+            assert!(all_finite(&out));
+            let marcher = Marcher::new(&grid, &params.config, &mapping);
+            let mut total_naive = 0;
+            for r in 0..400 {
+                let origin = Vec3::from_slice(&origins[3 * r..3 * r + 3]);
+                let direction = Vec3::from_slice(&directions[3 * r..3 * r + 3]);
+                let expected =
+                    match marcher.prepare(origin, direction, jitter(seed as u32, r as u32)) {
+                        Some(ray) => naive(&marcher, &ray, 1024)
+                            .into_iter()
+                            .map(|k| ray.position(k, marcher.dt()))
+                            .collect::<Vec<_>>(),
+                        None => Vec::new(),
+                    };
+                total_naive += expected.len();
+                let got: Vec<Vec3> = out.positions[3 * out.ray(r).start..3 * out.ray(r).end]
+                    .chunks(3)
+                    .map(Vec3::from_slice)
+                    .collect();
+                assert_eq!(got, expected, "ray {r}, {cascades} cascades");
+                for p in &got {
+                    assert!(grid.occupied_at(*p));
+                }
+            }
+            assert_eq!(out.sample_count(), total_naive);
+            // The grid is neither empty nor full, so skipping was exercised.
+            assert!(total_naive > 1000, "{total_naive}");
+        }
+    }
+
+    #[test]
+    fn per_ray_limit_budget_and_thread_count_independence() {
+        let grid = random_grid(1, 21);
+        let (origins, directions) = random_rays(300, 21);
+        let params = MarchParams::training(BLENDER, 4);
+        let mut full = MarchedSamples::default();
+        march(
+            &grid,
+            &origins,
+            &directions,
+            &params,
+            &mut MarchWorkspace::default(),
+            &mut full,
+        );
+
+        // One thread gives the same bits.
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
+        let mut single = MarchedSamples::default();
+        pool.install(|| {
+            march(
+                &grid,
+                &origins,
+                &directions,
+                &params,
+                &mut MarchWorkspace::default(),
+                &mut single,
+            )
+        });
+        assert_eq!(full, single);
+
+        // At most 10 samples per ray: the first 10 of each.
+        let limited_params = MarchParams {
+            config: MarchConfig {
+                max_steps: 10,
+                ..MarchConfig::PAPER
+            },
+            ..params
+        };
+        let mut limited = MarchedSamples::default();
+        march(
+            &grid,
+            &origins,
+            &directions,
+            &limited_params,
+            &mut MarchWorkspace::default(),
+            &mut limited,
+        );
+        for r in 0..300 {
+            let (a, b) = (full.ray(r), limited.ray(r));
+            assert_eq!(b.len(), a.len().min(10));
+            assert_eq!(
+                limited.positions[3 * b.start..3 * b.end],
+                full.positions[3 * a.start..3 * a.start + 3 * b.len()]
+            );
+        }
+
+        // A budget of half the samples keeps a prefix of the rays, whole.
+        let budget = full.sample_count() / 2;
+        let mut workspace = MarchWorkspace::default();
+        let mut cut = MarchedSamples::default();
+        let stats = march(
+            &grid,
+            &origins,
+            &directions,
+            &MarchParams {
+                sample_budget: budget,
+                ..params
+            },
+            &mut workspace,
+            &mut cut,
+        );
+        let kept = stats.rays_kept;
+        assert!(kept < 300 && stats.samples <= budget);
+        assert_eq!(full.ray_offsets[kept] as usize, stats.samples);
+        assert!(full.ray_offsets[kept + 1] as usize > budget);
+        assert_eq!(cut.ray_offsets[..=kept], full.ray_offsets[..=kept]);
+        assert!(
+            cut.ray_offsets[kept..]
+                .iter()
+                .all(|&o| o as usize == stats.samples)
+        );
+        assert_eq!(cut.positions[..], full.positions[..3 * stats.samples]);
+        // The workspace is reusable: marching again with it matches.
+        let mut again = MarchedSamples::default();
+        march(
+            &grid,
+            &origins,
+            &directions,
+            &params,
+            &mut workspace,
+            &mut again,
+        );
+        assert_eq!(again, full);
+    }
+
+    #[test]
+    fn rendering_with_early_stop_matches_full_compositing() {
+        // A ball of radius 0.3 in the unit cube; inside it density 400
+        // (world units), so rays through it turn opaque within ~0.1.
+        let ball = |p: Vec3| p.distance(Vec3::splat(0.5)) < 0.3;
+        let grid = grid_with(1, |_, centre| centre.distance(Vec3::splat(0.5)) < 0.31);
+        let field = |p: &[f32], d: &[f32], sigma: &mut [f32], rgb: &mut [f32]| {
+            for i in 0..sigma.len() {
+                let q = Vec3::from_slice(&p[3 * i..3 * i + 3]);
+                sigma[i] = if ball(q) { 400.0 * q.x } else { 0.0 };
+                rgb[3 * i] = q.x;
+                rgb[3 * i + 1] = d[3 * i + 1].abs();
+                rgb[3 * i + 2] = 0.25;
+            }
+        };
+        let (origins, directions) = random_rays(200, 33);
+        let background = [1.0, 0.5, 0.0];
+        let n = 200;
+        let (mut colour, mut depth, mut opacity) = (vec![0.0; 3 * n], vec![0.0; n], vec![0.0; n]);
+        let mut evaluated = 0;
+        march_and_composite(
+            &grid,
+            &origins,
+            &directions,
+            &BLENDER,
+            &MarchConfig::PAPER,
+            background,
+            1000,
+            |p: &[f32], d: &[f32], s: &mut [f32], c: &mut [f32]| {
+                evaluated += s.len();
+                field(p, d, s, c)
+            },
+            &mut colour,
+            &mut depth,
+            &mut opacity,
+        );
+
+        // Reference: every sample, composited by the reference stage.
+        let mut out = MarchedSamples::default();
+        march(
+            &grid,
+            &origins,
+            &directions,
+            &MarchParams::rendering(BLENDER),
+            &mut MarchWorkspace::default(),
+            &mut out,
+        );
+        let s = out.sample_count();
+        let (mut sigma, mut rgb) = (vec![0.0; s], vec![0.0; 3 * s]);
+        field(&out.positions, &out.directions, &mut sigma, &mut rgb);
+        let rgb3: Vec<[f32; 3]> = rgb.chunks(3).map(|c| [c[0], c[1], c[2]]).collect();
+        let mut opaque = 0;
+        for r in 0..n {
+            let range = out.ray(r);
+            let want = composite(
+                &RaySamples {
+                    density: &sigma[range.clone()],
+                    colour: &rgb3[range.clone()],
+                    delta: &out.dt[range.clone()],
+                    t: &out.t[range.clone()],
+                },
+                background,
+            );
+            // What the early stop leaves out weighs at most T < 1e-4 (times
+            // colours ≤ 1, or depths ≤ 8 world units), plus f32 rounding
+            // of sums over a few hundred terms.
+            for c in 0..3 {
+                assert!(
+                    (colour[3 * r + c] - want.colour[c]).abs() < 1e-4 + 1e-5,
+                    "ray {r}"
+                );
+            }
+            assert!((opacity[r] - want.opacity).abs() < 1e-4 + 1e-5);
+            assert!((depth[r] - want.depth).abs() < 8e-4 + 1e-4);
+            opaque += (want.opacity > 0.999) as usize;
+        }
+        // Many rays hit the opaque ball; stopping them early saves work.
+        assert!(opaque > 50, "{opaque}");
+        assert!(evaluated < s * 3 / 4, "evaluated {evaluated} of {s}");
+    }
+
+    #[test]
+    fn batch_sizer_converges_to_the_target() {
+        let mut sizer = BatchSizer::paper();
+        assert_eq!(sizer.rays(), 4096);
+        // A scene where rays average `mean` samples (uniform 0..2·mean):
+        // after ~30 steps (0.8^30 ≈ 1e-3 of the start left) batches hold
+        // the target to within the granularity (256 rays) and the noise of
+        // the mean over thousands of rays (< 2%).
+        let mut step = 0u64;
+        let mut run = |sizer: &mut BatchSizer, mean: f32, steps: usize| {
+            for _ in 0..steps {
+                let rays = sizer.rays();
+                let samples: f32 = (0..rays)
+                    .map(|r| 2.0 * mean * uniform(step * 1_000_000 + r as u64))
+                    .sum();
+                sizer.record(rays, samples as usize);
+                step += 1;
+            }
+            let rays = sizer.rays();
+            let expected = SAMPLES_PER_BATCH as f32 / mean;
+            assert!(
+                (rays as f32 - expected).abs() <= 0.02 * expected + 256.0,
+                "mean {mean}: {rays} rays, want {expected}"
+            );
+            assert_eq!(rays % 256, 0);
+        };
+        run(&mut sizer, 40.0, 30);
+        // The grid empties as training goes on: fewer samples per ray.
+        run(&mut sizer, 12.0, 30);
+        run(&mut sizer, 90.0, 30);
+        // An empty grid: no samples, the batch grows to its cap.
+        for _ in 0..100 {
+            sizer.record(sizer.rays(), 0);
+        }
+        assert_eq!(sizer.rays(), SAMPLES_PER_BATCH);
+    }
+
+    /// User + system time of this process from /proc (Linux), in seconds:
+    /// what the march costs whatever else shares the machine.
+    fn process_cpu_seconds() -> f64 {
+        let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+        let fields: Vec<&str> = stat
+            .rsplit(')')
+            .next()
+            .unwrap_or("")
+            .split_whitespace()
+            .collect();
+        let ticks = |i: usize| {
+            fields
+                .get(i)
+                .and_then(|f| f.parse::<f64>().ok())
+                .unwrap_or(0.0)
+        };
+        // utime and stime are fields 14 and 15 of the line, 12 and 13 after
+        // the command name; clock ticks are 1/100 s on Linux.
+        (ticks(11) + ticks(12)) / 100.0
+    }
+
+    /// Throughput of the cpu march on a lego-like grid (a ball of radius
+    /// 0.35 occupied), 2^18 samples per batch. Run with
+    /// `cargo test --release --lib march_throughput -- --ignored --nocapture`.
+    #[test]
+    #[ignore]
+    fn march_throughput() {
+        let grid = grid_with(1, |_, centre| centre.distance(Vec3::splat(0.5)) < 0.35);
+        println!("occupancy {:.1}%", 100.0 * grid.occupancy_fraction());
+        let mut sizer = BatchSizer::paper();
+        let mut workspace = MarchWorkspace::default();
+        let mut out = MarchedSamples::default();
+        let (origins, directions) = random_rays(1 << 18, 77);
+        for _ in 0..10 {
+            let rays = sizer.rays();
+            let stats = march(
+                &grid,
+                &origins[..3 * rays],
+                &directions[..3 * rays],
+                &MarchParams::training(BLENDER, 1),
+                &mut workspace,
+                &mut out,
+            );
+            sizer.record(rays, stats.samples);
+        }
+        let rays = sizer.rays();
+        // The machine is shared: the fastest of many batches is the figure
+        // least disturbed by other work.
+        let mut run = |label: &str| {
+            let mut best = f64::INFINITY;
+            let mut samples = 0;
+            let cpu_before = process_cpu_seconds();
+            for i in 0..60 {
+                let started = std::time::Instant::now();
+                samples = march(
+                    &grid,
+                    &origins[..3 * rays],
+                    &directions[..3 * rays],
+                    &MarchParams::training(BLENDER, i),
+                    &mut workspace,
+                    &mut out,
+                )
+                .samples;
+                best = best.min(started.elapsed().as_secs_f64());
+            }
+            let cpu = process_cpu_seconds() - cpu_before;
+            println!(
+                "{label}: {rays} rays, {samples} samples ({:.1}/ray), {:.2} ms per batch: {:.2} M rays/s, \
+                 {:.1} M samples/s; {:.1} M samples per cpu-second",
+                samples as f64 / rays as f64,
+                1e3 * best,
+                rays as f64 / best / 1e6,
+                samples as f64 / best / 1e6,
+                60.0 * samples as f64 / cpu / 1e6,
+            );
+        };
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap()
+            .install(|| run("1 thread"));
+        run(&format!("{} threads", rayon::current_num_threads()));
+    }
+}

@@ -1,0 +1,622 @@
+//! Instant-NGP on the `cpu` engine: the stages chained into a training step
+//! and an inference pass.
+//!
+//! Parameters live in one flat vector, `[hash grid | density MLP | colour
+//! MLP]`, so one Adam instance updates them all; L2 regularisation applies
+//! to the two MLPs only (the range after the grid).
+
+use std::ops::Range;
+use std::time::Instant;
+
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+
+use super::adam::Adam;
+use super::composite_batch::{self, CompositeGradients, CompositeOutputs};
+use super::dense::{MlpLayout, MlpWorkspace, mlp_backward, mlp_forward, mlp_inference};
+use super::hash_grid::{self, HashGridLayout};
+use super::loss::loss_and_gradient;
+use super::march::{
+    BatchSizer, MarchParams, MarchWorkspace, MarchedSamples, march, march_and_composite,
+};
+use super::occupancy::OccupancyGrid;
+use super::sh::sh_encode;
+use crate::field::ngp::{
+    HashGridConfig, LossKind, MarchConfig, NetworkConfig, OccupancyConfig, OptimiserConfig,
+    SAMPLES_PER_BATCH,
+};
+use crate::scene::{Scene, UnitCubeMapping};
+use crate::train::batch::RayBatch;
+use crate::train::checkpoint::Checkpoint;
+use crate::train::model::{RadianceModel, RenderedPixel, StageTimes, StepStats};
+
+/// Samples per round of inference (rendering and grid updates).
+const INFERENCE_CHUNK: usize = 1 << 16;
+
+/// The parts of the model that do not change during training.
+#[derive(Debug, Clone)]
+pub struct NgpShape {
+    pub grid: HashGridLayout,
+    pub density: MlpLayout,
+    pub colour: MlpLayout,
+    pub network: NetworkConfig,
+    pub mapping: UnitCubeMapping,
+}
+
+impl NgpShape {
+    pub fn for_scene(scene: &Scene) -> Self {
+        let network = NetworkConfig::PAPER;
+        let grid_config = HashGridConfig::paper(scene.unit_cube.aabb_scale);
+        Self {
+            grid: HashGridLayout::new(&grid_config),
+            density: MlpLayout::ngp_density(&network, &grid_config),
+            colour: MlpLayout::ngp_colour(&network),
+            network,
+            mapping: scene.unit_cube,
+        }
+    }
+
+    fn grid_range(&self) -> Range<usize> {
+        0..self.grid.param_count()
+    }
+
+    fn density_range(&self) -> Range<usize> {
+        let start = self.grid.param_count();
+        start..start + self.density.param_count()
+    }
+
+    fn colour_range(&self) -> Range<usize> {
+        let start = self.density_range().end;
+        start..start + self.colour.param_count()
+    }
+
+    pub fn param_count(&self) -> usize {
+        self.colour_range().end
+    }
+
+    /// Inference of σ at unit-cube positions (n × 3).
+    fn density(&self, params: &[f32], positions: &[f32], sigma: &mut [f32]) {
+        let n = sigma.len();
+        let mut encoded = vec![0f32; n * self.grid.output_width()];
+        let mut raw = vec![0f32; n * self.density.output_width()];
+        hash_grid::encode(
+            &self.grid,
+            &params[self.grid_range()],
+            bytemuck::cast_slice(positions),
+            &mut encoded,
+        );
+        mlp_inference(
+            &self.density,
+            &params[self.density_range()],
+            &encoded,
+            n,
+            &mut raw,
+        );
+        let width = self.density.output_width();
+        for (s, row) in sigma.iter_mut().zip(raw.chunks_exact(width)) {
+            *s = density_activation(row[0]);
+        }
+    }
+
+    /// Inference of σ and colour at unit-cube positions and directions.
+    fn radiance(
+        &self,
+        params: &[f32],
+        positions: &[f32],
+        directions: &[f32],
+        sigma: &mut [f32],
+        rgb: &mut [f32],
+    ) {
+        let n = sigma.len();
+        let mut encoded = vec![0f32; n * self.grid.output_width()];
+        let density_width = self.density.output_width();
+        let colour_width = self.colour.input_width();
+        let mut colour_input = vec![0f32; n * colour_width];
+        hash_grid::encode(
+            &self.grid,
+            &params[self.grid_range()],
+            bytemuck::cast_slice(positions),
+            &mut encoded,
+        );
+        let mut raw = vec![0f32; n * density_width];
+        mlp_inference(
+            &self.density,
+            &params[self.density_range()],
+            &encoded,
+            n,
+            &mut raw,
+        );
+        for ((s, row), input) in sigma
+            .iter_mut()
+            .zip(raw.chunks_exact(density_width))
+            .zip(colour_input.chunks_exact_mut(colour_width))
+        {
+            *s = density_activation(row[0]);
+            input[..density_width].copy_from_slice(row);
+        }
+        sh_encode(
+            self.network.sh_degree,
+            directions,
+            n,
+            &mut colour_input[density_width..],
+            colour_width,
+        );
+        mlp_inference(
+            &self.colour,
+            &params[self.colour_range()],
+            &colour_input,
+            n,
+            rgb,
+        );
+    }
+}
+
+/// σ = exp(x), clamped (field/ngp.rs, DENSITY_EXP_CLAMP).
+fn density_activation(x: f32) -> f32 {
+    x.min(crate::field::ngp::DENSITY_EXP_CLAMP).exp()
+}
+
+/// Buffers of one training step, sized for the batch and reused.
+#[derive(Default)]
+struct StepBuffers {
+    origins: Vec<f32>,
+    directions: Vec<f32>,
+    samples: MarchedSamples,
+    march: MarchWorkspace,
+    encoded: Vec<f32>,
+    encode_scratch: Vec<f32>,
+    density_out: Vec<f32>,
+    sigma: Vec<f32>,
+    colour_input: Vec<f32>,
+    rgb: Vec<f32>,
+    ray_rgb: Vec<f32>,
+    ray_opacity: Vec<f32>,
+    ray_depth: Vec<f32>,
+    samples_used: Vec<u32>,
+    targets: Vec<f32>,
+    backgrounds: Vec<f32>,
+    d_ray_rgb: Vec<f32>,
+    d_sigma: Vec<f32>,
+    d_rgb: Vec<f32>,
+    d_colour_input: Vec<f32>,
+    d_density_out: Vec<f32>,
+    d_encoded: Vec<f32>,
+    gradients: Vec<f32>,
+}
+
+fn resize(v: &mut Vec<f32>, n: usize) {
+    v.clear();
+    v.resize(n, 0.0);
+}
+
+/// What the checkpoint header holds for this model.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+struct NgpHeader {
+    model: String,
+    loss: LossKind,
+    seed: u64,
+    adam_step: u32,
+    samples_per_ray: Option<f64>,
+    param_count: usize,
+}
+
+/// Instant-NGP trained by the `cpu` engine.
+pub struct CpuNgp {
+    shape: NgpShape,
+    params: Vec<f32>,
+    adam: Adam,
+    grid: OccupancyGrid,
+    batch_sizer: BatchSizer,
+    optimiser: OptimiserConfig,
+    loss: LossKind,
+    seed: u64,
+    density_workspace: MlpWorkspace,
+    colour_workspace: MlpWorkspace,
+    buffers: StepBuffers,
+}
+
+impl CpuNgp {
+    pub fn new(scene: &Scene, seed: u64, loss: LossKind) -> Self {
+        let shape = NgpShape::for_scene(scene);
+        let mut params = hash_grid::init_params(&shape.grid, seed);
+        params.extend(shape.density.init_params(seed ^ 0x64656e73));
+        params.extend(shape.colour.init_params(seed ^ 0x636f6c6f));
+        assert_eq!(params.len(), shape.param_count());
+        let adam = Adam::new(params.len());
+        let grid = OccupancyGrid::new(
+            OccupancyConfig::PAPER,
+            OccupancyConfig::cascades(shape.mapping.aabb_scale),
+            // The grid stores σ · step with σ per world unit, so the step is
+            // converted from unit-cube to world length.
+            MarchConfig::PAPER.step / shape.mapping.scale,
+        );
+        let density_workspace = MlpWorkspace::new(&shape.density, 0);
+        let colour_workspace = MlpWorkspace::new(&shape.colour, 0);
+        Self {
+            shape,
+            params,
+            adam,
+            grid,
+            batch_sizer: BatchSizer::paper(),
+            optimiser: OptimiserConfig::PAPER,
+            loss,
+            seed,
+            density_workspace,
+            colour_workspace,
+            buffers: StepBuffers::default(),
+        }
+    }
+
+    pub fn occupancy(&self) -> &OccupancyGrid {
+        &self.grid
+    }
+
+    pub fn params(&self) -> &[f32] {
+        &self.params
+    }
+
+    fn update_grid(&mut self, step: u32) {
+        let shape = &self.shape;
+        let params = &self.params;
+        self.grid.update(step, self.seed, |positions, sigma| {
+            for (p, s) in positions
+                .chunks(3 * INFERENCE_CHUNK)
+                .zip(sigma.chunks_mut(INFERENCE_CHUNK))
+            {
+                shape.density(params, p, s);
+            }
+        });
+    }
+}
+
+impl RadianceModel for CpuNgp {
+    fn describe(&self) -> String {
+        "Instant-NGP (cpu)".into()
+    }
+
+    fn rays_for_next_batch(&self) -> usize {
+        self.batch_sizer.rays()
+    }
+
+    fn step(&mut self, batch: &RayBatch, step: u32) -> StepStats {
+        let mut times = StageTimes::default();
+        let clock = Instant::now();
+        if self.grid.is_due(step) {
+            self.update_grid(step);
+        }
+        times.grid_update = clock.elapsed().as_secs_f64();
+
+        let shape = &self.shape;
+        let b = &mut self.buffers;
+        let rays = batch.len();
+
+        // March.
+        let clock = Instant::now();
+        b.origins.clear();
+        b.directions.clear();
+        for (o, d) in batch.origins.iter().zip(&batch.directions) {
+            b.origins.extend_from_slice(&o.to_array());
+            b.directions.extend_from_slice(&d.to_array());
+        }
+        let march_params = MarchParams {
+            sample_budget: SAMPLES_PER_BATCH,
+            ..MarchParams::training(shape.mapping, mix_seed(self.seed, step))
+        };
+        let marched = march(
+            &self.grid,
+            &b.origins,
+            &b.directions,
+            &march_params,
+            &mut b.march,
+            &mut b.samples,
+        );
+        self.batch_sizer.record(marched.rays, marched.samples);
+        let kept = marched.rays_kept;
+        let s = marched.samples;
+        times.march = clock.elapsed().as_secs_f64();
+
+        // Encode and networks forward.
+        let clock = Instant::now();
+        let grid_width = shape.grid.output_width();
+        resize(&mut b.encoded, s * grid_width);
+        hash_grid::encode_with_scratch(
+            &shape.grid,
+            &self.params[shape.grid_range()],
+            bytemuck::cast_slice(&b.samples.positions),
+            &mut b.encoded,
+            &mut b.encode_scratch,
+        );
+        times.encode = clock.elapsed().as_secs_f64();
+
+        let clock = Instant::now();
+        let density_width = shape.density.output_width();
+        let colour_width = shape.colour.input_width();
+        resize(&mut b.density_out, s * density_width);
+        self.density_workspace.reserve(s);
+        mlp_forward(
+            &shape.density,
+            &self.params[shape.density_range()],
+            &b.encoded,
+            s,
+            &mut self.density_workspace,
+            &mut b.density_out,
+        );
+        resize(&mut b.sigma, s);
+        resize(&mut b.colour_input, s * colour_width);
+        for ((sigma, row), input) in b
+            .sigma
+            .iter_mut()
+            .zip(b.density_out.chunks_exact(density_width))
+            .zip(b.colour_input.chunks_exact_mut(colour_width))
+        {
+            *sigma = density_activation(row[0]);
+            input[..density_width].copy_from_slice(row);
+        }
+        sh_encode(
+            shape.network.sh_degree,
+            &b.samples.directions,
+            s,
+            &mut b.colour_input[density_width..],
+            colour_width,
+        );
+        resize(&mut b.rgb, s * 3);
+        self.colour_workspace.reserve(s);
+        mlp_forward(
+            &shape.colour,
+            &self.params[shape.colour_range()],
+            &b.colour_input,
+            s,
+            &mut self.colour_workspace,
+            &mut b.rgb,
+        );
+        times.networks_forward = clock.elapsed().as_secs_f64();
+
+        // Composite, loss, composite backward (rays that fitted the budget).
+        let clock = Instant::now();
+        b.backgrounds.clear();
+        b.targets.clear();
+        for r in 0..kept {
+            b.backgrounds.extend_from_slice(&batch.backgrounds[r]);
+            b.targets.extend_from_slice(&batch.targets[r]);
+        }
+        let ray_batch = composite_batch::RayBatch {
+            density: &b.sigma,
+            rgb: &b.rgb,
+            dt: &b.samples.dt,
+            t: &b.samples.t,
+            ray_offsets: &b.samples.ray_offsets[..kept + 1],
+            background: &b.backgrounds,
+        };
+        resize(&mut b.ray_rgb, kept * 3);
+        resize(&mut b.ray_opacity, kept);
+        resize(&mut b.ray_depth, kept);
+        b.samples_used.clear();
+        b.samples_used.resize(kept, 0);
+        let min_transmittance = MarchConfig::PAPER.min_transmittance;
+        composite_batch::composite_forward(
+            &ray_batch,
+            min_transmittance,
+            CompositeOutputs {
+                rgb: &mut b.ray_rgb,
+                opacity: &mut b.ray_opacity,
+                depth: &mut b.ray_depth,
+                samples_used: &mut b.samples_used,
+            },
+        );
+        resize(&mut b.d_ray_rgb, kept * 3);
+        let loss = loss_and_gradient(self.loss, &b.ray_rgb, &b.targets, &mut b.d_ray_rgb);
+        resize(&mut b.d_sigma, s);
+        resize(&mut b.d_rgb, s * 3);
+        composite_batch::composite_backward(
+            &ray_batch,
+            min_transmittance,
+            &b.d_ray_rgb,
+            CompositeGradients {
+                density: &mut b.d_sigma,
+                rgb: &mut b.d_rgb,
+                background: None,
+            },
+        );
+        times.composite = clock.elapsed().as_secs_f64();
+
+        // Networks backward.
+        let clock = Instant::now();
+        resize(&mut b.gradients, self.params.len());
+        let (grid_grad, network_grad) = b.gradients.split_at_mut(shape.grid.param_count());
+        let (density_grad, colour_grad) = network_grad.split_at_mut(shape.density.param_count());
+        resize(&mut b.d_colour_input, s * colour_width);
+        mlp_backward(
+            &shape.colour,
+            &self.params[shape.colour_range()],
+            &b.colour_input,
+            s,
+            &mut self.colour_workspace,
+            &b.d_rgb,
+            colour_grad,
+            Some(&mut b.d_colour_input),
+        );
+        resize(&mut b.d_density_out, s * density_width);
+        for (((d_out, d_in), &d_sigma), &sigma) in b
+            .d_density_out
+            .chunks_exact_mut(density_width)
+            .zip(b.d_colour_input.chunks_exact(colour_width))
+            .zip(&b.d_sigma)
+            .zip(&b.sigma)
+        {
+            d_out.copy_from_slice(&d_in[..density_width]);
+            // dσ/dx = σ below the clamp, 0 above it.
+            let clamped = sigma >= crate::field::ngp::DENSITY_EXP_CLAMP.exp();
+            if !clamped {
+                d_out[0] += d_sigma * sigma;
+            }
+        }
+        resize(&mut b.d_encoded, s * grid_width);
+        mlp_backward(
+            &shape.density,
+            &self.params[shape.density_range()],
+            &b.encoded,
+            s,
+            &mut self.density_workspace,
+            &b.d_density_out,
+            density_grad,
+            Some(&mut b.d_encoded),
+        );
+        times.networks_backward = clock.elapsed().as_secs_f64();
+
+        let clock = Instant::now();
+        hash_grid::encode_backward_with_scratch(
+            &shape.grid,
+            bytemuck::cast_slice(&b.samples.positions),
+            &b.d_encoded,
+            grid_grad,
+            &mut b.encode_scratch,
+        );
+        times.encode_backward = clock.elapsed().as_secs_f64();
+
+        let clock = Instant::now();
+        let weights = shape.density_range().start..shape.param_count();
+        self.adam
+            .step(&self.optimiser, weights, &mut self.params, &b.gradients);
+        times.optimiser = clock.elapsed().as_secs_f64();
+
+        StepStats {
+            loss: loss as f32,
+            rays: if rays == 0 { 0 } else { kept },
+            samples: s,
+            times,
+        }
+    }
+
+    fn render(
+        &self,
+        origins: &[Vec3],
+        directions: &[Vec3],
+        background: [f32; 3],
+        out: &mut [RenderedPixel],
+    ) {
+        let n = origins.len();
+        let flat = |v: &[Vec3]| v.iter().flat_map(|x| x.to_array()).collect::<Vec<f32>>();
+        let (origins, directions) = (flat(origins), flat(directions));
+        let mut colour = vec![0f32; 3 * n];
+        let mut depth = vec![0f32; n];
+        let mut opacity = vec![0f32; n];
+        let shape = &self.shape;
+        let params = &self.params;
+        march_and_composite(
+            &self.grid,
+            &origins,
+            &directions,
+            &shape.mapping,
+            &MarchConfig::PAPER,
+            background,
+            INFERENCE_CHUNK,
+            |positions, dirs, sigma, rgb| shape.radiance(params, positions, dirs, sigma, rgb),
+            &mut colour,
+            &mut depth,
+            &mut opacity,
+        );
+        for (i, pixel) in out.iter_mut().enumerate().take(n) {
+            *pixel = RenderedPixel {
+                rgb: [colour[3 * i], colour[3 * i + 1], colour[3 * i + 2]],
+                opacity: opacity[i],
+                depth: depth[i],
+            };
+        }
+    }
+
+    fn save(&self) -> Checkpoint {
+        let header = NgpHeader {
+            model: "ngp".into(),
+            loss: self.loss,
+            seed: self.seed,
+            adam_step: self.adam.step,
+            samples_per_ray: self.batch_sizer.samples_per_ray(),
+            param_count: self.params.len(),
+        };
+        Checkpoint {
+            header: serde_json::to_value(header).expect("serialisable"),
+            tensors: vec![
+                ("params".into(), self.params.clone()),
+                ("adam.m".into(), self.adam.m.clone()),
+                ("adam.v".into(), self.adam.v.clone()),
+                ("adam.m_norm".into(), self.adam.m_norm.clone()),
+                ("adam.v_norm".into(), self.adam.v_norm.clone()),
+                ("occupancy".into(), self.grid.values().to_vec()),
+            ],
+        }
+    }
+
+    fn load(&mut self, checkpoint: &Checkpoint) -> Result<(), String> {
+        let header: NgpHeader = serde_json::from_value(checkpoint.header.clone())
+            .map_err(|e| format!("not an Instant-NGP checkpoint: {e}"))?;
+        if header.param_count != self.params.len() {
+            return Err(format!(
+                "the checkpoint has {} parameters, this model {}",
+                header.param_count,
+                self.params.len()
+            ));
+        }
+        let tensor = |name: &str, len: usize| -> Result<Vec<f32>, String> {
+            let values = checkpoint
+                .tensor(name)
+                .ok_or_else(|| format!("the checkpoint has no `{name}`"))?;
+            if values.len() != len {
+                return Err(format!(
+                    "`{name}` has {} values, expected {len}",
+                    values.len()
+                ));
+            }
+            Ok(values.to_vec())
+        };
+        let n = self.params.len();
+        self.params = tensor("params", n)?;
+        self.adam.m = tensor("adam.m", n)?;
+        self.adam.v = tensor("adam.v", n)?;
+        self.adam.m_norm = tensor("adam.m_norm", n)?;
+        self.adam.v_norm = tensor("adam.v_norm", n)?;
+        self.adam.step = header.adam_step;
+        let values = tensor("occupancy", self.grid.values().len())?;
+        self.grid.values_mut().copy_from_slice(&values);
+        self.grid.build_bitfield();
+        self.batch_sizer.set_samples_per_ray(header.samples_per_ray);
+        self.loss = header.loss;
+        self.seed = header.seed;
+        Ok(())
+    }
+
+    fn memory_bytes(&self) -> usize {
+        let b = &self.buffers;
+        let floats = self.params.len() * 5
+            + self.grid.values().len()
+            + [
+                &b.origins,
+                &b.directions,
+                &b.encoded,
+                &b.encode_scratch,
+                &b.density_out,
+                &b.sigma,
+                &b.colour_input,
+                &b.rgb,
+                &b.d_sigma,
+                &b.d_rgb,
+                &b.d_colour_input,
+                &b.d_density_out,
+                &b.d_encoded,
+                &b.gradients,
+                &b.samples.positions,
+                &b.samples.directions,
+                &b.samples.dt,
+                &b.samples.t,
+            ]
+            .iter()
+            .map(|v| v.capacity())
+            .sum::<usize>();
+        floats * 4
+    }
+}
+
+/// The marching jitter seed of a step.
+fn mix_seed(seed: u64, step: u32) -> u32 {
+    let mixed = (seed ^ 0x6a69_7474).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ step as u64;
+    (mixed ^ (mixed >> 32)) as u32
+}

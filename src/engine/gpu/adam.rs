@@ -1,0 +1,144 @@
+//! The Adam step on the GPU (`shaders/adam.wgsl`): the state of
+//! [`crate::engine::cpu::adam::Adam`] in GPU buffers, updated by the same
+//! formula, one invocation per parameter.
+
+use std::ops::Range;
+
+use super::composite::grid;
+use super::context::{GpuContext, GpuError};
+use super::kernel::{Kernel, read_buffer, storage_buffer, uniform_buffer};
+use crate::engine::cpu::adam::Adam;
+use crate::field::ngp::OptimiserConfig;
+
+/// Threads per workgroup in adam.wgsl.
+const WORKGROUP: u32 = 256;
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    count: u32,
+    row_stride: u32,
+    network_start: u32,
+    network_end: u32,
+    learning_rate: f32,
+    beta1: f32,
+    beta2: f32,
+    one_minus_beta1: f32,
+    one_minus_beta2: f32,
+    epsilon: f32,
+    l2: f32,
+    _pad: u32,
+}
+
+/// Adam's state on the GPU and the compiled step.
+pub struct GpuAdam {
+    kernel: Kernel,
+    pub m: wgpu::Buffer,
+    pub v: wgpu::Buffer,
+    pub m_norm: wgpu::Buffer,
+    pub v_norm: wgpu::Buffer,
+    /// Optimiser steps taken (drives the learning-rate schedule).
+    pub step: u32,
+    count: usize,
+}
+
+impl GpuAdam {
+    /// Fresh state for `count` parameters.
+    pub fn new(context: &GpuContext, count: usize) -> Result<Self, GpuError> {
+        Self::from_state(context, &Adam::new(count))
+    }
+
+    /// The GPU copy of a cpu state (a fresh one, or one from a checkpoint).
+    pub fn from_state(context: &GpuContext, state: &Adam) -> Result<Self, GpuError> {
+        let count = state.len();
+        let bytes = (count * 4) as u64;
+        let limit = context.limits.max_storage_buffer_binding_size;
+        // One binding per array; larger parameter sets would need the
+        // arrays split across bindings (instant-ngp's 16.8 M parameters
+        // take 64 MiB, half of lavapipe's and most GPUs' 128 MiB).
+        assert!(
+            bytes <= limit,
+            "{count} parameters ({bytes} bytes) exceed the adapter's storage binding limit of {limit} bytes"
+        );
+        Ok(Self {
+            kernel: Kernel::new(
+                context,
+                "adam",
+                include_str!("../../../shaders/adam.wgsl"),
+                "main",
+            )?,
+            m: storage_buffer(context, "adam m", &state.m),
+            v: storage_buffer(context, "adam v", &state.v),
+            m_norm: storage_buffer(context, "adam m_norm", &state.m_norm),
+            v_norm: storage_buffer(context, "adam v_norm", &state.v_norm),
+            step: state.step,
+            count,
+        })
+    }
+
+    pub fn len(&self) -> usize {
+        self.count
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.count == 0
+    }
+
+    /// Reads the state back (for checkpoints and tests).
+    pub fn read_state(&self, context: &GpuContext) -> Adam {
+        Adam {
+            m: read_buffer(context, &self.m, self.count),
+            v: read_buffer(context, &self.v, self.count),
+            m_norm: read_buffer(context, &self.m_norm, self.count),
+            v_norm: read_buffer(context, &self.v_norm, self.count),
+            step: self.step,
+        }
+    }
+
+    /// Records one update of `params` from `gradients` (both `len()` f32s).
+    /// `network_weights` gets L2 regularisation and dense updates; every
+    /// other parameter is skipped where its gradient is exactly zero, as
+    /// in [`Adam::step`].
+    pub fn record_step(
+        &mut self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        config: &OptimiserConfig,
+        network_weights: Range<usize>,
+        params: &wgpu::Buffer,
+        gradients: &wgpu::Buffer,
+    ) {
+        assert!(network_weights.start <= network_weights.end && network_weights.end <= self.count);
+        let (groups, row_stride) = grid(self.count, WORKGROUP);
+        let uniform = Params {
+            count: self.count as u32,
+            row_stride,
+            network_start: network_weights.start as u32,
+            network_end: network_weights.end as u32,
+            learning_rate: config.learning_rate_at(self.step),
+            beta1: config.beta1,
+            beta2: config.beta2,
+            one_minus_beta1: 1.0 - config.beta1,
+            one_minus_beta2: 1.0 - config.beta2,
+            epsilon: config.epsilon,
+            l2: config.l2_weights,
+            _pad: 0,
+        };
+        self.step += 1;
+        let uniform = uniform_buffer(context, "adam params", &uniform);
+        self.kernel.record(
+            context,
+            encoder,
+            &[
+                &uniform,
+                params,
+                gradients,
+                &self.m,
+                &self.v,
+                &self.m_norm,
+                &self.v_norm,
+            ],
+            groups,
+        );
+    }
+}

@@ -1,0 +1,345 @@
+//! Batched volume rendering on the GPU (`shaders/composite_forward.wgsl`,
+//! `shaders/composite_backward.wgsl`): one invocation per ray, the same
+//! maths, layout and early termination as
+//! [`crate::engine::cpu::composite_batch`].
+
+use super::context::{GpuContext, GpuError};
+use super::kernel::{Kernel, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer};
+use crate::engine::cpu::composite_batch::RayBatch;
+
+/// Threads per workgroup in the compositing kernels.
+const WORKGROUP: u32 = 64;
+/// Workgroups per dispatch dimension (wgpu's default limit; adapters may
+/// allow more, none allow less).
+const MAX_GROUPS_PER_DIMENSION: u32 = 65535;
+
+/// The dispatch for `count` invocations at `workgroup` per group, as a 2-D
+/// grid when one dimension is not enough, and the invocations per row of
+/// that grid (kernels index `id.x + id.y · row_stride`).
+pub(crate) fn grid(count: usize, workgroup: u32) -> ([u32; 3], u32) {
+    let groups = u32::try_from(count.div_ceil(workgroup as usize))
+        .expect("dispatch too large")
+        .max(1);
+    let rows = groups.div_ceil(MAX_GROUPS_PER_DIMENSION);
+    let columns = groups.div_ceil(rows);
+    ([columns, rows, 1], columns * workgroup)
+}
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    ray_count: u32,
+    row_stride: u32,
+    min_transmittance: f32,
+    _pad: u32,
+}
+
+/// A batch of rays on the GPU, in the layout of [`RayBatch`].
+#[derive(Debug, Clone, Copy)]
+pub struct RayBatchBuffers<'a> {
+    /// S densities (activated).
+    pub density: &'a wgpu::Buffer,
+    /// S × 3 colours (after the sigmoid).
+    pub rgb: &'a wgpu::Buffer,
+    /// S interval lengths.
+    pub dt: &'a wgpu::Buffer,
+    /// S distances along the ray.
+    pub t: &'a wgpu::Buffer,
+    /// R + 1 offsets (u32).
+    pub ray_offsets: &'a wgpu::Buffer,
+    /// R × 3 background colours.
+    pub background: &'a wgpu::Buffer,
+    /// R.
+    pub ray_count: usize,
+}
+
+/// Where the forward pass writes, per ray.
+#[derive(Debug, Clone, Copy)]
+pub struct CompositeOutputBuffers<'a> {
+    /// R × 3.
+    pub rgb: &'a wgpu::Buffer,
+    /// R.
+    pub opacity: &'a wgpu::Buffer,
+    /// R.
+    pub depth: &'a wgpu::Buffer,
+    /// R (u32).
+    pub samples_used: &'a wgpu::Buffer,
+}
+
+/// Where the backward pass writes.
+#[derive(Debug, Clone, Copy)]
+pub struct CompositeGradientBuffers<'a> {
+    /// S: ∂L/∂σ.
+    pub density: &'a wgpu::Buffer,
+    /// S × 3: ∂L/∂c.
+    pub rgb: &'a wgpu::Buffer,
+    /// R × 3: ∂L/∂background (always written; training may ignore it).
+    pub background: &'a wgpu::Buffer,
+}
+
+/// What [`GpuComposite::forward`] reads back.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ForwardResult {
+    pub rgb: Vec<f32>,
+    pub opacity: Vec<f32>,
+    pub depth: Vec<f32>,
+    pub samples_used: Vec<u32>,
+}
+
+/// What [`GpuComposite::backward`] reads back.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BackwardResult {
+    pub density: Vec<f32>,
+    pub rgb: Vec<f32>,
+    pub background: Vec<f32>,
+}
+
+/// The compiled compositing kernels.
+pub struct GpuComposite {
+    forward: Kernel,
+    backward: Kernel,
+}
+
+impl GpuComposite {
+    pub fn new(context: &GpuContext) -> Result<Self, GpuError> {
+        Ok(Self {
+            forward: Kernel::new(
+                context,
+                "composite_forward",
+                include_str!("../../../shaders/composite_forward.wgsl"),
+                "main",
+            )?,
+            backward: Kernel::new(
+                context,
+                "composite_backward",
+                include_str!("../../../shaders/composite_backward.wgsl"),
+                "main",
+            )?,
+        })
+    }
+
+    fn params(
+        context: &GpuContext,
+        ray_count: usize,
+        min_transmittance: f32,
+    ) -> (wgpu::Buffer, [u32; 3]) {
+        let (groups, row_stride) = grid(ray_count, WORKGROUP);
+        let params = Params {
+            ray_count: ray_count as u32,
+            row_stride,
+            min_transmittance,
+            _pad: 0,
+        };
+        (uniform_buffer(context, "composite params", &params), groups)
+    }
+
+    /// Records the forward pass: colour, opacity, depth and samples used
+    /// per ray.
+    pub fn record_forward(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        batch: &RayBatchBuffers,
+        min_transmittance: f32,
+        out: &CompositeOutputBuffers,
+    ) {
+        let (uniform, groups) = Self::params(context, batch.ray_count, min_transmittance);
+        self.forward.record(
+            context,
+            encoder,
+            &[
+                &uniform,
+                batch.density,
+                batch.rgb,
+                batch.dt,
+                batch.t,
+                batch.ray_offsets,
+                batch.background,
+                out.rgb,
+                out.opacity,
+                out.depth,
+                out.samples_used,
+            ],
+            groups,
+        );
+    }
+
+    /// Records the backward pass for ∂L/∂rgb per ray (R × 3 in `d_rgb`).
+    /// Every sample of every ray is written (zero after a ray's cut).
+    pub fn record_backward(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        batch: &RayBatchBuffers,
+        min_transmittance: f32,
+        d_rgb: &wgpu::Buffer,
+        gradients: &CompositeGradientBuffers,
+    ) {
+        let (uniform, groups) = Self::params(context, batch.ray_count, min_transmittance);
+        self.backward.record(
+            context,
+            encoder,
+            &[
+                &uniform,
+                batch.density,
+                batch.rgb,
+                batch.dt,
+                batch.ray_offsets,
+                batch.background,
+                d_rgb,
+                gradients.density,
+                gradients.rgb,
+                gradients.background,
+            ],
+            groups,
+        );
+    }
+
+    /// Uploads `batch`, runs the forward pass and reads it back (tests and
+    /// tools).
+    pub fn forward(
+        &self,
+        context: &GpuContext,
+        batch: &RayBatch<f32>,
+        min_transmittance: f32,
+    ) -> ForwardResult {
+        let uploaded = Upload::new(context, batch);
+        let rays = batch.ray_count();
+        let rgb = zeroed_storage_buffer::<f32>(context, "composite rgb", 3 * rays);
+        let opacity = zeroed_storage_buffer::<f32>(context, "composite opacity", rays);
+        let depth = zeroed_storage_buffer::<f32>(context, "composite depth", rays);
+        let samples_used = zeroed_storage_buffer::<u32>(context, "composite samples used", rays);
+        let mut encoder = context.device.create_command_encoder(&Default::default());
+        self.record_forward(
+            context,
+            &mut encoder,
+            &uploaded.buffers(rays),
+            min_transmittance,
+            &CompositeOutputBuffers {
+                rgb: &rgb,
+                opacity: &opacity,
+                depth: &depth,
+                samples_used: &samples_used,
+            },
+        );
+        context.queue.submit([encoder.finish()]);
+        ForwardResult {
+            rgb: read_buffer(context, &rgb, 3 * rays),
+            opacity: read_buffer(context, &opacity, rays),
+            depth: read_buffer(context, &depth, rays),
+            samples_used: read_buffer(context, &samples_used, rays),
+        }
+    }
+
+    /// Uploads `batch` and `d_rgb`, runs the backward pass and reads the
+    /// gradients back (tests and tools).
+    pub fn backward(
+        &self,
+        context: &GpuContext,
+        batch: &RayBatch<f32>,
+        min_transmittance: f32,
+        d_rgb: &[f32],
+    ) -> BackwardResult {
+        let uploaded = Upload::new(context, batch);
+        let rays = batch.ray_count();
+        let samples = batch.sample_count();
+        assert!(d_rgb.len() >= 3 * rays);
+        let d_rgb = storage_buffer(context, "composite d_rgb", &d_rgb[..3 * rays]);
+        let density = zeroed_storage_buffer::<f32>(context, "composite d_density", samples);
+        let rgb = zeroed_storage_buffer::<f32>(context, "composite d_colour", 3 * samples);
+        let background = zeroed_storage_buffer::<f32>(context, "composite d_background", 3 * rays);
+        let mut encoder = context.device.create_command_encoder(&Default::default());
+        self.record_backward(
+            context,
+            &mut encoder,
+            &uploaded.buffers(rays),
+            min_transmittance,
+            &d_rgb,
+            &CompositeGradientBuffers {
+                density: &density,
+                rgb: &rgb,
+                background: &background,
+            },
+        );
+        context.queue.submit([encoder.finish()]);
+        BackwardResult {
+            density: read_buffer(context, &density, samples),
+            rgb: read_buffer(context, &rgb, 3 * samples),
+            background: read_buffer(context, &background, 3 * rays),
+        }
+    }
+}
+
+/// A [`RayBatch`] copied to the GPU.
+struct Upload {
+    density: wgpu::Buffer,
+    rgb: wgpu::Buffer,
+    dt: wgpu::Buffer,
+    t: wgpu::Buffer,
+    ray_offsets: wgpu::Buffer,
+    background: wgpu::Buffer,
+}
+
+impl Upload {
+    fn new(context: &GpuContext, batch: &RayBatch<f32>) -> Self {
+        let samples = batch.sample_count();
+        let rays = batch.ray_count();
+        Self {
+            density: storage_buffer(context, "composite density", &batch.density[..samples]),
+            rgb: storage_buffer(context, "composite rgb in", &batch.rgb[..3 * samples]),
+            dt: storage_buffer(context, "composite dt", &batch.dt[..samples]),
+            t: storage_buffer(context, "composite t", &batch.t[..samples]),
+            ray_offsets: storage_buffer(context, "composite ray offsets", batch.ray_offsets),
+            background: storage_buffer(
+                context,
+                "composite background",
+                &batch.background[..3 * rays],
+            ),
+        }
+    }
+
+    fn buffers(&self, ray_count: usize) -> RayBatchBuffers<'_> {
+        RayBatchBuffers {
+            density: &self.density,
+            rgb: &self.rgb,
+            dt: &self.dt,
+            t: &self.t,
+            ray_offsets: &self.ray_offsets,
+            background: &self.background,
+            ray_count,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn grid_covers_every_invocation_within_the_limits() {
+        for count in [
+            0usize,
+            1,
+            63,
+            64,
+            65,
+            65535 * 64,
+            65535 * 64 + 1,
+            16_787_456,
+            40_000_000,
+        ] {
+            for workgroup in [64u32, 256] {
+                let ([x, y, z], row_stride) = grid(count, workgroup);
+                assert!(x <= MAX_GROUPS_PER_DIMENSION && y <= MAX_GROUPS_PER_DIMENSION && z == 1);
+                assert_eq!(row_stride, x * workgroup);
+                let covered = x as usize * y as usize * workgroup as usize;
+                assert!(covered >= count, "{count}: {covered}");
+                // Less than one row of waste.
+                assert!(
+                    covered < count.max(1) + row_stride as usize,
+                    "{count}: {covered}"
+                );
+            }
+        }
+    }
+}

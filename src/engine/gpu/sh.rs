@@ -1,0 +1,96 @@
+//! The spherical-harmonics direction encoding on the GPU
+//! (`shaders/sh_encode.wgsl`), the basis of [`crate::engine::cpu::sh`].
+
+use super::context::{GpuContext, GpuError};
+use super::kernel::{Kernel, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer};
+use crate::engine::cpu::sh::{SH_MAX_DEGREE, sh_coefficients};
+
+/// Threads per workgroup in sh_encode.wgsl.
+const WORKGROUP: u32 = 64;
+/// Workgroups per dispatch dimension (wgpu's default limit).
+const MAX_GROUPS_PER_DIMENSION: u32 = 65535;
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    rows: u32,
+    degree: u32,
+    stride: u32,
+    offset: u32,
+}
+
+/// The compiled encoding kernel.
+pub struct GpuSh {
+    kernel: Kernel,
+}
+
+impl GpuSh {
+    pub fn new(context: &GpuContext) -> Result<Self, GpuError> {
+        Ok(Self {
+            kernel: Kernel::new(
+                context,
+                "sh_encode",
+                include_str!("../../../shaders/sh_encode.wgsl"),
+                "main",
+            )?,
+        })
+    }
+
+    /// Records the encoding of `rows` unit directions (rows × 3): row r's
+    /// `degree²` coefficients go to `output[r·stride + offset ..]`, so they
+    /// can be written straight into the colour network's input matrix.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_encode(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        degree: u32,
+        directions: &wgpu::Buffer,
+        output: &wgpu::Buffer,
+        rows: usize,
+        stride: usize,
+        offset: usize,
+    ) {
+        assert!(
+            (1..=SH_MAX_DEGREE).contains(&degree),
+            "degree {degree} not in 1..={SH_MAX_DEGREE}"
+        );
+        assert!(
+            offset + sh_coefficients(degree) <= stride,
+            "coefficients overrun the row"
+        );
+        let params = Params {
+            rows: rows as u32,
+            degree,
+            stride: stride as u32,
+            offset: offset as u32,
+        };
+        let uniform = uniform_buffer(context, "sh params", &params);
+        let groups = (rows as u32).div_ceil(WORKGROUP).max(1);
+        let y = groups.div_ceil(MAX_GROUPS_PER_DIMENSION);
+        self.kernel.record(
+            context,
+            encoder,
+            &[&uniform, directions, output],
+            [groups.div_ceil(y), y, 1],
+        );
+    }
+
+    /// Uploads, encodes and reads back rows × degree² coefficients (for tests
+    /// and tools).
+    pub fn encode_once(
+        &self,
+        context: &GpuContext,
+        degree: u32,
+        directions: &[f32],
+        rows: usize,
+    ) -> Vec<f32> {
+        let n = sh_coefficients(degree);
+        let input = storage_buffer(context, "directions", &directions[..3 * rows]);
+        let output = zeroed_storage_buffer::<f32>(context, "sh", rows * n);
+        let mut encoder = context.device.create_command_encoder(&Default::default());
+        self.record_encode(context, &mut encoder, degree, &input, &output, rows, n, 0);
+        context.queue.submit([encoder.finish()]);
+        read_buffer(context, &output, rows * n)
+    }
+}
