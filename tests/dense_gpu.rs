@@ -222,7 +222,7 @@ fn throughput() {
         let d_input =
             zeroed_storage_buffer::<f32>(&context, "d_input", rows * layout.input_width());
         let workspace = GpuMlpWorkspace::new(&context, &layout, rows);
-        let mut run = |backward: bool| {
+        let run = |backward: bool| {
             let start = std::time::Instant::now();
             let mut encoder = context.device.create_command_encoder(&Default::default());
             dense.record_forward(&context, &mut encoder, &params, &input, &workspace, rows);

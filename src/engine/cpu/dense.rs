@@ -1069,7 +1069,7 @@ unsafe fn panel_rows<L: Lanes, const NV: usize, const MR: usize>(g: &Gemm, j0: u
             4 if MR > 4 => tile::<L, 4, NV>(g, i, j0, nj, &masks),
             5 if MR > 5 => tile::<L, 5, NV>(g, i, j0, nj, &masks),
             6 if MR > 6 => tile::<L, 6, NV>(g, i, j0, nj, &masks),
-            7 if MR > 7 => tile::<L, 7, NV>(g, i, j0, nj, &masks),
+
             _ => unreachable!("remainders are below MR ≤ 8"),
         }
     }
@@ -2068,7 +2068,8 @@ mod tests {
             };
             let (fwd, fwd_cpu) =
                 median(&mut || mlp_forward(layout, &params, &input, rows, &mut ws, &mut out));
-            let (inf, inf_cpu) = median(&mut || mlp_inference(layout, &params, &input, rows, &mut out));
+            let (inf, inf_cpu) =
+                median(&mut || mlp_inference(layout, &params, &input, rows, &mut out));
             let (bwd, bwd_cpu) = median(&mut || {
                 mlp_backward(
                     layout,

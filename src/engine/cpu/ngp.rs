@@ -213,10 +213,24 @@ pub struct CpuNgp {
     density_workspace: MlpWorkspace,
     colour_workspace: MlpWorkspace,
     buffers: StepBuffers,
+    /// Samples per batch (the paper's 2^18 unless a test asks for fewer).
+    batch_samples: usize,
 }
 
 impl CpuNgp {
     pub fn new(scene: &Scene, seed: u64, loss: LossKind) -> Self {
+        Self::with_batch_samples(scene, seed, loss, SAMPLES_PER_BATCH)
+    }
+
+    /// A model whose batches hold `batch_samples` samples instead of the
+    /// paper's 2^18: the same training, in smaller steps, for tests that
+    /// must finish quickly.
+    pub fn with_batch_samples(
+        scene: &Scene,
+        seed: u64,
+        loss: LossKind,
+        batch_samples: usize,
+    ) -> Self {
         let shape = NgpShape::for_scene(scene);
         let mut params = hash_grid::init_params(&shape.grid, seed);
         params.extend(shape.density.init_params(seed ^ 0x64656e73));
@@ -237,13 +251,14 @@ impl CpuNgp {
             params,
             adam,
             grid,
-            batch_sizer: BatchSizer::paper(),
+            batch_sizer: BatchSizer::new(batch_samples),
             optimiser: OptimiserConfig::PAPER,
             loss,
             seed,
             density_workspace,
             colour_workspace,
             buffers: StepBuffers::default(),
+            batch_samples,
         }
     }
 
@@ -255,37 +270,13 @@ impl CpuNgp {
         &self.params
     }
 
-    fn update_grid(&mut self, step: u32) {
-        let shape = &self.shape;
-        let params = &self.params;
-        self.grid.update(step, self.seed, |positions, sigma| {
-            for (p, s) in positions
-                .chunks(3 * INFERENCE_CHUNK)
-                .zip(sigma.chunks_mut(INFERENCE_CHUNK))
-            {
-                shape.density(params, p, s);
-            }
-        });
-    }
-}
-
-impl RadianceModel for CpuNgp {
-    fn describe(&self) -> String {
-        "Instant-NGP (cpu)".into()
-    }
-
-    fn rays_for_next_batch(&self) -> usize {
-        self.batch_sizer.rays()
-    }
-
-    fn step(&mut self, batch: &RayBatch, step: u32) -> StepStats {
+    /// Marches, evaluates and composites `batch`, and writes the gradient
+    /// of the mean loss with respect to every parameter into the step
+    /// buffers (see [`Self::gradients`]), without changing any parameter.
+    /// `step` seeds the marching jitter. Returns the step's statistics
+    /// (optimiser and grid times zero).
+    pub fn forward_backward(&mut self, batch: &RayBatch, step: u32) -> StepStats {
         let mut times = StageTimes::default();
-        let clock = Instant::now();
-        if self.grid.is_due(step) {
-            self.update_grid(step);
-        }
-        times.grid_update = clock.elapsed().as_secs_f64();
-
         let shape = &self.shape;
         let b = &mut self.buffers;
         let rays = batch.len();
@@ -299,7 +290,7 @@ impl RadianceModel for CpuNgp {
             b.directions.extend_from_slice(&d.to_array());
         }
         let march_params = MarchParams {
-            sample_budget: SAMPLES_PER_BATCH,
+            sample_budget: self.batch_samples,
             ..MarchParams::training(shape.mapping, mix_seed(self.seed, step))
         };
         let marched = march(
@@ -356,7 +347,8 @@ impl RadianceModel for CpuNgp {
             shape.network.sh_degree,
             &b.samples.directions,
             s,
-            &mut b.colour_input[density_width..],
+            // Empty when the batch has no samples (an empty grid).
+            b.colour_input.get_mut(density_width..).unwrap_or_default(),
             colour_width,
         );
         resize(&mut b.rgb, s * 3);
@@ -473,18 +465,82 @@ impl RadianceModel for CpuNgp {
         );
         times.encode_backward = clock.elapsed().as_secs_f64();
 
-        let clock = Instant::now();
-        let weights = shape.density_range().start..shape.param_count();
-        self.adam
-            .step(&self.optimiser, weights, &mut self.params, &b.gradients);
-        times.optimiser = clock.elapsed().as_secs_f64();
-
         StepStats {
             loss: loss as f32,
             rays: if rays == 0 { 0 } else { kept },
             samples: s,
             times,
         }
+    }
+
+    /// The gradient written by the last [`Self::forward_backward`], in the
+    /// parameters' layout.
+    pub fn gradients(&self) -> &[f32] {
+        &self.buffers.gradients
+    }
+
+    /// Parameters, writable (for gradient checks).
+    pub fn params_mut(&mut self) -> &mut [f32] {
+        &mut self.params
+    }
+
+    /// The occupancy grid, writable (for tests of recovery).
+    pub fn occupancy_mut(&mut self) -> &mut OccupancyGrid {
+        &mut self.grid
+    }
+
+    /// Where each part of the model sits in the parameter vector.
+    pub fn parameter_ranges(&self) -> [(&'static str, Range<usize>); 3] {
+        [
+            ("hash grid", self.shape.grid_range()),
+            ("density network", self.shape.density_range()),
+            ("colour network", self.shape.colour_range()),
+        ]
+    }
+
+    fn update_grid(&mut self, step: u32) {
+        let shape = &self.shape;
+        let params = &self.params;
+        self.grid.update(step, self.seed, |positions, sigma| {
+            for (p, s) in positions
+                .chunks(3 * INFERENCE_CHUNK)
+                .zip(sigma.chunks_mut(INFERENCE_CHUNK))
+            {
+                shape.density(params, p, s);
+            }
+        });
+    }
+}
+
+impl RadianceModel for CpuNgp {
+    fn describe(&self) -> String {
+        "Instant-NGP (cpu)".into()
+    }
+
+    fn rays_for_next_batch(&self) -> usize {
+        self.batch_sizer.rays()
+    }
+
+    fn step(&mut self, batch: &RayBatch, step: u32) -> StepStats {
+        let clock = Instant::now();
+        if self.grid.is_due(step) {
+            self.update_grid(step);
+        }
+        let grid_update = clock.elapsed().as_secs_f64();
+
+        let mut stats = self.forward_backward(batch, step);
+        stats.times.grid_update = grid_update;
+
+        let clock = Instant::now();
+        let weights = self.shape.density_range().start..self.shape.param_count();
+        self.adam.step(
+            &self.optimiser,
+            weights,
+            &mut self.params,
+            &self.buffers.gradients,
+        );
+        stats.times.optimiser = clock.elapsed().as_secs_f64();
+        stats
     }
 
     fn render(
