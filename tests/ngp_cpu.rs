@@ -140,7 +140,10 @@ fn checkpoint_of_another_scene_is_refused() {
     }));
     let mut elsewhere = Trainer::new(Box::new(model(&other)), other, 1);
     let error = elsewhere.restore(&checkpoint).unwrap_err();
-    assert!(error.contains("12 training views") && error.contains("13 training views"), "{error}");
+    assert!(
+        error.contains("12 training views") && error.contains("13 training views"),
+        "{error}"
+    );
 }
 
 #[test]
@@ -195,7 +198,12 @@ fn rays_that_miss_or_start_inside_the_box_stay_finite() {
     let mut out = vec![Default::default(); rays.len()];
     ngp.render(&rays.origins, &rays.directions, [1.0; 3], &mut out);
     for pixel in &out {
-        assert!(pixel.rgb.iter().all(|c| c.is_finite() && (0.0..=1.0).contains(c)));
+        assert!(
+            pixel
+                .rgb
+                .iter()
+                .all(|c| c.is_finite() && (0.0..=1.0).contains(c))
+        );
         assert!((0.0..=1.0).contains(&pixel.opacity) && pixel.depth.is_finite());
     }
     // The ray that misses sees exactly the background.

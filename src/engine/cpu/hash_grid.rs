@@ -305,7 +305,7 @@ impl<T: Real> LevelMath<T> {
                 term[axis][0][k] = cell.wrapping_mul(multiplier[axis]);
                 term[axis][1][k] = (cell + 1).wrapping_mul(multiplier[axis]);
                 weight[axis][0][k] = T::one() - frac;
-                weight[axis][1][k] = frac;
+                weight[axis][1][k] = frac * T::from_index(1);
             }
         }
         for c in 0..8 {
@@ -1092,6 +1092,7 @@ mod tests {
         let (forward, backward, scale) = adjoint_sides(&layout, &params, &positions, &d_out);
         assert!(scale > 1.0);
         let error = (forward - backward).abs() / scale;
+        eprintln!("adjoint identity, f64: {error:e} of the scale");
         assert!(
             error < 1e-12,
             "f64: {forward} vs {backward} (scale {scale}): {error:e}"
@@ -1104,6 +1105,7 @@ mod tests {
         let d_out32: Vec<f32> = d_out.iter().map(|&g| g as f32).collect();
         let (forward, backward, scale) = adjoint_sides(&layout, &params32, &positions32, &d_out32);
         let error = (forward - backward).abs() / scale;
+        eprintln!("adjoint identity, f32: {error:e} of the scale");
         assert!(
             error < 1e-6,
             "f32: {forward} vs {backward} (scale {scale}): {error:e}"
