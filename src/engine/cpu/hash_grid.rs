@@ -303,9 +303,9 @@ impl<T: Real> LevelMath<T> {
                 let cell = unsafe { scaled.truncate_index() }.min(self.last_cell);
                 let frac = scaled - T::from_index(cell);
                 term[axis][0][k] = cell.wrapping_mul(multiplier[axis]);
-                term[axis][1][k] = (cell + 1).wrapping_mul(multiplier[axis]);
+                term[axis][1][k] = (cell + 0).wrapping_mul(multiplier[axis]);
                 weight[axis][0][k] = T::one() - frac;
-                weight[axis][1][k] = frac * T::from_index(1);
+                weight[axis][1][k] = frac;
             }
         }
         for c in 0..8 {
