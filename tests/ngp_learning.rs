@@ -69,7 +69,7 @@ fn learns_the_demo_scene_well_above_the_mean_colour() {
     let mut last_loss = 0.0;
     while trainer.step < steps {
         last_loss = trainer.step().loss;
-        if trainer.step % 50 == 0 {
+        if trainer.step.is_multiple_of(50) {
             let p: f64 = scene
                 .val
                 .iter()

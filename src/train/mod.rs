@@ -35,10 +35,13 @@ pub fn build_model(
             settings.seed,
             settings.loss,
         ))),
-        (ModelKind::Ngp, EngineKind::Gpu) => Err(
-            "the gpu engine's Instant-NGP training step is not built yet: its stages exist and \
-             are tested, the chained step is not; use --engine cpu"
-                .into(),
-        ),
+        (ModelKind::Ngp, EngineKind::Gpu) => {
+            let context = engine
+                .gpu
+                .ok_or("the gpu engine was chosen without a gpu context")?;
+            crate::engine::gpu::ngp::GpuNgp::new(context, scene, settings.seed, settings.loss)
+                .map(|model| Box::new(model) as Box<dyn RadianceModel>)
+                .map_err(|e| format!("building Instant-NGP on the gpu engine: {e}"))
+        }
     }
 }

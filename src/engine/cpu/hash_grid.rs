@@ -303,7 +303,7 @@ impl<T: Real> LevelMath<T> {
                 let cell = unsafe { scaled.truncate_index() }.min(self.last_cell);
                 let frac = scaled - T::from_index(cell);
                 term[axis][0][k] = cell.wrapping_mul(multiplier[axis]);
-                term[axis][1][k] = (cell + 0).wrapping_mul(multiplier[axis]);
+                term[axis][1][k] = (cell + 1).wrapping_mul(multiplier[axis]);
                 weight[axis][0][k] = T::one() - frac;
                 weight[axis][1][k] = frac;
             }
@@ -870,6 +870,67 @@ mod tests {
             math.corners::<false>(&[p], &mut corners);
         }
         (corners.index.map(|i| i[0]), corners.weight.map(|w| w[0]))
+    }
+
+    /// The encoding written plainly from the paper's description, one
+    /// sample, one level and one corner at a time.
+    fn naive_encode(layout: &HashGridLayout, params: &[f64], p: [f64; 3]) -> Vec<f64> {
+        let f = layout.features();
+        let t = layout.config().table_size();
+        let mut out = Vec::new();
+        for level in layout.levels() {
+            let n = level.resolution as f64;
+            let x = p.map(|v| v.clamp(0.0, 1.0) * n);
+            let cell = x.map(|v| (v.floor() as u32).min(level.resolution - 1));
+            let mut features = vec![0.0; f];
+            for dz in 0..2u32 {
+                for dy in 0..2u32 {
+                    for dx in 0..2u32 {
+                        let v = [cell[0] + dx, cell[1] + dy, cell[2] + dz];
+                        let weight: f64 = (0..3)
+                            .map(|a| {
+                                let frac = x[a] - cell[a] as f64;
+                                if v[a] > cell[a] { frac } else { 1.0 - frac }
+                            })
+                            .product();
+                        let side = level.resolution as usize + 1;
+                        let entry = if level.dense {
+                            v[0] as usize + v[1] as usize * side + v[2] as usize * side * side
+                        } else {
+                            spatial_hash(v[0], v[1], v[2]) as usize % t
+                        };
+                        for (k, feature) in features.iter_mut().enumerate() {
+                            *feature += weight * params[(level.offset + entry) * f + k];
+                        }
+                    }
+                }
+            }
+            out.extend(features);
+        }
+        out
+    }
+
+    #[test]
+    fn encoding_matches_a_plain_transcription_of_the_paper() {
+        let layout = HashGridLayout::new(&HashGridConfig::paper(1.0));
+        let params: Vec<f64> = init_params(&layout, 12)
+            .iter()
+            .map(|&p| p as f64 * 1e4)
+            .collect();
+        let mut u = Uniforms(13);
+        let mut positions: Vec<[f64; 3]> = (0..200).map(|_| u.position()).collect();
+        positions.extend(hard_positions(&layout).into_iter().step_by(7));
+        let width = layout.output_width();
+        let mut out = vec![0.0; positions.len() * width];
+        encode(&layout, &params, &positions, &mut out);
+        for (p, row) in positions.iter().zip(out.chunks_exact(width)) {
+            let want = naive_encode(&layout, &params, *p);
+            for (l, (a, b)) in row.iter().zip(&want).enumerate() {
+                // Same terms, summed in another order and with the weight
+                // products associated differently: |θ| ≤ 1, so a few ε.
+                assert!((a - b).abs() < 1e-14, "{p:?}, column {l}: {a} vs {b}");
+            }
+        }
     }
 
     #[test]

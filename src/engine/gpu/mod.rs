@@ -10,5 +10,6 @@ pub mod composite;
 pub mod dense;
 pub mod loss;
 pub mod march;
+pub mod ngp;
 pub mod occupancy;
 pub mod sh;

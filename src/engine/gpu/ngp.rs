@@ -1,0 +1,896 @@
+//! Instant-NGP on the `gpu` engine: the gpu stages chained into a training
+//! step, with the parameter layout, initial values, checkpoint format and
+//! random choices of [`crate::engine::cpu::ngp::CpuNgp`], so a model moves
+//! between engines through a checkpoint.
+//!
+//! A training step is two submissions. The first uploads the rays and
+//! marches them against the occupancy bitfield; its only read-back is the
+//! march's two counters (samples, rays kept), which size every later
+//! dispatch and the loss's mean. The second records everything else into
+//! one command encoder (encode, density network, exp, spherical harmonics,
+//! colour network, composite, loss, every backward stage, Adam) and reads
+//! back the mean loss.
+//!
+//! The occupancy grid's values and the choice of cells stay on the cpu
+//! ([`OccupancyGrid::plan_update`] / [`OccupancyGrid::apply_update`], the
+//! same code and random choices as the cpu engine); the densities at the
+//! planned points are evaluated on the gpu in one submission and read back
+//! (every 16 steps), and the rebuilt bitfield is uploaded.
+//!
+//! Rendering marches on the cpu with early termination
+//! ([`march_and_composite`], the cpu engine's own loop) and evaluates each
+//! round of samples on the gpu: the same pixels as the cpu engine without
+//! a gpu version of the round-by-round march.
+
+use std::ops::Range;
+use std::time::Instant;
+
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+
+use super::adam::GpuAdam;
+use super::composite::{
+    CompositeGradientBuffers, CompositeOutputBuffers, GpuComposite, RayBatchBuffers,
+};
+use super::context::{GpuContext, GpuError};
+use super::dense::{GpuDense, GpuMlpWorkspace};
+use super::hash_grid::GpuHashGrid;
+use super::kernel::{Kernel, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer};
+use super::loss::{GpuLoss, LossBuffers};
+use super::march::{GpuGrid, GpuMarch, GpuMarchBuffers, GpuRays, dispatch_grid};
+use super::sh::GpuSh;
+use crate::engine::cpu::hash_grid;
+use crate::engine::cpu::march::{BatchSizer, MarchParams, march_and_composite};
+use crate::engine::cpu::ngp::NgpShape;
+use crate::engine::cpu::occupancy::OccupancyGrid;
+use crate::field::ngp::{
+    DENSITY_EXP_CLAMP, LossKind, MarchConfig, OccupancyConfig, OptimiserConfig, SAMPLES_PER_BATCH,
+};
+use crate::scene::Scene;
+use crate::train::batch::RayBatch;
+use crate::train::checkpoint::Checkpoint;
+use crate::train::model::{RadianceModel, RenderedPixel, StageTimes, StepStats};
+
+/// Threads per workgroup of the activation kernels.
+const WORKGROUP: u32 = 64;
+
+/// `Params` in shaders/ngp_density*.wgsl.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct ActivationUniforms {
+    count: u32,
+    row_stride: u32,
+    density_width: u32,
+    colour_width: u32,
+    exp_clamp: f32,
+    _pad: [u32; 3],
+}
+
+/// The checkpoint header, field for field the cpu engine's, so checkpoints
+/// move between engines (a test loads one engine's into the other).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+struct NgpHeader {
+    model: String,
+    loss: LossKind,
+    seed: u64,
+    adam_step: u32,
+    samples_per_ray: Option<f64>,
+    param_count: usize,
+}
+
+/// Buffers that depend on the number of rays in a batch.
+struct RayBuffers {
+    capacity: usize,
+    origins: wgpu::Buffer,
+    directions: wgpu::Buffer,
+    targets: wgpu::Buffer,
+    backgrounds: wgpu::Buffer,
+    rgb: wgpu::Buffer,
+    opacity: wgpu::Buffer,
+    depth: wgpu::Buffer,
+    samples_used: wgpu::Buffer,
+    d_rgb: wgpu::Buffer,
+    ray_loss: wgpu::Buffer,
+    d_background: wgpu::Buffer,
+}
+
+impl RayBuffers {
+    fn new(context: &GpuContext, capacity: usize) -> Self {
+        let f = |label: &str, n: usize| zeroed_storage_buffer::<f32>(context, label, n);
+        Self {
+            capacity,
+            origins: f("ngp ray origins", 3 * capacity),
+            directions: f("ngp ray directions", 3 * capacity),
+            targets: f("ngp ray targets", 3 * capacity),
+            backgrounds: f("ngp ray backgrounds", 3 * capacity),
+            rgb: f("ngp ray rgb", 3 * capacity),
+            opacity: f("ngp ray opacity", capacity),
+            depth: f("ngp ray depth", capacity),
+            samples_used: zeroed_storage_buffer::<u32>(context, "ngp samples used", capacity),
+            d_rgb: f("ngp d ray rgb", 3 * capacity),
+            ray_loss: f("ngp ray loss", capacity),
+            d_background: f("ngp d background", 3 * capacity),
+        }
+    }
+
+    fn bytes(&self) -> usize {
+        self.capacity * 4 * (3 * 7 + 4)
+    }
+}
+
+/// Per-sample buffers, sized once for the batch's sample budget.
+struct SampleBuffers {
+    encoded: wgpu::Buffer,
+    sigma: wgpu::Buffer,
+    colour_input: wgpu::Buffer,
+    density: GpuMlpWorkspace,
+    colour: GpuMlpWorkspace,
+    d_sigma: wgpu::Buffer,
+    d_rgb: wgpu::Buffer,
+    d_colour_input: wgpu::Buffer,
+    d_density_out: wgpu::Buffer,
+    d_encoded: wgpu::Buffer,
+}
+
+/// The compiled kernels of every stage.
+struct Stages {
+    hash: GpuHashGrid,
+    dense: GpuDense,
+    sh: GpuSh,
+    march: GpuMarch,
+    composite: GpuComposite,
+    loss: GpuLoss,
+    activate: Kernel,
+    activate_backward: Kernel,
+}
+
+/// Instant-NGP trained by the `gpu` engine.
+pub struct GpuNgp {
+    context: GpuContext,
+    shape: NgpShape,
+    stages: Stages,
+    adam: GpuAdam,
+    /// All parameters, `[hash grid | density MLP | colour MLP]`.
+    params: wgpu::Buffer,
+    /// Their gradient, same layout.
+    gradients: wgpu::Buffer,
+    /// The two networks' parameters and gradients on their own, because a
+    /// dense kernel binds whole buffers and indexes from 0: copied out of
+    /// (and back into) the flat buffers inside each step's encoder.
+    density_params: wgpu::Buffer,
+    colour_params: wgpu::Buffer,
+    density_gradients: wgpu::Buffer,
+    colour_gradients: wgpu::Buffer,
+    grid: OccupancyGrid,
+    bitfield: wgpu::Buffer,
+    march_out: GpuMarchBuffers,
+    rays: RayBuffers,
+    samples: SampleBuffers,
+    loss_total: wgpu::Buffer,
+    /// Mappable copies of the step's two read-backs.
+    counters_staging: wgpu::Buffer,
+    loss_staging: wgpu::Buffer,
+    batch_sizer: BatchSizer,
+    optimiser: OptimiserConfig,
+    loss: LossKind,
+    seed: u64,
+    /// Samples per batch; every per-sample buffer holds this many.
+    batch_samples: usize,
+    /// Flattened rays of the current batch (reused).
+    scratch: Vec<f32>,
+}
+
+impl GpuNgp {
+    pub fn new(
+        context: GpuContext,
+        scene: &Scene,
+        seed: u64,
+        loss: LossKind,
+    ) -> Result<Self, GpuError> {
+        Self::with_batch_samples(context, scene, seed, loss, SAMPLES_PER_BATCH)
+    }
+
+    /// A model whose batches hold `batch_samples` samples (tests use few).
+    /// The parameters start as the cpu engine's do for the same seed.
+    pub fn with_batch_samples(
+        context: GpuContext,
+        scene: &Scene,
+        seed: u64,
+        loss: LossKind,
+        batch_samples: usize,
+    ) -> Result<Self, GpuError> {
+        let shape = NgpShape::for_scene(scene);
+        // As `CpuNgp::with_batch_samples`: the same seeds per part (a test
+        // checks that both engines start identical).
+        let mut params = hash_grid::init_params(&shape.grid, seed);
+        params.extend(shape.density.init_params(seed ^ 0x64656e73));
+        params.extend(shape.colour.init_params(seed ^ 0x636f6c6f));
+        let grid = OccupancyGrid::new(
+            OccupancyConfig::PAPER,
+            OccupancyConfig::cascades(shape.mapping.aabb_scale),
+            MarchConfig::PAPER.step / shape.mapping.scale,
+        );
+        let ctx = &context;
+        let stages = Stages {
+            hash: GpuHashGrid::new(ctx, &shape.grid, true)?,
+            dense: GpuDense::new(ctx)?,
+            sh: GpuSh::new(ctx)?,
+            march: GpuMarch::new(ctx)?,
+            composite: GpuComposite::new(ctx)?,
+            loss: GpuLoss::new(ctx)?,
+            activate: Kernel::new(
+                ctx,
+                "ngp_density",
+                include_str!("../../../shaders/ngp_density.wgsl"),
+                "forward",
+            )?,
+            activate_backward: Kernel::new(
+                ctx,
+                "ngp_density_backward",
+                include_str!("../../../shaders/ngp_density_backward.wgsl"),
+                "backward",
+            )?,
+        };
+        let capacity = batch_samples.max(1);
+        let f = |label: &str, n: usize| zeroed_storage_buffer::<f32>(ctx, label, n);
+        let density_width = shape.density.output_width();
+        let colour_width = shape.colour.input_width();
+        let grid_width = shape.grid.output_width();
+        let samples = SampleBuffers {
+            encoded: f("ngp encoded", capacity * grid_width),
+            sigma: f("ngp sigma", capacity),
+            colour_input: f("ngp colour input", capacity * colour_width),
+            density: GpuMlpWorkspace::new(ctx, &shape.density, capacity),
+            colour: GpuMlpWorkspace::new(ctx, &shape.colour, capacity),
+            d_sigma: f("ngp d sigma", capacity),
+            d_rgb: f("ngp d rgb", 3 * capacity),
+            d_colour_input: f("ngp d colour input", capacity * colour_width),
+            d_density_out: f("ngp d density out", capacity * density_width),
+            d_encoded: f("ngp d encoded", capacity * grid_width),
+        };
+        let batch_sizer = BatchSizer::new(batch_samples);
+        let ray_capacity = batch_sizer.max_rays;
+        let staging = |label: &str, bytes: u64| {
+            ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: bytes,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
+        };
+        let model = Self {
+            adam: GpuAdam::new(ctx, params.len())?,
+            params: storage_buffer(ctx, "ngp params", &params),
+            gradients: f("ngp gradients", params.len()),
+            density_params: f("ngp density params", shape.density.param_count()),
+            colour_params: f("ngp colour params", shape.colour.param_count()),
+            density_gradients: f("ngp density gradients", shape.density.param_count()),
+            colour_gradients: f("ngp colour gradients", shape.colour.param_count()),
+            bitfield: storage_buffer(ctx, "ngp occupancy bitfield", grid.bitfield()),
+            grid,
+            march_out: GpuMarchBuffers::new(ctx, ray_capacity, capacity),
+            rays: RayBuffers::new(ctx, ray_capacity),
+            samples,
+            loss_total: f("ngp loss", 1),
+            counters_staging: staging("ngp counters read-back", 8),
+            loss_staging: staging("ngp loss read-back", 4),
+            batch_sizer,
+            optimiser: OptimiserConfig::PAPER,
+            loss,
+            seed,
+            batch_samples,
+            scratch: Vec::new(),
+            stages,
+            shape,
+            context,
+        };
+        Ok(model)
+    }
+
+    pub fn context(&self) -> &GpuContext {
+        &self.context
+    }
+
+    pub fn occupancy(&self) -> &OccupancyGrid {
+        &self.grid
+    }
+
+    /// Reads the parameters back.
+    pub fn params(&self) -> Vec<f32> {
+        read_buffer(&self.context, &self.params, self.shape.param_count())
+    }
+
+    /// Reads back the gradient of the last step or
+    /// [`Self::forward_backward`], in the parameters' layout.
+    pub fn gradients(&self) -> Vec<f32> {
+        read_buffer(&self.context, &self.gradients, self.shape.param_count())
+    }
+
+    fn density_range(&self) -> Range<usize> {
+        let start = self.shape.grid.param_count();
+        start..start + self.shape.density.param_count()
+    }
+
+    fn colour_range(&self) -> Range<usize> {
+        let start = self.density_range().end;
+        start..start + self.shape.colour.param_count()
+    }
+
+    /// Marches, evaluates and composites `batch` and leaves the gradient
+    /// of the mean loss in the gradient buffer ([`Self::gradients`])
+    /// without changing any parameter, as `CpuNgp::forward_backward`.
+    pub fn forward_backward(&mut self, batch: &RayBatch, step: u32) -> StepStats {
+        self.run(batch, step, false)
+    }
+
+    /// Records copies of the two networks' parameters out of the flat
+    /// buffer, so the dense kernels see the current values.
+    fn record_network_params(&self, encoder: &mut wgpu::CommandEncoder) {
+        for (range, buffer) in [
+            (self.density_range(), &self.density_params),
+            (self.colour_range(), &self.colour_params),
+        ] {
+            encoder.copy_buffer_to_buffer(
+                &self.params,
+                4 * range.start as u64,
+                buffer,
+                0,
+                4 * range.len() as u64,
+            );
+        }
+    }
+
+    fn activation_uniform(&self, count: usize) -> (wgpu::Buffer, [u32; 3]) {
+        let (groups, row_stride) = dispatch_grid(count, WORKGROUP);
+        let uniforms = ActivationUniforms {
+            count: count as u32,
+            row_stride,
+            density_width: self.shape.density.output_width() as u32,
+            colour_width: self.shape.colour.input_width() as u32,
+            exp_clamp: DENSITY_EXP_CLAMP,
+            _pad: [0; 3],
+        };
+        (
+            uniform_buffer(&self.context, "ngp activation", &uniforms),
+            groups,
+        )
+    }
+
+    /// Records the field at the `count` positions (and directions) in the
+    /// march buffers: σ into `samples.sigma`, and with `colour` the colour
+    /// network's output into `samples.colour.output()`. The networks'
+    /// parameters must have been copied ([`Self::record_network_params`]).
+    fn record_field(&self, encoder: &mut wgpu::CommandEncoder, count: usize, colour: bool) {
+        let ctx = &self.context;
+        let s = &self.stages;
+        let b = &self.samples;
+        s.hash.record_encode(
+            ctx,
+            encoder,
+            &self.params,
+            &self.march_out.positions,
+            &b.encoded,
+            count,
+        );
+        s.dense.record_forward(
+            ctx,
+            encoder,
+            &self.density_params,
+            &b.encoded,
+            &b.density,
+            count,
+        );
+        let (uniform, groups) = self.activation_uniform(count);
+        s.activate.record(
+            ctx,
+            encoder,
+            &[&uniform, b.density.output(), &b.sigma, &b.colour_input],
+            groups,
+        );
+        if colour {
+            let density_width = self.shape.density.output_width();
+            s.sh.record_encode(
+                ctx,
+                encoder,
+                self.shape.network.sh_degree,
+                &self.march_out.directions,
+                &b.colour_input,
+                count,
+                self.shape.colour.input_width(),
+                density_width,
+            );
+            s.dense.record_forward(
+                ctx,
+                encoder,
+                &self.colour_params,
+                &b.colour_input,
+                &b.colour,
+                count,
+            );
+        }
+    }
+
+    /// Uploads the batch's rays, targets and backgrounds, growing the ray
+    /// buffers if the batch holds more rays than any before.
+    fn upload_rays(&mut self, batch: &RayBatch) {
+        let rays = batch.len();
+        if rays > self.rays.capacity {
+            self.rays = RayBuffers::new(&self.context, rays);
+            self.march_out = GpuMarchBuffers::new(&self.context, rays, self.batch_samples.max(1));
+        }
+        if rays == 0 {
+            return;
+        }
+        let queue = &self.context.queue;
+        for (vectors, buffer) in [
+            (&batch.origins, &self.rays.origins),
+            (&batch.directions, &self.rays.directions),
+        ] {
+            self.scratch.clear();
+            self.scratch
+                .extend(vectors.iter().flat_map(|v| v.to_array()));
+            queue.write_buffer(buffer, 0, bytemuck::cast_slice(&self.scratch));
+        }
+        queue.write_buffer(&self.rays.targets, 0, bytemuck::cast_slice(&batch.targets));
+        queue.write_buffer(
+            &self.rays.backgrounds,
+            0,
+            bytemuck::cast_slice(&batch.backgrounds),
+        );
+    }
+
+    /// One step on `batch`; with `optimise`, Adam updates the parameters.
+    fn run(&mut self, batch: &RayBatch, step: u32, optimise: bool) -> StepStats {
+        let mut times = StageTimes::default();
+        let rays = batch.len();
+
+        // Submission 1: the march, and its counters read back.
+        let clock = Instant::now();
+        self.upload_rays(batch);
+        let (samples, kept) = if rays == 0 {
+            (0, 0)
+        } else {
+            let params = MarchParams {
+                sample_budget: self.batch_samples,
+                ..MarchParams::training(self.shape.mapping, mix_seed(self.seed, step))
+            };
+            self.march_out.ray_count = rays;
+            let mut encoder = self
+                .context
+                .device
+                .create_command_encoder(&Default::default());
+            self.stages.march.record(
+                &self.context,
+                &mut encoder,
+                GpuGrid {
+                    geometry: self.grid.geometry(),
+                    bitfield: &self.bitfield,
+                },
+                GpuRays {
+                    origins: &self.rays.origins,
+                    directions: &self.rays.directions,
+                },
+                &params,
+                &self.march_out,
+            );
+            encoder.copy_buffer_to_buffer(
+                &self.march_out.counters,
+                0,
+                &self.counters_staging,
+                0,
+                8,
+            );
+            self.context.queue.submit([encoder.finish()]);
+            let counters: Vec<u32> = read_mapped(&self.context, &self.counters_staging, 2);
+            (counters[0] as usize, counters[1] as usize)
+        };
+        self.batch_sizer.record(rays, samples);
+        times.march = clock.elapsed().as_secs_f64();
+
+        // Submission 2: forward, loss, backward and Adam.
+        let clock = Instant::now();
+        let ctx = &self.context;
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        encoder.clear_buffer(&self.gradients, 0, None);
+        encoder.clear_buffer(&self.density_gradients, 0, None);
+        encoder.clear_buffer(&self.colour_gradients, 0, None);
+        self.record_network_params(&mut encoder);
+        self.record_field(&mut encoder, samples, true);
+        let s = &self.stages;
+        let b = &self.samples;
+        let r = &self.rays;
+        let ray_batch = RayBatchBuffers {
+            density: &b.sigma,
+            rgb: b.colour.output(),
+            dt: &self.march_out.dt,
+            t: &self.march_out.t,
+            ray_offsets: &self.march_out.ray_offsets,
+            background: &r.backgrounds,
+            ray_count: kept,
+        };
+        let min_transmittance = MarchConfig::PAPER.min_transmittance;
+        s.composite.record_forward(
+            ctx,
+            &mut encoder,
+            &ray_batch,
+            min_transmittance,
+            &CompositeOutputBuffers {
+                rgb: &r.rgb,
+                opacity: &r.opacity,
+                depth: &r.depth,
+                samples_used: &r.samples_used,
+            },
+        );
+        s.loss.record(
+            ctx,
+            &mut encoder,
+            self.loss,
+            &LossBuffers {
+                predicted: &r.rgb,
+                target: &r.targets,
+                gradient: &r.d_rgb,
+                ray_loss: &r.ray_loss,
+                total: &self.loss_total,
+                ray_count: kept,
+            },
+        );
+        s.composite.record_backward(
+            ctx,
+            &mut encoder,
+            &ray_batch,
+            min_transmittance,
+            &r.d_rgb,
+            &CompositeGradientBuffers {
+                density: &b.d_sigma,
+                rgb: &b.d_rgb,
+                background: &r.d_background,
+            },
+        );
+        s.dense.record_backward(
+            ctx,
+            &mut encoder,
+            &self.colour_params,
+            &b.colour_input,
+            &b.colour,
+            &b.d_rgb,
+            &self.colour_gradients,
+            Some(&b.d_colour_input),
+            samples,
+        );
+        let (uniform, groups) = self.activation_uniform(samples);
+        s.activate_backward.record(
+            ctx,
+            &mut encoder,
+            &[
+                &uniform,
+                b.density.output(),
+                &b.sigma,
+                &b.d_sigma,
+                &b.d_colour_input,
+                &b.d_density_out,
+            ],
+            groups,
+        );
+        s.dense.record_backward(
+            ctx,
+            &mut encoder,
+            &self.density_params,
+            &b.encoded,
+            &b.density,
+            &b.d_density_out,
+            &self.density_gradients,
+            Some(&b.d_encoded),
+            samples,
+        );
+        // The grid's range starts at 0, so the flat gradient buffer is the
+        // hash backward's own layout.
+        s.hash.record_backward(
+            ctx,
+            &mut encoder,
+            &self.march_out.positions,
+            &b.d_encoded,
+            &self.gradients,
+            samples,
+        );
+        for (range, buffer) in [
+            (self.density_range(), &self.density_gradients),
+            (self.colour_range(), &self.colour_gradients),
+        ] {
+            encoder.copy_buffer_to_buffer(
+                buffer,
+                0,
+                &self.gradients,
+                4 * range.start as u64,
+                4 * range.len() as u64,
+            );
+        }
+        if optimise {
+            let weights = self.density_range().start..self.shape.param_count();
+            self.adam.record_step(
+                ctx,
+                &mut encoder,
+                &self.optimiser,
+                weights,
+                &self.params,
+                &self.gradients,
+            );
+        }
+        encoder.copy_buffer_to_buffer(&self.loss_total, 0, &self.loss_staging, 0, 4);
+        ctx.queue.submit([encoder.finish()]);
+        let loss: Vec<f32> = read_mapped(ctx, &self.loss_staging, 1);
+        // One submission: its whole time is reported under the networks
+        // (use per-stage gpu timestamps for a breakdown).
+        times.networks_forward = clock.elapsed().as_secs_f64();
+
+        StepStats {
+            loss: loss[0],
+            rays: if rays == 0 { 0 } else { kept },
+            samples,
+            times,
+        }
+    }
+
+    /// The occupancy update of `step`: cells and points chosen on the cpu,
+    /// densities evaluated on the gpu (in chunks of the sample budget, all
+    /// in one submission) and read back, the EMA and bitfield on the cpu,
+    /// the bitfield uploaded.
+    fn update_grid(&mut self, step: u32) {
+        let report = self.grid.plan_update(step, self.seed);
+        let n = report.samples;
+        let ctx = &self.context;
+        let positions = storage_buffer(
+            ctx,
+            "ngp grid update positions",
+            self.grid.update_positions(),
+        );
+        let all_sigma = zeroed_storage_buffer::<f32>(ctx, "ngp grid update sigma", n);
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        self.record_network_params(&mut encoder);
+        let chunk = self.batch_samples.max(1);
+        for start in (0..n).step_by(chunk) {
+            let count = chunk.min(n - start);
+            encoder.copy_buffer_to_buffer(
+                &positions,
+                12 * start as u64,
+                &self.march_out.positions,
+                0,
+                12 * count as u64,
+            );
+            self.record_field(&mut encoder, count, false);
+            encoder.copy_buffer_to_buffer(
+                &self.samples.sigma,
+                0,
+                &all_sigma,
+                4 * start as u64,
+                4 * count as u64,
+            );
+        }
+        ctx.queue.submit([encoder.finish()]);
+        let sigma: Vec<f32> = read_buffer(ctx, &all_sigma, n);
+        self.grid.apply_update(&sigma);
+        ctx.queue.write_buffer(
+            &self.bitfield,
+            0,
+            bytemuck::cast_slice(self.grid.bitfield()),
+        );
+    }
+
+    /// σ and colour at `positions` / `directions` (n × 3), evaluated on
+    /// the gpu in chunks of the sample budget.
+    fn radiance(&self, positions: &[f32], directions: &[f32], sigma: &mut [f32], rgb: &mut [f32]) {
+        let ctx = &self.context;
+        let chunk = self.batch_samples.max(1);
+        for (((p, d), sigma), rgb) in positions
+            .chunks(3 * chunk)
+            .zip(directions.chunks(3 * chunk))
+            .zip(sigma.chunks_mut(chunk))
+            .zip(rgb.chunks_mut(3 * chunk))
+        {
+            let count = sigma.len();
+            ctx.queue
+                .write_buffer(&self.march_out.positions, 0, bytemuck::cast_slice(p));
+            ctx.queue
+                .write_buffer(&self.march_out.directions, 0, bytemuck::cast_slice(d));
+            let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            self.record_network_params(&mut encoder);
+            self.record_field(&mut encoder, count, true);
+            ctx.queue.submit([encoder.finish()]);
+            sigma.copy_from_slice(&read_buffer::<f32>(ctx, &self.samples.sigma, count));
+            rgb.copy_from_slice(&read_buffer::<f32>(
+                ctx,
+                self.samples.colour.output(),
+                3 * count,
+            ));
+        }
+    }
+}
+
+impl RadianceModel for GpuNgp {
+    fn describe(&self) -> String {
+        "Instant-NGP (gpu)".into()
+    }
+
+    fn rays_for_next_batch(&self) -> usize {
+        self.batch_sizer.rays()
+    }
+
+    fn step(&mut self, batch: &RayBatch, step: u32) -> StepStats {
+        let clock = Instant::now();
+        if self.grid.is_due(step) {
+            self.update_grid(step);
+        }
+        let grid_update = clock.elapsed().as_secs_f64();
+        let mut stats = self.run(batch, step, true);
+        stats.times.grid_update = grid_update;
+        stats
+    }
+
+    fn render(
+        &self,
+        origins: &[Vec3],
+        directions: &[Vec3],
+        background: [f32; 3],
+        out: &mut [RenderedPixel],
+    ) {
+        let n = origins.len();
+        let flat = |v: &[Vec3]| v.iter().flat_map(|x| x.to_array()).collect::<Vec<f32>>();
+        let (origins, directions) = (flat(origins), flat(directions));
+        let mut colour = vec![0f32; 3 * n];
+        let mut depth = vec![0f32; n];
+        let mut opacity = vec![0f32; n];
+        march_and_composite(
+            &self.grid,
+            &origins,
+            &directions,
+            &self.shape.mapping,
+            &MarchConfig::PAPER,
+            background,
+            self.batch_samples.max(1),
+            |positions, dirs, sigma, rgb| self.radiance(positions, dirs, sigma, rgb),
+            &mut colour,
+            &mut depth,
+            &mut opacity,
+        );
+        for (i, pixel) in out.iter_mut().enumerate().take(n) {
+            *pixel = RenderedPixel {
+                rgb: [colour[3 * i], colour[3 * i + 1], colour[3 * i + 2]],
+                opacity: opacity[i],
+                depth: depth[i],
+            };
+        }
+    }
+
+    fn save(&self) -> Checkpoint {
+        let adam = self.adam.read_state(&self.context);
+        let header = NgpHeader {
+            model: "ngp".into(),
+            loss: self.loss,
+            seed: self.seed,
+            adam_step: adam.step,
+            samples_per_ray: self.batch_sizer.samples_per_ray(),
+            param_count: self.shape.param_count(),
+        };
+        Checkpoint {
+            header: serde_json::to_value(header).expect("serialisable"),
+            tensors: vec![
+                ("params".into(), self.params()),
+                ("adam.m".into(), adam.m),
+                ("adam.v".into(), adam.v),
+                ("adam.m_norm".into(), adam.m_norm),
+                ("adam.v_norm".into(), adam.v_norm),
+                ("occupancy".into(), self.grid.values().to_vec()),
+            ],
+        }
+    }
+
+    fn load(&mut self, checkpoint: &Checkpoint) -> Result<(), String> {
+        let header: NgpHeader = serde_json::from_value(checkpoint.header.clone())
+            .map_err(|e| format!("not an Instant-NGP checkpoint: {e}"))?;
+        let n = self.shape.param_count();
+        if header.param_count != n {
+            return Err(format!(
+                "the checkpoint has {} parameters, this model {n}",
+                header.param_count
+            ));
+        }
+        let tensor = |name: &str, len: usize| -> Result<&[f32], String> {
+            let values = checkpoint
+                .tensor(name)
+                .ok_or_else(|| format!("the checkpoint has no `{name}`"))?;
+            if values.len() != len {
+                return Err(format!(
+                    "`{name}` has {} values, expected {len}",
+                    values.len()
+                ));
+            }
+            Ok(values)
+        };
+        // Check everything before changing anything.
+        let params = tensor("params", n)?;
+        let state = [
+            (tensor("adam.m", n)?, &self.adam.m),
+            (tensor("adam.v", n)?, &self.adam.v),
+            (tensor("adam.m_norm", n)?, &self.adam.m_norm),
+            (tensor("adam.v_norm", n)?, &self.adam.v_norm),
+            (params, &self.params),
+        ];
+        let occupancy = tensor("occupancy", self.grid.values().len())?;
+        let queue = &self.context.queue;
+        for (values, buffer) in state {
+            queue.write_buffer(buffer, 0, bytemuck::cast_slice(values));
+        }
+        self.adam.step = header.adam_step;
+        self.grid.values_mut().copy_from_slice(occupancy);
+        self.grid.build_bitfield();
+        queue.write_buffer(
+            &self.bitfield,
+            0,
+            bytemuck::cast_slice(self.grid.bitfield()),
+        );
+        self.batch_sizer.set_samples_per_ray(header.samples_per_ray);
+        self.loss = header.loss;
+        self.seed = header.seed;
+        Ok(())
+    }
+
+    fn memory_bytes(&self) -> usize {
+        let params = self.shape.param_count();
+        // Parameters, gradients and Adam's four arrays on the gpu.
+        let flat = params * 4 * 6;
+        // Per-sample floats: march (3 + 3 + 1 + 1), encoded and its
+        // gradient, σ and its gradient, colour input and its gradient,
+        // density output gradient, colour gradient, and the two networks'
+        // activations and gradient ping-pong buffers.
+        let widths = |w: &[usize]| -> usize {
+            let max = *w.iter().max().unwrap_or(&0);
+            w[1..].iter().sum::<usize>() + 2 * max
+        };
+        let per_sample = 8
+            + 2 * self.shape.grid.output_width()
+            + 2
+            + 2 * self.shape.colour.input_width()
+            + self.shape.density.output_width()
+            + 3
+            + widths(&self.shape.density.widths)
+            + widths(&self.shape.colour.widths);
+        flat + per_sample * 4 * self.batch_samples
+            + self.rays.bytes()
+            + self.grid.values().len() * 4
+            + self.grid.bitfield().len() * 4
+    }
+}
+
+/// Maps a MAP_READ buffer, copies `count` values out and unmaps it.
+fn read_mapped<T: bytemuck::Pod>(
+    context: &GpuContext,
+    staging: &wgpu::Buffer,
+    count: usize,
+) -> Vec<T> {
+    let size = (count * std::mem::size_of::<T>()) as u64;
+    let slice = staging.slice(..size);
+    let (sender, receiver) = std::sync::mpsc::channel();
+    slice.map_async(wgpu::MapMode::Read, move |result| {
+        let _ = sender.send(result);
+    });
+    context
+        .device
+        .poll(wgpu::PollType::wait_indefinitely())
+        .expect("waiting for the GPU");
+    receiver
+        .recv()
+        .expect("map callback ran")
+        .expect("mapping the read-back buffer");
+    let values = {
+        let view = slice.get_mapped_range().expect("mapped range");
+        bytemuck::cast_slice(&view).to_vec()
+    };
+    staging.unmap();
+    values
+}
+
+/// The marching jitter seed of a step, as the cpu engine's (`cpu::ngp`),
+/// so both engines march the same samples.
+fn mix_seed(seed: u64, step: u32) -> u32 {
+    let mixed = (seed ^ 0x6a69_7474).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ step as u64;
+    (mixed ^ (mixed >> 32)) as u32
+}
