@@ -189,15 +189,16 @@ fn resize(v: &mut Vec<f32>, n: usize) {
     v.resize(n, 0.0);
 }
 
-/// What the checkpoint header holds for this model.
+/// What the checkpoint header holds for Instant-NGP, on either engine, so
+/// checkpoints move between engines.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-struct NgpHeader {
-    model: String,
-    loss: LossKind,
-    seed: u64,
-    adam_step: u32,
-    samples_per_ray: Option<f64>,
-    param_count: usize,
+pub(crate) struct NgpHeader {
+    pub model: String,
+    pub loss: LossKind,
+    pub seed: u64,
+    pub adam_step: u32,
+    pub samples_per_ray: Option<f64>,
+    pub param_count: usize,
 }
 
 /// Instant-NGP trained by the `cpu` engine.
@@ -550,34 +551,18 @@ impl RadianceModel for CpuNgp {
         background: [f32; 3],
         out: &mut [RenderedPixel],
     ) {
-        let n = origins.len();
-        let flat = |v: &[Vec3]| v.iter().flat_map(|x| x.to_array()).collect::<Vec<f32>>();
-        let (origins, directions) = (flat(origins), flat(directions));
-        let mut colour = vec![0f32; 3 * n];
-        let mut depth = vec![0f32; n];
-        let mut opacity = vec![0f32; n];
         let shape = &self.shape;
         let params = &self.params;
-        march_and_composite(
+        render_through_grid(
             &self.grid,
-            &origins,
-            &directions,
             &shape.mapping,
-            &MarchConfig::PAPER,
+            origins,
+            directions,
             background,
             INFERENCE_CHUNK,
             |positions, dirs, sigma, rgb| shape.radiance(params, positions, dirs, sigma, rgb),
-            &mut colour,
-            &mut depth,
-            &mut opacity,
+            out,
         );
-        for (i, pixel) in out.iter_mut().enumerate().take(n) {
-            *pixel = RenderedPixel {
-                rgb: [colour[3 * i], colour[3 * i + 1], colour[3 * i + 2]],
-                opacity: opacity[i],
-                depth: depth[i],
-            };
-        }
     }
 
     fn save(&self) -> Checkpoint {
@@ -671,8 +656,51 @@ impl RadianceModel for CpuNgp {
     }
 }
 
-/// The marching jitter seed of a step.
-fn mix_seed(seed: u64, step: u32) -> u32 {
+/// The marching jitter seed of a step (both engines, so they march the
+/// same samples).
+pub(crate) fn mix_seed(seed: u64, step: u32) -> u32 {
     let mixed = (seed ^ 0x6a69_7474).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ step as u64;
     (mixed ^ (mixed >> 32)) as u32
+}
+
+/// Renders rays with early termination through the occupancy grid, with
+/// `field` giving σ and colour for each round of samples (see
+/// [`march_and_composite`]).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn render_through_grid(
+    grid: &OccupancyGrid,
+    mapping: &UnitCubeMapping,
+    origins: &[Vec3],
+    directions: &[Vec3],
+    background: [f32; 3],
+    chunk_samples: usize,
+    field: impl FnMut(&[f32], &[f32], &mut [f32], &mut [f32]),
+    out: &mut [RenderedPixel],
+) {
+    let n = origins.len();
+    let flat = |v: &[Vec3]| v.iter().flat_map(|x| x.to_array()).collect::<Vec<f32>>();
+    let (origins, directions) = (flat(origins), flat(directions));
+    let mut colour = vec![0f32; 3 * n];
+    let mut depth = vec![0f32; n];
+    let mut opacity = vec![0f32; n];
+    march_and_composite(
+        grid,
+        &origins,
+        &directions,
+        mapping,
+        &MarchConfig::PAPER,
+        background,
+        chunk_samples,
+        field,
+        &mut colour,
+        &mut depth,
+        &mut opacity,
+    );
+    for (i, pixel) in out.iter_mut().enumerate().take(n) {
+        *pixel = RenderedPixel {
+            rgb: [colour[3 * i], colour[3 * i + 1], colour[3 * i + 2]],
+            opacity: opacity[i],
+            depth: depth[i],
+        };
+    }
 }

@@ -26,7 +26,6 @@ use std::ops::Range;
 use std::time::Instant;
 
 use glam::Vec3;
-use serde::{Deserialize, Serialize};
 
 use super::adam::GpuAdam;
 use super::composite::{
@@ -40,8 +39,8 @@ use super::loss::{GpuLoss, LossBuffers};
 use super::march::{GpuGrid, GpuMarch, GpuMarchBuffers, GpuRays, dispatch_grid};
 use super::sh::GpuSh;
 use crate::engine::cpu::hash_grid;
-use crate::engine::cpu::march::{BatchSizer, MarchParams, march_and_composite};
-use crate::engine::cpu::ngp::NgpShape;
+use crate::engine::cpu::march::{BatchSizer, MarchParams};
+use crate::engine::cpu::ngp::{NgpHeader, NgpShape, mix_seed, render_through_grid};
 use crate::engine::cpu::occupancy::OccupancyGrid;
 use crate::field::ngp::{
     DENSITY_EXP_CLAMP, LossKind, MarchConfig, OccupancyConfig, OptimiserConfig, SAMPLES_PER_BATCH,
@@ -64,18 +63,6 @@ struct ActivationUniforms {
     colour_width: u32,
     exp_clamp: f32,
     _pad: [u32; 3],
-}
-
-/// The checkpoint header, field for field the cpu engine's, so checkpoints
-/// move between engines (a test loads one engine's into the other).
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-struct NgpHeader {
-    model: String,
-    loss: LossKind,
-    seed: u64,
-    adam_step: u32,
-    samples_per_ray: Option<f64>,
-    param_count: usize,
 }
 
 /// Buffers that depend on the number of rays in a batch.
@@ -732,32 +719,16 @@ impl RadianceModel for GpuNgp {
         background: [f32; 3],
         out: &mut [RenderedPixel],
     ) {
-        let n = origins.len();
-        let flat = |v: &[Vec3]| v.iter().flat_map(|x| x.to_array()).collect::<Vec<f32>>();
-        let (origins, directions) = (flat(origins), flat(directions));
-        let mut colour = vec![0f32; 3 * n];
-        let mut depth = vec![0f32; n];
-        let mut opacity = vec![0f32; n];
-        march_and_composite(
+        render_through_grid(
             &self.grid,
-            &origins,
-            &directions,
             &self.shape.mapping,
-            &MarchConfig::PAPER,
+            origins,
+            directions,
             background,
             self.batch_samples.max(1),
             |positions, dirs, sigma, rgb| self.radiance(positions, dirs, sigma, rgb),
-            &mut colour,
-            &mut depth,
-            &mut opacity,
+            out,
         );
-        for (i, pixel) in out.iter_mut().enumerate().take(n) {
-            *pixel = RenderedPixel {
-                rgb: [colour[3 * i], colour[3 * i + 1], colour[3 * i + 2]],
-                opacity: opacity[i],
-                depth: depth[i],
-            };
-        }
     }
 
     fn save(&self) -> Checkpoint {
@@ -886,11 +857,4 @@ fn read_mapped<T: bytemuck::Pod>(
     };
     staging.unmap();
     values
-}
-
-/// The marching jitter seed of a step, as the cpu engine's (`cpu::ngp`),
-/// so both engines march the same samples.
-fn mix_seed(seed: u64, step: u32) -> u32 {
-    let mixed = (seed ^ 0x6a69_7474).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ step as u64;
-    (mixed ^ (mixed >> 32)) as u32
 }
