@@ -13,7 +13,9 @@ use serde::{Deserialize, Serialize};
 
 use super::adam::Adam;
 use super::composite_batch::{self, CompositeGradients, CompositeOutputs};
-use super::dense::{MlpLayout, MlpWorkspace, mlp_backward, mlp_forward, mlp_inference};
+use super::dense::{
+    MlpLayout, MlpWorkspace, mlp_backward, mlp_backward_columns, mlp_forward, mlp_inference,
+};
 use super::hash_grid::{self, HashGridLayout};
 use super::loss::loss_and_gradient;
 use super::march::{
@@ -178,7 +180,6 @@ struct StepBuffers {
     d_ray_rgb: Vec<f32>,
     d_sigma: Vec<f32>,
     d_rgb: Vec<f32>,
-    d_colour_input: Vec<f32>,
     d_density_out: Vec<f32>,
     d_encoded: Vec<f32>,
     gradients: Vec<f32>,
@@ -417,8 +418,10 @@ impl CpuNgp {
         resize(&mut b.gradients, self.params.len());
         let (grid_grad, network_grad) = b.gradients.split_at_mut(shape.grid.param_count());
         let (density_grad, colour_grad) = network_grad.split_at_mut(shape.density.param_count());
-        resize(&mut b.d_colour_input, s * colour_width);
-        mlp_backward(
+        // The colour network's input gradient is wanted for its density
+        // features only (the first columns), not for the direction encoding.
+        resize(&mut b.d_density_out, s * density_width);
+        mlp_backward_columns(
             &shape.colour,
             &self.params[shape.colour_range()],
             &b.colour_input,
@@ -426,17 +429,15 @@ impl CpuNgp {
             &mut self.colour_workspace,
             &b.d_rgb,
             colour_grad,
-            Some(&mut b.d_colour_input),
+            &mut b.d_density_out,
+            0..density_width,
         );
-        resize(&mut b.d_density_out, s * density_width);
-        for (((d_out, d_in), &d_sigma), &sigma) in b
+        for ((d_out, &d_sigma), &sigma) in b
             .d_density_out
             .chunks_exact_mut(density_width)
-            .zip(b.d_colour_input.chunks_exact(colour_width))
             .zip(&b.d_sigma)
             .zip(&b.sigma)
         {
-            d_out.copy_from_slice(&d_in[..density_width]);
             // dσ/dx = σ below the clamp, 0 above it.
             let clamped = sigma >= crate::field::ngp::DENSITY_EXP_CLAMP.exp();
             if !clamped {
@@ -640,7 +641,6 @@ impl RadianceModel for CpuNgp {
                 &b.rgb,
                 &b.d_sigma,
                 &b.d_rgb,
-                &b.d_colour_input,
                 &b.d_density_out,
                 &b.d_encoded,
                 &b.gradients,
