@@ -519,7 +519,7 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
 }
 
 fn eval(run_dir: &Path, split: Split, engine: Option<EngineKind>) -> anyhow::Result<()> {
-    let folder = RunFolder::create(run_dir).map_err(anyhow::Error::msg)?;
+    let folder = RunFolder::open(run_dir).map_err(anyhow::Error::msg)?;
     let (_, trainer) = restore_run(&folder, engine)?;
     let frames = trainer.scene.split(split);
     if frames.is_empty() {
@@ -544,7 +544,7 @@ fn eval(run_dir: &Path, split: Split, engine: Option<EngineKind>) -> anyhow::Res
 }
 
 fn render(args: RenderArgs) -> anyhow::Result<()> {
-    let folder = RunFolder::create(&args.run).map_err(anyhow::Error::msg)?;
+    let folder = RunFolder::open(&args.run).map_err(anyhow::Error::msg)?;
     let (_, trainer) = restore_run(&folder, args.engine)?;
     let scene = &trainer.scene;
     let cameras: Vec<(String, Camera)> = match (args.view, args.turntable) {

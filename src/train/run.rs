@@ -84,6 +84,16 @@ impl RunFolder {
         })
     }
 
+    /// An existing run folder (for eval, render and resume).
+    pub fn open(dir: &Path) -> Result<Self, String> {
+        if !dir.is_dir() {
+            return Err(format!("{}: no such run folder", dir.display()));
+        }
+        Ok(Self {
+            dir: dir.to_path_buf(),
+        })
+    }
+
     pub fn checkpoint_path(&self) -> PathBuf {
         self.dir.join(CHECKPOINT_FILE)
     }
