@@ -194,25 +194,6 @@ impl Scene {
     }
 }
 
-/// Checks that every frame has the same resolution, naming the first that
-/// differs.
-pub fn check_same_size(frames: &[(PathBuf, usize, u32, u32)]) -> SceneResult<()> {
-    if let Some((_, _, w0, h0)) = frames.first() {
-        for (path, index, w, h) in frames {
-            if (w, h) != (w0, h0) {
-                return Err(SceneError::in_frame(
-                    path,
-                    *index,
-                    format!(
-                        "frames of different sizes: this one is {w}×{h}, the first is {w0}×{h0}"
-                    ),
-                ));
-            }
-        }
-    }
-    Ok(())
-}
-
 /// The folder name of `path`, for display.
 pub fn folder_name(path: &Path) -> String {
     path.file_name()

@@ -120,24 +120,14 @@ pub fn run(
 ) -> Result<Option<f64>, String> {
     let mut log = MetricsLog::open(&folder.metrics_path())
         .map_err(|e| format!("{}: {e}", folder.metrics_path().display()))?;
-    let held_out_frames = if !trainer.scene.val.is_empty() {
-        &trainer.scene.val
-    } else if !trainer.scene.test.is_empty() {
-        &trainer.scene.test
-    } else {
-        &trainer.scene.train
-    };
+    // The held-out views: val, else test, else (a scene with no held-out
+    // split) the training views themselves.
     let scene = trainer.scene.clone();
-    let held_out = spread_views(
-        if std::ptr::eq(held_out_frames, &trainer.scene.val) {
-            &scene.val
-        } else if std::ptr::eq(held_out_frames, &trainer.scene.test) {
-            &scene.test
-        } else {
-            &scene.train
-        },
-        schedule.eval_views,
-    );
+    let held_out_frames = [&scene.val, &scene.test, &scene.train]
+        .into_iter()
+        .find(|frames| !frames.is_empty())
+        .unwrap_or(&scene.train);
+    let held_out = spread_views(held_out_frames, schedule.eval_views);
 
     let wall_start = Instant::now();
     let wall_offset = trainer.train_seconds;

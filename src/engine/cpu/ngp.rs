@@ -567,62 +567,33 @@ impl RadianceModel for CpuNgp {
     }
 
     fn save(&self) -> Checkpoint {
-        let header = NgpHeader {
-            model: "ngp".into(),
-            loss: self.loss,
-            seed: self.seed,
-            adam_step: self.adam.step,
-            samples_per_ray: self.batch_sizer.samples_per_ray(),
-            param_count: self.params.len(),
-        };
-        Checkpoint {
-            header: serde_json::to_value(header).expect("serialisable"),
-            tensors: vec![
-                ("params".into(), self.params.clone()),
-                ("adam.m".into(), self.adam.m.clone()),
-                ("adam.v".into(), self.adam.v.clone()),
-                ("adam.m_norm".into(), self.adam.m_norm.clone()),
-                ("adam.v_norm".into(), self.adam.v_norm.clone()),
-                ("occupancy".into(), self.grid.values().to_vec()),
-            ],
+        NgpState {
+            header: NgpHeader {
+                model: "ngp".into(),
+                loss: self.loss,
+                seed: self.seed,
+                adam_step: self.adam.step,
+                samples_per_ray: self.batch_sizer.samples_per_ray(),
+                param_count: self.params.len(),
+            },
+            params: self.params.clone(),
+            adam: self.adam.clone(),
+            occupancy: self.grid.values().to_vec(),
         }
+        .into_checkpoint()
     }
 
     fn load(&mut self, checkpoint: &Checkpoint) -> Result<(), String> {
-        let header: NgpHeader = serde_json::from_value(checkpoint.header.clone())
-            .map_err(|e| format!("not an Instant-NGP checkpoint: {e}"))?;
-        if header.param_count != self.params.len() {
-            return Err(format!(
-                "the checkpoint has {} parameters, this model {}",
-                header.param_count,
-                self.params.len()
-            ));
-        }
-        let tensor = |name: &str, len: usize| -> Result<Vec<f32>, String> {
-            let values = checkpoint
-                .tensor(name)
-                .ok_or_else(|| format!("the checkpoint has no `{name}`"))?;
-            if values.len() != len {
-                return Err(format!(
-                    "`{name}` has {} values, expected {len}",
-                    values.len()
-                ));
-            }
-            Ok(values.to_vec())
-        };
-        let n = self.params.len();
-        self.params = tensor("params", n)?;
-        self.adam.m = tensor("adam.m", n)?;
-        self.adam.v = tensor("adam.v", n)?;
-        self.adam.m_norm = tensor("adam.m_norm", n)?;
-        self.adam.v_norm = tensor("adam.v_norm", n)?;
-        self.adam.step = header.adam_step;
-        let values = tensor("occupancy", self.grid.values().len())?;
-        self.grid.values_mut().copy_from_slice(&values);
+        let state =
+            NgpState::from_checkpoint(checkpoint, self.params.len(), self.grid.values().len())?;
+        self.params = state.params;
+        self.adam = state.adam;
+        self.grid.values_mut().copy_from_slice(&state.occupancy);
         self.grid.build_bitfield();
-        self.batch_sizer.set_samples_per_ray(header.samples_per_ray);
-        self.loss = header.loss;
-        self.seed = header.seed;
+        self.batch_sizer
+            .set_samples_per_ray(state.header.samples_per_ray);
+        self.loss = state.header.loss;
+        self.seed = state.header.seed;
         Ok(())
     }
 
@@ -653,6 +624,72 @@ impl RadianceModel for CpuNgp {
             .map(|v| v.capacity())
             .sum::<usize>();
         floats * 4
+    }
+}
+
+/// Everything an Instant-NGP checkpoint holds, on either engine.
+pub(crate) struct NgpState {
+    pub header: NgpHeader,
+    pub params: Vec<f32>,
+    pub adam: Adam,
+    pub occupancy: Vec<f32>,
+}
+
+impl NgpState {
+    pub fn into_checkpoint(self) -> Checkpoint {
+        Checkpoint {
+            header: serde_json::to_value(&self.header).expect("serialisable"),
+            tensors: vec![
+                ("params".into(), self.params),
+                ("adam.m".into(), self.adam.m),
+                ("adam.v".into(), self.adam.v),
+                ("adam.m_norm".into(), self.adam.m_norm),
+                ("adam.v_norm".into(), self.adam.v_norm),
+                ("occupancy".into(), self.occupancy),
+            ],
+        }
+    }
+
+    /// Reads and checks every part before the caller changes anything, so
+    /// a bad checkpoint leaves the model as it was.
+    pub fn from_checkpoint(
+        checkpoint: &Checkpoint,
+        param_count: usize,
+        occupancy_len: usize,
+    ) -> Result<Self, String> {
+        let header: NgpHeader = serde_json::from_value(checkpoint.header.clone())
+            .map_err(|e| format!("not an Instant-NGP checkpoint: {e}"))?;
+        if header.param_count != param_count {
+            return Err(format!(
+                "the checkpoint has {} parameters, this model {param_count}",
+                header.param_count
+            ));
+        }
+        let tensor = |name: &str, len: usize| -> Result<Vec<f32>, String> {
+            let values = checkpoint
+                .tensor(name)
+                .ok_or_else(|| format!("the checkpoint has no `{name}`"))?;
+            if values.len() != len {
+                return Err(format!(
+                    "`{name}` has {} values, expected {len}",
+                    values.len()
+                ));
+            }
+            Ok(values.to_vec())
+        };
+        let adam = Adam {
+            m: tensor("adam.m", param_count)?,
+            v: tensor("adam.v", param_count)?,
+            m_norm: tensor("adam.m_norm", param_count)?,
+            v_norm: tensor("adam.v_norm", param_count)?,
+            step: header.adam_step,
+        };
+        Ok(Self {
+            params: tensor("params", param_count)?,
+            adam,
+            occupancy: tensor("occupancy", occupancy_len)?,
+            header,
+        })
     }
 }
 

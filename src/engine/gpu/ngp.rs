@@ -40,7 +40,7 @@ use super::march::{GpuGrid, GpuMarch, GpuMarchBuffers, GpuRays, dispatch_grid};
 use super::sh::GpuSh;
 use crate::engine::cpu::hash_grid;
 use crate::engine::cpu::march::{BatchSizer, MarchParams};
-use crate::engine::cpu::ngp::{NgpHeader, NgpShape, mix_seed, render_through_grid};
+use crate::engine::cpu::ngp::{NgpHeader, NgpShape, NgpState, mix_seed, render_through_grid};
 use crate::engine::cpu::occupancy::OccupancyGrid;
 use crate::field::ngp::{
     DENSITY_EXP_CLAMP, LossKind, MarchConfig, OccupancyConfig, OptimiserConfig, SAMPLES_PER_BATCH,
@@ -733,74 +733,50 @@ impl RadianceModel for GpuNgp {
 
     fn save(&self) -> Checkpoint {
         let adam = self.adam.read_state(&self.context);
-        let header = NgpHeader {
-            model: "ngp".into(),
-            loss: self.loss,
-            seed: self.seed,
-            adam_step: adam.step,
-            samples_per_ray: self.batch_sizer.samples_per_ray(),
-            param_count: self.shape.param_count(),
-        };
-        Checkpoint {
-            header: serde_json::to_value(header).expect("serialisable"),
-            tensors: vec![
-                ("params".into(), self.params()),
-                ("adam.m".into(), adam.m),
-                ("adam.v".into(), adam.v),
-                ("adam.m_norm".into(), adam.m_norm),
-                ("adam.v_norm".into(), adam.v_norm),
-                ("occupancy".into(), self.grid.values().to_vec()),
-            ],
+        NgpState {
+            header: NgpHeader {
+                model: "ngp".into(),
+                loss: self.loss,
+                seed: self.seed,
+                adam_step: adam.step,
+                samples_per_ray: self.batch_sizer.samples_per_ray(),
+                param_count: self.shape.param_count(),
+            },
+            params: self.params(),
+            adam,
+            occupancy: self.grid.values().to_vec(),
         }
+        .into_checkpoint()
     }
 
     fn load(&mut self, checkpoint: &Checkpoint) -> Result<(), String> {
-        let header: NgpHeader = serde_json::from_value(checkpoint.header.clone())
-            .map_err(|e| format!("not an Instant-NGP checkpoint: {e}"))?;
-        let n = self.shape.param_count();
-        if header.param_count != n {
-            return Err(format!(
-                "the checkpoint has {} parameters, this model {n}",
-                header.param_count
-            ));
-        }
-        let tensor = |name: &str, len: usize| -> Result<&[f32], String> {
-            let values = checkpoint
-                .tensor(name)
-                .ok_or_else(|| format!("the checkpoint has no `{name}`"))?;
-            if values.len() != len {
-                return Err(format!(
-                    "`{name}` has {} values, expected {len}",
-                    values.len()
-                ));
-            }
-            Ok(values)
-        };
-        // Check everything before changing anything.
-        let params = tensor("params", n)?;
-        let state = [
-            (tensor("adam.m", n)?, &self.adam.m),
-            (tensor("adam.v", n)?, &self.adam.v),
-            (tensor("adam.m_norm", n)?, &self.adam.m_norm),
-            (tensor("adam.v_norm", n)?, &self.adam.v_norm),
-            (params, &self.params),
-        ];
-        let occupancy = tensor("occupancy", self.grid.values().len())?;
+        let state = NgpState::from_checkpoint(
+            checkpoint,
+            self.shape.param_count(),
+            self.grid.values().len(),
+        )?;
         let queue = &self.context.queue;
-        for (values, buffer) in state {
+        for (values, buffer) in [
+            (&state.adam.m, &self.adam.m),
+            (&state.adam.v, &self.adam.v),
+            (&state.adam.m_norm, &self.adam.m_norm),
+            (&state.adam.v_norm, &self.adam.v_norm),
+            (&state.params, &self.params),
+        ] {
             queue.write_buffer(buffer, 0, bytemuck::cast_slice(values));
         }
-        self.adam.step = header.adam_step;
-        self.grid.values_mut().copy_from_slice(occupancy);
+        self.adam.step = state.adam.step;
+        self.grid.values_mut().copy_from_slice(&state.occupancy);
         self.grid.build_bitfield();
         queue.write_buffer(
             &self.bitfield,
             0,
             bytemuck::cast_slice(self.grid.bitfield()),
         );
-        self.batch_sizer.set_samples_per_ray(header.samples_per_ray);
-        self.loss = header.loss;
-        self.seed = header.seed;
+        self.batch_sizer
+            .set_samples_per_ray(state.header.samples_per_ray);
+        self.loss = state.header.loss;
+        self.seed = state.header.seed;
         Ok(())
     }
 
