@@ -4,7 +4,8 @@
 //! frame, or both (a frame's own value wins).
 //!
 //! Keys read: `fl_x`, `fl_y`, `camera_angle_x`, `camera_angle_y`, `cx`, `cy`,
-//! `w`, `h`, and for the unit cube `aabb_scale`, `scale`, `offset`. Lens
+//! `w`, `h`, for the unit cube `aabb_scale`, `scale`, `offset`, and
+//! nerfstudio's `train_filenames`, `val_filenames`, `test_filenames`. Lens
 //! distortion (`k1`..`k4`, `p1`, `p2`) and fisheye models are rejected: the
 //! rays are built for an ideal pinhole, and a distorted image would silently
 //! train a blurred field.
@@ -20,16 +21,25 @@ use super::pose::{
     FrameSource, JsonObject, check_downscale, decode_images, describe, frame_object, number,
     parse_transform_matrix, read_json_object, required_array, required_str, resolve_image_path,
 };
-use super::{Frame, LoadOptions, Scene, SceneFormat, UnitCubeMapping, folder_name};
+use super::{Frame, LoadOptions, Scene, SceneFormat, Split, UnitCubeMapping, folder_name};
 
 /// The file this format lives in.
 pub const FILE_NAME: &str = "transforms.json";
 
-/// Every `VAL_EVERY`-th frame (index 0, 8, 16, ...) is held out for
-/// validation and the rest train; there is no test split. This follows the
-/// hold-out used for LLFF and Mip-NeRF 360 scenes, which are the captures this
-/// format usually carries; the file itself names no splits.
+/// Without explicit splits, every `VAL_EVERY`-th frame (index 0, 8, 16, ...)
+/// is held out for validation and the rest train; there is no test split.
+/// This follows the hold-out used for LLFF and Mip-NeRF 360 scenes, which are
+/// the captures this format usually carries.
 pub const VAL_EVERY: usize = 8;
+
+/// nerfstudio's explicit splits: lists of `file_path` values at the top level
+/// of the file. When any is present, frames are assigned by name and frames
+/// in no list are left out.
+const SPLIT_KEYS: [(&str, Split); 3] = [
+    ("train_filenames", Split::Train),
+    ("val_filenames", Split::Val),
+    ("test_filenames", Split::Test),
+];
 
 /// Lens distortion coefficients (OpenCV's radial k1..k4, tangential p1, p2).
 const DISTORTION_KEYS: [&str; 6] = ["k1", "k2", "k3", "k4", "p1", "p2"];
@@ -57,11 +67,23 @@ pub fn load(path: &Path, options: LoadOptions) -> SceneResult<Scene> {
         return Err(file_error("no frames: `frames` is empty".into()));
     }
 
+    let explicit = explicit_splits(&json, frame_values).map_err(file_error)?;
+
     let mut sources = Vec::with_capacity(frame_values.len());
     let mut cameras = Vec::with_capacity(frame_values.len());
+    let mut splits = Vec::with_capacity(frame_values.len());
     for (index, value) in frame_values.iter().enumerate() {
+        let split = match &explicit {
+            Some(assigned) => match assigned[index] {
+                Some(split) => split,
+                None => continue,
+            },
+            None if index % VAL_EVERY == 0 => Split::Val,
+            None => Split::Train,
+        };
         let (image_path, camera_to_world, camera) = read_frame(&folder, value, &shared)
             .map_err(|problem| SceneError::in_frame(&json_path, index, problem))?;
+        splits.push(split);
         sources.push(FrameSource {
             json_path: json_path.clone(),
             index,
@@ -84,7 +106,9 @@ pub fn load(path: &Path, options: LoadOptions) -> SceneResult<Scene> {
         unit_cube,
         bounds: unit_cube.world_bounds(),
     };
-    for ((source, camera), image) in sources.into_iter().zip(cameras).zip(decoded) {
+    for (((source, camera), image), split) in
+        sources.into_iter().zip(cameras).zip(decoded).zip(splits)
+    {
         let intrinsics = camera
             .intrinsics(image.width, image.height)
             .map_err(|problem| source.error(problem))?
@@ -94,13 +118,66 @@ pub fn load(path: &Path, options: LoadOptions) -> SceneResult<Scene> {
             image: image.image,
             image_path: source.image_path,
         };
-        if source.index % VAL_EVERY == 0 {
-            scene.val.push(frame);
-        } else {
-            scene.train.push(frame);
+        match split {
+            Split::Train => scene.train.push(frame),
+            Split::Val => scene.val.push(frame),
+            Split::Test => scene.test.push(frame),
         }
     }
     Ok(scene)
+}
+
+/// The split of each frame named by nerfstudio's `*_filenames` lists, or
+/// `None` when the file has none. Every listed name must be a frame's
+/// `file_path`, no frame may be in two lists, and something must train.
+fn explicit_splits(
+    json: &JsonObject,
+    frames: &[Value],
+) -> Result<Option<Vec<Option<Split>>>, String> {
+    if SPLIT_KEYS.iter().all(|(key, _)| !json.contains_key(*key)) {
+        return Ok(None);
+    }
+    let normalise = |path: &str| path.strip_prefix("./").unwrap_or(path).to_owned();
+    let frame_paths: Vec<Option<String>> = frames
+        .iter()
+        .map(|frame| {
+            frame
+                .get("file_path")
+                .and_then(Value::as_str)
+                .map(normalise)
+        })
+        .collect();
+    let mut assigned = vec![None; frames.len()];
+    for (key, split) in SPLIT_KEYS {
+        let Some(list) = json.get(key) else { continue };
+        let names = list
+            .as_array()
+            .ok_or_else(|| format!("`{key}` must be an array, found {}", describe(list)))?;
+        for name in names {
+            let name = name
+                .as_str()
+                .ok_or_else(|| format!("`{key}` must list file paths, found {}", describe(name)))?;
+            let wanted = normalise(name);
+            let index = frame_paths
+                .iter()
+                .position(|path| path.as_deref() == Some(wanted.as_str()))
+                .ok_or_else(|| format!("`{key}` names {name:?}, which no frame's file_path is"))?;
+            match assigned[index] {
+                Some(earlier) if earlier != split => {
+                    return Err(format!(
+                        "{name:?} is listed for both the {} and the {} split",
+                        Split::name(earlier),
+                        split.name()
+                    ));
+                }
+                _ => assigned[index] = Some(split),
+            }
+        }
+    }
+    if !assigned.contains(&Some(Split::Train)) {
+        return Err("`train_filenames` is missing or empty: no frame would train".into());
+    }
+    Ok(Some(assigned))
 }
 
 /// Reads one frame's image path, pose and camera (its own fields over the
@@ -400,6 +477,59 @@ mod tests {
         assert_eq!(mapping.offset, Vec3::new(0.5, 0.4, 0.3));
         assert_eq!(scene.bounds, mapping.world_bounds());
         assert!(scene.has_alpha);
+    }
+
+    #[test]
+    fn nerfstudio_split_lists_assign_frames_by_name() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path();
+        write_scene(root, 6, |v| {
+            v["train_filenames"] = json!(["images/f_1.png", "./images/f_2.png", "images/f_4.png"]);
+            v["val_filenames"] = json!(["images/f_0.png"]);
+            v["test_filenames"] = json!(["images/f_5.png"]);
+            // Frame 3 is in no list: it is left out, and its image is not read.
+            v["frames"][3]["file_path"] = json!("images/absent.png");
+        });
+        let scene = load(root, LoadOptions::default()).unwrap();
+        let xs = |frames: &[Frame]| -> Vec<f32> {
+            frames.iter().map(|f| f.camera.position().x).collect()
+        };
+        assert_eq!(xs(&scene.train), [1.0, 2.0, 4.0]);
+        assert_eq!(xs(&scene.val), [0.0]);
+        assert_eq!(xs(&scene.test), [5.0]);
+    }
+
+    #[test]
+    fn nerfstudio_split_lists_are_checked() {
+        let cases: [(Value, &str); 4] = [
+            (
+                json!({"train_filenames": ["images/f_9.png"]}),
+                "`train_filenames` names \"images/f_9.png\", which no frame's file_path is",
+            ),
+            (
+                json!({"train_filenames": ["images/f_0.png"], "val_filenames": ["images/f_0.png"]}),
+                "listed for both the train and the val split",
+            ),
+            (
+                json!({"val_filenames": ["images/f_0.png"]}),
+                "no frame would train",
+            ),
+            (
+                json!({"train_filenames": "images/f_0.png"}),
+                "`train_filenames` must be an array",
+            ),
+        ];
+        for (lists, expected) in cases {
+            let dir = tempfile::tempdir().unwrap();
+            write_scene(dir.path(), 3, |v| {
+                for (key, value) in lists.as_object().unwrap() {
+                    v[key] = value.clone();
+                }
+            });
+            let error = load_error(dir.path());
+            assert!(error.contains(expected), "{error}");
+            assert!(error.contains(FILE_NAME), "{error}");
+        }
     }
 
     #[test]
