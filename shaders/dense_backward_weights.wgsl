@@ -58,6 +58,8 @@ fn main(
         workgroupBarrier();
     }
     if (o < layer.out_width && i < columns) {
-        partials[(chunk * layer.out_width + o) * columns + i] = sum;
+        // Chunks count from layer.first_chunk: a batch bound a piece of rows
+        // at a time puts each piece's partials after the previous piece's.
+        partials[((layer.first_chunk + chunk) * layer.out_width + o) * columns + i] = sum;
     }
 }

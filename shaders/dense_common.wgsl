@@ -35,7 +35,8 @@ struct Layer {
     rows_per_chunk: u32,
     chunks: u32,
     exp_clamp: f32,
-    _pad0: u32,
+    // The first chunk of this dispatch among the layer's partial sums.
+    first_chunk: u32,
     _pad1: u32,
     _pad2: u32,
 }

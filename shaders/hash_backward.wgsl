@@ -13,7 +13,7 @@ fn main(@builtin(workgroup_id) group: vec3<u32>, @builtin(local_invocation_index
     if (sample >= params.count) {
         return;
     }
-    let l = group.y;
+    let l = params.first_level + group.y;
     let p = vec3<f32>(positions[3u * sample], positions[3u * sample + 1u], positions[3u * sample + 2u]);
     let corner = corners(levels[l], p);
     let features = params.features;
@@ -28,7 +28,7 @@ fn main(@builtin(workgroup_id) group: vec3<u32>, @builtin(local_invocation_index
         for (var c = 0u; c < 8u; c++) {
             let contribution = corner.weight[c] * gradient;
             if (contribution != 0.0) {
-                add_gradient(corner.index[c] * features + f, contribution);
+                add_gradient(corner.index[c] * features + f - params.table_base, contribution);
             }
         }
     }

@@ -10,6 +10,13 @@ struct Params {
     width: u32,
     // Workgroups along x: large batches fold into z (see sample_index).
     groups_x: u32,
+    // This dispatch covers levels first_level.. (its workgroup y counts
+    // from there); the table is bound from parameter table_base on, so
+    // tables larger than one storage binding go a group of levels at a time.
+    first_level: u32,
+    table_base: u32,
+    _pad0: u32,
+    _pad1: u32,
 }
 
 struct Level {

@@ -11,7 +11,7 @@ fn main(@builtin(workgroup_id) group: vec3<u32>, @builtin(local_invocation_index
     if (sample >= params.count) {
         return;
     }
-    let l = group.y;
+    let l = params.first_level + group.y;
     let p = vec3<f32>(positions[3u * sample], positions[3u * sample + 1u], positions[3u * sample + 2u]);
     let corner = corners(levels[l], p);
     let features = params.features;
@@ -20,7 +20,7 @@ fn main(@builtin(workgroup_id) group: vec3<u32>, @builtin(local_invocation_index
         // Corners summed in order 0..7, as on the cpu.
         var sum = 0.0;
         for (var c = 0u; c < 8u; c++) {
-            sum += corner.weight[c] * table[corner.index[c] * features + f];
+            sum += corner.weight[c] * table[corner.index[c] * features + f - params.table_base];
         }
         encoded[row + f] = sum;
     }

@@ -4,6 +4,7 @@
 //! computes on them, [`metrics`] scores the results. See `DESIGN.md` in the
 //! shared folder for the whole picture.
 
+pub mod app;
 pub mod bench;
 pub mod engine;
 pub mod field;

@@ -9,10 +9,13 @@ use anyhow::{Context, bail};
 use clap::{Args, Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::{Deserialize, Serialize};
+use zrak::app::protocol::SceneSource;
+use zrak::app::viewer::ViewerOptions;
 use zrak::engine::{EngineKind, choose_engine};
 use zrak::field::ModelKind;
 use zrak::field::ngp::LossKind;
-use zrak::render::path::{Turntable, turntable_cameras};
+use zrak::render::export::{ExportSettings, depth_range, export_turntable, near_far_range};
+use zrak::render::path::Turntable;
 use zrak::render::{RenderMode, render_pixels, to_image};
 use zrak::scene::demo::{self, DemoConfig};
 use zrak::scene::{Camera, LoadOptions, Scene, Split};
@@ -68,6 +71,35 @@ enum Command {
     /// Benchmarks that print figures (throughput per stage, peak memory).
     #[command(subcommand)]
     Bench(BenchCommand),
+    /// Open the viewer window and train while you watch (the default).
+    View(ViewArgs),
+}
+
+#[derive(Args)]
+struct ViewArgs {
+    /// A scene folder (default: the built-in demo scene).
+    scene: Option<PathBuf>,
+    /// Default: gpu on a real GPU, cpu otherwise.
+    #[arg(long, value_enum)]
+    engine: Option<EngineKind>,
+    #[arg(long, value_enum, default_value_t = ModelKind::Ngp)]
+    model: ModelKind,
+    /// Save a PNG of the window to this path (after --screenshot-after).
+    #[arg(long)]
+    screenshot: Option<PathBuf>,
+    /// Seconds after opening to take the screenshot.
+    #[arg(long, default_value_t = 5.0, requires = "screenshot")]
+    screenshot_after: f64,
+    /// Close the window by itself after this many seconds.
+    #[arg(long)]
+    quit_after: Option<f64>,
+    /// On exit, write per-frame times (UI update, time between frames; camera
+    /// moving or still; median and 95th percentile) as JSON to this path.
+    #[arg(long)]
+    frame_log: Option<PathBuf>,
+    /// Orbit the camera by itself, as if dragged (to measure a moving camera).
+    #[arg(long)]
+    auto_orbit: bool,
 }
 
 #[derive(Subcommand)]
@@ -144,6 +176,9 @@ struct RenderArgs {
     /// Turntable image size in pixels (default: the training images').
     #[arg(long)]
     size: Option<u32>,
+    /// Also write the turntable as an animated GIF (`turntable.gif`).
+    #[arg(long)]
+    gif: bool,
     #[arg(long, value_enum, default_value_t = RenderMode::Rgb)]
     mode: RenderMode,
     /// Output folder (created if missing).
@@ -203,7 +238,17 @@ fn main() -> ExitCode {
             warmup,
             steps,
         })) => bench_throughput(scene, engine, downscale, warmup, steps),
-        None => show_demo(),
+        Some(Command::View(args)) => view(args),
+        None => view(ViewArgs {
+            scene: None,
+            engine: None,
+            model: ModelKind::Ngp,
+            screenshot: None,
+            screenshot_after: 5.0,
+            quit_after: None,
+            frame_log: None,
+            auto_orbit: false,
+        }),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -281,14 +326,32 @@ fn write_demo(out: &Path, size: u32, views: usize) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Until the viewer lands, running zrak without a subcommand describes the
-/// built-in demo scene it will open.
-fn show_demo() -> anyhow::Result<()> {
-    let scene = demo::build(&DemoConfig::default());
-    print_info(&scene);
-    println!();
-    println!("The viewer is not built yet; see `zrak --help` for what runs today.");
-    Ok(())
+/// Opens the viewer window on the demo scene or a folder.
+fn view(args: ViewArgs) -> anyhow::Result<()> {
+    for (flag, value) in [
+        ("--screenshot-after", Some(args.screenshot_after)),
+        ("--quit-after", args.quit_after),
+    ] {
+        if let Some(value) = value {
+            anyhow::ensure!(
+                value.is_finite() && value >= 0.0,
+                "{flag} must be a number of seconds ≥ 0, got {value}"
+            );
+        }
+    }
+    zrak::app::viewer::run(ViewerOptions {
+        source: match args.scene {
+            Some(folder) => SceneSource::Folder(folder),
+            None => SceneSource::Demo,
+        },
+        engine: args.engine,
+        model: args.model,
+        screenshot: args.screenshot,
+        screenshot_after: args.screenshot_after,
+        quit_after: args.quit_after,
+        frame_log: args.frame_log,
+        auto_orbit: args.auto_orbit,
+    })
 }
 
 fn print_info(scene: &Scene) {
@@ -341,32 +404,6 @@ fn print_info(scene: &Scene) {
     }
 }
 
-/// The smallest near and largest far distance over the rays through the
-/// corners and centre of every frame that hit the scene box.
-fn near_far_range(scene: &Scene) -> Option<(f32, f32)> {
-    let mut range: Option<(f32, f32)> = None;
-    for frame in scene.frames() {
-        let k = frame.camera.intrinsics;
-        let (w, h) = (k.width as f32, k.height as f32);
-        let points = [
-            (0.5, 0.5),
-            (w - 0.5, 0.5),
-            (0.5, h - 0.5),
-            (w - 0.5, h - 0.5),
-            (0.5 * w, 0.5 * h),
-        ];
-        for (u, v) in points {
-            if let Some((near, far)) = scene.ray_near_far(&frame.camera.ray_through(u, v)) {
-                range = Some(match range {
-                    Some((n, f)) => (n.min(near), f.max(far)),
-                    None => (near, far),
-                });
-            }
-        }
-    }
-    range
-}
-
 fn read_run_config(folder: &RunFolder) -> anyhow::Result<RunConfig> {
     let path = folder.config_path();
     let text = std::fs::read_to_string(&path)
@@ -391,6 +428,7 @@ fn restore_run(
         &ModelSettings {
             seed: config.seed,
             loss: config.loss,
+            batch_samples: None,
         },
     )
     .map_err(anyhow::Error::msg)?;
@@ -447,6 +485,7 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
             &ModelSettings {
                 seed: config.seed,
                 loss: config.loss,
+                batch_samples: None,
             },
         )
         .map_err(anyhow::Error::msg)?;
@@ -549,6 +588,7 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
     let scene = &trainer.scene;
     let cameras: Vec<(String, Camera)> = match (args.view, args.turntable) {
         (Some(view), None) => {
+            anyhow::ensure!(!args.gif, "--gif goes with --turntable FRAMES, not --view");
             let split: Split = args.split.into();
             let frames = scene.split(split);
             let frame = frames.get(view).with_context(|| {
@@ -562,17 +602,30 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
         }
         (None, Some(frames)) => {
             anyhow::ensure!(frames >= 1, "--turntable needs at least one frame");
-            let turntable = Turntable {
-                frames,
-                elevation_degrees: args.elevation,
-                radius: args.radius,
-                size: args.size.map(|s| (s, s)),
+            let settings = ExportSettings {
+                turntable: Turntable {
+                    frames,
+                    elevation_degrees: args.elevation,
+                    radius: args.radius,
+                    size: args.size.map(|s| (s, s)),
+                },
+                mode: args.mode,
+                out_dir: args.out.clone(),
+                write_gif: args.gif,
             };
-            turntable_cameras(scene, &turntable)
-                .into_iter()
-                .enumerate()
-                .map(|(i, c)| (format!("turntable_{i:04}"), c))
-                .collect()
+            let bar = ProgressBar::new(frames as u64);
+            let never_cancelled = std::sync::atomic::AtomicBool::new(false);
+            let written = export_turntable(
+                trainer.model.as_ref(),
+                scene,
+                settings,
+                &never_cancelled,
+                &mut |done, _| bar.set_position(done as u64),
+            )
+            .map_err(anyhow::Error::msg)?;
+            bar.finish();
+            println!("wrote {} files to {}", written.len(), args.out.display());
+            return Ok(());
         }
         _ => bail!("give --view N or --turntable FRAMES"),
     };
@@ -591,12 +644,6 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
     bar.finish();
     println!("wrote {} images to {}", cameras.len(), args.out.display());
     Ok(())
-}
-
-/// Near and far depth for depth images: the scene box seen from the mean
-/// camera distance.
-fn depth_range(scene: &Scene) -> (f32, f32) {
-    near_far_range(scene).unwrap_or((0.0, 1.0))
 }
 
 fn bench_throughput(
@@ -618,6 +665,7 @@ fn bench_throughput(
     let settings = ModelSettings {
         seed: 0,
         loss: LossKind::Huber,
+        batch_samples: None,
     };
     let model =
         build_model(ModelKind::Ngp, choice, &scene, &settings).map_err(anyhow::Error::msg)?;

@@ -76,3 +76,44 @@ fn shader_errors_are_reported_not_panicked() {
         "{message}"
     );
 }
+
+/// The viewer hands the engine eframe's device: one made with
+/// `GpuContext::device_descriptor` is accepted and runs every kernel of
+/// Instant-NGP; one with wgpu's default limits (8 storage buffers per
+/// stage) is refused with the limit named.
+#[test]
+fn an_existing_device_is_used_when_it_has_what_the_engine_needs() {
+    use zrak::engine::gpu::ngp::GpuNgp;
+    use zrak::field::ngp::LossKind;
+    use zrak::scene::demo::{self, DemoConfig};
+
+    let base = GpuContext::new().expect("an adapter exists");
+    let adapter = &base.adapter;
+    let (device, queue) =
+        pollster::block_on(adapter.request_device(&GpuContext::device_descriptor(adapter)))
+            .expect("the adapter grants its own limits");
+    let context = GpuContext::from_existing(adapter, device, queue).expect("accepted");
+    assert_eq!(context.features, base.features);
+    assert_eq!(
+        context.storage_binding_limit(),
+        base.storage_binding_limit()
+    );
+    let scene = demo::build(&DemoConfig {
+        size: 8,
+        train_views: 2,
+        val_views: 1,
+        test_views: 1,
+    });
+    GpuNgp::with_batch_samples(context, &scene, 1, LossKind::Huber, 1024)
+        .expect("every kernel compiles and binds on the shared device");
+
+    let (device, queue) = pollster::block_on(adapter.request_device(&Default::default()))
+        .expect("default limits are always granted");
+    let message = GpuContext::from_existing(adapter, device, queue)
+        .expect_err("8 storage buffers per stage are too few")
+        .to_string();
+    assert!(
+        message.contains("max_storage_buffers_per_shader_stage"),
+        "{message}"
+    );
+}

@@ -10,6 +10,7 @@ use glam::Vec3;
 use zrak::engine::cpu::ngp::CpuNgp;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::ngp::GpuNgp;
+use zrak::engine::gpu::timing::StageTiming;
 use zrak::field::ngp::LossKind;
 use zrak::rng::Pcg32;
 use zrak::scene::Scene;
@@ -211,6 +212,47 @@ fn render_view(model: &dyn RadianceModel, scene: &Scene) -> Vec<RenderedPixel> {
     let mut out = vec![RenderedPixel::default(); origins.len()];
     model.render(&origins, &directions, [1.0; 3], &mut out);
     out
+}
+
+/// Every stage of a step reports its time, from GPU timestamps where the
+/// device has them (lavapipe does) and from the wall clock otherwise; the
+/// timing does not change what the step computes.
+#[test]
+fn a_step_reports_the_time_of_each_stage() {
+    let scene = small_scene();
+    let (mut cpu, mut gpu) = models(&scene);
+    share_ball_grid(&mut cpu, &mut gpu);
+    let rays = batch(&scene, 256, 17);
+    let has_timestamps = gpu
+        .context()
+        .features
+        .contains(wgpu::Features::TIMESTAMP_QUERY);
+    assert_eq!(
+        gpu.stage_timing() == StageTiming::Timestamps,
+        has_timestamps
+    );
+    let mut losses = Vec::new();
+    for timing in [StageTiming::Timestamps, StageTiming::WallClock] {
+        gpu.set_stage_timing(timing);
+        // Step 1 has no occupancy update; forward_backward changes nothing,
+        // so both timings see the same work.
+        let stats = gpu.forward_backward(&rays, 1);
+        losses.push(stats.loss);
+        println!("{timing:?}: {:?}", stats.times);
+        let t = stats.times;
+        for (name, seconds) in t.named() {
+            assert!(seconds.is_finite() && seconds >= 0.0, "{name}: {seconds}");
+        }
+        // Stages with real work take some time on any clock.
+        for (name, seconds) in [
+            ("march", t.march),
+            ("networks forward", t.networks_forward),
+            ("networks backward", t.networks_backward),
+        ] {
+            assert!(seconds > 0.0, "{timing:?}: {name} took no time");
+        }
+    }
+    assert_eq!(losses[0].to_bits(), losses[1].to_bits());
 }
 
 #[test]

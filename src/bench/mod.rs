@@ -18,6 +18,9 @@ pub struct ThroughputReport {
     /// Median seconds per stage.
     pub stages: StageTimes,
     pub peak_memory_bytes: Option<u64>,
+    /// How a gpu engine measured its stages (timestamps or wall clock);
+    /// `None` on the cpu engine.
+    pub stage_timing: Option<String>,
 }
 
 fn median(values: &mut [f64]) -> f64 {
@@ -79,6 +82,10 @@ pub fn throughput(trainer: &mut Trainer, warmup: usize, steps: usize) -> Through
         median_samples_per_ray: median(&mut spr) as f32,
         stages,
         peak_memory_bytes: peak_memory_bytes(),
+        stage_timing: trainer
+            .model
+            .as_gpu_ngp()
+            .map(|model| model.stage_timing_note()),
     }
 }
 
@@ -119,6 +126,9 @@ pub fn print_report(report: &ThroughputReport, scene: &Arc<Scene>, engine: &str)
         report.median_samples_per_ray
     );
     println!("stages (median ms per step):");
+    if let Some(note) = &report.stage_timing {
+        println!("  (timed by {note})");
+    }
     let total = report.stages.total();
     for (name, seconds) in report.stages.named() {
         println!(

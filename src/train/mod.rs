@@ -20,6 +20,10 @@ use model::RadianceModel;
 pub struct ModelSettings {
     pub seed: u64,
     pub loss: LossKind,
+    /// Samples per training batch; `None` keeps the model's paper default
+    /// (2^18 for Instant-NGP). The viewer asks for fewer on the cpu engine,
+    /// so a step, and the wait of a command behind it, stays short.
+    pub batch_samples: Option<usize>,
 }
 
 /// A fresh model of `kind` for `scene` on the chosen engine.
@@ -30,18 +34,35 @@ pub fn build_model(
     settings: &ModelSettings,
 ) -> Result<Box<dyn RadianceModel>, String> {
     match (kind, engine.kind) {
-        (ModelKind::Ngp, EngineKind::Cpu) => Ok(Box::new(crate::engine::cpu::ngp::CpuNgp::new(
-            scene,
-            settings.seed,
-            settings.loss,
-        ))),
+        (ModelKind::Ngp, EngineKind::Cpu) => {
+            let samples = settings
+                .batch_samples
+                .unwrap_or(crate::field::ngp::SAMPLES_PER_BATCH);
+            Ok(Box::new(
+                crate::engine::cpu::ngp::CpuNgp::with_batch_samples(
+                    scene,
+                    settings.seed,
+                    settings.loss,
+                    samples,
+                ),
+            ))
+        }
         (ModelKind::Ngp, EngineKind::Gpu) => {
             let context = engine
                 .gpu
                 .ok_or("the gpu engine was chosen without a gpu context")?;
-            crate::engine::gpu::ngp::GpuNgp::new(context, scene, settings.seed, settings.loss)
-                .map(|model| Box::new(model) as Box<dyn RadianceModel>)
-                .map_err(|e| format!("building Instant-NGP on the gpu engine: {e}"))
+            let samples = settings
+                .batch_samples
+                .unwrap_or(crate::field::ngp::SAMPLES_PER_BATCH);
+            crate::engine::gpu::ngp::GpuNgp::with_batch_samples(
+                context,
+                scene,
+                settings.seed,
+                settings.loss,
+                samples,
+            )
+            .map(|model| Box::new(model) as Box<dyn RadianceModel>)
+            .map_err(|e| format!("building Instant-NGP on the gpu engine: {e}"))
         }
     }
 }

@@ -118,4 +118,11 @@ pub trait RadianceModel: Send {
 
     /// Bytes held by parameters, optimiser state and workspaces.
     fn memory_bytes(&self) -> usize;
+
+    /// The gpu engine's Instant-NGP behind this model, if it is one: the
+    /// viewer renders it straight into a texture
+    /// ([`crate::engine::gpu::ngp::GpuNgp::render_to_texture`]).
+    fn as_gpu_ngp(&self) -> Option<&crate::engine::gpu::ngp::GpuNgp> {
+        None
+    }
 }

@@ -165,6 +165,47 @@ pub fn composite_forward<F: Float + Send + Sync>(
     );
 }
 
+/// The samples each ray uses, written to `used` (R), from the densities and
+/// intervals alone: the cut of [`composite_forward`], found with the same
+/// arithmetic, so `composite_forward` on the batch gives the same counts.
+/// Training uses it to evaluate colours and gradients only where they
+/// matter: after the cut, a sample's colour is never read and every
+/// gradient through it is zero.
+pub fn samples_before_cut<F: Float + Send + Sync>(
+    density: &[F],
+    dt: &[F],
+    ray_offsets: &[u32],
+    min_transmittance: F,
+    used: &mut [u32],
+) {
+    use rayon::prelude::*;
+    let rays = ray_offsets.len().saturating_sub(1);
+    assert!(used.len() >= rays, "used: {} < {rays} rays", used.len());
+    let samples = ray_offsets.last().map_or(0, |&n| n as usize);
+    assert!(density.len() >= samples && dt.len() >= samples);
+    // 64 rays of ~50 samples per task, as the leaves of the forward pass.
+    const RAYS_PER_TASK: usize = 64;
+    used[..rays]
+        .par_chunks_mut(RAYS_PER_TASK)
+        .enumerate()
+        .for_each(|(task, used)| {
+            for (local, count) in used.iter_mut().enumerate() {
+                let ray = task * RAYS_PER_TASK + local;
+                let (start, end) = (ray_offsets[ray] as usize, ray_offsets[ray + 1] as usize);
+                let mut accumulated = F::zero();
+                let mut n = end - start;
+                for s in start..end {
+                    if (-accumulated).exp() < min_transmittance {
+                        n = s - start;
+                        break;
+                    }
+                    accumulated = accumulated + optical_depth(density[s], dt[s]);
+                }
+                *count = n as u32;
+            }
+        });
+}
+
 /// Splits the rays in two until a block is small, then composites it. The
 /// output slices cover exactly `rays`.
 fn forward_block<F: Float + Send + Sync>(
@@ -537,6 +578,24 @@ mod tests {
     }
 
     const PAPER_CUT: f64 = MarchConfig::PAPER.min_transmittance as f64;
+
+    #[test]
+    fn samples_before_cut_matches_the_forward_pass() {
+        let counts = counts(300, 21);
+        let batch = Batch::random(3, &counts, &[0.5, 5.0, 40.0, 300.0, 1e4]);
+        for min_transmittance in [0.0, PAPER_CUT] {
+            let out = batch.forward(min_transmittance);
+            let mut used = vec![u32::MAX; batch.rays()];
+            samples_before_cut(
+                &batch.density,
+                &batch.dt,
+                &batch.ray_offsets,
+                min_transmittance,
+                &mut used,
+            );
+            assert_eq!(used, out.used);
+        }
+    }
 
     #[test]
     fn agrees_with_the_single_ray_reference() {

@@ -424,7 +424,28 @@ pub fn mlp_inference(
     rows: usize,
     output: &mut [f32],
 ) {
-    inference_with(backend(), layout, params, input, rows, output);
+    let columns = layout.output_width();
+    inference_with(backend(), layout, params, input, rows, output, columns);
+}
+
+/// [`mlp_inference`] computing only the first `columns` outputs of the last
+/// layer: `output` is rows × `columns`. Instant-NGP's density queries need
+/// output 0 (log-density) of the density network's 16, one dot product in
+/// place of 16. Each computed output is bit-identical to [`mlp_forward`]'s.
+pub fn mlp_inference_leading(
+    layout: &MlpLayout,
+    params: &[f32],
+    input: &[f32],
+    rows: usize,
+    output: &mut [f32],
+    columns: usize,
+) {
+    assert!(
+        (1..=layout.output_width()).contains(&columns),
+        "{columns} leading outputs of {}",
+        layout.output_width()
+    );
+    inference_with(backend(), layout, params, input, rows, output, columns);
 }
 
 fn check_sizes(layout: &MlpLayout, params: &[f32], input: &[f32], rows: usize, output_len: usize) {
@@ -525,8 +546,17 @@ fn inference_with(
     input: &[f32],
     rows: usize,
     output: &mut [f32],
+    out_columns: usize,
 ) {
-    check_sizes(layout, params, input, rows, output.len());
+    // Sized for the leading columns: the full width stands in for the check.
+    let output_rows = output.len() / out_columns;
+    check_sizes(
+        layout,
+        params,
+        input,
+        rows,
+        output_rows * layout.output_width(),
+    );
     let mut packed = vec![0.0; layout.macs_per_row()];
     pack_transposed(layout, params, &mut packed);
     let net = net(layout, params, &packed);
@@ -534,6 +564,7 @@ fn inference_with(
         net: &net,
         input: input.as_ptr(),
         output: SendPtr(output.as_mut_ptr()),
+        out_columns,
     };
     let scratch_len = 2 * BLOCK * layout.max_width();
     let tasks = rows.div_ceil(FORWARD_CHUNK);
@@ -730,6 +761,9 @@ struct InferenceJob<'a> {
     net: &'a Net<'a>,
     input: *const f32,
     output: SendPtr,
+    /// The leading outputs of the last layer that are computed (rows ×
+    /// out_columns in `output`).
+    out_columns: usize,
 }
 unsafe impl Sync for InferenceJob<'_> {}
 
@@ -1180,21 +1214,25 @@ unsafe fn epilogue<L: Lanes, const R: usize, const NV: usize>(
 }
 
 /// One block of `nb` rows through every layer; layer l writes to `dst(l)`
-/// with row stride equal to its width.
+/// with row stride equal to its width, except the last layer, which
+/// computes and writes only its first `last_columns` outputs.
 #[inline(always)]
 unsafe fn forward_block<L: Lanes>(
     net: &Net,
     x: *const f32,
     nb: usize,
+    last_columns: usize,
     dst: impl Fn(usize) -> *mut f32,
     after: impl Fn(usize, *const f32),
 ) {
     let mut a = x;
+    let last = net.layers.len() - 1;
     for (l, layer) in net.layers.iter().enumerate() {
         let c = dst(l);
+        let n = if l == last { last_columns } else { layer.outw };
         let g = Gemm {
             m: nb,
-            n: layer.outw,
+            n,
             k: layer.inw,
             a,
             a_m: layer.inw,
@@ -1202,7 +1240,7 @@ unsafe fn forward_block<L: Lanes>(
             b: layer.wt,
             b_k: layer.outw,
             c,
-            c_m: layer.outw,
+            c_m: n,
             epi: Epi::Forward {
                 bias: layer.bias,
                 act: net.act(l),
@@ -1234,6 +1272,7 @@ unsafe fn forward_rows<L: Lanes>(job: &ForwardJob, rows: Range<usize>, scratch: 
                 net,
                 job.input.add(r0 * in_w),
                 nb,
+                out_w,
                 |l| scratch.add((l % 2) * half),
                 |l, block| {
                     let w = net.layers[l].outw;
@@ -1258,7 +1297,7 @@ unsafe fn inference_rows<L: Lanes>(job: &InferenceJob, rows: Range<usize>, scrat
     let net = job.net;
     let in_w = net.layers[0].inw;
     let last = net.layers.len() - 1;
-    let out_w = net.layers[last].outw;
+    let out_w = job.out_columns;
     let half = BLOCK
         * net
             .layers
@@ -1275,6 +1314,7 @@ unsafe fn inference_rows<L: Lanes>(job: &InferenceJob, rows: Range<usize>, scrat
                 net,
                 job.input.add(r0 * in_w),
                 nb,
+                out_w,
                 |l| {
                     if l == last {
                         job.output.get().add(r0 * out_w)
@@ -1893,11 +1933,21 @@ mod tests {
                 let e = max_relative(&d_input, &want_dx);
                 assert!(e < tol, "{backend:?} case {case} d_input: {e:e}");
 
+                let out_w = layout.output_width();
                 let mut inferred = vec![0.0; out.len()];
-                inference_with(backend, layout, &params, &input, rows, &mut inferred);
+                inference_with(backend, layout, &params, &input, rows, &mut inferred, out_w);
                 assert_eq!(
                     inferred, out,
                     "{backend:?} case {case}: inference differs from forward"
+                );
+                // Only the first output: the same bits as column 0 of the
+                // full forward pass.
+                let mut first = vec![0.0; rows];
+                inference_with(backend, layout, &params, &input, rows, &mut first, 1);
+                let column: Vec<f32> = out.chunks_exact(out_w).map(|r| r[0]).collect();
+                assert_eq!(
+                    first, column,
+                    "{backend:?} case {case}: leading-output inference differs"
                 );
             }
         }

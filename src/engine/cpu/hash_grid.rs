@@ -427,7 +427,10 @@ pub fn encode_with_scratch<T: Real>(
             .zip(positions.par_chunks(TASK))
             .for_each(|(level_out, positions)| {
                 with_level_constants!(features, level.dense, F, DENSE, {
-                    forward_level::<T, F, DENSE>(&math, table, positions, level_out)
+                    if !x86_gather::forward_level::<T, F, DENSE>(&math, table, positions, level_out)
+                    {
+                        forward_level::<T, F, DENSE>(&math, table, positions, level_out)
+                    }
                 })
             });
     }
@@ -461,12 +464,41 @@ pub fn encode_backward_with_scratch<T: Real>(
     d_params: &mut [T],
     scratch: &mut Vec<T>,
 ) {
+    backward_sweeps(layout, positions, d_out, d_params, scratch, false);
+}
+
+/// [`encode_backward_with_scratch`] that writes (`=`) ∂loss/∂params into
+/// `d_params` instead of adding to it: each level's task clears its slice
+/// of the gradient just before its sweep, in parallel and while the slice
+/// is about to be in cache anyway, in place of a serial clearing pass over
+/// the whole table beforehand.
+pub fn encode_gradient_with_scratch<T: Real>(
+    layout: &HashGridLayout,
+    positions: &[[T; 3]],
+    d_out: &[T],
+    d_params: &mut [T],
+    scratch: &mut Vec<T>,
+) {
+    backward_sweeps(layout, positions, d_out, d_params, scratch, true);
+}
+
+fn backward_sweeps<T: Real>(
+    layout: &HashGridLayout,
+    positions: &[[T; 3]],
+    d_out: &[T],
+    d_params: &mut [T],
+    scratch: &mut Vec<T>,
+    overwrite: bool,
+) {
     let width = layout.output_width();
     let features = layout.features();
     let samples = positions.len();
     assert_eq!(d_params.len(), layout.param_count(), "d_params");
     assert_eq!(d_out.len(), samples * width, "d_out must be S × L·F");
     if samples == 0 {
+        if overwrite {
+            d_params.fill(T::zero());
+        }
         return;
     }
     if scratch.len() < samples * width {
@@ -494,6 +526,9 @@ pub fn encode_backward_with_scratch<T: Real>(
         .into_par_iter()
         .with_max_len(1)
         .for_each(|(level, level_d_out, d_table)| {
+            if overwrite {
+                d_table.fill(T::zero());
+            }
             let math = LevelMath::<T>::new(layout, level);
             with_level_constants!(features, level.dense, F, DENSE, {
                 backward_level::<T, F, DENSE>(&math, d_table, positions, level_d_out)
@@ -694,6 +729,142 @@ dispatch_by_isa!(backward_level, backward_level_avx2, backward_level_avx512, bac
     positions: &[[T; 3]],
     d_out: &[T]
 ));
+
+/// The forward sweep of one level with AVX-512 gathers, for the paper's
+/// case (f32, F = 2): one gather fetches a corner's feature pair for 8
+/// samples. The same multiplications and additions, in the same order, as
+/// [`forward_level_portable`] (sum = 0, then + wᶜ·eᶜ for c = 0..8, nothing
+/// fused), so the bits are the same; the portable loop spends most of its
+/// instructions moving single values.
+mod x86_gather {
+    use super::{Corners, GROUP, LevelMath, Real, prefetch};
+
+    /// Runs the sweep if this CPU and these types have the gather path;
+    /// false means the caller runs the general one.
+    #[inline(always)]
+    pub fn forward_level<T: Real, const F: usize, const DENSE: bool>(
+        math: &LevelMath<T>,
+        table: &[T],
+        positions: &[[T; 3]],
+        out: &mut [T],
+    ) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::any::TypeId;
+            if F == 2
+                && TypeId::of::<T>() == TypeId::of::<f32>()
+                && std::is_x86_feature_detected!("avx512f")
+                && std::is_x86_feature_detected!("avx512vl")
+            {
+                // SAFETY: T is f32 (checked above), so the casts change
+                // nothing but the static type; the CPU has AVX-512F/VL.
+                unsafe {
+                    let math = &*(math as *const LevelMath<T> as *const LevelMath<f32>);
+                    let table =
+                        std::slice::from_raw_parts(table.as_ptr() as *const f32, table.len());
+                    let positions = std::slice::from_raw_parts(
+                        positions.as_ptr() as *const [f32; 3],
+                        positions.len(),
+                    );
+                    let out =
+                        std::slice::from_raw_parts_mut(out.as_mut_ptr() as *mut f32, out.len());
+                    forward_f32x2::<DENSE>(math, table, positions, out);
+                }
+                return true;
+            }
+        }
+        let _ = (math, table, positions, out);
+        false
+    }
+
+    /// As `for_each_group` with the gather of a full group written out,
+    /// so everything runs with AVX-512 enabled.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma,bmi1,bmi2")]
+    fn forward_f32x2<const DENSE: bool>(
+        math: &LevelMath<f32>,
+        table: &[f32],
+        positions: &[[f32; 3]],
+        out: &mut [f32],
+    ) {
+        const F: usize = 2;
+        assert_eq!(out.len(), positions.len() * F);
+        let base = table.as_ptr();
+        let mut corners = [Corners::new(), Corners::new()];
+        let mut groups = positions.chunks(GROUP);
+        let Some(first) = groups.next() else { return };
+        math.corners::<DENSE>(first, &mut corners[0]);
+        let mut len = first.len();
+        let mut start = 0;
+        let mut current = 0;
+        loop {
+            let upcoming = groups.next();
+            if let Some(group) = upcoming {
+                let next = &mut corners[1 - current];
+                math.corners::<DENSE>(group, next);
+                for index in &next.index {
+                    for &i in &index[..group.len()] {
+                        prefetch(base, i as usize * F);
+                    }
+                }
+            }
+            let group = &corners[current];
+            let out = &mut out[start * F..(start + len) * F];
+            if len == GROUP {
+                // SAFETY: the indices are entries of the level (LevelMath
+                // keeps them below the level's entry count), so every
+                // gathered pair lies inside `table`; `out` holds 32 values.
+                unsafe { gather_group(base, group, out.as_mut_ptr()) };
+            } else {
+                for (k, value) in out.chunks_exact_mut(F).enumerate() {
+                    let mut sum = [0.0f32; F];
+                    for c in 0..8 {
+                        let entry = &table[group.index[c][k] as usize * F..][..F];
+                        for f in 0..F {
+                            sum[f] += group.weight[c][k] * entry[f];
+                        }
+                    }
+                    value.copy_from_slice(&sum);
+                }
+            }
+            let Some(group) = upcoming else { return };
+            start += len;
+            len = group.len();
+            current = 1 - current;
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma")]
+    unsafe fn gather_group(table: *const f32, corners: &Corners<f32>, out: *mut f32) {
+        use std::arch::x86_64::*;
+        const _: () = assert!(GROUP == 16);
+        unsafe {
+            // Lane j of the low (high) half takes weight j / 2 (8 + j / 2):
+            // each weight is repeated for the two features of its sample.
+            let dup_lo = _mm512_set_epi32(7, 7, 6, 6, 5, 5, 4, 4, 3, 3, 2, 2, 1, 1, 0, 0);
+            let dup_hi =
+                _mm512_set_epi32(15, 15, 14, 14, 13, 13, 12, 12, 11, 11, 10, 10, 9, 9, 8, 8);
+            let pairs = table as *const f64;
+            let mut lo = _mm512_setzero_ps();
+            let mut hi = _mm512_setzero_ps();
+            for c in 0..8 {
+                let index = _mm512_loadu_si512(corners.index[c].as_ptr() as *const __m512i);
+                let index_lo = _mm512_castsi512_si256(index);
+                let index_hi = _mm512_extracti64x4_epi64::<1>(index);
+                let entries_lo = _mm512_castpd_ps(_mm512_i32gather_pd::<8>(index_lo, pairs));
+                let entries_hi = _mm512_castpd_ps(_mm512_i32gather_pd::<8>(index_hi, pairs));
+                let weight = _mm512_loadu_ps(corners.weight[c].as_ptr());
+                let weight_lo = _mm512_permutexvar_ps(dup_lo, weight);
+                let weight_hi = _mm512_permutexvar_ps(dup_hi, weight);
+                lo = _mm512_add_ps(lo, _mm512_mul_ps(weight_lo, entries_lo));
+                hi = _mm512_add_ps(hi, _mm512_mul_ps(weight_hi, entries_hi));
+            }
+            _mm512_storeu_ps(out, lo);
+            _mm512_storeu_ps(out.add(16), hi);
+        }
+    }
+}
 
 #[cfg(test)]
 mod tests {
@@ -1080,6 +1251,52 @@ mod tests {
     }
 
     #[test]
+    fn gather_path_gives_the_portable_bits() {
+        // f32 with F = 2 takes the AVX-512 gather path where the CPU has
+        // it; every level must match the portable loop bit for bit, on
+        // full groups, a short last group, faces, corners and NaN.
+        for config in [HashGridConfig::paper(1.0), small_config()] {
+            let layout = HashGridLayout::new(&config);
+            let params = init_params(&layout, 3);
+            let mut u = Uniforms(41);
+            let mut positions: Vec<[f32; 3]> = hard_positions(&layout)
+                .iter()
+                .map(|p| p.map(|x| x as f32))
+                .collect();
+            positions.extend((0..1000).map(|_| u.position().map(|x| x as f32)));
+            positions.push([f32::NAN, 1.0, -0.5]);
+            let n = positions.len();
+            assert_ne!(n % GROUP, 0, "a short last group");
+            let width = layout.output_width();
+            let mut out = vec![0.0f32; n * width];
+            encode(&layout, &params, &positions, &mut out);
+            for (l, level) in layout.levels().iter().enumerate() {
+                let math = LevelMath::<f32>::new(&layout, level);
+                let table = &params[level.offset * 2..][..level.entries * 2];
+                let mut expected = vec![0.0f32; n * 2];
+                if level.dense {
+                    forward_level_portable::<f32, 2, true>(&math, table, &positions, &mut expected);
+                } else {
+                    forward_level_portable::<f32, 2, false>(
+                        &math,
+                        table,
+                        &positions,
+                        &mut expected,
+                    );
+                }
+                for (k, pair) in expected.chunks_exact(2).enumerate() {
+                    let got = &out[k * width + 2 * l..][..2];
+                    assert_eq!(
+                        [got[0].to_bits(), got[1].to_bits()],
+                        [pair[0].to_bits(), pair[1].to_bits()],
+                        "level {l} sample {k}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
     fn backward_accumulates() {
         let layout = HashGridLayout::new(&small_config());
         let mut u = Uniforms(8);
@@ -1097,6 +1314,13 @@ mod tests {
             // rounding of a few dozen additions of O(1) values.
             assert!((a - (b + f)).abs() < 1e-13, "{a} vs {b} + {f}");
         }
+        // The writing variant gives the fresh gradient whatever was there.
+        let mut written = before.clone();
+        encode_gradient_with_scratch(&layout, &positions, &d_out, &mut written, &mut Vec::new());
+        assert_eq!(written, fresh);
+        let mut empty = before;
+        encode_gradient_with_scratch(&layout, &[], &[], &mut empty, &mut Vec::new());
+        assert!(empty.iter().all(|&g| g == 0.0));
     }
 
     /// ⟨encode(θ, p), g⟩ and ⟨θ, backward(g)⟩ (both accumulated in f64), and

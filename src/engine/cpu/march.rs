@@ -126,6 +126,10 @@ impl RayMarch {
 pub struct Marcher<'a> {
     geometry: GridGeometry,
     bitfield: &'a [u32],
+    /// One bit per block of [`COARSE`]³ cells, set when any cell of the
+    /// block is occupied ([`coarse_occupancy`]); when present, an empty
+    /// block is jumped over whole.
+    coarse: Option<&'a [u32]>,
     mapping: UnitCubeMapping,
     bounds: Aabb,
     dt: f32,
@@ -155,6 +159,7 @@ impl<'a> Marcher<'a> {
         Self {
             geometry,
             bitfield,
+            coarse: None,
             mapping: *mapping,
             bounds: Aabb::cube(Vec3::splat(0.5), half),
             dt: config.step,
@@ -165,6 +170,22 @@ impl<'a> Marcher<'a> {
 
     pub fn dt(&self) -> f32 {
         self.dt
+    }
+
+    /// Jumps over empty blocks of cells whole, with `coarse` built by
+    /// [`coarse_occupancy`] from this marcher's bitfield. The samples are
+    /// the same: a jump lands where the cell-by-cell walk would have
+    /// arrived after crossing the block's empty cells.
+    pub fn with_coarse(self, coarse: &'a [u32]) -> Self {
+        assert_eq!(
+            coarse.len(),
+            coarse_words(&self.geometry).unwrap_or(usize::MAX),
+            "coarse occupancy of the wrong size"
+        );
+        Self {
+            coarse: Some(coarse),
+            ..self
+        }
     }
 
     /// The box rays are clipped to, in unit coordinates.
@@ -211,6 +232,37 @@ impl<'a> Marcher<'a> {
     fn exit_index(&self, ray: &RayMarch, cell: Cell) -> u32 {
         let lo = self.geometry.cell_min(cell);
         let size = self.geometry.cell_size(cell.cascade);
+        self.box_exit_index(ray, lo, size)
+    }
+
+    /// As [`Self::exit_index`] for the block of [`COARSE`]³ cells holding
+    /// `cell`. The margin argument is the same: the rounding it covers is
+    /// that of positions and distances, not of the box's size.
+    #[inline(always)]
+    fn block_exit_index(&self, ray: &RayMarch, cell: Cell) -> u32 {
+        let first = Cell {
+            cascade: cell.cascade,
+            xyz: cell.xyz.map(|c| c & !(COARSE - 1)),
+        };
+        let lo = self.geometry.cell_min(first);
+        let size = self.geometry.cell_size(cell.cascade) * COARSE as f32;
+        self.box_exit_index(ray, lo, size)
+    }
+
+    /// Whether the block of `cell` has an occupied cell (true without a
+    /// coarse field).
+    #[inline(always)]
+    fn block_occupied(&self, cell: Cell) -> bool {
+        match self.coarse {
+            None => true,
+            Some(coarse) => bit_is_set(coarse, block_index(&self.geometry, cell)),
+        }
+    }
+
+    /// The first lattice index at or beyond the exit face of the box with
+    /// lower corner `lo` and side `size`, pulled in by the margin.
+    #[inline(always)]
+    fn box_exit_index(&self, ray: &RayMarch, lo: Vec3, size: f32) -> u32 {
         let exit = |lo: f32, e: f32, d: f32, inverse: f32| {
             if d > 0.0 {
                 (lo + size - self.margin - e) * inverse
@@ -248,7 +300,9 @@ impl<'a> Marcher<'a> {
     ///
     /// One cell at a time: the cell of the current lattice point is looked
     /// up once, and every lattice point before its exit index is emitted
-    /// (occupied) or jumped over (empty) without further look-ups.
+    /// (occupied) or jumped over (empty) without further look-ups; with a
+    /// coarse field, an empty cell in an empty block jumps to the block's
+    /// exit index instead.
     #[inline]
     pub fn walk(&self, ray: &RayMarch, k: &mut u32, limit: u32, mut emit: impl FnMut(u32)) -> bool {
         let mut index = *k;
@@ -264,23 +318,29 @@ impl<'a> Marcher<'a> {
                 return false;
             }
             let cell = self.geometry.cell_of(ray.entry + ray.direction * s);
-            let next = self.exit_index(ray, cell).max(index.saturating_add(1));
-            if bit_is_set(self.bitfield, self.geometry.linear_index(cell)) {
-                while index < next {
-                    if ray.s(index, self.dt) > ray.s_exit {
-                        *k = index;
-                        return true;
-                    }
-                    if emitted == limit {
-                        *k = index;
-                        return false;
-                    }
-                    emit(index);
-                    emitted += 1;
-                    index += 1;
-                }
+            if !bit_is_set(self.bitfield, self.geometry.linear_index(cell)) {
+                let exit = if self.block_occupied(cell) {
+                    self.exit_index(ray, cell)
+                } else {
+                    self.block_exit_index(ray, cell)
+                };
+                index = exit.max(index.saturating_add(1));
+                continue;
             }
-            index = next;
+            let next = self.exit_index(ray, cell).max(index.saturating_add(1));
+            while index < next {
+                if ray.s(index, self.dt) > ray.s_exit {
+                    *k = index;
+                    return true;
+                }
+                if emitted == limit {
+                    *k = index;
+                    return false;
+                }
+                emit(index);
+                emitted += 1;
+                index += 1;
+            }
         }
     }
 
@@ -294,6 +354,63 @@ impl<'a> Marcher<'a> {
     pub fn world_dt(&self) -> f32 {
         self.dt / self.mapping.scale
     }
+}
+
+/// Cells per side of a block of the coarse occupancy.
+pub const COARSE: u32 = 4;
+
+/// Words of the coarse occupancy of `geometry`, or `None` when its
+/// resolution is not a multiple of 32 (one bitfield word per row of
+/// cells is then not 8 whole blocks; marching goes cell by cell).
+pub fn coarse_words(geometry: &GridGeometry) -> Option<usize> {
+    if !geometry.resolution.is_multiple_of(32) {
+        return None;
+    }
+    let side = (geometry.resolution / COARSE) as usize;
+    Some((geometry.cascades as usize * side * side * side).div_ceil(32))
+}
+
+#[inline(always)]
+fn block_index(geometry: &GridGeometry, cell: Cell) -> usize {
+    let side = (geometry.resolution / COARSE) as usize;
+    let [x, y, z] = cell.xyz.map(|c| (c / COARSE) as usize);
+    cell.cascade as usize * side * side * side + x + side * (y + side * z)
+}
+
+/// Fills `coarse` with one bit per block of [`COARSE`]³ cells of
+/// `bitfield`, set when any cell of the block is occupied. Returns false
+/// (and leaves `coarse` empty) when the geometry has no coarse level.
+pub fn coarse_occupancy(geometry: &GridGeometry, bitfield: &[u32], coarse: &mut Vec<u32>) -> bool {
+    coarse.clear();
+    let Some(words) = coarse_words(geometry) else {
+        return false;
+    };
+    coarse.resize(words, 0);
+    let res = geometry.resolution as usize;
+    let side = res / COARSE as usize;
+    let words_per_row = res / 32;
+    for cascade in 0..geometry.cascades as usize {
+        for z in 0..res {
+            for y in 0..res {
+                let row = (cascade * res * res + z * res + y) * words_per_row;
+                for (w, &word) in bitfield[row..row + words_per_row].iter().enumerate() {
+                    if word == 0 {
+                        continue;
+                    }
+                    for nibble in 0..8 {
+                        if (word >> (4 * nibble)) & 0xf != 0 {
+                            let bx = w * 8 + nibble;
+                            let block = cascade * side * side * side
+                                + bx
+                                + side * (y / COARSE as usize + side * (z / COARSE as usize));
+                            coarse[block >> 5] |= 1 << (block & 31);
+                        }
+                    }
+                }
+            }
+        }
+    }
+    true
 }
 
 /// How far exit faces are pulled into a cell before a skip: 4e-6 times the
@@ -346,6 +463,9 @@ pub struct MarchStats {
 #[derive(Debug, Default)]
 pub struct MarchWorkspace {
     blocks: Vec<Vec<u32>>,
+    /// The grid's coarse occupancy ([`coarse_occupancy`]), rebuilt per
+    /// march (a quarter-millisecond pass over the bitfield).
+    coarse: Vec<u32>,
     rays: Vec<Option<RayMarch>>,
     counts: Vec<u32>,
 }
@@ -353,6 +473,10 @@ pub struct MarchWorkspace {
 /// Rays per parallel task: a few hundred samples of work at least, and
 /// enough tasks for rayon to balance rays of very different lengths.
 const RAYS_PER_BLOCK: usize = 64;
+
+/// Blocks walked per wave of pass 1 before checking the budget: 2048 rays,
+/// a few waves per training batch, each enough work for rayon to balance.
+const WAVE_BLOCKS: usize = 32;
 
 /// Grows or shrinks `v` to `n` without rewriting what it already holds.
 fn set_len(v: &mut Vec<f32>, n: usize) {
@@ -383,38 +507,63 @@ pub fn march(
     );
     assert!(origins.len().is_multiple_of(3), "rays are rows of 3 floats");
     let ray_count = origins.len() / 3;
-    let marcher = Marcher::new(grid, &params.config, &params.mapping);
+    let mut marcher = Marcher::new(grid, &params.config, &params.mapping);
+    if coarse_occupancy(&grid.geometry(), grid.bitfield(), &mut workspace.coarse) {
+        marcher = marcher.with_coarse(&workspace.coarse);
+    }
 
-    // Pass 1: lattice indices of the samples, per block.
+    // Pass 1: lattice indices of the samples, per block, in waves of
+    // blocks. Rays are kept in order while they fit the budget, so once the
+    // rays walked hold more samples than the budget, no later ray can be
+    // kept: those are not walked at all (the batch sizer asks for more rays
+    // than fit, and walking them was most of the march's time).
     let blocks = ray_count.div_ceil(RAYS_PER_BLOCK);
     if workspace.blocks.len() < blocks {
         workspace.blocks.resize_with(blocks, Vec::new);
     }
+    workspace.rays.clear();
     workspace.rays.resize(ray_count, None);
+    workspace.counts.clear();
     workspace.counts.resize(ray_count, 0);
-    workspace.blocks[..blocks]
-        .par_iter_mut()
-        .zip(workspace.rays.par_chunks_mut(RAYS_PER_BLOCK))
-        .zip(workspace.counts.par_chunks_mut(RAYS_PER_BLOCK))
-        .enumerate()
-        .for_each(|(b, ((indices, rays), counts))| {
-            indices.clear();
-            for (i, (ray, count)) in rays.iter_mut().zip(counts.iter_mut()).enumerate() {
-                let r = b * RAYS_PER_BLOCK + i;
-                let origin = Vec3::from_slice(&origins[3 * r..3 * r + 3]);
-                let direction = Vec3::from_slice(&directions[3 * r..3 * r + 3]);
-                let u = params
-                    .jitter_seed
-                    .map_or(0.0, |seed| jitter(seed, r as u32));
-                *ray = marcher.prepare(origin, direction, u);
-                let before = indices.len();
-                if let Some(ray) = ray {
-                    let mut k = 0;
-                    marcher.walk(ray, &mut k, params.config.max_steps, |k| indices.push(k));
+    let mut walked_blocks = 0;
+    let mut walked_samples = 0usize;
+    while walked_blocks < blocks && walked_samples <= params.sample_budget {
+        let wave = walked_blocks..(walked_blocks + WAVE_BLOCKS).min(blocks);
+        let wave_rays = wave.start * RAYS_PER_BLOCK..(wave.end * RAYS_PER_BLOCK).min(ray_count);
+        workspace.blocks[wave.clone()]
+            .par_iter_mut()
+            .zip(workspace.rays[wave_rays.clone()].par_chunks_mut(RAYS_PER_BLOCK))
+            .zip(workspace.counts[wave_rays.clone()].par_chunks_mut(RAYS_PER_BLOCK))
+            .enumerate()
+            .for_each(|(i, ((indices, rays), counts))| {
+                let b = wave.start + i;
+                indices.clear();
+                for (i, (ray, count)) in rays.iter_mut().zip(counts.iter_mut()).enumerate() {
+                    let r = b * RAYS_PER_BLOCK + i;
+                    let origin = Vec3::from_slice(&origins[3 * r..3 * r + 3]);
+                    let direction = Vec3::from_slice(&directions[3 * r..3 * r + 3]);
+                    let u = params
+                        .jitter_seed
+                        .map_or(0.0, |seed| jitter(seed, r as u32));
+                    *ray = marcher.prepare(origin, direction, u);
+                    let before = indices.len();
+                    if let Some(ray) = ray {
+                        let mut k = 0;
+                        marcher.walk(ray, &mut k, params.config.max_steps, |k| indices.push(k));
+                    }
+                    *count = (indices.len() - before) as u32;
                 }
-                *count = (indices.len() - before) as u32;
-            }
-        });
+            });
+        walked_samples += workspace.counts[wave_rays]
+            .iter()
+            .map(|&c| c as usize)
+            .sum::<usize>();
+        walked_blocks = wave.end;
+    }
+    // Blocks not walked hold no samples (their rays are past the budget).
+    for indices in &mut workspace.blocks[walked_blocks..blocks] {
+        indices.clear();
+    }
 
     // Offsets, keeping rays while they fit the budget.
     out.ray_offsets.clear();
@@ -1011,6 +1160,16 @@ mod tests {
                 &mut out,
             );
             assert!(all_finite(&out));
+            // The march jumped over empty blocks: the grid has both kinds.
+            let mut coarse = Vec::new();
+            assert!(coarse_occupancy(
+                &grid.geometry(),
+                grid.bitfield(),
+                &mut coarse
+            ));
+            let occupied_blocks: u32 = coarse.iter().map(|w| w.count_ones()).sum();
+            let blocks = grid.values().len() / (COARSE * COARSE * COARSE) as usize;
+            assert!(occupied_blocks > 0 && (occupied_blocks as usize) < blocks);
             let marcher = Marcher::new(&grid, &params.config, &mapping);
             let mut total_naive = 0;
             for r in 0..400 {
@@ -1136,6 +1295,56 @@ mod tests {
             &mut again,
         );
         assert_eq!(again, full);
+    }
+
+    #[test]
+    fn rays_past_the_budget_are_not_walked_and_nothing_else_changes() {
+        // Many waves of blocks, and a budget met within the second wave.
+        let rays = 5 * WAVE_BLOCKS * RAYS_PER_BLOCK;
+        let grid = random_grid(1, 5);
+        let (origins, directions) = random_rays(rays, 5);
+        let params = MarchParams::training(BLENDER, 9);
+        let mut full = MarchedSamples::default();
+        march(
+            &grid,
+            &origins,
+            &directions,
+            &params,
+            &mut MarchWorkspace::default(),
+            &mut full,
+        );
+        let budget = full.ray_offsets[WAVE_BLOCKS * RAYS_PER_BLOCK + 100] as usize + 1;
+        let mut workspace = MarchWorkspace::default();
+        let mut cut = MarchedSamples::default();
+        let stats = march(
+            &grid,
+            &origins,
+            &directions,
+            &MarchParams {
+                sample_budget: budget,
+                ..params
+            },
+            &mut workspace,
+            &mut cut,
+        );
+        let kept = stats.rays_kept;
+        assert_eq!(stats.rays, rays);
+        assert!(full.ray_offsets[kept + 1] as usize > budget);
+        assert_eq!(full.ray_offsets[kept] as usize, stats.samples);
+        assert_eq!(cut.ray_offsets[..=kept], full.ray_offsets[..=kept]);
+        assert!(
+            cut.ray_offsets[kept..]
+                .iter()
+                .all(|&o| o as usize == stats.samples)
+        );
+        assert_eq!(cut.positions[..], full.positions[..3 * stats.samples]);
+        assert_eq!(cut.t[..], full.t[..stats.samples]);
+        // Only the first two waves were walked.
+        let walked = workspace.rays.iter().filter(|r| r.is_some()).count();
+        assert!(
+            walked <= 2 * WAVE_BLOCKS * RAYS_PER_BLOCK,
+            "{walked} rays walked"
+        );
     }
 
     #[test]

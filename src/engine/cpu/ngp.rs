@@ -9,12 +9,14 @@ use std::ops::Range;
 use std::time::Instant;
 
 use glam::Vec3;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::adam::Adam;
 use super::composite_batch::{self, CompositeGradients, CompositeOutputs};
 use super::dense::{
     MlpLayout, MlpWorkspace, mlp_backward, mlp_backward_columns, mlp_forward, mlp_inference,
+    mlp_inference_leading,
 };
 use super::hash_grid::{self, HashGridLayout};
 use super::loss::loss_and_gradient;
@@ -76,27 +78,37 @@ impl NgpShape {
         self.colour_range().end
     }
 
-    /// Inference of σ at unit-cube positions (n × 3).
-    fn density(&self, params: &[f32], positions: &[f32], sigma: &mut [f32]) {
+    /// Inference of σ at unit-cube positions (n × 3), with the hash
+    /// features kept in `encoded` and `scratch` (grown as needed, reused
+    /// between calls). Only output 0 (log-density) of the density network
+    /// is computed: the same bits as that output of the full forward pass.
+    fn density(
+        &self,
+        params: &[f32],
+        positions: &[f32],
+        sigma: &mut [f32],
+        encoded: &mut Vec<f32>,
+        scratch: &mut Vec<f32>,
+    ) {
         let n = sigma.len();
-        let mut encoded = vec![0f32; n * self.grid.output_width()];
-        let mut raw = vec![0f32; n * self.density.output_width()];
-        hash_grid::encode(
+        set_len(encoded, n * self.grid.output_width());
+        hash_grid::encode_with_scratch(
             &self.grid,
             &params[self.grid_range()],
             bytemuck::cast_slice(positions),
-            &mut encoded,
+            encoded,
+            scratch,
         );
-        mlp_inference(
+        mlp_inference_leading(
             &self.density,
             &params[self.density_range()],
-            &encoded,
+            encoded,
             n,
-            &mut raw,
+            sigma,
+            1,
         );
-        let width = self.density.output_width();
-        for (s, row) in sigma.iter_mut().zip(raw.chunks_exact(width)) {
-            *s = density_activation(row[0]);
+        for s in sigma.iter_mut() {
+            *s = density_activation(*s);
         }
     }
 
@@ -165,8 +177,16 @@ struct StepBuffers {
     directions: Vec<f32>,
     samples: MarchedSamples,
     march: MarchWorkspace,
+    /// Hash features of every marched sample (S × L·F).
     encoded: Vec<f32>,
     encode_scratch: Vec<f32>,
+    /// σ of every marched sample (S), to find where each ray's
+    /// compositing stops.
+    sigma_marched: Vec<f32>,
+    /// The samples before each ray's cut, gathered ("compacted"): U of the
+    /// S marched samples. Colour and every gradient are computed for
+    /// these only.
+    used: CompactSamples,
     density_out: Vec<f32>,
     sigma: Vec<f32>,
     colour_input: Vec<f32>,
@@ -185,9 +205,44 @@ struct StepBuffers {
     gradients: Vec<f32>,
 }
 
-fn resize(v: &mut Vec<f32>, n: usize) {
-    v.clear();
-    v.resize(n, 0.0);
+/// Sets the length of a buffer that is about to be overwritten in full:
+/// only growth is zero-filled.
+fn set_len<T: Copy + Default>(v: &mut Vec<T>, n: usize) {
+    v.truncate(n);
+    v.resize(n, T::default());
+}
+
+/// The samples of a batch that compositing uses (those before each ray's
+/// transmittance cut), in ray order, gathered from the marched samples.
+#[derive(Default)]
+struct CompactSamples {
+    /// Index of each used sample among the marched ones (U).
+    source: Vec<u32>,
+    /// R + 1 offsets of the rays into the used samples.
+    ray_offsets: Vec<u32>,
+    /// U × L·F hash features.
+    encoded: Vec<f32>,
+    /// U × 3 unit-cube positions.
+    positions: Vec<f32>,
+    /// U × 3 world directions.
+    directions: Vec<f32>,
+    dt: Vec<f32>,
+    t: Vec<f32>,
+}
+
+/// Rows per rayon task in the element-wise passes of the step.
+const ROWS_PER_TASK: usize = 4096;
+
+/// Rows of `src` (`width` values each) picked by `rows`, into `dst`.
+fn gather_rows(src: &[f32], width: usize, rows: &[u32], dst: &mut Vec<f32>) {
+    set_len(dst, rows.len() * width);
+    dst.par_chunks_mut(ROWS_PER_TASK * width)
+        .zip(rows.par_chunks(ROWS_PER_TASK))
+        .for_each(|(dst, rows)| {
+            for (out, &row) in dst.chunks_exact_mut(width).zip(rows) {
+                out.copy_from_slice(&src[row as usize * width..][..width]);
+            }
+        });
 }
 
 /// What the checkpoint header holds for Instant-NGP, on either engine, so
@@ -308,10 +363,11 @@ impl CpuNgp {
         let s = marched.samples;
         times.march = clock.elapsed().as_secs_f64();
 
-        // Encode and networks forward.
+        // Encode every marched sample: its density decides where the ray's
+        // compositing stops.
         let clock = Instant::now();
         let grid_width = shape.grid.output_width();
-        resize(&mut b.encoded, s * grid_width);
+        set_len(&mut b.encoded, s * grid_width);
         hash_grid::encode_with_scratch(
             &shape.grid,
             &self.params[shape.grid_range()],
@@ -321,51 +377,105 @@ impl CpuNgp {
         );
         times.encode = clock.elapsed().as_secs_f64();
 
+        // σ of every sample (output 0 of the density network only), the
+        // cut of each ray, and the samples before it gathered. After the
+        // cut a sample's colour is never read and every gradient through it
+        // is exactly zero, so the colour network and all backward passes
+        // run on the used samples only (instant-ngp's compaction).
         let clock = Instant::now();
-        let density_width = shape.density.output_width();
-        let colour_width = shape.colour.input_width();
-        resize(&mut b.density_out, s * density_width);
-        self.density_workspace.reserve(s);
-        mlp_forward(
+        let min_transmittance = MarchConfig::PAPER.min_transmittance;
+        set_len(&mut b.sigma_marched, s);
+        mlp_inference_leading(
             &shape.density,
             &self.params[shape.density_range()],
             &b.encoded,
             s,
+            &mut b.sigma_marched,
+            1,
+        );
+        b.sigma_marched
+            .par_chunks_mut(ROWS_PER_TASK)
+            .for_each(|chunk| {
+                for sigma in chunk {
+                    *sigma = density_activation(*sigma);
+                }
+            });
+        set_len(&mut b.samples_used, kept);
+        composite_batch::samples_before_cut(
+            &b.sigma_marched,
+            &b.samples.dt,
+            &b.samples.ray_offsets[..kept + 1],
+            min_transmittance,
+            &mut b.samples_used,
+        );
+        let used = &mut b.used;
+        used.source.clear();
+        used.ray_offsets.clear();
+        used.ray_offsets.push(0);
+        for (r, &count) in b.samples_used.iter().enumerate() {
+            let first = b.samples.ray_offsets[r];
+            used.source.extend(first..first + count);
+            used.ray_offsets.push(used.source.len() as u32);
+        }
+        let u = used.source.len();
+        gather_rows(&b.encoded, grid_width, &used.source, &mut used.encoded);
+        gather_rows(&b.samples.positions, 3, &used.source, &mut used.positions);
+        gather_rows(&b.samples.directions, 3, &used.source, &mut used.directions);
+        gather_rows(&b.samples.dt, 1, &used.source, &mut used.dt);
+        gather_rows(&b.samples.t, 1, &used.source, &mut used.t);
+
+        // Networks forward on the used samples.
+        let density_width = shape.density.output_width();
+        let colour_width = shape.colour.input_width();
+        set_len(&mut b.density_out, u * density_width);
+        self.density_workspace.reserve(u);
+        mlp_forward(
+            &shape.density,
+            &self.params[shape.density_range()],
+            &used.encoded,
+            u,
             &mut self.density_workspace,
             &mut b.density_out,
         );
-        resize(&mut b.sigma, s);
-        resize(&mut b.colour_input, s * colour_width);
-        for ((sigma, row), input) in b
-            .sigma
-            .iter_mut()
-            .zip(b.density_out.chunks_exact(density_width))
-            .zip(b.colour_input.chunks_exact_mut(colour_width))
-        {
-            *sigma = density_activation(row[0]);
-            input[..density_width].copy_from_slice(row);
-        }
+        set_len(&mut b.sigma, u);
+        set_len(&mut b.colour_input, u * colour_width);
+        b.sigma
+            .par_chunks_mut(ROWS_PER_TASK)
+            .zip(b.density_out.par_chunks(ROWS_PER_TASK * density_width))
+            .zip(b.colour_input.par_chunks_mut(ROWS_PER_TASK * colour_width))
+            .for_each(|((sigma, rows), inputs)| {
+                for ((sigma, row), input) in sigma
+                    .iter_mut()
+                    .zip(rows.chunks_exact(density_width))
+                    .zip(inputs.chunks_exact_mut(colour_width))
+                {
+                    *sigma = density_activation(row[0]);
+                    input[..density_width].copy_from_slice(row);
+                }
+            });
         sh_encode(
             shape.network.sh_degree,
-            &b.samples.directions,
-            s,
+            &used.directions,
+            u,
             // Empty when the batch has no samples (an empty grid).
             b.colour_input.get_mut(density_width..).unwrap_or_default(),
             colour_width,
         );
-        resize(&mut b.rgb, s * 3);
-        self.colour_workspace.reserve(s);
+        set_len(&mut b.rgb, u * 3);
+        self.colour_workspace.reserve(u);
         mlp_forward(
             &shape.colour,
             &self.params[shape.colour_range()],
             &b.colour_input,
-            s,
+            u,
             &mut self.colour_workspace,
             &mut b.rgb,
         );
         times.networks_forward = clock.elapsed().as_secs_f64();
 
-        // Composite, loss, composite backward (rays that fitted the budget).
+        // Composite, loss, composite backward (rays that fitted the budget,
+        // samples before the cut: compositing them gives what compositing
+        // all marched samples with the cut gives, bit for bit).
         let clock = Instant::now();
         b.backgrounds.clear();
         b.targets.clear();
@@ -376,17 +486,14 @@ impl CpuNgp {
         let ray_batch = composite_batch::RayBatch {
             density: &b.sigma,
             rgb: &b.rgb,
-            dt: &b.samples.dt,
-            t: &b.samples.t,
-            ray_offsets: &b.samples.ray_offsets[..kept + 1],
+            dt: &used.dt,
+            t: &used.t,
+            ray_offsets: &used.ray_offsets,
             background: &b.backgrounds,
         };
-        resize(&mut b.ray_rgb, kept * 3);
-        resize(&mut b.ray_opacity, kept);
-        resize(&mut b.ray_depth, kept);
-        b.samples_used.clear();
-        b.samples_used.resize(kept, 0);
-        let min_transmittance = MarchConfig::PAPER.min_transmittance;
+        set_len(&mut b.ray_rgb, kept * 3);
+        set_len(&mut b.ray_opacity, kept);
+        set_len(&mut b.ray_depth, kept);
         composite_batch::composite_forward(
             &ray_batch,
             min_transmittance,
@@ -397,10 +504,10 @@ impl CpuNgp {
                 samples_used: &mut b.samples_used,
             },
         );
-        resize(&mut b.d_ray_rgb, kept * 3);
+        set_len(&mut b.d_ray_rgb, kept * 3);
         let loss = loss_and_gradient(self.loss, &b.ray_rgb, &b.targets, &mut b.d_ray_rgb);
-        resize(&mut b.d_sigma, s);
-        resize(&mut b.d_rgb, s * 3);
+        set_len(&mut b.d_sigma, u);
+        set_len(&mut b.d_rgb, u * 3);
         composite_batch::composite_backward(
             &ray_batch,
             min_transmittance,
@@ -415,17 +522,21 @@ impl CpuNgp {
 
         // Networks backward.
         let clock = Instant::now();
-        resize(&mut b.gradients, self.params.len());
+        // The networks' backward passes add to their gradients, which are
+        // cleared here; the hash grid's backward writes its own (most of the
+        // vector) in parallel.
+        set_len(&mut b.gradients, self.params.len());
         let (grid_grad, network_grad) = b.gradients.split_at_mut(shape.grid.param_count());
+        network_grad.fill(0.0);
         let (density_grad, colour_grad) = network_grad.split_at_mut(shape.density.param_count());
         // The colour network's input gradient is wanted for its density
         // features only (the first columns), not for the direction encoding.
-        resize(&mut b.d_density_out, s * density_width);
+        set_len(&mut b.d_density_out, u * density_width);
         mlp_backward_columns(
             &shape.colour,
             &self.params[shape.colour_range()],
             &b.colour_input,
-            s,
+            u,
             &mut self.colour_workspace,
             &b.d_rgb,
             colour_grad,
@@ -444,12 +555,12 @@ impl CpuNgp {
                 d_out[0] += d_sigma * sigma;
             }
         }
-        resize(&mut b.d_encoded, s * grid_width);
+        set_len(&mut b.d_encoded, u * grid_width);
         mlp_backward(
             &shape.density,
             &self.params[shape.density_range()],
-            &b.encoded,
-            s,
+            &used.encoded,
+            u,
             &mut self.density_workspace,
             &b.d_density_out,
             density_grad,
@@ -458,9 +569,9 @@ impl CpuNgp {
         times.networks_backward = clock.elapsed().as_secs_f64();
 
         let clock = Instant::now();
-        hash_grid::encode_backward_with_scratch(
+        hash_grid::encode_gradient_with_scratch(
             &shape.grid,
-            bytemuck::cast_slice(&b.samples.positions),
+            bytemuck::cast_slice(&used.positions),
             &b.d_encoded,
             grid_grad,
             &mut b.encode_scratch,
@@ -503,13 +614,17 @@ impl CpuNgp {
     fn update_grid(&mut self, step: u32) {
         let shape = &self.shape;
         let params = &self.params;
+        // The step's encoding buffers serve as the update's: the grid asks
+        // for densities in chunks of a training batch at most.
+        let b = &mut self.buffers;
         self.grid.update(step, self.seed, |positions, sigma| {
-            for (p, s) in positions
-                .chunks(3 * INFERENCE_CHUNK)
-                .zip(sigma.chunks_mut(INFERENCE_CHUNK))
-            {
-                shape.density(params, p, s);
-            }
+            shape.density(
+                params,
+                positions,
+                sigma,
+                &mut b.encoded,
+                &mut b.encode_scratch,
+            );
         });
     }
 }
@@ -606,6 +721,12 @@ impl RadianceModel for CpuNgp {
                 &b.directions,
                 &b.encoded,
                 &b.encode_scratch,
+                &b.sigma_marched,
+                &b.used.encoded,
+                &b.used.positions,
+                &b.used.directions,
+                &b.used.dt,
+                &b.used.t,
                 &b.density_out,
                 &b.sigma,
                 &b.colour_input,

@@ -6,7 +6,9 @@ use std::ops::Range;
 
 use super::composite::grid;
 use super::context::{GpuContext, GpuError};
-use super::kernel::{Kernel, read_buffer, storage_buffer, uniform_buffer};
+use super::kernel::{
+    Kernel, float_range, pieces, read_buffer, rows_per_piece, storage_buffer, uniform_buffer,
+};
 use crate::engine::cpu::adam::Adam;
 use crate::field::ngp::OptimiserConfig;
 
@@ -51,15 +53,8 @@ impl GpuAdam {
     /// The GPU copy of a cpu state (a fresh one, or one from a checkpoint).
     pub fn from_state(context: &GpuContext, state: &Adam) -> Result<Self, GpuError> {
         let count = state.len();
-        let bytes = (count * 4) as u64;
-        let limit = context.limits.max_storage_buffer_binding_size;
-        // One binding per array; larger parameter sets would need the
-        // arrays split across bindings (instant-ngp's 16.8 M parameters
-        // take 64 MiB, half of lavapipe's and most GPUs' 128 MiB).
-        assert!(
-            bytes <= limit,
-            "{count} parameters ({bytes} bytes) exceed the adapter's storage binding limit of {limit} bytes"
-        );
+        // Arrays larger than the storage-binding limit are updated a piece
+        // at a time (`record_step`).
         Ok(Self {
             kernel: Kernel::new(
                 context,
@@ -109,36 +104,44 @@ impl GpuAdam {
         gradients: &wgpu::Buffer,
     ) {
         assert!(network_weights.start <= network_weights.end && network_weights.end <= self.count);
-        let (groups, row_stride) = grid(self.count, WORKGROUP);
-        let uniform = Params {
-            count: self.count as u32,
-            row_stride,
-            network_start: network_weights.start as u32,
-            network_end: network_weights.end as u32,
-            learning_rate: config.learning_rate_at(self.step),
-            beta1: config.beta1,
-            beta2: config.beta2,
-            one_minus_beta1: 1.0 - config.beta1,
-            one_minus_beta2: 1.0 - config.beta2,
-            epsilon: config.epsilon,
-            l2: config.l2_weights,
-            _pad: 0,
-        };
+        let learning_rate = config.learning_rate_at(self.step);
         self.step += 1;
-        let uniform = uniform_buffer(context, "adam params", &uniform);
-        self.kernel.record(
-            context,
-            encoder,
-            &[
-                &uniform,
-                params,
-                gradients,
-                &self.m,
-                &self.v,
-                &self.m_norm,
-                &self.v_norm,
-            ],
-            groups,
-        );
+        // Every array is bound a piece at a time when it exceeds the
+        // storage-binding limit; each element's update is independent.
+        let per = rows_per_piece(context, 1, 1);
+        for piece in pieces(self.count, per) {
+            let (groups, row_stride) = grid(piece.len(), WORKGROUP);
+            let relative = |i: usize| i.clamp(piece.start, piece.end) - piece.start;
+            let uniform = Params {
+                count: piece.len() as u32,
+                row_stride,
+                network_start: relative(network_weights.start) as u32,
+                network_end: relative(network_weights.end) as u32,
+                learning_rate,
+                beta1: config.beta1,
+                beta2: config.beta2,
+                one_minus_beta1: 1.0 - config.beta1,
+                one_minus_beta2: 1.0 - config.beta2,
+                epsilon: config.epsilon,
+                l2: config.l2_weights,
+                _pad: 0,
+            };
+            let uniform = uniform_buffer(context, "adam params", &uniform);
+            let range = |buffer| float_range(buffer, piece.start, piece.len());
+            self.kernel.record_bindings(
+                context,
+                encoder,
+                &[
+                    uniform.as_entire_buffer_binding(),
+                    range(params),
+                    range(gradients),
+                    range(&self.m),
+                    range(&self.v),
+                    range(&self.m_norm),
+                    range(&self.v_norm),
+                ],
+                groups,
+            );
+        }
     }
 }

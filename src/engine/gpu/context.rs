@@ -10,6 +10,9 @@ pub const WANTED_FEATURES: Features = Features::SHADER_FLOAT32_ATOMIC
     .union(Features::TIMESTAMP_QUERY)
     .union(Features::SHADER_F16);
 
+/// Storage buffers one kernel binds at most (`composite_forward.wgsl`).
+pub const REQUIRED_STORAGE_BUFFERS: u32 = 10;
+
 /// Why no GPU context could be made.
 #[derive(Debug, thiserror::Error)]
 pub enum GpuError {
@@ -21,6 +24,22 @@ pub enum GpuError {
     NoAdapter { backends: Backends },
     #[error("WGSL kernel `{name}` failed to compile: {message}")]
     Shader { name: String, message: String },
+    #[error(
+        "{what} needs one storage binding of {bytes} bytes, over the device's limit of {limit} \
+         bytes (max_storage_buffer_binding_size), and cannot be split further"
+    )]
+    BindingTooLarge {
+        what: String,
+        bytes: u64,
+        limit: u64,
+    },
+    #[error(
+        "the device lacks limits or features the engine needs: {missing}; create it with the \
+         adapter's limits (`adapter.limits()`) and `GpuContext::device_descriptor(&adapter)`"
+    )]
+    DeviceTooSmall { missing: String },
+    #[error("cannot render into this texture: {0}")]
+    RenderTarget(String),
     #[error("the adapter {adapter} refused to create a device: {source}")]
     RequestDevice {
         adapter: String,
@@ -85,14 +104,7 @@ impl GpuContext {
     /// it supports.
     pub fn on_adapter(adapter: Adapter) -> Result<Self, GpuError> {
         let info = adapter.get_info();
-        let features = adapter.features() & WANTED_FEATURES;
-        let limits = adapter.limits();
-        let descriptor = wgpu::DeviceDescriptor {
-            label: Some("zrak"),
-            required_features: features,
-            required_limits: limits.clone(),
-            ..Default::default()
-        };
+        let descriptor = Self::device_descriptor(&adapter);
         let (device, queue) =
             pollster::block_on(adapter.request_device(&descriptor)).map_err(|source| {
                 GpuError::RequestDevice {
@@ -100,14 +112,79 @@ impl GpuContext {
                     source,
                 }
             })?;
+        Self::from_existing(&adapter, device, queue)
+    }
+
+    /// The device the engine wants on `adapter`: the adapter's own limits
+    /// and every feature of [`WANTED_FEATURES`] it has. A program that
+    /// makes the device itself (eframe: `WgpuSetupCreateNew::
+    /// device_descriptor`) asks for this, then hands the device to
+    /// [`Self::from_existing`].
+    pub fn device_descriptor(adapter: &Adapter) -> wgpu::DeviceDescriptor<'static> {
+        wgpu::DeviceDescriptor {
+            label: Some("zrak"),
+            required_features: adapter.features() & WANTED_FEATURES,
+            required_limits: adapter.limits(),
+            ..Default::default()
+        }
+    }
+
+    /// A context on a device made elsewhere (e.g. eframe's, from
+    /// `egui_wgpu::RenderState`), so the engine's textures can be drawn
+    /// there. The device must have at least [`REQUIRED_STORAGE_BUFFERS`]
+    /// storage buffers per shader stage (wgpu's default limits allow 8:
+    /// create it with the adapter's limits, [`Self::device_descriptor`]);
+    /// the optional features it has are used, and the engine plans with the
+    /// device's limits.
+    pub fn from_existing(
+        adapter: &Adapter,
+        device: Device,
+        queue: Queue,
+    ) -> Result<Self, GpuError> {
+        let limits = device.limits();
+        let mut missing = Vec::new();
+        if limits.max_storage_buffers_per_shader_stage < REQUIRED_STORAGE_BUFFERS {
+            missing.push(format!(
+                "max_storage_buffers_per_shader_stage {} < {REQUIRED_STORAGE_BUFFERS}",
+                limits.max_storage_buffers_per_shader_stage
+            ));
+        }
+        if limits.max_storage_textures_per_shader_stage < 1 {
+            missing.push("max_storage_textures_per_shader_stage 0 < 1".into());
+        }
+        if limits.max_compute_invocations_per_workgroup < 256 {
+            missing.push(format!(
+                "max_compute_invocations_per_workgroup {} < 256",
+                limits.max_compute_invocations_per_workgroup
+            ));
+        }
+        if !missing.is_empty() {
+            return Err(GpuError::DeviceTooSmall {
+                missing: missing.join(", "),
+            });
+        }
         Ok(Self {
-            adapter,
+            adapter: adapter.clone(),
+            features: device.features() & WANTED_FEATURES,
+            info: adapter.get_info(),
             device,
             queue,
-            info,
-            features,
             limits,
         })
+    }
+
+    /// Lowers the storage-binding limit the engine plans with (never
+    /// raises it), so buffers larger than `bytes` are bound and processed a
+    /// piece at a time. For tests that exercise that splitting on a device
+    /// whose real limit is large; the device itself is unchanged.
+    pub fn cap_storage_binding_size(&mut self, bytes: u64) {
+        let limit = &mut self.limits.max_storage_buffer_binding_size;
+        *limit = (*limit).min(bytes);
+    }
+
+    /// The largest storage binding the engine plans with.
+    pub fn storage_binding_limit(&self) -> u64 {
+        self.limits.max_storage_buffer_binding_size
     }
 
     /// True when the adapter is a software rasteriser (e.g. Mesa lavapipe or

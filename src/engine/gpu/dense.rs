@@ -11,20 +11,20 @@
 //! deterministic.
 //!
 //! Storage bindings are limited (128 MiB on lavapipe and many GPUs). A
-//! 2^18 × 64 f32 activation is 64 MiB and fits; every buffer bound here is
-//! checked against the device's limit. A layer whose activations do not fit
-//! (2^18 rows × 256 wide = 256 MiB) would be split by rows: the kernels
-//! address rows relative to the binding, so the same dispatches run over
-//! row ranges of at most limit / (width · 4) rows, each with sub-range
-//! bindings (256-byte aligned offsets) of the same buffers, and the weight
-//! gradients' chunk partials from all ranges are reduced together. That
-//! needs bindings of buffer ranges, which `Kernel::record` does not offer
-//! yet; the weight-gradient partials already adapt their chunk size to stay
-//! under the limit.
+//! 2^18 × 64 f32 activation is 64 MiB and fits; larger ones (2^18 rows ×
+//! 256 wide = 256 MiB) are split by rows: the kernels address rows relative
+//! to the binding, so the same dispatches run over pieces of rows that fit
+//! the limit, each binding its rows of the same buffers (offsets multiples
+//! of 64 rows, so 256-byte aligned). Backward, each piece writes its
+//! weight-gradient partial sums after the previous piece's (pieces start
+//! on chunk boundaries) and one reduction adds them all in chunk order:
+//! the gradients are bit for bit those of the unsplit batch. The partials
+//! adapt their chunk size to stay under the limit.
 
 use super::context::{GpuContext, GpuError};
 use super::kernel::{
-    Kernel, groups_for, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer,
+    Kernel, float_range, groups_for, pieces, read_buffer, rows_per_piece, storage_buffer,
+    uniform_buffer, zeroed_storage_buffer,
 };
 use crate::engine::cpu::dense::{Activation, MlpLayout};
 use crate::field::ngp::DENSITY_EXP_CLAMP;
@@ -52,7 +52,8 @@ struct LayerUniform {
     rows_per_chunk: u32,
     chunks: u32,
     exp_clamp: f32,
-    _pad: [u32; 3],
+    first_chunk: u32,
+    _pad: [u32; 2],
 }
 
 const NO_BIAS: u32 = u32::MAX;
@@ -89,11 +90,8 @@ pub struct GpuMlpWorkspace {
 
 impl GpuMlpWorkspace {
     pub fn new(context: &GpuContext, layout: &MlpLayout, capacity: usize) -> Self {
-        let limit = context.limits.max_storage_buffer_binding_size as usize;
+        let limit = context.storage_binding_limit() as usize;
         let max_width = *layout.widths.iter().max().expect("widths");
-        for &w in &layout.widths {
-            check_binding(limit, capacity * w, "an activation");
-        }
         let largest_matrix = (0..layout.layers())
             .map(|l| layout.widths[l + 1] * (layout.widths[l] + 1))
             .max()
@@ -154,15 +152,6 @@ impl GpuMlpWorkspace {
     }
 }
 
-fn check_binding(limit: usize, floats: usize, what: &str) {
-    assert!(
-        floats * 4 <= limit,
-        "{what} of {} MiB exceeds the {} MiB storage-binding limit: split the batch by rows",
-        (floats * 4) >> 20,
-        limit >> 20
-    );
-}
-
 impl GpuDense {
     pub fn new(context: &GpuContext) -> Result<Self, GpuError> {
         let kernel = |name: &str, source: &str| {
@@ -204,7 +193,8 @@ impl GpuDense {
             rows_per_chunk: chunking.0 as u32,
             chunks: chunking.1 as u32,
             exp_clamp: DENSITY_EXP_CLAMP,
-            _pad: [0; 3],
+            first_chunk: 0,
+            _pad: [0; 2],
         }
     }
 
@@ -229,17 +219,25 @@ impl GpuDense {
         output: &wgpu::Buffer,
         rows: usize,
     ) {
-        let uniform = uniform_buffer(
-            context,
-            "dense layer",
-            &Self::uniform(layout, layer, rows, (0, 0)),
-        );
-        self.forward.record(
-            context,
-            encoder,
-            &[&uniform, params, input, output],
-            Self::row_groups(layout.widths[layer + 1], rows),
-        );
+        let (in_w, out_w) = (layout.widths[layer], layout.widths[layer + 1]);
+        for piece in pieces(rows, rows_per_piece(context, in_w.max(out_w), 1)) {
+            let uniform = uniform_buffer(
+                context,
+                "dense layer",
+                &Self::uniform(layout, layer, piece.len(), (0, 0)),
+            );
+            self.forward.record_bindings(
+                context,
+                encoder,
+                &[
+                    uniform.as_entire_buffer_binding(),
+                    params.as_entire_buffer_binding(),
+                    float_range(input, in_w * piece.start, in_w * piece.len()),
+                    float_range(output, out_w * piece.start, out_w * piece.len()),
+                ],
+                Self::row_groups(out_w, piece.len()),
+            );
+        }
     }
 
     /// Records the forward pass of every layer; each layer's output lands in
@@ -300,14 +298,13 @@ impl GpuDense {
             workspace.capacity
         );
         let layout = &workspace.layout;
-        let chunking = workspace.chunking(rows);
+        let (rows_per_chunk, chunks) = workspace.chunking(rows);
+        // Pieces of whole chunks whose rows of every matrix bound below
+        // (input, output and their gradients) fit one binding.
+        let max_width = *layout.widths.iter().max().expect("widths");
+        let per = rows_per_piece(context, max_width, rows_per_chunk);
         let mut d_y = d_output;
         for layer in (0..layout.layers()).rev() {
-            let uniform = uniform_buffer(
-                context,
-                "dense layer",
-                &Self::uniform(layout, layer, rows, chunking),
-            );
             let (in_w, out_w) = (layout.widths[layer], layout.widths[layer + 1]);
             let x = if layer == 0 {
                 input
@@ -316,15 +313,40 @@ impl GpuDense {
             };
             let y = &workspace.activations[layer];
             let columns = in_w + usize::from(layout.bias);
-            self.backward_weights.record(
+            let piece_uniform = |piece: &std::ops::Range<usize>| {
+                let mut uniform = Self::uniform(
+                    layout,
+                    layer,
+                    piece.len(),
+                    (rows_per_chunk, piece.len().div_ceil(rows_per_chunk).max(1)),
+                );
+                uniform.first_chunk = (piece.start / rows_per_chunk) as u32;
+                uniform
+            };
+            for piece in pieces(rows, per) {
+                let uniform = piece_uniform(&piece);
+                let bound = uniform_buffer(context, "dense layer", &uniform);
+                self.backward_weights.record_bindings(
+                    context,
+                    encoder,
+                    &[
+                        bound.as_entire_buffer_binding(),
+                        float_range(d_y, out_w * piece.start, out_w * piece.len()),
+                        float_range(y, out_w * piece.start, out_w * piece.len()),
+                        float_range(x, in_w * piece.start, in_w * piece.len()),
+                        workspace.partials.as_entire_buffer_binding(),
+                    ],
+                    [
+                        groups_for(columns, TILE as u32),
+                        groups_for(out_w, TILE as u32),
+                        uniform.chunks,
+                    ],
+                );
+            }
+            let uniform = uniform_buffer(
                 context,
-                encoder,
-                &[&uniform, d_y, y, x, &workspace.partials],
-                [
-                    groups_for(columns, TILE as u32),
-                    groups_for(out_w, TILE as u32),
-                    chunking.1 as u32,
-                ],
+                "dense layer",
+                &Self::uniform(layout, layer, rows, (rows_per_chunk, chunks)),
             );
             self.reduce.record(
                 context,
@@ -338,12 +360,21 @@ impl GpuDense {
                 d_input
             };
             if let Some(d_x) = d_x {
-                self.backward_input.record(
-                    context,
-                    encoder,
-                    &[&uniform, params, d_y, y, d_x],
-                    Self::row_groups(in_w, rows),
-                );
+                for piece in pieces(rows, per) {
+                    let uniform = uniform_buffer(context, "dense layer", &piece_uniform(&piece));
+                    self.backward_input.record_bindings(
+                        context,
+                        encoder,
+                        &[
+                            uniform.as_entire_buffer_binding(),
+                            params.as_entire_buffer_binding(),
+                            float_range(d_y, out_w * piece.start, out_w * piece.len()),
+                            float_range(y, out_w * piece.start, out_w * piece.len()),
+                            float_range(d_x, in_w * piece.start, in_w * piece.len()),
+                        ],
+                        Self::row_groups(in_w, piece.len()),
+                    );
+                }
                 d_y = d_x;
             }
         }

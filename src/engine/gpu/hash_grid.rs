@@ -9,7 +9,12 @@
 //! f32 values; the order of additions varies from run to run either way.
 
 use super::context::{GpuContext, GpuError};
-use super::kernel::{Kernel, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer};
+use std::ops::Range;
+
+use super::kernel::{
+    Kernel, float_range, pieces, read_buffer, rows_per_piece, storage_buffer, uniform_buffer,
+    zeroed_storage_buffer,
+};
 use crate::engine::cpu::hash_grid::HashGridLayout;
 
 /// Threads per workgroup in the hash kernels (WORKGROUP in hash_common.wgsl).
@@ -32,6 +37,61 @@ struct Params {
     features: u32,
     width: u32,
     groups_x: u32,
+    // The dispatch covers levels first_level.. (workgroup y counts from
+    // there), and the table binding starts at parameter table_base.
+    first_level: u32,
+    table_base: u32,
+    _pad: [u32; 2],
+}
+
+/// Levels whose tables are bound together: `params[base..base + len]`
+/// covers them all, `base` rounded down to the device's offset alignment.
+#[derive(Debug, Clone, PartialEq)]
+struct LevelGroup {
+    levels: Range<u32>,
+    base: usize,
+    len: usize,
+}
+
+/// Splits the table into groups of consecutive levels whose parameters
+/// fit one storage binding of `limit` bytes, each starting at a multiple
+/// of `alignment` bytes.
+fn level_groups(
+    layout: &HashGridLayout,
+    limit: u64,
+    alignment: u64,
+) -> Result<Vec<LevelGroup>, GpuError> {
+    let features = layout.features();
+    let align_floats = (alignment / 4).max(1) as usize;
+    let span = |level: &crate::engine::cpu::hash_grid::LevelLayout| {
+        level.offset * features..(level.offset + level.entries) * features
+    };
+    let mut groups: Vec<LevelGroup> = Vec::new();
+    for (l, level) in layout.levels().iter().enumerate() {
+        let range = span(level);
+        if let Some(group) = groups.last_mut()
+            && ((range.end - group.base) * 4) as u64 <= limit
+        {
+            group.levels.end = l as u32 + 1;
+            group.len = range.end - group.base;
+            continue;
+        }
+        let base = range.start / align_floats * align_floats;
+        let len = range.end - base;
+        if (len * 4) as u64 > limit {
+            return Err(GpuError::BindingTooLarge {
+                what: format!("hash-grid level {l} ({} entries)", level.entries),
+                bytes: (len * 4) as u64,
+                limit,
+            });
+        }
+        groups.push(LevelGroup {
+            levels: l as u32..l as u32 + 1,
+            base,
+            len,
+        });
+    }
+    Ok(groups)
 }
 
 /// `Level` in hash_common.wgsl.
@@ -49,7 +109,9 @@ pub struct GpuHashGrid {
     encode: Kernel,
     backward: Kernel,
     levels: wgpu::Buffer,
-    level_count: u32,
+    /// Levels bound together (one group unless the table exceeds the
+    /// storage-binding limit).
+    groups: Vec<LevelGroup>,
     features: u32,
     width: u32,
     param_count: usize,
@@ -63,21 +125,23 @@ impl GpuHashGrid {
     /// compare-and-swap fallback. [`GpuHashGrid::uses_float_atomics`] says
     /// which was chosen.
     ///
-    /// The whole parameter array is one storage binding, so it must fit the
-    /// device's binding limit: the paper's grid takes at most 64 MiB
-    /// (16 levels × 2^19 entries × 2 features × 4 B) against at least
-    /// 128 MiB on every adapter wgpu exposes with its own limits.
+    /// The paper's grid takes at most 64 MiB (16 levels × 2^19 entries ×
+    /// 2 features × 4 B), one binding on any adapter wgpu exposes with its
+    /// own limits (at least 128 MiB). A table over the device's
+    /// storage-binding limit is bound as groups of levels, one dispatch per
+    /// group; only a single level over the limit is refused. Batches whose
+    /// positions or encodings exceed the limit are processed in pieces of
+    /// samples.
     pub fn new(
         context: &GpuContext,
         layout: &HashGridLayout,
         use_float_atomics: bool,
     ) -> Result<Self, GpuError> {
-        let param_bytes = (layout.param_count() * std::mem::size_of::<f32>()) as u64;
-        let limit = context.limits.max_storage_buffer_binding_size;
-        assert!(
-            param_bytes <= limit,
-            "hash-grid parameters ({param_bytes} B) exceed the device's storage binding limit ({limit} B)"
-        );
+        let groups = level_groups(
+            layout,
+            context.storage_binding_limit(),
+            context.limits.min_storage_buffer_offset_alignment as u64,
+        )?;
         let float_atomics = use_float_atomics && context.has_float_atomics();
         let encode = Kernel::new(
             context,
@@ -111,7 +175,7 @@ impl GpuHashGrid {
             encode,
             backward,
             levels: storage_buffer(context, "hash levels", &levels),
-            level_count: levels.len() as u32,
+            groups,
             features: layout.features() as u32,
             width: layout.output_width() as u32,
             param_count: layout.param_count(),
@@ -129,25 +193,58 @@ impl GpuHashGrid {
         self.param_count
     }
 
-    /// The uniform and workgroup counts of a dispatch over `count` samples.
-    fn dispatch(&self, context: &GpuContext, count: usize) -> (wgpu::Buffer, [u32; 3]) {
-        let groups = u32::try_from(count.div_ceil(WORKGROUP as usize))
-            .expect("batch too large for one dispatch")
-            .max(1);
-        let z = groups.div_ceil(MAX_GROUPS_PER_DIMENSION);
-        let x = groups.div_ceil(z);
-        let params = Params {
-            count: count as u32,
-            features: self.features,
-            width: self.width,
-            groups_x: x,
-        };
-        // A fresh uniform per recorded dispatch, so several can share one
-        // command encoder with different batch sizes.
-        (
-            uniform_buffer(context, "hash params", &params),
-            [x, self.level_count, z],
-        )
+    /// Records `kernel` over `count` samples: one dispatch per piece of
+    /// samples and group of levels, binding the uniform, the levels, the
+    /// table range of the group (`table`) and the piece's rows of
+    /// positions and of the per-sample matrix (`rows`, count × L·F).
+    #[allow(clippy::too_many_arguments)]
+    fn record_pieces(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        kernel: &Kernel,
+        table: &wgpu::Buffer,
+        positions: &wgpu::Buffer,
+        rows: &wgpu::Buffer,
+        count: usize,
+        table_binding: usize,
+    ) {
+        let width = self.width as usize;
+        let per = rows_per_piece(context, width.max(3), 1);
+        for piece in pieces(count, per) {
+            let groups = u32::try_from(piece.len().div_ceil(WORKGROUP as usize))
+                .expect("batch too large for one dispatch")
+                .max(1);
+            let z = groups.div_ceil(MAX_GROUPS_PER_DIMENSION);
+            let x = groups.div_ceil(z);
+            for group in &self.groups {
+                let params = Params {
+                    count: piece.len() as u32,
+                    features: self.features,
+                    width: self.width,
+                    groups_x: x,
+                    first_level: group.levels.start,
+                    table_base: group.base as u32,
+                    _pad: [0; 2],
+                };
+                // A fresh uniform per recorded dispatch, so several can
+                // share one command encoder with different batch sizes.
+                let uniform = uniform_buffer(context, "hash params", &params);
+                let mut bindings = vec![
+                    uniform.as_entire_buffer_binding(),
+                    self.levels.as_entire_buffer_binding(),
+                    float_range(positions, 3 * piece.start, 3 * piece.len()),
+                    float_range(rows, width * piece.start, width * piece.len()),
+                ];
+                bindings.insert(table_binding, float_range(table, group.base, group.len));
+                kernel.record_bindings(
+                    context,
+                    encoder,
+                    &bindings,
+                    [x, group.levels.len() as u32, z],
+                );
+            }
+        }
     }
 
     /// Records the encoding of `count` positions (count × 3 f32) into
@@ -161,12 +258,15 @@ impl GpuHashGrid {
         encoded: &wgpu::Buffer,
         count: usize,
     ) {
-        let (uniform, groups) = self.dispatch(context, count);
-        self.encode.record(
+        self.record_pieces(
             context,
             encoder,
-            &[&uniform, &self.levels, params, positions, encoded],
-            groups,
+            &self.encode,
+            params,
+            positions,
+            encoded,
+            count,
+            2,
         );
     }
 
@@ -182,12 +282,15 @@ impl GpuHashGrid {
         d_params: &wgpu::Buffer,
         count: usize,
     ) {
-        let (uniform, groups) = self.dispatch(context, count);
-        self.backward.record(
+        self.record_pieces(
             context,
             encoder,
-            &[&uniform, &self.levels, positions, d_encoded, d_params],
-            groups,
+            &self.backward,
+            d_params,
+            positions,
+            d_encoded,
+            count,
+            4,
         );
     }
 

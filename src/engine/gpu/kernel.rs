@@ -57,13 +57,46 @@ impl Kernel {
         buffers: &[&wgpu::Buffer],
         workgroups: [u32; 3],
     ) {
+        let bindings: Vec<wgpu::BufferBinding> = buffers
+            .iter()
+            .map(|buffer| buffer.as_entire_buffer_binding())
+            .collect();
+        self.record_bindings(context, encoder, &bindings, workgroups);
+    }
+
+    /// As [`Kernel::record`], with each binding a range of a buffer (see
+    /// [`float_range`]): how buffers larger than the device's storage
+    /// binding limit are processed a piece at a time.
+    pub fn record_bindings(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        bindings: &[wgpu::BufferBinding],
+        workgroups: [u32; 3],
+    ) {
+        let resources: Vec<wgpu::BindingResource> = bindings
+            .iter()
+            .map(|binding| wgpu::BindingResource::Buffer(binding.clone()))
+            .collect();
+        self.record_resources(context, encoder, &resources, workgroups);
+    }
+
+    /// As [`Kernel::record`], with any resources (buffer ranges, texture
+    /// views) bound in order.
+    pub fn record_resources(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        resources: &[wgpu::BindingResource],
+        workgroups: [u32; 3],
+    ) {
         let layout = self.pipeline.get_bind_group_layout(0);
-        let entries: Vec<wgpu::BindGroupEntry> = buffers
+        let entries: Vec<wgpu::BindGroupEntry> = resources
             .iter()
             .enumerate()
-            .map(|(i, buffer)| wgpu::BindGroupEntry {
+            .map(|(i, resource)| wgpu::BindGroupEntry {
                 binding: i as u32,
-                resource: buffer.as_entire_binding(),
+                resource: resource.clone(),
             })
             .collect();
         let bind_group = context
@@ -88,6 +121,49 @@ impl Kernel {
         self.record(context, &mut encoder, buffers, workgroups);
         context.queue.submit([encoder.finish()]);
     }
+}
+
+/// The binding of `len` 4-byte elements of `buffer` from element `start`
+/// (a zero-length range binds one element: wgpu rejects empty bindings).
+/// `4 · start` must be a multiple of the device's
+/// `min_storage_buffer_offset_alignment`.
+pub fn float_range(buffer: &wgpu::Buffer, start: usize, len: usize) -> wgpu::BufferBinding<'_> {
+    wgpu::BufferBinding {
+        buffer,
+        offset: 4 * start as u64,
+        size: std::num::NonZeroU64::new(4 * len.max(1) as u64),
+    }
+}
+
+/// Rows of a piece are a multiple of this, so a piece of rows of any width
+/// starts at a byte offset that is a multiple of 256, WebGPU's largest
+/// `min_storage_buffer_offset_alignment` (4 B · 64 rows · width).
+pub const PIECE_ROWS: usize = 64;
+
+/// Rows per piece when rows of `floats_per_row` f32s are bound a piece at a
+/// time under the device's storage-binding limit: as many as fit, a
+/// multiple of `multiple` and of [`PIECE_ROWS`] (at least one such block).
+pub fn rows_per_piece(context: &GpuContext, floats_per_row: usize, multiple: usize) -> usize {
+    let limit = context.storage_binding_limit() as usize;
+    let block = lcm(PIECE_ROWS, multiple.max(1));
+    let fit = limit / (4 * floats_per_row.max(1));
+    (fit / block * block).max(block)
+}
+
+/// `0..total` in consecutive pieces of at most `per` (one empty piece when
+/// `total` is 0, so a dispatch is still recorded, as without pieces).
+pub fn pieces(total: usize, per: usize) -> impl Iterator<Item = std::ops::Range<usize>> {
+    let per = per.max(1);
+    let count = total.div_ceil(per).max(1);
+    (0..count).map(move |i| i * per..((i + 1) * per).min(total))
+}
+
+fn lcm(a: usize, b: usize) -> usize {
+    let (mut x, mut y) = (a, b);
+    while y != 0 {
+        (x, y) = (y, x % y);
+    }
+    a / x * b
 }
 
 /// Workgroups needed to cover `count` items at `workgroup_size` per group.
@@ -176,4 +252,32 @@ pub fn read_buffer<T: Pod>(context: &GpuContext, buffer: &wgpu::Buffer, count: u
         .expect("mapping the read-back buffer");
     let view = slice.get_mapped_range().expect("mapped range");
     bytemuck::cast_slice(&view).to_vec()
+}
+
+/// Maps a MAP_READ buffer, copies `count` values out and unmaps it.
+pub fn read_mapped<T: bytemuck::Pod>(
+    context: &GpuContext,
+    staging: &wgpu::Buffer,
+    count: usize,
+) -> Vec<T> {
+    let size = (count * std::mem::size_of::<T>()) as u64;
+    let slice = staging.slice(..size);
+    let (sender, receiver) = std::sync::mpsc::channel();
+    slice.map_async(wgpu::MapMode::Read, move |result| {
+        let _ = sender.send(result);
+    });
+    context
+        .device
+        .poll(wgpu::PollType::wait_indefinitely())
+        .expect("waiting for the GPU");
+    receiver
+        .recv()
+        .expect("map callback ran")
+        .expect("mapping the read-back buffer");
+    let values = {
+        let view = slice.get_mapped_range().expect("mapped range");
+        bytemuck::cast_slice(&view).to_vec()
+    };
+    staging.unmap();
+    values
 }

@@ -12,4 +12,6 @@ pub mod loss;
 pub mod march;
 pub mod ngp;
 pub mod occupancy;
+pub mod render;
 pub mod sh;
+pub mod timing;

@@ -17,12 +17,19 @@
 //! planned points are evaluated on the gpu in one submission and read back
 //! (every 16 steps), and the rebuilt bitfield is uploaded.
 //!
-//! Rendering marches on the cpu with early termination
-//! ([`march_and_composite`], the cpu engine's own loop) and evaluates each
-//! round of samples on the gpu: the same pixels as the cpu engine without
-//! a gpu version of the round-by-round march.
+//! Each stage of a step is timed ([`StageClock`]): by GPU timestamps at the
+//! stage boundaries inside the submissions where the device has
+//! `TIMESTAMP_QUERY`, else by the wall clock with a wait at each boundary.
+//!
+//! [`RadianceModel::render`] marches on the cpu with early termination
+//! (`march_and_composite`, the cpu engine's own loop) and evaluates each
+//! round of samples on the gpu, returning pixels to the host.
+//! [`GpuNgp::render_to_texture`] runs the same rounds on the gpu
+//! (`super::render`) and writes the image into a texture the viewer draws,
+//! with nothing read back but each round's count of rays still marching.
 
 use std::ops::Range;
+use std::sync::Mutex;
 use std::time::Instant;
 
 use glam::Vec3;
@@ -34,21 +41,30 @@ use super::composite::{
 use super::context::{GpuContext, GpuError};
 use super::dense::{GpuDense, GpuMlpWorkspace};
 use super::hash_grid::GpuHashGrid;
-use super::kernel::{Kernel, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer};
+use super::kernel::{
+    Kernel, float_range, pieces, read_buffer, read_mapped, rows_per_piece, storage_buffer,
+    uniform_buffer, zeroed_storage_buffer,
+};
 use super::loss::{GpuLoss, LossBuffers};
 use super::march::{GpuGrid, GpuMarch, GpuMarchBuffers, GpuRays, dispatch_grid};
+use super::render::{
+    CompactUniforms, CompositeUniforms, ImageUniforms, RAY_GROUP_ALIGN, RenderBuffers,
+    RenderKernels, check_target, scene_depth_range,
+};
 use super::sh::GpuSh;
+use super::timing::{Stage, StageClock, StageTiming};
 use crate::engine::cpu::hash_grid;
-use crate::engine::cpu::march::{BatchSizer, MarchParams};
+use crate::engine::cpu::march::{BatchSizer, MarchParams, Marcher};
 use crate::engine::cpu::ngp::{NgpHeader, NgpShape, NgpState, mix_seed, render_through_grid};
 use crate::engine::cpu::occupancy::OccupancyGrid;
 use crate::field::ngp::{
     DENSITY_EXP_CLAMP, LossKind, MarchConfig, OccupancyConfig, OptimiserConfig, SAMPLES_PER_BATCH,
 };
-use crate::scene::Scene;
+use crate::render::RenderMode;
+use crate::scene::{Camera, Scene};
 use crate::train::batch::RayBatch;
 use crate::train::checkpoint::Checkpoint;
-use crate::train::model::{RadianceModel, RenderedPixel, StageTimes, StepStats};
+use crate::train::model::{RadianceModel, RenderedPixel, StepStats};
 
 /// Threads per workgroup of the activation kernels.
 const WORKGROUP: u32 = 64;
@@ -129,6 +145,7 @@ struct Stages {
     loss: GpuLoss,
     activate: Kernel,
     activate_backward: Kernel,
+    render: RenderKernels,
 }
 
 /// Instant-NGP trained by the `gpu` engine.
@@ -165,6 +182,13 @@ pub struct GpuNgp {
     batch_samples: usize,
     /// Flattened rays of the current batch (reused).
     scratch: Vec<f32>,
+    /// Times each training step's stages (taken out while a step runs).
+    clock: Option<StageClock>,
+    /// Buffers of the last [`GpuNgp::render_to_texture`], kept for the
+    /// next frame of the same size.
+    render_buffers: Mutex<Option<RenderBuffers>>,
+    /// Near and far depth of depth images ([`scene_depth_range`]).
+    depth_range: (f32, f32),
 }
 
 impl GpuNgp {
@@ -187,6 +211,20 @@ impl GpuNgp {
         batch_samples: usize,
     ) -> Result<Self, GpuError> {
         let shape = NgpShape::for_scene(scene);
+        // The wide per-sample matrices (encodings, activations) and the
+        // parameter arrays are bound a piece at a time when they exceed the
+        // storage-binding limit; the march's and compositing's per-sample
+        // arrays (at most 3 f32 per sample) are bound whole, as their
+        // samples are addressed through per-ray offsets.
+        let narrow = 12 * batch_samples.max(1) as u64;
+        let limit = context.storage_binding_limit();
+        if narrow > limit {
+            return Err(GpuError::BindingTooLarge {
+                what: format!("a batch of {batch_samples} samples (3 f32 per sample)"),
+                bytes: narrow,
+                limit,
+            });
+        }
         // As `CpuNgp::with_batch_samples`: the same seeds per part (a test
         // checks that both engines start identical).
         let mut params = hash_grid::init_params(&shape.grid, seed);
@@ -217,6 +255,7 @@ impl GpuNgp {
                 include_str!("../../../shaders/ngp_density_backward.wgsl"),
                 "backward",
             )?,
+            render: RenderKernels::new(ctx)?,
         };
         let capacity = batch_samples.max(1);
         let f = |label: &str, n: usize| zeroed_storage_buffer::<f32>(ctx, label, n);
@@ -267,6 +306,9 @@ impl GpuNgp {
             seed,
             batch_samples,
             scratch: Vec::new(),
+            clock: Some(StageClock::new(ctx, StageTiming::Timestamps)),
+            render_buffers: Mutex::new(None),
+            depth_range: scene_depth_range(scene),
             stages,
             shape,
             context,
@@ -276,6 +318,31 @@ impl GpuNgp {
 
     pub fn context(&self) -> &GpuContext {
         &self.context
+    }
+
+    /// How the stages of a step are timed: GPU timestamps where the device
+    /// has them (the default), else the wall clock with a wait at each
+    /// stage boundary.
+    pub fn stage_timing(&self) -> StageTiming {
+        self.clock
+            .as_ref()
+            .map_or(StageTiming::WallClock, StageClock::timing)
+    }
+
+    /// How stage times are measured, in words for reports.
+    pub fn stage_timing_note(&self) -> String {
+        match self.stage_timing() {
+            StageTiming::Timestamps => "gpu timestamps: device time of each stage".into(),
+            StageTiming::WallClock => "the wall clock, waiting for the device at each stage \
+                                       boundary (the device has no timestamp queries)"
+                .into(),
+        }
+    }
+
+    /// Chooses how stages are timed ([`StageTiming::Timestamps`] falls back
+    /// to the wall clock on a device without timestamps).
+    pub fn set_stage_timing(&mut self, timing: StageTiming) {
+        self.clock = Some(StageClock::new(&self.context, timing));
     }
 
     pub fn occupancy(&self) -> &OccupancyGrid {
@@ -327,28 +394,76 @@ impl GpuNgp {
         }
     }
 
-    fn activation_uniform(&self, count: usize) -> (wgpu::Buffer, [u32; 3]) {
-        let (groups, row_stride) = dispatch_grid(count, WORKGROUP);
-        let uniforms = ActivationUniforms {
-            count: count as u32,
-            row_stride,
-            density_width: self.shape.density.output_width() as u32,
-            colour_width: self.shape.colour.input_width() as u32,
-            exp_clamp: DENSITY_EXP_CLAMP,
-            _pad: [0; 3],
-        };
-        (
-            uniform_buffer(&self.context, "ngp activation", &uniforms),
-            groups,
-        )
+    /// Records the density activation over `count` samples (forward, or
+    /// with `backward` its gradient), a piece of samples at a time when the
+    /// per-sample matrices exceed one storage binding.
+    fn record_activation(&self, encoder: &mut wgpu::CommandEncoder, count: usize, backward: bool) {
+        let ctx = &self.context;
+        let b = &self.samples;
+        let density_width = self.shape.density.output_width();
+        let colour_width = self.shape.colour.input_width();
+        let per = rows_per_piece(ctx, density_width.max(colour_width), 1);
+        for piece in pieces(count, per) {
+            let (groups, row_stride) = dispatch_grid(piece.len(), WORKGROUP);
+            let uniforms = ActivationUniforms {
+                count: piece.len() as u32,
+                row_stride,
+                density_width: density_width as u32,
+                colour_width: colour_width as u32,
+                exp_clamp: DENSITY_EXP_CLAMP,
+                _pad: [0; 3],
+            };
+            let uniform = uniform_buffer(ctx, "ngp activation", &uniforms);
+            let rows = |buffer, width: usize| {
+                float_range(buffer, width * piece.start, width * piece.len())
+            };
+            if backward {
+                self.stages.activate_backward.record_bindings(
+                    ctx,
+                    encoder,
+                    &[
+                        uniform.as_entire_buffer_binding(),
+                        rows(b.density.output(), density_width),
+                        rows(&b.sigma, 1),
+                        rows(&b.d_sigma, 1),
+                        rows(&b.d_colour_input, colour_width),
+                        rows(&b.d_density_out, density_width),
+                    ],
+                    groups,
+                );
+            } else {
+                self.stages.activate.record_bindings(
+                    ctx,
+                    encoder,
+                    &[
+                        uniform.as_entire_buffer_binding(),
+                        rows(b.density.output(), density_width),
+                        rows(&b.sigma, 1),
+                        rows(&b.colour_input, colour_width),
+                    ],
+                    groups,
+                );
+            }
+        }
     }
 
     /// Records the field at the `count` positions (and directions) in the
     /// march buffers: σ into `samples.sigma`, and with `colour` the colour
     /// network's output into `samples.colour.output()`. The networks'
     /// parameters must have been copied ([`Self::record_network_params`]).
-    fn record_field(&self, encoder: &mut wgpu::CommandEncoder, count: usize, colour: bool) {
+    fn record_field(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        count: usize,
+        colour: bool,
+        mut clock: Option<&mut StageClock>,
+    ) {
         let ctx = &self.context;
+        let mut mark = |encoder: &mut wgpu::CommandEncoder, stage| {
+            if let Some(clock) = clock.as_deref_mut() {
+                clock.mark(ctx, encoder, stage);
+            }
+        };
         let s = &self.stages;
         let b = &self.samples;
         s.hash.record_encode(
@@ -359,6 +474,7 @@ impl GpuNgp {
             &b.encoded,
             count,
         );
+        mark(encoder, Stage::Encode);
         s.dense.record_forward(
             ctx,
             encoder,
@@ -367,13 +483,8 @@ impl GpuNgp {
             &b.density,
             count,
         );
-        let (uniform, groups) = self.activation_uniform(count);
-        s.activate.record(
-            ctx,
-            encoder,
-            &[&uniform, b.density.output(), &b.sigma, &b.colour_input],
-            groups,
-        );
+        self.record_activation(encoder, count, false);
+        mark(encoder, Stage::NetworksForward);
         if colour {
             let density_width = self.shape.density.output_width();
             s.sh.record_encode(
@@ -386,6 +497,7 @@ impl GpuNgp {
                 self.shape.colour.input_width(),
                 density_width,
             );
+            mark(encoder, Stage::Encode);
             s.dense.record_forward(
                 ctx,
                 encoder,
@@ -394,6 +506,7 @@ impl GpuNgp {
                 &b.colour,
                 count,
             );
+            mark(encoder, Stage::NetworksForward);
         }
     }
 
@@ -428,11 +541,14 @@ impl GpuNgp {
 
     /// One step on `batch`; with `optimise`, Adam updates the parameters.
     fn run(&mut self, batch: &RayBatch, step: u32, optimise: bool) -> StepStats {
-        let mut times = StageTimes::default();
         let rays = batch.len();
+        let mut clock = self
+            .clock
+            .take()
+            .unwrap_or_else(|| StageClock::new(&self.context, StageTiming::Timestamps));
+        clock.reset();
 
         // Submission 1: the march, and its counters read back.
-        let clock = Instant::now();
         self.upload_rays(batch);
         let (samples, kept) = if rays == 0 {
             (0, 0)
@@ -446,6 +562,7 @@ impl GpuNgp {
                 .context
                 .device
                 .create_command_encoder(&Default::default());
+            clock.restart(&self.context, &mut encoder);
             self.stages.march.record(
                 &self.context,
                 &mut encoder,
@@ -460,6 +577,7 @@ impl GpuNgp {
                 &params,
                 &self.march_out,
             );
+            clock.mark(&self.context, &mut encoder, Stage::March);
             encoder.copy_buffer_to_buffer(
                 &self.march_out.counters,
                 0,
@@ -472,17 +590,16 @@ impl GpuNgp {
             (counters[0] as usize, counters[1] as usize)
         };
         self.batch_sizer.record(rays, samples);
-        times.march = clock.elapsed().as_secs_f64();
 
         // Submission 2: forward, loss, backward and Adam.
-        let clock = Instant::now();
         let ctx = &self.context;
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        clock.restart(ctx, &mut encoder);
         encoder.clear_buffer(&self.gradients, 0, None);
         encoder.clear_buffer(&self.density_gradients, 0, None);
         encoder.clear_buffer(&self.colour_gradients, 0, None);
         self.record_network_params(&mut encoder);
-        self.record_field(&mut encoder, samples, true);
+        self.record_field(&mut encoder, samples, true, Some(&mut clock));
         let s = &self.stages;
         let b = &self.samples;
         let r = &self.rays;
@@ -533,6 +650,7 @@ impl GpuNgp {
                 background: &r.d_background,
             },
         );
+        clock.mark(ctx, &mut encoder, Stage::Composite);
         s.dense.record_backward(
             ctx,
             &mut encoder,
@@ -544,20 +662,7 @@ impl GpuNgp {
             Some(&b.d_colour_input),
             samples,
         );
-        let (uniform, groups) = self.activation_uniform(samples);
-        s.activate_backward.record(
-            ctx,
-            &mut encoder,
-            &[
-                &uniform,
-                b.density.output(),
-                &b.sigma,
-                &b.d_sigma,
-                &b.d_colour_input,
-                &b.d_density_out,
-            ],
-            groups,
-        );
+        self.record_activation(&mut encoder, samples, true);
         s.dense.record_backward(
             ctx,
             &mut encoder,
@@ -569,6 +674,7 @@ impl GpuNgp {
             Some(&b.d_encoded),
             samples,
         );
+        clock.mark(ctx, &mut encoder, Stage::NetworksBackward);
         // The grid's range starts at 0, so the flat gradient buffer is the
         // hash backward's own layout.
         s.hash.record_backward(
@@ -579,6 +685,7 @@ impl GpuNgp {
             &self.gradients,
             samples,
         );
+        clock.mark(ctx, &mut encoder, Stage::EncodeBackward);
         for (range, buffer) in [
             (self.density_range(), &self.density_gradients),
             (self.colour_range(), &self.colour_gradients),
@@ -602,12 +709,13 @@ impl GpuNgp {
                 &self.gradients,
             );
         }
+        clock.mark(ctx, &mut encoder, Stage::Optimiser);
+        clock.resolve(&mut encoder);
         encoder.copy_buffer_to_buffer(&self.loss_total, 0, &self.loss_staging, 0, 4);
         ctx.queue.submit([encoder.finish()]);
         let loss: Vec<f32> = read_mapped(ctx, &self.loss_staging, 1);
-        // One submission: its whole time is reported under the networks
-        // (use per-stage gpu timestamps for a breakdown).
-        times.networks_forward = clock.elapsed().as_secs_f64();
+        let times = clock.read(ctx);
+        self.clock = Some(clock);
 
         StepStats {
             loss: loss[0],
@@ -643,7 +751,7 @@ impl GpuNgp {
                 0,
                 12 * count as u64,
             );
-            self.record_field(&mut encoder, count, false);
+            self.record_field(&mut encoder, count, false, None);
             encoder.copy_buffer_to_buffer(
                 &self.samples.sigma,
                 0,
@@ -680,7 +788,7 @@ impl GpuNgp {
                 .write_buffer(&self.march_out.directions, 0, bytemuck::cast_slice(d));
             let mut encoder = ctx.device.create_command_encoder(&Default::default());
             self.record_network_params(&mut encoder);
-            self.record_field(&mut encoder, count, true);
+            self.record_field(&mut encoder, count, true, None);
             ctx.queue.submit([encoder.finish()]);
             sigma.copy_from_slice(&read_buffer::<f32>(ctx, &self.samples.sigma, count));
             rgb.copy_from_slice(&read_buffer::<f32>(
@@ -690,11 +798,219 @@ impl GpuNgp {
             ));
         }
     }
+
+    /// Near and far depth that depth images map to white and black (by
+    /// default the scene's, as the `render` command uses).
+    pub fn depth_range(&self) -> (f32, f32) {
+        self.depth_range
+    }
+
+    pub fn set_depth_range(&mut self, near: f32, far: f32) {
+        self.depth_range = (near, far);
+    }
+
+    /// Renders `camera`'s view on the GPU into `target` (Rgba8Unorm, usage
+    /// STORAGE_BINDING (| TEXTURE_BINDING to draw it), the camera's size)
+    /// in `mode` over `background`: the pixels of
+    /// `render::to_image(render_pixels(..))` up to rounding, without
+    /// reading the image back. Returns once the work is submitted; the
+    /// queue orders it before any later use of `target`.
+    pub fn render_to_texture(
+        &self,
+        camera: &Camera,
+        mode: RenderMode,
+        background: [f32; 3],
+        target: &wgpu::Texture,
+    ) -> Result<(), GpuError> {
+        let ctx = &self.context;
+        let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
+        check_target(target, width, height)?;
+        let chunk = self.batch_samples;
+        if chunk < RAY_GROUP_ALIGN {
+            return Err(GpuError::RenderTarget(format!(
+                "batches of {chunk} samples are too small to render (at least \
+                 {RAY_GROUP_ALIGN})"
+            )));
+        }
+        let rays = camera.all_rays();
+        let pixels = rays.len();
+        // Which rays cross the box: the cpu's own test, so both engines
+        // march the same rays (the walk kernel repeats it on the gpu for
+        // the entry point).
+        let config = MarchConfig::PAPER;
+        let marcher = Marcher::new(&self.grid, &config, &self.shape.mapping);
+        let mut active: Vec<u32> = Vec::with_capacity(pixels);
+        let mut origins = Vec::with_capacity(3 * pixels);
+        let mut directions = Vec::with_capacity(3 * pixels);
+        for (i, ray) in rays.iter().enumerate() {
+            origins.extend(ray.origin.to_array());
+            directions.extend(ray.direction.to_array());
+            if marcher.prepare(ray.origin, ray.direction, 0.0).is_some() {
+                active.push(i as u32);
+            }
+        }
+
+        let mut guard = self
+            .render_buffers
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        let round_rays = (chunk / 4).max(RAY_GROUP_ALIGN);
+        if guard.as_ref().is_none_or(|b| b.pixels < pixels) {
+            *guard = Some(RenderBuffers::new(ctx, pixels, round_rays)?);
+        }
+        let buffers = guard.as_ref().expect("just made");
+        let queue = &ctx.queue;
+        queue.write_buffer(&buffers.origins, 0, bytemuck::cast_slice(&origins));
+        queue.write_buffer(&buffers.directions, 0, bytemuck::cast_slice(&directions));
+        if !active.is_empty() {
+            queue.write_buffer(&buffers.active[0], 0, bytemuck::cast_slice(&active));
+        }
+
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        encoder.clear_buffer(&buffers.states, 0, None);
+        self.record_network_params(&mut encoder);
+        let march = MarchParams::rendering(self.shape.mapping);
+        let geometry = self.grid.geometry();
+        let mut count = active.len();
+        let mut current = 0;
+        while count > 0 {
+            // The cpu's rule: few samples per ray while many rays are
+            // active, more once few are left; 4 to 64 per round. Rounds
+            // start at multiples of 64 rays in the list.
+            let per_ray = (chunk / count).clamp(4, 64);
+            let mut group = (chunk / per_ray) / RAY_GROUP_ALIGN * RAY_GROUP_ALIGN;
+            let per_ray = if group == 0 {
+                group = RAY_GROUP_ALIGN;
+                chunk / RAY_GROUP_ALIGN
+            } else {
+                per_ray
+            };
+            let list = &buffers.active[current];
+            for start in (0..count).step_by(group) {
+                let n = group.min(count - start);
+                let walk = GpuMarch::uniforms(
+                    geometry,
+                    &MarchParams {
+                        sample_budget: per_ray,
+                        ..march
+                    },
+                    n,
+                    per_ray,
+                );
+                let walk = uniform_buffer(ctx, "render walk", &walk);
+                self.stages.render.walk.record_bindings(
+                    ctx,
+                    &mut encoder,
+                    &[
+                        walk.as_entire_buffer_binding(),
+                        self.bitfield.as_entire_buffer_binding(),
+                        buffers.origins.as_entire_buffer_binding(),
+                        buffers.directions.as_entire_buffer_binding(),
+                        float_range(list, start, n),
+                        buffers.states.as_entire_buffer_binding(),
+                        buffers.counts.as_entire_buffer_binding(),
+                        self.march_out.positions.as_entire_buffer_binding(),
+                        self.march_out.directions.as_entire_buffer_binding(),
+                        self.march_out.t.as_entire_buffer_binding(),
+                    ],
+                    dispatch_grid(n + 1, WORKGROUP).0,
+                );
+                self.record_field(&mut encoder, n * per_ray, true, None);
+                let (groups, row_stride) = dispatch_grid(n, WORKGROUP);
+                let composite = CompositeUniforms {
+                    count: n as u32,
+                    row_stride,
+                    per_ray: per_ray as u32,
+                    max_samples: config.max_steps,
+                    world_dt: config.step / self.shape.mapping.scale,
+                    stop_depth: -config.min_transmittance.ln(),
+                    _pad: [0; 2],
+                };
+                let composite = uniform_buffer(ctx, "render composite", &composite);
+                self.stages.render.composite.record_bindings(
+                    ctx,
+                    &mut encoder,
+                    &[
+                        composite.as_entire_buffer_binding(),
+                        float_range(list, start, n),
+                        buffers.states.as_entire_buffer_binding(),
+                        buffers.counts.as_entire_buffer_binding(),
+                        self.samples.sigma.as_entire_buffer_binding(),
+                        self.samples.colour.output().as_entire_buffer_binding(),
+                        self.march_out.t.as_entire_buffer_binding(),
+                    ],
+                    groups,
+                );
+            }
+            let (groups, row_stride) = dispatch_grid(count, WORKGROUP);
+            let compact = CompactUniforms {
+                count: count as u32,
+                row_stride,
+                _pad: [0; 2],
+            };
+            let compact = uniform_buffer(ctx, "render compact", &compact);
+            encoder.clear_buffer(&buffers.counter, 0, None);
+            self.stages.render.compact.record(
+                ctx,
+                &mut encoder,
+                &[
+                    &compact,
+                    list,
+                    &buffers.states,
+                    &buffers.active[1 - current],
+                    &buffers.counter,
+                ],
+                groups,
+            );
+            encoder.copy_buffer_to_buffer(&buffers.counter, 0, &buffers.counter_staging, 0, 4);
+            let finished = std::mem::replace(
+                &mut encoder,
+                ctx.device.create_command_encoder(&Default::default()),
+            );
+            queue.submit([finished.finish()]);
+            count = read_mapped::<u32>(ctx, &buffers.counter_staging, 1)[0] as usize;
+            current = 1 - current;
+        }
+
+        let (near, far) = self.depth_range;
+        let image = ImageUniforms {
+            width,
+            height,
+            mode: match mode {
+                RenderMode::Rgb => 0,
+                RenderMode::Depth => 1,
+                RenderMode::Opacity => 2,
+            },
+            _pad0: 0,
+            background,
+            near,
+            far,
+            _pad1: [0; 3],
+        };
+        let image = uniform_buffer(ctx, "render image", &image);
+        let view = target.create_view(&Default::default());
+        self.stages.render.image.record_resources(
+            ctx,
+            &mut encoder,
+            &[
+                image.as_entire_binding(),
+                buffers.states.as_entire_binding(),
+                wgpu::BindingResource::TextureView(&view),
+            ],
+            [width.div_ceil(8), height.div_ceil(8), 1],
+        );
+        queue.submit([encoder.finish()]);
+        Ok(())
+    }
 }
 
 impl RadianceModel for GpuNgp {
     fn describe(&self) -> String {
         "Instant-NGP (gpu)".into()
+    }
+
+    fn as_gpu_ngp(&self) -> Option<&GpuNgp> {
+        Some(self)
     }
 
     fn rays_for_next_batch(&self) -> usize {
@@ -805,32 +1121,4 @@ impl RadianceModel for GpuNgp {
             + self.grid.values().len() * 4
             + self.grid.bitfield().len() * 4
     }
-}
-
-/// Maps a MAP_READ buffer, copies `count` values out and unmaps it.
-fn read_mapped<T: bytemuck::Pod>(
-    context: &GpuContext,
-    staging: &wgpu::Buffer,
-    count: usize,
-) -> Vec<T> {
-    let size = (count * std::mem::size_of::<T>()) as u64;
-    let slice = staging.slice(..size);
-    let (sender, receiver) = std::sync::mpsc::channel();
-    slice.map_async(wgpu::MapMode::Read, move |result| {
-        let _ = sender.send(result);
-    });
-    context
-        .device
-        .poll(wgpu::PollType::wait_indefinitely())
-        .expect("waiting for the GPU");
-    receiver
-        .recv()
-        .expect("map callback ran")
-        .expect("mapping the read-back buffer");
-    let values = {
-        let view = slice.get_mapped_range().expect("mapped range");
-        bytemuck::cast_slice(&view).to_vec()
-    };
-    staging.unmap();
-    values
 }

@@ -2,7 +2,10 @@
 //! (`shaders/sh_encode.wgsl`), the basis of [`crate::engine::cpu::sh`].
 
 use super::context::{GpuContext, GpuError};
-use super::kernel::{Kernel, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer};
+use super::kernel::{
+    Kernel, float_range, pieces, read_buffer, rows_per_piece, storage_buffer, uniform_buffer,
+    zeroed_storage_buffer,
+};
 use crate::engine::cpu::sh::{SH_MAX_DEGREE, sh_coefficients};
 
 /// Threads per workgroup in sh_encode.wgsl.
@@ -59,21 +62,28 @@ impl GpuSh {
             offset + sh_coefficients(degree) <= stride,
             "coefficients overrun the row"
         );
-        let params = Params {
-            rows: rows as u32,
-            degree,
-            stride: stride as u32,
-            offset: offset as u32,
-        };
-        let uniform = uniform_buffer(context, "sh params", &params);
-        let groups = (rows as u32).div_ceil(WORKGROUP).max(1);
-        let y = groups.div_ceil(MAX_GROUPS_PER_DIMENSION);
-        self.kernel.record(
-            context,
-            encoder,
-            &[&uniform, directions, output],
-            [groups.div_ceil(y), y, 1],
-        );
+        // Rows beyond one storage binding go a piece at a time.
+        for piece in pieces(rows, rows_per_piece(context, stride.max(3), 1)) {
+            let params = Params {
+                rows: piece.len() as u32,
+                degree,
+                stride: stride as u32,
+                offset: offset as u32,
+            };
+            let uniform = uniform_buffer(context, "sh params", &params);
+            let groups = (piece.len() as u32).div_ceil(WORKGROUP).max(1);
+            let y = groups.div_ceil(MAX_GROUPS_PER_DIMENSION);
+            self.kernel.record_bindings(
+                context,
+                encoder,
+                &[
+                    uniform.as_entire_buffer_binding(),
+                    float_range(directions, 3 * piece.start, 3 * piece.len()),
+                    float_range(output, stride * piece.start, stride * piece.len()),
+                ],
+                [groups.div_ceil(y), y, 1],
+            );
+        }
     }
 
     /// Uploads, encodes and reads back rows × degree² coefficients (for tests

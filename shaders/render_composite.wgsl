@@ -1,0 +1,78 @@
+// Rendering, one round of compositing: each active ray adds this round's
+// samples (slots i·per_ray.., written by render_walk.wgsl) front to back,
+// stopping where its optical depth passes −ln(min transmittance), as the
+// cpu's `march_and_composite` does, and is marked done when it left the
+// box, reached the sample cap or became opaque.
+
+struct RayState {
+    k: u32,
+    emitted: u32,
+    done: u32,
+    optical_depth: f32,
+    depth: f32,
+    r: f32,
+    g: f32,
+    b: f32,
+}
+
+struct Params {
+    count: u32,
+    row_stride: u32,
+    per_ray: u32,
+    max_samples: u32,
+    world_dt: f32,
+    stop_depth: f32,
+    _pad0: u32,
+    _pad1: u32,
+}
+
+@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(1) var<storage, read> ray_list: array<u32>;
+@group(0) @binding(2) var<storage, read_write> states: array<RayState>;
+@group(0) @binding(3) var<storage, read> counts: array<u32>;
+@group(0) @binding(4) var<storage, read> sigma: array<f32>;
+@group(0) @binding(5) var<storage, read> rgb: array<f32>;
+@group(0) @binding(6) var<storage, read> t: array<f32>;
+
+const LEFT_THE_BOX: u32 = 0x80000000u;
+
+// 1 − e^{−τ}, as in composite_forward.wgsl (which explains the series).
+fn one_minus_exp_neg(tau: f32) -> f32 {
+    if (tau < 0.25) {
+        return tau * (1.0 - tau / 2.0 * (1.0 - tau / 3.0 * (1.0 - tau / 4.0 * (1.0 - tau / 5.0
+            * (1.0 - tau / 6.0 * (1.0 - tau / 7.0 * (1.0 - tau / 8.0)))))));
+    }
+    return 1.0 - exp(-tau);
+}
+
+@compute @workgroup_size(64)
+fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    let i = id.x + id.y * params.row_stride;
+    if (i >= params.count) {
+        return;
+    }
+    let ray = ray_list[i];
+    var state = states[ray];
+    let n = counts[i] & ~LEFT_THE_BOX;
+    let base = i * params.per_ray;
+    for (var j = 0u; j < n; j++) {
+        if (state.optical_depth > params.stop_depth) {
+            break;
+        }
+        let s = base + j;
+        // Negative densities are empty space, as on the cpu.
+        let tau = max(sigma[s] * params.world_dt, 0.0);
+        let weight = exp(-state.optical_depth) * one_minus_exp_neg(tau);
+        state.r += weight * rgb[3u * s];
+        state.g += weight * rgb[3u * s + 1u];
+        state.b += weight * rgb[3u * s + 2u];
+        state.depth += weight * t[s];
+        state.optical_depth += tau;
+    }
+    state.emitted += n;
+    if ((counts[i] & LEFT_THE_BOX) != 0u || state.emitted >= params.max_samples
+        || state.optical_depth > params.stop_depth) {
+        state.done = 1u;
+    }
+    states[ray] = state;
+}

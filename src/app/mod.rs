@@ -1,0 +1,9 @@
+//! The eframe viewer: viewport, camera controls, panels, plots, and the
+//! training thread it talks to.
+
+pub mod camera;
+pub mod progressive;
+pub mod protocol;
+pub mod ui;
+pub mod viewer;
+pub mod worker;

@@ -1,0 +1,229 @@
+//! Progressive rendering for the viewport: a camera is shown first at an
+//! eighth of its resolution, then refined level by level, each level drawn
+//! in chunks of rays so that the training thread can answer commands
+//! between chunks and drop a level the user has moved away from.
+
+use std::time::Duration;
+
+use glam::Vec3;
+
+use crate::scene::{Camera, Intrinsics};
+use crate::train::model::{RadianceModel, RenderedPixel};
+
+/// Downscales of the refinement levels, coarse to fine: 1/8, 1/4, 1/2 and
+/// the full viewport in each direction.
+pub const DOWNSCALES: [u32; 4] = [8, 4, 2, 1];
+
+/// `camera` seen at 1/`downscale` of its resolution, at least one pixel each
+/// way. The image plane keeps its extent, so the focal lengths and the
+/// principal point scale with the size actually kept (which differs from
+/// 1/`downscale` when the size is not a multiple of it).
+pub fn level_camera(camera: &Camera, downscale: u32) -> Camera {
+    let k = camera.intrinsics;
+    let width = (k.width / downscale.max(1)).max(1);
+    let height = (k.height / downscale.max(1)).max(1);
+    let sx = width as f32 / k.width.max(1) as f32;
+    let sy = height as f32 / k.height.max(1) as f32;
+    Camera::new(
+        Intrinsics {
+            width,
+            height,
+            fx: k.fx * sx,
+            fy: k.fy * sy,
+            cx: k.cx * sx,
+            cy: k.cy * sy,
+        },
+        camera.camera_to_world,
+    )
+}
+
+/// The levels to show for a `width`×`height` viewport, coarse to fine; a
+/// level that would have the same size as the one before it (tiny
+/// viewports) is skipped.
+pub fn refinement_levels(width: u32, height: u32) -> Vec<u32> {
+    let mut levels = Vec::with_capacity(DOWNSCALES.len());
+    let mut previous = None;
+    for downscale in DOWNSCALES {
+        let size = ((width / downscale).max(1), (height / downscale).max(1));
+        if previous != Some(size) {
+            levels.push(downscale);
+            previous = Some(size);
+        }
+    }
+    levels
+}
+
+/// One level of one camera being rendered, chunk by chunk, row-major from
+/// the top.
+pub struct LevelRender {
+    pub downscale: u32,
+    camera: Camera,
+    pixels: Vec<RenderedPixel>,
+    done: usize,
+    origins: Vec<Vec3>,
+    directions: Vec<Vec3>,
+}
+
+impl LevelRender {
+    pub fn new(camera: &Camera, downscale: u32) -> Self {
+        let camera = level_camera(camera, downscale);
+        let count = camera.intrinsics.width as usize * camera.intrinsics.height as usize;
+        Self {
+            downscale,
+            camera,
+            pixels: vec![RenderedPixel::default(); count],
+            done: 0,
+            origins: Vec::new(),
+            directions: Vec::new(),
+        }
+    }
+
+    pub fn width(&self) -> u32 {
+        self.camera.intrinsics.width
+    }
+
+    pub fn height(&self) -> u32 {
+        self.camera.intrinsics.height
+    }
+
+    pub fn is_done(&self) -> bool {
+        self.done == self.pixels.len()
+    }
+
+    /// Renders up to `max_rays` more pixels over `background`; returns how
+    /// many it rendered.
+    pub fn render_chunk(
+        &mut self,
+        model: &dyn RadianceModel,
+        max_rays: usize,
+        background: [f32; 3],
+    ) -> usize {
+        let end = (self.done + max_rays.max(1)).min(self.pixels.len());
+        let width = self.camera.intrinsics.width as usize;
+        self.origins.clear();
+        self.directions.clear();
+        for index in self.done..end {
+            let ray = self
+                .camera
+                .pixel_ray((index % width) as u32, (index / width) as u32);
+            self.origins.push(ray.origin);
+            self.directions.push(ray.direction);
+        }
+        model.render(
+            &self.origins,
+            &self.directions,
+            background,
+            &mut self.pixels[self.done..end],
+        );
+        let rendered = end - self.done;
+        self.done = end;
+        rendered
+    }
+
+    /// The finished pixels, row-major.
+    pub fn into_pixels(self) -> Vec<RenderedPixel> {
+        self.pixels
+    }
+}
+
+/// Sizes chunks of rays so that each takes about `target` on this machine
+/// and engine, from the rate of the chunks rendered so far.
+#[derive(Debug, Clone, Copy)]
+pub struct ChunkPacer {
+    target: Duration,
+    /// Smoothed rays per second; `None` before the first chunk.
+    rays_per_second: Option<f64>,
+}
+
+impl ChunkPacer {
+    /// Chunks never go below this, so per-call overheads stay small.
+    const MIN_RAYS: usize = 256;
+    /// Nor above this (the cpu engine's inference works in 2^16 chunks).
+    const MAX_RAYS: usize = 1 << 16;
+    /// The first chunk, before any rate is known: small enough to be quick
+    /// on a slow software path.
+    const FIRST_RAYS: usize = 2048;
+
+    pub fn new(target: Duration) -> Self {
+        Self {
+            target,
+            rays_per_second: None,
+        }
+    }
+
+    pub fn chunk_rays(&self) -> usize {
+        match self.rays_per_second {
+            None => Self::FIRST_RAYS,
+            Some(rate) => {
+                ((rate * self.target.as_secs_f64()) as usize).clamp(Self::MIN_RAYS, Self::MAX_RAYS)
+            }
+        }
+    }
+
+    /// Records that `rays` took `seconds`.
+    pub fn record(&mut self, rays: usize, seconds: f64) {
+        if rays == 0 || seconds <= 0.0 || !seconds.is_finite() {
+            return;
+        }
+        let rate = rays as f64 / seconds;
+        // Half-and-half smoothing: follows a change of engine load within a
+        // few chunks without jumping on one slow chunk.
+        self.rays_per_second = Some(match self.rays_per_second {
+            None => rate,
+            Some(old) => 0.5 * old + 0.5 * rate,
+        });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Mat4;
+
+    fn camera(width: u32, height: u32) -> Camera {
+        let k = Intrinsics::from_fov_x(width, height, 0.7);
+        Camera::new(k, Mat4::from_translation(Vec3::new(0.1, -0.2, 4.0)))
+    }
+
+    #[test]
+    fn a_level_pixel_looks_through_the_centre_of_its_block() {
+        let full = camera(64, 48);
+        for downscale in [2, 4, 8] {
+            let level = level_camera(&full, downscale);
+            assert_eq!(level.intrinsics.width, 64 / downscale);
+            assert_eq!(level.intrinsics.height, 48 / downscale);
+            // Level pixel (i, j) covers full pixels [d i, d (i + 1)), whose
+            // centre is at d i + d/2 in full-resolution pixel units.
+            let (i, j) = (3, 2);
+            let d = downscale as f32;
+            let expected = full.ray_through(d * i as f32 + 0.5 * d, d * j as f32 + 0.5 * d);
+            let got = level.pixel_ray(i, j);
+            assert!((got.direction - expected.direction).length() < 1e-6);
+            assert_eq!(got.origin, expected.origin);
+        }
+    }
+
+    #[test]
+    fn levels_go_coarse_to_fine_and_skip_repeated_sizes() {
+        assert_eq!(refinement_levels(64, 64), vec![8, 4, 2, 1]);
+        // 4 px wide: 1/8 and 1/4 are both one pixel, so 1/4 is skipped.
+        assert_eq!(refinement_levels(4, 4), vec![8, 2, 1]);
+        assert_eq!(refinement_levels(1, 1), vec![8]);
+        let tiny = level_camera(&camera(5, 3), 8);
+        assert_eq!((tiny.intrinsics.width, tiny.intrinsics.height), (1, 1));
+    }
+
+    #[test]
+    fn the_pacer_aims_at_its_target_within_bounds() {
+        let mut pacer = ChunkPacer::new(Duration::from_millis(50));
+        assert_eq!(pacer.chunk_rays(), ChunkPacer::FIRST_RAYS);
+        pacer.record(10_000, 0.1); // 100 000 rays/s → 5 000 rays in 50 ms
+        assert_eq!(pacer.chunk_rays(), 5_000);
+        // A very slow engine (0.1 rays/s): the smoothed rate halves each
+        // time, and the chunk ends at the minimum rather than at zero.
+        for _ in 0..20 {
+            pacer.record(1, 10.0);
+        }
+        assert_eq!(pacer.chunk_rays(), ChunkPacer::MIN_RAYS);
+    }
+}

@@ -1,0 +1,151 @@
+//! What the viewer and its training thread say to each other. The UI sends
+//! [`Command`]s and never waits; the training thread, which owns the scene
+//! and every model's engine state, answers with [`Event`]s.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use crate::engine::EngineKind;
+use crate::field::ModelKind;
+use crate::render::RenderMode;
+use crate::render::export::ExportSettings;
+use crate::scene::{Camera, Scene};
+use crate::train::model::{RenderedPixel, StageTimes};
+
+/// Where a scene comes from.
+#[derive(Debug, Clone, PartialEq)]
+pub enum SceneSource {
+    /// The built-in demo scene, built in memory.
+    Demo,
+    /// A folder in the NeRF-synthetic layout or with a transforms.json.
+    Folder(PathBuf),
+}
+
+/// A request to draw the scene from `camera`.
+#[derive(Debug, Clone)]
+pub struct RenderRequest {
+    /// Increases with every new request; frames answer with it, so the UI
+    /// drops frames of cameras it has moved away from.
+    pub generation: u64,
+    /// The camera at full viewport resolution.
+    pub camera: Camera,
+    pub mode: RenderMode,
+    /// True while the user drags or flies: the thread renders only the
+    /// coarsest level and favours rendering over training.
+    pub moving: bool,
+}
+
+/// How the training thread shares its time.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Balance {
+    /// Fraction of wall time given to training steps while the camera
+    /// rests, in [0, 1]; the rest refines the view.
+    pub training_share: f32,
+}
+
+impl Default for Balance {
+    fn default() -> Self {
+        Self {
+            training_share: 0.7,
+        }
+    }
+}
+
+#[derive(Debug, Clone)]
+pub enum Command {
+    /// Load a scene; every model's state of the previous scene is dropped
+    /// only once the new one has loaded.
+    OpenScene(SceneSource),
+    /// Train the active model continuously.
+    Start,
+    Pause,
+    /// One training step of the active model (while paused).
+    StepOnce,
+    /// Forget the active model's training and start it afresh.
+    Reset,
+    /// Make `kind` the active model; each model keeps its own state.
+    SelectModel(ModelKind),
+    SetBalance(Balance),
+    Render(RenderRequest),
+    SaveCheckpoint(PathBuf),
+    LoadCheckpoint(PathBuf),
+    ExportTurntable(ExportSettings),
+    CancelExport,
+    Shutdown,
+}
+
+/// A summary of a loaded scene for the UI.
+#[derive(Debug, Clone)]
+pub struct SceneInfo {
+    pub scene: Arc<Scene>,
+    pub source: SceneSource,
+}
+
+/// Training figures after a step of one model.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrainingStats {
+    pub model: ModelKind,
+    /// Steps taken so far.
+    pub step: u32,
+    /// Seconds spent training this model (rendering excluded).
+    pub train_seconds: f64,
+    pub loss: f32,
+    /// PSNR of the loss's batch (from the mean squared error), when known.
+    pub batch_psnr: Option<f32>,
+    /// PSNR on held-out views, when the thread evaluated this step.
+    pub val_psnr: Option<f32>,
+    pub ms_per_step: f32,
+    pub samples_per_ray: f32,
+    pub samples_per_second: f32,
+    pub memory_bytes: usize,
+    pub times: StageTimes,
+}
+
+/// A rendered image for the viewport.
+#[derive(Debug, Clone)]
+pub struct RenderedFrame {
+    pub generation: u64,
+    pub model: ModelKind,
+    /// The model's step when it was rendered.
+    pub step: u32,
+    /// 1 = full resolution; 8 = an eighth of the viewport in each direction.
+    pub downscale: u32,
+    pub width: u32,
+    pub height: u32,
+    pub mode: RenderMode,
+    /// Row-major, `width × height`.
+    pub pixels: Vec<RenderedPixel>,
+}
+
+#[derive(Debug, Clone)]
+pub enum Event {
+    SceneLoaded(SceneInfo),
+    /// The scene could not be loaded; the previous one stays.
+    SceneFailed {
+        source: SceneSource,
+        error: String,
+    },
+    /// The engine the thread trains on, e.g. "cpu (AMD EPYC, 2 threads)".
+    Engine {
+        kind: EngineKind,
+        description: String,
+    },
+    ModelSelected(ModelKind),
+    Running(bool),
+    Stats(TrainingStats),
+    Frame(RenderedFrame),
+    CheckpointSaved(PathBuf),
+    CheckpointLoaded {
+        path: PathBuf,
+        model: ModelKind,
+        step: u32,
+    },
+    ExportProgress {
+        done: usize,
+        total: usize,
+    },
+    /// Files written, or why the export stopped.
+    ExportFinished(Result<Vec<PathBuf>, String>),
+    /// Anything else that went wrong, said in full.
+    Error(String),
+}

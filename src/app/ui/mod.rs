@@ -1,0 +1,492 @@
+//! The viewer's window contents: panels, viewport, plots. Everything here
+//! runs on the UI thread and talks to the training thread only through a
+//! [`TrainingLink`], which never blocks: commands are sent, events are
+//! polled with `try_recv` once per frame.
+//!
+//! [`ViewerUi`] knows nothing of eframe, so tests drive it with
+//! `egui_kittest` and a link they can inspect.
+
+use eframe::egui;
+mod panels;
+mod plots;
+mod viewport;
+
+use std::collections::VecDeque;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use crate::app::camera::ViewCamera;
+use crate::app::protocol::{Balance, Command, Event, SceneInfo, SceneSource, TrainingStats};
+use crate::app::worker::TrainingWorker;
+use crate::engine::EngineKind;
+use crate::field::ModelKind;
+use crate::render::RenderMode;
+
+pub use panels::ExportDialog;
+pub use plots::{History, HistoryPoint, PlotAxis};
+pub use viewport::{CompareMode, CompareWith, ViewportState};
+
+/// The UI's end of the channel to the training thread.
+pub trait TrainingLink {
+    /// Queues a command; never waits for the thread.
+    fn send(&self, command: Command);
+    /// The next event, if one is waiting.
+    fn try_recv(&self) -> Option<Event>;
+    /// Stops the thread and waits for it to finish.
+    fn shutdown(self: Box<Self>) {
+        self.send(Command::Shutdown);
+    }
+}
+
+impl TrainingLink for TrainingWorker {
+    fn send(&self, command: Command) {
+        TrainingWorker::send(self, command);
+    }
+
+    fn try_recv(&self) -> Option<Event> {
+        TrainingWorker::try_recv(self)
+    }
+
+    fn shutdown(self: Box<Self>) {
+        TrainingWorker::shutdown(*self);
+    }
+}
+
+/// A link to nothing, left behind once the real one has been shut down.
+struct ClosedLink;
+
+impl TrainingLink for ClosedLink {
+    fn send(&self, _command: Command) {}
+
+    fn try_recv(&self) -> Option<Event> {
+        None
+    }
+}
+
+/// Most events handled in one frame: a thread that floods the channel must
+/// not stall the UI; the rest wait for the next frame.
+const MAX_EVENTS_PER_FRAME: usize = 512;
+
+/// How often training progress is written to stderr.
+const PROGRESS_LOG_INTERVAL: Duration = Duration::from_secs(2);
+
+/// How many notices the side panel keeps.
+const MAX_NOTICES: usize = 6;
+
+/// A line for the user: what happened, and whether it went wrong.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Notice {
+    pub text: String,
+    pub is_error: bool,
+}
+
+/// Everything the window shows and remembers between frames.
+pub struct ViewerUi {
+    link: Box<dyn TrainingLink>,
+    started: Instant,
+    scene: Option<SceneInfo>,
+    /// The scene being opened, until the thread answers.
+    opening: Option<SceneSource>,
+    /// Why the last scene failed to open, naming the folder.
+    scene_error: Option<String>,
+    notices: VecDeque<Notice>,
+    engine: Option<(EngineKind, String)>,
+    /// The adapter egui draws with (not necessarily the training engine's).
+    display_adapter: Option<String>,
+    active_model: ModelKind,
+    running: bool,
+    histories: Vec<History>,
+    balance: Balance,
+    mode: RenderMode,
+    camera: Option<ViewCamera>,
+    viewport: ViewportState,
+    plot_axis: PlotAxis,
+    export: ExportDialog,
+    scene_path_text: String,
+    checkpoint_path_text: String,
+    /// Whether a native file dialog can open here (portal or zenity).
+    dialogs_available: bool,
+    /// The camera turns by itself as if dragged (for measuring).
+    auto_orbit: bool,
+    last_progress_log: Option<Instant>,
+    /// The last stats logged, so a paused thread is not logged again.
+    last_logged_step: Option<(ModelKind, u32)>,
+    log_progress: bool,
+}
+
+impl ViewerUi {
+    /// A window talking to `link`, whose thread trains `model` first.
+    pub fn new(link: Box<dyn TrainingLink>, model: ModelKind) -> Self {
+        Self {
+            link,
+            started: Instant::now(),
+            scene: None,
+            opening: None,
+            scene_error: None,
+            notices: VecDeque::new(),
+            engine: None,
+            display_adapter: None,
+            active_model: model,
+            running: false,
+            histories: Vec::new(),
+            balance: Balance::default(),
+            mode: RenderMode::Rgb,
+            camera: None,
+            viewport: ViewportState::default(),
+            plot_axis: PlotAxis::Step,
+            export: ExportDialog::default(),
+            scene_path_text: String::new(),
+            checkpoint_path_text: String::new(),
+            dialogs_available: panels::file_dialog_available(),
+            auto_orbit: false,
+            last_progress_log: None,
+            last_logged_step: None,
+            log_progress: false,
+        }
+    }
+
+    /// Writes one line of training progress to stderr every ~2 s.
+    pub fn set_log_progress(&mut self, on: bool) {
+        self.log_progress = on;
+    }
+
+    /// Turns the camera by itself, as if dragged, so that a moving camera
+    /// can be measured without a mouse.
+    pub fn set_auto_orbit(&mut self, on: bool) {
+        self.auto_orbit = on;
+    }
+
+    /// Names the adapter egui draws with, for the stats panel.
+    pub fn set_display_adapter(&mut self, description: String) {
+        self.display_adapter = Some(description);
+    }
+
+    /// Says whether native file dialogs work here (tests turn them off).
+    pub fn set_dialogs_available(&mut self, available: bool) {
+        self.dialogs_available = available;
+    }
+
+    /// Marks the scene being opened (e.g. the one the thread was spawned
+    /// with), so the panel says so until it has loaded.
+    pub fn set_opening(&mut self, source: SceneSource) {
+        self.opening = Some(source);
+    }
+
+    pub fn active_model(&self) -> ModelKind {
+        self.active_model
+    }
+
+    pub fn render_mode(&self) -> RenderMode {
+        self.mode
+    }
+
+    pub fn is_running(&self) -> bool {
+        self.running
+    }
+
+    pub fn scene(&self) -> Option<&SceneInfo> {
+        self.scene.as_ref()
+    }
+
+    pub fn scene_error(&self) -> Option<&str> {
+        self.scene_error.as_deref()
+    }
+
+    pub fn notices(&self) -> impl Iterator<Item = &Notice> {
+        self.notices.iter()
+    }
+
+    /// The latest figures of `model`, if it has trained in this session.
+    pub fn latest_stats(&self, model: ModelKind) -> Option<&TrainingStats> {
+        self.history(model).and_then(|h| h.latest.as_ref())
+    }
+
+    pub fn history(&self, model: ModelKind) -> Option<&History> {
+        self.histories.iter().find(|h| h.model == model)
+    }
+
+    pub fn viewport(&self) -> &ViewportState {
+        &self.viewport
+    }
+
+    /// True when a drag, a fly key, a scroll or the auto-orbit moved the
+    /// camera in the last frame.
+    pub fn camera_moving(&self) -> bool {
+        self.viewport.moving
+    }
+
+    /// Asks the thread to open a scene folder (the previous scene keeps
+    /// training until the new one has loaded).
+    pub fn open_scene(&mut self, path: PathBuf) {
+        self.scene_path_text = path.display().to_string();
+        let source = SceneSource::Folder(path);
+        self.opening = Some(source.clone());
+        self.scene_error = None;
+        self.link.send(Command::OpenScene(source));
+    }
+
+    /// Makes `kind` the model that trains and renders.
+    pub fn select_model(&mut self, kind: ModelKind) {
+        if kind != self.active_model {
+            self.active_model = kind;
+            self.link.send(Command::SelectModel(kind));
+            // Frames of the previous model no longer answer what is shown.
+            self.viewport.invalidate();
+        }
+    }
+
+    pub fn set_render_mode(&mut self, mode: RenderMode) {
+        // The next frame's request carries the mode; nothing else to send.
+        self.mode = mode;
+    }
+
+    /// Starts or pauses training; the button shows the state the thread
+    /// last reported, and is updated optimistically until it answers.
+    pub fn toggle_running(&mut self) {
+        if self.running {
+            self.link.send(Command::Pause);
+        } else {
+            self.link.send(Command::Start);
+        }
+        self.running = !self.running;
+    }
+
+    /// Hands the link back (for shutdown), leaving a closed one behind.
+    pub fn take_link(&mut self) -> Box<dyn TrainingLink> {
+        std::mem::replace(&mut self.link, Box::new(ClosedLink))
+    }
+
+    fn send(&self, command: Command) {
+        self.link.send(command);
+    }
+
+    fn notice(&mut self, text: impl Into<String>, is_error: bool) {
+        let text = text.into();
+        if is_error {
+            eprintln!("zrak: {text}");
+        }
+        self.notices.push_back(Notice { text, is_error });
+        while self.notices.len() > MAX_NOTICES {
+            self.notices.pop_front();
+        }
+    }
+
+    /// Draws the whole window for one frame.
+    pub fn show(&mut self, ui: &mut egui::Ui) {
+        let ctx = ui.ctx().clone();
+        let got_events = self.poll_events(&ctx);
+        self.take_dropped_folders(&ctx);
+        self.log_progress_line();
+
+        panels::menu_bar(self, ui);
+        panels::controls_panel(self, ui);
+        panels::bottom_panel(self, ui);
+        egui::CentralPanel::default().show(ui, |ui| {
+            viewport::show(self, ui);
+        });
+        panels::export_window(self, &ctx);
+
+        // Training or a moving camera keeps the picture changing; the worker
+        // may also wake us through its repaint callback, but a steady tick
+        // keeps plots and stats live even without one.
+        if got_events || self.running || self.viewport.moving || self.auto_orbit {
+            ctx.request_repaint();
+        } else {
+            ctx.request_repaint_after(Duration::from_millis(250));
+        }
+    }
+
+    /// Handles waiting events; true if there were any.
+    fn poll_events(&mut self, ctx: &egui::Context) -> bool {
+        let mut newest_frame = None;
+        let mut count = 0;
+        while count < MAX_EVENTS_PER_FRAME {
+            let Some(event) = self.link.try_recv() else {
+                break;
+            };
+            count += 1;
+            match event {
+                Event::Frame(frame) => {
+                    // Only the newest frame is worth uploading.
+                    if self.viewport.accepts(&frame) {
+                        newest_frame = Some(frame);
+                    }
+                }
+                other => self.handle_event(other),
+            }
+        }
+        if let Some(frame) = newest_frame {
+            self.viewport.show_frame(ctx, frame);
+        }
+        count > 0
+    }
+
+    fn handle_event(&mut self, event: Event) {
+        match event {
+            Event::SceneLoaded(info) => {
+                if self.opening.as_ref() == Some(&info.source) {
+                    self.opening = None;
+                }
+                self.scene_error = None;
+                self.notice(
+                    format!(
+                        "Opened {} ({} training views)",
+                        describe_source(&info.source),
+                        info.scene.train.len()
+                    ),
+                    false,
+                );
+                match &mut self.camera {
+                    Some(camera) => camera.reset(&info.scene),
+                    None => self.camera = Some(ViewCamera::for_scene(&info.scene)),
+                }
+                // Every model's state of the previous scene is gone.
+                self.histories.clear();
+                self.viewport.scene_changed();
+                self.scene = Some(info);
+            }
+            Event::SceneFailed { source, error } => {
+                if self.opening.as_ref() == Some(&source) {
+                    self.opening = None;
+                }
+                let text = format!("Could not open {}: {error}", describe_source(&source));
+                self.scene_error = Some(text.clone());
+                self.notice(text, true);
+            }
+            Event::Engine { kind, description } => {
+                self.engine = Some((kind, description));
+            }
+            Event::ModelSelected(kind) => {
+                self.active_model = kind;
+            }
+            Event::Running(running) => self.running = running,
+            Event::Stats(stats) => self.record_stats(stats),
+            Event::Frame(_) => {}
+            Event::CheckpointSaved(path) => {
+                self.notice(format!("Saved checkpoint {}", path.display()), false);
+            }
+            Event::CheckpointLoaded { path, model, step } => {
+                self.notice(
+                    format!(
+                        "Loaded {} at step {step} from {}",
+                        model.name(),
+                        path.display()
+                    ),
+                    false,
+                );
+                // The loaded model continues from `step`: its curve restarts.
+                if let Some(history) = self.histories.iter_mut().find(|h| h.model == model) {
+                    history.points.retain(|p| p.step <= step);
+                }
+                self.active_model = model;
+                self.viewport.invalidate();
+            }
+            Event::ExportProgress { done, total } => {
+                self.export.progress = Some((done, total));
+            }
+            Event::ExportFinished(result) => {
+                self.export.progress = None;
+                match result {
+                    Ok(files) => {
+                        let folder = files
+                            .first()
+                            .and_then(|f| f.parent())
+                            .map(|p| p.display().to_string())
+                            .unwrap_or_default();
+                        let text = format!("Exported {} files to {folder}", files.len());
+                        self.export.result = Some(Notice {
+                            text: text.clone(),
+                            is_error: false,
+                        });
+                        self.notice(text, false);
+                    }
+                    Err(error) => {
+                        let text = format!("Export stopped: {error}");
+                        self.export.result = Some(Notice {
+                            text: text.clone(),
+                            is_error: true,
+                        });
+                        self.notice(text, true);
+                    }
+                }
+            }
+            Event::Error(error) => self.notice(error, true),
+        }
+    }
+
+    fn record_stats(&mut self, stats: TrainingStats) {
+        let wall_seconds = self.started.elapsed().as_secs_f64();
+        let history = match self
+            .histories
+            .iter_mut()
+            .position(|h| h.model == stats.model)
+        {
+            Some(i) => &mut self.histories[i],
+            None => {
+                self.histories.push(History::new(stats.model));
+                self.histories.last_mut().expect("just pushed")
+            }
+        };
+        history.record(&stats, wall_seconds);
+    }
+
+    /// Folders dropped onto the window open as scenes; a dropped file opens
+    /// the folder it lies in (e.g. a transforms.json).
+    fn take_dropped_folders(&mut self, ctx: &egui::Context) {
+        let dropped: Vec<PathBuf> = ctx.input(|i| {
+            i.raw
+                .dropped_files
+                .iter()
+                .map(|f| f.path().to_path_buf())
+                .collect()
+        });
+        if let Some(path) = dropped.into_iter().next() {
+            let folder = if path.is_file() {
+                path.parent().map(Path::to_path_buf).unwrap_or(path)
+            } else {
+                path
+            };
+            self.open_scene(folder);
+        }
+    }
+
+    fn log_progress_line(&mut self) {
+        if !self.log_progress {
+            return;
+        }
+        let now = Instant::now();
+        if self
+            .last_progress_log
+            .is_some_and(|last| now.duration_since(last) < PROGRESS_LOG_INTERVAL)
+        {
+            return;
+        }
+        let Some(stats) = self.latest_stats(self.active_model).copied() else {
+            return;
+        };
+        if self.last_logged_step == Some((stats.model, stats.step)) {
+            return;
+        }
+        self.last_progress_log = Some(now);
+        self.last_logged_step = Some((stats.model, stats.step));
+        let psnr = |value: Option<f32>| value.map_or("-".to_string(), |v| format!("{v:.2}"));
+        eprintln!(
+            "zrak view: {} step {} loss {:.5} psnr {} val_psnr {} ms/step {:.1} wall {:.1}s",
+            stats.model.name(),
+            stats.step,
+            stats.loss,
+            psnr(stats.batch_psnr),
+            psnr(self.history(stats.model).and_then(|h| h.latest_val_psnr())),
+            stats.ms_per_step,
+            self.started.elapsed().as_secs_f64()
+        );
+    }
+}
+
+/// "the demo scene" or the folder's path.
+pub fn describe_source(source: &SceneSource) -> String {
+    match source {
+        SceneSource::Demo => "the built-in demo scene".to_string(),
+        SceneSource::Folder(path) => path.display().to_string(),
+    }
+}

@@ -1,0 +1,670 @@
+//! The menu bar, the control panel on the left, the stats and plots at the
+//! bottom, and the turntable export window.
+
+use eframe::egui;
+use std::path::PathBuf;
+
+use egui::{Color32, RichText};
+
+use super::viewport::{self, CompareMode, CompareWith};
+use super::{Notice, PlotAxis, ViewerUi, describe_source, plots};
+use crate::app::camera::Navigation;
+use crate::app::protocol::{Balance, Command, SceneSource};
+use crate::field::ModelKind;
+use crate::render::RenderMode;
+use crate::render::export::ExportSettings;
+use crate::render::path::Turntable;
+
+/// The colour of error text.
+const ERROR_COLOUR: Color32 = Color32::from_rgb(0xff, 0x70, 0x60);
+
+/// What the turntable export window holds.
+#[derive(Debug, Clone)]
+pub struct ExportDialog {
+    pub open: bool,
+    pub frames: usize,
+    /// Use the training images' size instead of `width` × `height`.
+    pub training_size: bool,
+    pub width: u32,
+    pub height: u32,
+    pub elevation_degrees: f32,
+    /// Use the training cameras' mean distance instead of `radius`.
+    pub mean_radius: bool,
+    pub radius: f32,
+    pub folder: String,
+    pub write_gif: bool,
+    /// (frames done, frames in all) while an export runs.
+    pub progress: Option<(usize, usize)>,
+    pub result: Option<Notice>,
+}
+
+impl Default for ExportDialog {
+    fn default() -> Self {
+        let turntable = Turntable::default();
+        Self {
+            open: false,
+            frames: turntable.frames,
+            training_size: true,
+            width: 400,
+            height: 400,
+            elevation_degrees: turntable.elevation_degrees,
+            mean_radius: true,
+            radius: 4.0,
+            folder: std::env::temp_dir()
+                .join("zrak-turntable")
+                .display()
+                .to_string(),
+            write_gif: true,
+            progress: None,
+            result: None,
+        }
+    }
+}
+
+impl ExportDialog {
+    /// The settings the export command carries.
+    pub fn settings(&self, mode: RenderMode) -> ExportSettings {
+        ExportSettings {
+            turntable: Turntable {
+                frames: self.frames.max(1),
+                elevation_degrees: self.elevation_degrees,
+                radius: (!self.mean_radius).then_some(self.radius),
+                size: (!self.training_size).then_some((self.width.max(8), self.height.max(8))),
+            },
+            mode,
+            out_dir: PathBuf::from(self.folder.trim()),
+            write_gif: self.write_gif,
+        }
+    }
+}
+
+/// Whether a native file dialog can open: rfd asks the XDG desktop portal
+/// over D-Bus and falls back to zenity; with neither it silently returns
+/// nothing, which would look like a cancelled dialog.
+pub fn file_dialog_available() -> bool {
+    if !cfg!(target_os = "linux") {
+        return true;
+    }
+    let has_bus = std::env::var_os("DBUS_SESSION_BUS_ADDRESS").is_some_and(|v| !v.is_empty());
+    let has_zenity = std::env::var_os("PATH")
+        .is_some_and(|paths| std::env::split_paths(&paths).any(|dir| dir.join("zenity").is_file()));
+    has_bus || has_zenity
+}
+
+const NO_DIALOG: &str = "No file dialog can open here (no desktop portal or zenity): type the path in the field and press the button beside it.";
+
+pub fn menu_bar(state: &mut ViewerUi, ui: &mut egui::Ui) {
+    egui::Panel::top("zrak menu").show(ui, |ui| {
+        egui::MenuBar::new().ui(ui, |ui| {
+            ui.menu_button("File", |ui| {
+                if ui.button("Open scene…").clicked() {
+                    pick_scene_folder(state);
+                }
+                if ui.button("Open demo scene").clicked() {
+                    state.opening = Some(SceneSource::Demo);
+                    state.scene_error = None;
+                    state.send(Command::OpenScene(SceneSource::Demo));
+                }
+                ui.separator();
+                if ui.button("Save checkpoint…").clicked() {
+                    save_checkpoint_dialog(state);
+                }
+                if ui.button("Load checkpoint…").clicked() {
+                    load_checkpoint_dialog(state);
+                }
+                ui.separator();
+                if ui.button("Export turntable…").clicked() {
+                    state.export.open = true;
+                }
+                ui.separator();
+                if ui.button("Quit").clicked() {
+                    ui.ctx().send_viewport_cmd(egui::ViewportCommand::Close);
+                }
+            });
+            ui.menu_button("View", |ui| {
+                if let Some(camera) = &mut state.camera {
+                    let mut navigation = camera.navigation();
+                    ui.radio_value(&mut navigation, Navigation::Orbit, "Orbit");
+                    ui.radio_value(&mut navigation, Navigation::Fly, "Fly");
+                    camera.set_navigation(navigation);
+                }
+                if ui.button("Reset view").clicked() {
+                    reset_view(state);
+                }
+            });
+        });
+    });
+}
+
+fn pick_scene_folder(state: &mut ViewerUi) {
+    if !state.dialogs_available {
+        state.notice(NO_DIALOG, true);
+        return;
+    }
+    if let Some(folder) = rfd::FileDialog::new()
+        .set_title("Open a scene folder")
+        .pick_folder()
+    {
+        state.open_scene(folder);
+    }
+}
+
+fn save_checkpoint_dialog(state: &mut ViewerUi) {
+    if !state.dialogs_available {
+        state.notice(NO_DIALOG, true);
+        return;
+    }
+    if let Some(path) = rfd::FileDialog::new()
+        .set_title("Save checkpoint")
+        .set_file_name("checkpoint.zrak")
+        .save_file()
+    {
+        state.checkpoint_path_text = path.display().to_string();
+        state.send(Command::SaveCheckpoint(path));
+    }
+}
+
+fn load_checkpoint_dialog(state: &mut ViewerUi) {
+    if !state.dialogs_available {
+        state.notice(NO_DIALOG, true);
+        return;
+    }
+    if let Some(path) = rfd::FileDialog::new()
+        .set_title("Load checkpoint")
+        .add_filter("zrak checkpoint", &["zrak"])
+        .pick_file()
+    {
+        state.checkpoint_path_text = path.display().to_string();
+        state.send(Command::LoadCheckpoint(path));
+    }
+}
+
+fn reset_view(state: &mut ViewerUi) {
+    if let (Some(camera), Some(info)) = (&mut state.camera, &state.scene) {
+        camera.reset(&info.scene);
+        state.viewport.snapped = false;
+        state.viewport.view_index = None;
+    }
+}
+
+fn section(ui: &mut egui::Ui, title: &str) {
+    ui.add_space(6.0);
+    ui.label(RichText::new(title).strong());
+}
+
+pub fn controls_panel(state: &mut ViewerUi, ui: &mut egui::Ui) {
+    egui::Panel::left("zrak controls")
+        .resizable(true)
+        .default_size(280.0)
+        .show(ui, |ui| {
+            egui::ScrollArea::vertical().show(ui, |ui| {
+                scene_section(state, ui);
+                ui.separator();
+                training_section(state, ui);
+                ui.separator();
+                render_section(state, ui);
+                ui.separator();
+                camera_section(state, ui);
+                ui.separator();
+                checkpoint_section(state, ui);
+                ui.separator();
+                if ui.button("Export turntable…").clicked() {
+                    state.export.open = true;
+                }
+                if !state.notices.is_empty() {
+                    ui.separator();
+                    for notice in state.notices.iter().rev() {
+                        let text = RichText::new(&notice.text).small();
+                        if notice.is_error {
+                            ui.label(text.color(ERROR_COLOUR));
+                        } else {
+                            ui.label(text.weak());
+                        }
+                    }
+                }
+            });
+        });
+}
+
+fn scene_section(state: &mut ViewerUi, ui: &mut egui::Ui) {
+    section(ui, "Scene");
+    match &state.scene {
+        Some(info) => {
+            ui.label(format!(
+                "{} — {} train / {} val views",
+                info.scene.name,
+                info.scene.train.len(),
+                info.scene.val.len()
+            ));
+            if let Some((w, h)) = info.scene.resolution() {
+                ui.label(
+                    RichText::new(format!("{w}×{h}, {}", describe_source(&info.source))).small(),
+                );
+            }
+        }
+        None => {
+            ui.label("No scene loaded yet");
+        }
+    }
+    if let Some(source) = &state.opening {
+        ui.horizontal(|ui| {
+            ui.spinner();
+            ui.label(format!("Opening {}…", describe_source(source)));
+        });
+    }
+    if let Some(error) = &state.scene_error {
+        ui.label(RichText::new(error).color(ERROR_COLOUR));
+    }
+    ui.horizontal(|ui| {
+        if ui.button("Open scene…").clicked() {
+            pick_scene_folder(state);
+        }
+        ui.weak("or drop a folder on the window");
+    });
+    ui.horizontal(|ui| {
+        let name = ui.label("Folder");
+        let field = ui
+            .add(
+                egui::TextEdit::singleline(&mut state.scene_path_text)
+                    .hint_text("path to a scene")
+                    .desired_width(150.0),
+            )
+            .labelled_by(name.id);
+        let entered = field.lost_focus() && ui.input(|i| i.key_pressed(egui::Key::Enter));
+        if (ui.button("Open").clicked() || entered) && !state.scene_path_text.trim().is_empty() {
+            let path = PathBuf::from(state.scene_path_text.trim());
+            state.open_scene(path);
+        }
+    });
+}
+
+fn training_section(state: &mut ViewerUi, ui: &mut egui::Ui) {
+    section(ui, "Training");
+    ui.horizontal(|ui| {
+        let label = if state.running { "Pause" } else { "Start" };
+        if ui.button(label).clicked() {
+            state.toggle_running();
+        }
+        if ui
+            .add_enabled(!state.running, egui::Button::new("Step"))
+            .clicked()
+        {
+            state.send(Command::StepOnce);
+        }
+        if ui.button("Reset").clicked() {
+            state.send(Command::Reset);
+            if let Some(history) = state
+                .histories
+                .iter_mut()
+                .find(|h| h.model == state.active_model)
+            {
+                history.points.clear();
+                history.latest = None;
+            }
+        }
+    });
+    ui.horizontal(|ui| {
+        ui.label("Model");
+        for kind in ModelKind::ALL {
+            if ui
+                .selectable_label(state.active_model == kind, kind.name())
+                .clicked()
+            {
+                state.select_model(kind);
+            }
+        }
+    });
+    let mut share = state.balance.training_share;
+    let slider = ui.add(
+        egui::Slider::new(&mut share, 0.0..=1.0)
+            .text("training share")
+            .fixed_decimals(2),
+    );
+    if slider.changed() {
+        state.balance = Balance {
+            training_share: share,
+        };
+        state.send(Command::SetBalance(state.balance));
+    }
+    match &state.engine {
+        Some((kind, description)) => {
+            ui.label(format!("Engine: {}", kind.name()));
+            ui.label(RichText::new(description).small());
+        }
+        None => {
+            ui.label("Engine: starting…");
+        }
+    }
+}
+
+fn render_section(state: &mut ViewerUi, ui: &mut egui::Ui) {
+    section(ui, "Render");
+    ui.horizontal(|ui| {
+        ui.label("Mode");
+        for (mode, name) in [
+            (RenderMode::Rgb, "RGB"),
+            (RenderMode::Depth, "Depth"),
+            (RenderMode::Opacity, "Opacity"),
+        ] {
+            if ui.selectable_label(state.mode == mode, name).clicked() {
+                state.set_render_mode(mode);
+            }
+        }
+    });
+    ui.horizontal(|ui| {
+        ui.label("Compare");
+        let compare = &mut state.viewport.compare;
+        ui.selectable_value(compare, CompareMode::Off, "Render only");
+        ui.selectable_value(compare, CompareMode::SideBySide, "Side by side");
+        ui.selectable_value(compare, CompareMode::Split, "Split");
+    });
+    if state.viewport.compare != CompareMode::Off {
+        ui.horizontal(|ui| {
+            ui.label("with");
+            let with = &mut state.viewport.compare_with;
+            ui.selectable_value(with, CompareWith::GroundTruth, "Ground truth");
+            ui.selectable_value(with, CompareWith::Error, "Error");
+        });
+        if state.viewport.compare == CompareMode::Split {
+            ui.add(egui::Slider::new(&mut state.viewport.split, 0.0..=1.0).text("split"));
+        }
+        if let Some(psnr) = state.viewport.view_psnr.filter(|_| state.viewport.snapped) {
+            ui.label(format!("PSNR of this view: {psnr:.2} dB"));
+        }
+    }
+}
+
+fn camera_section(state: &mut ViewerUi, ui: &mut egui::Ui) {
+    section(ui, "Camera");
+    let count = state.scene.as_ref().map_or(0, |s| s.scene.train.len());
+    if let Some(camera) = &mut state.camera {
+        ui.horizontal(|ui| {
+            let mut navigation = camera.navigation();
+            ui.selectable_value(&mut navigation, Navigation::Orbit, "Orbit");
+            ui.selectable_value(&mut navigation, Navigation::Fly, "Fly");
+            camera.set_navigation(navigation);
+        });
+        let hint = match camera.navigation() {
+            Navigation::Orbit => "drag: rotate · right/middle drag: pan · scroll: zoom",
+            Navigation::Fly => "WASD: move · Q/E: down/up · drag: look · Shift: faster",
+        };
+        ui.label(RichText::new(hint).small().weak());
+        ui.add(
+            egui::Slider::new(&mut camera.fov_y_degrees, 10.0..=120.0)
+                .text("field of view")
+                .suffix("°"),
+        );
+    }
+    ui.horizontal(|ui| {
+        if ui.button("< Prev view").clicked() {
+            viewport::step_training_view(state, false);
+        }
+        if ui.button("Next view >").clicked() {
+            viewport::step_training_view(state, true);
+        }
+        if ui.button("Reset view").clicked() {
+            reset_view(state);
+        }
+    });
+    let at = match (state.viewport.view_index, state.viewport.snapped) {
+        (Some(view), true) => format!("at training view {} of {count}", view + 1),
+        (Some(view), false) => format!("moved from training view {} of {count}", view + 1),
+        (None, _) => format!("{count} training views"),
+    };
+    ui.label(RichText::new(at).small());
+}
+
+fn checkpoint_section(state: &mut ViewerUi, ui: &mut egui::Ui) {
+    section(ui, "Checkpoint");
+    ui.horizontal(|ui| {
+        if ui.button("Save…").clicked() {
+            save_checkpoint_dialog(state);
+        }
+        if ui.button("Load…").clicked() {
+            load_checkpoint_dialog(state);
+        }
+    });
+    ui.horizontal(|ui| {
+        let name = ui.label("Path");
+        ui.add(
+            egui::TextEdit::singleline(&mut state.checkpoint_path_text)
+                .hint_text("checkpoint.zrak")
+                .desired_width(100.0),
+        )
+        .labelled_by(name.id);
+        let path = state.checkpoint_path_text.trim().to_string();
+        if ui
+            .add_enabled(!path.is_empty(), egui::Button::new("Save to path"))
+            .clicked()
+        {
+            state.send(Command::SaveCheckpoint(PathBuf::from(&path)));
+        }
+        if ui
+            .add_enabled(!path.is_empty(), egui::Button::new("Load path"))
+            .clicked()
+        {
+            state.send(Command::LoadCheckpoint(PathBuf::from(&path)));
+        }
+    });
+}
+
+pub fn bottom_panel(state: &mut ViewerUi, ui: &mut egui::Ui) {
+    egui::Panel::bottom("zrak plots")
+        .resizable(true)
+        .default_size(250.0)
+        .show(ui, |ui| {
+            ui.horizontal_top(|ui| {
+                ui.vertical(|ui| {
+                    ui.set_width(250.0);
+                    stats(state, ui);
+                });
+                ui.separator();
+                ui.vertical(|ui| {
+                    ui.set_width(200.0);
+                    stage_times(state, ui);
+                });
+                ui.separator();
+                ui.vertical(|ui| {
+                    ui.horizontal(|ui| {
+                        ui.label(RichText::new("Loss and PSNR").strong());
+                        ui.label("against");
+                        ui.selectable_value(&mut state.plot_axis, PlotAxis::Step, "steps");
+                        ui.selectable_value(&mut state.plot_axis, PlotAxis::WallTime, "wall time");
+                    });
+                    plots::show(ui, &state.histories, state.plot_axis);
+                });
+            });
+        });
+}
+
+fn stats(state: &ViewerUi, ui: &mut egui::Ui) {
+    ui.label(RichText::new("Stats").strong());
+    let latest = state.latest_stats(state.active_model);
+    let engine = state
+        .engine
+        .as_ref()
+        .map_or("—".to_string(), |(kind, description)| {
+            format!("{}: {description}", kind.name())
+        });
+    let figure = |value: Option<String>| value.unwrap_or_else(|| "—".to_string());
+    let psnr = state
+        .history(state.active_model)
+        .and_then(|h| h.latest_val_psnr())
+        .map(|v| format!("{v:.2} dB (val)"))
+        .or_else(|| {
+            latest
+                .and_then(|s| s.batch_psnr)
+                .map(|v| format!("{v:.2} dB (batch)"))
+        });
+    let rows = [
+        ("model", state.active_model.name().to_string()),
+        ("step", figure(latest.map(|s| s.step.to_string()))),
+        (
+            "ms/step",
+            figure(latest.map(|s| format!("{:.1}", s.ms_per_step))),
+        ),
+        (
+            "samples/ray",
+            figure(latest.map(|s| format!("{:.1}", s.samples_per_ray))),
+        ),
+        (
+            "samples/s",
+            figure(latest.map(|s| format!("{:.2} M", s.samples_per_second / 1e6))),
+        ),
+        (
+            "memory",
+            figure(latest.map(|s| format!("{:.1} MiB", s.memory_bytes as f64 / 1048576.0))),
+        ),
+        ("loss", figure(latest.map(|s| format!("{:.5}", s.loss)))),
+        ("PSNR", figure(psnr)),
+        ("engine", engine),
+        ("display", figure(state.display_adapter.clone())),
+    ];
+    egui::Grid::new("zrak stats")
+        .num_columns(2)
+        .spacing([10.0, 1.0])
+        .max_col_width(170.0)
+        .show(ui, |ui| {
+            for (name, value) in rows {
+                ui.label(RichText::new(name).small());
+                // Long adapter names are cut; the whole text shows on hover.
+                ui.add(egui::Label::new(RichText::new(&value).small()).truncate())
+                    .on_hover_text(value);
+                ui.end_row();
+            }
+        });
+}
+
+fn stage_times(state: &ViewerUi, ui: &mut egui::Ui) {
+    ui.label(RichText::new("Time per stage").strong());
+    let Some(stats) = state.latest_stats(state.active_model) else {
+        ui.weak("no step yet");
+        return;
+    };
+    let total = stats.times.total();
+    egui::Grid::new("zrak stage times")
+        .num_columns(3)
+        .spacing([10.0, 1.0])
+        .striped(true)
+        .show(ui, |ui| {
+            for (name, seconds) in stats.times.named() {
+                ui.label(RichText::new(name).small());
+                ui.label(RichText::new(format!("{:.2} ms", seconds * 1e3)).small());
+                let share = if total > 0.0 {
+                    seconds / total * 100.0
+                } else {
+                    0.0
+                };
+                ui.label(RichText::new(format!("{share:.0}%")).small());
+                ui.end_row();
+            }
+            ui.label(RichText::new("total").small().strong());
+            ui.label(
+                RichText::new(format!("{:.2} ms", total * 1e3))
+                    .small()
+                    .strong(),
+            );
+            ui.end_row();
+        });
+}
+
+pub fn export_window(state: &mut ViewerUi, ctx: &egui::Context) {
+    if !state.export.open {
+        return;
+    }
+    let mut open = true;
+    let mode = state.mode;
+    let mut command = None;
+    egui::Window::new("Export turntable")
+        .open(&mut open)
+        .resizable(false)
+        .collapsible(false)
+        .show(ctx, |ui| {
+            let dialog = &mut state.export;
+            let running = dialog.progress.is_some();
+            ui.add_enabled_ui(!running, |ui| {
+                egui::Grid::new("zrak export")
+                    .num_columns(2)
+                    .show(ui, |ui| {
+                        ui.label("frames");
+                        ui.add(egui::DragValue::new(&mut dialog.frames).range(1..=3600));
+                        ui.end_row();
+                        ui.label("resolution");
+                        ui.horizontal(|ui| {
+                            ui.checkbox(&mut dialog.training_size, "as training");
+                            ui.add_enabled_ui(!dialog.training_size, |ui| {
+                                ui.add(egui::DragValue::new(&mut dialog.width).range(8..=4096));
+                                ui.label("×");
+                                ui.add(egui::DragValue::new(&mut dialog.height).range(8..=4096));
+                            });
+                        });
+                        ui.end_row();
+                        ui.label("elevation");
+                        ui.add(
+                            egui::Slider::new(&mut dialog.elevation_degrees, -89.0..=89.0)
+                                .suffix("°"),
+                        );
+                        ui.end_row();
+                        ui.label("radius");
+                        ui.horizontal(|ui| {
+                            ui.checkbox(&mut dialog.mean_radius, "training cameras' mean");
+                            ui.add_enabled(
+                                !dialog.mean_radius,
+                                egui::DragValue::new(&mut dialog.radius)
+                                    .range(0.01..=1000.0)
+                                    .speed(0.05),
+                            );
+                        });
+                        ui.end_row();
+                        ui.label("folder");
+                        ui.horizontal(|ui| {
+                            ui.add(
+                                egui::TextEdit::singleline(&mut dialog.folder).desired_width(220.0),
+                            );
+                        });
+                        ui.end_row();
+                        ui.label("GIF");
+                        ui.checkbox(&mut dialog.write_gif, "also write turntable.gif");
+                        ui.end_row();
+                    });
+            });
+            ui.label(RichText::new(format!("mode: {mode:?} (the viewport's)")).small());
+            ui.horizontal(|ui| {
+                if running {
+                    if ui.button("Cancel").clicked() {
+                        command = Some(Command::CancelExport);
+                    }
+                } else if ui
+                    .add_enabled(
+                        !dialog.folder.trim().is_empty(),
+                        egui::Button::new("Export"),
+                    )
+                    .clicked()
+                {
+                    dialog.result = None;
+                    dialog.progress = Some((0, dialog.frames.max(1)));
+                    command = Some(Command::ExportTurntable(dialog.settings(mode)));
+                }
+            });
+            if let Some((done, total)) = dialog.progress {
+                let fraction = done as f32 / total.max(1) as f32;
+                ui.add(
+                    egui::ProgressBar::new(fraction)
+                        .text(format!("{done} / {total} frames"))
+                        .show_percentage(),
+                );
+            }
+            if let Some(result) = &dialog.result {
+                let text = RichText::new(&result.text);
+                ui.label(if result.is_error {
+                    text.color(ERROR_COLOUR)
+                } else {
+                    text
+                });
+            }
+        });
+    if let Some(command) = command {
+        state.send(command);
+    }
+    state.export.open = open;
+}

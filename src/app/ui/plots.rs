@@ -1,0 +1,172 @@
+//! Loss and PSNR curves of every model trained in this session.
+
+use eframe::egui;
+use egui_plot::{Legend, Line, Plot, PlotPoints, Points};
+
+use crate::app::protocol::TrainingStats;
+use crate::field::ModelKind;
+
+/// Points kept per model before older ones are thinned: enough for a smooth
+/// curve at any window width, few enough to draw every frame.
+const MAX_POINTS: usize = 4096;
+
+/// What the curves are drawn against.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PlotAxis {
+    Step,
+    /// Seconds since the window opened.
+    WallTime,
+}
+
+/// One logged step of one model.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HistoryPoint {
+    pub step: u32,
+    /// Seconds since the window opened, when the figures arrived.
+    pub wall_seconds: f64,
+    pub loss: f32,
+    pub batch_psnr: Option<f32>,
+    pub val_psnr: Option<f32>,
+}
+
+/// The curve of one model.
+#[derive(Debug, Clone)]
+pub struct History {
+    pub model: ModelKind,
+    pub points: Vec<HistoryPoint>,
+    pub latest: Option<TrainingStats>,
+}
+
+impl History {
+    pub fn new(model: ModelKind) -> Self {
+        Self {
+            model,
+            points: Vec::new(),
+            latest: None,
+        }
+    }
+
+    pub fn record(&mut self, stats: &TrainingStats, wall_seconds: f64) {
+        // A reset model starts its curve again.
+        if self.points.last().is_some_and(|p| stats.step < p.step) {
+            self.points.clear();
+        }
+        self.points.push(HistoryPoint {
+            step: stats.step,
+            wall_seconds,
+            loss: stats.loss,
+            batch_psnr: stats.batch_psnr,
+            val_psnr: stats.val_psnr,
+        });
+        if self.points.len() > MAX_POINTS {
+            self.thin();
+        }
+        self.latest = Some(*stats);
+    }
+
+    /// Halves the points, keeping every held-out evaluation (they are rare
+    /// and the most telling) and the newest point.
+    fn thin(&mut self) {
+        let last = self.points.len() - 1;
+        let mut index = 0;
+        self.points.retain(|p| {
+            let keep = index % 2 == 0 || index == last || p.val_psnr.is_some();
+            index += 1;
+            keep
+        });
+    }
+
+    pub fn latest_val_psnr(&self) -> Option<f32> {
+        self.points.iter().rev().find_map(|p| p.val_psnr)
+    }
+
+    fn x(point: &HistoryPoint, axis: PlotAxis) -> f64 {
+        match axis {
+            PlotAxis::Step => point.step as f64,
+            PlotAxis::WallTime => point.wall_seconds,
+        }
+    }
+}
+
+/// A colour per model, stable across frames and plots.
+fn model_colour(model: ModelKind) -> egui::Color32 {
+    let index = ModelKind::ALL.iter().position(|&m| m == model).unwrap_or(0);
+    const PALETTE: [egui::Color32; 4] = [
+        egui::Color32::from_rgb(0x4c, 0x9b, 0xe8),
+        egui::Color32::from_rgb(0xe8, 0x8a, 0x3c),
+        egui::Color32::from_rgb(0x5c, 0xc0, 0x6a),
+        egui::Color32::from_rgb(0xc8, 0x5c, 0xc0),
+    ];
+    PALETTE[index % PALETTE.len()]
+}
+
+/// The loss and PSNR plots side by side, sharing the x axis.
+pub fn show(ui: &mut egui::Ui, histories: &[History], axis: PlotAxis) {
+    let x_label = match axis {
+        PlotAxis::Step => "step",
+        PlotAxis::WallTime => "wall time (s)",
+    };
+    let link = egui::Id::unique("zrak training plots");
+    let width = ((ui.available_width() - ui.spacing().item_spacing.x) / 2.0).max(50.0);
+    let height = ui.available_height().max(60.0);
+    ui.horizontal(|ui| {
+        Plot::new("loss plot")
+            .width(width)
+            .height(height)
+            .legend(Legend::default())
+            .x_axis_label(x_label)
+            .y_axis_label("loss")
+            .link_axis(link, [true, false])
+            .show(ui, |plot| {
+                for history in histories {
+                    let points: PlotPoints = history
+                        .points
+                        .iter()
+                        .filter(|p| p.loss.is_finite())
+                        .map(|p| [History::x(p, axis), p.loss as f64])
+                        .collect();
+                    plot.line(
+                        Line::new(format!("{} loss", history.model.name()), points)
+                            .color(model_colour(history.model)),
+                    );
+                }
+            });
+        Plot::new("psnr plot")
+            .width(width)
+            .height(height)
+            .legend(Legend::default())
+            .x_axis_label(x_label)
+            .y_axis_label("PSNR (dB)")
+            .link_axis(link, [true, false])
+            .show(ui, |plot| {
+                for history in histories {
+                    let colour = model_colour(history.model);
+                    let batch: PlotPoints = history
+                        .points
+                        .iter()
+                        .filter_map(|p| Some([History::x(p, axis), p.batch_psnr? as f64]))
+                        .filter(|p| p[1].is_finite())
+                        .collect();
+                    plot.line(
+                        Line::new(format!("{} batch PSNR", history.model.name()), batch)
+                            .color(colour.gamma_multiply(0.6)),
+                    );
+                    let val: Vec<[f64; 2]> = history
+                        .points
+                        .iter()
+                        .filter_map(|p| Some([History::x(p, axis), p.val_psnr? as f64]))
+                        .filter(|p| p[1].is_finite())
+                        .collect();
+                    if !val.is_empty() {
+                        let name = format!("{} val PSNR", history.model.name());
+                        plot.line(
+                            Line::new(name.clone(), PlotPoints::from(val.clone()))
+                                .color(colour)
+                                .width(2.5),
+                        );
+                        plot.add(Points::new(name, val).color(colour).radius(3.0));
+                    }
+                }
+            });
+    });
+}

@@ -1,0 +1,1302 @@
+//! The viewer's training thread. It owns the scene and one trainer per
+//! model, trains the active model, renders the viewport progressively, and
+//! answers the UI's [`Command`]s with [`Event`]s over channels that never
+//! block the UI.
+//!
+//! The loop works in small units (one training step, one chunk of rays,
+//! one export frame) and reads every pending command between units, so a
+//! command waits at most one unit. Rendering the view comes first: the
+//! coarsest level of a new camera is drawn at once; the finer levels share
+//! wall time with training as [`Balance`] says.
+
+use std::collections::VecDeque;
+use std::path::{Path, PathBuf};
+use std::sync::mpsc::{self, Receiver, RecvTimeoutError, Sender, TryRecvError};
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use crate::engine::gpu::GpuContext;
+use crate::engine::{EngineChoice, EngineKind, choose_engine};
+use crate::field::ModelKind;
+use crate::field::ngp::LossKind;
+use crate::metrics::psnr::psnr_from_mse;
+use crate::metrics::{self, RgbImage, WHITE};
+use crate::render::export::{ExportSettings, TurntableExport};
+use crate::render::rgb_of;
+use crate::scene::demo::{self, DemoConfig};
+use crate::scene::{Camera, Frame, LoadOptions, Scene};
+use crate::train::checkpoint::Checkpoint;
+use crate::train::eval::spread_views;
+use crate::train::model::{RadianceModel, StageTimes, StepStats};
+use crate::train::trainer::Trainer;
+use crate::train::{ModelSettings, build_model};
+
+use super::progressive::{ChunkPacer, LevelRender, refinement_levels};
+use super::protocol::{
+    Balance, Command, Event, RenderRequest, RenderedFrame, SceneInfo, SceneSource, TrainingStats,
+};
+
+/// Called after every event is queued, so the UI wakes up to read it (the
+/// viewer passes `egui::Context::request_repaint`).
+/// Training batch of the viewer on the cpu engine, in samples: a quarter
+/// of Instant-NGP's 2^18, so a step takes ~60 ms rather than ~250 ms on two
+/// cores. Commands and render chunks wait behind at most one step, and the
+/// view improves in more, smaller steps during the first minute.
+pub const CPU_BATCH_SAMPLES: usize = 1 << 16;
+
+pub type RepaintCallback = Box<dyn Fn() + Send>;
+
+/// Stats go out at most this often (ten times a second), aggregated over
+/// the steps in between.
+const STATS_INTERVAL: Duration = Duration::from_millis(100);
+
+/// How long one chunk of rays should take: well under the ~100 ms a command
+/// may wait.
+const CHUNK_TARGET: Duration = Duration::from_millis(40);
+
+/// A moving request counts as moving for this long after it arrived: the UI
+/// sends one per frame while the user drags, so a gap this long means the
+/// camera came to rest even if no resting request followed.
+const MOVING_GRACE: Duration = Duration::from_millis(300);
+
+/// While the camera moves, training gets at most 1/(1 + this) of wall time:
+/// after a step of d seconds, the next waits d × this.
+const MOVING_IDLE_PER_STEP: f64 = 3.0;
+
+/// While the camera moves, a step starts only after this long without a
+/// new request: a step cannot be interrupted, and requests arrive every
+/// frame while the user drags.
+const MOVING_QUIET: Duration = Duration::from_millis(100);
+
+/// The largest training share honoured while a view still refines: at 1.0
+/// the viewport would never sharpen.
+const MAX_TRAINING_SHARE: f32 = 0.95;
+
+/// The largest viewport side accepted (8K); anything above is a bad
+/// request, refused before it allocates gigabytes of pixels.
+const MAX_VIEWPORT_SIDE: u32 = 8_192;
+
+/// How the thread trains and measures; [`Default`] is what the viewer uses.
+pub struct WorkerOptions {
+    pub seed: u64,
+    /// Instant-NGP's default is Huber (instant-ngp config "loss").
+    pub loss: LossKind,
+    /// Samples per training batch; `None` picks by engine: see
+    /// [`CPU_BATCH_SAMPLES`].
+    pub batch_samples: Option<usize>,
+    /// The scene [`SceneSource::Demo`] builds.
+    pub demo: DemoConfig,
+    /// Training seconds between held-out PSNR evaluations.
+    pub val_every_train_seconds: f64,
+    /// Held-out views per evaluation.
+    pub val_views: usize,
+    /// Held-out views larger than this (in either direction) are evaluated
+    /// downscaled, so an evaluation stays short.
+    pub val_max_side: u32,
+    /// Wall seconds between full-resolution re-renders of a resting view
+    /// while training changes the field.
+    pub refresh_every_seconds: f64,
+    pub repaint: Option<RepaintCallback>,
+    /// A device made elsewhere (the viewer's, from eframe) for the gpu
+    /// engine, instead of one of its own; the automatic choice still takes
+    /// the cpu engine when it is a software adapter.
+    pub gpu_device: Option<GpuContext>,
+}
+
+impl Default for WorkerOptions {
+    fn default() -> Self {
+        Self {
+            seed: 0,
+            loss: LossKind::Huber,
+            batch_samples: None,
+            demo: DemoConfig::default(),
+            val_every_train_seconds: 5.0,
+            val_views: 2,
+            val_max_side: 100,
+            refresh_every_seconds: 3.0,
+            repaint: None,
+            gpu_device: None,
+        }
+    }
+}
+
+type SharedRepaint = Arc<Mutex<Option<RepaintCallback>>>;
+
+/// The UI's handle on the training thread.
+pub struct TrainingWorker {
+    commands: Sender<Command>,
+    events: Receiver<Event>,
+    repaint: SharedRepaint,
+    thread: Option<JoinHandle<()>>,
+}
+
+impl TrainingWorker {
+    /// Starts the thread with [`WorkerOptions::default`].
+    pub fn spawn(
+        source: SceneSource,
+        engine: Option<EngineKind>,
+        model: ModelKind,
+    ) -> TrainingWorker {
+        Self::spawn_with(source, engine, model, WorkerOptions::default())
+    }
+
+    /// Starts the thread "zrak-training". It chooses the engine (`None`:
+    /// automatically), loads `source` (the demo scene when that fails) and
+    /// builds `model`, then waits for commands; training starts with
+    /// [`Command::Start`].
+    pub fn spawn_with(
+        source: SceneSource,
+        engine: Option<EngineKind>,
+        model: ModelKind,
+        mut options: WorkerOptions,
+    ) -> TrainingWorker {
+        let (command_sender, command_receiver) = mpsc::channel();
+        let (event_sender, event_receiver) = mpsc::channel();
+        let repaint: SharedRepaint = Arc::new(Mutex::new(options.repaint.take()));
+        let outbox = Outbox {
+            events: event_sender.clone(),
+            repaint: repaint.clone(),
+        };
+        let spawned = std::thread::Builder::new()
+            .name("zrak-training".into())
+            .spawn(move || {
+                let crash_report = outbox.clone();
+                let run = std::panic::catch_unwind(std::panic::AssertUnwindSafe(move || {
+                    // Err means the UI is gone: nothing left to tell.
+                    let _ = Worker::start(command_receiver, outbox, options, source, engine, model)
+                        .and_then(Worker::run);
+                }));
+                if let Err(panic) = run {
+                    let what = panic
+                        .downcast_ref::<String>()
+                        .map(String::as_str)
+                        .or_else(|| panic.downcast_ref::<&str>().copied())
+                        .unwrap_or("unknown cause");
+                    let _ = crash_report.send(Event::Error(format!(
+                        "the training thread stopped after an internal error: {what}"
+                    )));
+                }
+            });
+        let thread = match spawned {
+            Ok(thread) => Some(thread),
+            Err(e) => {
+                let _ = event_sender.send(Event::Error(format!(
+                    "cannot start the training thread: {e}"
+                )));
+                None
+            }
+        };
+        TrainingWorker {
+            commands: command_sender,
+            events: event_receiver,
+            repaint,
+            thread,
+        }
+    }
+
+    /// Sets (or replaces) the callback run after every event.
+    pub fn set_repaint(&self, repaint: RepaintCallback) {
+        if let Ok(mut slot) = self.repaint.lock() {
+            *slot = Some(repaint);
+        }
+    }
+
+    /// Queues a command; never blocks. Commands to a thread that has ended
+    /// are dropped (its last event said why).
+    pub fn send(&self, command: Command) {
+        let _ = self.commands.send(command);
+    }
+
+    /// The next event, if one is waiting; never blocks.
+    pub fn try_recv(&self) -> Option<Event> {
+        self.events.try_recv().ok()
+    }
+
+    /// The next event, waiting at most `timeout` (for tests and headless
+    /// use; the UI uses [`Self::try_recv`]).
+    pub fn recv_timeout(&self, timeout: Duration) -> Option<Event> {
+        self.events.recv_timeout(timeout).ok()
+    }
+
+    /// True while the thread runs (it ends on shutdown, when the handle is
+    /// dropped, or after an internal error it reported).
+    pub fn is_alive(&self) -> bool {
+        self.thread.as_ref().is_some_and(|t| !t.is_finished())
+    }
+
+    /// Asks the thread to stop and waits for it (at most the current unit
+    /// of work: one training step, chunk or export frame).
+    pub fn shutdown(mut self) {
+        self.send(Command::Shutdown);
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+    }
+}
+
+impl Drop for TrainingWorker {
+    /// Dropping the handle stops the thread without waiting for it (closing
+    /// the channels would stop it too, after its current unit of work).
+    fn drop(&mut self) {
+        let _ = self.commands.send(Command::Shutdown);
+    }
+}
+
+/// The UI dropped its handle: the thread ends.
+#[derive(Debug)]
+struct UiGone;
+
+#[derive(Clone)]
+struct Outbox {
+    events: Sender<Event>,
+    repaint: SharedRepaint,
+}
+
+impl Outbox {
+    fn send(&self, event: Event) -> Result<(), UiGone> {
+        self.events.send(event).map_err(|_| UiGone)?;
+        if let Ok(repaint) = self.repaint.lock()
+            && let Some(repaint) = repaint.as_ref()
+        {
+            repaint();
+        }
+        Ok(())
+    }
+}
+
+/// The engine every model of this thread runs on.
+struct Engine {
+    kind: EngineKind,
+    gpu: Option<GpuContext>,
+}
+
+impl Engine {
+    /// A choice for [`build_model`], sharing the device.
+    fn choice(&self) -> Result<EngineChoice, String> {
+        Ok(EngineChoice {
+            kind: self.kind,
+            gpu: self.gpu.as_ref().map(share_context).transpose()?,
+            reason: String::new(),
+        })
+    }
+}
+
+/// Another context on the same device: every model of the thread shares
+/// it (wgpu handles are reference-counted clones).
+fn share_context(context: &GpuContext) -> Result<GpuContext, String> {
+    GpuContext::from_existing(
+        &context.adapter,
+        context.device.clone(),
+        context.queue.clone(),
+    )
+    .map_err(|e| format!("the gpu engine: {e}"))
+}
+
+/// The engine to train on: as [`choose_engine`], but on `device` when the
+/// viewer made one (eframe's), so the engine can draw into its textures.
+fn choose_engine_on(
+    requested: Option<EngineKind>,
+    device: Option<GpuContext>,
+) -> Result<EngineChoice, String> {
+    let Some(context) = device else {
+        return choose_engine(requested).map_err(|e| e.to_string());
+    };
+    Ok(match requested {
+        Some(EngineKind::Cpu) => choose_engine(Some(EngineKind::Cpu)).map_err(|e| e.to_string())?,
+        Some(EngineKind::Gpu) => EngineChoice {
+            kind: EngineKind::Gpu,
+            reason: format!("gpu engine on {} (requested)", context.describe()),
+            gpu: Some(context),
+        },
+        // The same rule as `choose_engine`: a software adapter trains far
+        // slower than the cpu engine (DESIGN.md).
+        None if context.is_software() => EngineChoice {
+            kind: EngineKind::Cpu,
+            reason: format!(
+                "cpu engine: the only adapter is {}, a software rasteriser",
+                context.describe()
+            ),
+            gpu: None,
+        },
+        None => EngineChoice {
+            kind: EngineKind::Gpu,
+            reason: format!("gpu engine on {}", context.describe()),
+            gpu: Some(context),
+        },
+    })
+}
+
+/// Steps since the last stats event, to be reported as one.
+#[derive(Default)]
+struct StatsWindow {
+    steps: u32,
+    seconds: f64,
+    rays: usize,
+    samples: usize,
+    /// Σ loss × rays, so the mean is over every ray of the window.
+    loss_times_rays: f64,
+    times: StageTimes,
+}
+
+impl StatsWindow {
+    fn add(&mut self, stats: &StepStats, seconds: f64) {
+        self.steps += 1;
+        self.seconds += seconds;
+        self.rays += stats.rays;
+        self.samples += stats.samples;
+        self.loss_times_rays += stats.loss as f64 * stats.rays as f64;
+        self.times.add(&stats.times);
+    }
+}
+
+/// One model's training on the current scene.
+struct ModelSlot {
+    kind: ModelKind,
+    trainer: Trainer,
+    /// The loss the model trains with (a loaded checkpoint brings its own).
+    loss: LossKind,
+    window: StatsWindow,
+    last_stats: Option<Instant>,
+    /// Training seconds at which the next held-out evaluation is due.
+    next_val_at: f64,
+    /// A held-out PSNR not yet reported.
+    pending_val: Option<f32>,
+    /// The last stats sent, re-sent with a held-out PSNR that completes
+    /// when no step was taken since.
+    last_report: Option<TrainingStats>,
+    /// Changes whenever the field does (step, reset, load), so the view
+    /// knows when what it shows is out of date.
+    revision: u64,
+}
+
+/// What the viewport asked for and how far it has been drawn.
+struct View {
+    request: RenderRequest,
+    received: Instant,
+    /// Levels still to draw, coarse to fine.
+    levels: VecDeque<u32>,
+    /// The level being drawn, with the model state it started from.
+    job: Option<(LevelRender, ModelKind, u32)>,
+    /// The last finished frame (re-sent when the same camera is requested
+    /// again) and the model revision it showed.
+    shown: Option<(RenderedFrame, u64, Instant)>,
+    /// Wall seconds spent rendering and training since the current
+    /// refinement began, for the balance.
+    render_seconds: f64,
+    train_seconds: f64,
+}
+
+impl View {
+    fn has_work(&self) -> bool {
+        self.job.is_some() || !self.levels.is_empty()
+    }
+
+    fn moving(&self) -> bool {
+        self.request.moving && self.received.elapsed() < MOVING_GRACE
+    }
+
+    /// Restarts the level in progress (the field it was drawing changed).
+    fn restart_level(&mut self) {
+        if let Some((job, _, _)) = self.job.take() {
+            self.levels.push_front(job.downscale);
+        }
+    }
+}
+
+/// A held-out evaluation in progress. It renders in chunks like the view
+/// (rather than through `train::eval::mean_psnr`, which renders each view
+/// in one call) so that commands are not held up for the seconds an
+/// untrained, still dense field takes on the cpu engine; training waits
+/// until it is done, so the PSNR belongs to one step.
+struct ValJob {
+    model: ModelKind,
+    /// The held-out view being rendered.
+    view: usize,
+    render: Option<LevelRender>,
+    psnr_sum: f64,
+}
+
+/// What the loop does next.
+enum Work {
+    /// Draw the view: a whole level, or one chunk of rays.
+    Render {
+        whole_level: bool,
+    },
+    Export,
+    Evaluate,
+    Train,
+    /// Nothing to do until a command arrives or the time passes.
+    Wait(Option<Duration>),
+}
+
+enum Flow {
+    Continue,
+    Stop,
+}
+
+struct Worker {
+    inbox: Receiver<Command>,
+    outbox: Outbox,
+    options: WorkerOptions,
+    engine: Engine,
+    source: SceneSource,
+    scene: Arc<Scene>,
+    /// The held-out views of the scene, downscaled for quick evaluation.
+    val_frames: Vec<Frame>,
+    slots: Vec<ModelSlot>,
+    active: ModelKind,
+    running: bool,
+    balance: Balance,
+    view: Option<View>,
+    export: Option<ExportJob>,
+    val_job: Option<ValJob>,
+    pacer: ChunkPacer,
+    /// When the last training step ended and how long it took, to keep
+    /// training light while the camera moves.
+    last_step: Option<(Instant, f64)>,
+    next_revision: u64,
+}
+
+impl Worker {
+    fn start(
+        inbox: Receiver<Command>,
+        outbox: Outbox,
+        mut options: WorkerOptions,
+        source: SceneSource,
+        requested_engine: Option<EngineKind>,
+        model: ModelKind,
+    ) -> Result<Worker, UiGone> {
+        let device = options.gpu_device.take();
+        let (engine, description) = match choose_engine_on(requested_engine, device) {
+            Ok(choice) => {
+                let description = describe_engine(&choice);
+                (
+                    Engine {
+                        kind: choice.kind,
+                        gpu: choice.gpu,
+                    },
+                    description,
+                )
+            }
+            Err(e) => {
+                outbox.send(Event::Error(format!(
+                    "the gpu engine is not available ({e}); training on the cpu engine"
+                )))?;
+                let cpu = choose_engine(Some(EngineKind::Cpu)).map_err(|_| UiGone)?;
+                let description = describe_engine(&cpu);
+                (
+                    Engine {
+                        kind: EngineKind::Cpu,
+                        gpu: None,
+                    },
+                    description,
+                )
+            }
+        };
+        outbox.send(Event::Engine {
+            kind: engine.kind,
+            description,
+        })?;
+
+        // The first scene: the one asked for, else the demo so that the
+        // viewer always has something to show.
+        let (scene, source) = match load_scene(&source, &options.demo) {
+            Ok(scene) => (scene, source),
+            Err(error) => {
+                outbox.send(Event::SceneFailed { source, error })?;
+                (demo::build(&options.demo), SceneSource::Demo)
+            }
+        };
+        let scene = Arc::new(scene);
+        let val_frames = held_out_views(&scene, options.val_views, options.val_max_side);
+        let mut worker = Worker {
+            inbox,
+            outbox,
+            options,
+            engine,
+            source,
+            scene,
+            val_frames,
+            slots: Vec::new(),
+            active: model,
+            running: false,
+            balance: Balance::default(),
+            view: None,
+            export: None,
+            val_job: None,
+            pacer: ChunkPacer::new(CHUNK_TARGET),
+            last_step: None,
+            next_revision: 0,
+        };
+        worker.send(Event::SceneLoaded(SceneInfo {
+            scene: worker.scene.clone(),
+            source: worker.source.clone(),
+        }))?;
+        worker.ensure_slot(model)?;
+        worker.send(Event::ModelSelected(model))?;
+        worker.send(Event::Running(false))?;
+        Ok(worker)
+    }
+
+    fn send(&self, event: Event) -> Result<(), UiGone> {
+        self.outbox.send(event)
+    }
+
+    fn run(mut self) -> Result<(), UiGone> {
+        loop {
+            loop {
+                match self.inbox.try_recv() {
+                    Ok(command) => {
+                        if let Flow::Stop = self.handle(command)? {
+                            return Ok(());
+                        }
+                    }
+                    Err(TryRecvError::Empty) => break,
+                    Err(TryRecvError::Disconnected) => return Ok(()),
+                }
+            }
+            match self.next_work() {
+                Work::Render { whole_level } => self.render_unit(whole_level)?,
+                Work::Export => self.export_unit()?,
+                Work::Evaluate => self.evaluate_unit()?,
+                Work::Train => self.train_unit()?,
+                Work::Wait(timeout) => {
+                    let command = match timeout {
+                        None => self.inbox.recv().map_err(|_| UiGone)?,
+                        Some(timeout) => match self.inbox.recv_timeout(timeout) {
+                            Ok(command) => command,
+                            Err(RecvTimeoutError::Timeout) => continue,
+                            Err(RecvTimeoutError::Disconnected) => return Ok(()),
+                        },
+                    };
+                    if let Flow::Stop = self.handle(command)? {
+                        return Ok(());
+                    }
+                }
+            }
+        }
+    }
+
+    fn training_share(&self) -> f64 {
+        self.balance.training_share.clamp(0.0, MAX_TRAINING_SHARE) as f64
+    }
+
+    fn training_active(&self) -> bool {
+        self.running && self.export.is_none() && self.slot(self.active).is_some()
+    }
+
+    fn next_work(&mut self) -> Work {
+        let training = self.training_active();
+        let share = self.training_share();
+        let mut wake_after: Option<Duration> = None;
+        let revision = self.slot(self.active).map(|s| s.revision);
+        if let Some(view) = self.view.as_mut() {
+            if !view.has_work()
+                && let (Some((_, shown_revision, shown_at)), Some(revision)) =
+                    (view.shown.as_ref(), revision)
+                && *shown_revision != revision
+                && (!training
+                    || shown_at.elapsed().as_secs_f64() >= self.options.refresh_every_seconds)
+            {
+                // The field changed since the view was drawn: redraw it at
+                // full resolution only (the camera has not moved).
+                view.levels.push_back(1);
+                view.render_seconds = 0.0;
+                view.train_seconds = 0.0;
+            }
+            if view.has_work() {
+                if view.shown.is_none() {
+                    // A new camera: its coarsest level at once.
+                    return Work::Render { whole_level: true };
+                }
+                if view.moving() {
+                    // Refine only once the camera rests.
+                    wake_after = Some(MOVING_GRACE.saturating_sub(view.received.elapsed()));
+                } else if !training
+                    || view.render_seconds * share <= view.train_seconds * (1.0 - share)
+                {
+                    return Work::Render { whole_level: false };
+                }
+            }
+        }
+        if self.export.is_some() {
+            return Work::Export;
+        }
+        if let Some(job) = &self.val_job {
+            if self.slot(job.model).is_some() && job.model == self.active {
+                return Work::Evaluate;
+            }
+            // Its model was switched away from: evaluate again when due.
+            self.val_job = None;
+        }
+        if training {
+            if let Some(view) = self.view.as_ref().filter(|v| v.moving()) {
+                let quiet = MOVING_QUIET.saturating_sub(view.received.elapsed());
+                let rest = self.last_step.map_or(Duration::ZERO, |(ended, seconds)| {
+                    Duration::from_secs_f64(seconds * MOVING_IDLE_PER_STEP)
+                        .saturating_sub(ended.elapsed())
+                });
+                let wait = quiet.max(rest);
+                if !wait.is_zero() {
+                    return Work::Wait(Some(wake_after.map_or(wait, |w| w.min(wait))));
+                }
+            }
+            return Work::Train;
+        }
+        Work::Wait(wake_after)
+    }
+
+    fn slot(&self, kind: ModelKind) -> Option<&ModelSlot> {
+        self.slots.iter().find(|s| s.kind == kind)
+    }
+
+    fn slot_mut(&mut self, kind: ModelKind) -> Option<&mut ModelSlot> {
+        self.slots.iter_mut().find(|s| s.kind == kind)
+    }
+
+    fn revision(&mut self) -> u64 {
+        self.next_revision += 1;
+        self.next_revision
+    }
+
+    /// A fresh trainer of `kind` on the current scene and engine.
+    fn build_trainer(&self, kind: ModelKind) -> Result<Trainer, String> {
+        let settings = ModelSettings {
+            seed: self.options.seed,
+            loss: self.options.loss,
+            batch_samples: self.options.batch_samples.or(match self.engine.kind {
+                EngineKind::Cpu => Some(CPU_BATCH_SAMPLES),
+                EngineKind::Gpu => None,
+            }),
+        };
+        let model = build_model(kind, self.engine.choice()?, &self.scene, &settings)?;
+        Ok(Trainer::new(model, self.scene.clone(), self.options.seed))
+    }
+
+    fn new_slot(&mut self, kind: ModelKind, trainer: Trainer, loss: LossKind) -> ModelSlot {
+        ModelSlot {
+            kind,
+            next_val_at: trainer.train_seconds + self.options.val_every_train_seconds,
+            trainer,
+            loss,
+            window: StatsWindow::default(),
+            last_stats: None,
+            pending_val: None,
+            last_report: None,
+            revision: self.revision(),
+        }
+    }
+
+    /// Builds `kind`'s model on first use. Failure is reported and leaves
+    /// no slot.
+    fn ensure_slot(&mut self, kind: ModelKind) -> Result<(), UiGone> {
+        if self.slot(kind).is_some() {
+            return Ok(());
+        }
+        match self.build_trainer(kind) {
+            Ok(trainer) => {
+                let slot = self.new_slot(kind, trainer, self.options.loss);
+                self.slots.push(slot);
+                Ok(())
+            }
+            Err(e) => self.send(Event::Error(e)),
+        }
+    }
+
+    fn handle(&mut self, command: Command) -> Result<Flow, UiGone> {
+        match command {
+            Command::OpenScene(source) => self.open_scene(source)?,
+            Command::Start => {
+                self.ensure_slot(self.active)?;
+                self.running = self.slot(self.active).is_some();
+                self.send(Event::Running(self.running))?;
+            }
+            Command::Pause => {
+                self.running = false;
+                self.flush_stats(self.active)?;
+                self.send(Event::Running(false))?;
+            }
+            Command::StepOnce => {
+                self.ensure_slot(self.active)?;
+                if self.slot(self.active).is_some() {
+                    self.train_step(true)?;
+                }
+            }
+            Command::Reset => self.reset()?,
+            Command::SelectModel(kind) => {
+                if kind != self.active {
+                    self.flush_stats(self.active)?;
+                }
+                self.ensure_slot(kind)?;
+                if self.slot(kind).is_some() {
+                    self.active = kind;
+                    if let Some(view) = self.view.as_mut() {
+                        view.restart_level();
+                    }
+                }
+                self.send(Event::ModelSelected(self.active))?;
+            }
+            Command::SetBalance(balance) => {
+                let share = if balance.training_share.is_finite() {
+                    balance.training_share.clamp(0.0, 1.0)
+                } else {
+                    Balance::default().training_share
+                };
+                self.balance = Balance {
+                    training_share: share,
+                };
+            }
+            Command::Render(request) => self.set_view(request)?,
+            Command::SaveCheckpoint(path) => self.save_checkpoint(&path)?,
+            Command::LoadCheckpoint(path) => self.load_checkpoint(&path)?,
+            Command::ExportTurntable(settings) => self.start_export(settings)?,
+            Command::CancelExport => {
+                if self.export.take().is_some() {
+                    self.send(Event::ExportFinished(
+                        Err("the export was cancelled".into()),
+                    ))?;
+                }
+            }
+            Command::Shutdown => return Ok(Flow::Stop),
+        }
+        Ok(Flow::Continue)
+    }
+
+    fn open_scene(&mut self, source: SceneSource) -> Result<(), UiGone> {
+        let scene = match load_scene(&source, &self.options.demo) {
+            Ok(scene) => scene,
+            Err(error) => return self.send(Event::SceneFailed { source, error }),
+        };
+        if self.export.take().is_some() {
+            self.send(Event::ExportFinished(Err(
+                "the export stopped: another scene was opened".into(),
+            )))?;
+        }
+        self.scene = Arc::new(scene);
+        self.source = source;
+        self.val_frames = held_out_views(
+            &self.scene,
+            self.options.val_views,
+            self.options.val_max_side,
+        );
+        self.slots.clear();
+        self.val_job = None;
+        // The camera belongs to the old scene; the UI sends a new one.
+        self.view = None;
+        self.send(Event::SceneLoaded(SceneInfo {
+            scene: self.scene.clone(),
+            source: self.source.clone(),
+        }))?;
+        self.ensure_slot(self.active)?;
+        if self.slot(self.active).is_none() && self.running {
+            self.running = false;
+            self.send(Event::Running(false))?;
+        }
+        Ok(())
+    }
+
+    fn reset(&mut self) -> Result<(), UiGone> {
+        let kind = self.active;
+        let trainer = match self.build_trainer(kind) {
+            Ok(trainer) => trainer,
+            Err(e) => return self.send(Event::Error(e)),
+        };
+        let slot = self.new_slot(kind, trainer, self.options.loss);
+        match self.slot_mut(kind) {
+            Some(existing) => *existing = slot,
+            None => self.slots.push(slot),
+        }
+        self.val_job = None;
+        if let Some(view) = self.view.as_mut() {
+            view.restart_level();
+        }
+        Ok(())
+    }
+
+    fn set_view(&mut self, request: RenderRequest) -> Result<(), UiGone> {
+        if let Err(problem) = check_camera(&request.camera) {
+            return self.send(Event::Error(format!(
+                "render request {} refused: {problem}",
+                request.generation
+            )));
+        }
+        let now = Instant::now();
+        let same_camera = self
+            .view
+            .as_ref()
+            .is_some_and(|v| v.request.camera == request.camera);
+        if same_camera {
+            // The same picture (perhaps in another mode, which only changes
+            // how the pixels are shown): keep what was drawn and continue.
+            let view = self.view.as_mut().expect("checked above");
+            view.request = request;
+            view.received = now;
+            if let Some((frame, _, _)) = view.shown.as_mut() {
+                frame.generation = view.request.generation;
+                frame.mode = view.request.mode;
+                let frame = frame.clone();
+                return self.send(Event::Frame(frame));
+            }
+            return Ok(());
+        }
+        let k = request.camera.intrinsics;
+        self.view = Some(View {
+            levels: refinement_levels(k.width, k.height).into(),
+            request,
+            received: now,
+            job: None,
+            shown: None,
+            render_seconds: 0.0,
+            train_seconds: 0.0,
+        });
+        Ok(())
+    }
+
+    /// Draws the view: one chunk of rays, or the whole current level.
+    fn render_unit(&mut self, whole_level: bool) -> Result<(), UiGone> {
+        let active = self.active;
+        let Some(slot) = self.slots.iter().find(|s| s.kind == active) else {
+            // No model to draw with (its build failed and was reported).
+            self.view = None;
+            return Ok(());
+        };
+        let Some(view) = self.view.as_mut() else {
+            return Ok(());
+        };
+        if view.job.is_none() {
+            let Some(downscale) = view.levels.pop_front() else {
+                return Ok(());
+            };
+            view.job = Some((
+                LevelRender::new(&view.request.camera, downscale),
+                active,
+                slot.trainer.step,
+            ));
+        }
+        let (job, _, _) = view.job.as_mut().expect("set above");
+        loop {
+            let started = Instant::now();
+            let rays =
+                job.render_chunk(slot.trainer.model.as_ref(), self.pacer.chunk_rays(), WHITE);
+            let seconds = started.elapsed().as_secs_f64();
+            self.pacer.record(rays, seconds);
+            view.render_seconds += seconds;
+            if job.is_done() || !whole_level {
+                break;
+            }
+        }
+        if !job.is_done() {
+            return Ok(());
+        }
+        let (job, model, step) = view.job.take().expect("checked above");
+        let frame = RenderedFrame {
+            generation: view.request.generation,
+            model,
+            step,
+            downscale: job.downscale,
+            width: job.width(),
+            height: job.height(),
+            mode: view.request.mode,
+            pixels: job.into_pixels(),
+        };
+        view.shown = Some((frame.clone(), slot.revision, Instant::now()));
+        self.outbox.send(Event::Frame(frame))
+    }
+
+    fn train_unit(&mut self) -> Result<(), UiGone> {
+        self.train_step(false)
+    }
+
+    /// One step of the active model; `report` sends its stats at once.
+    fn train_step(&mut self, report: bool) -> Result<(), UiGone> {
+        let revision = self.revision();
+        let every = self.options.val_every_train_seconds;
+        let active = self.active;
+        let Some(slot) = self.slots.iter_mut().find(|s| s.kind == active) else {
+            return Ok(());
+        };
+        let started = Instant::now();
+        let before = slot.trainer.train_seconds;
+        let stats = slot.trainer.step();
+        slot.window.add(&stats, slot.trainer.train_seconds - before);
+        slot.revision = revision;
+        if slot.trainer.train_seconds >= slot.next_val_at
+            && !self.val_frames.is_empty()
+            && self.val_job.is_none()
+        {
+            slot.next_val_at = slot.trainer.train_seconds + every;
+            self.val_job = Some(ValJob {
+                model: active,
+                view: 0,
+                render: None,
+                psnr_sum: 0.0,
+            });
+        }
+        let seconds = started.elapsed().as_secs_f64();
+        self.last_step = Some((Instant::now(), seconds));
+        if let Some(view) = self.view.as_mut() {
+            view.train_seconds += seconds;
+        }
+        let due = slot
+            .last_stats
+            .is_none_or(|sent| sent.elapsed() >= STATS_INTERVAL);
+        if report || due {
+            self.flush_stats(active)?;
+        }
+        Ok(())
+    }
+
+    /// Sends the stats of the steps since the last report, if any.
+    fn flush_stats(&mut self, kind: ModelKind) -> Result<(), UiGone> {
+        let Some(slot) = self.slots.iter_mut().find(|s| s.kind == kind) else {
+            return Ok(());
+        };
+        let window = std::mem::take(&mut slot.window);
+        if window.steps == 0 {
+            // No step since the last report: only a new held-out PSNR is
+            // worth sending.
+            let (Some(val_psnr), Some(last)) = (slot.pending_val.take(), slot.last_report) else {
+                return Ok(());
+            };
+            let stats = TrainingStats {
+                step: slot.trainer.step,
+                train_seconds: slot.trainer.train_seconds,
+                val_psnr: Some(val_psnr),
+                ..last
+            };
+            return self.outbox.send(Event::Stats(stats));
+        }
+        slot.last_stats = Some(Instant::now());
+        let steps = window.steps as f64;
+        let loss = if window.rays > 0 {
+            window.loss_times_rays / window.rays as f64
+        } else {
+            f64::NAN
+        };
+        // L2 is the mean squared error over rays × channels, so its PSNR is
+        // exact; Huber is not an MSE and has no honest PSNR.
+        let batch_psnr = match slot.loss {
+            LossKind::L2 => Some(psnr_from_mse(loss) as f32),
+            LossKind::Huber => None,
+        };
+        let per = |seconds: f64| seconds / steps;
+        let t = window.times;
+        let stats = TrainingStats {
+            model: kind,
+            step: slot.trainer.step,
+            train_seconds: slot.trainer.train_seconds,
+            loss: loss as f32,
+            batch_psnr,
+            val_psnr: slot.pending_val.take(),
+            ms_per_step: (1000.0 * per(window.seconds)) as f32,
+            samples_per_ray: if window.rays > 0 {
+                window.samples as f32 / window.rays as f32
+            } else {
+                0.0
+            },
+            samples_per_second: if window.seconds > 0.0 {
+                (window.samples as f64 / window.seconds) as f32
+            } else {
+                0.0
+            },
+            memory_bytes: slot.trainer.model.memory_bytes(),
+            times: StageTimes {
+                march: per(t.march),
+                encode: per(t.encode),
+                networks_forward: per(t.networks_forward),
+                composite: per(t.composite),
+                networks_backward: per(t.networks_backward),
+                encode_backward: per(t.encode_backward),
+                optimiser: per(t.optimiser),
+                grid_update: per(t.grid_update),
+            },
+        };
+        slot.last_report = Some(TrainingStats {
+            val_psnr: None,
+            ..stats
+        });
+        self.outbox.send(Event::Stats(stats))
+    }
+
+    /// Renders one chunk of the held-out evaluation; reports the mean PSNR
+    /// when the last view is done.
+    fn evaluate_unit(&mut self) -> Result<(), UiGone> {
+        let Some(job) = self.val_job.as_mut() else {
+            return Ok(());
+        };
+        let Some(slot) = self.slots.iter_mut().find(|s| s.kind == job.model) else {
+            self.val_job = None;
+            return Ok(());
+        };
+        let frame = &self.val_frames[job.view];
+        let render = job
+            .render
+            .get_or_insert_with(|| LevelRender::new(&frame.camera, 1));
+        let started = Instant::now();
+        let rays = render.render_chunk(slot.trainer.model.as_ref(), self.pacer.chunk_rays(), WHITE);
+        let seconds = started.elapsed().as_secs_f64();
+        self.pacer.record(rays, seconds);
+        if let Some(view) = self.view.as_mut() {
+            // Evaluation is training's overhead in the balance.
+            view.train_seconds += seconds;
+        }
+        if !render.is_done() {
+            return Ok(());
+        }
+        let render = job.render.take().expect("rendered above");
+        let (width, height) = (render.width() as usize, render.height() as usize);
+        let prediction =
+            RgbImage::new(width, height, rgb_of(&render.into_pixels())).expect("one pixel per ray");
+        let truth = RgbImage::from_rgba8_over(&frame.image, WHITE);
+        // Same-size by construction (the camera and image were downscaled
+        // together); a mismatch would be a bug, scored as NaN, not a panic.
+        job.psnr_sum += metrics::psnr(&prediction, &truth).unwrap_or(f64::NAN);
+        job.view += 1;
+        if job.view < self.val_frames.len() {
+            return Ok(());
+        }
+        let mean = job.psnr_sum / self.val_frames.len() as f64;
+        let kind = job.model;
+        self.val_job = None;
+        slot.pending_val = Some(mean as f32);
+        self.flush_stats(kind)
+    }
+
+    fn save_checkpoint(&mut self, path: &Path) -> Result<(), UiGone> {
+        let Some(slot) = self.slot(self.active) else {
+            return self.send(Event::Error(format!(
+                "{}: no model to save (the {} model was not built)",
+                path.display(),
+                self.active.name()
+            )));
+        };
+        let scene = match &self.source {
+            SceneSource::Demo => "demo".to_string(),
+            SceneSource::Folder(folder) => folder.display().to_string(),
+        };
+        let checkpoint = slot.trainer.checkpoint(serde_json::json!({
+            "scene": scene,
+            "model": slot.kind,
+            "engine": self.engine.kind,
+            "loss": slot.loss,
+            "saved_by": "viewer",
+        }));
+        match checkpoint.save(path) {
+            Ok(()) => self.send(Event::CheckpointSaved(path.to_path_buf())),
+            Err(e) => self.send(Event::Error(e.to_string())),
+        }
+    }
+
+    fn load_checkpoint(&mut self, path: &Path) -> Result<(), UiGone> {
+        match self.restore_checkpoint(path) {
+            Ok((kind, step)) => {
+                if kind != self.active {
+                    self.active = kind;
+                    self.send(Event::ModelSelected(kind))?;
+                }
+                if let Some(view) = self.view.as_mut() {
+                    view.restart_level();
+                }
+                self.send(Event::CheckpointLoaded {
+                    path: path.to_path_buf(),
+                    model: kind,
+                    step,
+                })
+            }
+            Err(e) => self.send(Event::Error(e)),
+        }
+    }
+
+    /// Restores a checkpoint into its model's slot. The state is restored
+    /// into a fresh trainer first, so a refused checkpoint changes nothing.
+    fn restore_checkpoint(&mut self, path: &Path) -> Result<(ModelKind, u32), String> {
+        let checkpoint = Checkpoint::load(path).map_err(|e| e.to_string())?;
+        let model_header = &checkpoint.header["model"];
+        let kind: ModelKind =
+            serde_json::from_value(model_header["model"].clone()).map_err(|_| {
+                format!(
+                    "{}: the checkpoint does not name a model this zrak knows ({})",
+                    path.display(),
+                    model_header["model"]
+                )
+            })?;
+        let loss: LossKind =
+            serde_json::from_value(model_header["loss"].clone()).unwrap_or(self.options.loss);
+        let mut trainer = self.build_trainer(kind)?;
+        trainer
+            .restore(&checkpoint)
+            .map_err(|e| format!("{}: {e}", path.display()))?;
+        let step = trainer.step;
+        self.val_job = None;
+        let slot = self.new_slot(kind, trainer, loss);
+        match self.slot_mut(kind) {
+            Some(existing) => *existing = slot,
+            None => self.slots.push(slot),
+        }
+        Ok((kind, step))
+    }
+
+    fn start_export(&mut self, settings: ExportSettings) -> Result<(), UiGone> {
+        if self.export.is_some() {
+            return self.send(Event::Error(
+                "an export is already running; cancel it first".into(),
+            ));
+        }
+        match ExportJob::start(&self.scene, settings, self.active) {
+            Ok(job) => {
+                let (done, total) = job.progress();
+                self.export = Some(job);
+                self.send(Event::ExportProgress { done, total })
+            }
+            Err(e) => self.send(Event::ExportFinished(Err(e))),
+        }
+    }
+
+    /// Renders one export frame; training waits while an export runs.
+    fn export_unit(&mut self) -> Result<(), UiGone> {
+        let Some(mut job) = self.export.take() else {
+            return Ok(());
+        };
+        let Some(slot) = self.slot(job.model) else {
+            return self.send(Event::ExportFinished(Err(format!(
+                "the export stopped: the {} model is gone",
+                job.model.name()
+            ))));
+        };
+        match job.render_next(slot.trainer.model.as_ref()) {
+            Ok(more) => {
+                let (done, total) = job.progress();
+                self.send(Event::ExportProgress { done, total })?;
+                if more {
+                    self.export = Some(job);
+                    Ok(())
+                } else {
+                    self.send(Event::ExportFinished(job.finish()))
+                }
+            }
+            Err(e) => self.send(Event::ExportFinished(Err(e))),
+        }
+    }
+}
+
+/// The engine in one line for the stats panel: the choice's reason (which
+/// names the adapter), and for the cpu engine its thread count.
+fn describe_engine(choice: &EngineChoice) -> String {
+    match choice.kind {
+        EngineKind::Gpu => choice.reason.clone(),
+        EngineKind::Cpu => format!(
+            "{}; {} threads",
+            choice.reason,
+            rayon::current_num_threads()
+        ),
+    }
+}
+
+fn load_scene(source: &SceneSource, demo_config: &DemoConfig) -> Result<Scene, String> {
+    let scene = match source {
+        SceneSource::Demo => demo::build(demo_config),
+        SceneSource::Folder(path) => {
+            Scene::load(path, LoadOptions::default()).map_err(|e| e.to_string())?
+        }
+    };
+    if scene.train.is_empty() {
+        let place = match source {
+            SceneSource::Demo => PathBuf::from("demo"),
+            SceneSource::Folder(path) => path.clone(),
+        };
+        return Err(format!(
+            "{}: the scene has no training views to learn from",
+            place.display()
+        ));
+    }
+    Ok(scene)
+}
+
+/// Up to `count` held-out views (val, else test, else train), each
+/// downscaled so that neither side exceeds `max_side`.
+fn held_out_views(scene: &Scene, count: usize, max_side: u32) -> Vec<Frame> {
+    let frames = [&scene.val, &scene.test, &scene.train]
+        .into_iter()
+        .find(|frames| !frames.is_empty())
+        .map_or(&[][..], |frames| frames.as_slice());
+    spread_views(frames, count)
+        .into_iter()
+        .map(|frame| {
+            let k = frame.camera.intrinsics;
+            let factor = k
+                .width
+                .max(k.height)
+                .div_ceil(max_side.max(1))
+                .clamp(1, k.width.min(k.height).max(1));
+            if factor == 1 {
+                return frame.clone();
+            }
+            Frame {
+                camera: Camera::new(k.downscaled(factor), frame.camera.camera_to_world),
+                image: frame.image.downscaled(factor),
+                image_path: frame.image_path.clone(),
+            }
+        })
+        .collect()
+}
+
+/// Why a camera cannot be rendered, if it cannot.
+fn check_camera(camera: &Camera) -> Result<(), String> {
+    let k = camera.intrinsics;
+    if k.width == 0 || k.height == 0 || k.width > MAX_VIEWPORT_SIDE || k.height > MAX_VIEWPORT_SIDE
+    {
+        return Err(format!(
+            "the viewport is {}×{} pixels (each side must be 1 to {MAX_VIEWPORT_SIDE})",
+            k.width, k.height
+        ));
+    }
+    let focal_ok = [k.fx, k.fy].iter().all(|f| f.is_finite() && *f > 0.0);
+    let centre_ok = k.cx.is_finite() && k.cy.is_finite();
+    if !focal_ok || !centre_ok {
+        return Err(format!(
+            "the intrinsics are not usable (fx {}, fy {}, cx {}, cy {})",
+            k.fx, k.fy, k.cx, k.cy
+        ));
+    }
+    if !camera
+        .camera_to_world
+        .to_cols_array()
+        .iter()
+        .all(|v| v.is_finite())
+    {
+        return Err("the camera pose holds a non-finite number".into());
+    }
+    Ok(())
+}
+
+/// A turntable export in progress, with the model it renders.
+struct ExportJob {
+    model: ModelKind,
+    export: TurntableExport,
+}
+
+impl ExportJob {
+    fn start(
+        scene: &Scene,
+        settings: ExportSettings,
+        model: ModelKind,
+    ) -> Result<ExportJob, String> {
+        Ok(ExportJob {
+            model,
+            export: TurntableExport::start(scene, settings)?,
+        })
+    }
+
+    fn progress(&self) -> (usize, usize) {
+        (self.export.done(), self.export.total())
+    }
+
+    fn render_next(&mut self, model: &dyn RadianceModel) -> Result<bool, String> {
+        self.export.render_next(model)
+    }
+
+    fn finish(self) -> Result<Vec<PathBuf>, String> {
+        self.export.finish()
+    }
+}

@@ -1,0 +1,216 @@
+//! Rendering that stays on the GPU: the round-by-round march with early
+//! termination of the cpu's `march_and_composite`, and a last pass that
+//! writes colour, depth or opacity into an rgba8unorm storage texture the
+//! viewer draws directly.
+//!
+//! Each round, every ray still marching walks on from where it stopped and
+//! writes up to `per_ray` samples into its own slots
+//! (`render_walk.wgsl`), the field is evaluated on all slots of the round,
+//! and each ray composites its samples and notes whether it is done
+//! (`render_composite.wgsl`). The rays still marching are then gathered
+//! into the next round's list (`render_compact.wgsl`); only that count is
+//! read back, to size the next round. `per_ray` follows the cpu's rule
+//! (4 while many rays are active, up to 64 when few are), and the samples
+//! are the cpu's, so the pixels are the cpu's up to rounding.
+
+use super::context::{GpuContext, GpuError};
+use super::kernel::{Kernel, zeroed_storage_buffer};
+use super::march::source;
+
+const MARCH_PARAMS: &str = include_str!("../../../shaders/march_params.wgsl");
+const MARCH_COMMON: &str = include_str!("../../../shaders/march_common.wgsl");
+
+/// Rays of a round start at multiples of this in the list of active rays
+/// (so the list's sub-range bindings are 256-byte aligned).
+pub(crate) const RAY_GROUP_ALIGN: usize = 64;
+/// u32s per ray of `RayState` in the render shaders.
+const STATE_WORDS: usize = 8;
+
+/// `Params` in render_composite.wgsl.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct CompositeUniforms {
+    pub count: u32,
+    pub row_stride: u32,
+    pub per_ray: u32,
+    pub max_samples: u32,
+    pub world_dt: f32,
+    pub stop_depth: f32,
+    pub _pad: [u32; 2],
+}
+
+/// `Params` in render_compact.wgsl.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct CompactUniforms {
+    pub count: u32,
+    pub row_stride: u32,
+    pub _pad: [u32; 2],
+}
+
+/// `Params` in render_image.wgsl.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct ImageUniforms {
+    pub width: u32,
+    pub height: u32,
+    /// 0 colour, 1 depth, 2 opacity.
+    pub mode: u32,
+    pub _pad0: u32,
+    pub background: [f32; 3],
+    pub near: f32,
+    pub far: f32,
+    pub _pad1: [u32; 3],
+}
+
+/// The compiled render kernels.
+pub(crate) struct RenderKernels {
+    pub walk: Kernel,
+    pub composite: Kernel,
+    pub compact: Kernel,
+    pub image: Kernel,
+}
+
+impl RenderKernels {
+    pub fn new(context: &GpuContext) -> Result<Self, GpuError> {
+        Ok(Self {
+            walk: Kernel::new(
+                context,
+                "render_walk",
+                &source(&[
+                    MARCH_PARAMS,
+                    MARCH_COMMON,
+                    include_str!("../../../shaders/render_walk.wgsl"),
+                ]),
+                "main",
+            )?,
+            composite: Kernel::new(
+                context,
+                "render_composite",
+                include_str!("../../../shaders/render_composite.wgsl"),
+                "main",
+            )?,
+            compact: Kernel::new(
+                context,
+                "render_compact",
+                include_str!("../../../shaders/render_compact.wgsl"),
+                "main",
+            )?,
+            image: Kernel::new(
+                context,
+                "render_image",
+                include_str!("../../../shaders/render_image.wgsl"),
+                "main",
+            )?,
+        })
+    }
+}
+
+/// Per-pixel state and the lists of active rays, for up to `pixels` rays.
+pub(crate) struct RenderBuffers {
+    pub pixels: usize,
+    /// pixels × 3 f32 each, world space.
+    pub origins: wgpu::Buffer,
+    pub directions: wgpu::Buffer,
+    /// pixels × `RayState`.
+    pub states: wgpu::Buffer,
+    /// The active rays of this round and of the next.
+    pub active: [wgpu::Buffer; 2],
+    /// Per ray of a round: samples written, bit 31 when it left the box.
+    pub counts: wgpu::Buffer,
+    /// Rays gathered into the next list (u32), and its mappable copy.
+    pub counter: wgpu::Buffer,
+    pub counter_staging: wgpu::Buffer,
+}
+
+impl RenderBuffers {
+    /// Buffers for `pixels` rays and rounds of at most `round_rays` rays.
+    pub fn new(context: &GpuContext, pixels: usize, round_rays: usize) -> Result<Self, GpuError> {
+        let state_bytes = (pixels * STATE_WORDS * 4) as u64;
+        let limit = context.storage_binding_limit();
+        if state_bytes > limit {
+            return Err(GpuError::BindingTooLarge {
+                what: format!("the render state of {pixels} pixels"),
+                bytes: state_bytes,
+                limit,
+            });
+        }
+        let f = |label: &str, n: usize| zeroed_storage_buffer::<f32>(context, label, n);
+        let u = |label: &str, n: usize| zeroed_storage_buffer::<u32>(context, label, n);
+        Ok(Self {
+            pixels,
+            origins: f("render origins", 3 * pixels),
+            directions: f("render directions", 3 * pixels),
+            states: u("render states", STATE_WORDS * pixels),
+            active: [u("render active 0", pixels), u("render active 1", pixels)],
+            counts: u("render counts", round_rays),
+            counter: u("render counter", 1),
+            counter_staging: context.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("render counter read-back"),
+                size: 4,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }),
+        })
+    }
+}
+
+/// Checks that `target` is a texture `render_to_texture` can write: 2-D,
+/// rgba8unorm, with storage binding, `width` × `height`.
+pub(crate) fn check_target(
+    target: &wgpu::Texture,
+    width: u32,
+    height: u32,
+) -> Result<(), GpuError> {
+    let mut problems = Vec::new();
+    if target.format() != wgpu::TextureFormat::Rgba8Unorm {
+        problems.push(format!("format {:?}, not Rgba8Unorm", target.format()));
+    }
+    if !target
+        .usage()
+        .contains(wgpu::TextureUsages::STORAGE_BINDING)
+    {
+        problems.push("no STORAGE_BINDING usage".to_string());
+    }
+    if target.dimension() != wgpu::TextureDimension::D2 {
+        problems.push(format!("dimension {:?}, not D2", target.dimension()));
+    }
+    if (target.width(), target.height()) != (width, height) {
+        problems.push(format!(
+            "{}×{} pixels, the camera has {width}×{height}",
+            target.width(),
+            target.height()
+        ));
+    }
+    if problems.is_empty() {
+        Ok(())
+    } else {
+        Err(GpuError::RenderTarget(problems.join("; ")))
+    }
+}
+
+/// Near and far depth for depth images, as the `render` command chooses
+/// them: the range over which the rays through the corners and centre of
+/// every camera of `scene` cross its box ((0, 1) when none does).
+pub fn scene_depth_range(scene: &crate::scene::Scene) -> (f32, f32) {
+    let mut range: Option<(f32, f32)> = None;
+    for frame in scene.frames() {
+        let k = frame.camera.intrinsics;
+        let (w, h) = (k.width as f32, k.height as f32);
+        for (u, v) in [
+            (0.5, 0.5),
+            (w - 0.5, 0.5),
+            (0.5, h - 0.5),
+            (w - 0.5, h - 0.5),
+            (0.5 * w, 0.5 * h),
+        ] {
+            if let Some((near, far)) = scene.ray_near_far(&frame.camera.ray_through(u, v)) {
+                range = Some(match range {
+                    Some((n, f)) => (n.min(near), f.max(far)),
+                    None => (near, far),
+                });
+            }
+        }
+    }
+    range.unwrap_or((0.0, 1.0))
+}

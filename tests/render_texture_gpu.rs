@@ -1,0 +1,182 @@
+//! The viewer's render path on the gpu engine (lavapipe): `render_to_texture`
+//! writes the same pixels as the read-back render (`render_pixels` then
+//! `to_image`), in every mode, on a model with structure (a few hundred cpu
+//! steps on the demo scene, moved to the gpu through a checkpoint).
+
+use std::sync::Arc;
+
+use zrak::engine::cpu::ngp::CpuNgp;
+use zrak::engine::gpu::GpuContext;
+use zrak::engine::gpu::ngp::GpuNgp;
+use zrak::field::ngp::LossKind;
+use zrak::render::{RenderMode, render_pixels, to_image};
+use zrak::rng::Pcg32;
+use zrak::scene::demo::{self, DemoConfig};
+use zrak::scene::{Camera, Scene};
+use zrak::train::batch::{RayBatch, TrainingBackground, sample_rays};
+use zrak::train::model::{RadianceModel, RenderedPixel};
+
+const SEED: u64 = 3;
+
+fn scene() -> Arc<Scene> {
+    Arc::new(demo::build(&DemoConfig {
+        size: 24,
+        train_views: 16,
+        val_views: 2,
+        test_views: 1,
+    }))
+}
+
+/// A gpu model holding what a cpu model learned in 60 steps (the cpu
+/// engine is the fast one here). Its batches of 1024 samples make a render
+/// of 24 × 24 rays take several rounds, the first of three groups of rays.
+fn trained_gpu_model(scene: &Scene) -> GpuNgp {
+    let mut cpu = CpuNgp::with_batch_samples(scene, SEED, LossKind::Huber, 1 << 12);
+    let mut rng = Pcg32::new(SEED, 1);
+    let mut batch = RayBatch::default();
+    for step in 0..60 {
+        sample_rays(
+            &scene.train,
+            cpu.rays_for_next_batch(),
+            TrainingBackground::Random,
+            &mut rng,
+            &mut batch,
+        );
+        cpu.step(&batch, step);
+    }
+    let context = GpuContext::new().expect("lavapipe or a GPU");
+    let mut gpu = GpuNgp::with_batch_samples(context, scene, SEED, LossKind::Huber, 1 << 10)
+        .expect("gpu model");
+    gpu.load(&cpu.save()).expect("the cpu checkpoint loads");
+    gpu
+}
+
+fn target(context: &GpuContext, width: u32, height: u32) -> wgpu::Texture {
+    context.device.create_texture(&wgpu::TextureDescriptor {
+        label: Some("render target"),
+        size: wgpu::Extent3d {
+            width,
+            height,
+            depth_or_array_layers: 1,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format: wgpu::TextureFormat::Rgba8Unorm,
+        usage: wgpu::TextureUsages::STORAGE_BINDING
+            | wgpu::TextureUsages::TEXTURE_BINDING
+            | wgpu::TextureUsages::COPY_SRC,
+        view_formats: &[],
+    })
+}
+
+/// Copies the texture out (the test's own read-back), row by row.
+fn read_texture(context: &GpuContext, texture: &wgpu::Texture) -> Vec<u8> {
+    let (width, height) = (texture.width(), texture.height());
+    let row = (4 * width).next_multiple_of(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT);
+    let buffer = context.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("texture read-back"),
+        size: (row * height) as u64,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let mut encoder = context.device.create_command_encoder(&Default::default());
+    encoder.copy_texture_to_buffer(
+        texture.as_image_copy(),
+        wgpu::TexelCopyBufferInfo {
+            buffer: &buffer,
+            layout: wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(row),
+                rows_per_image: Some(height),
+            },
+        },
+        texture.size(),
+    );
+    context.queue.submit([encoder.finish()]);
+    let padded: Vec<u8> =
+        zrak::engine::gpu::kernel::read_mapped(context, &buffer, (row * height) as usize);
+    padded
+        .chunks(row as usize)
+        .flat_map(|r| r[..4 * width as usize].to_vec())
+        .collect()
+}
+
+/// Renders `camera` into a texture in `mode` and checks it against the
+/// read-back render's `pixels` (made with the same background).
+fn compare(
+    gpu: &GpuNgp,
+    camera: &Camera,
+    mode: RenderMode,
+    background: [f32; 3],
+    pixels: &[RenderedPixel],
+) {
+    let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
+    let texture = target(gpu.context(), width, height);
+    let clock = std::time::Instant::now();
+    gpu.render_to_texture(camera, mode, background, &texture)
+        .expect("renders");
+    let on_gpu = read_texture(gpu.context(), &texture);
+    println!(
+        "{mode:?}: render_to_texture {:.2} s",
+        clock.elapsed().as_secs_f64()
+    );
+    let expected = to_image(pixels, width, height, mode, gpu.depth_range());
+    assert_eq!(on_gpu.len(), expected.data.len());
+    // Both march the same samples and composite them in the same order;
+    // they differ by f32 rounding (exp, the 1 − e^{−τ} series) and the
+    // conversion to 8 bits, which may round either way at a half level.
+    let mut worst = 0;
+    for (i, (a, b)) in on_gpu.iter().zip(&expected.data).enumerate() {
+        let difference = a.abs_diff(*b);
+        worst = worst.max(difference);
+        assert!(
+            difference <= 1,
+            "{mode:?}: pixel {} channel {}: texture {a}, read-back {b}",
+            i / 4,
+            i % 4
+        );
+    }
+    // The image must show something, or the comparison proves little.
+    let distinct: std::collections::BTreeSet<&[u8]> = expected.data.chunks(4).collect();
+    println!(
+        "{mode:?}: {} distinct colours, largest difference {worst} level(s)",
+        distinct.len()
+    );
+    assert!(distinct.len() > 20, "{mode:?}: a flat image");
+}
+
+#[test]
+fn render_to_texture_matches_the_read_back_render() {
+    let scene = scene();
+    let gpu = trained_gpu_model(&scene);
+    let model: &dyn RadianceModel = &gpu;
+    let gpu = model.as_gpu_ngp().expect("a gpu model says so");
+    let camera = scene.val[0].camera;
+    for background in [[1.0; 3], [0.1, 0.5, 0.9]] {
+        let clock = std::time::Instant::now();
+        let pixels = render_pixels(gpu, &camera, background);
+        println!("read-back render {:.2} s", clock.elapsed().as_secs_f64());
+        compare(gpu, &camera, RenderMode::Rgb, background, &pixels);
+        if background == [1.0; 3] {
+            compare(gpu, &camera, RenderMode::Depth, background, &pixels);
+            compare(gpu, &camera, RenderMode::Opacity, background, &pixels);
+        }
+    }
+}
+
+#[test]
+fn a_wrong_target_is_refused_with_what_is_wrong() {
+    let scene = scene();
+    let context = GpuContext::new().expect("lavapipe or a GPU");
+    let gpu = GpuNgp::with_batch_samples(context, &scene, SEED, LossKind::Huber, 1 << 10).unwrap();
+    let camera = scene.val[0].camera;
+    let small = target(gpu.context(), 8, 8);
+    let message = gpu
+        .render_to_texture(&camera, RenderMode::Rgb, [1.0; 3], &small)
+        .unwrap_err()
+        .to_string();
+    assert!(message.contains("8×8"), "{message}");
+    let cpu: &dyn RadianceModel = &CpuNgp::with_batch_samples(&scene, 1, LossKind::Huber, 1024);
+    assert!(cpu.as_gpu_ngp().is_none());
+}

@@ -1,0 +1,422 @@
+//! The viewer's training thread on the cpu engine and a small demo scene:
+//! what it answers to each command, checked by value.
+
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use glam::Vec3;
+use zrak::app::protocol::{Command, Event, RenderRequest, RenderedFrame, SceneSource};
+use zrak::app::worker::{TrainingWorker, WorkerOptions};
+use zrak::engine::EngineKind;
+use zrak::field::ModelKind;
+use zrak::field::ngp::LossKind;
+use zrak::render::RenderMode;
+use zrak::render::export::ExportSettings;
+use zrak::render::path::Turntable;
+use zrak::scene::demo::{self, CAMERA_ANGLE_X, DemoConfig};
+use zrak::scene::{Camera, Intrinsics};
+
+/// The tests share two cores; one worker at a time keeps each one quick.
+static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+/// Generous: on a loaded machine a step can take a second.
+const PATIENCE: Duration = Duration::from_secs(60);
+
+fn small_demo() -> DemoConfig {
+    DemoConfig {
+        size: 32,
+        train_views: 12,
+        val_views: 2,
+        test_views: 1,
+    }
+}
+
+fn options() -> WorkerOptions {
+    WorkerOptions {
+        demo: small_demo(),
+        batch_samples: Some(1 << 12),
+        ..WorkerOptions::default()
+    }
+}
+
+fn spawn(options: WorkerOptions) -> TrainingWorker {
+    TrainingWorker::spawn_with(
+        SceneSource::Demo,
+        Some(EngineKind::Cpu),
+        ModelKind::Ngp,
+        options,
+    )
+}
+
+/// Events until `pick` returns a value; panics with what was seen when
+/// none does within [`PATIENCE`].
+fn wait_for<T>(worker: &TrainingWorker, mut pick: impl FnMut(&Event) -> Option<T>) -> T {
+    let deadline = Instant::now() + PATIENCE;
+    let mut seen = Vec::new();
+    while let Some(left) = deadline.checked_duration_since(Instant::now()) {
+        let Some(event) = worker.recv_timeout(left) else {
+            break;
+        };
+        if let Some(value) = pick(&event) {
+            return value;
+        }
+        seen.push(summary(&event));
+    }
+    panic!("the awaited event did not come; seen: {seen:?}");
+}
+
+fn summary(event: &Event) -> String {
+    match event {
+        Event::Frame(f) => format!(
+            "Frame(gen {}, 1/{}, {}×{}, step {})",
+            f.generation, f.downscale, f.width, f.height, f.step
+        ),
+        Event::Stats(s) => format!("Stats(step {}, loss {})", s.step, s.loss),
+        Event::SceneLoaded(info) => format!("SceneLoaded({})", info.scene.name),
+        other => format!("{other:?}"),
+    }
+}
+
+fn stats_step(event: &Event) -> Option<u32> {
+    match event {
+        Event::Stats(stats) => Some(stats.step),
+        _ => None,
+    }
+}
+
+fn step_once(worker: &TrainingWorker) -> u32 {
+    worker.send(Command::StepOnce);
+    wait_for(worker, stats_step)
+}
+
+fn camera(size: u32, azimuth: f32) -> Camera {
+    let eye = 4.0 * Vec3::new(azimuth.cos(), azimuth.sin(), 0.6).normalize();
+    Camera::look_at(
+        Intrinsics::from_fov_x(size, size, CAMERA_ANGLE_X),
+        eye,
+        Vec3::ZERO,
+        Vec3::Z,
+    )
+}
+
+fn render(worker: &TrainingWorker, generation: u64, camera: Camera) {
+    worker.send(Command::Render(RenderRequest {
+        generation,
+        camera,
+        mode: RenderMode::Rgb,
+        moving: false,
+    }));
+}
+
+/// Frames of `generation` up to its full-resolution one.
+fn frames_until_full(worker: &TrainingWorker, generation: u64) -> Vec<RenderedFrame> {
+    let mut frames = Vec::new();
+    wait_for(worker, |event| match event {
+        Event::Frame(frame) if frame.generation == generation => {
+            frames.push(frame.clone());
+            (frame.downscale == 1).then_some(())
+        }
+        _ => None,
+    });
+    frames
+}
+
+#[test]
+fn training_reports_stats_with_a_finite_loss_and_honest_psnrs() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let worker = spawn(WorkerOptions {
+        loss: LossKind::L2,
+        // Evaluate after every step, so the first report carries a PSNR.
+        val_every_train_seconds: 0.0,
+        ..options()
+    });
+    let engine = wait_for(&worker, |e| match e {
+        Event::Engine { kind, .. } => Some(*kind),
+        _ => None,
+    });
+    assert_eq!(engine, EngineKind::Cpu);
+    worker.send(Command::Start);
+    // The first report with a held-out PSNR (the evaluation renders in
+    // chunks after the step, so it may come in a later report).
+    let stats = wait_for(&worker, |e| match e {
+        Event::Stats(stats) if stats.step > 0 && stats.val_psnr.is_some() => Some(*stats),
+        Event::Stats(stats) => {
+            assert!(stats.loss.is_finite(), "{stats:?}");
+            None
+        }
+        _ => None,
+    });
+    assert_eq!(stats.model, ModelKind::Ngp);
+    assert!(stats.loss.is_finite() && stats.loss > 0.0, "{stats:?}");
+    // L2 is the batch's MSE, so its PSNR is -10 log10(loss) exactly.
+    let batch_psnr = stats.batch_psnr.expect("an L2 loss has a batch PSNR");
+    assert!(
+        (batch_psnr + 10.0 * stats.loss.log10()).abs() < 1e-3,
+        "{stats:?}"
+    );
+    let val_psnr = stats.val_psnr.expect("picked for it");
+    // Colours lie in [0, 1], so the MSE is at most 1 (PSNR ≥ 0); an
+    // untrained field is far from the 100 dB cap.
+    assert!((0.0..60.0).contains(&val_psnr), "{stats:?}");
+    assert!(
+        stats.train_seconds > 0.0 && stats.ms_per_step > 0.0,
+        "{stats:?}"
+    );
+    assert!(stats.samples_per_ray > 0.0 && stats.samples_per_second > 0.0);
+    assert!(stats.memory_bytes > 1 << 20, "{stats:?}");
+    worker.send(Command::Pause);
+    wait_for(&worker, |e| {
+        matches!(e, Event::Running(false)).then_some(())
+    });
+    worker.shutdown();
+}
+
+#[test]
+fn a_render_request_refines_to_full_size_and_old_generations_stop() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let worker = spawn(options());
+    // An untrained field is dense everywhere, so every ray marches its
+    // full length: views stay small to keep the test short.
+    render(&worker, 7, camera(32, 0.3));
+    let frames = frames_until_full(&worker, 7);
+    let sizes: Vec<(u32, u32, u32)> = frames
+        .iter()
+        .map(|f| (f.downscale, f.width, f.height))
+        .collect();
+    assert_eq!(sizes, vec![(8, 4, 4), (4, 8, 8), (2, 16, 16), (1, 32, 32)]);
+    for frame in &frames {
+        assert_eq!(frame.pixels.len(), (frame.width * frame.height) as usize);
+        assert_eq!((frame.model, frame.step), (ModelKind::Ngp, 0));
+        for p in &frame.pixels {
+            assert!(p.rgb.iter().all(|c| (0.0..=1.0).contains(c)), "{p:?}");
+            assert!((0.0..=1.0).contains(&p.opacity), "{p:?}");
+        }
+    }
+
+    // A larger view, at once replaced by another: after the newer one's
+    // first frame, nothing of the older one arrives.
+    render(&worker, 8, camera(256, 1.0));
+    render(&worker, 9, camera(32, 2.0));
+    let mut newer_seen = false;
+    let mut newer = Vec::new();
+    wait_for(&worker, |event| match event {
+        Event::Frame(frame) if frame.generation == 8 => {
+            assert!(!newer_seen, "a frame of generation 8 after generation 9's");
+            None
+        }
+        Event::Frame(frame) if frame.generation == 9 => {
+            newer_seen = true;
+            newer.push(frame.downscale);
+            (frame.downscale == 1).then_some(())
+        }
+        _ => None,
+    });
+    assert_eq!(newer, vec![8, 4, 2, 1]);
+    // Nothing of generation 8 is still on its way: a third request (tiny)
+    // is answered in full with no frame of generation 8 among its frames.
+    render(&worker, 10, camera(8, 3.0));
+    wait_for(&worker, |event| match event {
+        Event::Frame(frame) => {
+            assert_ne!(frame.generation, 8, "generation 8 went on");
+            (frame.generation == 10 && frame.downscale == 1).then_some(())
+        }
+        _ => None,
+    });
+
+    // A moving camera gets its coarsest level at once; the same camera at
+    // rest is refined to full size under the new generation.
+    let dragged = camera(32, 4.0);
+    worker.send(Command::Render(RenderRequest {
+        generation: 11,
+        camera: dragged,
+        mode: RenderMode::Rgb,
+        moving: true,
+    }));
+    let first = wait_for(&worker, |event| match event {
+        Event::Frame(frame) if frame.generation == 11 => Some(frame.downscale),
+        _ => None,
+    });
+    assert_eq!(first, 8);
+    render(&worker, 12, dragged);
+    let mut rested = false;
+    wait_for(&worker, |event| match event {
+        Event::Frame(frame) if frame.generation == 11 => {
+            assert!(!rested, "generation 11 after generation 12");
+            None
+        }
+        Event::Frame(frame) if frame.generation == 12 => {
+            rested = true;
+            assert_eq!(frame.pixels.len(), (frame.width * frame.height) as usize);
+            (frame.downscale == 1).then_some(())
+        }
+        _ => None,
+    });
+    worker.shutdown();
+}
+
+#[test]
+fn reset_forgets_the_steps_and_selecting_the_model_keeps_them() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let worker = spawn(options());
+    for expected in 1..=3 {
+        assert_eq!(step_once(&worker), expected);
+    }
+    worker.send(Command::SelectModel(ModelKind::Ngp));
+    wait_for(&worker, |e| {
+        matches!(e, Event::ModelSelected(ModelKind::Ngp)).then_some(())
+    });
+    render(&worker, 1, camera(16, 0.5));
+    let frames = frames_until_full(&worker, 1);
+    assert!(frames.iter().all(|f| f.step == 3), "{:?}", frames.len());
+
+    worker.send(Command::Reset);
+    render(&worker, 2, camera(16, 1.5));
+    let frames = frames_until_full(&worker, 2);
+    assert!(frames.iter().all(|f| f.step == 0));
+    worker.shutdown();
+}
+
+#[test]
+fn a_missing_scene_folder_is_reported_while_training_goes_on() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let worker = spawn(options());
+    worker.send(Command::Start);
+    let first = wait_for(&worker, |e| match e {
+        Event::Stats(stats) if stats.step > 0 => Some(*stats),
+        _ => None,
+    });
+    // Huber (the default loss) is not a squared error: no batch PSNR.
+    assert_eq!(first.batch_psnr, None);
+    let before = first.step;
+    let missing = PathBuf::from("/nonexistent/zrak-missing-scene");
+    worker.send(Command::OpenScene(SceneSource::Folder(missing.clone())));
+    let (source, error) = wait_for(&worker, |e| match e {
+        Event::SceneFailed { source, error } => Some((source.clone(), error.clone())),
+        Event::SceneLoaded(_) => panic!("a missing folder loaded"),
+        _ => None,
+    });
+    assert_eq!(source, SceneSource::Folder(missing));
+    assert!(
+        error.contains("/nonexistent/zrak-missing-scene") && error.contains("not found"),
+        "{error}"
+    );
+    // The same model keeps counting: the scene was not replaced.
+    let after = wait_for(&worker, |e| stats_step(e).filter(|&s| s > before));
+    assert!(after > before);
+    worker.shutdown();
+}
+
+fn save(worker: &TrainingWorker, path: &Path) {
+    worker.send(Command::SaveCheckpoint(path.to_path_buf()));
+    let saved = wait_for(worker, |e| match e {
+        Event::CheckpointSaved(p) => Some(p.clone()),
+        Event::Error(e) => panic!("{e}"),
+        _ => None,
+    });
+    assert_eq!(saved, path);
+}
+
+#[test]
+fn a_checkpoint_restores_its_step_and_one_of_another_scene_is_refused() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    let checkpoint = dir.path().join("viewer.zrak");
+    let worker = spawn(options());
+    assert_eq!(step_once(&worker), 1);
+    assert_eq!(step_once(&worker), 2);
+    save(&worker, &checkpoint);
+    assert_eq!(step_once(&worker), 3);
+
+    worker.send(Command::LoadCheckpoint(checkpoint.clone()));
+    let (path, model, step) = wait_for(&worker, |e| match e {
+        Event::CheckpointLoaded { path, model, step } => Some((path.clone(), *model, *step)),
+        Event::Error(e) => panic!("{e}"),
+        _ => None,
+    });
+    assert_eq!((path, model, step), (checkpoint.clone(), ModelKind::Ngp, 2));
+    assert_eq!(step_once(&worker), 3);
+
+    // Another scene on disk: the checkpoint no longer fits.
+    let other = dir.path().join("other-scene");
+    let other_config = DemoConfig {
+        train_views: 6,
+        ..small_demo()
+    };
+    demo::write(&other_config, &other).unwrap();
+    worker.send(Command::OpenScene(SceneSource::Folder(other.clone())));
+    let frames = wait_for(&worker, |e| match e {
+        Event::SceneLoaded(info) => Some(info.scene.train.len()),
+        Event::SceneFailed { error, .. } => panic!("{error}"),
+        _ => None,
+    });
+    assert_eq!(frames, 6);
+    assert_eq!(step_once(&worker), 1);
+    worker.send(Command::LoadCheckpoint(checkpoint.clone()));
+    let error = wait_for(&worker, |e| match e {
+        Event::Error(error) => Some(error.clone()),
+        Event::CheckpointLoaded { .. } => panic!("a checkpoint of another scene loaded"),
+        _ => None,
+    });
+    assert!(
+        error.contains("viewer.zrak") && error.contains("the checkpoint was trained on scene"),
+        "{error}"
+    );
+    // The current model is untouched.
+    assert_eq!(step_once(&worker), 2);
+    worker.shutdown();
+}
+
+fn turntable(out_dir: &Path, frames: usize) -> ExportSettings {
+    ExportSettings {
+        turntable: Turntable {
+            frames,
+            size: Some((8, 8)),
+            ..Turntable::default()
+        },
+        mode: RenderMode::Rgb,
+        out_dir: out_dir.to_path_buf(),
+        write_gif: true,
+    }
+}
+
+#[test]
+fn a_turntable_export_reports_progress_and_can_be_cancelled() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    let worker = spawn(options());
+    worker.send(Command::ExportTurntable(turntable(dir.path(), 3)));
+    let mut progress = Vec::new();
+    let files = wait_for(&worker, |e| match e {
+        Event::ExportProgress { done, total } => {
+            progress.push((*done, *total));
+            None
+        }
+        Event::ExportFinished(result) => Some(result.clone()),
+        _ => None,
+    })
+    .expect("the export succeeds");
+    assert_eq!(progress, vec![(0, 3), (1, 3), (2, 3), (3, 3)]);
+    // Three PNG frames, then the GIF.
+    assert_eq!(files.len(), 4, "{files:?}");
+    assert!(files.iter().all(|f| f.is_file()), "{files:?}");
+    assert!(files[3].ends_with("turntable.gif"));
+
+    let cancelled = dir.path().join("cancelled");
+    worker.send(Command::ExportTurntable(turntable(&cancelled, 10_000)));
+    wait_for(&worker, |e| {
+        matches!(e, Event::ExportProgress { done: 1, .. }).then_some(())
+    });
+    worker.send(Command::CancelExport);
+    let result = wait_for(&worker, |e| match e {
+        Event::ExportFinished(result) => Some(result.clone()),
+        _ => None,
+    });
+    assert!(result.unwrap_err().contains("cancelled"));
+    // Cancelled before the end: not every frame was written, and the
+    // unfinished GIF was removed.
+    let written = std::fs::read_dir(&cancelled).unwrap().count();
+    assert!((1..10_000).contains(&written), "{written} files");
+    assert!(!cancelled.join("turntable.gif").exists());
+    worker.shutdown();
+}
