@@ -469,6 +469,8 @@ fn comparing_at_a_training_view_measures_the_error() {
     harness.get_by_label("Next view >").click();
     harness.run_steps(2);
     let request = link.render_requests().pop().unwrap();
+    // The error map needs the render's pixels, also from the gpu engine.
+    assert!(request.needs_pixels, "comparing asks for pixels");
     let scene = small_demo().scene;
     let truth = scene.train[0].image.to_rgb_over([1.0, 1.0, 1.0]);
     let k = request.camera.intrinsics;

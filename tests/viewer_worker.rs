@@ -106,6 +106,7 @@ fn render(worker: &TrainingWorker, generation: u64, camera: Camera) {
         camera,
         mode: RenderMode::Rgb,
         moving: false,
+        needs_pixels: false,
     }));
 }
 
@@ -232,6 +233,7 @@ fn a_render_request_refines_to_full_size_and_old_generations_stop() {
         camera: dragged,
         mode: RenderMode::Rgb,
         moving: true,
+        needs_pixels: false,
     }));
     let first = wait_for(&worker, |event| match event {
         Event::Frame(frame) if frame.generation == 11 => Some(frame.downscale),

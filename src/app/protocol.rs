@@ -33,6 +33,10 @@ pub struct RenderRequest {
     /// True while the user drags or flies: the thread renders only the
     /// coarsest level and favours rendering over training.
     pub moving: bool,
+    /// The UI needs the pixels themselves (to compare the render with a
+    /// photograph): a thread that would draw into a texture on the shared
+    /// device ([`Event::GpuFrame`]) answers with [`Event::Frame`] instead.
+    pub needs_pixels: bool,
 }
 
 /// How the training thread shares its time.
@@ -117,6 +121,29 @@ pub struct RenderedFrame {
     pub pixels: Vec<RenderedPixel>,
 }
 
+/// A rendered image that stays on the GPU: the gpu engine drew it into a
+/// texture on the device the window draws with (the viewer hands its
+/// device to the training thread), so the UI shows it without a copy
+/// through the CPU.
+#[derive(Debug, Clone)]
+pub struct GpuFrame {
+    pub generation: u64,
+    pub model: ModelKind,
+    /// The model's step when it was rendered.
+    pub step: u32,
+    /// 1 = full resolution; 8 = an eighth of the viewport in each direction.
+    pub downscale: u32,
+    pub width: u32,
+    pub height: u32,
+    /// Already applied: the texture holds the colours to show.
+    pub mode: RenderMode,
+    /// Rgba8Unorm, `width × height`, usage TEXTURE_BINDING (wgpu handles
+    /// are reference-counted: this is a cheap clone of the thread's
+    /// texture, which it draws the next frame of this size into, so the
+    /// UI should show only the newest frame).
+    pub texture: wgpu::Texture,
+}
+
 #[derive(Debug, Clone)]
 pub enum Event {
     SceneLoaded(SceneInfo),
@@ -134,6 +161,9 @@ pub enum Event {
     Running(bool),
     Stats(TrainingStats),
     Frame(RenderedFrame),
+    /// A frame on the GPU (only to a UI that shares its device with the
+    /// thread, see [`crate::app::worker::WorkerOptions::gpu_device`]).
+    GpuFrame(GpuFrame),
     CheckpointSaved(PathBuf),
     CheckpointLoaded {
         path: PathBuf,

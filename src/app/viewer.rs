@@ -13,9 +13,10 @@ use eframe::egui_wgpu::{WgpuConfiguration, WgpuSetup, WgpuSetupCreateNew};
 use eframe::wgpu;
 
 use super::protocol::{Command, SceneSource};
-use super::ui::{ViewerUi, describe_source};
-use super::worker::TrainingWorker;
+use super::ui::{NativeTextures, ViewerUi, describe_source};
+use super::worker::{TrainingWorker, WorkerOptions};
 use crate::engine::EngineKind;
+use crate::engine::gpu::GpuContext;
 use crate::field::ModelKind;
 
 /// What `zrak view` was asked to do.
@@ -60,18 +61,22 @@ const SCREENSHOT_GRACE: Duration = Duration::from_secs(10);
 
 /// eframe's wgpu setup asking for the adapter's own limits: egui-wgpu's
 /// default asks `Limits::default()`, which caps storage buffers and
-/// workgroup memory below what the adapter offers (DESIGN.md).
+/// workgroup memory below what the adapter offers (DESIGN.md). The device
+/// is the gpu engine's own ([`GpuContext::device_descriptor`]: its
+/// features too), so the training thread can share it and draw the view
+/// into textures the window shows.
 fn wgpu_configuration() -> WgpuConfiguration {
     let setup = WgpuSetupCreateNew {
         device_descriptor: Arc::new(|adapter: &wgpu::Adapter| {
-            let limits = adapter.limits();
+            let descriptor = GpuContext::device_descriptor(adapter);
+            let limits = descriptor.required_limits.clone();
             wgpu::DeviceDescriptor {
                 label: Some("zrak viewer device"),
                 required_limits: wgpu::Limits {
                     max_texture_dimension_2d: limits.max_texture_dimension_2d.min(MAX_TEXTURE_SIDE),
                     ..limits
                 },
-                ..Default::default()
+                ..descriptor
             }
         }),
         ..WgpuSetupCreateNew::without_display_handle()
@@ -105,6 +110,40 @@ pub fn run(options: ViewerOptions) -> anyhow::Result<()> {
     )
 }
 
+/// The gpu engine's textures made drawable through egui-wgpu's renderer.
+struct EguiWgpuTextures {
+    render_state: eframe::egui_wgpu::RenderState,
+}
+
+impl NativeTextures for EguiWgpuTextures {
+    fn register(
+        &mut self,
+        texture: &wgpu::Texture,
+        previous: Option<egui::TextureId>,
+    ) -> egui::TextureId {
+        let view = texture.create_view(&wgpu::TextureViewDescriptor::default());
+        let device = &self.render_state.device;
+        let mut renderer = self.render_state.renderer.write();
+        // Only ids this renderer registered can be re-pointed.
+        match previous.filter(|id| renderer.texture(id).is_some()) {
+            Some(id) => {
+                renderer.update_egui_texture_from_wgpu_texture(
+                    device,
+                    &view,
+                    wgpu::FilterMode::Linear,
+                    id,
+                );
+                id
+            }
+            None => renderer.register_native_texture(device, &view, wgpu::FilterMode::Linear),
+        }
+    }
+
+    fn free(&mut self, id: egui::TextureId) {
+        self.render_state.renderer.write().free_texture(&id);
+    }
+}
+
 /// One frame's timing.
 #[derive(Debug, Clone, Copy)]
 struct FrameTime {
@@ -130,7 +169,39 @@ pub struct ViewerApp {
 impl ViewerApp {
     pub fn new(cc: &eframe::CreationContext<'_>, options: ViewerOptions) -> Self {
         let ctx = cc.egui_ctx.clone();
-        let worker = TrainingWorker::spawn(options.source.clone(), options.engine, options.model);
+        // The gpu engine trains on the window's device, so the view it
+        // draws stays on the GPU (unless the cpu engine was asked for; the
+        // automatic choice still takes the cpu engine on a software
+        // adapter, and the device is then left to the window).
+        let gpu_device = match &cc.wgpu_render_state {
+            Some(render_state) if options.engine != Some(EngineKind::Cpu) => {
+                match GpuContext::from_existing(
+                    &render_state.adapter,
+                    render_state.device.clone(),
+                    render_state.queue.clone(),
+                ) {
+                    Ok(context) => Some(context),
+                    Err(error) => {
+                        eprintln!(
+                            "zrak view: the window's device cannot run the gpu engine \
+                             ({error}); the engine makes its own and the view comes through \
+                             the CPU"
+                        );
+                        None
+                    }
+                }
+            }
+            _ => None,
+        };
+        let worker = TrainingWorker::spawn_with(
+            options.source.clone(),
+            options.engine,
+            options.model,
+            WorkerOptions {
+                gpu_device,
+                ..WorkerOptions::default()
+            },
+        );
         // Events wake the window; without this it would sleep until input.
         worker.set_repaint(Box::new(move || ctx.request_repaint()));
         // The viewer trains from the start, as instant-ngp's testbed does.
@@ -142,6 +213,9 @@ impl ViewerApp {
         if let Some(render_state) = &cc.wgpu_render_state {
             let info = render_state.adapter.get_info();
             ui.set_display_adapter(format!("{} ({:?})", info.name, info.backend));
+            ui.set_native_textures(Box::new(EguiWgpuTextures {
+                render_state: render_state.clone(),
+            }));
         }
         eprintln!(
             "zrak view: opening {} with {}",

@@ -32,9 +32,10 @@ use crate::train::model::{RadianceModel, StageTimes, StepStats};
 use crate::train::trainer::Trainer;
 use crate::train::{ModelSettings, build_model};
 
-use super::progressive::{ChunkPacer, LevelRender, refinement_levels};
+use super::progressive::{ChunkPacer, LevelRender, level_camera, refinement_levels};
 use super::protocol::{
-    Balance, Command, Event, RenderRequest, RenderedFrame, SceneInfo, SceneSource, TrainingStats,
+    Balance, Command, Event, GpuFrame, RenderRequest, RenderedFrame, SceneInfo, SceneSource,
+    TrainingStats,
 };
 
 /// Called after every event is queued, so the UI wakes up to read it (the
@@ -100,7 +101,10 @@ pub struct WorkerOptions {
     pub repaint: Option<RepaintCallback>,
     /// A device made elsewhere (the viewer's, from eframe) for the gpu
     /// engine, instead of one of its own; the automatic choice still takes
-    /// the cpu engine when it is a software adapter.
+    /// the cpu engine when it is a software adapter. When the gpu engine
+    /// trains on it, the view is drawn into textures on this device and
+    /// sent as [`Event::GpuFrame`] (the window draws them without a copy
+    /// through the CPU), except for requests that need the pixels.
     pub gpu_device: Option<GpuContext>,
 }
 
@@ -380,7 +384,7 @@ struct View {
     job: Option<(LevelRender, ModelKind, u32)>,
     /// The last finished frame (re-sent when the same camera is requested
     /// again) and the model revision it showed.
-    shown: Option<(RenderedFrame, u64, Instant)>,
+    shown: Option<(Picture, u64, Instant)>,
     /// Wall seconds spent rendering and training since the current
     /// refinement began, for the balance.
     render_seconds: f64,
@@ -400,6 +404,41 @@ impl View {
     fn restart_level(&mut self) {
         if let Some((job, _, _)) = self.job.take() {
             self.levels.push_front(job.downscale);
+        }
+    }
+}
+
+/// A finished frame of the view, as sent.
+enum Picture {
+    /// Pixels read back to the CPU (the cpu engine, or a request that
+    /// needs the pixels).
+    Pixels(RenderedFrame),
+    /// A texture on the device shared with the window.
+    Texture(GpuFrame),
+}
+
+impl Picture {
+    /// Whether this picture answers `request` (of the same camera): pixels
+    /// are shown in any mode, while a texture holds one mode's colours.
+    fn answers(&self, request: &RenderRequest, draws_to_texture: bool) -> bool {
+        match self {
+            Picture::Pixels(_) => !draws_to_texture,
+            Picture::Texture(frame) => draws_to_texture && frame.mode == request.mode,
+        }
+    }
+
+    /// The picture as the answer to `request`, as an event.
+    fn resend(&mut self, request: &RenderRequest) -> Event {
+        match self {
+            Picture::Pixels(frame) => {
+                frame.generation = request.generation;
+                frame.mode = request.mode;
+                Event::Frame(frame.clone())
+            }
+            Picture::Texture(frame) => {
+                frame.generation = request.generation;
+                Event::GpuFrame(frame.clone())
+            }
         }
     }
 }
@@ -456,6 +495,13 @@ struct Worker {
     /// training light while the camera moves.
     last_step: Option<(Instant, f64)>,
     next_revision: u64,
+    /// True when the engine trains on the window's own device
+    /// ([`WorkerOptions::gpu_device`]): the view is then drawn into
+    /// textures there.
+    textures_shared: bool,
+    /// The textures the view is drawn into, one per level size, reused
+    /// from frame to frame.
+    level_textures: Vec<wgpu::Texture>,
 }
 
 impl Worker {
@@ -468,6 +514,7 @@ impl Worker {
         model: ModelKind,
     ) -> Result<Worker, UiGone> {
         let device = options.gpu_device.take();
+        let display_device = device.is_some();
         let (engine, description) = match choose_engine_on(requested_engine, device) {
             Ok(choice) => {
                 let description = describe_engine(&choice);
@@ -510,6 +557,9 @@ impl Worker {
         };
         let scene = Arc::new(scene);
         let val_frames = held_out_views(&scene, options.val_views, options.val_max_side);
+        // `choose_engine_on` keeps the given device only for the gpu engine.
+        let textures_shared =
+            display_device && engine.kind == EngineKind::Gpu && engine.gpu.is_some();
         let mut worker = Worker {
             inbox,
             outbox,
@@ -528,6 +578,8 @@ impl Worker {
             pacer: ChunkPacer::new(CHUNK_TARGET),
             last_step: None,
             next_revision: 0,
+            textures_shared,
+            level_textures: Vec::new(),
         };
         worker.send(Event::SceneLoaded(SceneInfo {
             scene: worker.scene.clone(),
@@ -822,27 +874,40 @@ impl Worker {
             )));
         }
         let now = Instant::now();
-        let same_camera = self
-            .view
-            .as_ref()
-            .is_some_and(|v| v.request.camera == request.camera);
-        if same_camera {
+        let to_texture = self.draws_to_texture(&request);
+        let same_picture = self.view.as_ref().is_some_and(|v| {
+            v.request.camera == request.camera
+                && v.shown
+                    .as_ref()
+                    .is_none_or(|(picture, _, _)| picture.answers(&request, to_texture))
+        });
+        if same_picture {
             // The same picture (perhaps in another mode, which only changes
-            // how the pixels are shown): keep what was drawn and continue.
+            // how pixels are shown): keep what was drawn and continue.
             let view = self.view.as_mut().expect("checked above");
             view.request = request;
             view.received = now;
-            if let Some((frame, _, _)) = view.shown.as_mut() {
-                frame.generation = view.request.generation;
-                frame.mode = view.request.mode;
-                let frame = frame.clone();
-                return self.send(Event::Frame(frame));
+            if let Some((picture, _, _)) = view.shown.as_mut() {
+                let event = picture.resend(&view.request);
+                return self.send(event);
             }
             return Ok(());
         }
         let k = request.camera.intrinsics;
+        let levels = refinement_levels(k.width, k.height);
+        // Textures of sizes the new view does not draw (another window
+        // size) are let go.
+        let sizes: Vec<(u32, u32)> = levels
+            .iter()
+            .map(|&d| {
+                let level = level_camera(&request.camera, d).intrinsics;
+                (level.width, level.height)
+            })
+            .collect();
+        self.level_textures
+            .retain(|t| sizes.contains(&(t.width(), t.height())));
         self.view = Some(View {
-            levels: refinement_levels(k.width, k.height).into(),
+            levels: levels.into(),
             request,
             received: now,
             job: None,
@@ -864,6 +929,13 @@ impl Worker {
         let Some(view) = self.view.as_mut() else {
             return Ok(());
         };
+        if view.job.is_none()
+            && self.textures_shared
+            && !view.request.needs_pixels
+            && slot.trainer.model.as_gpu_ngp().is_some()
+        {
+            return self.render_level_to_texture();
+        }
         if view.job.is_none() {
             let Some(downscale) = view.levels.pop_front() else {
                 return Ok(());
@@ -900,8 +972,84 @@ impl Worker {
             mode: view.request.mode,
             pixels: job.into_pixels(),
         };
-        view.shown = Some((frame.clone(), slot.revision, Instant::now()));
+        view.shown = Some((
+            Picture::Pixels(frame.clone()),
+            slot.revision,
+            Instant::now(),
+        ));
         self.outbox.send(Event::Frame(frame))
+    }
+
+    /// Whether `request` is answered with a texture on the shared device.
+    fn draws_to_texture(&self, request: &RenderRequest) -> bool {
+        self.textures_shared
+            && !request.needs_pixels
+            && self
+                .slot(self.active)
+                .is_some_and(|s| s.trainer.model.as_gpu_ngp().is_some())
+    }
+
+    /// The view's next level, drawn whole by the gpu engine into a texture
+    /// the window can show: the pixels never leave the GPU. A level cannot
+    /// be split into chunks here, but on a real GPU it takes milliseconds.
+    fn render_level_to_texture(&mut self) -> Result<(), UiGone> {
+        let active = self.active;
+        let (Some(slot), Some(view), Some(context)) = (
+            self.slots.iter().find(|s| s.kind == active),
+            self.view.as_mut(),
+            self.engine.gpu.as_ref(),
+        ) else {
+            return Ok(());
+        };
+        let Some(gpu) = slot.trainer.model.as_gpu_ngp() else {
+            return Ok(());
+        };
+        let Some(downscale) = view.levels.pop_front() else {
+            return Ok(());
+        };
+        let camera = level_camera(&view.request.camera, downscale);
+        let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
+        let texture = match self
+            .level_textures
+            .iter()
+            .find(|t| (t.width(), t.height()) == (width, height))
+        {
+            Some(texture) => texture.clone(),
+            None => {
+                let texture = level_texture(&context.device, width, height);
+                self.level_textures.push(texture.clone());
+                texture
+            }
+        };
+        let started = Instant::now();
+        let drawn = gpu.render_to_texture(&camera, view.request.mode, WHITE, &texture);
+        view.render_seconds += started.elapsed().as_secs_f64();
+        if let Err(error) = drawn {
+            // Pixels still work: the rest of this view and every later one
+            // go through the CPU.
+            self.textures_shared = false;
+            view.levels.push_front(downscale);
+            return self.outbox.send(Event::Error(format!(
+                "drawing the view on the gpu failed ({error}); the view now comes \
+                 through the CPU"
+            )));
+        }
+        let frame = GpuFrame {
+            generation: view.request.generation,
+            model: active,
+            step: slot.trainer.step,
+            downscale,
+            width,
+            height,
+            mode: view.request.mode,
+            texture,
+        };
+        view.shown = Some((
+            Picture::Texture(frame.clone()),
+            slot.revision,
+            Instant::now(),
+        ));
+        self.outbox.send(Event::GpuFrame(frame))
     }
 
     fn train_unit(&mut self) -> Result<(), UiGone> {
@@ -1239,6 +1387,28 @@ fn held_out_views(scene: &Scene, count: usize, max_side: u32) -> Vec<Frame> {
             }
         })
         .collect()
+}
+
+/// A texture the gpu engine draws a `width × height` level into
+/// (`render_to_texture` wants Rgba8Unorm with storage binding) and the
+/// window samples (texture binding); COPY_SRC lets tests read it back.
+fn level_texture(device: &wgpu::Device, width: u32, height: u32) -> wgpu::Texture {
+    device.create_texture(&wgpu::TextureDescriptor {
+        label: Some("zrak view level"),
+        size: wgpu::Extent3d {
+            width,
+            height,
+            depth_or_array_layers: 1,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format: wgpu::TextureFormat::Rgba8Unorm,
+        usage: wgpu::TextureUsages::STORAGE_BINDING
+            | wgpu::TextureUsages::TEXTURE_BINDING
+            | wgpu::TextureUsages::COPY_SRC,
+        view_formats: &[],
+    })
 }
 
 /// Why a camera cannot be rendered, if it cannot.

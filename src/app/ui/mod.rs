@@ -52,6 +52,24 @@ impl TrainingLink for TrainingWorker {
     }
 }
 
+/// Makes textures the training thread drew on the GPU ([`GpuFrame`])
+/// drawable by egui. The eframe app implements it with egui-wgpu's
+/// renderer (`viewer.rs`); a UI without one (the kittest tests, whose
+/// thread never shares a device) drops such frames.
+///
+/// [`GpuFrame`]: crate::app::protocol::GpuFrame
+pub trait NativeTextures {
+    /// An egui id showing `texture`: `previous` re-pointed at it when
+    /// given (so ids are reused, not leaked), else a new one.
+    fn register(
+        &mut self,
+        texture: &wgpu::Texture,
+        previous: Option<egui::TextureId>,
+    ) -> egui::TextureId;
+    /// Lets go of an id from [`Self::register`] (and of its texture).
+    fn free(&mut self, id: egui::TextureId);
+}
+
 /// A link to nothing, left behind once the real one has been shut down.
 struct ClosedLink;
 
@@ -112,6 +130,8 @@ pub struct ViewerUi {
     /// The last stats logged, so a paused thread is not logged again.
     last_logged_step: Option<(ModelKind, u32)>,
     log_progress: bool,
+    /// How frames drawn on the GPU reach the screen, when they can.
+    native_textures: Option<Box<dyn NativeTextures>>,
 }
 
 impl ViewerUi {
@@ -142,7 +162,14 @@ impl ViewerUi {
             last_progress_log: None,
             last_logged_step: None,
             log_progress: false,
+            native_textures: None,
         }
+    }
+
+    /// Lets the window show frames the training thread draws on the GPU
+    /// (the eframe app passes egui-wgpu's renderer).
+    pub fn set_native_textures(&mut self, textures: Box<dyn NativeTextures>) {
+        self.native_textures = Some(textures);
     }
 
     /// Writes one line of training progress to stderr every ~2 s.
@@ -308,15 +335,31 @@ impl ViewerUi {
             match event {
                 Event::Frame(frame) => {
                     // Only the newest frame is worth uploading.
-                    if self.viewport.accepts(&frame) {
-                        newest_frame = Some(frame);
+                    if self.viewport.accepts(frame.generation) {
+                        newest_frame = Some(NewFrame::Pixels(frame));
+                    }
+                }
+                Event::GpuFrame(frame) => {
+                    if self.native_textures.is_some() && self.viewport.accepts(frame.generation) {
+                        newest_frame = Some(NewFrame::Texture(frame));
+                    } else if self.native_textures.is_none() {
+                        self.viewport.frames_dropped += 1;
                     }
                 }
                 other => self.handle_event(other),
             }
         }
-        if let Some(frame) = newest_frame {
-            self.viewport.show_frame(ctx, frame);
+        match (newest_frame, self.native_textures.as_deref_mut()) {
+            (Some(NewFrame::Pixels(frame)), textures) => {
+                let released = self.viewport.show_frame(ctx, frame);
+                if let (Some(id), Some(textures)) = (released, textures) {
+                    textures.free(id);
+                }
+            }
+            (Some(NewFrame::Texture(frame)), Some(textures)) => {
+                self.viewport.show_gpu_frame(frame, textures)
+            }
+            _ => {}
         }
         count > 0
     }
@@ -361,7 +404,7 @@ impl ViewerUi {
             }
             Event::Running(running) => self.running = running,
             Event::Stats(stats) => self.record_stats(stats),
-            Event::Frame(_) => {}
+            Event::Frame(_) | Event::GpuFrame(_) => {}
             Event::CheckpointSaved(path) => {
                 self.notice(format!("Saved checkpoint {}", path.display()), false);
             }
@@ -481,6 +524,12 @@ impl ViewerUi {
             self.started.elapsed().as_secs_f64()
         );
     }
+}
+
+/// The newest frame of a batch of events, either kind.
+enum NewFrame {
+    Pixels(crate::app::protocol::RenderedFrame),
+    Texture(crate::app::protocol::GpuFrame),
 }
 
 /// "the demo scene" or the folder's path.

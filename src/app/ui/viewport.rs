@@ -2,11 +2,13 @@
 //! render requests, and the comparison with a training view's photograph.
 
 use eframe::egui;
-use egui::{Color32, PointerButton, Pos2, Rect, Sense, TextureHandle, TextureOptions, Vec2};
+use egui::{
+    Color32, PointerButton, Pos2, Rect, Sense, TextureHandle, TextureId, TextureOptions, Vec2,
+};
 
-use super::ViewerUi;
+use super::{NativeTextures, ViewerUi};
 use crate::app::camera::{FlyInput, Navigation, ViewCamera, step_view};
-use crate::app::protocol::{Command, RenderRequest, RenderedFrame};
+use crate::app::protocol::{Command, GpuFrame, RenderRequest, RenderedFrame};
 use crate::field::ModelKind;
 use crate::render::RenderMode;
 use crate::scene::image::to_u8;
@@ -53,13 +55,41 @@ struct GroundTruth {
     texture: TextureHandle,
 }
 
+/// The image on screen: pixels uploaded from the CPU (cpu engine), or a
+/// texture the gpu engine drew on the window's device.
+enum ViewportImage {
+    Uploaded(TextureHandle),
+    OnGpu {
+        id: TextureId,
+        size: [usize; 2],
+        /// The texture `id` shows, to tell when a frame brings another.
+        texture: wgpu::Texture,
+    },
+}
+
+impl ViewportImage {
+    fn id(&self) -> TextureId {
+        match self {
+            ViewportImage::Uploaded(handle) => handle.id(),
+            ViewportImage::OnGpu { id, .. } => *id,
+        }
+    }
+
+    fn size(&self) -> [usize; 2] {
+        match self {
+            ViewportImage::Uploaded(handle) => handle.size(),
+            ViewportImage::OnGpu { size, .. } => *size,
+        }
+    }
+}
+
 /// What the viewport remembers between frames.
 pub struct ViewportState {
-    texture: Option<TextureHandle>,
+    image: Option<ViewportImage>,
     /// Generation, model, step, downscale, mode and size of the shown frame.
     shown: Option<ShownFrame>,
     /// The last request sent, and the training view it was of (if any).
-    last_request: Option<(Camera, RenderMode, bool, ModelKind)>,
+    last_request: Option<(Camera, RenderMode, bool, ModelKind, bool)>,
     requested_view: Option<usize>,
     /// The generation of the last request sent.
     pub requested_generation: u64,
@@ -103,7 +133,7 @@ pub struct ShownFrame {
 impl Default for ViewportState {
     fn default() -> Self {
         Self {
-            texture: None,
+            image: None,
             shown: None,
             last_request: None,
             requested_view: None,
@@ -131,15 +161,16 @@ impl ViewportState {
         self.shown
     }
 
-    /// Whether `frame` is worth showing: never older than what is shown,
-    /// and, while the camera rests, only the answer to the latest request.
-    /// While it moves, a frame of a camera a moment old is better than a
-    /// frozen picture, so any newer frame is taken.
-    pub fn accepts(&mut self, frame: &RenderedFrame) -> bool {
+    /// Whether a frame answering request `generation` is worth showing:
+    /// never older than what is shown, and, while the camera rests, only
+    /// the answer to the latest request. While it moves, a frame of a
+    /// camera a moment old is better than a frozen picture, so any newer
+    /// frame is taken.
+    pub fn accepts(&mut self, generation: u64) -> bool {
         let shown_generation = self.shown.map_or(0, |s| s.generation);
-        let fresh = frame.generation >= self.min_generation
-            && frame.generation >= shown_generation
-            && (frame.generation == self.requested_generation || self.moving);
+        let fresh = generation >= self.min_generation
+            && generation >= shown_generation
+            && (generation == self.requested_generation || self.moving);
         if !fresh {
             self.frames_dropped += 1;
         }
@@ -156,7 +187,7 @@ impl ViewportState {
     /// A new scene: nothing shown or compared belongs to it.
     pub fn scene_changed(&mut self) {
         self.invalidate();
-        self.texture = None;
+        self.image = None;
         self.shown = None;
         self.truth = None;
         self.error_texture = None;
@@ -166,14 +197,24 @@ impl ViewportState {
         self.previous_camera = None;
     }
 
-    /// Uploads `frame` to the viewport's texture, in place.
-    pub fn show_frame(&mut self, ctx: &egui::Context, frame: RenderedFrame) {
+    /// Uploads `frame` to the viewport's texture, in place. Returns the id
+    /// of a gpu engine's texture shown before, which the caller frees
+    /// ([`NativeTextures::free`]).
+    #[must_use]
+    pub fn show_frame(&mut self, ctx: &egui::Context, frame: RenderedFrame) -> Option<TextureId> {
         let image = frame_image(&frame);
-        match &mut self.texture {
-            Some(texture) => texture.set(image, TextureOptions::LINEAR),
-            None => {
-                self.texture =
-                    Some(ctx.load_texture("zrak viewport", image, TextureOptions::LINEAR))
+        let mut released = None;
+        match &mut self.image {
+            Some(ViewportImage::Uploaded(texture)) => texture.set(image, TextureOptions::LINEAR),
+            other => {
+                if let Some(ViewportImage::OnGpu { id, .. }) = other {
+                    released = Some(*id);
+                }
+                *other = Some(ViewportImage::Uploaded(ctx.load_texture(
+                    "zrak viewport",
+                    image,
+                    TextureOptions::LINEAR,
+                )));
             }
         }
         self.frames_shown += 1;
@@ -206,6 +247,48 @@ impl ViewportState {
         } else if !of_view {
             self.error_texture = None;
         }
+        released
+    }
+
+    /// Shows a frame the gpu engine drew on the window's device: no pixel
+    /// passes through the CPU. The egui id is kept and re-pointed when the
+    /// thread's texture changes (another level size).
+    pub fn show_gpu_frame(&mut self, frame: GpuFrame, native: &mut dyn NativeTextures) {
+        let size = [frame.width as usize, frame.height as usize];
+        match &mut self.image {
+            Some(ViewportImage::OnGpu {
+                id,
+                size: shown_size,
+                texture,
+            }) => {
+                if *texture != frame.texture {
+                    *id = native.register(&frame.texture, Some(*id));
+                    *texture = frame.texture;
+                }
+                *shown_size = size;
+            }
+            other => {
+                let id = native.register(&frame.texture, None);
+                *other = Some(ViewportImage::OnGpu {
+                    id,
+                    size,
+                    texture: frame.texture,
+                });
+            }
+        }
+        self.frames_shown += 1;
+        self.shown = Some(ShownFrame {
+            generation: frame.generation,
+            model: frame.model,
+            step: frame.step,
+            downscale: frame.downscale,
+            width: frame.width,
+            height: frame.height,
+            mode: frame.mode,
+        });
+        // The error map needs pixels; comparing asks for them (see
+        // `show`), so a texture frame is never of the compared view.
+        self.error_texture = None;
     }
 
     /// Loads the photograph of training view `view` for comparison.
@@ -537,7 +620,17 @@ pub fn show(ui_state: &mut ViewerUi, ui: &mut egui::Ui) {
         (None, None) => None,
     };
     if let Some(camera) = camera {
-        let key = (camera, ui_state.mode, moving, ui_state.active_model);
+        // Comparing with the photograph (ground truth, error map, PSNR)
+        // needs the render's pixels: the gpu engine, which otherwise draws
+        // into a texture on the GPU, then reads its render back to the CPU.
+        let needs_pixels = view.is_some();
+        let key = (
+            camera,
+            ui_state.mode,
+            moving,
+            ui_state.active_model,
+            needs_pixels,
+        );
         if ui_state.viewport.last_request.as_ref() != Some(&key) {
             ui_state.viewport.requested_generation += 1;
             ui_state.viewport.requested_view = view;
@@ -547,6 +640,7 @@ pub fn show(ui_state: &mut ViewerUi, ui: &mut egui::Ui) {
                 camera,
                 mode: ui_state.mode,
                 moving,
+                needs_pixels,
             }));
         }
     }
@@ -592,7 +686,7 @@ pub fn show(ui_state: &mut ViewerUi, ui: &mut egui::Ui) {
 
 fn draw_images(ui_state: &ViewerUi, painter: &egui::Painter, rect: Rect, comparing: bool) {
     let state = &ui_state.viewport;
-    let Some(texture) = &state.texture else {
+    let Some(texture) = &state.image else {
         return;
     };
     let full_uv = Rect::from_min_max(Pos2::ZERO, Pos2::new(1.0, 1.0));
