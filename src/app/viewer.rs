@@ -170,11 +170,16 @@ impl ViewerApp {
     pub fn new(cc: &eframe::CreationContext<'_>, options: ViewerOptions) -> Self {
         let ctx = cc.egui_ctx.clone();
         // The gpu engine trains on the window's device, so the view it
-        // draws stays on the GPU (unless the cpu engine was asked for; the
-        // automatic choice still takes the cpu engine on a software
-        // adapter, and the device is then left to the window).
+        // draws stays on the GPU. Not on a software adapter (lavapipe): its
+        // one queue runs a training step, minutes long there, before the
+        // window's next frame, so the window would freeze; the engine then
+        // makes its own device and the view comes through the CPU.
         let gpu_device = match &cc.wgpu_render_state {
-            Some(render_state) if options.engine != Some(EngineKind::Cpu) => {
+            Some(render_state)
+                if options.engine != Some(EngineKind::Cpu)
+                    && render_state.adapter.get_info().device_type
+                        != eframe::wgpu::DeviceType::Cpu =>
+            {
                 match GpuContext::from_existing(
                     &render_state.adapter,
                     render_state.device.clone(),
