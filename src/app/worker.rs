@@ -62,13 +62,11 @@ const CHUNK_TARGET: Duration = Duration::from_millis(40);
 const MOVING_GRACE: Duration = Duration::from_millis(300);
 
 /// While the camera moves, training gets at most 1/(1 + this) of wall time:
-/// after a step of d seconds, the next waits d × this.
+/// after a step of d seconds, the next waits d × this. A step cannot be
+/// interrupted, so a coarse frame may wait behind one (tens of ms with the
+/// viewer's cpu batch); waiting instead for a pause between requests would
+/// stop training for as long as the user drags.
 const MOVING_IDLE_PER_STEP: f64 = 3.0;
-
-/// While the camera moves, a step starts only after this long without a
-/// new request: a step cannot be interrupted, and requests arrive every
-/// frame while the user drags.
-const MOVING_QUIET: Duration = Duration::from_millis(100);
 
 /// The largest training share honoured while a view still refines: at 1.0
 /// the viewport would never sharpen.
@@ -683,13 +681,11 @@ impl Worker {
             self.val_job = None;
         }
         if training {
-            if let Some(view) = self.view.as_ref().filter(|v| v.moving()) {
-                let quiet = MOVING_QUIET.saturating_sub(view.received.elapsed());
-                let rest = self.last_step.map_or(Duration::ZERO, |(ended, seconds)| {
+            if self.view.as_ref().is_some_and(|v| v.moving()) {
+                let wait = self.last_step.map_or(Duration::ZERO, |(ended, seconds)| {
                     Duration::from_secs_f64(seconds * MOVING_IDLE_PER_STEP)
                         .saturating_sub(ended.elapsed())
                 });
-                let wait = quiet.max(rest);
                 if !wait.is_zero() {
                     return Work::Wait(Some(wake_after.map_or(wait, |w| w.min(wait))));
                 }
