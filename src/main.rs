@@ -14,7 +14,7 @@ use zrak::app::viewer::ViewerOptions;
 use zrak::engine::{EngineKind, choose_engine};
 use zrak::field::ModelKind;
 use zrak::field::ngp::LossKind;
-use zrak::render::export::{ExportSettings, depth_range, export_turntable, near_far_range};
+use zrak::render::export::{ExportSettings, export_turntable};
 use zrak::render::path::Turntable;
 use zrak::render::{RenderMode, render_pixels, to_image};
 use zrak::scene::demo::{self, DemoConfig};
@@ -399,7 +399,7 @@ fn print_info(scene: &Scene) {
         "unit cube   scale {}  offset [{}, {}, {}]  aabb_scale {}",
         m.scale, m.offset.x, m.offset.y, m.offset.z, m.aabb_scale
     );
-    if let Some((near, far)) = near_far_range(scene) {
+    if let Some((near, far)) = scene.seen_depth_range() {
         println!("near/far    {near:.3} to {far:.3} (where camera rays cross the bounds)");
     }
 }
@@ -631,7 +631,7 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
     };
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("{}: cannot create the output folder", args.out.display()))?;
-    let depth_range = depth_range(scene);
+    let depth_range = scene.depth_range();
     let bar = ProgressBar::new(cameras.len() as u64);
     for (name, camera) in &cameras {
         let pixels = render_pixels(trainer.model.as_ref(), camera, [1.0; 3]);

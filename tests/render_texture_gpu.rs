@@ -8,6 +8,7 @@ use std::sync::Arc;
 use zrak::engine::cpu::ngp::CpuNgp;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::ngp::GpuNgp;
+use zrak::engine::gpu::render::{read_texture_rgba8, render_target};
 use zrak::field::ngp::LossKind;
 use zrak::render::{RenderMode, render_pixels, to_image};
 use zrak::rng::Pcg32;
@@ -51,57 +52,6 @@ fn trained_gpu_model(scene: &Scene) -> GpuNgp {
     gpu
 }
 
-fn target(context: &GpuContext, width: u32, height: u32) -> wgpu::Texture {
-    context.device.create_texture(&wgpu::TextureDescriptor {
-        label: Some("render target"),
-        size: wgpu::Extent3d {
-            width,
-            height,
-            depth_or_array_layers: 1,
-        },
-        mip_level_count: 1,
-        sample_count: 1,
-        dimension: wgpu::TextureDimension::D2,
-        format: wgpu::TextureFormat::Rgba8Unorm,
-        usage: wgpu::TextureUsages::STORAGE_BINDING
-            | wgpu::TextureUsages::TEXTURE_BINDING
-            | wgpu::TextureUsages::COPY_SRC,
-        view_formats: &[],
-    })
-}
-
-/// Copies the texture out (the test's own read-back), row by row.
-fn read_texture(context: &GpuContext, texture: &wgpu::Texture) -> Vec<u8> {
-    let (width, height) = (texture.width(), texture.height());
-    let row = (4 * width).next_multiple_of(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT);
-    let buffer = context.device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("texture read-back"),
-        size: (row * height) as u64,
-        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-        mapped_at_creation: false,
-    });
-    let mut encoder = context.device.create_command_encoder(&Default::default());
-    encoder.copy_texture_to_buffer(
-        texture.as_image_copy(),
-        wgpu::TexelCopyBufferInfo {
-            buffer: &buffer,
-            layout: wgpu::TexelCopyBufferLayout {
-                offset: 0,
-                bytes_per_row: Some(row),
-                rows_per_image: Some(height),
-            },
-        },
-        texture.size(),
-    );
-    context.queue.submit([encoder.finish()]);
-    let padded: Vec<u8> =
-        zrak::engine::gpu::kernel::read_mapped(context, &buffer, (row * height) as usize);
-    padded
-        .chunks(row as usize)
-        .flat_map(|r| r[..4 * width as usize].to_vec())
-        .collect()
-}
-
 /// Renders `camera` into a texture in `mode` and checks it against the
 /// read-back render's `pixels` (made with the same background).
 fn compare(
@@ -112,11 +62,11 @@ fn compare(
     pixels: &[RenderedPixel],
 ) {
     let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
-    let texture = target(gpu.context(), width, height);
+    let texture = render_target(&gpu.context().device, width, height);
     let clock = std::time::Instant::now();
     gpu.render_to_texture(camera, mode, background, &texture)
         .expect("renders");
-    let on_gpu = read_texture(gpu.context(), &texture);
+    let on_gpu = read_texture_rgba8(gpu.context(), &texture);
     println!(
         "{mode:?}: render_to_texture {:.2} s",
         clock.elapsed().as_secs_f64()
@@ -171,7 +121,7 @@ fn a_wrong_target_is_refused_with_what_is_wrong() {
     let context = GpuContext::new().expect("lavapipe or a GPU");
     let gpu = GpuNgp::with_batch_samples(context, &scene, SEED, LossKind::Huber, 1 << 10).unwrap();
     let camera = scene.val[0].camera;
-    let small = target(gpu.context(), 8, 8);
+    let small = render_target(&gpu.context().device, 8, 8);
     let message = gpu
         .render_to_texture(&camera, RenderMode::Rgb, [1.0; 3], &small)
         .unwrap_err()

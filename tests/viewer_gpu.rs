@@ -15,7 +15,7 @@ use std::time::{Duration, Instant};
 use zrak::app::protocol::{Command, Event, GpuFrame, RenderRequest, RenderedFrame, SceneSource};
 use zrak::app::worker::{TrainingWorker, WorkerOptions};
 use zrak::engine::gpu::GpuContext;
-use zrak::engine::gpu::render::scene_depth_range;
+use zrak::engine::gpu::render::read_texture_rgba8;
 use zrak::engine::{EngineChoice, EngineKind};
 use zrak::field::ModelKind;
 use zrak::field::ngp::LossKind;
@@ -106,38 +106,6 @@ fn read_back_render(
         .restore(&Checkpoint::load(checkpoint).expect("reads"))
         .expect("restores");
     render_pixels(trainer.model.as_ref(), camera, WHITE)
-}
-
-/// Copies the texture out (the test's own read-back), row by row.
-fn read_texture(context: &GpuContext, texture: &wgpu::Texture) -> Vec<u8> {
-    let (width, height) = (texture.width(), texture.height());
-    let row = (4 * width).next_multiple_of(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT);
-    let buffer = context.device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("texture read-back"),
-        size: (row * height) as u64,
-        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-        mapped_at_creation: false,
-    });
-    let mut encoder = context.device.create_command_encoder(&Default::default());
-    encoder.copy_texture_to_buffer(
-        texture.as_image_copy(),
-        wgpu::TexelCopyBufferInfo {
-            buffer: &buffer,
-            layout: wgpu::TexelCopyBufferLayout {
-                offset: 0,
-                bytes_per_row: Some(row),
-                rows_per_image: Some(height),
-            },
-        },
-        texture.size(),
-    );
-    context.queue.submit([encoder.finish()]);
-    let padded: Vec<u8> =
-        zrak::engine::gpu::kernel::read_mapped(context, &buffer, (row * height) as usize);
-    padded
-        .chunks(row as usize)
-        .flat_map(|r| r[..4 * width as usize].to_vec())
-        .collect()
 }
 
 /// Events until `pick` returns a value; panics with what was seen when
@@ -263,11 +231,11 @@ fn the_gpu_engine_draws_the_view_into_a_texture_on_the_shared_device() {
         wgpu::TextureFormat::Rgba8Unorm,
         "egui-wgpu samples Rgba8Unorm as the colours to show"
     );
-    let on_gpu = read_texture(&context, &full.texture);
+    let on_gpu = read_texture_rgba8(&context, &full.texture);
 
     let clock = Instant::now();
     let reference = read_back_render(share(&context), &scene, &checkpoint, &camera);
-    let image = |mode| to_image(&reference, 12, 12, mode, scene_depth_range(&scene)).data;
+    let image = |mode| to_image(&reference, 12, 12, mode, scene.depth_range()).data;
     let expected = image(RenderMode::Rgb);
     println!("read-back render: {:.1} s", clock.elapsed().as_secs_f64());
     // Both march the same samples and composite them in the same order;
@@ -288,7 +256,7 @@ fn the_gpu_engine_draws_the_view_into_a_texture_on_the_shared_device() {
     let full = opacity.last().expect("the full level");
     assert_eq!(full.mode, RenderMode::Opacity);
     let worst = largest_difference(
-        &read_texture(&context, &full.texture),
+        &read_texture_rgba8(&context, &full.texture),
         &image(RenderMode::Opacity),
     );
     println!("opacity texture vs read-back render: largest difference {worst} level(s)");

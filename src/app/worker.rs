@@ -17,6 +17,7 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use crate::engine::gpu::GpuContext;
+use crate::engine::gpu::render::render_target;
 use crate::engine::{EngineChoice, EngineKind, choose_engine};
 use crate::field::ModelKind;
 use crate::field::ngp::LossKind;
@@ -1012,7 +1013,7 @@ impl Worker {
         {
             Some(texture) => texture.clone(),
             None => {
-                let texture = level_texture(&context.device, width, height);
+                let texture = render_target(&context.device, width, height);
                 self.level_textures.push(texture.clone());
                 texture
             }
@@ -1383,28 +1384,6 @@ fn held_out_views(scene: &Scene, count: usize, max_side: u32) -> Vec<Frame> {
             }
         })
         .collect()
-}
-
-/// A texture the gpu engine draws a `width × height` level into
-/// (`render_to_texture` wants Rgba8Unorm with storage binding) and the
-/// window samples (texture binding); COPY_SRC lets tests read it back.
-fn level_texture(device: &wgpu::Device, width: u32, height: u32) -> wgpu::Texture {
-    device.create_texture(&wgpu::TextureDescriptor {
-        label: Some("zrak view level"),
-        size: wgpu::Extent3d {
-            width,
-            height,
-            depth_or_array_layers: 1,
-        },
-        mip_level_count: 1,
-        sample_count: 1,
-        dimension: wgpu::TextureDimension::D2,
-        format: wgpu::TextureFormat::Rgba8Unorm,
-        usage: wgpu::TextureUsages::STORAGE_BINDING
-            | wgpu::TextureUsages::TEXTURE_BINDING
-            | wgpu::TextureUsages::COPY_SRC,
-        view_formats: &[],
-    })
 }
 
 /// Why a camera cannot be rendered, if it cannot.

@@ -95,7 +95,7 @@ impl TurntableExport {
             None
         };
         Ok(TurntableExport {
-            depth_range: depth_range(scene),
+            depth_range: scene.depth_range(),
             settings,
             cameras,
             done: 0,
@@ -268,39 +268,6 @@ pub fn export_turntable(
         progress(export.done(), total);
     }
     export.finish()
-}
-
-/// The smallest near and largest far distance over the rays through the
-/// corners and centre of every frame that hit the scene box, or `None` when
-/// none does.
-pub fn near_far_range(scene: &Scene) -> Option<(f32, f32)> {
-    let mut range: Option<(f32, f32)> = None;
-    for frame in scene.frames() {
-        let k = frame.camera.intrinsics;
-        let (w, h) = (k.width as f32, k.height as f32);
-        let points = [
-            (0.5, 0.5),
-            (w - 0.5, 0.5),
-            (0.5, h - 0.5),
-            (w - 0.5, h - 0.5),
-            (0.5 * w, 0.5 * h),
-        ];
-        for (u, v) in points {
-            if let Some((near, far)) = scene.ray_near_far(&frame.camera.ray_through(u, v)) {
-                range = Some(match range {
-                    Some((n, f)) => (n.min(near), f.max(far)),
-                    None => (near, far),
-                });
-            }
-        }
-    }
-    range
-}
-
-/// Near and far depth for depth images: where the scene's own cameras see
-/// its box, (0, 1) when they do not.
-pub fn depth_range(scene: &Scene) -> (f32, f32) {
-    near_far_range(scene).unwrap_or((0.0, 1.0))
 }
 
 /// Fails, naming `dir`, unless a file can be created in it.
@@ -595,7 +562,7 @@ mod tests {
     #[test]
     fn depth_range_spans_the_scene_box() {
         let scene = scene();
-        let (near, far) = depth_range(&scene);
+        let (near, far) = scene.depth_range();
         // Demo cameras sit 4 from the origin; the box has half side
         // 0.5 / 0.33 ≈ 1.52, so rays enter before 4 and leave after it.
         assert!(near > 0.0 && near < 4.0 && far > 4.0, "{near}..{far}");

@@ -138,6 +138,38 @@ impl Scene {
         }
     }
 
+    /// The nearest and farthest depth at which the scene's own cameras see
+    /// its box (rays through each camera's corners and centre), or `None`
+    /// when no camera does: the range depth images are shaded over.
+    pub fn seen_depth_range(&self) -> Option<(f32, f32)> {
+        let mut range: Option<(f32, f32)> = None;
+        for frame in self.frames() {
+            let k = frame.camera.intrinsics;
+            let (w, h) = (k.width as f32, k.height as f32);
+            let points = [
+                (0.5, 0.5),
+                (w - 0.5, 0.5),
+                (0.5, h - 0.5),
+                (w - 0.5, h - 0.5),
+                (0.5 * w, 0.5 * h),
+            ];
+            for (u, v) in points {
+                if let Some((near, far)) = self.ray_near_far(&frame.camera.ray_through(u, v)) {
+                    range = Some(match range {
+                        Some((n, f)) => (n.min(near), f.max(far)),
+                        None => (near, far),
+                    });
+                }
+            }
+        }
+        range
+    }
+
+    /// [`Self::seen_depth_range`], or (0, 1) when no camera sees the box.
+    pub fn depth_range(&self) -> (f32, f32) {
+        self.seen_depth_range().unwrap_or((0.0, 1.0))
+    }
+
     /// All frames of all splits.
     pub fn frames(&self) -> impl Iterator<Item = &Frame> {
         self.train.iter().chain(&self.val).chain(&self.test)

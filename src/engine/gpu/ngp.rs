@@ -49,7 +49,7 @@ use super::loss::{GpuLoss, LossBuffers};
 use super::march::{GpuGrid, GpuMarch, GpuMarchBuffers, GpuRays, dispatch_grid};
 use super::render::{
     CompactUniforms, CompositeUniforms, ImageUniforms, RAY_GROUP_ALIGN, RenderBuffers,
-    RenderKernels, check_target, scene_depth_range,
+    RenderKernels, check_target,
 };
 use super::sh::GpuSh;
 use super::timing::{Stage, StageClock, StageTiming};
@@ -187,7 +187,7 @@ pub struct GpuNgp {
     /// Buffers of the last [`GpuNgp::render_to_texture`], kept for the
     /// next frame of the same size.
     render_buffers: Mutex<Option<RenderBuffers>>,
-    /// Near and far depth of depth images ([`scene_depth_range`]).
+    /// Near and far depth of depth images ([`Scene::depth_range`]).
     depth_range: (f32, f32),
 }
 
@@ -308,7 +308,7 @@ impl GpuNgp {
             scratch: Vec::new(),
             clock: Some(StageClock::new(ctx, StageTiming::Timestamps)),
             render_buffers: Mutex::new(None),
-            depth_range: scene_depth_range(scene),
+            depth_range: scene.depth_range(),
             stages,
             shape,
             context,

@@ -189,28 +189,56 @@ pub(crate) fn check_target(
     }
 }
 
-/// Near and far depth for depth images, as the `render` command chooses
-/// them: the range over which the rays through the corners and centre of
-/// every camera of `scene` cross its box ((0, 1) when none does).
-pub fn scene_depth_range(scene: &crate::scene::Scene) -> (f32, f32) {
-    let mut range: Option<(f32, f32)> = None;
-    for frame in scene.frames() {
-        let k = frame.camera.intrinsics;
-        let (w, h) = (k.width as f32, k.height as f32);
-        for (u, v) in [
-            (0.5, 0.5),
-            (w - 0.5, 0.5),
-            (0.5, h - 0.5),
-            (w - 0.5, h - 0.5),
-            (0.5 * w, 0.5 * h),
-        ] {
-            if let Some((near, far)) = scene.ray_near_far(&frame.camera.ray_through(u, v)) {
-                range = Some(match range {
-                    Some((n, f)) => (n.min(near), f.max(far)),
-                    None => (near, far),
-                });
-            }
-        }
-    }
-    range.unwrap_or((0.0, 1.0))
+/// A texture [`super::ngp::GpuNgp::render_to_texture`] can draw a
+/// `width × height` image into (Rgba8Unorm with storage binding), a window
+/// can sample (texture binding), and a test can read back (copy source).
+pub fn render_target(device: &wgpu::Device, width: u32, height: u32) -> wgpu::Texture {
+    device.create_texture(&wgpu::TextureDescriptor {
+        label: Some("zrak render target"),
+        size: wgpu::Extent3d {
+            width,
+            height,
+            depth_or_array_layers: 1,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format: wgpu::TextureFormat::Rgba8Unorm,
+        usage: wgpu::TextureUsages::STORAGE_BINDING
+            | wgpu::TextureUsages::TEXTURE_BINDING
+            | wgpu::TextureUsages::COPY_SRC,
+        view_formats: &[],
+    })
+}
+
+/// The RGBA bytes of an Rgba8Unorm texture, row-major without padding,
+/// copied out through a buffer (rows padded to wgpu's copy alignment).
+pub fn read_texture_rgba8(context: &GpuContext, texture: &wgpu::Texture) -> Vec<u8> {
+    let (width, height) = (texture.width(), texture.height());
+    let row = (4 * width).next_multiple_of(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT);
+    let buffer = context.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("texture read-back"),
+        size: (row * height) as u64,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    let mut encoder = context.device.create_command_encoder(&Default::default());
+    encoder.copy_texture_to_buffer(
+        texture.as_image_copy(),
+        wgpu::TexelCopyBufferInfo {
+            buffer: &buffer,
+            layout: wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(row),
+                rows_per_image: Some(height),
+            },
+        },
+        texture.size(),
+    );
+    context.queue.submit([encoder.finish()]);
+    let padded: Vec<u8> = super::kernel::read_mapped(context, &buffer, (row * height) as usize);
+    padded
+        .chunks(row as usize)
+        .flat_map(|r| r[..4 * width as usize].to_vec())
+        .collect()
 }
