@@ -1273,17 +1273,8 @@ mod tests {
             &mut workspace,
             &mut cut,
         );
-        let kept = stats.rays_kept;
-        assert!(kept < 300 && stats.samples <= budget);
-        assert_eq!(full.ray_offsets[kept] as usize, stats.samples);
-        assert!(full.ray_offsets[kept + 1] as usize > budget);
-        assert_eq!(cut.ray_offsets[..=kept], full.ray_offsets[..=kept]);
-        assert!(
-            cut.ray_offsets[kept..]
-                .iter()
-                .all(|&o| o as usize == stats.samples)
-        );
-        assert_eq!(cut.positions[..], full.positions[..3 * stats.samples]);
+        assert!(stats.rays_kept < 300);
+        assert_whole_ray_prefix(&full, &cut, &stats, budget);
         // The workspace is reusable: marching again with it matches.
         let mut again = MarchedSamples::default();
         march(
@@ -1295,6 +1286,29 @@ mod tests {
             &mut again,
         );
         assert_eq!(again, full);
+    }
+
+    /// `cut`, marched with a sample budget, holds the first whole rays of
+    /// the unlimited march `full` and nothing else: the next ray would have
+    /// gone over `budget`, and every later ray has no samples.
+    fn assert_whole_ray_prefix(
+        full: &MarchedSamples,
+        cut: &MarchedSamples,
+        stats: &MarchStats,
+        budget: usize,
+    ) {
+        let kept = stats.rays_kept;
+        assert!(stats.samples <= budget);
+        assert_eq!(full.ray_offsets[kept] as usize, stats.samples);
+        assert!(full.ray_offsets[kept + 1] as usize > budget);
+        assert_eq!(cut.ray_offsets[..=kept], full.ray_offsets[..=kept]);
+        assert!(
+            cut.ray_offsets[kept..]
+                .iter()
+                .all(|&o| o as usize == stats.samples)
+        );
+        assert_eq!(cut.positions[..], full.positions[..3 * stats.samples]);
+        assert_eq!(cut.t[..], full.t[..stats.samples]);
     }
 
     #[test]
@@ -1327,18 +1341,8 @@ mod tests {
             &mut workspace,
             &mut cut,
         );
-        let kept = stats.rays_kept;
         assert_eq!(stats.rays, rays);
-        assert!(full.ray_offsets[kept + 1] as usize > budget);
-        assert_eq!(full.ray_offsets[kept] as usize, stats.samples);
-        assert_eq!(cut.ray_offsets[..=kept], full.ray_offsets[..=kept]);
-        assert!(
-            cut.ray_offsets[kept..]
-                .iter()
-                .all(|&o| o as usize == stats.samples)
-        );
-        assert_eq!(cut.positions[..], full.positions[..3 * stats.samples]);
-        assert_eq!(cut.t[..], full.t[..stats.samples]);
+        assert_whole_ray_prefix(&full, &cut, &stats, budget);
         // Only the first two waves were walked.
         let walked = workspace.rays.iter().filter(|r| r.is_some()).count();
         assert!(
