@@ -10,6 +10,8 @@ use crate::train::trainer::Trainer;
 /// Figures of a throughput run.
 #[derive(Debug, Clone)]
 pub struct ThroughputReport {
+    /// Unmeasured steps before the measured ones.
+    pub warmup: usize,
     pub steps: usize,
     pub median_step_seconds: f64,
     pub samples_per_second: f64,
@@ -75,6 +77,7 @@ pub fn throughput(trainer: &mut Trainer, warmup: usize, steps: usize) -> Through
             / steps.max(1) as f64,
     };
     ThroughputReport {
+        warmup,
         steps,
         median_step_seconds: median(&mut step_seconds),
         samples_per_second: total_samples as f64 / total_seconds,
@@ -111,7 +114,10 @@ pub fn print_report(report: &ThroughputReport, scene: &Arc<Scene>, engine: &str)
         scene.train.len()
     );
     println!("engine               {engine}");
-    println!("steps measured       {}", report.steps);
+    println!(
+        "steps measured       {} (after {} unmeasured)",
+        report.steps, report.warmup
+    );
     println!(
         "ms per step          {:.1} (median)",
         report.median_step_seconds * 1e3

@@ -841,29 +841,28 @@ trait Lanes {
     }
     /// Orders streaming stores before what follows (the end of a task).
     unsafe fn store_fence() {}
+    /// The sum of the lanes.
+    unsafe fn sum(v: Self::V) -> f32;
 }
 
-/// Copies `n` floats, the part of `dst` aligned to `align` bytes in
-/// `step`-float pieces through `stream` and the rest with plain stores.
-#[inline(always)]
-unsafe fn stream_with(
-    dst: *mut f32,
-    src: *const f32,
-    n: usize,
-    align: usize,
-    step: usize,
-    stream: impl Fn(*mut f32, *const f32),
-) {
-    unsafe {
-        let head = ((align - dst as usize % align) % align / 4).min(n);
+/// Copies `$n` floats, the part of `$dst` aligned to `$align` bytes in
+/// `$step`-float pieces through `$stream` and the rest with plain stores.
+/// A macro, not a function taking a closure: a closure is compiled without
+/// the caller's vector extensions, so the streaming intrinsic inside it
+/// became a function call per 64 bytes (1% of a training step).
+macro_rules! stream_with {
+    ($dst:expr, $src:expr, $n:expr, $align:expr, $step:expr, |$d:ident, $s:ident| $stream:expr) => {{
+        let (dst, src, n): (*mut f32, *const f32, usize) = ($dst, $src, $n);
+        let head = (($align - dst as usize % $align) % $align / 4).min(n);
         std::ptr::copy_nonoverlapping(src, dst, head);
         let mut i = head;
-        while i + step <= n {
-            stream(dst.add(i), src.add(i));
-            i += step;
+        while i + $step <= n {
+            let ($d, $s) = (dst.add(i), src.add(i));
+            $stream;
+            i += $step;
         }
         std::ptr::copy_nonoverlapping(src.add(i), dst.add(i), n - i);
-    }
+    }};
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -920,11 +919,16 @@ mod x86 {
             }
         }
         #[inline(always)]
+        unsafe fn sum(v: __m512) -> f32 {
+            unsafe { _mm512_reduce_add_ps(v) }
+        }
+        #[inline(always)]
         unsafe fn stream_copy(dst: *mut f32, src: *const f32, n: usize) {
             unsafe {
-                super::stream_with(dst, src, n, 64, 16, |d, s| {
-                    _mm512_stream_ps(d, _mm512_loadu_ps(s))
-                })
+                stream_with!(dst, src, n, 64, 16, |d, s| _mm512_stream_ps(
+                    d,
+                    _mm512_loadu_ps(s)
+                ))
             }
         }
         #[inline(always)]
@@ -997,11 +1001,20 @@ mod x86 {
             unsafe { _mm256_and_ps(g, _mm256_cmp_ps::<_CMP_GT_OQ>(y, _mm256_setzero_ps())) }
         }
         #[inline(always)]
+        unsafe fn sum(v: __m256) -> f32 {
+            unsafe {
+                let quad = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps::<1>(v));
+                let pair = _mm_add_ps(quad, _mm_movehl_ps(quad, quad));
+                _mm_cvtss_f32(_mm_add_ss(pair, _mm_movehdup_ps(pair)))
+            }
+        }
+        #[inline(always)]
         unsafe fn stream_copy(dst: *mut f32, src: *const f32, n: usize) {
             unsafe {
-                super::stream_with(dst, src, n, 32, 8, |d, s| {
-                    _mm256_stream_ps(d, _mm256_loadu_ps(s))
-                })
+                stream_with!(dst, src, n, 32, 8, |d, s| _mm256_stream_ps(
+                    d,
+                    _mm256_loadu_ps(s)
+                ))
             }
         }
         #[inline(always)]
@@ -1063,6 +1076,10 @@ impl Lanes for Portable {
     #[inline(always)]
     unsafe fn relu_gate(g: [f32; 8], y: [f32; 8]) -> [f32; 8] {
         std::array::from_fn(|j| if y[j] > 0.0 { g[j] } else { 0.0 })
+    }
+    #[inline(always)]
+    unsafe fn sum(v: [f32; 8]) -> f32 {
+        v.iter().sum()
     }
 }
 
@@ -1213,23 +1230,81 @@ unsafe fn epilogue<L: Lanes, const R: usize, const NV: usize>(
     }
 }
 
-/// One block of `nb` rows through every layer; layer l writes to `dst(l)`
-/// with row stride equal to its width, except the last layer, which
-/// computes and writes only its first `last_columns` outputs.
+/// Layers with at most this many outputs (computed) go through
+/// [`narrow_layer`] instead of a register tile.
+const NARROW_COLUMNS: usize = 4;
+
+/// `c = act(x Wᵀ + b)` for a layer with few outputs (σ alone, RGB): one
+/// dot product per row and output along W's contiguous rows. A register
+/// tile would spend a whole vector of lanes on each of these 1–3 columns;
+/// on the Instant-NGP networks this made the σ-only inference ~1.3× faster.
+/// The sum runs in a different order than the tile's, so outputs differ
+/// from a tile's in the last bits.
+#[inline(always)]
+unsafe fn narrow_layer<L: Lanes>(
+    layer: &Layer,
+    x: *const f32,
+    nb: usize,
+    n: usize,
+    act: Activation,
+    c: *mut f32,
+) {
+    let k = layer.inw;
+    unsafe {
+        for r in 0..nb {
+            let row = x.add(r * k);
+            for j in 0..n {
+                let weights = layer.w.add(j * k);
+                let mut acc = L::zero();
+                let mut i = 0;
+                while i < k {
+                    let m = L::mask(k - i);
+                    acc = L::fma(L::load(row.add(i), m), L::load(weights.add(i), m), acc);
+                    i += L::N;
+                }
+                let mut y = L::sum(acc);
+                if !layer.bias.is_null() {
+                    y += *layer.bias.add(j);
+                }
+                *c.add(r * n + j) = act.apply(y);
+            }
+        }
+    }
+}
+
+/// Where a block's layers go: a trait with methods inlined into the kernels
+/// rather than closures, which are compiled without the kernels' vector
+/// extensions (their streaming stores became out-of-line calls).
+trait BlockSink {
+    /// Where layer `l` writes its block.
+    unsafe fn destination(&self, l: usize) -> *mut f32;
+    /// Called once layer `l` wrote its block at `block`.
+    unsafe fn after(&self, l: usize, block: *const f32);
+}
+
+/// One block of `nb` rows through every layer; layer l writes to
+/// `sink.destination(l)` with row stride equal to its width, except the
+/// last layer, which computes and writes only its first `last_columns`
+/// outputs.
 #[inline(always)]
 unsafe fn forward_block<L: Lanes>(
     net: &Net,
     x: *const f32,
     nb: usize,
     last_columns: usize,
-    dst: impl Fn(usize) -> *mut f32,
-    after: impl Fn(usize, *const f32),
+    sink: &impl BlockSink,
 ) {
     let mut a = x;
     let last = net.layers.len() - 1;
     for (l, layer) in net.layers.iter().enumerate() {
-        let c = dst(l);
+        let c = unsafe { sink.destination(l) };
         let n = if l == last { last_columns } else { layer.outw };
+        if n <= NARROW_COLUMNS {
+            unsafe { narrow_layer::<L>(layer, a, nb, n, net.act(l), c) };
+            unsafe { sink.after(l, c) };
+            a = c;
+            continue;
+        }
         let g = Gemm {
             m: nb,
             n,
@@ -1247,7 +1322,7 @@ unsafe fn forward_block<L: Lanes>(
             },
         };
         unsafe { gemm::<L>(&g) };
-        after(l, c);
+        unsafe { sink.after(l, c) };
         a = c;
     }
 }
@@ -1267,29 +1342,79 @@ unsafe fn forward_rows<L: Lanes>(job: &ForwardJob, rows: Range<usize>, scratch: 
     let mut r0 = rows.start;
     while r0 < rows.end {
         let nb = (rows.end - r0).min(BLOCK);
-        unsafe {
-            forward_block::<L>(
-                net,
-                job.input.add(r0 * in_w),
-                nb,
-                out_w,
-                |l| scratch.add((l % 2) * half),
-                |l, block| {
-                    let w = net.layers[l].outw;
-                    L::stream_copy(job.activations[l].get().add(r0 * w), block, nb * w);
-                    if l == last {
-                        std::ptr::copy_nonoverlapping(
-                            block,
-                            job.output.get().add(r0 * out_w),
-                            nb * out_w,
-                        );
-                    }
-                },
-            );
-        }
+        let sink = TrainingSink::<L> {
+            job,
+            scratch,
+            half,
+            r0,
+            nb,
+            last,
+            out_w,
+            lanes: std::marker::PhantomData,
+        };
+        unsafe { forward_block::<L>(net, job.input.add(r0 * in_w), nb, out_w, &sink) };
         r0 += nb;
     }
     unsafe { L::store_fence() };
+}
+
+/// The training forward pass's blocks: computed in the scratch, streamed
+/// to the workspace, the last layer also copied to the output.
+struct TrainingSink<'a, L> {
+    job: &'a ForwardJob<'a>,
+    scratch: *mut f32,
+    half: usize,
+    r0: usize,
+    nb: usize,
+    last: usize,
+    out_w: usize,
+    lanes: std::marker::PhantomData<L>,
+}
+
+impl<L: Lanes> BlockSink for TrainingSink<'_, L> {
+    #[inline(always)]
+    unsafe fn destination(&self, l: usize) -> *mut f32 {
+        unsafe { self.scratch.add((l % 2) * self.half) }
+    }
+
+    #[inline(always)]
+    unsafe fn after(&self, l: usize, block: *const f32) {
+        let (job, r0, nb) = (self.job, self.r0, self.nb);
+        let w = job.net.layers[l].outw;
+        unsafe {
+            L::stream_copy(job.activations[l].get().add(r0 * w), block, nb * w);
+            if l == self.last {
+                std::ptr::copy_nonoverlapping(
+                    block,
+                    job.output.get().add(r0 * self.out_w),
+                    nb * self.out_w,
+                );
+            }
+        }
+    }
+}
+
+/// The inference pass's blocks: hidden layers in the scratch, the last
+/// straight into the output.
+struct InferenceSink {
+    output: *mut f32,
+    scratch: *mut f32,
+    half: usize,
+    last: usize,
+}
+
+impl BlockSink for InferenceSink {
+    #[inline(always)]
+    unsafe fn destination(&self, l: usize) -> *mut f32 {
+        if l == self.last {
+            self.output
+        } else {
+            unsafe { self.scratch.add((l % 2) * self.half) }
+        }
+    }
+
+    #[inline(always)]
+    unsafe fn after(&self, _: usize, _: *const f32) {}
 }
 
 #[inline(always)]
@@ -1309,22 +1434,13 @@ unsafe fn inference_rows<L: Lanes>(job: &InferenceJob, rows: Range<usize>, scrat
     let mut r0 = rows.start;
     while r0 < rows.end {
         let nb = (rows.end - r0).min(BLOCK);
-        unsafe {
-            forward_block::<L>(
-                net,
-                job.input.add(r0 * in_w),
-                nb,
-                out_w,
-                |l| {
-                    if l == last {
-                        job.output.get().add(r0 * out_w)
-                    } else {
-                        scratch.add((l % 2) * half)
-                    }
-                },
-                |_, _| {},
-            );
-        }
+        let sink = InferenceSink {
+            output: unsafe { job.output.get().add(r0 * out_w) },
+            scratch,
+            half,
+            last,
+        };
+        unsafe { forward_block::<L>(net, job.input.add(r0 * in_w), nb, out_w, &sink) };
         r0 += nb;
     }
 }
@@ -1940,15 +2056,21 @@ mod tests {
                     inferred, out,
                     "{backend:?} case {case}: inference differs from forward"
                 );
-                // Only the first output: the same bits as column 0 of the
-                // full forward pass.
+                // Only the first output: column 0 of the full forward pass,
+                // summed by the narrow kernel where the full pass used a tile
+                // (outputs wider than NARROW_COLUMNS), so equal to rounding.
                 let mut first = vec![0.0; rows];
                 inference_with(backend, layout, &params, &input, rows, &mut first, 1);
-                let column: Vec<f32> = out.chunks_exact(out_w).map(|r| r[0]).collect();
-                assert_eq!(
-                    first, column,
-                    "{backend:?} case {case}: leading-output inference differs"
-                );
+                let column: Vec<f64> = want[layout.layers() - 1]
+                    .chunks_exact(out_w)
+                    .map(|r| r[0])
+                    .collect();
+                let e = max_relative(&first, &column);
+                assert!(e < tol, "{backend:?} case {case} leading output: {e:e}");
+                if out_w <= NARROW_COLUMNS {
+                    let same: Vec<f32> = out.chunks_exact(out_w).map(|r| r[0]).collect();
+                    assert_eq!(first, same, "{backend:?} case {case}: leading output");
+                }
             }
         }
     }

@@ -890,7 +890,10 @@ impl BatchSizer {
         self.samples_per_ray = samples_per_ray;
     }
 
-    /// Records a step that marched `rays` rays into `samples` samples.
+    /// Records a step whose `rays` rays held `samples` samples. Count only
+    /// rays that were marched to their end: a ray dropped at the budget
+    /// holds no samples, and counting it makes rays look shorter than they
+    /// are (the sizer then asked for three times the rays that fit).
     pub fn record(&mut self, rays: usize, samples: usize) {
         if rays == 0 {
             return;

@@ -81,7 +81,7 @@ impl NgpShape {
     /// Inference of σ at unit-cube positions (n × 3), with the hash
     /// features kept in `encoded` and `scratch` (grown as needed, reused
     /// between calls). Only output 0 (log-density) of the density network
-    /// is computed: the same bits as that output of the full forward pass.
+    /// is computed (equal to that output of the full pass up to rounding).
     fn density(
         &self,
         params: &[f32],
@@ -358,7 +358,9 @@ impl CpuNgp {
             &mut b.march,
             &mut b.samples,
         );
-        self.batch_sizer.record(marched.rays, marched.samples);
+        // Rays past the budget were never walked: only the kept ones say
+        // how many samples a ray holds.
+        self.batch_sizer.record(marched.rays_kept, marched.samples);
         let kept = marched.rays_kept;
         let s = marched.samples;
         times.march = clock.elapsed().as_secs_f64();
@@ -437,19 +439,20 @@ impl CpuNgp {
             &mut self.density_workspace,
             &mut b.density_out,
         );
-        set_len(&mut b.sigma, u);
+        // σ is the one the cut was found with (the σ-only inference sums in
+        // another order than the full pass, so the two can differ in the
+        // last bits): compositing the used samples then stops exactly where
+        // the cut said.
+        gather_rows(&b.sigma_marched, 1, &used.source, &mut b.sigma);
         set_len(&mut b.colour_input, u * colour_width);
-        b.sigma
-            .par_chunks_mut(ROWS_PER_TASK)
+        b.colour_input
+            .par_chunks_mut(ROWS_PER_TASK * colour_width)
             .zip(b.density_out.par_chunks(ROWS_PER_TASK * density_width))
-            .zip(b.colour_input.par_chunks_mut(ROWS_PER_TASK * colour_width))
-            .for_each(|((sigma, rows), inputs)| {
-                for ((sigma, row), input) in sigma
-                    .iter_mut()
+            .for_each(|(inputs, rows)| {
+                for (input, row) in inputs
+                    .chunks_exact_mut(colour_width)
                     .zip(rows.chunks_exact(density_width))
-                    .zip(inputs.chunks_exact_mut(colour_width))
                 {
-                    *sigma = density_activation(row[0]);
                     input[..density_width].copy_from_slice(row);
                 }
             });

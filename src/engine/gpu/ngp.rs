@@ -589,7 +589,9 @@ impl GpuNgp {
             let counters: Vec<u32> = read_mapped(&self.context, &self.counters_staging, 2);
             (counters[0] as usize, counters[1] as usize)
         };
-        self.batch_sizer.record(rays, samples);
+        // The samples are those of the kept rays (the rest are past the
+        // budget), so they are what a ray holds on average.
+        self.batch_sizer.record(kept, samples);
 
         // Submission 2: forward, loss, backward and Adam.
         let ctx = &self.context;
