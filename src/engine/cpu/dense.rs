@@ -29,7 +29,9 @@
 //! ```
 //!
 //! with `G = dY ⊙ act'(Y)`, bias and activation fused into the tile's
-//! epilogue, and `act'` of the layer below fused into dX's epilogue. The
+//! epilogue, and `act'` of the layer below fused into dX's epilogue. A
+//! forward layer with at most four outputs (σ alone, RGB) is a dot product
+//! per row and output instead (`narrow_layer`). The
 //! weight-gradient reduction over the batch is split into a fixed number of
 //! row chunks that depends only on the batch size, each summed into its own
 //! partial gradient, and the partials are added in chunk order: results are
@@ -1237,7 +1239,8 @@ const NARROW_COLUMNS: usize = 4;
 /// `c = act(x Wᵀ + b)` for a layer with few outputs (σ alone, RGB): one
 /// dot product per row and output along W's contiguous rows. A register
 /// tile would spend a whole vector of lanes on each of these 1–3 columns;
-/// on the Instant-NGP networks this made the σ-only inference ~1.3× faster.
+/// on lego_400 this made the σ-only inference of a training batch ~1.8×
+/// faster.
 /// The sum runs in a different order than the tile's, so outputs differ
 /// from a tile's in the last bits.
 #[inline(always)]

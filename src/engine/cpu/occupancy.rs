@@ -472,8 +472,8 @@ impl OccupancyGrid {
     /// Fills `sample_cells` with the cells to sample, in ascending cell
     /// order within each half of each cascade: neighbouring samples then
     /// read neighbouring hash-table entries and grid values, which made
-    /// the update's density pass ~1.5× faster than drawing them in random
-    /// order (the draws, and so the update, are the same).
+    /// an update ~1.3× faster on lego_400 than taking the cells in the
+    /// order they were drawn (the draws, and so the update, are the same).
     fn choose_cells(&mut self, full: bool, key: u64) {
         let per = self.geometry.cells_per_cascade();
         self.sample_cells.clear();
