@@ -10,4 +10,5 @@ pub mod loss;
 pub mod march;
 pub mod ngp;
 pub mod occupancy;
+pub mod sampling;
 pub mod sh;
