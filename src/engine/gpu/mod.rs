@@ -13,5 +13,6 @@ pub mod march;
 pub mod ngp;
 pub mod occupancy;
 pub mod render;
+pub mod sampling;
 pub mod sh;
 pub mod timing;
