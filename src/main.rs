@@ -13,6 +13,7 @@ use zrak::app::protocol::SceneSource;
 use zrak::app::viewer::ViewerOptions;
 use zrak::engine::{EngineKind, choose_engine};
 use zrak::field::ModelKind;
+use zrak::field::nerf::Sampling;
 use zrak::field::ngp::{LossKind, OccupancyConfig};
 use zrak::render::export::{ExportSettings, export_turntable};
 use zrak::render::path::Turntable;
@@ -84,6 +85,10 @@ struct ViewArgs {
     engine: Option<EngineKind>,
     #[arg(long, value_enum, default_value_t = ModelKind::Ngp)]
     model: ModelKind,
+    /// NeRF's sampler: the occupancy grid (default) or the paper's
+    /// stratified + importance sampling.
+    #[arg(long, value_enum, default_value_t = Sampling::Occupancy)]
+    sampling: Sampling,
     /// Save a PNG of the window to this path (after --screenshot-after).
     #[arg(long)]
     screenshot: Option<PathBuf>,
@@ -113,6 +118,11 @@ enum BenchCommand {
         engine: Option<EngineKind>,
         #[arg(long, default_value_t = 1)]
         downscale: u32,
+        #[arg(long, value_enum, default_value_t = ModelKind::Ngp)]
+        model: ModelKind,
+        /// NeRF's sampler.
+        #[arg(long, value_enum, default_value_t = Sampling::Occupancy)]
+        sampling: Sampling,
         /// Unmeasured steps first. Default: past the occupancy grid's
         /// warm-up (its first 256 steps update every cell, twice the work
         /// of a later update) plus 32, so the figures are those of most of a
@@ -131,6 +141,10 @@ struct TrainArgs {
     scene: String,
     #[arg(long, value_enum, default_value_t = ModelKind::Ngp)]
     model: ModelKind,
+    /// NeRF's sampler: the occupancy grid (default) or the paper's
+    /// stratified + importance sampling.
+    #[arg(long, value_enum, default_value_t = Sampling::Occupancy)]
+    sampling: Sampling,
     /// Default: gpu on a real GPU, cpu otherwise.
     #[arg(long, value_enum)]
     engine: Option<EngineKind>,
@@ -143,8 +157,10 @@ struct TrainArgs {
     /// Integer image downscale.
     #[arg(long, default_value_t = 1)]
     downscale: u32,
-    #[arg(long, value_enum, default_value_t = LossArg::Huber)]
-    loss: LossArg,
+    /// Default: Huber for Instant-NGP (instant-ngp's config), L2 for NeRF
+    /// (the paper's).
+    #[arg(long, value_enum)]
+    loss: Option<LossArg>,
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// The run folder (created; must be writable).
@@ -224,6 +240,21 @@ struct RunConfig {
     downscale: u32,
     loss: LossKind,
     seed: u64,
+    /// NeRF's sampler (absent in runs made before NeRF existed).
+    #[serde(default = "default_sampling")]
+    sampling: Sampling,
+}
+
+fn default_sampling() -> Sampling {
+    Sampling::Occupancy
+}
+
+/// The loss a model trains with unless told otherwise.
+fn default_loss(model: ModelKind) -> LossKind {
+    match model {
+        ModelKind::Ngp => LossKind::Huber,
+        ModelKind::Nerf => LossKind::L2,
+    }
 }
 
 fn main() -> ExitCode {
@@ -238,14 +269,17 @@ fn main() -> ExitCode {
             scene,
             engine,
             downscale,
+            model,
+            sampling,
             warmup,
             steps,
-        })) => bench_throughput(scene, engine, downscale, warmup, steps),
+        })) => bench_throughput(scene, engine, downscale, model, sampling, warmup, steps),
         Some(Command::View(args)) => view(args),
         None => view(ViewArgs {
             scene: None,
             engine: None,
             model: ModelKind::Ngp,
+            sampling: Sampling::Occupancy,
             screenshot: None,
             screenshot_after: 5.0,
             quit_after: None,
@@ -349,6 +383,7 @@ fn view(args: ViewArgs) -> anyhow::Result<()> {
         },
         engine: args.engine,
         model: args.model,
+        sampling: args.sampling,
         screenshot: args.screenshot,
         screenshot_after: args.screenshot_after,
         quit_after: args.quit_after,
@@ -432,6 +467,7 @@ fn restore_run(
             seed: config.seed,
             loss: config.loss,
             batch_samples: None,
+            sampling: config.sampling,
         },
     )
     .map_err(anyhow::Error::msg)?;
@@ -473,10 +509,12 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
             model: args.model,
             downscale: args.downscale,
             loss: match args.loss {
-                LossArg::Huber => LossKind::Huber,
-                LossArg::L2 => LossKind::L2,
+                Some(LossArg::Huber) => LossKind::Huber,
+                Some(LossArg::L2) => LossKind::L2,
+                None => default_loss(args.model),
             },
             seed: args.seed,
+            sampling: args.sampling,
         };
         let scene = Arc::new(load_scene(&args.scene, args.downscale)?);
         let choice = choose_engine(args.engine)?;
@@ -489,6 +527,7 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
                 seed: config.seed,
                 loss: config.loss,
                 batch_samples: None,
+                sampling: config.sampling,
             },
         )
         .map_err(anyhow::Error::msg)?;
@@ -653,6 +692,8 @@ fn bench_throughput(
     scene: Option<String>,
     engine: Option<EngineKind>,
     downscale: u32,
+    model: ModelKind,
+    sampling: Sampling,
     warmup: Option<usize>,
     steps: usize,
 ) -> anyhow::Result<()> {
@@ -667,18 +708,23 @@ fn bench_throughput(
     let engine_line = choice.reason.clone();
     let software_gpu =
         choice.kind == EngineKind::Gpu && choice.gpu.as_ref().is_some_and(|gpu| gpu.is_software());
-    let warmup = warmup.unwrap_or(if software_gpu {
-        1
-    } else {
-        OccupancyConfig::PAPER.warmup_steps as usize + 32
+    let warmup = warmup.unwrap_or(match model {
+        _ if software_gpu => 1,
+        ModelKind::Ngp => OccupancyConfig::PAPER.warmup_steps as usize + 32,
+        // Past the grid's warm-up too, with the occupancy sampler; the
+        // paper's sampler has no grid, and a few steps settle its caches.
+        ModelKind::Nerf => match sampling {
+            Sampling::Occupancy => zrak::field::nerf::OCCUPANCY.warmup_steps as usize + 16,
+            Sampling::Paper => 2,
+        },
     });
     let settings = ModelSettings {
         seed: 0,
-        loss: LossKind::Huber,
+        loss: default_loss(model),
         batch_samples: None,
+        sampling,
     };
-    let model =
-        build_model(ModelKind::Ngp, choice, &scene, &settings).map_err(anyhow::Error::msg)?;
+    let model = build_model(model, choice, &scene, &settings).map_err(anyhow::Error::msg)?;
     let mut trainer = Trainer::new(model, scene.clone(), 0);
     let peak = zrak::engine::cpu::dense::measure_peak_gflops();
     let report = zrak::bench::throughput(&mut trainer, warmup, steps);

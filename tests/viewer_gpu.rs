@@ -54,6 +54,7 @@ fn settings() -> ModelSettings {
         seed: SEED,
         loss: LossKind::Huber,
         batch_samples: Some(BATCH_SAMPLES),
+        sampling: zrak::field::nerf::Sampling::Occupancy,
     }
 }
 

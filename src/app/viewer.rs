@@ -18,6 +18,7 @@ use super::worker::{TrainingWorker, WorkerOptions};
 use crate::engine::EngineKind;
 use crate::engine::gpu::GpuContext;
 use crate::field::ModelKind;
+use crate::field::nerf::Sampling;
 
 /// What `zrak view` was asked to do.
 #[derive(Debug, Clone)]
@@ -25,6 +26,8 @@ pub struct ViewerOptions {
     pub source: SceneSource,
     pub engine: Option<EngineKind>,
     pub model: ModelKind,
+    /// NeRF's sampler.
+    pub sampling: Sampling,
     /// Save a PNG of the window here, `screenshot_after` seconds in.
     pub screenshot: Option<PathBuf>,
     pub screenshot_after: f64,
@@ -42,6 +45,7 @@ impl Default for ViewerOptions {
             source: SceneSource::Demo,
             engine: None,
             model: ModelKind::Ngp,
+            sampling: Sampling::Occupancy,
             screenshot: None,
             screenshot_after: 5.0,
             quit_after: None,
@@ -204,6 +208,7 @@ impl ViewerApp {
             options.model,
             WorkerOptions {
                 gpu_device,
+                sampling: options.sampling,
                 ..WorkerOptions::default()
             },
         );

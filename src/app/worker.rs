@@ -20,6 +20,7 @@ use crate::engine::gpu::GpuContext;
 use crate::engine::gpu::render::render_target;
 use crate::engine::{EngineChoice, EngineKind, choose_engine};
 use crate::field::ModelKind;
+use crate::field::nerf::Sampling;
 use crate::field::ngp::LossKind;
 use crate::metrics::psnr::psnr_from_mse;
 use crate::metrics::{self, RgbImage, WHITE};
@@ -46,6 +47,11 @@ use super::protocol::{
 /// cores. Commands and render chunks wait behind at most one step, and the
 /// view improves in more, smaller steps during the first minute.
 pub const CPU_BATCH_SAMPLES: usize = 1 << 16;
+
+/// NeRF's batch in the viewer on the cpu engine: a sample of its 8 × 256
+/// network costs ~50 of Instant-NGP's, so 2^12 samples keep a step near
+/// 0.1 s for the same reason.
+pub const NERF_CPU_BATCH_SAMPLES: usize = 1 << 12;
 
 pub type RepaintCallback = Box<dyn Fn() + Send>;
 
@@ -85,6 +91,8 @@ pub struct WorkerOptions {
     /// Samples per training batch; `None` picks by engine: see
     /// [`CPU_BATCH_SAMPLES`].
     pub batch_samples: Option<usize>,
+    /// NeRF's sampler.
+    pub sampling: Sampling,
     /// The scene [`SceneSource::Demo`] builds.
     pub demo: DemoConfig,
     /// Training seconds between held-out PSNR evaluations.
@@ -113,6 +121,7 @@ impl Default for WorkerOptions {
             seed: 0,
             loss: LossKind::Huber,
             batch_samples: None,
+            sampling: Sampling::Occupancy,
             demo: DemoConfig::default(),
             val_every_train_seconds: 5.0,
             val_views: 2,
@@ -714,10 +723,15 @@ impl Worker {
         let settings = ModelSettings {
             seed: self.options.seed,
             loss: self.options.loss,
-            batch_samples: self.options.batch_samples.or(match self.engine.kind {
-                EngineKind::Cpu => Some(CPU_BATCH_SAMPLES),
-                EngineKind::Gpu => None,
-            }),
+            batch_samples: self
+                .options
+                .batch_samples
+                .or(match (self.engine.kind, kind) {
+                    (EngineKind::Cpu, ModelKind::Ngp) => Some(CPU_BATCH_SAMPLES),
+                    (EngineKind::Cpu, ModelKind::Nerf) => Some(NERF_CPU_BATCH_SAMPLES),
+                    (EngineKind::Gpu, _) => None,
+                }),
+            sampling: self.options.sampling,
         };
         let model = build_model(kind, self.engine.choice()?, &self.scene, &settings)?;
         Ok(Trainer::new(model, self.scene.clone(), self.options.seed))

@@ -1,6 +1,8 @@
 //! What is learned: each model's encodings, network shapes, activations,
 //! sampling strategy and paper defaults, one place per model.
 
+pub mod common;
+pub mod nerf;
 pub mod ngp;
 
 /// The models zrak trains.
@@ -11,14 +13,17 @@ pub mod ngp;
 pub enum ModelKind {
     /// Instant-NGP (Müller et al. 2022).
     Ngp,
+    /// NeRF (Mildenhall et al. 2020).
+    Nerf,
 }
 
 impl ModelKind {
-    pub const ALL: [ModelKind; 1] = [ModelKind::Ngp];
+    pub const ALL: [ModelKind; 2] = [ModelKind::Ngp, ModelKind::Nerf];
 
     pub fn name(self) -> &'static str {
         match self {
             ModelKind::Ngp => "Instant-NGP",
+            ModelKind::Nerf => "NeRF",
         }
     }
 }

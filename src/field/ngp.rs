@@ -160,20 +160,7 @@ pub enum LossKind {
 pub const HUBER_DELTA: f32 = 0.1;
 
 /// The optimiser (config "optimizer": Ema → ExponentialDecay → Adam).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct OptimiserConfig {
-    pub learning_rate: f32,
-    pub beta1: f32,
-    pub beta2: f32,
-    pub epsilon: f32,
-    /// L2 regularisation on network weights only, not on hash entries.
-    pub l2_weights: f32,
-    /// From decay_start on, the learning rate is multiplied by
-    /// decay_base^⌊(step − decay_start) / decay_interval⌋.
-    pub decay_start: u32,
-    pub decay_interval: u32,
-    pub decay_base: f32,
-}
+pub use super::common::{LrSchedule, OptimiserConfig};
 
 impl OptimiserConfig {
     pub const PAPER: Self = Self {
@@ -182,19 +169,12 @@ impl OptimiserConfig {
         beta2: 0.99,
         epsilon: 1e-15,
         l2_weights: 1e-6,
-        decay_start: 20_000,
-        decay_interval: 10_000,
-        decay_base: 0.33,
+        schedule: LrSchedule::Stepwise {
+            start: 20_000,
+            interval: 10_000,
+            base: 0.33,
+        },
     };
-
-    /// The learning rate at `step`.
-    pub fn learning_rate_at(&self, step: u32) -> f32 {
-        if step < self.decay_start {
-            return self.learning_rate;
-        }
-        let decays = (step - self.decay_start) / self.decay_interval;
-        self.learning_rate * self.decay_base.powi(decays as i32)
-    }
 }
 
 /// Samples per training batch (paper, section 5.4: 2^18).

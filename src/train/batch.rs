@@ -52,6 +52,19 @@ pub fn sample_rays(
     rng: &mut Pcg32,
     batch: &mut RayBatch,
 ) {
+    sample_rays_cropped(frames, count, background, None, rng, batch);
+}
+
+/// [`sample_rays`] with the pixels drawn from the centred rectangle of
+/// `crop` × the width and height when given (NeRF's `precrop_frac`).
+pub fn sample_rays_cropped(
+    frames: &[Frame],
+    count: usize,
+    background: TrainingBackground,
+    crop: Option<f32>,
+    rng: &mut Pcg32,
+    batch: &mut RayBatch,
+) {
     batch.clear();
     if frames.is_empty() {
         return;
@@ -59,7 +72,16 @@ pub fn sample_rays(
     for _ in 0..count {
         let frame = &frames[rng.below(frames.len() as u32) as usize];
         let k = frame.camera.intrinsics;
-        let (x, y) = (rng.below(k.width), rng.below(k.height));
+        let (x, y) = match crop {
+            None => (rng.below(k.width), rng.below(k.height)),
+            Some(fraction) => {
+                // The central `fraction` of each side, at least one pixel.
+                let span = |size: u32| ((size as f32 * fraction).round() as u32).clamp(1, size);
+                let (w, h) = (span(k.width), span(k.height));
+                let (x0, y0) = ((k.width - w) / 2, (k.height - h) / 2);
+                (x0 + rng.below(w), y0 + rng.below(h))
+            }
+        };
         let ray = frame.camera.pixel_ray(x, y);
         let bg = match background {
             TrainingBackground::Random => [rng.next_f32(), rng.next_f32(), rng.next_f32()],

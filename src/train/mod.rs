@@ -11,6 +11,7 @@ pub mod trainer;
 
 use crate::engine::{EngineChoice, EngineKind};
 use crate::field::ModelKind;
+use crate::field::nerf::Sampling;
 use crate::field::ngp::LossKind;
 use crate::scene::Scene;
 use model::RadianceModel;
@@ -24,6 +25,8 @@ pub struct ModelSettings {
     /// (2^18 for Instant-NGP). The viewer asks for fewer on the cpu engine,
     /// so a step, and the wait of a command behind it, stays short.
     pub batch_samples: Option<usize>,
+    /// NeRF's sampler (the other models have one sampler each).
+    pub sampling: Sampling,
 }
 
 /// A fresh model of `kind` for `scene` on the chosen engine.
@@ -64,5 +67,60 @@ pub fn build_model(
             .map(|model| Box::new(model) as Box<dyn RadianceModel>)
             .map_err(|e| format!("building Instant-NGP on the gpu engine: {e}"))
         }
+        (ModelKind::Nerf, EngineKind::Cpu) => Ok(Box::new(cpu_nerf(scene, settings))),
+        (ModelKind::Nerf, EngineKind::Gpu) => {
+            Err("NeRF is not yet built on the gpu engine: use --engine cpu".into())
+        }
     }
+}
+
+/// NeRF on the `cpu` engine: the paper's field, one per level of the
+/// recipe. A `batch_samples` setting keeps the samples per batch near it
+/// with either sampler (the paper's evaluates 64 + 192 samples per ray).
+pub fn cpu_nerf(scene: &Scene, settings: &ModelSettings) -> crate::engine::cpu::model::CpuModel {
+    cpu_nerf_with_shape(
+        scene,
+        settings,
+        &crate::engine::cpu::fields::nerf::NerfShape::paper(),
+    )
+}
+
+/// [`cpu_nerf`] with networks of another size (tests use small ones).
+pub fn cpu_nerf_with_shape(
+    scene: &Scene,
+    settings: &ModelSettings,
+    shape: &crate::engine::cpu::fields::nerf::NerfShape,
+) -> crate::engine::cpu::model::CpuModel {
+    use crate::engine::cpu::fields::Field;
+    use crate::engine::cpu::fields::nerf::NerfField;
+    use crate::field::common::BatchSize;
+    use crate::field::nerf;
+    let recipe = nerf::recipe(
+        settings.sampling,
+        scene.format == crate::scene::SceneFormat::Blender,
+    );
+    let fields: Vec<Box<dyn Field>> = (0..recipe.fields)
+        .map(|_| Box::new(NerfField::new(shape.clone())) as Box<dyn Field>)
+        .collect();
+    let batch = settings
+        .batch_samples
+        .map(|samples| match settings.sampling {
+            Sampling::Occupancy => BatchSize::Samples(samples),
+            Sampling::Paper => {
+                BatchSize::Rays((samples / (2 * nerf::COARSE_SAMPLES + nerf::FINE_SAMPLES)).max(1))
+            }
+        });
+    crate::engine::cpu::model::CpuModel::new(
+        crate::engine::cpu::model::ModelIdentity {
+            name: "NeRF",
+            key: "nerf",
+            sampling: settings.sampling.name(),
+        },
+        recipe,
+        fields,
+        scene,
+        settings.seed,
+        settings.loss,
+        batch,
+    )
 }

@@ -62,6 +62,10 @@ impl StageTimes {
 pub struct StepStats {
     /// Mean loss over the batch's rays.
     pub loss: f32,
+    /// The mean loss of each of the first two levels (coarse, fine) before
+    /// their weights, for models with levels; the first is the whole loss
+    /// for single-level models that report it.
+    pub level_losses: [f32; 2],
     pub rays: usize,
     /// Samples the networks were evaluated on.
     pub samples: usize,
@@ -95,6 +99,13 @@ pub trait RadianceModel: Send {
     /// How many rays the next batch should hold (models that adapt the
     /// batch to a sample budget change it as training goes).
     fn rays_for_next_batch(&self) -> usize;
+
+    /// During early steps some models draw rays from the central part of
+    /// each image only: the fraction of width and height, or `None` for the
+    /// whole image.
+    fn centre_crop(&self, _step: u32) -> Option<f32> {
+        None
+    }
 
     /// One optimisation step on `batch`; `step` counts from 0 and seeds
     /// every random choice inside the step.

@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 use crate::rng::Pcg32;
 use crate::scene::Scene;
 
-use super::batch::{RayBatch, TrainingBackground, sample_rays, training_background};
+use super::batch::{RayBatch, TrainingBackground, sample_rays_cropped, training_background};
 use super::checkpoint::{Checkpoint, SceneIdentity};
 use super::model::{RadianceModel, StepStats};
 
@@ -58,10 +58,11 @@ impl Trainer {
         let started = Instant::now();
         let mut rng = Pcg32::for_step(self.seed, self.step as u64, BATCH_STREAM);
         let rays = self.model.rays_for_next_batch();
-        sample_rays(
+        sample_rays_cropped(
             &self.scene.train,
             rays,
             self.background,
+            self.model.centre_crop(self.step),
             &mut rng,
             &mut self.batch,
         );

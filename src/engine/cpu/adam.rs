@@ -574,11 +574,19 @@ mod tests {
     #[test]
     fn learning_rate_follows_the_schedule() {
         let mut adam = Adam::new(1);
-        adam.step = PAPER.decay_start + PAPER.decay_interval;
+        let crate::field::common::LrSchedule::Stepwise {
+            start,
+            interval,
+            base,
+        } = PAPER.schedule
+        else {
+            panic!("Instant-NGP decays in steps");
+        };
+        adam.step = start + interval;
         let mut p = [0.0f32];
         adam.step(&PAPER, 0..0, &mut p, &[1.0]);
         // First step of this entry: lr · sign(g) with the decayed lr.
-        let lr = PAPER.learning_rate * PAPER.decay_base;
+        let lr = PAPER.learning_rate * base;
         assert!((p[0] + lr).abs() < 1e-5 * lr, "{} vs {}", p[0], -lr);
     }
 

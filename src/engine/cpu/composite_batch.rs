@@ -206,6 +206,63 @@ pub fn samples_before_cut<F: Float + Send + Sync>(
         });
 }
 
+/// The weight wᵢ = Tᵢ (1 − e^(−τᵢ)) of every sample in [`composite_forward`]
+/// (zero from each ray's cut on), with the same arithmetic: the
+/// importance sampler draws from them.
+pub fn sample_weights<F: Float + Send + Sync>(
+    batch: &RayBatch<F>,
+    min_transmittance: F,
+    weights: &mut [F],
+) {
+    use rayon::prelude::*;
+    batch.validate();
+    let samples = batch.sample_count();
+    assert!(
+        weights.len() >= samples,
+        "weights: {} < {samples}",
+        weights.len()
+    );
+    let rays = batch.ray_count();
+    // One task per block of rays; each writes its own rays' samples.
+    const RAYS_PER_TASK: usize = 64;
+    let blocks: Vec<(usize, usize)> = (0..rays)
+        .step_by(RAYS_PER_TASK)
+        .map(|r| (r, (r + RAYS_PER_TASK).min(rays)))
+        .collect();
+    let base = batch.ray_offsets[0] as usize;
+    let mut pieces: Vec<&mut [F]> = Vec::with_capacity(blocks.len());
+    let mut rest = &mut weights[base..samples];
+    for &(start, end) in &blocks {
+        let len = (batch.ray_offsets[end] - batch.ray_offsets[start]) as usize;
+        let (piece, tail) = rest.split_at_mut(len);
+        pieces.push(piece);
+        rest = tail;
+    }
+    pieces
+        .into_par_iter()
+        .zip(blocks)
+        .for_each(|(piece, (start, end))| {
+            let first = batch.ray_offsets[start] as usize;
+            for ray in start..end {
+                let samples = batch.samples_of(&(ray..ray + 1));
+                let mut accumulated = F::zero();
+                let mut cut = false;
+                for s in samples {
+                    let transmittance = (-accumulated).exp();
+                    cut = cut || transmittance < min_transmittance;
+                    let w = &mut piece[s - first];
+                    if cut {
+                        *w = F::zero();
+                        continue;
+                    }
+                    let tau = optical_depth(batch.density[s], batch.dt[s]);
+                    *w = transmittance * -(-tau).exp_m1();
+                    accumulated = accumulated + tau;
+                }
+            }
+        });
+}
+
 /// Splits the rays in two until a block is small, then composites it. The
 /// output slices cover exactly `rays`.
 fn forward_block<F: Float + Send + Sync>(

@@ -288,6 +288,14 @@ impl MlpWorkspace {
         self.capacity
     }
 
+    /// Bytes held (for memory accounting).
+    pub fn bytes(&self) -> usize {
+        4 * (self.activations.iter().map(Vec::capacity).sum::<usize>()
+            + self.packed.capacity()
+            + self.partials.capacity()
+            + self.scratch.capacity())
+    }
+
     /// Grows the workspace to hold `rows` rows (never shrinks).
     pub fn reserve(&mut self, rows: usize) {
         if rows > self.capacity {

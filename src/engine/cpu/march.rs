@@ -36,6 +36,7 @@ use rayon::prelude::*;
 use super::occupancy::{Cell, GridGeometry, OccupancyGrid, bit_is_set};
 use crate::field::ngp::{MarchConfig, SAMPLES_PER_BATCH};
 use crate::scene::{Aabb, UnitCubeMapping};
+use crate::train::model::RenderedPixel;
 
 /// What a batch march needs besides the grid and the rays.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -903,6 +904,56 @@ impl BatchSizer {
             None => measured,
             Some(old) => self.smoothing * old + (1.0 - self.smoothing) * measured,
         });
+    }
+}
+
+/// The marching jitter seed of a step (both engines, so they march the
+/// same samples).
+pub fn mix_seed(seed: u64, step: u32) -> u32 {
+    let mixed = (seed ^ 0x6a69_7474).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ step as u64;
+    (mixed ^ (mixed >> 32)) as u32
+}
+
+/// Renders rays with early termination through the occupancy grid, with
+/// `field` giving σ and colour for each round of samples (see
+/// [`march_and_composite`]).
+#[allow(clippy::too_many_arguments)]
+pub fn render_through_grid(
+    grid: &OccupancyGrid,
+    mapping: &UnitCubeMapping,
+    origins: &[Vec3],
+    directions: &[Vec3],
+    background: [f32; 3],
+    config: &MarchConfig,
+    chunk_samples: usize,
+    field: impl FnMut(&[f32], &[f32], &mut [f32], &mut [f32]),
+    out: &mut [RenderedPixel],
+) {
+    let n = origins.len();
+    let flat = |v: &[Vec3]| v.iter().flat_map(|x| x.to_array()).collect::<Vec<f32>>();
+    let (origins, directions) = (flat(origins), flat(directions));
+    let mut colour = vec![0f32; 3 * n];
+    let mut depth = vec![0f32; n];
+    let mut opacity = vec![0f32; n];
+    march_and_composite(
+        grid,
+        &origins,
+        &directions,
+        mapping,
+        config,
+        background,
+        chunk_samples,
+        field,
+        &mut colour,
+        &mut depth,
+        &mut opacity,
+    );
+    for (i, pixel) in out.iter_mut().enumerate().take(n) {
+        *pixel = RenderedPixel {
+            rgb: [colour[3 * i], colour[3 * i + 1], colour[3 * i + 2]],
+            opacity: opacity[i],
+            depth: depth[i],
+        };
     }
 }
 

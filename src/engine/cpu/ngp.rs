@@ -10,7 +10,6 @@ use std::time::Instant;
 
 use glam::Vec3;
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
 
 use super::adam::Adam;
 use super::composite_batch::{self, CompositeGradients, CompositeOutputs};
@@ -21,10 +20,11 @@ use super::dense::{
 use super::hash_grid::{self, HashGridLayout};
 use super::loss::loss_and_gradient;
 use super::march::{
-    BatchSizer, MarchParams, MarchWorkspace, MarchedSamples, march, march_and_composite,
+    BatchSizer, MarchParams, MarchWorkspace, MarchedSamples, march, mix_seed, render_through_grid,
 };
 use super::occupancy::OccupancyGrid;
 use super::sh::sh_encode;
+use super::state::{ModelHeader, ModelState};
 use crate::field::ngp::{
     HashGridConfig, LossKind, MarchConfig, NetworkConfig, OccupancyConfig, OptimiserConfig,
     SAMPLES_PER_BATCH,
@@ -243,18 +243,6 @@ fn gather_rows(src: &[f32], width: usize, rows: &[u32], dst: &mut Vec<f32>) {
                 out.copy_from_slice(&src[row as usize * width..][..width]);
             }
         });
-}
-
-/// What the checkpoint header holds for Instant-NGP, on either engine, so
-/// checkpoints move between engines.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub(crate) struct NgpHeader {
-    pub model: String,
-    pub loss: LossKind,
-    pub seed: u64,
-    pub adam_step: u32,
-    pub samples_per_ray: Option<f64>,
-    pub param_count: usize,
 }
 
 /// Instant-NGP trained by the `cpu` engine.
@@ -583,6 +571,7 @@ impl CpuNgp {
 
         StepStats {
             loss: loss as f32,
+            level_losses: [loss as f32, 0.0],
             rays: if rays == 0 { 0 } else { kept },
             samples: s,
             times,
@@ -678,6 +667,7 @@ impl RadianceModel for CpuNgp {
             origins,
             directions,
             background,
+            &MarchConfig::PAPER,
             INFERENCE_CHUNK,
             |positions, dirs, sigma, rgb| shape.radiance(params, positions, dirs, sigma, rgb),
             out,
@@ -685,28 +675,35 @@ impl RadianceModel for CpuNgp {
     }
 
     fn save(&self) -> Checkpoint {
-        NgpState {
-            header: NgpHeader {
+        ModelState {
+            header: ModelHeader {
                 model: "ngp".into(),
                 loss: self.loss,
                 seed: self.seed,
                 adam_step: self.adam.step,
                 samples_per_ray: self.batch_sizer.samples_per_ray(),
                 param_count: self.params.len(),
+                sampling: None,
             },
             params: self.params.clone(),
             adam: self.adam.clone(),
-            occupancy: self.grid.values().to_vec(),
+            occupancy: Some(self.grid.values().to_vec()),
         }
         .into_checkpoint()
     }
 
     fn load(&mut self, checkpoint: &Checkpoint) -> Result<(), String> {
-        let state =
-            NgpState::from_checkpoint(checkpoint, self.params.len(), self.grid.values().len())?;
+        let state = ModelState::from_checkpoint(
+            checkpoint,
+            "ngp",
+            self.params.len(),
+            Some(self.grid.values().len()),
+        )?;
         self.params = state.params;
         self.adam = state.adam;
-        self.grid.values_mut().copy_from_slice(&state.occupancy);
+        if let Some(occupancy) = &state.occupancy {
+            self.grid.values_mut().copy_from_slice(occupancy);
+        }
         self.grid.build_bitfield();
         self.batch_sizer
             .set_samples_per_ray(state.header.samples_per_ray);
@@ -748,120 +745,5 @@ impl RadianceModel for CpuNgp {
             .map(|v| v.capacity())
             .sum::<usize>();
         floats * 4
-    }
-}
-
-/// Everything an Instant-NGP checkpoint holds, on either engine.
-pub(crate) struct NgpState {
-    pub header: NgpHeader,
-    pub params: Vec<f32>,
-    pub adam: Adam,
-    pub occupancy: Vec<f32>,
-}
-
-impl NgpState {
-    pub fn into_checkpoint(self) -> Checkpoint {
-        Checkpoint {
-            header: serde_json::to_value(&self.header).expect("serialisable"),
-            tensors: vec![
-                ("params".into(), self.params),
-                ("adam.m".into(), self.adam.m),
-                ("adam.v".into(), self.adam.v),
-                ("adam.m_norm".into(), self.adam.m_norm),
-                ("adam.v_norm".into(), self.adam.v_norm),
-                ("occupancy".into(), self.occupancy),
-            ],
-        }
-    }
-
-    /// Reads and checks every part before the caller changes anything, so
-    /// a bad checkpoint leaves the model as it was.
-    pub fn from_checkpoint(
-        checkpoint: &Checkpoint,
-        param_count: usize,
-        occupancy_len: usize,
-    ) -> Result<Self, String> {
-        let header: NgpHeader = serde_json::from_value(checkpoint.header.clone())
-            .map_err(|e| format!("not an Instant-NGP checkpoint: {e}"))?;
-        if header.param_count != param_count {
-            return Err(format!(
-                "the checkpoint has {} parameters, this model {param_count}",
-                header.param_count
-            ));
-        }
-        let tensor = |name: &str, len: usize| -> Result<Vec<f32>, String> {
-            let values = checkpoint
-                .tensor(name)
-                .ok_or_else(|| format!("the checkpoint has no `{name}`"))?;
-            if values.len() != len {
-                return Err(format!(
-                    "`{name}` has {} values, expected {len}",
-                    values.len()
-                ));
-            }
-            Ok(values.to_vec())
-        };
-        let adam = Adam {
-            m: tensor("adam.m", param_count)?,
-            v: tensor("adam.v", param_count)?,
-            m_norm: tensor("adam.m_norm", param_count)?,
-            v_norm: tensor("adam.v_norm", param_count)?,
-            step: header.adam_step,
-        };
-        Ok(Self {
-            params: tensor("params", param_count)?,
-            adam,
-            occupancy: tensor("occupancy", occupancy_len)?,
-            header,
-        })
-    }
-}
-
-/// The marching jitter seed of a step (both engines, so they march the
-/// same samples).
-pub(crate) fn mix_seed(seed: u64, step: u32) -> u32 {
-    let mixed = (seed ^ 0x6a69_7474).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ step as u64;
-    (mixed ^ (mixed >> 32)) as u32
-}
-
-/// Renders rays with early termination through the occupancy grid, with
-/// `field` giving σ and colour for each round of samples (see
-/// [`march_and_composite`]).
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn render_through_grid(
-    grid: &OccupancyGrid,
-    mapping: &UnitCubeMapping,
-    origins: &[Vec3],
-    directions: &[Vec3],
-    background: [f32; 3],
-    chunk_samples: usize,
-    field: impl FnMut(&[f32], &[f32], &mut [f32], &mut [f32]),
-    out: &mut [RenderedPixel],
-) {
-    let n = origins.len();
-    let flat = |v: &[Vec3]| v.iter().flat_map(|x| x.to_array()).collect::<Vec<f32>>();
-    let (origins, directions) = (flat(origins), flat(directions));
-    let mut colour = vec![0f32; 3 * n];
-    let mut depth = vec![0f32; n];
-    let mut opacity = vec![0f32; n];
-    march_and_composite(
-        grid,
-        &origins,
-        &directions,
-        mapping,
-        &MarchConfig::PAPER,
-        background,
-        chunk_samples,
-        field,
-        &mut colour,
-        &mut depth,
-        &mut opacity,
-    );
-    for (i, pixel) in out.iter_mut().enumerate().take(n) {
-        *pixel = RenderedPixel {
-            rgb: [colour[3 * i], colour[3 * i + 1], colour[3 * i + 2]],
-            opacity: opacity[i],
-            depth: depth[i],
-        };
     }
 }

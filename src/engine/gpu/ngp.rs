@@ -55,8 +55,10 @@ use super::sh::GpuSh;
 use super::timing::{Stage, StageClock, StageTiming};
 use crate::engine::cpu::hash_grid;
 use crate::engine::cpu::march::{BatchSizer, MarchParams, Marcher};
-use crate::engine::cpu::ngp::{NgpHeader, NgpShape, NgpState, mix_seed, render_through_grid};
+use crate::engine::cpu::march::{mix_seed, render_through_grid};
+use crate::engine::cpu::ngp::NgpShape;
 use crate::engine::cpu::occupancy::OccupancyGrid;
+use crate::engine::cpu::state::{ModelHeader, ModelState};
 use crate::field::ngp::{
     DENSITY_EXP_CLAMP, LossKind, MarchConfig, OccupancyConfig, OptimiserConfig, SAMPLES_PER_BATCH,
 };
@@ -721,6 +723,7 @@ impl GpuNgp {
 
         StepStats {
             loss: loss[0],
+            level_losses: [loss[0], 0.0],
             rays: if rays == 0 { 0 } else { kept },
             samples,
             times,
@@ -1043,6 +1046,7 @@ impl RadianceModel for GpuNgp {
             origins,
             directions,
             background,
+            &MarchConfig::PAPER,
             self.batch_samples.max(1),
             |positions, dirs, sigma, rgb| self.radiance(positions, dirs, sigma, rgb),
             out,
@@ -1051,27 +1055,29 @@ impl RadianceModel for GpuNgp {
 
     fn save(&self) -> Checkpoint {
         let adam = self.adam.read_state(&self.context);
-        NgpState {
-            header: NgpHeader {
+        ModelState {
+            header: ModelHeader {
                 model: "ngp".into(),
                 loss: self.loss,
                 seed: self.seed,
                 adam_step: adam.step,
                 samples_per_ray: self.batch_sizer.samples_per_ray(),
                 param_count: self.shape.param_count(),
+                sampling: None,
             },
             params: self.params(),
             adam,
-            occupancy: self.grid.values().to_vec(),
+            occupancy: Some(self.grid.values().to_vec()),
         }
         .into_checkpoint()
     }
 
     fn load(&mut self, checkpoint: &Checkpoint) -> Result<(), String> {
-        let state = NgpState::from_checkpoint(
+        let state = ModelState::from_checkpoint(
             checkpoint,
+            "ngp",
             self.shape.param_count(),
-            self.grid.values().len(),
+            Some(self.grid.values().len()),
         )?;
         let queue = &self.context.queue;
         for (values, buffer) in [
@@ -1084,7 +1090,9 @@ impl RadianceModel for GpuNgp {
             queue.write_buffer(buffer, 0, bytemuck::cast_slice(values));
         }
         self.adam.step = state.adam.step;
-        self.grid.values_mut().copy_from_slice(&state.occupancy);
+        if let Some(occupancy) = &state.occupancy {
+            self.grid.values_mut().copy_from_slice(occupancy);
+        }
         self.grid.build_bitfield();
         queue.write_buffer(
             &self.bitfield,

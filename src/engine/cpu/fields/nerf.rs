@@ -1,0 +1,538 @@
+//! NeRF's field (Mildenhall et al. 2020, figure 7): frequency encodings of
+//! position and direction, an 8 × 256 ReLU trunk with the encoded position
+//! entering again after its fifth layer, σ from a linear head on the trunk,
+//! and colour from a 256-wide linear feature layer concatenated with the
+//! encoded direction → 128 → RGB.
+//!
+//! The trunk is three dense networks, so each is a fused multi-layer pass of
+//! [`super::super::dense`]:
+//!
+//! ```text
+//! γ(x) ──► A: 63 → 256 → 256 → 256 → 256 → 256 (ReLU) ──┐
+//!   └────────────────────────────────────────────────────┴► [h | γ(x)]
+//! B: 319 → 256 → 256 → 256 (ReLU) → 257 (linear: σ_raw, feature 256)
+//! C: [feature | γ(d)] 283 → 128 (ReLU) → 3 (sigmoid)
+//! ```
+//!
+//! B's last layer is the paper's σ head and feature layer side by side (both
+//! are linear maps of the same 256 activations). The skip puts h before
+//! γ(x), where the reference concatenates γ(x) first: the order of a
+//! layer's inputs only permutes its weight columns. Parameters are laid
+//! out `[A | B | C]`.
+
+use rayon::prelude::*;
+
+use super::{Field, set_len};
+use crate::engine::cpu::dense::{
+    Activation, MlpLayout, MlpWorkspace, mlp_backward, mlp_backward_columns, mlp_forward,
+    mlp_inference, mlp_inference_leading,
+};
+use crate::engine::cpu::frequency::{self, FrequencyEncoding};
+use crate::field::nerf as paper;
+
+/// Rows per rayon task in the copies between the networks.
+const ROWS_PER_TASK: usize = 1024;
+
+/// Rows per round of inference, so rendering a whole image keeps its
+/// activations small.
+const INFERENCE_ROWS: usize = 1 << 14;
+
+/// How the raw σ output becomes a density.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum DensityActivation {
+    /// max(x, 0) (NeRF reference, `raw2outputs`).
+    Relu,
+    /// softplus(x − shift) (Mip-NeRF, `density_bias` −1).
+    ShiftedSoftplus { shift: f32 },
+}
+
+impl DensityActivation {
+    pub fn apply(self, x: f32) -> f32 {
+        match self {
+            DensityActivation::Relu => x.max(0.0),
+            DensityActivation::ShiftedSoftplus { shift } => softplus(x - shift),
+        }
+    }
+
+    /// dσ/dx at the raw input x.
+    pub fn derivative(self, x: f32) -> f32 {
+        match self {
+            DensityActivation::Relu => {
+                if x > 0.0 {
+                    1.0
+                } else {
+                    0.0
+                }
+            }
+            DensityActivation::ShiftedSoftplus { shift } => sigmoid(x - shift),
+        }
+    }
+}
+
+/// log(1 + eˣ) without overflow for large x or loss of digits for very
+/// negative x.
+fn softplus(x: f32) -> f32 {
+    if x > 20.0 { x } else { x.exp().ln_1p() }
+}
+
+fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+/// The shapes of a NeRF field.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NerfShape {
+    pub position: FrequencyEncoding,
+    pub direction: FrequencyEncoding,
+    /// Layers up to the skip.
+    pub trunk_a: MlpLayout,
+    /// Layers after the skip, ending in [σ_raw | feature].
+    pub trunk_b: MlpLayout,
+    pub colour: MlpLayout,
+    pub density: DensityActivation,
+}
+
+impl NerfShape {
+    /// The paper's field (section 5.1, figure 7).
+    pub fn paper() -> Self {
+        Self::new(
+            FrequencyEncoding {
+                frequencies: paper::POSITION_FREQUENCIES,
+                include_input: paper::ENCODING_INCLUDES_INPUT,
+            },
+            FrequencyEncoding {
+                frequencies: paper::DIRECTION_FREQUENCIES,
+                include_input: paper::ENCODING_INCLUDES_INPUT,
+            },
+            paper::TRUNK_WIDTH,
+            paper::TRUNK_LAYERS,
+            paper::SKIP_AFTER_LAYERS,
+            paper::COLOUR_HIDDEN_WIDTH,
+            DensityActivation::Relu,
+        )
+    }
+
+    /// A field of any size (tests use small ones): `layers` trunk layers of
+    /// `width`, the encoded position entering again after `skip_after`.
+    pub fn new(
+        position: FrequencyEncoding,
+        direction: FrequencyEncoding,
+        width: usize,
+        layers: usize,
+        skip_after: usize,
+        colour_hidden: usize,
+        density: DensityActivation,
+    ) -> Self {
+        assert!(
+            (1..layers).contains(&skip_after),
+            "the skip must fall inside the trunk"
+        );
+        let encoded = position.output_width();
+        let mut a = vec![encoded];
+        a.extend(std::iter::repeat_n(width, skip_after));
+        let mut b = vec![width + encoded];
+        b.extend(std::iter::repeat_n(width, layers - skip_after));
+        b.push(1 + width);
+        Self {
+            position,
+            direction,
+            trunk_a: MlpLayout::new(a, Activation::Relu, Activation::Relu, true),
+            trunk_b: MlpLayout::new(b, Activation::Relu, Activation::None, true),
+            colour: MlpLayout::new(
+                vec![width + direction.output_width(), colour_hidden, 3],
+                Activation::Relu,
+                Activation::Sigmoid,
+                true,
+            ),
+            density,
+        }
+    }
+
+    fn width(&self) -> usize {
+        self.trunk_a.output_width()
+    }
+
+    fn ranges(&self) -> [std::ops::Range<usize>; 3] {
+        let a = self.trunk_a.param_count();
+        let b = a + self.trunk_b.param_count();
+        let c = b + self.colour.param_count();
+        [0..a, a..b, b..c]
+    }
+}
+
+/// What the forward pass keeps for the backward pass.
+struct Activations {
+    encoded_position: Vec<f32>,
+    trunk_a_out: Vec<f32>,
+    trunk_b_in: Vec<f32>,
+    trunk_b_out: Vec<f32>,
+    colour_in: Vec<f32>,
+    rows: usize,
+    // Gradients, reused.
+    d_trunk_b_out: Vec<f32>,
+    d_feature: Vec<f32>,
+    d_trunk_a_out: Vec<f32>,
+}
+
+/// NeRF's field on the `cpu` engine.
+pub struct NerfField {
+    shape: NerfShape,
+    a: MlpWorkspace,
+    b: MlpWorkspace,
+    c: MlpWorkspace,
+    kept: Activations,
+}
+
+impl NerfField {
+    pub fn new(shape: NerfShape) -> Self {
+        Self {
+            a: MlpWorkspace::new(&shape.trunk_a, 0),
+            b: MlpWorkspace::new(&shape.trunk_b, 0),
+            c: MlpWorkspace::new(&shape.colour, 0),
+            shape,
+            kept: Activations {
+                encoded_position: Vec::new(),
+                trunk_a_out: Vec::new(),
+                trunk_b_in: Vec::new(),
+                trunk_b_out: Vec::new(),
+                colour_in: Vec::new(),
+                rows: 0,
+                d_trunk_b_out: Vec::new(),
+                d_feature: Vec::new(),
+                d_trunk_a_out: Vec::new(),
+            },
+        }
+    }
+
+    pub fn shape(&self) -> &NerfShape {
+        &self.shape
+    }
+}
+
+/// Writes `[left row | right row]` for every row.
+fn concat_rows(left: &[f32], lw: usize, right: &[f32], rw: usize, out: &mut [f32]) {
+    let w = lw + rw;
+    out.par_chunks_mut(ROWS_PER_TASK * w)
+        .zip(left.par_chunks(ROWS_PER_TASK * lw))
+        .zip(right.par_chunks(ROWS_PER_TASK * rw))
+        .for_each(|((out, left), right)| {
+            for ((o, l), r) in out
+                .chunks_exact_mut(w)
+                .zip(left.chunks_exact(lw))
+                .zip(right.chunks_exact(rw))
+            {
+                o[..lw].copy_from_slice(l);
+                o[lw..].copy_from_slice(r);
+            }
+        });
+}
+
+/// Columns `columns` of every row of `src` (`width` wide), into `dst`.
+fn take_columns(src: &[f32], width: usize, columns: std::ops::Range<usize>, dst: &mut [f32]) {
+    let w = columns.len();
+    dst.par_chunks_mut(ROWS_PER_TASK * w)
+        .zip(src.par_chunks(ROWS_PER_TASK * width))
+        .for_each(|(dst, src)| {
+            for (d, s) in dst.chunks_exact_mut(w).zip(src.chunks_exact(width)) {
+                d.copy_from_slice(&s[columns.clone()]);
+            }
+        });
+}
+
+impl Field for NerfField {
+    fn param_count(&self) -> usize {
+        self.shape.ranges()[2].end
+    }
+
+    fn init_params(&self, seed: u64) -> Vec<f32> {
+        let s = &self.shape;
+        let mut params = s.trunk_a.init_params(seed ^ 0x7472_756e_6b61);
+        params.extend(s.trunk_b.init_params(seed ^ 0x7472_756e_6b62));
+        params.extend(s.colour.init_params(seed ^ 0x636f_6c6f));
+        params
+    }
+
+    fn density(&self, params: &[f32], positions: &[f32], sigma: &mut [f32]) {
+        let s = &self.shape;
+        let [ra, rb, _] = s.ranges();
+        let (width, enc) = (s.width(), s.position.output_width());
+        let n = sigma.len();
+        let rows = INFERENCE_ROWS.min(n.max(1));
+        let mut encoded = vec![0f32; rows * enc];
+        let mut hidden = vec![0f32; rows * width];
+        let mut b_in = vec![0f32; rows * (width + enc)];
+        for (positions, sigma) in positions.chunks(3 * rows).zip(sigma.chunks_mut(rows)) {
+            let m = sigma.len();
+            frequency::encode(&s.position, positions, None, &mut encoded[..m * enc]);
+            mlp_inference(
+                &s.trunk_a,
+                &params[ra.clone()],
+                &encoded[..m * enc],
+                m,
+                &mut hidden[..m * width],
+            );
+            concat_rows(
+                &hidden[..m * width],
+                width,
+                &encoded[..m * enc],
+                enc,
+                &mut b_in[..m * (width + enc)],
+            );
+            mlp_inference_leading(&s.trunk_b, &params[rb.clone()], &b_in, m, sigma, 1);
+            for x in sigma.iter_mut() {
+                *x = s.density.apply(*x);
+            }
+        }
+    }
+
+    fn forward(
+        &mut self,
+        params: &[f32],
+        positions: &[f32],
+        directions: &[f32],
+        sigma: &mut [f32],
+        rgb: &mut [f32],
+    ) {
+        let s = &self.shape;
+        let [ra, rb, rc] = s.ranges();
+        let n = sigma.len();
+        let (width, enc, enc_dir) = (
+            s.width(),
+            s.position.output_width(),
+            s.direction.output_width(),
+        );
+        let k = &mut self.kept;
+        k.rows = n;
+        set_len(&mut k.encoded_position, n * enc);
+        frequency::encode(&s.position, positions, None, &mut k.encoded_position);
+        set_len(&mut k.trunk_a_out, n * width);
+        self.a.reserve(n);
+        mlp_forward(
+            &s.trunk_a,
+            &params[ra],
+            &k.encoded_position,
+            n,
+            &mut self.a,
+            &mut k.trunk_a_out,
+        );
+        set_len(&mut k.trunk_b_in, n * (width + enc));
+        concat_rows(
+            &k.trunk_a_out,
+            width,
+            &k.encoded_position,
+            enc,
+            &mut k.trunk_b_in,
+        );
+        set_len(&mut k.trunk_b_out, n * (width + 1));
+        self.b.reserve(n);
+        mlp_forward(
+            &s.trunk_b,
+            &params[rb],
+            &k.trunk_b_in,
+            n,
+            &mut self.b,
+            &mut k.trunk_b_out,
+        );
+        for (sigma, row) in sigma.iter_mut().zip(k.trunk_b_out.chunks_exact(width + 1)) {
+            *sigma = s.density.apply(row[0]);
+        }
+        // The colour network's input: the feature columns, then γ(d).
+        set_len(&mut k.colour_in, n * (width + enc_dir));
+        let mut encoded_direction = vec![0f32; n * enc_dir];
+        frequency::encode(&s.direction, directions, None, &mut encoded_direction);
+        k.colour_in
+            .par_chunks_mut(ROWS_PER_TASK * (width + enc_dir))
+            .zip(k.trunk_b_out.par_chunks(ROWS_PER_TASK * (width + 1)))
+            .zip(encoded_direction.par_chunks(ROWS_PER_TASK * enc_dir))
+            .for_each(|((out, b), d)| {
+                for ((o, b), d) in out
+                    .chunks_exact_mut(width + enc_dir)
+                    .zip(b.chunks_exact(width + 1))
+                    .zip(d.chunks_exact(enc_dir))
+                {
+                    o[..width].copy_from_slice(&b[1..]);
+                    o[width..].copy_from_slice(d);
+                }
+            });
+        self.c.reserve(n);
+        mlp_forward(&s.colour, &params[rc], &k.colour_in, n, &mut self.c, rgb);
+    }
+
+    fn backward(&mut self, params: &[f32], d_sigma: &[f32], d_rgb: &[f32], gradients: &mut [f32]) {
+        let s = &self.shape;
+        let [ra, rb, rc] = s.ranges();
+        let k = &mut self.kept;
+        let n = k.rows;
+        assert!(
+            d_sigma.len() == n && d_rgb.len() == 3 * n,
+            "gradients of {n} samples"
+        );
+        let width = s.width();
+        let (grad_a, rest) = gradients.split_at_mut(ra.end);
+        let (grad_b, grad_c) = rest.split_at_mut(rb.len());
+        // Colour network; the input gradient of its feature columns only
+        // (the direction encoding has no parameters).
+        set_len(&mut k.d_feature, n * width);
+        mlp_backward_columns(
+            &s.colour,
+            &params[rc],
+            &k.colour_in,
+            n,
+            &mut self.c,
+            d_rgb,
+            grad_c,
+            &mut k.d_feature,
+            0..width,
+        );
+        // [dσ_raw | d feature] for trunk B's output.
+        set_len(&mut k.d_trunk_b_out, n * (width + 1));
+        let density = s.density;
+        k.d_trunk_b_out
+            .par_chunks_mut(ROWS_PER_TASK * (width + 1))
+            .zip(k.d_feature.par_chunks(ROWS_PER_TASK * width))
+            .zip(k.trunk_b_out.par_chunks(ROWS_PER_TASK * (width + 1)))
+            .zip(d_sigma.par_chunks(ROWS_PER_TASK))
+            .for_each(|(((out, feature), raw), d_sigma)| {
+                for (((o, f), raw), &ds) in out
+                    .chunks_exact_mut(width + 1)
+                    .zip(feature.chunks_exact(width))
+                    .zip(raw.chunks_exact(width + 1))
+                    .zip(d_sigma)
+                {
+                    o[0] = ds * density.derivative(raw[0]);
+                    o[1..].copy_from_slice(f);
+                }
+            });
+        set_len(&mut k.d_trunk_a_out, n * width);
+        mlp_backward_columns(
+            &s.trunk_b,
+            &params[rb],
+            &k.trunk_b_in,
+            n,
+            &mut self.b,
+            &k.d_trunk_b_out,
+            grad_b,
+            &mut k.d_trunk_a_out,
+            0..width,
+        );
+        mlp_backward(
+            &s.trunk_a,
+            &params[ra],
+            &k.encoded_position,
+            n,
+            &mut self.a,
+            &k.d_trunk_a_out,
+            grad_a,
+            None,
+        );
+    }
+
+    fn radiance(
+        &self,
+        params: &[f32],
+        positions: &[f32],
+        directions: &[f32],
+        sigma: &mut [f32],
+        rgb: &mut [f32],
+    ) {
+        let s = &self.shape;
+        let [ra, rb, rc] = s.ranges();
+        let (width, enc, enc_dir) = (
+            s.width(),
+            s.position.output_width(),
+            s.direction.output_width(),
+        );
+        let n = sigma.len();
+        let rows = INFERENCE_ROWS.min(n.max(1));
+        let mut encoded = vec![0f32; rows * enc];
+        let mut hidden = vec![0f32; rows * width];
+        let mut b_in = vec![0f32; rows * (width + enc)];
+        let mut b_out = vec![0f32; rows * (width + 1)];
+        let mut encoded_direction = vec![0f32; rows * enc_dir];
+        let mut colour_in = vec![0f32; rows * (width + enc_dir)];
+        for (((positions, directions), sigma), rgb) in positions
+            .chunks(3 * rows)
+            .zip(directions.chunks(3 * rows))
+            .zip(sigma.chunks_mut(rows))
+            .zip(rgb.chunks_mut(3 * rows))
+        {
+            let m = sigma.len();
+            frequency::encode(&s.position, positions, None, &mut encoded[..m * enc]);
+            mlp_inference(
+                &s.trunk_a,
+                &params[ra.clone()],
+                &encoded[..m * enc],
+                m,
+                &mut hidden[..m * width],
+            );
+            concat_rows(
+                &hidden[..m * width],
+                width,
+                &encoded[..m * enc],
+                enc,
+                &mut b_in[..m * (width + enc)],
+            );
+            mlp_inference(
+                &s.trunk_b,
+                &params[rb.clone()],
+                &b_in[..m * (width + enc)],
+                m,
+                &mut b_out[..m * (width + 1)],
+            );
+            for (sigma, row) in sigma.iter_mut().zip(b_out.chunks_exact(width + 1)) {
+                *sigma = s.density.apply(row[0]);
+            }
+            frequency::encode(
+                &s.direction,
+                directions,
+                None,
+                &mut encoded_direction[..m * enc_dir],
+            );
+            take_columns(
+                &b_out[..m * (width + 1)],
+                width + 1,
+                1..width + 1,
+                &mut hidden[..m * width],
+            );
+            concat_rows(
+                &hidden[..m * width],
+                width,
+                &encoded_direction[..m * enc_dir],
+                enc_dir,
+                &mut colour_in[..m * (width + enc_dir)],
+            );
+            mlp_inference(
+                &s.colour,
+                &params[rc.clone()],
+                &colour_in[..m * (width + enc_dir)],
+                m,
+                rgb,
+            );
+        }
+    }
+
+    fn macs_per_sample(&self) -> usize {
+        let s = &self.shape;
+        s.trunk_a.macs_per_row() + s.trunk_b.macs_per_row() + s.colour.macs_per_row()
+    }
+
+    fn workspace_bytes(&self) -> usize {
+        let k = &self.kept;
+        4 * [
+            &k.encoded_position,
+            &k.trunk_a_out,
+            &k.trunk_b_in,
+            &k.trunk_b_out,
+            &k.colour_in,
+            &k.d_trunk_b_out,
+            &k.d_feature,
+            &k.d_trunk_a_out,
+        ]
+        .iter()
+        .map(|v| v.capacity())
+        .sum::<usize>()
+            + self.a.bytes()
+            + self.b.bytes()
+            + self.c.bytes()
+    }
+}

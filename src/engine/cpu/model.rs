@@ -1,0 +1,1001 @@
+//! A model on the `cpu` engine as a composition of stages: per level a
+//! sampler (occupancy-grid marching, stratified, or importance sampling of
+//! the previous level's weights), a field, compositing and the loss; then
+//! one Adam step over every field's parameters. NeRF is this driver with
+//! its field ([`super::fields::nerf`]) and recipe ([`crate::field::nerf`]).
+//!
+//! Two ways through a step, chosen by the first level's sampler:
+//!
+//! - **Grid marching** (one level): the rays march through the occupancy
+//!   grid; σ of every marched sample finds where each ray becomes opaque
+//!   (transmittance below the march's threshold), and only the samples
+//!   before that point go through the field's forward and backward passes
+//!   (the compaction of instant-ngp). The grid is refreshed from the
+//!   field's density on its own schedule.
+//! - **Stratified then importance** (the paper's): every ray gets the same
+//!   number of samples per level, so rays are processed in chunks of
+//!   [`RAYS_PER_CHUNK`], each chunk's levels forward and backward in turn,
+//!   gradients accumulating: the activations of a 1024-ray batch of 256
+//!   samples each would not fit in memory at once.
+//!
+//! Parameters live in one flat vector, field after field, updated by one
+//! Adam with every parameter dense (no sparse entries, no weight decay
+//! unless the recipe's optimiser has it).
+
+use std::ops::Range;
+use std::time::Instant;
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+use super::adam::Adam;
+use super::composite_batch::{self, CompositeGradients, CompositeOutputs};
+use super::fields::{Field, set_len};
+use super::loss::loss_and_gradient;
+use super::march::{
+    BatchSizer, MarchParams, MarchWorkspace, MarchedSamples, march, mix_seed, mix32,
+    render_through_grid,
+};
+use super::occupancy::OccupancyGrid;
+use super::sampling;
+use super::state::{ModelHeader, ModelState};
+use crate::field::common::{BatchSize, RayBounds, SamplerKind};
+use crate::field::nerf::Recipe;
+use crate::field::ngp::LossKind;
+use crate::scene::{Aabb, Scene, UnitCubeMapping};
+use crate::train::batch::RayBatch;
+use crate::train::checkpoint::Checkpoint;
+use crate::train::model::{RadianceModel, RenderedPixel, StageTimes, StepStats};
+
+/// Rays per chunk of the paper's sampler: 256 rays × 192 fine samples is
+/// 49k rows of activations (~0.5 GB for NeRF's networks).
+pub const RAYS_PER_CHUNK: usize = 256;
+
+/// Samples per round of inference when rendering through the grid.
+const INFERENCE_CHUNK: usize = 1 << 15;
+
+/// Rows per rayon task in the element-wise passes.
+const ROWS_PER_TASK: usize = 4096;
+
+/// Names and settings that identify a model built on this driver.
+#[derive(Debug, Clone)]
+pub struct ModelIdentity {
+    /// Shown to the user, e.g. "NeRF".
+    pub name: &'static str,
+    /// Stored in checkpoints, e.g. "nerf".
+    pub key: &'static str,
+    /// The sampler's name, stored in checkpoints ("paper", "occupancy").
+    pub sampling: &'static str,
+}
+
+/// Buffers of one level of a step, reused between steps.
+#[derive(Default)]
+struct LevelBuffers {
+    /// Per ray (fixed-count levels): sample distances and intervals.
+    t: Vec<f32>,
+    dt: Vec<f32>,
+    positions: Vec<f32>,
+    directions: Vec<f32>,
+    ray_offsets: Vec<u32>,
+    sigma: Vec<f32>,
+    rgb: Vec<f32>,
+    weights: Vec<f32>,
+    d_sigma: Vec<f32>,
+    d_rgb: Vec<f32>,
+}
+
+/// Buffers of a step.
+#[derive(Default)]
+struct StepBuffers {
+    origins: Vec<f32>,
+    directions: Vec<f32>,
+    marched: MarchedSamples,
+    march: MarchWorkspace,
+    world: Vec<f32>,
+    sigma_marched: Vec<f32>,
+    /// σ from the field's forward pass on the used samples (compositing
+    /// uses the cut pass's).
+    sigma_forward: Vec<f32>,
+    samples_used: Vec<u32>,
+    source: Vec<u32>,
+    levels: Vec<LevelBuffers>,
+    fine_t: Vec<f32>,
+    edges: Vec<f32>,
+    inner_weights: Vec<f32>,
+    targets: Vec<f32>,
+    backgrounds: Vec<f32>,
+    ray_rgb: Vec<f32>,
+    ray_opacity: Vec<f32>,
+    ray_depth: Vec<f32>,
+    d_ray_rgb: Vec<f32>,
+    gradients: Vec<f32>,
+}
+
+/// A model on the `cpu` engine built from a recipe and its fields.
+pub struct CpuModel {
+    identity: ModelIdentity,
+    recipe: Recipe,
+    fields: Vec<Box<dyn Field>>,
+    ranges: Vec<Range<usize>>,
+    params: Vec<f32>,
+    adam: Adam,
+    /// The occupancy grid, for recipes that march through one.
+    grid: Option<OccupancyGrid>,
+    batch_sizer: BatchSizer,
+    mapping: UnitCubeMapping,
+    bounds: Aabb,
+    loss: LossKind,
+    seed: u64,
+    buffers: StepBuffers,
+    /// Rays per batch for fixed-size batches, or samples per batch for
+    /// marched ones.
+    batch_size: BatchSize,
+}
+
+impl CpuModel {
+    /// A fresh model: `fields[i]` is the field levels name by index `i`.
+    /// `batch_size` replaces the recipe's batch (tests and the viewer ask
+    /// for smaller ones).
+    pub fn new(
+        identity: ModelIdentity,
+        recipe: Recipe,
+        fields: Vec<Box<dyn Field>>,
+        scene: &Scene,
+        seed: u64,
+        loss: LossKind,
+        batch_size: Option<BatchSize>,
+    ) -> Self {
+        assert_eq!(fields.len(), recipe.fields, "the recipe's field count");
+        assert!(
+            recipe.levels.iter().all(|l| l.field < fields.len()),
+            "a level names a missing field"
+        );
+        let mut params = Vec::new();
+        let mut ranges = Vec::new();
+        for (i, field) in fields.iter().enumerate() {
+            let start = params.len();
+            params.extend(field.init_params(seed ^ (0x6669_656c_6400 + i as u64)));
+            ranges.push(start..params.len());
+        }
+        let marches = recipe.levels[0].sampler == SamplerKind::Occupancy;
+        let mapping = scene.unit_cube;
+        let grid = marches.then(|| {
+            let mut grid = OccupancyGrid::new(
+                recipe.occupancy,
+                crate::field::ngp::OccupancyConfig::cascades(mapping.aabb_scale),
+                // The grid stores σ · step with σ per world unit.
+                recipe.march.step / mapping.scale,
+            );
+            if let BatchSize::Samples(samples) = batch_size.unwrap_or(recipe.batch) {
+                grid.chunk = samples;
+            }
+            grid
+        });
+        let batch_size = batch_size.unwrap_or(recipe.batch);
+        let batch_sizer = BatchSizer::new(match batch_size {
+            BatchSize::Samples(samples) => samples,
+            BatchSize::Rays(rays) => rays,
+        });
+        Self {
+            identity,
+            adam: Adam::new(params.len()),
+            params,
+            ranges,
+            fields,
+            grid,
+            batch_sizer,
+            mapping,
+            bounds: scene.bounds,
+            loss,
+            seed,
+            buffers: StepBuffers::default(),
+            batch_size,
+            recipe,
+        }
+    }
+
+    pub fn params(&self) -> &[f32] {
+        &self.params
+    }
+
+    /// Parameters, writable (for gradient checks).
+    pub fn params_mut(&mut self) -> &mut [f32] {
+        &mut self.params
+    }
+
+    /// The gradient written by the last [`Self::forward_backward`].
+    pub fn gradients(&self) -> &[f32] {
+        &self.buffers.gradients
+    }
+
+    pub fn occupancy(&self) -> Option<&OccupancyGrid> {
+        self.grid.as_ref()
+    }
+
+    /// The occupancy grid, writable (tests of empty grids).
+    pub fn occupancy_mut(&mut self) -> Option<&mut OccupancyGrid> {
+        self.grid.as_mut()
+    }
+
+    /// Where each field sits in the parameter vector.
+    pub fn parameter_ranges(&self) -> &[Range<usize>] {
+        &self.ranges
+    }
+
+    /// Multiply-adds per sample of each level's field, forward.
+    pub fn macs_per_sample(&self) -> Vec<usize> {
+        self.recipe
+            .levels
+            .iter()
+            .map(|l| self.fields[l.field].macs_per_sample())
+            .collect()
+    }
+
+    /// Near and far bounds of each ray (R × 3 origins and directions).
+    fn ray_bounds(
+        &self,
+        origins: &[f32],
+        directions: &[f32],
+        near: &mut Vec<f32>,
+        far: &mut Vec<f32>,
+    ) {
+        let rays = origins.len() / 3;
+        set_len(near, rays);
+        set_len(far, rays);
+        for r in 0..rays {
+            let (n, f) = match self.recipe.bounds {
+                RayBounds::Fixed { near, far } => (near, far),
+                RayBounds::SceneBox => self
+                    .bounds
+                    .intersect(
+                        Vec3::from_slice(&origins[3 * r..]),
+                        Vec3::from_slice(&directions[3 * r..]),
+                        0.0,
+                    )
+                    // A ray that misses the box gets an empty interval:
+                    // every sample at its origin with zero length, so it
+                    // shows the background.
+                    .unwrap_or((0.0, 0.0)),
+            };
+            near[r] = n;
+            far[r] = f.max(n);
+        }
+    }
+
+    /// Evaluates `batch` and writes the gradient of the loss with respect
+    /// to every parameter (see [`Self::gradients`]), without changing any
+    /// parameter. Optimiser and grid times are zero in the result.
+    pub fn forward_backward(&mut self, batch: &RayBatch, step: u32) -> StepStats {
+        let b = &mut self.buffers;
+        b.origins.clear();
+        b.directions.clear();
+        b.targets.clear();
+        b.backgrounds.clear();
+        for r in 0..batch.len() {
+            b.origins.extend_from_slice(&batch.origins[r].to_array());
+            b.directions
+                .extend_from_slice(&batch.directions[r].to_array());
+            b.targets.extend_from_slice(&batch.targets[r]);
+            b.backgrounds.extend_from_slice(&batch.backgrounds[r]);
+        }
+        set_len(&mut b.gradients, self.params.len());
+        b.gradients.fill(0.0);
+        if self.recipe.levels[0].sampler == SamplerKind::Occupancy {
+            self.marched_step(step)
+        } else {
+            self.fixed_step(step)
+        }
+    }
+
+    /// A step through the occupancy grid (one level).
+    fn marched_step(&mut self, step: u32) -> StepStats {
+        let mut times = StageTimes::default();
+        let level = self.recipe.levels[0];
+        let field_range = self.ranges[level.field].clone();
+        let grid = self.grid.as_ref().expect("marching recipes have a grid");
+        let b = &mut self.buffers;
+        let rays = b.origins.len() / 3;
+
+        let clock = Instant::now();
+        let budget = match self.batch_size {
+            BatchSize::Samples(samples) => samples,
+            BatchSize::Rays(_) => usize::MAX,
+        };
+        let params = MarchParams {
+            config: self.recipe.march,
+            mapping: self.mapping,
+            jitter_seed: Some(mix_seed(self.seed, step)),
+            sample_budget: budget,
+        };
+        let marched = march(
+            grid,
+            &b.origins,
+            &b.directions,
+            &params,
+            &mut b.march,
+            &mut b.marched,
+        );
+        self.batch_sizer.record(marched.rays_kept, marched.samples);
+        let kept = marched.rays_kept;
+        let s = marched.samples;
+        to_world(&self.mapping, &b.marched.positions, &mut b.world);
+        times.march = clock.elapsed().as_secs_f64();
+
+        // σ of every marched sample, to find where each ray becomes opaque;
+        // the field's forward and backward passes then run on the samples
+        // before that point only (after it, a sample's colour is never read
+        // and every gradient through it is zero).
+        let clock = Instant::now();
+        let field_params = &self.params[field_range.clone()];
+        set_len(&mut b.sigma_marched, s);
+        self.fields[level.field].density(field_params, &b.world, &mut b.sigma_marched);
+        times.encode = clock.elapsed().as_secs_f64();
+
+        let clock = Instant::now();
+        let min_transmittance = self.recipe.march.min_transmittance;
+        set_len(&mut b.samples_used, kept);
+        composite_batch::samples_before_cut(
+            &b.sigma_marched,
+            &b.marched.dt,
+            &b.marched.ray_offsets[..kept + 1],
+            min_transmittance,
+            &mut b.samples_used,
+        );
+        if b.levels.is_empty() {
+            b.levels.push(LevelBuffers::default());
+        }
+        let lb = &mut b.levels[0];
+        b.source.clear();
+        lb.ray_offsets.clear();
+        lb.ray_offsets.push(0);
+        for (r, &count) in b.samples_used.iter().enumerate() {
+            let first = b.marched.ray_offsets[r];
+            b.source.extend(first..first + count);
+            lb.ray_offsets.push(b.source.len() as u32);
+        }
+        let u = b.source.len();
+        gather_rows(&b.world, 3, &b.source, &mut lb.positions);
+        gather_rows(&b.marched.directions, 3, &b.source, &mut lb.directions);
+        gather_rows(&b.marched.dt, 1, &b.source, &mut lb.dt);
+        gather_rows(&b.marched.t, 1, &b.source, &mut lb.t);
+        // Compositing uses the σ the cut was found with, so it stops
+        // exactly where the cut said (the forward pass may differ from the
+        // σ-only inference in the last bits).
+        set_len(&mut b.sigma_forward, u);
+        set_len(&mut lb.rgb, 3 * u);
+        self.fields[level.field].forward(
+            field_params,
+            &lb.positions,
+            &lb.directions,
+            &mut b.sigma_forward,
+            &mut lb.rgb,
+        );
+        gather_rows(&b.sigma_marched, 1, &b.source, &mut lb.sigma);
+        times.networks_forward = clock.elapsed().as_secs_f64();
+
+        let clock = Instant::now();
+        let loss = composite_and_loss(
+            lb,
+            &b.targets[..3 * kept],
+            &b.backgrounds[..3 * kept],
+            min_transmittance,
+            self.loss,
+            level.loss_weight,
+            Scratch {
+                ray_rgb: &mut b.ray_rgb,
+                ray_opacity: &mut b.ray_opacity,
+                ray_depth: &mut b.ray_depth,
+                samples_used: &mut b.samples_used,
+                d_ray_rgb: &mut b.d_ray_rgb,
+            },
+        );
+        times.composite = clock.elapsed().as_secs_f64();
+
+        let clock = Instant::now();
+        self.fields[level.field].backward(
+            field_params,
+            &lb.d_sigma,
+            &lb.d_rgb,
+            &mut b.gradients[field_range],
+        );
+        times.networks_backward = clock.elapsed().as_secs_f64();
+
+        StepStats {
+            loss: loss as f32,
+            level_losses: [loss as f32, 0.0],
+            rays: if rays == 0 { 0 } else { kept },
+            samples: s,
+            times,
+        }
+    }
+
+    /// A step of fixed-count levels (stratified, then importance), in
+    /// chunks of rays.
+    fn fixed_step(&mut self, step: u32) -> StepStats {
+        let mut times = StageTimes::default();
+        let rays = self.buffers.origins.len() / 3;
+        let mut loss = 0.0f64;
+        let mut level_losses = [0f32; 2];
+        let mut samples = 0usize;
+        let (mut near, mut far) = (Vec::new(), Vec::new());
+        {
+            let b = &self.buffers;
+            self.ray_bounds(&b.origins, &b.directions, &mut near, &mut far);
+        }
+        let step_seed = mix_seed(self.seed, step);
+        for (chunk, start) in (0..rays).step_by(RAYS_PER_CHUNK).enumerate() {
+            let end = (start + RAYS_PER_CHUNK).min(rays);
+            let chunk_rays = end - start;
+            // Each chunk and level draws its own jitter.
+            let seed_of = |level: usize| mix32(step_seed ^ mix32((chunk * 8 + level) as u32));
+            let share = chunk_rays as f32 / rays as f32;
+            for level_index in 0..self.recipe.levels.len() {
+                let level = self.recipe.levels[level_index];
+                let clock = Instant::now();
+                self.sample_level(
+                    level_index,
+                    start..end,
+                    &near[start..end],
+                    &far[start..end],
+                    Some(seed_of(level_index)),
+                );
+                times.march += clock.elapsed().as_secs_f64();
+
+                let clock = Instant::now();
+                let b = &mut self.buffers;
+                let lb = &mut b.levels[level_index];
+                let n = lb.t.len();
+                samples += n;
+                let field_range = self.ranges[level.field].clone();
+                let field_params = &self.params[field_range.clone()];
+                set_len(&mut lb.sigma, n);
+                set_len(&mut lb.rgb, 3 * n);
+                self.fields[level.field].forward(
+                    field_params,
+                    &lb.positions,
+                    &lb.directions,
+                    &mut lb.sigma,
+                    &mut lb.rgb,
+                );
+                times.networks_forward += clock.elapsed().as_secs_f64();
+
+                let clock = Instant::now();
+                let level_loss = composite_and_loss(
+                    lb,
+                    &b.targets[3 * start..3 * end],
+                    &b.backgrounds[3 * start..3 * end],
+                    0.0,
+                    self.loss,
+                    level.loss_weight * share,
+                    Scratch {
+                        ray_rgb: &mut b.ray_rgb,
+                        ray_opacity: &mut b.ray_opacity,
+                        ray_depth: &mut b.ray_depth,
+                        samples_used: &mut b.samples_used,
+                        d_ray_rgb: &mut b.d_ray_rgb,
+                    },
+                );
+                loss += level_loss * (level.loss_weight * share) as f64;
+                if let Some(l) = level_losses.get_mut(level_index) {
+                    *l += (level_loss * share as f64) as f32;
+                }
+                times.composite += clock.elapsed().as_secs_f64();
+
+                let clock = Instant::now();
+                self.fields[level.field].backward(
+                    field_params,
+                    &lb.d_sigma,
+                    &lb.d_rgb,
+                    &mut b.gradients[field_range],
+                );
+                times.networks_backward += clock.elapsed().as_secs_f64();
+            }
+        }
+        StepStats {
+            loss: loss as f32,
+            level_losses,
+            rays,
+            samples,
+            times,
+        }
+    }
+
+    /// Fills level `level`'s sample distances, intervals, positions and
+    /// directions for rays `rays` of the step's buffers (stratified, or
+    /// importance sampling of the previous level's weights merged with its
+    /// samples).
+    fn sample_level(
+        &mut self,
+        level: usize,
+        rays: Range<usize>,
+        near: &[f32],
+        far: &[f32],
+        jitter: Option<u32>,
+    ) {
+        let b = &mut self.buffers;
+        while b.levels.len() <= level {
+            b.levels.push(LevelBuffers::default());
+        }
+        let count = rays.len();
+        let per_ray = match self.recipe.levels[level].sampler {
+            SamplerKind::Stratified { count: n } => {
+                let lb = &mut b.levels[level];
+                set_len(&mut lb.t, count * n);
+                sampling::stratified(near, far, n, jitter, &mut lb.t);
+                n
+            }
+            SamplerKind::Importance { count: n, padding } => {
+                let (before, rest) = b.levels.split_at_mut(level);
+                let previous = before.last().expect("importance follows a level");
+                let lb = &mut rest[0];
+                let m = previous.t.len() / count.max(1);
+                importance_samples(
+                    &previous.t,
+                    &previous.weights,
+                    m,
+                    n,
+                    padding,
+                    jitter,
+                    &mut b.edges,
+                    &mut b.inner_weights,
+                    &mut b.fine_t,
+                );
+                set_len(&mut lb.t, count * (m + n));
+                sampling::merge_sorted(&previous.t, m, &b.fine_t, n, &mut lb.t);
+                m + n
+            }
+            SamplerKind::Occupancy => unreachable!("the occupancy sampler is the first level"),
+        };
+        let lb = &mut b.levels[level];
+        set_len(&mut lb.dt, count * per_ray);
+        sampling::intervals_to_far(&lb.t, far, per_ray, &mut lb.dt);
+        lb.ray_offsets.clear();
+        lb.ray_offsets
+            .extend((0..=count).map(|r| (r * per_ray) as u32));
+        points_along_rays(
+            &b.origins[3 * rays.start..3 * rays.end],
+            &b.directions[3 * rays.start..3 * rays.end],
+            &lb.t,
+            per_ray,
+            &mut lb.positions,
+            &mut lb.directions,
+        );
+    }
+
+    fn update_grid(&mut self, step: u32) {
+        let Some(grid) = self.grid.as_mut() else {
+            return;
+        };
+        let level = self.recipe.levels[0];
+        let field = &self.fields[level.field];
+        let params = &self.params[self.ranges[level.field].clone()];
+        let mapping = self.mapping;
+        let mut world = Vec::new();
+        grid.update(step, self.seed, |positions, sigma| {
+            to_world(&mapping, positions, &mut world);
+            field.density(params, &world, sigma);
+        });
+    }
+
+    /// Renders rays with the paper's levels (no jitter), in chunks.
+    fn render_fixed(
+        &self,
+        origins: &[f32],
+        directions: &[f32],
+        background: [f32; 3],
+        out: &mut [RenderedPixel],
+    ) {
+        let rays = origins.len() / 3;
+        let (mut near, mut far) = (Vec::new(), Vec::new());
+        self.ray_bounds(origins, directions, &mut near, &mut far);
+        let (mut edges, mut inner, mut fine) = (Vec::new(), Vec::new(), Vec::new());
+        for start in (0..rays).step_by(RAYS_PER_CHUNK) {
+            let end = (start + RAYS_PER_CHUNK).min(rays);
+            let count = end - start;
+            let (near, far) = (&near[start..end], &far[start..end]);
+            // The previous level's samples and weights.
+            let mut previous: Option<(Vec<f32>, Vec<f32>)> = None;
+            for level in &self.recipe.levels {
+                let (t, per_ray) = match (level.sampler, &previous) {
+                    (SamplerKind::Stratified { count: n }, _) => {
+                        let mut t = vec![0f32; count * n];
+                        sampling::stratified(near, far, n, None, &mut t);
+                        (t, n)
+                    }
+                    (SamplerKind::Importance { count: n, padding }, Some((pt, pw))) => {
+                        let m = pt.len() / count;
+                        importance_samples(
+                            pt, pw, m, n, padding, None, &mut edges, &mut inner, &mut fine,
+                        );
+                        let mut t = vec![0f32; count * (m + n)];
+                        sampling::merge_sorted(pt, m, &fine, n, &mut t);
+                        (t, m + n)
+                    }
+                    _ => unreachable!("importance sampling follows a level"),
+                };
+                let n = t.len();
+                let mut dt = vec![0f32; n];
+                sampling::intervals_to_far(&t, far, per_ray, &mut dt);
+                let (mut positions, mut dirs) = (Vec::new(), Vec::new());
+                points_along_rays(
+                    &origins[3 * start..3 * end],
+                    &directions[3 * start..3 * end],
+                    &t,
+                    per_ray,
+                    &mut positions,
+                    &mut dirs,
+                );
+                let mut sigma = vec![0f32; n];
+                let mut rgb = vec![0f32; 3 * n];
+                self.fields[level.field].radiance(
+                    &self.params[self.ranges[level.field].clone()],
+                    &positions,
+                    &dirs,
+                    &mut sigma,
+                    &mut rgb,
+                );
+                let offsets: Vec<u32> = (0..=count).map(|r| (r * per_ray) as u32).collect();
+                let backgrounds = background.repeat(count);
+                let batch = composite_batch::RayBatch {
+                    density: &sigma,
+                    rgb: &rgb,
+                    dt: &dt,
+                    t: &t,
+                    ray_offsets: &offsets,
+                    background: &backgrounds,
+                };
+                let mut weights = vec![0f32; n];
+                composite_batch::sample_weights(&batch, 0.0, &mut weights);
+                let mut colour = vec![0f32; 3 * count];
+                let mut opacity = vec![0f32; count];
+                let mut depth = vec![0f32; count];
+                let mut used = vec![0u32; count];
+                composite_batch::composite_forward(
+                    &batch,
+                    0.0,
+                    CompositeOutputs {
+                        rgb: &mut colour,
+                        opacity: &mut opacity,
+                        depth: &mut depth,
+                        samples_used: &mut used,
+                    },
+                );
+                for (i, pixel) in out[start..end].iter_mut().enumerate() {
+                    *pixel = RenderedPixel {
+                        rgb: [colour[3 * i], colour[3 * i + 1], colour[3 * i + 2]],
+                        opacity: opacity[i],
+                        depth: depth[i],
+                    };
+                }
+                previous = Some((t, weights));
+            }
+        }
+    }
+}
+
+/// Where [`composite_and_loss`] keeps per-ray values.
+struct Scratch<'a> {
+    ray_rgb: &'a mut Vec<f32>,
+    ray_opacity: &'a mut Vec<f32>,
+    ray_depth: &'a mut Vec<f32>,
+    samples_used: &'a mut Vec<u32>,
+    d_ray_rgb: &'a mut Vec<f32>,
+}
+
+/// Composites a level's samples (σ, rgb, dt, t, ray offsets in `lb`) over
+/// the rays' backgrounds, writes the per-sample weights into `lb.weights`,
+/// and the gradients of `scale` × (mean loss against `targets`) with
+/// respect to σ and colour into `lb.d_sigma` and `lb.d_rgb`. Returns the
+/// mean loss (unscaled).
+#[allow(clippy::too_many_arguments)]
+fn composite_and_loss(
+    lb: &mut LevelBuffers,
+    targets: &[f32],
+    backgrounds: &[f32],
+    min_transmittance: f32,
+    loss_kind: LossKind,
+    scale: f32,
+    scratch: Scratch,
+) -> f64 {
+    let rays = lb.ray_offsets.len() - 1;
+    let n = lb.sigma.len();
+    let batch = composite_batch::RayBatch {
+        density: &lb.sigma,
+        rgb: &lb.rgb,
+        dt: &lb.dt,
+        t: &lb.t,
+        ray_offsets: &lb.ray_offsets,
+        background: backgrounds,
+    };
+    set_len(scratch.ray_rgb, 3 * rays);
+    set_len(scratch.ray_opacity, rays);
+    set_len(scratch.ray_depth, rays);
+    set_len(scratch.samples_used, rays);
+    composite_batch::composite_forward(
+        &batch,
+        min_transmittance,
+        CompositeOutputs {
+            rgb: scratch.ray_rgb,
+            opacity: scratch.ray_opacity,
+            depth: scratch.ray_depth,
+            samples_used: scratch.samples_used,
+        },
+    );
+    set_len(&mut lb.weights, n);
+    composite_batch::sample_weights(&batch, min_transmittance, &mut lb.weights);
+    set_len(scratch.d_ray_rgb, 3 * rays);
+    let loss = loss_and_gradient(loss_kind, scratch.ray_rgb, targets, scratch.d_ray_rgb);
+    if scale != 1.0 {
+        for g in scratch.d_ray_rgb.iter_mut() {
+            *g *= scale;
+        }
+    }
+    set_len(&mut lb.d_sigma, n);
+    set_len(&mut lb.d_rgb, 3 * n);
+    composite_batch::composite_backward(
+        &batch,
+        min_transmittance,
+        scratch.d_ray_rgb,
+        CompositeGradients {
+            density: &mut lb.d_sigma,
+            rgb: &mut lb.d_rgb,
+            background: None,
+        },
+    );
+    loss
+}
+
+/// Importance samples for each ray from the previous level's `m` sorted
+/// samples `t` and their weights (NeRF's `sample_pdf` on the midpoints of
+/// the coarse samples with the weights of the interior samples: the first
+/// and last samples have no bin of their own between midpoints).
+#[allow(clippy::too_many_arguments)]
+fn importance_samples(
+    t: &[f32],
+    weights: &[f32],
+    m: usize,
+    count: usize,
+    padding: f32,
+    jitter: Option<u32>,
+    edges: &mut Vec<f32>,
+    inner: &mut Vec<f32>,
+    out: &mut Vec<f32>,
+) {
+    assert!(m >= 3, "importance sampling needs three samples per ray");
+    let rays = t.len() / m;
+    set_len(edges, rays * (m - 1));
+    set_len(inner, rays * (m - 2));
+    for r in 0..rays {
+        let t = &t[r * m..(r + 1) * m];
+        for (e, pair) in edges[r * (m - 1)..(r + 1) * (m - 1)]
+            .iter_mut()
+            .zip(t.windows(2))
+        {
+            *e = 0.5 * (pair[0] + pair[1]);
+        }
+        inner[r * (m - 2)..(r + 1) * (m - 2)].copy_from_slice(&weights[r * m + 1..(r + 1) * m - 1]);
+    }
+    set_len(out, rays * count);
+    sampling::sample_pdf(edges, inner, m - 2, padding, count, jitter, out);
+}
+
+/// Positions o + t·d (world) and directions of `per_ray` samples per ray.
+fn points_along_rays(
+    origins: &[f32],
+    directions: &[f32],
+    t: &[f32],
+    per_ray: usize,
+    positions: &mut Vec<f32>,
+    dirs: &mut Vec<f32>,
+) {
+    let n = t.len();
+    set_len(positions, 3 * n);
+    set_len(dirs, 3 * n);
+    if per_ray == 0 {
+        return;
+    }
+    positions
+        .par_chunks_mut(3 * per_ray)
+        .zip(dirs.par_chunks_mut(3 * per_ray))
+        .zip(t.par_chunks(per_ray))
+        .enumerate()
+        .for_each(|(r, ((p, d), t))| {
+            let o = Vec3::from_slice(&origins[3 * r..]);
+            let dir = Vec3::from_slice(&directions[3 * r..]);
+            for (k, &t) in t.iter().enumerate() {
+                p[3 * k..3 * k + 3].copy_from_slice(&(o + t * dir).to_array());
+                d[3 * k..3 * k + 3].copy_from_slice(&dir.to_array());
+            }
+        });
+}
+
+/// Unit-cube positions (n × 3) to world positions.
+fn to_world(mapping: &UnitCubeMapping, unit: &[f32], world: &mut Vec<f32>) {
+    set_len(world, unit.len());
+    let (scale, offset) = (mapping.scale, mapping.offset.to_array());
+    world
+        .par_chunks_mut(3 * ROWS_PER_TASK)
+        .zip(unit.par_chunks(3 * ROWS_PER_TASK))
+        .for_each(|(w, u)| {
+            for (w, u) in w.chunks_exact_mut(3).zip(u.chunks_exact(3)) {
+                for c in 0..3 {
+                    w[c] = (u[c] - offset[c]) / scale;
+                }
+            }
+        });
+}
+
+/// Rows of `src` (`width` values each) picked by `rows`, into `dst`.
+fn gather_rows(src: &[f32], width: usize, rows: &[u32], dst: &mut Vec<f32>) {
+    set_len(dst, rows.len() * width);
+    dst.par_chunks_mut(ROWS_PER_TASK * width)
+        .zip(rows.par_chunks(ROWS_PER_TASK))
+        .for_each(|(dst, rows)| {
+            for (out, &row) in dst.chunks_exact_mut(width).zip(rows) {
+                out.copy_from_slice(&src[row as usize * width..][..width]);
+            }
+        });
+}
+
+impl RadianceModel for CpuModel {
+    fn describe(&self) -> String {
+        format!(
+            "{} ({} sampling, cpu)",
+            self.identity.name, self.identity.sampling
+        )
+    }
+
+    fn rays_for_next_batch(&self) -> usize {
+        match self.batch_size {
+            BatchSize::Rays(rays) => rays,
+            BatchSize::Samples(_) => self.batch_sizer.rays(),
+        }
+    }
+
+    fn centre_crop(&self, step: u32) -> Option<f32> {
+        self.recipe
+            .centre_crop
+            .and_then(|(steps, fraction)| (step < steps).then_some(fraction))
+    }
+
+    fn step(&mut self, batch: &RayBatch, step: u32) -> StepStats {
+        let clock = Instant::now();
+        if self.grid.as_ref().is_some_and(|g| g.is_due(step)) {
+            self.update_grid(step);
+        }
+        let grid_update = clock.elapsed().as_secs_f64();
+        let mut stats = self.forward_backward(batch, step);
+        stats.times.grid_update = grid_update;
+        let clock = Instant::now();
+        let all = 0..self.params.len();
+        self.adam.step(
+            &self.recipe.optimiser,
+            all,
+            &mut self.params,
+            &self.buffers.gradients,
+        );
+        stats.times.optimiser = clock.elapsed().as_secs_f64();
+        stats
+    }
+
+    fn render(
+        &self,
+        origins: &[Vec3],
+        directions: &[Vec3],
+        background: [f32; 3],
+        out: &mut [RenderedPixel],
+    ) {
+        let flat = |v: &[Vec3]| v.iter().flat_map(|x| x.to_array()).collect::<Vec<f32>>();
+        match &self.grid {
+            Some(grid) => {
+                let level = self.recipe.levels[0];
+                let field = &self.fields[level.field];
+                let params = &self.params[self.ranges[level.field].clone()];
+                let mapping = self.mapping;
+                let mut world = Vec::new();
+                render_through_grid(
+                    grid,
+                    &self.mapping,
+                    origins,
+                    directions,
+                    background,
+                    &self.recipe.march,
+                    INFERENCE_CHUNK,
+                    |positions, dirs, sigma, rgb| {
+                        to_world(&mapping, positions, &mut world);
+                        field.radiance(params, &world, dirs, sigma, rgb);
+                    },
+                    out,
+                );
+            }
+            None => self.render_fixed(&flat(origins), &flat(directions), background, out),
+        }
+    }
+
+    fn save(&self) -> Checkpoint {
+        ModelState {
+            header: ModelHeader {
+                model: self.identity.key.into(),
+                loss: self.loss,
+                seed: self.seed,
+                adam_step: self.adam.step,
+                samples_per_ray: self.batch_sizer.samples_per_ray(),
+                param_count: self.params.len(),
+                sampling: Some(self.identity.sampling.into()),
+            },
+            params: self.params.clone(),
+            adam: self.adam.clone(),
+            occupancy: self.grid.as_ref().map(|g| g.values().to_vec()),
+        }
+        .into_checkpoint()
+    }
+
+    fn load(&mut self, checkpoint: &Checkpoint) -> Result<(), String> {
+        let state = ModelState::from_checkpoint(
+            checkpoint,
+            self.identity.key,
+            self.params.len(),
+            self.grid.as_ref().map(|g| g.values().len()),
+        )?;
+        let sampling = state.header.sampling.as_deref().unwrap_or("");
+        if sampling != self.identity.sampling {
+            return Err(format!(
+                "the checkpoint was trained with {sampling} sampling, this model uses {}",
+                self.identity.sampling
+            ));
+        }
+        self.params = state.params;
+        self.adam = state.adam;
+        if let (Some(grid), Some(values)) = (self.grid.as_mut(), &state.occupancy) {
+            grid.values_mut().copy_from_slice(values);
+            grid.build_bitfield();
+        }
+        self.batch_sizer
+            .set_samples_per_ray(state.header.samples_per_ray);
+        self.loss = state.header.loss;
+        self.seed = state.header.seed;
+        Ok(())
+    }
+
+    fn memory_bytes(&self) -> usize {
+        let b = &self.buffers;
+        let mut floats = self.params.len() * 5
+            + self.grid.as_ref().map_or(0, |g| g.values().len())
+            + [
+                &b.origins,
+                &b.directions,
+                &b.world,
+                &b.sigma_marched,
+                &b.gradients,
+                &b.marched.positions,
+                &b.marched.directions,
+                &b.marched.dt,
+                &b.marched.t,
+            ]
+            .iter()
+            .map(|v| v.capacity())
+            .sum::<usize>();
+        for lb in &b.levels {
+            floats += [
+                &lb.t,
+                &lb.dt,
+                &lb.positions,
+                &lb.directions,
+                &lb.sigma,
+                &lb.rgb,
+                &lb.weights,
+                &lb.d_sigma,
+                &lb.d_rgb,
+            ]
+            .iter()
+            .map(|v| v.capacity())
+            .sum::<usize>();
+        }
+        floats * 4
+            + self
+                .fields
+                .iter()
+                .map(|f| f.workspace_bytes())
+                .sum::<usize>()
+    }
+}

@@ -1,0 +1,104 @@
+//! What a model's checkpoint holds, on either engine, so checkpoints move
+//! between engines: a small JSON header, the parameters, Adam's state and,
+//! for models that march through one, the occupancy grid.
+
+use serde::{Deserialize, Serialize};
+
+use super::adam::Adam;
+use crate::field::ngp::LossKind;
+use crate::train::checkpoint::Checkpoint;
+
+/// The checkpoint header of a model.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub(crate) struct ModelHeader {
+    /// "ngp", "nerf", …
+    pub model: String,
+    pub loss: LossKind,
+    pub seed: u64,
+    pub adam_step: u32,
+    pub samples_per_ray: Option<f64>,
+    pub param_count: usize,
+    /// The sampler, for models that have a choice ("paper", "occupancy").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sampling: Option<String>,
+}
+
+/// Everything a checkpoint holds.
+pub(crate) struct ModelState {
+    pub header: ModelHeader,
+    pub params: Vec<f32>,
+    pub adam: Adam,
+    pub occupancy: Option<Vec<f32>>,
+}
+
+impl ModelState {
+    pub fn into_checkpoint(self) -> Checkpoint {
+        let mut tensors = vec![
+            ("params".into(), self.params),
+            ("adam.m".into(), self.adam.m),
+            ("adam.v".into(), self.adam.v),
+            ("adam.m_norm".into(), self.adam.m_norm),
+            ("adam.v_norm".into(), self.adam.v_norm),
+        ];
+        if let Some(occupancy) = self.occupancy {
+            tensors.push(("occupancy".into(), occupancy));
+        }
+        Checkpoint {
+            header: serde_json::to_value(&self.header).expect("serialisable"),
+            tensors,
+        }
+    }
+
+    /// Reads and checks every part before the caller changes anything, so
+    /// a bad checkpoint leaves the model as it was. `model` is the header's
+    /// expected model name; `occupancy_len` the grid's size, if the model
+    /// has a grid.
+    pub fn from_checkpoint(
+        checkpoint: &Checkpoint,
+        model: &str,
+        param_count: usize,
+        occupancy_len: Option<usize>,
+    ) -> Result<Self, String> {
+        let header: ModelHeader = serde_json::from_value(checkpoint.header.clone())
+            .map_err(|e| format!("not a checkpoint of a model: {e}"))?;
+        if header.model != model {
+            return Err(format!(
+                "the checkpoint holds a `{}` model, not `{model}`",
+                header.model
+            ));
+        }
+        if header.param_count != param_count {
+            return Err(format!(
+                "the checkpoint has {} parameters, this model {param_count}",
+                header.param_count
+            ));
+        }
+        let tensor = |name: &str, len: usize| -> Result<Vec<f32>, String> {
+            let values = checkpoint
+                .tensor(name)
+                .ok_or_else(|| format!("the checkpoint has no `{name}`"))?;
+            if values.len() != len {
+                return Err(format!(
+                    "`{name}` has {} values, expected {len}",
+                    values.len()
+                ));
+            }
+            Ok(values.to_vec())
+        };
+        let adam = Adam {
+            m: tensor("adam.m", param_count)?,
+            v: tensor("adam.v", param_count)?,
+            m_norm: tensor("adam.m_norm", param_count)?,
+            v_norm: tensor("adam.v_norm", param_count)?,
+            step: header.adam_step,
+        };
+        Ok(Self {
+            params: tensor("params", param_count)?,
+            adam,
+            occupancy: occupancy_len
+                .map(|len| tensor("occupancy", len))
+                .transpose()?,
+            header,
+        })
+    }
+}

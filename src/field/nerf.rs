@@ -1,0 +1,208 @@
+//! NeRF (Mildenhall, Srinivasan, Tancik, Barron, Ramamoorthi, Ng 2020, "NeRF:
+//! Representing Scenes as Neural Radiance Fields for View Synthesis"): every
+//! constant of the model, with where it comes from. "Paper" is the ECCV
+//! paper; "config" is the reference code's `configs/config_lego.txt`;
+//! "reference" is its `run_nerf.py` / `run_nerf_helpers.py`.
+
+use super::common::{BatchSize, Level, LrSchedule, OptimiserConfig, RayBounds, SamplerKind};
+use super::ngp::{MarchConfig, OccupancyConfig};
+
+/// Frequencies of the position encoding γ(x): 2⁰ … 2⁹ (paper, section 5.1:
+/// L = 10; reference `multires` 10).
+pub const POSITION_FREQUENCIES: u32 = 10;
+/// Frequencies of the view-direction encoding (paper: L = 4; reference
+/// `multires_views` 4).
+pub const DIRECTION_FREQUENCIES: u32 = 4;
+/// The reference keeps the raw input beside its sines and cosines
+/// (`Embedder`, `include_input`), giving 63 and 27 inputs.
+pub const ENCODING_INCLUDES_INPUT: bool = true;
+
+/// Layers of the position trunk before σ (paper, figure 7; reference
+/// `netdepth` 8).
+pub const TRUNK_LAYERS: usize = 8;
+/// Width of every trunk layer (reference `netwidth` 256).
+pub const TRUNK_WIDTH: usize = 256;
+/// The encoded position enters again after this many trunk layers (paper,
+/// figure 7: "a skip connection that concatenates this input to the fifth
+/// layer's activation"; reference `skips=[4]`).
+pub const SKIP_AFTER_LAYERS: usize = 5;
+/// The colour branch: the 256-wide feature vector and the encoded
+/// direction → one 128-wide ReLU layer → RGB through a sigmoid (paper,
+/// figure 7; reference `views_linears`, W // 2).
+pub const COLOUR_HIDDEN_WIDTH: usize = 128;
+
+/// Stratified samples per ray for the coarse network (paper, section 5.3:
+/// Nc = 64; config `N_samples`).
+pub const COARSE_SAMPLES: usize = 64;
+/// Samples added from the coarse weights for the fine network (paper: Nf =
+/// 128; config `N_importance`).
+pub const FINE_SAMPLES: usize = 128;
+/// Added to every coarse weight before the inverse-CDF sampling
+/// (reference `sample_pdf`: `weights + 1e-5`, "prevent nans").
+pub const IMPORTANCE_WEIGHT_PADDING: f32 = 1e-5;
+
+/// Near and far planes of the Blender scenes (reference `load_blender`
+/// branch of `run_nerf.py`: near = 2, far = 6).
+pub const BLENDER_NEAR: f32 = 2.0;
+pub const BLENDER_FAR: f32 = 6.0;
+
+/// Rays per batch with the paper's sampler (config `N_rand` 1024; the paper's
+/// 4096 is for its larger runs).
+pub const PAPER_RAYS_PER_BATCH: usize = 1024;
+/// During the first steps, rays come from the central part of each image
+/// only (config `precrop_iters` 500, `precrop_frac` 0.5): on images of an
+/// object against an empty background, this keeps the network from settling
+/// on the background colour everywhere.
+pub const CENTRE_CROP_STEPS: u32 = 500;
+pub const CENTRE_CROP_FRACTION: f32 = 0.5;
+
+/// Adam (paper, section 5.3: β₁ 0.9, β₂ 0.999, ε 1e-7, learning rate 5e-4
+/// decaying exponentially to 5e-5 over training; config `lrate_decay` 500,
+/// i.e. 500k steps for a factor of ten). No weight decay.
+pub const OPTIMISER: OptimiserConfig = OptimiserConfig {
+    learning_rate: 5e-4,
+    beta1: 0.9,
+    beta2: 0.999,
+    epsilon: 1e-7,
+    l2_weights: 0.0,
+    schedule: LrSchedule::Exponential {
+        final_rate: 5e-5,
+        steps: 500_000,
+    },
+};
+
+/// Where NeRF puts its samples.
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum Sampling {
+    /// The paper's: 64 stratified samples for a coarse network, 128 more
+    /// from its weights for a fine network, on every ray.
+    Paper,
+    /// Instant-NGP's occupancy grid (zrak's default): samples only in
+    /// occupied cells, at a fixed step, until the ray is opaque; one network.
+    Occupancy,
+}
+
+impl Sampling {
+    pub fn name(self) -> &'static str {
+        match self {
+            Sampling::Paper => "paper",
+            Sampling::Occupancy => "occupancy",
+        }
+    }
+}
+
+/// Marching for NeRF's occupancy sampler: twice Instant-NGP's step (2√3/1024
+/// of the unit cube, 0.010 world units on a Blender scene). NeRF's
+/// network is smooth at that scale (its highest frequency, 2⁹ per world
+/// unit, has a period of 0.012), and one sample of the 8 × 256 network
+/// costs as much as ~50 of Instant-NGP's, so the step is where the time
+/// goes; the paper's own fine samples are ~0.02 apart on average.
+pub const MARCH: MarchConfig = MarchConfig {
+    step: 2.0 * 1.732_050_8 / 1024.0,
+    max_steps: 512,
+    min_transmittance: 1e-4,
+};
+
+/// The occupancy grid for NeRF: Instant-NGP's rule (EMA 0.95, threshold
+/// 0.01 optical thickness, an update every 16 steps, every cell during the
+/// first 256 steps) on 64³ cells instead of 128³. A density query of the
+/// 8 × 256 network costs ~1.1 M FLOP (σ only), so the full grid would cost
+/// 2.3 T FLOP per update, ~15 s here; 64³ cells cost an eighth of that,
+/// and a cell of 1/64 of the box (0.05 world units) is still finer than
+/// the thinnest parts of the Blender objects' silhouettes need to be
+/// skipped around. What share of the time the updates take is printed by
+/// `zrak bench throughput --model nerf`.
+pub const OCCUPANCY: OccupancyConfig = OccupancyConfig {
+    resolution: 64,
+    decay: 0.95,
+    min_optical_thickness: 0.01,
+    update_interval: 16,
+    warmup_steps: 256,
+};
+
+/// Samples per batch with the occupancy sampler. The paper trains on
+/// 1024 rays × 192 samples = 196,608 network evaluations per step; with
+/// most of empty space skipped, 2^15 samples hold several hundred to a
+/// few thousand rays once the grid has tightened, at ~1/6 of the paper's
+/// cost per step, so a fixed time budget buys more steps.
+pub const OCCUPANCY_SAMPLES_PER_BATCH: usize = 1 << 15;
+
+/// What the engines build for NeRF: its levels, fields, batch and schedule.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Recipe {
+    pub levels: Vec<Level>,
+    /// Number of separate networks (the levels index them).
+    pub fields: usize,
+    pub batch: BatchSize,
+    pub bounds: RayBounds,
+    pub optimiser: OptimiserConfig,
+    pub march: MarchConfig,
+    pub occupancy: OccupancyConfig,
+    /// (steps, fraction): rays come from the central `fraction` of each
+    /// image during the first `steps` steps.
+    pub centre_crop: Option<(u32, f32)>,
+}
+
+/// NeRF as trained with `sampling`. Blender scenes sample between the
+/// paper's near and far planes; other scenes between the entry and exit of
+/// their box.
+pub fn recipe(sampling: Sampling, blender_scene: bool) -> Recipe {
+    let bounds = if blender_scene {
+        RayBounds::Fixed {
+            near: BLENDER_NEAR,
+            far: BLENDER_FAR,
+        }
+    } else {
+        RayBounds::SceneBox
+    };
+    let (levels, fields, batch) = match sampling {
+        // Paper, section 5.2: a coarse and a fine network, both losses
+        // counted equally (section 5.3, equation 6).
+        Sampling::Paper => (
+            vec![
+                Level {
+                    sampler: SamplerKind::Stratified {
+                        count: COARSE_SAMPLES,
+                    },
+                    field: 0,
+                    loss_weight: 1.0,
+                },
+                Level {
+                    sampler: SamplerKind::Importance {
+                        count: FINE_SAMPLES,
+                        padding: IMPORTANCE_WEIGHT_PADDING,
+                    },
+                    field: 1,
+                    loss_weight: 1.0,
+                },
+            ],
+            2,
+            BatchSize::Rays(PAPER_RAYS_PER_BATCH),
+        ),
+        // The grid does the coarse network's job (finding where the
+        // content is), so one network remains, as nerfacc trains NeRF
+        // with its occupancy estimator.
+        Sampling::Occupancy => (
+            vec![Level {
+                sampler: SamplerKind::Occupancy,
+                field: 0,
+                loss_weight: 1.0,
+            }],
+            1,
+            BatchSize::Samples(OCCUPANCY_SAMPLES_PER_BATCH),
+        ),
+    };
+    Recipe {
+        levels,
+        fields,
+        batch,
+        bounds,
+        optimiser: OPTIMISER,
+        march: MARCH,
+        occupancy: OCCUPANCY,
+        centre_crop: Some((CENTRE_CROP_STEPS, CENTRE_CROP_FRACTION)),
+    }
+}
