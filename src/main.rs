@@ -109,6 +109,15 @@ struct ViewArgs {
 
 #[derive(Subcommand)]
 enum BenchCommand {
+    /// GFLOP/s of NeRF's dense networks (forward, backward) against the
+    /// machine's measured f32 matrix-multiply peak.
+    Dense {
+        /// Rows (samples) per pass.
+        #[arg(long, default_value_t = 16384)]
+        rows: usize,
+        #[arg(long, default_value_t = 5)]
+        repeats: usize,
+    },
     /// Training-step throughput per stage on a scene (default: lego_400 when
     /// present beside the checkout, else the demo scene).
     Throughput {
@@ -274,6 +283,10 @@ fn main() -> ExitCode {
             warmup,
             steps,
         })) => bench_throughput(scene, engine, downscale, model, sampling, warmup, steps),
+        Some(Command::Bench(BenchCommand::Dense { rows, repeats })) => {
+            bench_dense(rows, repeats);
+            Ok(())
+        }
         Some(Command::View(args)) => view(args),
         None => view(ViewArgs {
             scene: None,
@@ -686,6 +699,37 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
     bar.finish();
     println!("wrote {} images to {}", cameras.len(), args.out.display());
     Ok(())
+}
+
+fn bench_dense(rows: usize, repeats: usize) {
+    let peak = zrak::engine::cpu::dense::measure_peak_gflops();
+    println!(
+        "kernels              {:?}, {} threads",
+        zrak::engine::cpu::dense::backend(),
+        rayon::current_num_threads()
+    );
+    let figures = zrak::bench::dense_throughput(rows, repeats);
+    let (mut flop, mut seconds) = (0.0, 0.0);
+    for f in &figures {
+        println!(
+            "{:<22} {:?} × {} rows: forward {:>6.1} GFLOP/s ({:.1} ms), backward {:>6.1} GFLOP/s ({:.1} ms)",
+            f.name,
+            f.widths,
+            f.rows,
+            f.forward_gflops,
+            f.forward_seconds * 1e3,
+            f.backward_gflops,
+            f.backward_seconds * 1e3
+        );
+        flop += f.forward_gflops * f.forward_seconds + f.backward_gflops * f.backward_seconds;
+        seconds += f.forward_seconds + f.backward_seconds;
+    }
+    let overall = flop / seconds;
+    println!(
+        "NeRF networks        {overall:.1} GFLOP/s forward and backward together = {:.0}% of the peak",
+        100.0 * overall / peak
+    );
+    println!("machine peak         {peak:.0} GFLOP/s (f32 matrix multiply, median)");
 }
 
 fn bench_throughput(

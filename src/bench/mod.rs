@@ -150,3 +150,85 @@ pub fn print_report(report: &ThroughputReport, scene: &Arc<Scene>, engine: &str)
         );
     }
 }
+
+/// Achieved rates of one dense network at one batch size.
+#[derive(Debug, Clone)]
+pub struct DenseFigures {
+    pub name: String,
+    pub widths: Vec<usize>,
+    pub rows: usize,
+    /// Median seconds of a forward pass (activations kept) and of a
+    /// backward pass (parameter and input gradients).
+    pub forward_seconds: f64,
+    pub backward_seconds: f64,
+    pub forward_gflops: f64,
+    pub backward_gflops: f64,
+}
+
+/// Times NeRF's three dense networks (the trunk up to the skip, after it,
+/// and the colour branch) forward and backward on `rows` rows, as a
+/// training step runs them. Medians of `repeats` runs after one warm-up.
+pub fn dense_throughput(rows: usize, repeats: usize) -> Vec<DenseFigures> {
+    use crate::engine::cpu::dense::{MlpWorkspace, mlp_backward, mlp_forward};
+    use crate::engine::cpu::fields::nerf::NerfShape;
+    use crate::rng::Pcg32;
+    let shape = NerfShape::paper();
+    let networks = [
+        ("trunk before the skip", &shape.trunk_a),
+        ("trunk after the skip", &shape.trunk_b),
+        ("colour branch", &shape.colour),
+    ];
+    let mut rng = Pcg32::new(7, 7);
+    networks
+        .iter()
+        .map(|(name, layout)| {
+            let params = layout.init_params(1);
+            let input: Vec<f32> = (0..rows * layout.input_width())
+                .map(|_| rng.next_f32() - 0.5)
+                .collect();
+            let d_output: Vec<f32> = (0..rows * layout.output_width())
+                .map(|_| rng.next_f32() - 0.5)
+                .collect();
+            let mut output = vec![0f32; rows * layout.output_width()];
+            let mut d_params = vec![0f32; params.len()];
+            let mut d_input = vec![0f32; input.len()];
+            let mut workspace = MlpWorkspace::new(layout, rows);
+            let mut forward = Vec::new();
+            let mut backward = Vec::new();
+            for run in 0..=repeats {
+                let clock = std::time::Instant::now();
+                mlp_forward(layout, &params, &input, rows, &mut workspace, &mut output);
+                let f = clock.elapsed().as_secs_f64();
+                let clock = std::time::Instant::now();
+                mlp_backward(
+                    layout,
+                    &params,
+                    &input,
+                    rows,
+                    &mut workspace,
+                    &d_output,
+                    &mut d_params,
+                    Some(&mut d_input),
+                );
+                let b = clock.elapsed().as_secs_f64();
+                if run > 0 {
+                    forward.push(f);
+                    backward.push(b);
+                }
+            }
+            let flop = 2.0 * (layout.macs_per_row() * rows) as f64;
+            let (f, b) = (median(&mut forward), median(&mut backward));
+            DenseFigures {
+                name: name.to_string(),
+                widths: layout.widths.clone(),
+                rows,
+                forward_seconds: f,
+                backward_seconds: b,
+                forward_gflops: flop / f / 1e9,
+                // The backward pass computes two products per layer (the
+                // input gradient and the weight gradient).
+                backward_gflops: 2.0 * flop / b / 1e9,
+            }
+        })
+        .collect()
+}
