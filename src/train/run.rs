@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use super::checkpoint::Checkpoint;
-use super::eval::{mean_psnr, spread_views};
+use super::eval::{mean_psnr_sampled, spread_views};
 use super::log::{LogLine, MetricsLog};
 use super::model::StepStats;
 use super::trainer::Trainer;
@@ -39,6 +39,11 @@ pub struct Schedule {
     pub eval_every_seconds: f64,
     /// Held-out views rendered for the progress PSNR.
     pub eval_views: usize,
+    /// Pixels rendered for the first progress PSNR, over all its views;
+    /// later evaluations adapt the count so that they take about
+    /// `eval_share` of the training time between two of them.
+    pub eval_rays: usize,
+    pub eval_share: f64,
     /// Wall seconds between checkpoints.
     pub checkpoint_every_seconds: f64,
 }
@@ -49,6 +54,9 @@ impl Default for Schedule {
             log_every_steps: 16,
             eval_every_seconds: 30.0,
             eval_views: 3,
+            eval_rays: 1 << 13,
+            // Issue 14's bound: at most ~10 % of the wall time.
+            eval_share: 0.05,
             checkpoint_every_seconds: 120.0,
         }
     }
@@ -134,6 +142,11 @@ pub fn run(
     let mut last_checkpoint = Instant::now();
     let mut next_eval = trainer.train_seconds + schedule.eval_every_seconds;
     let mut psnr = None;
+    let mut eval_rays = schedule.eval_rays.max(1);
+    let full_views: usize = held_out
+        .iter()
+        .map(|f| (f.camera.intrinsics.width * f.camera.intrinsics.height) as usize)
+        .sum();
     let mut window_samples = 0usize;
     let mut window_seconds = 0f64;
     let mut samples_per_second = 0f64;
@@ -153,8 +166,20 @@ pub fn run(
         let evaluate_now = trainer.train_seconds >= next_eval || limits.reached(trainer);
         let mut evaluated = None;
         if evaluate_now {
-            evaluated = Some(mean_psnr(trainer.model.as_ref(), &held_out));
+            let clock = Instant::now();
+            evaluated = Some(mean_psnr_sampled(
+                trainer.model.as_ref(),
+                &held_out,
+                eval_rays,
+            ));
             psnr = evaluated;
+            // Scale the next evaluation's pixels towards its share of the
+            // time, by at most 4× either way (one slow evaluation, e.g. on
+            // a busy machine, must not swing it), never past whole views.
+            let took = clock.elapsed().as_secs_f64().max(1e-3);
+            let wanted = schedule.eval_share * schedule.eval_every_seconds / took;
+            eval_rays = ((eval_rays as f64 * wanted.clamp(0.25, 4.0)) as usize)
+                .clamp(256.min(full_views), full_views.max(1));
             next_eval = trainer.train_seconds + schedule.eval_every_seconds;
         }
         if trainer.step.is_multiple_of(schedule.log_every_steps) || evaluated.is_some() {
