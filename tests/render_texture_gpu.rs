@@ -101,16 +101,16 @@ fn render_to_texture_matches_the_read_back_render() {
     let scene = scene();
     let gpu = trained_gpu_model(&scene);
     let model: &dyn RadianceModel = &gpu;
-    let gpu = model.as_gpu_ngp().expect("a gpu model says so");
+    assert!(model.texture_render().is_some(), "a gpu model says so");
     let camera = scene.val[0].camera;
     for background in [[1.0; 3], [0.1, 0.5, 0.9]] {
         let clock = std::time::Instant::now();
-        let pixels = render_pixels(gpu, &camera, background);
+        let pixels = render_pixels(&gpu, &camera, background);
         println!("read-back render {:.2} s", clock.elapsed().as_secs_f64());
-        compare(gpu, &camera, RenderMode::Rgb, background, &pixels);
+        compare(&gpu, &camera, RenderMode::Rgb, background, &pixels);
         if background == [1.0; 3] {
-            compare(gpu, &camera, RenderMode::Depth, background, &pixels);
-            compare(gpu, &camera, RenderMode::Opacity, background, &pixels);
+            compare(&gpu, &camera, RenderMode::Depth, background, &pixels);
+            compare(&gpu, &camera, RenderMode::Opacity, background, &pixels);
         }
     }
 }
@@ -128,5 +128,5 @@ fn a_wrong_target_is_refused_with_what_is_wrong() {
         .to_string();
     assert!(message.contains("8×8"), "{message}");
     let cpu: &dyn RadianceModel = &CpuNgp::with_batch_samples(&scene, 1, LossKind::Huber, 1024);
-    assert!(cpu.as_gpu_ngp().is_none());
+    assert!(cpu.texture_render().is_none());
 }

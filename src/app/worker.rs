@@ -943,7 +943,7 @@ impl Worker {
         if view.job.is_none()
             && self.textures_shared
             && !view.request.needs_pixels
-            && slot.trainer.model.as_gpu_ngp().is_some()
+            && slot.trainer.model.texture_render().is_some()
         {
             return self.render_level_to_texture();
         }
@@ -997,7 +997,7 @@ impl Worker {
             && !request.needs_pixels
             && self
                 .slot(self.active)
-                .is_some_and(|s| s.trainer.model.as_gpu_ngp().is_some())
+                .is_some_and(|s| s.trainer.model.texture_render().is_some())
     }
 
     /// The view's next level, drawn whole by the gpu engine into a texture
@@ -1012,7 +1012,7 @@ impl Worker {
         ) else {
             return Ok(());
         };
-        let Some(gpu) = slot.trainer.model.as_gpu_ngp() else {
+        let Some(gpu) = slot.trainer.model.texture_render() else {
             return Ok(());
         };
         let Some(downscale) = view.levels.pop_front() else {

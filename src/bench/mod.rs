@@ -87,7 +87,7 @@ pub fn throughput(trainer: &mut Trainer, warmup: usize, steps: usize) -> Through
         peak_memory_bytes: peak_memory_bytes(),
         stage_timing: trainer
             .model
-            .as_gpu_ngp()
+            .texture_render()
             .map(|model| model.stage_timing_note()),
     }
 }

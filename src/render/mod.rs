@@ -6,18 +6,8 @@ pub mod path;
 use rayon::prelude::*;
 
 use crate::scene::{Camera, ImageRgba8, image::to_u8};
+pub use crate::train::model::RenderMode;
 use crate::train::model::{RadianceModel, RenderedPixel};
-
-/// What an image shows.
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
-)]
-pub enum RenderMode {
-    Rgb,
-    /// Depth of the surface hit (expected depth over opacity), near = white.
-    Depth,
-    Opacity,
-}
 
 /// Rays per call into the model: large enough to keep every core busy,
 /// small enough that a render can report progress.

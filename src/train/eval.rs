@@ -96,8 +96,8 @@ pub fn mean_psnr_sampled(model: &dyn RadianceModel, frames: &[&Frame], rays: usi
             let mut squared = 0f64;
             for (&(x, y), pixel) in coordinates.iter().zip(&out) {
                 let truth = frame.image.rgb_over(x, y, WHITE);
-                for c in 0..3 {
-                    squared += ((pixel.rgb[c] - truth[c]) as f64).powi(2);
+                for (&p, &t) in pixel.rgb.iter().zip(&truth) {
+                    squared += ((p - t) as f64).powi(2);
                 }
             }
             metrics::psnr_from_mse(squared / (3 * coordinates.len().max(1)) as f64)

@@ -4,6 +4,8 @@
 
 use glam::Vec3;
 
+use crate::scene::Camera;
+
 use super::batch::RayBatch;
 use super::checkpoint::Checkpoint;
 
@@ -91,6 +93,35 @@ pub struct RenderedPixel {
     pub depth: f32,
 }
 
+/// What an image shows.
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
+)]
+pub enum RenderMode {
+    Rgb,
+    /// Depth of the surface hit (expected depth over opacity), near = white.
+    Depth,
+    Opacity,
+}
+
+/// What a model on the gpu engine offers besides [`RadianceModel`]: drawing
+/// a view straight into a texture on its device (the viewer shows it
+/// without a copy through the CPU), and how its stages are timed.
+pub trait TextureRender {
+    /// Draws `camera`'s view in `mode` over `background` into `target`
+    /// (RGBA8, the camera's size, on the model's device).
+    fn render_to_texture(
+        &self,
+        camera: &Camera,
+        mode: RenderMode,
+        background: [f32; 3],
+        target: &wgpu::Texture,
+    ) -> Result<(), String>;
+
+    /// How the per-stage times were measured, for the benchmark.
+    fn stage_timing_note(&self) -> String;
+}
+
 /// A model being trained on one engine.
 pub trait RadianceModel: Send {
     /// e.g. "Instant-NGP (cpu)".
@@ -130,10 +161,8 @@ pub trait RadianceModel: Send {
     /// Bytes held by parameters, optimiser state and workspaces.
     fn memory_bytes(&self) -> usize;
 
-    /// The gpu engine's Instant-NGP behind this model, if it is one: the
-    /// viewer renders it straight into a texture
-    /// ([`crate::engine::gpu::ngp::GpuNgp::render_to_texture`]).
-    fn as_gpu_ngp(&self) -> Option<&crate::engine::gpu::ngp::GpuNgp> {
+    /// Texture rendering, for models whose engine has a device.
+    fn texture_render(&self) -> Option<&dyn TextureRender> {
         None
     }
 }

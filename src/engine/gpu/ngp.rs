@@ -66,7 +66,7 @@ use crate::render::RenderMode;
 use crate::scene::{Camera, Scene};
 use crate::train::batch::RayBatch;
 use crate::train::checkpoint::Checkpoint;
-use crate::train::model::{RadianceModel, RenderedPixel, StepStats};
+use crate::train::model::{RadianceModel, RenderedPixel, StepStats, TextureRender};
 
 /// Threads per workgroup of the activation kernels.
 const WORKGROUP: u32 = 64;
@@ -1014,7 +1014,7 @@ impl RadianceModel for GpuNgp {
         "Instant-NGP (gpu)".into()
     }
 
-    fn as_gpu_ngp(&self) -> Option<&GpuNgp> {
+    fn texture_render(&self) -> Option<&dyn TextureRender> {
         Some(self)
     }
 
@@ -1130,5 +1130,21 @@ impl RadianceModel for GpuNgp {
             + self.rays.bytes()
             + self.grid.values().len() * 4
             + self.grid.bitfield().len() * 4
+    }
+}
+
+impl TextureRender for GpuNgp {
+    fn render_to_texture(
+        &self,
+        camera: &Camera,
+        mode: RenderMode,
+        background: [f32; 3],
+        target: &wgpu::Texture,
+    ) -> Result<(), String> {
+        GpuNgp::render_to_texture(self, camera, mode, background, target).map_err(|e| e.to_string())
+    }
+
+    fn stage_timing_note(&self) -> String {
+        GpuNgp::stage_timing_note(self)
     }
 }
