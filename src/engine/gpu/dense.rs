@@ -15,7 +15,13 @@
 //! 256 wide = 256 MiB) are split by rows: the kernels address rows relative
 //! to the binding, so the same dispatches run over pieces of rows that fit
 //! the limit, each binding its rows of the same buffers (offsets multiples
-//! of 64 rows, so 256-byte aligned). Backward, each piece writes its
+//! of 64 rows, so 256-byte aligned).
+//!
+//! A network's parameters may sit at an offset inside a larger flat buffer
+//! (a model's `[network A | network B | …]`): the `_at` entry points take
+//! that offset in f32s and add it to the layer's weight and bias offsets in
+//! the uniform, so nothing is copied and the parameter gradients land at
+//! the same offset of the gradient buffer. Backward, each piece writes its
 //! weight-gradient partial sums after the previous piece's (pieces start
 //! on chunk boundaries) and one reduction adds them all in chunk order:
 //! the gradients are bit for bit those of the unsplit batch. The partials
@@ -177,19 +183,24 @@ impl GpuDense {
         })
     }
 
+    /// `params_offset`: where the network's parameters (and gradients)
+    /// start in the bound buffers, in f32s.
     fn uniform(
         layout: &MlpLayout,
         layer: usize,
         rows: usize,
         chunking: (usize, usize),
+        params_offset: usize,
     ) -> LayerUniform {
+        let offset =
+            |at: usize| u32::try_from(params_offset + at).expect("parameter offsets fit in u32");
         LayerUniform {
             rows: rows as u32,
             in_width: layout.widths[layer] as u32,
             out_width: layout.widths[layer + 1] as u32,
             activation: activation_code(layout.activation(layer)),
-            weight_offset: layout.weight_offset(layer) as u32,
-            bias_offset: layout.bias_offset(layer).map_or(NO_BIAS, |b| b as u32),
+            weight_offset: offset(layout.weight_offset(layer)),
+            bias_offset: layout.bias_offset(layer).map_or(NO_BIAS, offset),
             rows_per_chunk: chunking.0 as u32,
             chunks: chunking.1 as u32,
             exp_clamp: DENSITY_EXP_CLAMP,
@@ -206,7 +217,8 @@ impl GpuDense {
         [groups_for(columns, TILE as u32), tiles.div_ceil(z), z]
     }
 
-    /// Records layer `layer` forward: `output` = act(`input` Wᵀ + b).
+    /// Records layer `layer` forward: `output` = act(`input` Wᵀ + b), the
+    /// network's parameters starting at f32 `params_offset` of `params`.
     #[allow(clippy::too_many_arguments)]
     pub fn record_layer_forward(
         &self,
@@ -215,6 +227,7 @@ impl GpuDense {
         layout: &MlpLayout,
         layer: usize,
         params: &wgpu::Buffer,
+        params_offset: usize,
         input: &wgpu::Buffer,
         output: &wgpu::Buffer,
         rows: usize,
@@ -224,7 +237,7 @@ impl GpuDense {
             let uniform = uniform_buffer(
                 context,
                 "dense layer",
-                &Self::uniform(layout, layer, piece.len(), (0, 0)),
+                &Self::uniform(layout, layer, piece.len(), (0, 0), params_offset),
             );
             self.forward.record_bindings(
                 context,
@@ -251,6 +264,22 @@ impl GpuDense {
         workspace: &GpuMlpWorkspace,
         rows: usize,
     ) {
+        self.record_forward_at(context, encoder, params, 0, input, workspace, rows);
+    }
+
+    /// As [`Self::record_forward`], the network's parameters starting at
+    /// f32 `params_offset` of `params`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_forward_at(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        params: &wgpu::Buffer,
+        params_offset: usize,
+        input: &wgpu::Buffer,
+        workspace: &GpuMlpWorkspace,
+        rows: usize,
+    ) {
         assert!(
             rows <= workspace.capacity,
             "{rows} rows exceed the workspace's {}",
@@ -269,6 +298,7 @@ impl GpuDense {
                 layout,
                 layer,
                 params,
+                params_offset,
                 x,
                 &workspace.activations[layer],
                 rows,
@@ -285,6 +315,28 @@ impl GpuDense {
         context: &GpuContext,
         encoder: &mut wgpu::CommandEncoder,
         params: &wgpu::Buffer,
+        input: &wgpu::Buffer,
+        workspace: &GpuMlpWorkspace,
+        d_output: &wgpu::Buffer,
+        d_params: &wgpu::Buffer,
+        d_input: Option<&wgpu::Buffer>,
+        rows: usize,
+    ) {
+        self.record_backward_at(
+            context, encoder, params, 0, input, workspace, d_output, d_params, d_input, rows,
+        );
+    }
+
+    /// As [`Self::record_backward`], the network's parameters starting at
+    /// f32 `params_offset` of `params`, and its gradients at the same offset
+    /// of `d_params`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_backward_at(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        params: &wgpu::Buffer,
+        params_offset: usize,
         input: &wgpu::Buffer,
         workspace: &GpuMlpWorkspace,
         d_output: &wgpu::Buffer,
@@ -319,6 +371,7 @@ impl GpuDense {
                     layer,
                     piece.len(),
                     (rows_per_chunk, piece.len().div_ceil(rows_per_chunk).max(1)),
+                    params_offset,
                 );
                 uniform.first_chunk = (piece.start / rows_per_chunk) as u32;
                 uniform
@@ -346,7 +399,7 @@ impl GpuDense {
             let uniform = uniform_buffer(
                 context,
                 "dense layer",
-                &Self::uniform(layout, layer, rows, (rows_per_chunk, chunks)),
+                &Self::uniform(layout, layer, rows, (rows_per_chunk, chunks), params_offset),
             );
             self.reduce.record(
                 context,

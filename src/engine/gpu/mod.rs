@@ -8,6 +8,7 @@ pub use context::{GpuContext, GpuError};
 pub mod adam;
 pub mod composite;
 pub mod dense;
+pub mod fields;
 pub mod frequency;
 pub mod loss;
 pub mod march;

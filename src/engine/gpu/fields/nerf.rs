@@ -1,0 +1,690 @@
+//! NeRF's field on the `gpu` engine: the math and parameter layout of
+//! [`crate::engine::cpu::fields::nerf::NerfField`] (Mildenhall et al. 2020,
+//! figure 7), as gpu stages recorded into one command encoder:
+//!
+//! ```text
+//! positions ─ frequency ─► γ(x) ─ dense A ─► h ──┐
+//!                           └─────────────────────┴ concat ─► [h | γ(x)]
+//! [h | γ(x)] ─ dense B ─► [σ_raw | feature] ─ density ─► σ
+//! directions ─ frequency ─► γ(d) ─┐
+//! [σ_raw | feature] ──────────────┴ concat (feature columns) ─► [feature | γ(d)]
+//! [feature | γ(d)] ─ dense C ─► RGB (sigmoid)
+//! ```
+//!
+//! The parameters are one flat buffer `[A | B | C]`, each network's
+//! `MlpLayout` in the cpu engine's layout; the dense kernels read each
+//! network at its offset in that buffer and accumulate its gradients at the
+//! same offset of the gradient buffer ([`GpuDense::record_forward_at`]), so
+//! nothing is copied in or out. The small kernels between the networks are
+//! `shaders/nerf_concat.wgsl` (row-wise concatenation of column ranges) and
+//! `shaders/nerf_density*.wgsl` (σ's activation and its backward).
+//!
+//! Every per-row buffer is bound a piece of rows at a time when it exceeds
+//! the device's storage-binding limit, as the dense and encoding stages do.
+
+use std::ops::Range;
+
+use crate::engine::cpu::fields::nerf::{DensityActivation, NerfShape};
+use crate::engine::gpu::context::{GpuContext, GpuError};
+use crate::engine::gpu::dense::{GpuDense, GpuMlpWorkspace};
+use crate::engine::gpu::frequency::GpuFrequency;
+use crate::engine::gpu::kernel::{
+    Kernel, float_range, pieces, read_buffer, rows_per_piece, storage_buffer, uniform_buffer,
+    zeroed_storage_buffer,
+};
+use crate::engine::gpu::march::dispatch_grid;
+
+/// Threads per workgroup of the nerf_* kernels.
+const WORKGROUP: u32 = 64;
+
+const DENSITY_COMMON: &str = include_str!("../../../../shaders/nerf_density_common.wgsl");
+
+/// `Params` in shaders/nerf_concat.wgsl.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct ConcatUniform {
+    rows: u32,
+    row_stride: u32,
+    left_stride: u32,
+    left_start: u32,
+    left_width: u32,
+    right_stride: u32,
+    right_start: u32,
+    right_width: u32,
+}
+
+/// `Params` in shaders/nerf_density_common.wgsl.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct DensityUniform {
+    rows: u32,
+    row_stride: u32,
+    raw_stride: u32,
+    feature_width: u32,
+    colour_stride: u32,
+    activation: u32,
+    shift: f32,
+    _pad: u32,
+}
+
+/// Columns `start .. start + width` of a row-major matrix `stride` floats
+/// wide.
+#[derive(Clone, Copy)]
+struct Columns<'a> {
+    buffer: &'a wgpu::Buffer,
+    stride: usize,
+    start: usize,
+    width: usize,
+}
+
+impl<'a> Columns<'a> {
+    /// Every column of a matrix `width` wide.
+    fn all(buffer: &'a wgpu::Buffer, width: usize) -> Self {
+        Self {
+            buffer,
+            stride: width,
+            start: 0,
+            width,
+        }
+    }
+}
+
+/// The compiled kernels a NeRF field records.
+pub struct GpuNerfKernels {
+    dense: GpuDense,
+    frequency: GpuFrequency,
+    concat: Kernel,
+    density: Kernel,
+    density_backward: Kernel,
+}
+
+impl GpuNerfKernels {
+    pub fn new(context: &GpuContext) -> Result<Self, GpuError> {
+        let density = |name: &str, source: &str| {
+            Kernel::new(
+                context,
+                name,
+                &format!("{DENSITY_COMMON}\n{source}"),
+                "main",
+            )
+        };
+        Ok(Self {
+            dense: GpuDense::new(context)?,
+            frequency: GpuFrequency::new(context)?,
+            concat: Kernel::new(
+                context,
+                "nerf_concat",
+                include_str!("../../../../shaders/nerf_concat.wgsl"),
+                "main",
+            )?,
+            density: density(
+                "nerf_density",
+                include_str!("../../../../shaders/nerf_density.wgsl"),
+            )?,
+            density_backward: density(
+                "nerf_density_backward",
+                include_str!("../../../../shaders/nerf_density_backward.wgsl"),
+            )?,
+        })
+    }
+}
+
+/// NeRF's field on the `gpu` engine, with buffers for up to `capacity`
+/// rows (samples). It keeps the activations of the last
+/// [`Self::record_forward`] for [`Self::record_backward`].
+pub struct GpuNerfField {
+    shape: NerfShape,
+    kernels: GpuNerfKernels,
+    capacity: usize,
+    a: GpuMlpWorkspace,
+    b: GpuMlpWorkspace,
+    c: GpuMlpWorkspace,
+    /// γ(x), rows × position encoding width.
+    encoded_position: wgpu::Buffer,
+    /// [h | γ(x)], trunk B's input.
+    trunk_b_in: wgpu::Buffer,
+    /// γ(d), rows × direction encoding width.
+    encoded_direction: wgpu::Buffer,
+    /// [feature | γ(d)], the colour network's input.
+    colour_in: wgpu::Buffer,
+    // Gradients with respect to the same matrices.
+    d_colour_in: wgpu::Buffer,
+    d_trunk_b_out: wgpu::Buffer,
+    d_trunk_b_in: wgpu::Buffer,
+    d_trunk_a_out: wgpu::Buffer,
+    /// Rows of the last recorded forward pass whose activations are still
+    /// held (None after [`Self::record_density`], which overwrites them).
+    forward_rows: Option<usize>,
+}
+
+impl GpuNerfField {
+    /// A field of `shape` for batches of up to `capacity_rows` samples
+    /// (compiles its kernels).
+    pub fn new(
+        context: &GpuContext,
+        shape: &NerfShape,
+        capacity_rows: usize,
+    ) -> Result<Self, GpuError> {
+        let capacity = capacity_rows.max(1);
+        let width = shape.trunk_a.output_width();
+        let enc = shape.position.output_width();
+        let enc_dir = shape.direction.output_width();
+        let f = |label: &str, n: usize| zeroed_storage_buffer::<f32>(context, label, n);
+        Ok(Self {
+            kernels: GpuNerfKernels::new(context)?,
+            a: GpuMlpWorkspace::new(context, &shape.trunk_a, capacity),
+            b: GpuMlpWorkspace::new(context, &shape.trunk_b, capacity),
+            c: GpuMlpWorkspace::new(context, &shape.colour, capacity),
+            encoded_position: f("nerf encoded position", capacity * enc),
+            trunk_b_in: f("nerf trunk B input", capacity * (width + enc)),
+            encoded_direction: f("nerf encoded direction", capacity * enc_dir),
+            colour_in: f("nerf colour input", capacity * (width + enc_dir)),
+            d_colour_in: f("nerf d colour input", capacity * (width + enc_dir)),
+            d_trunk_b_out: f("nerf d trunk B output", capacity * (width + 1)),
+            d_trunk_b_in: f("nerf d trunk B input", capacity * (width + enc)),
+            d_trunk_a_out: f("nerf d trunk A output", capacity * width),
+            forward_rows: None,
+            shape: shape.clone(),
+            capacity,
+        })
+    }
+
+    pub fn shape(&self) -> &NerfShape {
+        &self.shape
+    }
+
+    pub fn capacity(&self) -> usize {
+        self.capacity
+    }
+
+    /// Parameters of the field, `[A | B | C]`.
+    pub fn param_count(&self) -> usize {
+        self.ranges()[2].end
+    }
+
+    /// Where A, B and C sit in the flat parameters (as the cpu field).
+    fn ranges(&self) -> [Range<usize>; 3] {
+        let s = &self.shape;
+        let a = s.trunk_a.param_count();
+        let b = a + s.trunk_b.param_count();
+        let c = b + s.colour.param_count();
+        [0..a, a..b, b..c]
+    }
+
+    fn width(&self) -> usize {
+        self.shape.trunk_a.output_width()
+    }
+
+    fn check_rows(&self, rows: usize) {
+        assert!(
+            rows <= self.capacity,
+            "{rows} rows exceed the field's capacity of {}",
+            self.capacity
+        );
+    }
+
+    /// Records `output` = [left columns | right columns] for `rows` rows.
+    fn record_concat<'a>(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        left: Columns<'a>,
+        right: Columns<'a>,
+        output: &wgpu::Buffer,
+        rows: usize,
+    ) {
+        let out_w = left.width + right.width;
+        let widest = left.stride.max(right.stride).max(out_w);
+        for piece in pieces(rows, rows_per_piece(context, widest, 1)) {
+            let (groups, row_stride) = dispatch_grid(piece.len() * out_w, WORKGROUP);
+            let uniform = ConcatUniform {
+                rows: piece.len() as u32,
+                row_stride,
+                left_stride: left.stride as u32,
+                left_start: left.start as u32,
+                left_width: left.width as u32,
+                right_stride: right.stride as u32,
+                right_start: right.start as u32,
+                right_width: right.width as u32,
+            };
+            let uniform = uniform_buffer(context, "nerf concat", &uniform);
+            let bind = |m: &Columns<'a>| {
+                float_range(m.buffer, m.stride * piece.start, m.stride * piece.len())
+            };
+            self.kernels.concat.record_bindings(
+                context,
+                encoder,
+                &[
+                    uniform.as_entire_buffer_binding(),
+                    bind(&left),
+                    bind(&right),
+                    float_range(output, out_w * piece.start, out_w * piece.len()),
+                ],
+                groups,
+            );
+        }
+    }
+
+    /// The uniform of the density kernels for a piece of `rows` rows
+    /// dispatched as `count` invocations.
+    fn density_uniform(&self, rows: usize, count: usize) -> ([u32; 3], DensityUniform) {
+        let (groups, row_stride) = dispatch_grid(count, WORKGROUP);
+        let width = self.width();
+        let (activation, shift) = match self.shape.density {
+            DensityActivation::Relu => (0, 0.0),
+            DensityActivation::ShiftedSoftplus { shift } => (1, shift),
+        };
+        let uniform = DensityUniform {
+            rows: rows as u32,
+            row_stride,
+            raw_stride: (width + 1) as u32,
+            feature_width: width as u32,
+            colour_stride: self.shape.colour.input_width() as u32,
+            activation,
+            shift,
+            _pad: 0,
+        };
+        (groups, uniform)
+    }
+
+    /// Records σ = activation(σ_raw) from trunk B's output.
+    fn record_sigma(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        sigma_out: &wgpu::Buffer,
+        rows: usize,
+    ) {
+        let raw_w = self.width() + 1;
+        for piece in pieces(rows, rows_per_piece(context, raw_w, 1)) {
+            let (groups, uniform) = self.density_uniform(piece.len(), piece.len());
+            let uniform = uniform_buffer(context, "nerf density", &uniform);
+            self.kernels.density.record_bindings(
+                context,
+                encoder,
+                &[
+                    uniform.as_entire_buffer_binding(),
+                    float_range(self.b.output(), raw_w * piece.start, raw_w * piece.len()),
+                    float_range(sigma_out, piece.start, piece.len()),
+                ],
+                groups,
+            );
+        }
+    }
+
+    /// Records the position encoding, trunk A, the skip concatenation and
+    /// trunk B: trunk B's output [σ_raw | feature] is then in `b.output()`.
+    fn record_trunk(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        params: &wgpu::Buffer,
+        positions: &wgpu::Buffer,
+        rows: usize,
+    ) {
+        let k = &self.kernels;
+        let [ra, rb, _] = self.ranges();
+        let (width, enc) = (self.width(), self.shape.position.output_width());
+        k.frequency.record(
+            context,
+            encoder,
+            &self.shape.position,
+            positions,
+            None,
+            rows as u32,
+            &self.encoded_position,
+        );
+        k.dense.record_forward_at(
+            context,
+            encoder,
+            params,
+            ra.start,
+            &self.encoded_position,
+            &self.a,
+            rows,
+        );
+        // The skip: h first, then γ(x), as the cpu field orders it.
+        self.record_concat(
+            context,
+            encoder,
+            Columns::all(self.a.output(), width),
+            Columns::all(&self.encoded_position, enc),
+            &self.trunk_b_in,
+            rows,
+        );
+        k.dense.record_forward_at(
+            context,
+            encoder,
+            params,
+            rb.start,
+            &self.trunk_b_in,
+            &self.b,
+            rows,
+        );
+    }
+
+    /// Records the forward pass over `rows` samples: σ into `sigma_out`
+    /// (rows) and colour into `rgb_out` (rows × 3), from `params` (the
+    /// field's flat parameters `[A | B | C]`, as the cpu field), `positions`
+    /// and unit `directions` (rows × 3 f32 each). Keeps the activations for
+    /// [`Self::record_backward`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_forward(
+        &mut self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        params: &wgpu::Buffer,
+        positions: &wgpu::Buffer,
+        directions: &wgpu::Buffer,
+        rows: usize,
+        sigma_out: &wgpu::Buffer,
+        rgb_out: &wgpu::Buffer,
+    ) {
+        self.check_rows(rows);
+        self.record_trunk(context, encoder, params, positions, rows);
+        self.record_sigma(context, encoder, sigma_out, rows);
+        let [_, _, rc] = self.ranges();
+        let (width, enc_dir) = (self.width(), self.shape.direction.output_width());
+        let k = &self.kernels;
+        k.frequency.record(
+            context,
+            encoder,
+            &self.shape.direction,
+            directions,
+            None,
+            rows as u32,
+            &self.encoded_direction,
+        );
+        // The colour input: trunk B's output without its σ column, then γ(d).
+        self.record_concat(
+            context,
+            encoder,
+            Columns {
+                buffer: self.b.output(),
+                stride: width + 1,
+                start: 1,
+                width,
+            },
+            Columns::all(&self.encoded_direction, enc_dir),
+            &self.colour_in,
+            rows,
+        );
+        k.dense.record_forward_at(
+            context,
+            encoder,
+            params,
+            rc.start,
+            &self.colour_in,
+            &self.c,
+            rows,
+        );
+        // The colour network's output stays in its workspace (its backward
+        // pass reads it for the sigmoid's derivative); the caller gets a
+        // copy, 12 bytes a row.
+        if rows > 0 {
+            encoder.copy_buffer_to_buffer(self.c.output(), 0, rgb_out, 0, 12 * rows as u64);
+        }
+        self.forward_rows = Some(rows);
+    }
+
+    /// Records the backward pass of the last [`Self::record_forward`] (same
+    /// `params` and `rows`), given ∂L/∂σ (`d_sigma`, rows) and ∂L/∂colour
+    /// (`d_rgb`, rows × 3): **adds** (+=) the parameter gradient into
+    /// `gradients` (the field's layout `[A | B | C]`), as the cpu field's
+    /// `backward` does; clear it first for a plain gradient. Positions and
+    /// directions get no gradient.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_backward(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        params: &wgpu::Buffer,
+        d_sigma: &wgpu::Buffer,
+        d_rgb: &wgpu::Buffer,
+        rows: usize,
+        gradients: &wgpu::Buffer,
+    ) {
+        assert_eq!(
+            self.forward_rows,
+            Some(rows),
+            "backward needs the activations of a forward pass over the same {rows} rows"
+        );
+        let [ra, rb, rc] = self.ranges();
+        let (width, enc) = (self.width(), self.shape.position.output_width());
+        let k = &self.kernels;
+        // Colour network. Its input gradient includes γ(d)'s columns, which
+        // nothing uses (γ(d) has no parameters): 27 of 283 columns in the
+        // paper's shape, computed rather than adding a column-range option
+        // to the dense kernels.
+        k.dense.record_backward_at(
+            context,
+            encoder,
+            params,
+            rc.start,
+            &self.colour_in,
+            &self.c,
+            d_rgb,
+            gradients,
+            Some(&self.d_colour_in),
+            rows,
+        );
+        // [∂L/∂σ_raw | ∂L/∂feature] for trunk B's output.
+        let raw_w = width + 1;
+        let colour_w = self.shape.colour.input_width();
+        for piece in pieces(rows, rows_per_piece(context, raw_w.max(colour_w), 1)) {
+            let (groups, uniform) = self.density_uniform(piece.len(), piece.len() * raw_w);
+            let uniform = uniform_buffer(context, "nerf density backward", &uniform);
+            let bind = |buffer, w: usize| float_range(buffer, w * piece.start, w * piece.len());
+            k.density_backward.record_bindings(
+                context,
+                encoder,
+                &[
+                    uniform.as_entire_buffer_binding(),
+                    bind(self.b.output(), raw_w),
+                    bind(d_sigma, 1),
+                    bind(&self.d_colour_in, colour_w),
+                    bind(&self.d_trunk_b_out, raw_w),
+                ],
+                groups,
+            );
+        }
+        k.dense.record_backward_at(
+            context,
+            encoder,
+            params,
+            rb.start,
+            &self.trunk_b_in,
+            &self.b,
+            &self.d_trunk_b_out,
+            gradients,
+            Some(&self.d_trunk_b_in),
+            rows,
+        );
+        // The skip's gradient: trunk A's output is the first `width` columns
+        // of trunk B's input; the γ(x) columns are dropped (no parameters).
+        // The same buffer is bound as the (empty) right-hand side.
+        self.record_concat(
+            context,
+            encoder,
+            Columns {
+                buffer: &self.d_trunk_b_in,
+                stride: width + enc,
+                start: 0,
+                width,
+            },
+            Columns {
+                buffer: &self.d_trunk_b_in,
+                stride: width + enc,
+                start: 0,
+                width: 0,
+            },
+            &self.d_trunk_a_out,
+            rows,
+        );
+        k.dense.record_backward_at(
+            context,
+            encoder,
+            params,
+            ra.start,
+            &self.encoded_position,
+            &self.a,
+            &self.d_trunk_a_out,
+            gradients,
+            None,
+            rows,
+        );
+    }
+
+    /// Records σ alone at `rows` `positions` into `sigma_out` (for the
+    /// occupancy grid). Trunk B is evaluated in full although only its
+    /// first output is used (its last layer is about a quarter of B in
+    /// the paper's shape). Overwrites the activations a forward pass kept:
+    /// record it outside a forward/backward pair.
+    pub fn record_density(
+        &mut self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        params: &wgpu::Buffer,
+        positions: &wgpu::Buffer,
+        rows: usize,
+        sigma_out: &wgpu::Buffer,
+    ) {
+        self.check_rows(rows);
+        self.forward_rows = None;
+        self.record_trunk(context, encoder, params, positions, rows);
+        self.record_sigma(context, encoder, sigma_out, rows);
+    }
+
+    /// Uploads, runs the forward pass and reads back (σ, rgb) (for tests
+    /// and tools).
+    pub fn forward_once(
+        &mut self,
+        context: &GpuContext,
+        params: &[f32],
+        positions: &[f32],
+        directions: &[f32],
+    ) -> (Vec<f32>, Vec<f32>) {
+        let rows = positions.len() / 3;
+        let buffers = self.upload(context, params, positions, directions);
+        let mut encoder = context.device.create_command_encoder(&Default::default());
+        self.record_forward(
+            context,
+            &mut encoder,
+            &buffers.params,
+            &buffers.positions,
+            &buffers.directions,
+            rows,
+            &buffers.sigma,
+            &buffers.rgb,
+        );
+        context.queue.submit([encoder.finish()]);
+        (
+            read_buffer(context, &buffers.sigma, rows),
+            read_buffer(context, &buffers.rgb, 3 * rows),
+        )
+    }
+
+    /// Uploads, runs forward and backward (into a cleared gradient), and
+    /// reads back (σ, rgb, parameter gradient).
+    #[allow(clippy::too_many_arguments)]
+    pub fn forward_backward_once(
+        &mut self,
+        context: &GpuContext,
+        params: &[f32],
+        positions: &[f32],
+        directions: &[f32],
+        d_sigma: &[f32],
+        d_rgb: &[f32],
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let rows = positions.len() / 3;
+        assert!(
+            d_sigma.len() == rows && d_rgb.len() == 3 * rows,
+            "gradients of {rows} samples"
+        );
+        let buffers = self.upload(context, params, positions, directions);
+        let d_sigma = storage_buffer(context, "nerf d sigma", d_sigma);
+        let d_rgb = storage_buffer(context, "nerf d rgb", d_rgb);
+        let gradients = zeroed_storage_buffer::<f32>(context, "nerf gradients", params.len());
+        let mut encoder = context.device.create_command_encoder(&Default::default());
+        encoder.clear_buffer(&gradients, 0, None);
+        self.record_forward(
+            context,
+            &mut encoder,
+            &buffers.params,
+            &buffers.positions,
+            &buffers.directions,
+            rows,
+            &buffers.sigma,
+            &buffers.rgb,
+        );
+        self.record_backward(
+            context,
+            &mut encoder,
+            &buffers.params,
+            &d_sigma,
+            &d_rgb,
+            rows,
+            &gradients,
+        );
+        context.queue.submit([encoder.finish()]);
+        (
+            read_buffer(context, &buffers.sigma, rows),
+            read_buffer(context, &buffers.rgb, 3 * rows),
+            read_buffer(context, &gradients, params.len()),
+        )
+    }
+
+    /// Uploads and runs [`Self::record_density`], reading σ back.
+    pub fn density_once(
+        &mut self,
+        context: &GpuContext,
+        params: &[f32],
+        positions: &[f32],
+    ) -> Vec<f32> {
+        let rows = positions.len() / 3;
+        let buffers = self.upload(context, params, positions, &[]);
+        let mut encoder = context.device.create_command_encoder(&Default::default());
+        self.record_density(
+            context,
+            &mut encoder,
+            &buffers.params,
+            &buffers.positions,
+            rows,
+            &buffers.sigma,
+        );
+        context.queue.submit([encoder.finish()]);
+        read_buffer(context, &buffers.sigma, rows)
+    }
+
+    fn upload(
+        &self,
+        context: &GpuContext,
+        params: &[f32],
+        positions: &[f32],
+        directions: &[f32],
+    ) -> OnceBuffers {
+        let rows = positions.len() / 3;
+        assert_eq!(positions.len(), 3 * rows, "positions are not rows of 3");
+        assert!(
+            directions.is_empty() || directions.len() == positions.len(),
+            "directions and positions differ in size"
+        );
+        assert_eq!(params.len(), self.param_count(), "parameter count");
+        OnceBuffers {
+            params: storage_buffer(context, "nerf params", params),
+            positions: storage_buffer(context, "nerf positions", positions),
+            directions: storage_buffer(context, "nerf directions", directions),
+            sigma: zeroed_storage_buffer::<f32>(context, "nerf sigma", rows),
+            rgb: zeroed_storage_buffer::<f32>(context, "nerf rgb", 3 * rows),
+        }
+    }
+}
+
+/// Buffers of the `*_once` helpers.
+struct OnceBuffers {
+    params: wgpu::Buffer,
+    positions: wgpu::Buffer,
+    directions: wgpu::Buffer,
+    sigma: wgpu::Buffer,
+    rgb: wgpu::Buffer,
+}
