@@ -163,8 +163,11 @@ impl CpuModel {
             let mut grid = OccupancyGrid::new(
                 recipe.occupancy,
                 crate::field::ngp::OccupancyConfig::cascades(mapping.aabb_scale),
-                // The grid stores σ · step with σ per world unit.
-                recipe.march.step / mapping.scale,
+                // The grid stores σ · step with σ per world unit, the step
+                // being Instant-NGP's smallest (√3/1024 of the unit cube)
+                // whatever this recipe marches with: the occupancy threshold
+                // (0.01) then means the same density for every model.
+                crate::field::ngp::MarchConfig::PAPER.step / mapping.scale,
             );
             if let BatchSize::Samples(samples) = batch_size.unwrap_or(recipe.batch) {
                 grid.chunk = samples;
