@@ -6,9 +6,8 @@ use std::time::Instant;
 
 use zrak::engine::cpu::ngp::CpuNgp;
 use zrak::field::ngp::LossKind;
-use zrak::metrics::{RgbImage, WHITE, psnr};
 use zrak::scene::demo::{self, DemoConfig};
-use zrak::train::eval::score_view;
+use zrak::train::eval::{mean_colour_psnr, score_view};
 use zrak::train::trainer::Trainer;
 
 fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
@@ -40,28 +39,7 @@ fn learns_the_demo_scene_well_above_the_mean_colour() {
 
     // The baseline: every pixel of a held-out view predicted as the mean
     // colour of the training images on white.
-    let mut sum = [0f64; 3];
-    let mut count = 0f64;
-    for frame in &scene.train {
-        for pixel in RgbImage::from_rgba8_over(&frame.image, WHITE).pixels {
-            for c in 0..3 {
-                sum[c] += pixel[c] as f64;
-            }
-            count += 1.0;
-        }
-    }
-    let mean = sum.map(|s| (s / count) as f32);
-    let baseline = scene
-        .val
-        .iter()
-        .map(|f| {
-            let truth = RgbImage::from_rgba8_over(&f.image, WHITE);
-            let flat =
-                RgbImage::new(truth.width, truth.height, vec![mean; truth.pixels.len()]).unwrap();
-            psnr(&flat, &truth).unwrap()
-        })
-        .sum::<f64>()
-        / scene.val.len() as f64;
+    let baseline = mean_colour_psnr(&scene.train, &scene.val);
 
     let model = CpuNgp::with_batch_samples(&scene, 0, loss, batch);
     let mut trainer = Trainer::new(Box::new(model), scene.clone(), 0);

@@ -136,6 +136,33 @@ pub fn evaluate_split(
     }
 }
 
+/// Mean PSNR on `frames` of the simplest predictor: every pixel the mean
+/// colour of the `train` images on white. A floor that learning must
+/// clear by a margin.
+pub fn mean_colour_psnr(train: &[Frame], frames: &[Frame]) -> f64 {
+    let mut sum = [0f64; 3];
+    let mut count = 0f64;
+    for frame in train {
+        for pixel in RgbImage::from_rgba8_over(&frame.image, WHITE).pixels {
+            for (s, &c) in sum.iter_mut().zip(&pixel) {
+                *s += c as f64;
+            }
+            count += 1.0;
+        }
+    }
+    let mean = sum.map(|s| (s / count.max(1.0)) as f32);
+    frames
+        .iter()
+        .map(|f| {
+            let truth = RgbImage::from_rgba8_over(&f.image, WHITE);
+            let flat = RgbImage::new(truth.width, truth.height, vec![mean; truth.pixels.len()])
+                .expect("one colour per pixel");
+            metrics::psnr(&flat, &truth).expect("same size")
+        })
+        .sum::<f64>()
+        / frames.len().max(1) as f64
+}
+
 /// `count` views spread evenly over `frames` (all when there are fewer).
 pub fn spread_views(frames: &[Frame], count: usize) -> Vec<&Frame> {
     if frames.len() <= count {

@@ -30,7 +30,7 @@ use rayon::prelude::*;
 
 use super::adam::Adam;
 use super::composite_batch::{self, CompositeGradients, CompositeOutputs};
-use super::fields::{Field, set_len};
+use super::fields::{Field, gather_rows, set_len};
 use super::loss::loss_and_gradient;
 use super::march::{
     BatchSizer, MarchParams, MarchWorkspace, MarchedSamples, march, mix_seed, mix32,
@@ -96,7 +96,6 @@ struct StepBuffers {
     /// σ from the field's forward pass on the used samples (compositing
     /// uses the cut pass's).
     sigma_forward: Vec<f32>,
-    samples_used: Vec<u32>,
     source: Vec<u32>,
     levels: Vec<LevelBuffers>,
     fine_t: Vec<f32>,
@@ -104,10 +103,7 @@ struct StepBuffers {
     inner_weights: Vec<f32>,
     targets: Vec<f32>,
     backgrounds: Vec<f32>,
-    ray_rgb: Vec<f32>,
-    ray_opacity: Vec<f32>,
-    ray_depth: Vec<f32>,
-    d_ray_rgb: Vec<f32>,
+    rays: RayScratch,
     gradients: Vec<f32>,
 }
 
@@ -336,13 +332,13 @@ impl CpuModel {
 
         let clock = Instant::now();
         let min_transmittance = self.recipe.march.min_transmittance;
-        set_len(&mut b.samples_used, kept);
+        set_len(&mut b.rays.samples_used, kept);
         composite_batch::samples_before_cut(
             &b.sigma_marched,
             &b.marched.dt,
             &b.marched.ray_offsets[..kept + 1],
             min_transmittance,
-            &mut b.samples_used,
+            &mut b.rays.samples_used,
         );
         if b.levels.is_empty() {
             b.levels.push(LevelBuffers::default());
@@ -351,7 +347,7 @@ impl CpuModel {
         b.source.clear();
         lb.ray_offsets.clear();
         lb.ray_offsets.push(0);
-        for (r, &count) in b.samples_used.iter().enumerate() {
+        for (r, &count) in b.rays.samples_used.iter().enumerate() {
             let first = b.marched.ray_offsets[r];
             b.source.extend(first..first + count);
             lb.ray_offsets.push(b.source.len() as u32);
@@ -384,13 +380,7 @@ impl CpuModel {
             min_transmittance,
             self.loss,
             level.loss_weight,
-            Scratch {
-                ray_rgb: &mut b.ray_rgb,
-                ray_opacity: &mut b.ray_opacity,
-                ray_depth: &mut b.ray_depth,
-                samples_used: &mut b.samples_used,
-                d_ray_rgb: &mut b.d_ray_rgb,
-            },
+            &mut b.rays,
         );
         times.composite = clock.elapsed().as_secs_f64();
 
@@ -470,13 +460,7 @@ impl CpuModel {
                     0.0,
                     self.loss,
                     level.loss_weight * share,
-                    Scratch {
-                        ray_rgb: &mut b.ray_rgb,
-                        ray_opacity: &mut b.ray_opacity,
-                        ray_depth: &mut b.ray_depth,
-                        samples_used: &mut b.samples_used,
-                        d_ray_rgb: &mut b.d_ray_rgb,
-                    },
+                    &mut b.rays,
                 );
                 loss += level_loss * (level.loss_weight * share) as f64;
                 if let Some(l) = level_losses.get_mut(level_index) {
@@ -676,13 +660,16 @@ impl CpuModel {
     }
 }
 
-/// Where [`composite_and_loss`] keeps per-ray values.
-struct Scratch<'a> {
-    ray_rgb: &'a mut Vec<f32>,
-    ray_opacity: &'a mut Vec<f32>,
-    ray_depth: &'a mut Vec<f32>,
-    samples_used: &'a mut Vec<u32>,
-    d_ray_rgb: &'a mut Vec<f32>,
+/// Per-ray values of compositing and the loss, reused between levels and
+/// steps.
+#[derive(Default)]
+struct RayScratch {
+    rgb: Vec<f32>,
+    opacity: Vec<f32>,
+    depth: Vec<f32>,
+    /// Samples before each ray's cut.
+    samples_used: Vec<u32>,
+    d_rgb: Vec<f32>,
 }
 
 /// Composites a level's samples (σ, rgb, dt, t, ray offsets in `lb`) over
@@ -698,7 +685,7 @@ fn composite_and_loss(
     min_transmittance: f32,
     loss_kind: LossKind,
     scale: f32,
-    scratch: Scratch,
+    scratch: &mut RayScratch,
 ) -> f64 {
     let rays = lb.ray_offsets.len() - 1;
     let n = lb.sigma.len();
@@ -710,26 +697,26 @@ fn composite_and_loss(
         ray_offsets: &lb.ray_offsets,
         background: backgrounds,
     };
-    set_len(scratch.ray_rgb, 3 * rays);
-    set_len(scratch.ray_opacity, rays);
-    set_len(scratch.ray_depth, rays);
-    set_len(scratch.samples_used, rays);
+    set_len(&mut scratch.rgb, 3 * rays);
+    set_len(&mut scratch.opacity, rays);
+    set_len(&mut scratch.depth, rays);
+    set_len(&mut scratch.samples_used, rays);
     composite_batch::composite_forward(
         &batch,
         min_transmittance,
         CompositeOutputs {
-            rgb: scratch.ray_rgb,
-            opacity: scratch.ray_opacity,
-            depth: scratch.ray_depth,
-            samples_used: scratch.samples_used,
+            rgb: &mut scratch.rgb,
+            opacity: &mut scratch.opacity,
+            depth: &mut scratch.depth,
+            samples_used: &mut scratch.samples_used,
         },
     );
     set_len(&mut lb.weights, n);
     composite_batch::sample_weights(&batch, min_transmittance, &mut lb.weights);
-    set_len(scratch.d_ray_rgb, 3 * rays);
-    let loss = loss_and_gradient(loss_kind, scratch.ray_rgb, targets, scratch.d_ray_rgb);
+    set_len(&mut scratch.d_rgb, 3 * rays);
+    let loss = loss_and_gradient(loss_kind, &scratch.rgb, targets, &mut scratch.d_rgb);
     if scale != 1.0 {
-        for g in scratch.d_ray_rgb.iter_mut() {
+        for g in scratch.d_rgb.iter_mut() {
             *g *= scale;
         }
     }
@@ -738,7 +725,7 @@ fn composite_and_loss(
     composite_batch::composite_backward(
         &batch,
         min_transmittance,
-        scratch.d_ray_rgb,
+        &scratch.d_rgb,
         CompositeGradients {
             density: &mut lb.d_sigma,
             rgb: &mut lb.d_rgb,
@@ -824,18 +811,6 @@ fn to_world(mapping: &UnitCubeMapping, unit: &[f32], world: &mut Vec<f32>) {
                 for c in 0..3 {
                     w[c] = (u[c] - offset[c]) / scale;
                 }
-            }
-        });
-}
-
-/// Rows of `src` (`width` values each) picked by `rows`, into `dst`.
-fn gather_rows(src: &[f32], width: usize, rows: &[u32], dst: &mut Vec<f32>) {
-    set_len(dst, rows.len() * width);
-    dst.par_chunks_mut(ROWS_PER_TASK * width)
-        .zip(rows.par_chunks(ROWS_PER_TASK))
-        .for_each(|(dst, rows)| {
-            for (out, &row) in dst.chunks_exact_mut(width).zip(rows) {
-                out.copy_from_slice(&src[row as usize * width..][..width]);
             }
         });
 }

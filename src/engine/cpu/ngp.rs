@@ -17,6 +17,7 @@ use super::dense::{
     MlpLayout, MlpWorkspace, mlp_backward, mlp_backward_columns, mlp_forward, mlp_inference,
     mlp_inference_leading,
 };
+use super::fields::{gather_rows, set_len};
 use super::hash_grid::{self, HashGridLayout};
 use super::loss::loss_and_gradient;
 use super::march::{
@@ -205,13 +206,6 @@ struct StepBuffers {
     gradients: Vec<f32>,
 }
 
-/// Sets the length of a buffer that is about to be overwritten in full:
-/// only growth is zero-filled.
-fn set_len<T: Copy + Default>(v: &mut Vec<T>, n: usize) {
-    v.truncate(n);
-    v.resize(n, T::default());
-}
-
 /// The samples of a batch that compositing uses (those before each ray's
 /// transmittance cut), in ray order, gathered from the marched samples.
 #[derive(Default)]
@@ -232,18 +226,6 @@ struct CompactSamples {
 
 /// Rows per rayon task in the element-wise passes of the step.
 const ROWS_PER_TASK: usize = 4096;
-
-/// Rows of `src` (`width` values each) picked by `rows`, into `dst`.
-fn gather_rows(src: &[f32], width: usize, rows: &[u32], dst: &mut Vec<f32>) {
-    set_len(dst, rows.len() * width);
-    dst.par_chunks_mut(ROWS_PER_TASK * width)
-        .zip(rows.par_chunks(ROWS_PER_TASK))
-        .for_each(|(dst, rows)| {
-            for (out, &row) in dst.chunks_exact_mut(width).zip(rows) {
-                out.copy_from_slice(&src[row as usize * width..][..width]);
-            }
-        });
-}
 
 /// Instant-NGP trained by the `cpu` engine.
 pub struct CpuNgp {

@@ -62,3 +62,20 @@ pub(crate) fn set_len<T: Copy + Default>(v: &mut Vec<T>, n: usize) {
     v.truncate(n);
     v.resize(n, T::default());
 }
+
+/// Rows per rayon task in [`gather_rows`].
+const ROWS_PER_TASK: usize = 4096;
+
+/// Rows of `src` (`width` values each) picked by `rows`, into `dst`: how
+/// the samples a step uses are gathered from all it marched.
+pub(crate) fn gather_rows(src: &[f32], width: usize, rows: &[u32], dst: &mut Vec<f32>) {
+    use rayon::prelude::*;
+    set_len(dst, rows.len() * width);
+    dst.par_chunks_mut(ROWS_PER_TASK * width)
+        .zip(rows.par_chunks(ROWS_PER_TASK))
+        .for_each(|(dst, rows)| {
+            for (out, &row) in dst.chunks_exact_mut(width).zip(rows) {
+                out.copy_from_slice(&src[row as usize * width..][..width]);
+            }
+        });
+}

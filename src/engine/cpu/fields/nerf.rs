@@ -209,6 +209,52 @@ impl NerfField {
     }
 }
 
+/// Scratch of inference up to trunk B's input, for one round of rows.
+struct TrunkInput {
+    encoded: Vec<f32>,
+    hidden: Vec<f32>,
+    /// [h | γ(x)] per row: trunk B's input.
+    b_in: Vec<f32>,
+}
+
+impl TrunkInput {
+    fn new(shape: &NerfShape, rows: usize) -> Self {
+        let (width, enc) = (shape.width(), shape.position.output_width());
+        Self {
+            encoded: vec![0f32; rows * enc],
+            hidden: vec![0f32; rows * width],
+            b_in: vec![0f32; rows * (width + enc)],
+        }
+    }
+
+    /// Encodes `positions` (m × 3), runs trunk A and writes trunk B's input
+    /// for the m rows; returns it.
+    fn fill(&mut self, shape: &NerfShape, trunk_a: &[f32], positions: &[f32], m: usize) -> &[f32] {
+        let (width, enc) = (shape.width(), shape.position.output_width());
+        frequency::encode(
+            &shape.position,
+            positions,
+            None,
+            &mut self.encoded[..m * enc],
+        );
+        mlp_inference(
+            &shape.trunk_a,
+            trunk_a,
+            &self.encoded[..m * enc],
+            m,
+            &mut self.hidden[..m * width],
+        );
+        concat_rows(
+            &self.hidden[..m * width],
+            width,
+            &self.encoded[..m * enc],
+            enc,
+            &mut self.b_in[..m * (width + enc)],
+        );
+        &self.b_in[..m * (width + enc)]
+    }
+}
+
 /// Writes `[left row | right row]` for every row.
 fn concat_rows(left: &[f32], lw: usize, right: &[f32], rw: usize, out: &mut [f32]) {
     let w = lw + rw;
@@ -255,30 +301,12 @@ impl Field for NerfField {
     fn density(&self, params: &[f32], positions: &[f32], sigma: &mut [f32]) {
         let s = &self.shape;
         let [ra, rb, _] = s.ranges();
-        let (width, enc) = (s.width(), s.position.output_width());
-        let n = sigma.len();
-        let rows = INFERENCE_ROWS.min(n.max(1));
-        let mut encoded = vec![0f32; rows * enc];
-        let mut hidden = vec![0f32; rows * width];
-        let mut b_in = vec![0f32; rows * (width + enc)];
+        let rows = INFERENCE_ROWS.min(sigma.len().max(1));
+        let mut trunk = TrunkInput::new(s, rows);
         for (positions, sigma) in positions.chunks(3 * rows).zip(sigma.chunks_mut(rows)) {
             let m = sigma.len();
-            frequency::encode(&s.position, positions, None, &mut encoded[..m * enc]);
-            mlp_inference(
-                &s.trunk_a,
-                &params[ra.clone()],
-                &encoded[..m * enc],
-                m,
-                &mut hidden[..m * width],
-            );
-            concat_rows(
-                &hidden[..m * width],
-                width,
-                &encoded[..m * enc],
-                enc,
-                &mut b_in[..m * (width + enc)],
-            );
-            mlp_inference_leading(&s.trunk_b, &params[rb.clone()], &b_in, m, sigma, 1);
+            let b_in = trunk.fill(s, &params[ra.clone()], positions, m);
+            mlp_inference_leading(&s.trunk_b, &params[rb.clone()], b_in, m, sigma, 1);
             for x in sigma.iter_mut() {
                 *x = s.density.apply(*x);
             }
@@ -437,16 +465,10 @@ impl Field for NerfField {
     ) {
         let s = &self.shape;
         let [ra, rb, rc] = s.ranges();
-        let (width, enc, enc_dir) = (
-            s.width(),
-            s.position.output_width(),
-            s.direction.output_width(),
-        );
-        let n = sigma.len();
-        let rows = INFERENCE_ROWS.min(n.max(1));
-        let mut encoded = vec![0f32; rows * enc];
-        let mut hidden = vec![0f32; rows * width];
-        let mut b_in = vec![0f32; rows * (width + enc)];
+        let (width, enc_dir) = (s.width(), s.direction.output_width());
+        let rows = INFERENCE_ROWS.min(sigma.len().max(1));
+        let mut trunk = TrunkInput::new(s, rows);
+        let mut feature = vec![0f32; rows * width];
         let mut b_out = vec![0f32; rows * (width + 1)];
         let mut encoded_direction = vec![0f32; rows * enc_dir];
         let mut colour_in = vec![0f32; rows * (width + enc_dir)];
@@ -457,25 +479,11 @@ impl Field for NerfField {
             .zip(rgb.chunks_mut(3 * rows))
         {
             let m = sigma.len();
-            frequency::encode(&s.position, positions, None, &mut encoded[..m * enc]);
-            mlp_inference(
-                &s.trunk_a,
-                &params[ra.clone()],
-                &encoded[..m * enc],
-                m,
-                &mut hidden[..m * width],
-            );
-            concat_rows(
-                &hidden[..m * width],
-                width,
-                &encoded[..m * enc],
-                enc,
-                &mut b_in[..m * (width + enc)],
-            );
+            let b_in = trunk.fill(s, &params[ra.clone()], positions, m);
             mlp_inference(
                 &s.trunk_b,
                 &params[rb.clone()],
-                &b_in[..m * (width + enc)],
+                b_in,
                 m,
                 &mut b_out[..m * (width + 1)],
             );
@@ -492,10 +500,10 @@ impl Field for NerfField {
                 &b_out[..m * (width + 1)],
                 width + 1,
                 1..width + 1,
-                &mut hidden[..m * width],
+                &mut feature[..m * width],
             );
             concat_rows(
-                &hidden[..m * width],
+                &feature[..m * width],
                 width,
                 &encoded_direction[..m * enc_dir],
                 enc_dir,
