@@ -324,13 +324,12 @@ impl CpuModel {
         // the field's forward and backward passes then run on the samples
         // before that point only (after it, a sample's colour is never read
         // and every gradient through it is zero).
+        // The σ pass and the forward pass are both counted as the networks'
+        // forward time (the encodings are part of the field here).
         let clock = Instant::now();
         let field_params = &self.params[field_range.clone()];
         set_len(&mut b.sigma_marched, s);
         self.fields[level.field].density(field_params, &b.world, &mut b.sigma_marched);
-        times.encode = clock.elapsed().as_secs_f64();
-
-        let clock = Instant::now();
         let min_transmittance = self.recipe.march.min_transmittance;
         set_len(&mut b.rays.samples_used, kept);
         composite_batch::samples_before_cut(
