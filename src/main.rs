@@ -258,14 +258,6 @@ fn default_sampling() -> Sampling {
     Sampling::Occupancy
 }
 
-/// The loss a model trains with unless told otherwise.
-fn default_loss(model: ModelKind) -> LossKind {
-    match model {
-        ModelKind::Ngp => LossKind::Huber,
-        ModelKind::Nerf => LossKind::L2,
-    }
-}
-
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
@@ -524,7 +516,7 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
             loss: match args.loss {
                 Some(LossArg::Huber) => LossKind::Huber,
                 Some(LossArg::L2) => LossKind::L2,
-                None => default_loss(args.model),
+                None => args.model.default_loss(),
             },
             seed: args.seed,
             sampling: args.sampling,
@@ -757,14 +749,14 @@ fn bench_throughput(
         ModelKind::Ngp => OccupancyConfig::PAPER.warmup_steps as usize + 32,
         // Past the grid's warm-up too, with the occupancy sampler; the
         // paper's sampler has no grid, and a few steps settle its caches.
-        ModelKind::Nerf => match sampling {
+        ModelKind::Nerf | ModelKind::MipNerf => match sampling {
             Sampling::Occupancy => zrak::field::nerf::OCCUPANCY.warmup_steps as usize + 16,
             Sampling::Paper => 2,
         },
     });
     let settings = ModelSettings {
         seed: 0,
-        loss: default_loss(model),
+        loss: model.default_loss(),
         batch_samples: None,
         sampling,
     };

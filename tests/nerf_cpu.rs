@@ -1,5 +1,6 @@
-//! NeRF on the cpu engine: the field's gradients, the whole step's gradient
-//! with either sampler, exact resumption, and hard cases.
+//! NeRF and Mip-NeRF on the cpu engine (one driver, one field shape, two
+//! recipes): the field's gradients, the whole step's gradient with either
+//! sampler, exact resumption, and hard cases.
 
 use std::sync::Arc;
 
@@ -17,7 +18,7 @@ use zrak::train::batch::{RayBatch, TrainingBackground, sample_rays};
 use zrak::train::checkpoint::Checkpoint;
 use zrak::train::model::RadianceModel;
 use zrak::train::trainer::Trainer;
-use zrak::train::{ModelSettings, cpu_nerf_with_shape};
+use zrak::train::{ModelSettings, cpu_mipnerf_with_shape, cpu_nerf_with_shape};
 
 fn small_scene() -> Arc<Scene> {
     Arc::new(demo::build(&DemoConfig {
@@ -28,38 +29,68 @@ fn small_scene() -> Arc<Scene> {
     }))
 }
 
-/// NeRF's field in miniature: the same parts (both encodings with their
-/// raw inputs, a trunk with the skip, the σ and feature heads, the colour
-/// branch), narrow enough for finite differences to be quick.
-fn small_shape() -> NerfShape {
-    NerfShape::new(
-        FrequencyEncoding {
-            frequencies: 3,
-            include_input: true,
-        },
-        FrequencyEncoding {
-            frequencies: 2,
-            include_input: true,
-        },
-        16,
-        4,
-        2,
-        8,
-        DensityActivation::Relu,
-    )
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Kind {
+    Nerf,
+    MipNerf,
+}
+
+const KINDS: [Kind; 2] = [Kind::Nerf, Kind::MipNerf];
+
+/// Each model's field in miniature: the same parts (NeRF: both encodings
+/// with their raw inputs, ReLU density; Mip-NeRF: the integrated position
+/// encoding without it, shifted softplus, widened colours; both: a trunk
+/// with the skip, the σ and feature heads, the colour branch), narrow
+/// enough for finite differences to be quick.
+fn small_shape(kind: Kind) -> NerfShape {
+    let shape = |position, density| {
+        NerfShape::new(
+            position,
+            FrequencyEncoding {
+                frequencies: 2,
+                include_input: true,
+            },
+            16,
+            4,
+            2,
+            8,
+            density,
+        )
+    };
+    match kind {
+        Kind::Nerf => shape(
+            FrequencyEncoding {
+                frequencies: 3,
+                include_input: true,
+            },
+            DensityActivation::Relu,
+        ),
+        Kind::MipNerf => shape(
+            FrequencyEncoding {
+                frequencies: 4,
+                include_input: false,
+            },
+            DensityActivation::ShiftedSoftplus { shift: 1.0 },
+        )
+        .with_colour_padding(zrak::field::mipnerf::RGB_PADDING),
+    }
+}
+
+fn model_of(scene: &Scene, kind: Kind, sampling: Sampling) -> CpuModel {
+    let settings = ModelSettings {
+        seed: 3,
+        loss: LossKind::L2,
+        batch_samples: Some(1 << 12),
+        sampling,
+    };
+    match kind {
+        Kind::Nerf => cpu_nerf_with_shape(scene, &settings, &small_shape(kind)),
+        Kind::MipNerf => cpu_mipnerf_with_shape(scene, &settings, &small_shape(kind)),
+    }
 }
 
 fn model(scene: &Scene, sampling: Sampling) -> CpuModel {
-    cpu_nerf_with_shape(
-        scene,
-        &ModelSettings {
-            seed: 3,
-            loss: LossKind::L2,
-            batch_samples: Some(1 << 12),
-            sampling,
-        },
-        &small_shape(),
-    )
+    model_of(scene, Kind::Nerf, sampling)
 }
 
 fn batch(scene: &Scene, rays: usize, seed: u64) -> RayBatch {
@@ -74,13 +105,27 @@ fn batch(scene: &Scene, rays: usize, seed: u64) -> RayBatch {
     batch
 }
 
+/// Variances log-uniform in [1e-6, 1e-1]: from nearly points (every
+/// frequency kept) to frustums that damp all but the lowest.
+fn variances(rng: &mut Pcg32, n: usize) -> Vec<f32> {
+    (0..3 * n)
+        .map(|_| 10f32.powf(uniform(rng, -6.0, -1.0)))
+        .collect()
+}
+
 fn uniform(rng: &mut Pcg32, lo: f32, hi: f32) -> f32 {
     lo + (hi - lo) * rng.next_f32()
 }
 
 #[test]
 fn field_gradient_matches_finite_differences() {
-    let mut field = NerfField::new(small_shape());
+    for kind in KINDS {
+        check_field_gradient(kind);
+    }
+}
+
+fn check_field_gradient(kind: Kind) {
+    let mut field = NerfField::new(small_shape(kind));
     let mut rng = Pcg32::new(17, 0);
     let mut params = field.init_params(5);
     // Biases away from zero, so every layer's bias gradient is exercised
@@ -101,12 +146,14 @@ fn field_gradient_matches_finite_differences() {
             d.to_array()
         })
         .collect();
+    let variances = (kind == Kind::MipNerf).then(|| variances(&mut rng, n));
+    let variances = variances.as_deref();
     // The loss Σ a·σ + Σ b·rgb with fixed random a, b.
     let a: Vec<f32> = (0..n).map(|_| uniform(&mut rng, -1.0, 1.0)).collect();
     let b: Vec<f32> = (0..3 * n).map(|_| uniform(&mut rng, -1.0, 1.0)).collect();
     let loss = |field: &mut NerfField, params: &[f32]| -> f64 {
         let (mut sigma, mut rgb) = (vec![0f32; n], vec![0f32; 3 * n]);
-        field.forward(params, &positions, &directions, &mut sigma, &mut rgb);
+        field.forward(params, &positions, variances, &directions, &mut sigma, &mut rgb);
         sigma
             .iter()
             .zip(&a)
@@ -124,17 +171,25 @@ fn field_gradient_matches_finite_differences() {
 
     // The forward pass agrees with inference and with the σ-only pass.
     let (mut sigma, mut rgb) = (vec![0f32; n], vec![0f32; 3 * n]);
-    field.forward(&params, &positions, &directions, &mut sigma, &mut rgb);
+    field.forward(
+        &params,
+        &positions,
+        variances,
+        &directions,
+        &mut sigma,
+        &mut rgb,
+    );
     let (mut sigma_inf, mut rgb_inf) = (vec![0f32; n], vec![0f32; 3 * n]);
     field.radiance(
         &params,
         &positions,
+        variances,
         &directions,
         &mut sigma_inf,
         &mut rgb_inf,
     );
     let mut sigma_only = vec![0f32; n];
-    field.density(&params, &positions, &mut sigma_only);
+    field.density(&params, &positions, variances, &mut sigma_only);
     for i in 0..n {
         assert!((sigma[i] - sigma_inf[i]).abs() <= 1e-5 * (1.0 + sigma[i].abs()));
         assert!((sigma[i] - sigma_only[i]).abs() <= 1e-5 * (1.0 + sigma[i].abs()));
@@ -145,7 +200,7 @@ fn field_gradient_matches_finite_differences() {
 
     // The eight parameters with the largest gradient in each network
     // (trunk before the skip, after it, colour branch).
-    let shape = small_shape();
+    let shape = small_shape(kind);
     let a = shape.trunk_a.param_count();
     let b = a + shape.trunk_b.param_count();
     let networks = [0..a, a..b, b..params.len()];
@@ -174,7 +229,7 @@ fn field_gradient_matches_finite_differences() {
             // kink inside ±h can account for the rest.
             assert!(
                 error < 0.02,
-                "parameter {index}: analytic {analytic:e}, numeric {numeric:e}"
+                "{kind:?} parameter {index}: analytic {analytic:e}, numeric {numeric:e}"
             );
             checked += 1;
         }
@@ -184,15 +239,22 @@ fn field_gradient_matches_finite_differences() {
 
 /// The whole step's gradient against central differences of the step's
 /// loss, for the parameters with the largest gradients in each field.
-fn check_step_gradient(sampling: Sampling) {
+fn check_step_gradient(kind: Kind, sampling: Sampling) {
     let scene = small_scene();
-    let mut trainer = Trainer::new(Box::new(model(&scene, sampling)), scene.clone(), 3);
+    let mut trainer = Trainer::new(
+        Box::new(model_of(&scene, kind, sampling)),
+        scene.clone(),
+        3,
+    );
     for _ in 0..20 {
         trainer.step();
     }
     let checkpoint = trainer.model.save();
-    let mut nerf = model(&scene, sampling);
+    let mut nerf = model_of(&scene, kind, sampling);
     nerf.load(&checkpoint).unwrap();
+    // No gradient flows through where the second level's samples go: they
+    // stay where the first evaluation put them.
+    nerf.hold_samples(true);
 
     let rays = batch(&scene, 96, 11);
     let step = 1001; // seeds every jitter identically on each call
@@ -201,16 +263,7 @@ fn check_step_gradient(sampling: Sampling) {
     let gradient = nerf.gradients().to_vec();
     let ranges = nerf.parameter_ranges().to_vec();
     for (field, range) in ranges.iter().enumerate() {
-        // With the paper's sampler the coarse field's weights also move the
-        // fine samples, through which no gradient flows (paper, section
-        // 5.2): its gradient is that of the coarse loss alone.
-        let level_loss = |nerf: &mut CpuModel| {
-            let stats = nerf.forward_backward(&rays, step);
-            match (sampling, field) {
-                (Sampling::Paper, 0) => stats.level_losses[0] as f64,
-                _ => stats.loss as f64,
-            }
-        };
+        let level_loss = |nerf: &mut CpuModel| nerf.forward_backward(&rays, step).loss as f64;
         let mut order: Vec<usize> = range.clone().collect();
         order.sort_by(|&a, &b| gradient[b].abs().total_cmp(&gradient[a].abs()));
         for &index in order.iter().take(4) {
@@ -228,7 +281,7 @@ fn check_step_gradient(sampling: Sampling) {
             let error = (numeric - analytic).abs() / analytic.abs().max(numeric.abs());
             assert!(
                 error < 0.05,
-                "{sampling:?} field {field} parameter {index}: analytic {analytic:e}, numeric {numeric:e}"
+                "{kind:?} {sampling:?} field {field} parameter {index}: analytic {analytic:e}, numeric {numeric:e}"
             );
         }
     }
@@ -236,17 +289,22 @@ fn check_step_gradient(sampling: Sampling) {
 
 #[test]
 fn step_gradient_matches_finite_differences_with_the_occupancy_sampler() {
-    check_step_gradient(Sampling::Occupancy);
+    for kind in KINDS {
+        check_step_gradient(kind, Sampling::Occupancy);
+    }
 }
 
 #[test]
 fn step_gradient_matches_finite_differences_with_the_paper_sampler() {
-    check_step_gradient(Sampling::Paper);
+    for kind in KINDS {
+        check_step_gradient(kind, Sampling::Paper);
+    }
 }
 
-fn check_resume(sampling: Sampling) {
+fn check_resume(kind: Kind, sampling: Sampling) {
     let scene = small_scene();
     let steps = 36; // spans two occupancy-grid updates (every 16 steps)
+    let model = |scene: &Scene, sampling| model_of(scene, kind, sampling);
     let mut whole = Trainer::new(Box::new(model(&scene, sampling)), scene.clone(), 5);
     for _ in 0..steps {
         whole.step();
@@ -279,15 +337,17 @@ fn check_resume(sampling: Sampling) {
             .count();
         assert_eq!(
             differing, 0,
-            "{sampling:?}: `{name}` differs in {differing} values"
+            "{kind:?} {sampling:?}: `{name}` differs in {differing} values"
         );
     }
 }
 
 #[test]
 fn resumed_run_matches_uninterrupted_run_with_either_sampler() {
-    check_resume(Sampling::Occupancy);
-    check_resume(Sampling::Paper);
+    for kind in KINDS {
+        check_resume(kind, Sampling::Occupancy);
+        check_resume(kind, Sampling::Paper);
+    }
 }
 
 #[test]
@@ -304,12 +364,15 @@ fn checkpoint_of_the_other_sampler_or_model_is_refused() {
         .load(&ngp.save())
         .unwrap_err();
     assert!(error.contains("`ngp`"), "{error}");
+    let mip = model_of(&scene, Kind::MipNerf, Sampling::Occupancy).save();
+    let error = model(&scene, Sampling::Occupancy).load(&mip).unwrap_err();
+    assert!(error.contains("`mipnerf`"), "{error}");
 }
 
 /// Sets the σ head's bias (the first output of the field's second trunk)
 /// of every field to `bias`, which with small weights sets raw σ ≈ bias.
-fn set_density_bias(nerf: &mut CpuModel, bias: f32) {
-    let shape = small_shape();
+fn set_density_bias(nerf: &mut CpuModel, kind: Kind, bias: f32) {
+    let shape = small_shape(kind);
     let b_start = shape.trunk_a.param_count();
     let last = shape.trunk_b.layers() - 1;
     let offset = shape.trunk_b.bias_offset(last).unwrap();
@@ -330,13 +393,20 @@ fn assert_all_finite(nerf: &mut CpuModel, rays: &RayBatch, label: &str) {
         "{label}: a gradient is not finite"
     );
     let mut out = vec![Default::default(); rays.len()];
-    nerf.render(&rays.origins, &rays.directions, [1.0; 3], &mut out);
+    nerf.render(
+        &rays.origins,
+        &rays.directions,
+        &rays.radii,
+        [1.0; 3],
+        &mut out,
+    );
     for pixel in &out {
         assert!(
             pixel
                 .rgb
                 .iter()
-                .all(|c| c.is_finite() && (-1e-6..=1.0 + 1e-6).contains(c)),
+                // Mip-NeRF's colours are widened to [−0.001, 1.001].
+                .all(|c| c.is_finite() && (-1.001e-3..=1.0 + 1.001e-3).contains(c)),
             "{label}: {pixel:?}"
         );
         assert!(
@@ -362,37 +432,49 @@ fn hard_cases_stay_finite() {
         rays.directions.push(direction);
         rays.targets.push([1.0; 3]);
         rays.backgrounds.push([1.0; 3]);
+        rays.radii.push(1e-3);
     }
-    for sampling in [Sampling::Occupancy, Sampling::Paper] {
+    // A cone of zero radius (a frustum of zero width) and a very wide one.
+    rays.radii[0] = 0.0;
+    rays.radii[1] = 1e2;
+    for (kind, sampling) in KINDS
+        .into_iter()
+        .flat_map(|k| [(k, Sampling::Occupancy), (k, Sampling::Paper)])
+    {
+        let label = format!("{kind:?} {sampling:?}");
         // Raw σ of 1e4 everywhere: every ray opaque at its first sample.
-        let mut nerf = model(&scene, sampling);
-        set_density_bias(&mut nerf, 1e4);
-        assert_all_finite(&mut nerf, &rays, &format!("{sampling:?}, σ 1e4"));
+        let mut nerf = model_of(&scene, kind, sampling);
+        set_density_bias(&mut nerf, kind, 1e4);
+        assert_all_finite(&mut nerf, &rays, &format!("{label}, σ 1e4"));
         // Raw σ of −1e4: all weights exactly zero, so the importance
         // sampler sees a zero pdf.
-        let mut nerf = model(&scene, sampling);
-        set_density_bias(&mut nerf, -1e4);
-        assert_all_finite(&mut nerf, &rays, &format!("{sampling:?}, σ 0"));
+        let mut nerf = model_of(&scene, kind, sampling);
+        set_density_bias(&mut nerf, kind, -1e4);
+        assert_all_finite(&mut nerf, &rays, &format!("{label}, σ 0"));
         // A learning-rate spike's aftermath: large weights everywhere.
-        let mut nerf = model(&scene, sampling);
+        let mut nerf = model_of(&scene, kind, sampling);
         for p in nerf.params_mut() {
             *p *= 50.0;
         }
-        assert_all_finite(&mut nerf, &rays, &format!("{sampling:?}, large weights"));
+        assert_all_finite(&mut nerf, &rays, &format!("{label}, large weights"));
     }
     // The ray that misses the box shows the background under either
     // sampler (the demo is not a Blender scene: rays are bounded by its box).
-    for sampling in [Sampling::Occupancy, Sampling::Paper] {
-        let nerf = model(&scene, sampling);
+    for (kind, sampling) in KINDS
+        .into_iter()
+        .flat_map(|k| [(k, Sampling::Occupancy), (k, Sampling::Paper)])
+    {
+        let nerf = model_of(&scene, kind, sampling);
         let mut out = vec![Default::default(); 1];
         nerf.render(
             &rays.origins[48..49],
             &rays.directions[48..49],
+            &rays.radii[48..49],
             [1.0; 3],
             &mut out,
         );
-        assert_eq!(out[0].rgb, [1.0; 3], "{sampling:?}");
-        assert_eq!(out[0].opacity, 0.0, "{sampling:?}");
+        assert_eq!(out[0].rgb, [1.0; 3], "{kind:?} {sampling:?}");
+        assert_eq!(out[0].opacity, 0.0, "{kind:?} {sampling:?}");
     }
 }
 

@@ -196,7 +196,13 @@ fn rays_that_miss_or_start_inside_the_box_stay_finite() {
     assert!(stats.loss.is_finite(), "{stats:?}");
     assert!(ngp.params().iter().all(|p| p.is_finite()));
     let mut out = vec![Default::default(); rays.len()];
-    ngp.render(&rays.origins, &rays.directions, [1.0; 3], &mut out);
+    ngp.render(
+        &rays.origins,
+        &rays.directions,
+        &rays.radii,
+        [1.0; 3],
+        &mut out,
+    );
     for pixel in &out {
         assert!(
             pixel

@@ -210,7 +210,8 @@ fn render_view(model: &dyn RadianceModel, scene: &Scene) -> Vec<RenderedPixel> {
         }
     }
     let mut out = vec![RenderedPixel::default(); origins.len()];
-    model.render(&origins, &directions, [1.0; 3], &mut out);
+    let radii = vec![0.0; origins.len()];
+    model.render(&origins, &directions, &radii, [1.0; 3], &mut out);
     out
 }
 

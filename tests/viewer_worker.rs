@@ -127,7 +127,7 @@ fn frames_until_full(worker: &TrainingWorker, generation: u64) -> Vec<RenderedFr
 fn training_reports_stats_with_a_finite_loss_and_honest_psnrs() {
     let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let worker = spawn(WorkerOptions {
-        loss: LossKind::L2,
+        loss: Some(LossKind::L2),
         // Evaluate after every step, so the first report carries a PSNR.
         val_every_train_seconds: 0.0,
         ..options()

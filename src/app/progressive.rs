@@ -62,6 +62,7 @@ pub struct LevelRender {
     done: usize,
     origins: Vec<Vec3>,
     directions: Vec<Vec3>,
+    radii: Vec<f32>,
 }
 
 impl LevelRender {
@@ -75,6 +76,7 @@ impl LevelRender {
             done: 0,
             origins: Vec::new(),
             directions: Vec::new(),
+            radii: Vec::new(),
         }
     }
 
@@ -102,16 +104,19 @@ impl LevelRender {
         let width = self.camera.intrinsics.width as usize;
         self.origins.clear();
         self.directions.clear();
+        self.radii.clear();
         for index in self.done..end {
             let ray = self
                 .camera
                 .pixel_ray((index % width) as u32, (index / width) as u32);
             self.origins.push(ray.origin);
             self.directions.push(ray.direction);
+            self.radii.push(ray.radius());
         }
         model.render(
             &self.origins,
             &self.directions,
+            &self.radii,
             background,
             &mut self.pixels[self.done..end],
         );

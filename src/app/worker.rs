@@ -86,8 +86,9 @@ const MAX_VIEWPORT_SIDE: u32 = 8_192;
 /// How the thread trains and measures; [`Default`] is what the viewer uses.
 pub struct WorkerOptions {
     pub seed: u64,
-    /// Instant-NGP's default is Huber (instant-ngp config "loss").
-    pub loss: LossKind,
+    /// The loss every model trains with; `None` gives each model its own
+    /// default ([`ModelKind::default_loss`]).
+    pub loss: Option<LossKind>,
     /// Samples per training batch; `None` picks by engine: see
     /// [`CPU_BATCH_SAMPLES`].
     pub batch_samples: Option<usize>,
@@ -119,7 +120,7 @@ impl Default for WorkerOptions {
     fn default() -> Self {
         Self {
             seed: 0,
-            loss: LossKind::Huber,
+            loss: None,
             batch_samples: None,
             sampling: Sampling::Occupancy,
             demo: DemoConfig::default(),
@@ -722,13 +723,15 @@ impl Worker {
     fn build_trainer(&self, kind: ModelKind) -> Result<Trainer, String> {
         let settings = ModelSettings {
             seed: self.options.seed,
-            loss: self.options.loss,
+            loss: self.options.loss.unwrap_or(kind.default_loss()),
             batch_samples: self
                 .options
                 .batch_samples
                 .or(match (self.engine.kind, kind) {
                     (EngineKind::Cpu, ModelKind::Ngp) => Some(CPU_BATCH_SAMPLES),
-                    (EngineKind::Cpu, ModelKind::Nerf) => Some(NERF_CPU_BATCH_SAMPLES),
+                    (EngineKind::Cpu, ModelKind::Nerf | ModelKind::MipNerf) => {
+                        Some(NERF_CPU_BATCH_SAMPLES)
+                    }
                     (EngineKind::Gpu, _) => None,
                 }),
             sampling: self.options.sampling,
@@ -759,7 +762,11 @@ impl Worker {
         }
         match self.build_trainer(kind) {
             Ok(trainer) => {
-                let slot = self.new_slot(kind, trainer, self.options.loss);
+                let slot = self.new_slot(
+                    kind,
+                    trainer,
+                    self.options.loss.unwrap_or(kind.default_loss()),
+                );
                 self.slots.push(slot);
                 Ok(())
             }
@@ -865,7 +872,11 @@ impl Worker {
             Ok(trainer) => trainer,
             Err(e) => return self.send(Event::Error(e)),
         };
-        let slot = self.new_slot(kind, trainer, self.options.loss);
+        let slot = self.new_slot(
+            kind,
+            trainer,
+            self.options.loss.unwrap_or(kind.default_loss()),
+        );
         match self.slot_mut(kind) {
             Some(existing) => *existing = slot,
             None => self.slots.push(slot),
@@ -1280,8 +1291,8 @@ impl Worker {
                     model_header["model"]
                 )
             })?;
-        let loss: LossKind =
-            serde_json::from_value(model_header["loss"].clone()).unwrap_or(self.options.loss);
+        let loss: LossKind = serde_json::from_value(model_header["loss"].clone())
+            .unwrap_or(self.options.loss.unwrap_or(kind.default_loss()));
         let mut trainer = self.build_trainer(kind)?;
         trainer
             .restore(&checkpoint)

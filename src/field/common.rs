@@ -1,5 +1,7 @@
 //! Settings of stages that every model uses, with each model's values in
-//! its own file (`ngp.rs`, `nerf.rs`).
+//! its own file (`ngp.rs`, `nerf.rs`, `mipnerf.rs`).
+
+use super::ngp::{MarchConfig, OccupancyConfig};
 
 /// How the learning rate changes with the optimiser's step count.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -15,6 +17,16 @@ pub enum LrSchedule {
     /// `final_rate` at `steps` and keeps decaying after (NeRF,
     /// `run_nerf.py`: lrate · 0.1^(step / (lrate_decay · 1000))).
     Exponential { final_rate: f32, steps: u32 },
+    /// Log-linear from the rate to `final_rate` at `steps` (held there
+    /// after), times a warm-up factor that rises from `warmup_multiplier`
+    /// to 1 along a quarter sine over the first `warmup_steps` (Mip-NeRF,
+    /// `math.learning_rate_decay`).
+    LogLinearWithWarmup {
+        final_rate: f32,
+        steps: u32,
+        warmup_steps: u32,
+        warmup_multiplier: f32,
+    },
 }
 
 /// Adam and its schedule.
@@ -51,6 +63,24 @@ impl OptimiserConfig {
                 let progress = step as f64 / steps.max(1) as f64;
                 (self.learning_rate as f64 * ratio.powf(progress)) as f32
             }
+            LrSchedule::LogLinearWithWarmup {
+                final_rate,
+                steps,
+                warmup_steps,
+                warmup_multiplier,
+            } => {
+                let warmup = if warmup_steps == 0 {
+                    1.0
+                } else {
+                    let progress = (step as f64 / warmup_steps as f64).min(1.0);
+                    let m = warmup_multiplier as f64;
+                    m + (1.0 - m) * (0.5 * std::f64::consts::PI * progress).sin()
+                };
+                let progress = (step as f64 / steps.max(1) as f64).min(1.0);
+                let log_rate = (self.learning_rate as f64).ln() * (1.0 - progress)
+                    + (final_rate as f64).ln() * progress;
+                (warmup * log_rate.exp()) as f32
+            }
         }
     }
 }
@@ -79,6 +109,35 @@ mod tests {
         assert!((config.learning_rate_at(500_000) - 5e-5).abs() < 1e-10);
         assert!(config.learning_rate_at(1_000_000) < 5e-5);
     }
+
+    #[test]
+    fn log_linear_schedule_warms_up_then_decays() {
+        let config = OptimiserConfig {
+            learning_rate: 5e-4,
+            beta1: 0.9,
+            beta2: 0.999,
+            epsilon: 1e-8,
+            l2_weights: 0.0,
+            schedule: LrSchedule::LogLinearWithWarmup {
+                final_rate: 5e-6,
+                steps: 1_000_000,
+                warmup_steps: 2500,
+                warmup_multiplier: 0.01,
+            },
+        };
+        let close = |a: f32, b: f64| ((a as f64 - b) / b).abs() < 1e-5;
+        // Step 0: the warm-up's multiplier times the initial rate.
+        assert!(close(config.learning_rate_at(0), 5e-6));
+        // Half way through the warm-up: sin(π/4) of the way to 1, with the
+        // log-linear decay of 1250 steps (a factor 100^(−1250/1e6)).
+        let decay = 100f64.powf(-1250.0 / 1e6);
+        let warm = 0.01 + 0.99 * (std::f64::consts::FRAC_PI_4).sin();
+        assert!(close(config.learning_rate_at(1250), 5e-4 * warm * decay));
+        // Half way in log space at 500k: √(5e-4 · 5e-6) = 5e-5.
+        assert!(close(config.learning_rate_at(500_000), 5e-5));
+        assert!(close(config.learning_rate_at(1_000_000), 5e-6));
+        assert!(close(config.learning_rate_at(2_000_000), 5e-6));
+    }
 }
 
 /// Where a level of a model puts its samples along each ray.
@@ -93,6 +152,23 @@ pub enum SamplerKind {
     /// CDF, `padding` added to each weight), evaluated together with the
     /// previous level's samples.
     Importance { count: usize, padding: f32 },
+    /// Mip-NeRF's resampling: `count` intervals drawn afresh from the
+    /// previous level's intervals, whose weights are blurred (2-tap max,
+    /// 2-tap average) and padded by `padding` first; they replace the
+    /// previous level's intervals instead of joining them.
+    Resample { count: usize, padding: f32 },
+}
+
+/// What a sample stands for, which decides what the field is given.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SampleShape {
+    /// A point on the ray (NeRF, Instant-NGP).
+    Points,
+    /// The conical frustum of the pixel's cone between two distances, given
+    /// to the field as its Gaussian's mean and diagonal covariance
+    /// (Mip-NeRF). Fixed-count levels then sample interval edges: `count`
+    /// intervals take `count + 1` edges.
+    ConicalFrustums,
 }
 
 /// One level of a model: a sampler and the field that evaluates its
@@ -122,4 +198,21 @@ pub enum RayBounds {
     Fixed { near: f32, far: f32 },
     /// Where the ray enters and leaves the scene's box.
     SceneBox,
+}
+
+/// What the engines build for a model: its levels, fields, batch and schedule.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Recipe {
+    pub levels: Vec<Level>,
+    /// Number of separate networks (the levels index them).
+    pub fields: usize,
+    pub samples: SampleShape,
+    pub batch: BatchSize,
+    pub bounds: RayBounds,
+    pub optimiser: OptimiserConfig,
+    pub march: MarchConfig,
+    pub occupancy: OccupancyConfig,
+    /// (steps, fraction): rays come from the central `fraction` of each
+    /// image during the first `steps` steps.
+    pub centre_crop: Option<(u32, f32)>,
 }

@@ -4,7 +4,10 @@
 //! paper; "config" is the reference code's `configs/config_lego.txt`;
 //! "reference" is its `run_nerf.py` / `run_nerf_helpers.py`.
 
-use super::common::{BatchSize, Level, LrSchedule, OptimiserConfig, RayBounds, SamplerKind};
+pub use super::common::Recipe;
+use super::common::{
+    BatchSize, Level, LrSchedule, OptimiserConfig, RayBounds, SampleShape, SamplerKind,
+};
 use super::ngp::{MarchConfig, OccupancyConfig};
 
 /// Frequencies of the position encoding γ(x): 2⁰ … 2⁹ (paper, section 5.1:
@@ -130,22 +133,6 @@ pub const OCCUPANCY: OccupancyConfig = OccupancyConfig {
 /// cost per step, so a fixed time budget buys more steps.
 pub const OCCUPANCY_SAMPLES_PER_BATCH: usize = 1 << 15;
 
-/// What the engines build for NeRF: its levels, fields, batch and schedule.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Recipe {
-    pub levels: Vec<Level>,
-    /// Number of separate networks (the levels index them).
-    pub fields: usize,
-    pub batch: BatchSize,
-    pub bounds: RayBounds,
-    pub optimiser: OptimiserConfig,
-    pub march: MarchConfig,
-    pub occupancy: OccupancyConfig,
-    /// (steps, fraction): rays come from the central `fraction` of each
-    /// image during the first `steps` steps.
-    pub centre_crop: Option<(u32, f32)>,
-}
-
 /// NeRF as trained with `sampling`. Blender scenes sample between the
 /// paper's near and far planes; other scenes between the entry and exit of
 /// their box.
@@ -198,6 +185,7 @@ pub fn recipe(sampling: Sampling, blender_scene: bool) -> Recipe {
     Recipe {
         levels,
         fields,
+        samples: SampleShape::Points,
         batch,
         bounds,
         optimiser: OPTIMISER,

@@ -353,6 +353,7 @@ mod tests {
             &self,
             _origins: &[Vec3],
             directions: &[Vec3],
+            _radii: &[f32],
             _background: [f32; 3],
             out: &mut [RenderedPixel],
         ) {

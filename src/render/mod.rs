@@ -25,7 +25,8 @@ pub fn render_pixels(
     for (chunk, out) in rays.chunks(TILE_RAYS).zip(out.chunks_mut(TILE_RAYS)) {
         let origins: Vec<_> = chunk.iter().map(|r| r.origin).collect();
         let directions: Vec<_> = chunk.iter().map(|r| r.direction).collect();
-        model.render(&origins, &directions, background, out);
+        let radii: Vec<_> = chunk.iter().map(|r| r.radius()).collect();
+        model.render(&origins, &directions, &radii, background, out);
     }
     out
 }

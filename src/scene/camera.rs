@@ -87,6 +87,14 @@ impl Ray {
     pub fn at(&self, t: f32) -> Vec3 {
         self.origin + t * self.direction
     }
+
+    /// The cone's radius at unit distance along the unit `direction`: a
+    /// point at distance s along it lies at s / |direction_unnormalised|
+    /// along the un-normalised one, where the radius is that times
+    /// `cone_radius`.
+    pub fn radius(&self) -> f32 {
+        self.cone_radius / self.direction_unnormalised.length()
+    }
 }
 
 /// A pinhole camera: intrinsics and a camera-to-world pose.

@@ -14,6 +14,8 @@ pub struct RayBatch {
     pub directions: Vec<Vec3>,
     pub targets: Vec<[f32; 3]>,
     pub backgrounds: Vec<[f32; 3]>,
+    /// Cone radius at unit distance of each ray ([`crate::scene::Ray::radius`]).
+    pub radii: Vec<f32>,
 }
 
 impl RayBatch {
@@ -30,6 +32,7 @@ impl RayBatch {
         self.directions.clear();
         self.targets.clear();
         self.backgrounds.clear();
+        self.radii.clear();
     }
 }
 
@@ -89,6 +92,7 @@ pub fn sample_rays_cropped(
         };
         batch.origins.push(ray.origin);
         batch.directions.push(ray.direction);
+        batch.radii.push(ray.radius());
         batch.targets.push(frame.image.rgb_over(x, y, bg));
         batch.backgrounds.push(bg);
     }

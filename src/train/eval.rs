@@ -84,15 +84,15 @@ pub fn mean_psnr_sampled(model: &dyn RadianceModel, frames: &[&Frame], rays: usi
                 }
                 y += stride;
             }
-            let (origins, directions): (Vec<_>, Vec<_>) = coordinates
+            let rays: Vec<_> = coordinates
                 .iter()
-                .map(|&(x, y)| {
-                    let ray = frame.camera.pixel_ray(x, y);
-                    (ray.origin, ray.direction)
-                })
-                .unzip();
+                .map(|&(x, y)| frame.camera.pixel_ray(x, y))
+                .collect();
+            let origins: Vec<_> = rays.iter().map(|r| r.origin).collect();
+            let directions: Vec<_> = rays.iter().map(|r| r.direction).collect();
+            let radii: Vec<_> = rays.iter().map(|r| r.radius()).collect();
             let mut out = vec![Default::default(); coordinates.len()];
-            model.render(&origins, &directions, WHITE, &mut out);
+            model.render(&origins, &directions, &radii, WHITE, &mut out);
             let mut squared = 0f64;
             for (&(x, y), pixel) in coordinates.iter().zip(&out) {
                 let truth = frame.image.rgb_over(x, y, WHITE);

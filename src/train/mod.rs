@@ -71,6 +71,14 @@ pub fn build_model(
         (ModelKind::Nerf, EngineKind::Gpu) => {
             Err("NeRF is not yet built on the gpu engine: use --engine cpu".into())
         }
+        (ModelKind::MipNerf, EngineKind::Cpu) => Ok(Box::new(cpu_mipnerf_with_shape(
+            scene,
+            settings,
+            &crate::engine::cpu::fields::nerf::NerfShape::mipnerf(),
+        ))),
+        (ModelKind::MipNerf, EngineKind::Gpu) => {
+            Err("Mip-NeRF is not yet built on the gpu engine: use --engine cpu".into())
+        }
     }
 }
 
@@ -91,29 +99,65 @@ pub fn cpu_nerf_with_shape(
     settings: &ModelSettings,
     shape: &crate::engine::cpu::fields::nerf::NerfShape,
 ) -> crate::engine::cpu::model::CpuModel {
-    use crate::engine::cpu::fields::Field;
-    use crate::engine::cpu::fields::nerf::NerfField;
-    use crate::field::common::BatchSize;
     use crate::field::nerf;
     let recipe = nerf::recipe(
         settings.sampling,
         scene.format == crate::scene::SceneFormat::Blender,
     );
+    cpu_model_of_nerf_fields("NeRF", "nerf", recipe, scene, settings, shape)
+}
+
+/// Mip-NeRF on the `cpu` engine with networks of `shape` (the paper's is
+/// [`crate::engine::cpu::fields::nerf::NerfShape::mipnerf`]).
+pub fn cpu_mipnerf_with_shape(
+    scene: &Scene,
+    settings: &ModelSettings,
+    shape: &crate::engine::cpu::fields::nerf::NerfShape,
+) -> crate::engine::cpu::model::CpuModel {
+    let recipe = crate::field::mipnerf::recipe(
+        settings.sampling,
+        scene.format == crate::scene::SceneFormat::Blender,
+    );
+    cpu_model_of_nerf_fields("Mip-NeRF", "mipnerf", recipe, scene, settings, shape)
+}
+
+/// A model of the recipe's levels over fields of NeRF's shape.
+fn cpu_model_of_nerf_fields(
+    name: &'static str,
+    key: &'static str,
+    recipe: crate::field::common::Recipe,
+    scene: &Scene,
+    settings: &ModelSettings,
+    shape: &crate::engine::cpu::fields::nerf::NerfShape,
+) -> crate::engine::cpu::model::CpuModel {
+    use crate::engine::cpu::fields::Field;
+    use crate::engine::cpu::fields::nerf::NerfField;
+    use crate::field::common::{BatchSize, SamplerKind};
     let fields: Vec<Box<dyn Field>> = (0..recipe.fields)
         .map(|_| Box::new(NerfField::new(shape.clone())) as Box<dyn Field>)
         .collect();
+    // Samples per ray of the paper's levels: each level evaluates its own
+    // samples, and importance samples join the previous level's.
+    let mut per_ray = 0;
+    let mut level_samples = 0;
+    for level in &recipe.levels {
+        level_samples = match level.sampler {
+            SamplerKind::Stratified { count } | SamplerKind::Resample { count, .. } => count,
+            SamplerKind::Importance { count, .. } => level_samples + count,
+            SamplerKind::Occupancy => 0,
+        };
+        per_ray += level_samples;
+    }
     let batch = settings
         .batch_samples
         .map(|samples| match settings.sampling {
             Sampling::Occupancy => BatchSize::Samples(samples),
-            Sampling::Paper => {
-                BatchSize::Rays((samples / (2 * nerf::COARSE_SAMPLES + nerf::FINE_SAMPLES)).max(1))
-            }
+            Sampling::Paper => BatchSize::Rays((samples / per_ray.max(1)).max(1)),
         });
     crate::engine::cpu::model::CpuModel::new(
         crate::engine::cpu::model::ModelIdentity {
-            name: "NeRF",
-            key: "nerf",
+            name,
+            key,
             sampling: settings.sampling.name(),
         },
         recipe,

@@ -142,11 +142,14 @@ pub trait RadianceModel: Send {
     /// every random choice inside the step.
     fn step(&mut self, batch: &RayBatch, step: u32) -> StepStats;
 
-    /// Inference: composites each ray over `background`.
+    /// Inference: composites each ray over `background`. `radii` are the
+    /// rays' cone radii at unit distance ([`crate::scene::Ray::radius`]),
+    /// which models of cones (Mip-NeRF) read and the others ignore.
     fn render(
         &self,
         origins: &[Vec3],
         directions: &[Vec3],
+        radii: &[f32],
         background: [f32; 3],
         out: &mut [RenderedPixel],
     );

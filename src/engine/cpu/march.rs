@@ -671,9 +671,23 @@ pub fn march(
 /// final transmittance), so up to the 1e-4 cut-off the result equals
 /// marching everything and compositing it.
 ///
-/// `field(positions n×3, directions n×3, density n, rgb n×3)` fills the last
-/// two. Outputs: `colour` R × 3, `depth` R, `opacity` R (world units for
+/// `field(samples, density n, rgb n×3)` fills the last two for a round of
+/// n [`GridSamples`]. Outputs: `colour` R × 3, `depth` R, `opacity` R (world units for
 /// depth).
+/// A round of samples handed to the field while rendering through the grid.
+pub struct GridSamples<'a> {
+    /// n × 3, unit-cube coordinates.
+    pub positions: &'a [f32],
+    /// n × 3, each sample's ray's unit world direction.
+    pub directions: &'a [f32],
+    /// n, distance from the ray's origin in world units.
+    pub t: &'a [f32],
+    /// n, the index of each sample's ray among the rays rendered.
+    pub rays: &'a [u32],
+    /// The step in world units (every sample's).
+    pub dt: f32,
+}
+
 #[allow(clippy::too_many_arguments)]
 pub fn march_and_composite<F>(
     grid: &OccupancyGrid,
@@ -688,7 +702,7 @@ pub fn march_and_composite<F>(
     depth: &mut [f32],
     opacity: &mut [f32],
 ) where
-    F: FnMut(&[f32], &[f32], &mut [f32], &mut [f32]),
+    F: FnMut(&GridSamples, &mut [f32], &mut [f32]),
 {
     let ray_count = origins.len() / 3;
     assert_eq!(directions.len(), 3 * ray_count);
@@ -732,6 +746,8 @@ pub fn march_and_composite<F>(
     let mut lattice: Vec<u32> = Vec::new();
     let mut positions: Vec<f32> = Vec::new();
     let mut sample_directions: Vec<f32> = Vec::new();
+    let mut sample_t: Vec<f32> = Vec::new();
+    let mut sample_rays: Vec<u32> = Vec::new();
     let mut sigma: Vec<f32> = Vec::new();
     let mut rgb: Vec<f32> = Vec::new();
     let mut finished: Vec<bool> = Vec::new();
@@ -768,17 +784,28 @@ pub fn march_and_composite<F>(
             let total: usize = counts.iter().map(|&c| c as usize).sum();
             positions.clear();
             sample_directions.clear();
+            sample_t.clear();
+            sample_rays.clear();
             for (i, &r) in rays.iter().enumerate() {
                 let ray = states[r as usize].ray.as_ref().expect("active");
                 for &k in &lattice[i * per_ray..i * per_ray + counts[i] as usize] {
                     positions.extend_from_slice(&ray.position(k, marcher.dt()).to_array());
                     sample_directions.extend_from_slice(&ray.direction.to_array());
+                    sample_t.push(marcher.world_t(ray, k));
+                    sample_rays.push(r);
                 }
             }
             sigma.resize(total, 0.0);
             rgb.resize(3 * total, 0.0);
             if total > 0 {
-                field(&positions, &sample_directions, &mut sigma, &mut rgb);
+                let samples = GridSamples {
+                    positions: &positions,
+                    directions: &sample_directions,
+                    t: &sample_t,
+                    rays: &sample_rays,
+                    dt: marcher.world_dt(),
+                };
+                field(&samples, &mut sigma, &mut rgb);
             }
             // Composite, in order along each ray, and advance its state.
             let world_dt = marcher.world_dt();
@@ -926,7 +953,7 @@ pub fn render_through_grid(
     background: [f32; 3],
     config: &MarchConfig,
     chunk_samples: usize,
-    field: impl FnMut(&[f32], &[f32], &mut [f32], &mut [f32]),
+    field: impl FnMut(&GridSamples, &mut [f32], &mut [f32]),
     out: &mut [RenderedPixel],
 ) {
     let n = origins.len();
@@ -1433,9 +1460,9 @@ mod tests {
             &MarchConfig::PAPER,
             background,
             1000,
-            |p: &[f32], d: &[f32], s: &mut [f32], c: &mut [f32]| {
+            |samples: &GridSamples, s: &mut [f32], c: &mut [f32]| {
                 evaluated += s.len();
-                field(p, d, s, c)
+                field(samples.positions, samples.directions, s, c)
             },
             &mut colour,
             &mut depth,

@@ -7,6 +7,7 @@ pub mod composite_batch;
 pub mod dense;
 pub mod fields;
 pub mod frequency;
+pub mod frustum;
 pub mod hash_grid;
 pub mod loss;
 pub mod march;

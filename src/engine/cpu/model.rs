@@ -31,16 +31,16 @@ use rayon::prelude::*;
 use super::adam::Adam;
 use super::composite_batch::{self, CompositeGradients, CompositeOutputs};
 use super::fields::{Field, gather_rows, set_len};
+use super::frustum::{frustum_gaussian, frustum_gaussians};
 use super::loss::loss_and_gradient;
 use super::march::{
-    BatchSizer, MarchParams, MarchWorkspace, MarchedSamples, march, mix_seed, mix32,
+    BatchSizer, GridSamples, MarchParams, MarchWorkspace, MarchedSamples, march, mix_seed, mix32,
     render_through_grid,
 };
 use super::occupancy::OccupancyGrid;
 use super::sampling;
 use super::state::{ModelHeader, ModelState};
-use crate::field::common::{BatchSize, RayBounds, SamplerKind};
-use crate::field::nerf::Recipe;
+use crate::field::common::{BatchSize, RayBounds, Recipe, SampleShape, SamplerKind};
 use crate::field::ngp::LossKind;
 use crate::scene::{Aabb, Scene, UnitCubeMapping};
 use crate::train::batch::RayBatch;
@@ -74,7 +74,11 @@ struct LevelBuffers {
     /// Per ray (fixed-count levels): sample distances and intervals.
     t: Vec<f32>,
     dt: Vec<f32>,
+    /// Frustum levels: each ray's interval edges (one more than samples).
+    edges: Vec<f32>,
     positions: Vec<f32>,
+    /// Frustum levels: each sample's covariance diagonal.
+    variances: Vec<f32>,
     directions: Vec<f32>,
     ray_offsets: Vec<u32>,
     sigma: Vec<f32>,
@@ -96,11 +100,13 @@ struct StepBuffers {
     /// σ from the field's forward pass on the used samples (compositing
     /// uses the cut pass's).
     sigma_forward: Vec<f32>,
+    /// Cone radius at unit distance of each ray.
+    radii: Vec<f32>,
+    /// Frustum recipes: covariance diagonals of the marched samples.
+    variances_marched: Vec<f32>,
     source: Vec<u32>,
     levels: Vec<LevelBuffers>,
-    fine_t: Vec<f32>,
-    edges: Vec<f32>,
-    inner_weights: Vec<f32>,
+    sampling: SamplingScratch,
     targets: Vec<f32>,
     backgrounds: Vec<f32>,
     rays: RayScratch,
@@ -126,6 +132,9 @@ pub struct CpuModel {
     /// Rays per batch for fixed-size batches, or samples per batch for
     /// marched ones.
     batch_size: BatchSize,
+    /// Sample distances kept per (chunk, level) while samples are held
+    /// (see [`Self::hold_samples`]).
+    held_samples: Option<std::collections::HashMap<(usize, usize), Vec<f32>>>,
 }
 
 impl CpuModel {
@@ -145,6 +154,14 @@ impl CpuModel {
         assert!(
             recipe.levels.iter().all(|l| l.field < fields.len()),
             "a level names a missing field"
+        );
+        assert!(
+            recipe.levels.iter().all(|l| match l.sampler {
+                SamplerKind::Importance { .. } => recipe.samples == SampleShape::Points,
+                SamplerKind::Resample { .. } => recipe.samples == SampleShape::ConicalFrustums,
+                _ => true,
+            }),
+            "importance sampling adds points; resampling draws frustums"
         );
         let mut params = Vec::new();
         let mut ranges = Vec::new();
@@ -190,7 +207,18 @@ impl CpuModel {
             buffers: StepBuffers::default(),
             batch_size,
             recipe,
+            held_samples: None,
         }
+    }
+
+    /// While held, each fixed-count level reuses the sample distances it
+    /// drew first, whatever the parameters are since. No gradient flows
+    /// through where the importance and resampled levels put their samples
+    /// (NeRF, section 5.2; Mip-NeRF's `stop_level_grad`), so a finite
+    /// difference of the loss matches the step's gradient only with the
+    /// samples held still.
+    pub fn hold_samples(&mut self, hold: bool) {
+        self.held_samples = hold.then(Default::default);
     }
 
     pub fn params(&self) -> &[f32] {
@@ -270,6 +298,11 @@ impl CpuModel {
         b.directions.clear();
         b.targets.clear();
         b.backgrounds.clear();
+        b.radii.clear();
+        if self.recipe.samples == SampleShape::ConicalFrustums {
+            assert_eq!(batch.radii.len(), batch.len(), "a cone radius per ray");
+            b.radii.extend_from_slice(&batch.radii);
+        }
         for r in 0..batch.len() {
             b.origins.extend_from_slice(&batch.origins[r].to_array());
             b.directions
@@ -318,6 +351,34 @@ impl CpuModel {
         let kept = marched.rays_kept;
         let s = marched.samples;
         to_world(&self.mapping, &b.marched.positions, &mut b.world);
+        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+        if frustums {
+            // Each marched sample stands for the frustum of its step,
+            // centred on it.
+            let m = &b.marched;
+            let scratch = &mut b.sampling;
+            scratch.starts.clear();
+            scratch.ends.clear();
+            scratch.rays.clear();
+            for r in 0..kept {
+                for i in m.ray(r) {
+                    scratch.starts.push((m.t[i] - 0.5 * m.dt[i]).max(0.0));
+                    scratch.ends.push(m.t[i] + 0.5 * m.dt[i]);
+                    scratch.rays.push(r as u32);
+                }
+            }
+            set_len(&mut b.variances_marched, 3 * s);
+            frustum_gaussians(
+                &b.origins,
+                &b.directions,
+                &b.radii,
+                &scratch.rays,
+                &scratch.starts,
+                &scratch.ends,
+                &mut b.world,
+                &mut b.variances_marched,
+            );
+        }
         times.march = clock.elapsed().as_secs_f64();
 
         // σ of every marched sample, to find where each ray becomes opaque;
@@ -329,7 +390,12 @@ impl CpuModel {
         let clock = Instant::now();
         let field_params = &self.params[field_range.clone()];
         set_len(&mut b.sigma_marched, s);
-        self.fields[level.field].density(field_params, &b.world, &mut b.sigma_marched);
+        self.fields[level.field].density(
+            field_params,
+            &b.world,
+            frustums.then_some(&b.variances_marched[..]),
+            &mut b.sigma_marched,
+        );
         let min_transmittance = self.recipe.march.min_transmittance;
         set_len(&mut b.rays.samples_used, kept);
         composite_batch::samples_before_cut(
@@ -356,6 +422,9 @@ impl CpuModel {
         gather_rows(&b.marched.directions, 3, &b.source, &mut lb.directions);
         gather_rows(&b.marched.dt, 1, &b.source, &mut lb.dt);
         gather_rows(&b.marched.t, 1, &b.source, &mut lb.t);
+        if frustums {
+            gather_rows(&b.variances_marched, 3, &b.source, &mut lb.variances);
+        }
         // Compositing uses the σ the cut was found with, so it stops
         // exactly where the cut said (the forward pass may differ from the
         // σ-only inference in the last bits).
@@ -364,6 +433,7 @@ impl CpuModel {
         self.fields[level.field].forward(
             field_params,
             &lb.positions,
+            frustums.then_some(&lb.variances[..]),
             &lb.directions,
             &mut b.sigma_forward,
             &mut lb.rgb,
@@ -425,7 +495,7 @@ impl CpuModel {
                 let level = self.recipe.levels[level_index];
                 let clock = Instant::now();
                 self.sample_level(
-                    level_index,
+                    (chunk, level_index),
                     start..end,
                     &near[start..end],
                     &far[start..end],
@@ -442,9 +512,12 @@ impl CpuModel {
                 let field_params = &self.params[field_range.clone()];
                 set_len(&mut lb.sigma, n);
                 set_len(&mut lb.rgb, 3 * n);
+                let variances = (self.recipe.samples == SampleShape::ConicalFrustums)
+                    .then_some(&lb.variances[..]);
                 self.fields[level.field].forward(
                     field_params,
                     &lb.positions,
+                    variances,
                     &lb.directions,
                     &mut lb.sigma,
                     &mut lb.rgb,
@@ -486,66 +559,55 @@ impl CpuModel {
         }
     }
 
-    /// Fills level `level`'s sample distances, intervals, positions and
-    /// directions for rays `rays` of the step's buffers (stratified, or
-    /// importance sampling of the previous level's weights merged with its
-    /// samples).
+    /// Fills level `level`'s samples for rays `rays` of the step's buffers
+    /// (see [`sample_level`]).
     fn sample_level(
         &mut self,
-        level: usize,
+        (chunk, level): (usize, usize),
         rays: Range<usize>,
         near: &[f32],
         far: &[f32],
         jitter: Option<u32>,
     ) {
+        let held = self
+            .held_samples
+            .as_ref()
+            .and_then(|held| held.get(&(chunk, level)));
         let b = &mut self.buffers;
         while b.levels.len() <= level {
             b.levels.push(LevelBuffers::default());
         }
-        let count = rays.len();
-        let per_ray = match self.recipe.levels[level].sampler {
-            SamplerKind::Stratified { count: n } => {
-                let lb = &mut b.levels[level];
-                set_len(&mut lb.t, count * n);
-                sampling::stratified(near, far, n, jitter, &mut lb.t);
-                n
-            }
-            SamplerKind::Importance { count: n, padding } => {
-                let (before, rest) = b.levels.split_at_mut(level);
-                let previous = before.last().expect("importance follows a level");
-                let lb = &mut rest[0];
-                let m = previous.t.len() / count.max(1);
-                importance_samples(
-                    &previous.t,
-                    &previous.weights,
-                    m,
-                    n,
-                    padding,
-                    jitter,
-                    &mut b.edges,
-                    &mut b.inner_weights,
-                    &mut b.fine_t,
-                );
-                set_len(&mut lb.t, count * (m + n));
-                sampling::merge_sorted(&previous.t, m, &b.fine_t, n, &mut lb.t);
-                m + n
-            }
-            SamplerKind::Occupancy => unreachable!("the occupancy sampler is the first level"),
+        let (before, rest) = b.levels.split_at_mut(level);
+        let radii = if b.radii.is_empty() {
+            &[][..]
+        } else {
+            &b.radii[rays.clone()]
         };
-        let lb = &mut b.levels[level];
-        set_len(&mut lb.dt, count * per_ray);
-        sampling::intervals_to_far(&lb.t, far, per_ray, &mut lb.dt);
-        lb.ray_offsets.clear();
-        lb.ray_offsets
-            .extend((0..=count).map(|r| (r * per_ray) as u32));
-        points_along_rays(
-            &b.origins[3 * rays.start..3 * rays.end],
-            &b.directions[3 * rays.start..3 * rays.end],
-            &lb.t,
-            per_ray,
-            &mut lb.positions,
-            &mut lb.directions,
+        sample_level(
+            self.recipe.levels[level].sampler,
+            self.recipe.samples,
+            before.last(),
+            RaysOfChunk {
+                origins: &b.origins[3 * rays.start..3 * rays.end],
+                directions: &b.directions[3 * rays.start..3 * rays.end],
+                radii,
+                near,
+                far,
+            },
+            jitter,
+            held.map(|d| &d[..]),
+            &mut b.sampling,
+            &mut rest[0],
         );
+        if let Some(held) = self.held_samples.as_mut() {
+            let lb = &self.buffers.levels[level];
+            let distances = match self.recipe.samples {
+                SampleShape::Points => &lb.t,
+                SampleShape::ConicalFrustums => &lb.edges,
+            };
+            held.entry((chunk, level))
+                .or_insert_with(|| distances.clone());
+        }
     }
 
     fn update_grid(&mut self, step: u32) {
@@ -557,9 +619,21 @@ impl CpuModel {
         let params = &self.params[self.ranges[level.field].clone()];
         let mapping = self.mapping;
         let mut world = Vec::new();
+        // Frustum fields are asked for the density of a cell as a whole: a
+        // Gaussian with the variance of a uniform distribution over the
+        // finest cascade's cell (side²/12 per axis), so the grid sees what
+        // the frustums that fill such a cell see, not the alias of the
+        // highest frequencies at one point.
+        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+        let cell = 1.0 / (grid.geometry().cells_per_unit(0) * mapping.scale);
+        let mut variances = Vec::new();
         grid.update(step, self.seed, |positions, sigma| {
             to_world(&mapping, positions, &mut world);
-            field.density(params, &world, sigma);
+            if frustums {
+                set_len(&mut variances, world.len());
+                variances.fill(cell * cell / 12.0);
+            }
+            field.density(params, &world, frustums.then_some(&variances[..]), sigma);
         });
     }
 
@@ -568,95 +642,274 @@ impl CpuModel {
         &self,
         origins: &[f32],
         directions: &[f32],
+        radii: &[f32],
         background: [f32; 3],
         out: &mut [RenderedPixel],
     ) {
         let rays = origins.len() / 3;
         let (mut near, mut far) = (Vec::new(), Vec::new());
         self.ray_bounds(origins, directions, &mut near, &mut far);
-        let (mut edges, mut inner, mut fine) = (Vec::new(), Vec::new(), Vec::new());
+        let mut scratch = SamplingScratch::default();
+        let mut levels = [LevelBuffers::default(), LevelBuffers::default()];
+        let mut pixels = RayScratch::default();
+        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
         for start in (0..rays).step_by(RAYS_PER_CHUNK) {
             let end = (start + RAYS_PER_CHUNK).min(rays);
             let count = end - start;
-            let (near, far) = (&near[start..end], &far[start..end]);
-            // The previous level's samples and weights.
-            let mut previous: Option<(Vec<f32>, Vec<f32>)> = None;
-            for level in &self.recipe.levels {
-                let (t, per_ray) = match (level.sampler, &previous) {
-                    (SamplerKind::Stratified { count: n }, _) => {
-                        let mut t = vec![0f32; count * n];
-                        sampling::stratified(near, far, n, None, &mut t);
-                        (t, n)
-                    }
-                    (SamplerKind::Importance { count: n, padding }, Some((pt, pw))) => {
-                        let m = pt.len() / count;
-                        importance_samples(
-                            pt, pw, m, n, padding, None, &mut edges, &mut inner, &mut fine,
-                        );
-                        let mut t = vec![0f32; count * (m + n)];
-                        sampling::merge_sorted(pt, m, &fine, n, &mut t);
-                        (t, m + n)
-                    }
-                    _ => unreachable!("importance sampling follows a level"),
-                };
-                let n = t.len();
-                let mut dt = vec![0f32; n];
-                sampling::intervals_to_far(&t, far, per_ray, &mut dt);
-                let (mut positions, mut dirs) = (Vec::new(), Vec::new());
-                points_along_rays(
-                    &origins[3 * start..3 * end],
-                    &directions[3 * start..3 * end],
-                    &t,
-                    per_ray,
-                    &mut positions,
-                    &mut dirs,
+            let backgrounds = background.repeat(count);
+            for (index, level) in self.recipe.levels.iter().enumerate() {
+                let (before, rest) = levels.split_at_mut(index);
+                let lb = &mut rest[0];
+                sample_level(
+                    level.sampler,
+                    self.recipe.samples,
+                    before.last(),
+                    RaysOfChunk {
+                        origins: &origins[3 * start..3 * end],
+                        directions: &directions[3 * start..3 * end],
+                        radii: if frustums { &radii[start..end] } else { &[] },
+                        near: &near[start..end],
+                        far: &far[start..end],
+                    },
+                    None,
+                    None,
+                    &mut scratch,
+                    lb,
                 );
-                let mut sigma = vec![0f32; n];
-                let mut rgb = vec![0f32; 3 * n];
+                let n = lb.t.len();
+                set_len(&mut lb.sigma, n);
+                set_len(&mut lb.rgb, 3 * n);
                 self.fields[level.field].radiance(
                     &self.params[self.ranges[level.field].clone()],
-                    &positions,
-                    &dirs,
-                    &mut sigma,
-                    &mut rgb,
+                    &lb.positions,
+                    frustums.then_some(&lb.variances[..]),
+                    &lb.directions,
+                    &mut lb.sigma,
+                    &mut lb.rgb,
                 );
-                let offsets: Vec<u32> = (0..=count).map(|r| (r * per_ray) as u32).collect();
-                let backgrounds = background.repeat(count);
-                let batch = composite_batch::RayBatch {
-                    density: &sigma,
-                    rgb: &rgb,
-                    dt: &dt,
-                    t: &t,
-                    ray_offsets: &offsets,
-                    background: &backgrounds,
+                composite_level(lb, &backgrounds, &mut pixels);
+            }
+            for (i, pixel) in out[start..end].iter_mut().enumerate() {
+                *pixel = RenderedPixel {
+                    rgb: [
+                        pixels.rgb[3 * i],
+                        pixels.rgb[3 * i + 1],
+                        pixels.rgb[3 * i + 2],
+                    ],
+                    opacity: pixels.opacity[i],
+                    depth: pixels.depth[i],
                 };
-                let mut weights = vec![0f32; n];
-                composite_batch::sample_weights(&batch, 0.0, &mut weights);
-                let mut colour = vec![0f32; 3 * count];
-                let mut opacity = vec![0f32; count];
-                let mut depth = vec![0f32; count];
-                let mut used = vec![0u32; count];
-                composite_batch::composite_forward(
-                    &batch,
-                    0.0,
-                    CompositeOutputs {
-                        rgb: &mut colour,
-                        opacity: &mut opacity,
-                        depth: &mut depth,
-                        samples_used: &mut used,
-                    },
-                );
-                for (i, pixel) in out[start..end].iter_mut().enumerate() {
-                    *pixel = RenderedPixel {
-                        rgb: [colour[3 * i], colour[3 * i + 1], colour[3 * i + 2]],
-                        opacity: opacity[i],
-                        depth: depth[i],
-                    };
-                }
-                previous = Some((t, weights));
             }
         }
     }
+}
+
+/// The rays of a chunk, as fixed-count sampling needs them.
+struct RaysOfChunk<'a> {
+    /// R × 3 each.
+    origins: &'a [f32],
+    directions: &'a [f32],
+    /// R cone radii (frustum recipes only; empty otherwise).
+    radii: &'a [f32],
+    near: &'a [f32],
+    far: &'a [f32],
+}
+
+/// Scratch of sampling a level, reused.
+#[derive(Default)]
+struct SamplingScratch {
+    edges: Vec<f32>,
+    inner_weights: Vec<f32>,
+    blurred: Vec<f32>,
+    fine_t: Vec<f32>,
+    /// Frustums: each sample's interval and ray.
+    starts: Vec<f32>,
+    ends: Vec<f32>,
+    rays: Vec<u32>,
+}
+
+/// Fills `lb` with a fixed-count level's samples for the rays of `chunk`:
+/// distances `t` and intervals `dt` for compositing, the field's inputs
+/// (positions, frustum covariances, directions) and the ray offsets.
+///
+/// Points (NeRF): stratified points, or the previous level's points merged
+/// with importance samples of its weights; each interval runs to the next
+/// point (the last one to far). Frustums (Mip-NeRF): `count` + 1 interval
+/// edges, stratified or resampled from the previous level's edges and
+/// blurred weights; each sample is the Gaussian of the frustum between
+/// consecutive edges, at the interval's midpoint for compositing.
+/// `held`, where given, replaces the drawn distances (points or edges).
+#[allow(clippy::too_many_arguments)]
+fn sample_level(
+    sampler: SamplerKind,
+    shape: SampleShape,
+    previous: Option<&LevelBuffers>,
+    chunk: RaysOfChunk,
+    jitter: Option<u32>,
+    held: Option<&[f32]>,
+    scratch: &mut SamplingScratch,
+    lb: &mut LevelBuffers,
+) {
+    let count = chunk.near.len();
+    let per_ray = match (shape, sampler, held) {
+        (SampleShape::Points, _, Some(t)) => {
+            lb.t.clear();
+            lb.t.extend_from_slice(t);
+            t.len() / count.max(1)
+        }
+        (SampleShape::ConicalFrustums, _, Some(edges)) => {
+            lb.edges.clear();
+            lb.edges.extend_from_slice(edges);
+            (edges.len() / count.max(1)).saturating_sub(1)
+        }
+        _ => sample_distances(sampler, shape, previous, &chunk, jitter, scratch, lb),
+    };
+
+    lb.ray_offsets.clear();
+    lb.ray_offsets
+        .extend((0..=count).map(|r| (r * per_ray) as u32));
+    match shape {
+        SampleShape::Points => {
+            set_len(&mut lb.dt, count * per_ray);
+            sampling::intervals_to_far(&lb.t, chunk.far, per_ray, &mut lb.dt);
+            points_along_rays(
+                chunk.origins,
+                chunk.directions,
+                &lb.t,
+                per_ray,
+                &mut lb.positions,
+                &mut lb.directions,
+            );
+        }
+        SampleShape::ConicalFrustums => {
+            let n = count * per_ray;
+            scratch.starts.clear();
+            scratch.ends.clear();
+            scratch.rays.clear();
+            for (r, edges) in lb.edges.chunks_exact(per_ray + 1).enumerate() {
+                for pair in edges.windows(2) {
+                    scratch.starts.push(pair[0]);
+                    scratch.ends.push(pair[1]);
+                    scratch.rays.push(r as u32);
+                }
+            }
+            set_len(&mut lb.t, n);
+            set_len(&mut lb.dt, n);
+            for (i, (&t0, &t1)) in scratch.starts.iter().zip(&scratch.ends).enumerate() {
+                lb.t[i] = 0.5 * (t0 + t1);
+                lb.dt[i] = t1 - t0;
+            }
+            set_len(&mut lb.positions, 3 * n);
+            set_len(&mut lb.variances, 3 * n);
+            frustum_gaussians(
+                chunk.origins,
+                chunk.directions,
+                chunk.radii,
+                &scratch.rays,
+                &scratch.starts,
+                &scratch.ends,
+                &mut lb.positions,
+                &mut lb.variances,
+            );
+            set_len(&mut lb.directions, 3 * n);
+            for (d, &r) in lb.directions.chunks_exact_mut(3).zip(&scratch.rays) {
+                d.copy_from_slice(&chunk.directions[3 * r as usize..][..3]);
+            }
+        }
+    }
+}
+
+/// Draws a fixed-count level's sample distances into `lb` (points into
+/// `t`, frustum edges into `edges`; see [`sample_level`]) and returns the
+/// samples per ray.
+fn sample_distances(
+    sampler: SamplerKind,
+    shape: SampleShape,
+    previous: Option<&LevelBuffers>,
+    chunk: &RaysOfChunk,
+    jitter: Option<u32>,
+    scratch: &mut SamplingScratch,
+    lb: &mut LevelBuffers,
+) -> usize {
+    let count = chunk.near.len();
+    match (shape, sampler) {
+        (SampleShape::Points, SamplerKind::Stratified { count: n }) => {
+            set_len(&mut lb.t, count * n);
+            sampling::stratified(chunk.near, chunk.far, n, jitter, &mut lb.t);
+            n
+        }
+        (SampleShape::Points, SamplerKind::Importance { count: n, padding }) => {
+            let previous = previous.expect("importance sampling follows a level");
+            let m = previous.t.len() / count.max(1);
+            importance_samples(
+                &previous.t,
+                &previous.weights,
+                m,
+                n,
+                padding,
+                jitter,
+                &mut scratch.edges,
+                &mut scratch.inner_weights,
+                &mut scratch.fine_t,
+            );
+            set_len(&mut lb.t, count * (m + n));
+            sampling::merge_sorted(&previous.t, m, &scratch.fine_t, n, &mut lb.t);
+            m + n
+        }
+        (SampleShape::ConicalFrustums, SamplerKind::Stratified { count: n }) => {
+            set_len(&mut lb.edges, count * (n + 1));
+            sampling::stratified(chunk.near, chunk.far, n + 1, jitter, &mut lb.edges);
+            n
+        }
+        (SampleShape::ConicalFrustums, SamplerKind::Resample { count: n, padding }) => {
+            let previous = previous.expect("resampling follows a level");
+            let m = previous.weights.len() / count.max(1);
+            set_len(&mut scratch.blurred, previous.weights.len());
+            sampling::blur_weights(&previous.weights, m.max(1), &mut scratch.blurred);
+            set_len(&mut lb.edges, count * (n + 1));
+            sampling::sample_pdf(
+                &previous.edges,
+                &scratch.blurred,
+                m,
+                padding,
+                n + 1,
+                jitter,
+                &mut lb.edges,
+            );
+            n
+        }
+        (shape, sampler) => unreachable!("{sampler:?} does not sample {shape:?}"),
+    }
+}
+
+/// Composites a level's samples for rendering: the pixels into `pixels`,
+/// the per-sample weights into `lb.weights` (for the next level).
+fn composite_level(lb: &mut LevelBuffers, backgrounds: &[f32], pixels: &mut RayScratch) {
+    let rays = lb.ray_offsets.len() - 1;
+    let batch = composite_batch::RayBatch {
+        density: &lb.sigma,
+        rgb: &lb.rgb,
+        dt: &lb.dt,
+        t: &lb.t,
+        ray_offsets: &lb.ray_offsets,
+        background: backgrounds,
+    };
+    set_len(&mut lb.weights, lb.sigma.len());
+    composite_batch::sample_weights(&batch, 0.0, &mut lb.weights);
+    set_len(&mut pixels.rgb, 3 * rays);
+    set_len(&mut pixels.opacity, rays);
+    set_len(&mut pixels.depth, rays);
+    set_len(&mut pixels.samples_used, rays);
+    composite_batch::composite_forward(
+        &batch,
+        0.0,
+        CompositeOutputs {
+            rgb: &mut pixels.rgb,
+            opacity: &mut pixels.opacity,
+            depth: &mut pixels.depth,
+            samples_used: &mut pixels.samples_used,
+        },
+    );
 }
 
 /// Per-ray values of compositing and the loss, reused between levels and
@@ -859,6 +1112,7 @@ impl RadianceModel for CpuModel {
         &self,
         origins: &[Vec3],
         directions: &[Vec3],
+        radii: &[f32],
         background: [f32; 3],
         out: &mut [RenderedPixel],
     ) {
@@ -869,7 +1123,8 @@ impl RadianceModel for CpuModel {
                 let field = &self.fields[level.field];
                 let params = &self.params[self.ranges[level.field].clone()];
                 let mapping = self.mapping;
-                let mut world = Vec::new();
+                let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+                let (mut world, mut variances) = (Vec::new(), Vec::new());
                 render_through_grid(
                     grid,
                     &self.mapping,
@@ -878,14 +1133,40 @@ impl RadianceModel for CpuModel {
                     background,
                     &self.recipe.march,
                     INFERENCE_CHUNK,
-                    |positions, dirs, sigma, rgb| {
-                        to_world(&mapping, positions, &mut world);
-                        field.radiance(params, &world, dirs, sigma, rgb);
+                    |samples: &GridSamples, sigma, rgb| {
+                        if frustums {
+                            // As in training: the frustum of each step.
+                            let n = samples.t.len();
+                            set_len(&mut world, 3 * n);
+                            set_len(&mut variances, 3 * n);
+                            for (i, (&t, &r)) in samples.t.iter().zip(samples.rays).enumerate() {
+                                let r = r as usize;
+                                let (mean, variance) = frustum_gaussian(
+                                    origins[r],
+                                    directions[r],
+                                    radii[r],
+                                    (t - 0.5 * samples.dt).max(0.0),
+                                    t + 0.5 * samples.dt,
+                                );
+                                world[3 * i..3 * i + 3].copy_from_slice(&mean.to_array());
+                                variances[3 * i..3 * i + 3].copy_from_slice(&variance.to_array());
+                            }
+                        } else {
+                            to_world(&mapping, samples.positions, &mut world);
+                        }
+                        field.radiance(
+                            params,
+                            &world,
+                            frustums.then_some(&variances[..]),
+                            samples.directions,
+                            sigma,
+                            rgb,
+                        );
                     },
                     out,
                 );
             }
-            None => self.render_fixed(&flat(origins), &flat(directions), background, out),
+            None => self.render_fixed(&flat(origins), &flat(directions), radii, background, out),
         }
     }
 

@@ -638,6 +638,7 @@ impl RadianceModel for CpuNgp {
         &self,
         origins: &[Vec3],
         directions: &[Vec3],
+        _radii: &[f32],
         background: [f32; 3],
         out: &mut [RenderedPixel],
     ) {
@@ -651,7 +652,9 @@ impl RadianceModel for CpuNgp {
             background,
             &MarchConfig::PAPER,
             INFERENCE_CHUNK,
-            |positions, dirs, sigma, rgb| shape.radiance(params, positions, dirs, sigma, rgb),
+            |samples, sigma, rgb| {
+                shape.radiance(params, samples.positions, samples.directions, sigma, rgb)
+            },
             out,
         );
     }

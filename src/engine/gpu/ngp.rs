@@ -1037,6 +1037,7 @@ impl RadianceModel for GpuNgp {
         &self,
         origins: &[Vec3],
         directions: &[Vec3],
+        _radii: &[f32],
         background: [f32; 3],
         out: &mut [RenderedPixel],
     ) {
@@ -1048,7 +1049,7 @@ impl RadianceModel for GpuNgp {
             background,
             &MarchConfig::PAPER,
             self.batch_samples.max(1),
-            |positions, dirs, sigma, rgb| self.radiance(positions, dirs, sigma, rgb),
+            |samples, sigma, rgb| self.radiance(samples.positions, samples.directions, sigma, rgb),
             out,
         );
     }

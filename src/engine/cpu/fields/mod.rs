@@ -19,14 +19,25 @@ pub trait Field: Send + Sync {
 
     /// σ at world positions (n × 3), without keeping activations: for the
     /// occupancy grid and for finding where rays become opaque.
-    fn density(&self, params: &[f32], positions: &[f32], sigma: &mut [f32]);
+    /// `variances` (n × 3), where given, make each sample a Gaussian with
+    /// that diagonal covariance around its position (Mip-NeRF's frustums);
+    /// a field without an integrated encoding ignores them.
+    fn density(
+        &self,
+        params: &[f32],
+        positions: &[f32],
+        variances: Option<&[f32]>,
+        sigma: &mut [f32],
+    );
 
-    /// σ (n) and colour (n × 3) at world positions and unit directions
-    /// (n × 3 each), keeping what [`Field::backward`] needs.
+    /// σ (n) and colour (n × 3) at world positions (with `variances` as in
+    /// [`Field::density`]) and unit directions (n × 3 each), keeping what
+    /// [`Field::backward`] needs.
     fn forward(
         &mut self,
         params: &[f32],
         positions: &[f32],
+        variances: Option<&[f32]>,
         directions: &[f32],
         sigma: &mut [f32],
         rgb: &mut [f32],
@@ -43,6 +54,7 @@ pub trait Field: Send + Sync {
         &self,
         params: &[f32],
         positions: &[f32],
+        variances: Option<&[f32]>,
         directions: &[f32],
         sigma: &mut [f32],
         rgb: &mut [f32],

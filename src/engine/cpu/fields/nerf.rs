@@ -90,6 +90,9 @@ pub struct NerfShape {
     pub trunk_b: MlpLayout,
     pub colour: MlpLayout,
     pub density: DensityActivation,
+    /// The sigmoid's output widened to [−p, 1 + p]: rgb · (1 + 2p) − p
+    /// (Mip-NeRF's `rgb_padding`; 0 for NeRF).
+    pub colour_padding: f32,
 }
 
 impl NerfShape {
@@ -110,6 +113,46 @@ impl NerfShape {
             paper::COLOUR_HIDDEN_WIDTH,
             DensityActivation::Relu,
         )
+    }
+
+    /// Mip-NeRF's field: NeRF's networks on the integrated encoding of
+    /// each frustum's Gaussian, σ = softplus(raw − 1), colour widened by
+    /// 0.001 (constants in [`crate::field::mipnerf`]).
+    pub fn mipnerf() -> Self {
+        use crate::field::mipnerf as mip;
+        Self::new(
+            FrequencyEncoding {
+                frequencies: mip::POSITION_FREQUENCIES,
+                include_input: false,
+            },
+            FrequencyEncoding {
+                frequencies: mip::DIRECTION_FREQUENCIES,
+                include_input: true,
+            },
+            paper::TRUNK_WIDTH,
+            paper::TRUNK_LAYERS,
+            paper::SKIP_AFTER_LAYERS,
+            paper::COLOUR_HIDDEN_WIDTH,
+            DensityActivation::ShiftedSoftplus {
+                shift: -mip::DENSITY_BIAS,
+            },
+        )
+        .with_colour_padding(mip::RGB_PADDING)
+    }
+
+    pub fn with_colour_padding(mut self, padding: f32) -> Self {
+        self.colour_padding = padding;
+        self
+    }
+
+    /// Widens the sigmoid's colours in place (see `colour_padding`).
+    fn pad_colours(&self, rgb: &mut [f32]) {
+        let p = self.colour_padding;
+        if p != 0.0 {
+            for c in rgb.iter_mut() {
+                *c = *c * (1.0 + 2.0 * p) - p;
+            }
+        }
     }
 
     /// A field of any size (tests use small ones): `layers` trunk layers of
@@ -145,6 +188,7 @@ impl NerfShape {
                 true,
             ),
             density,
+            colour_padding: 0.0,
         }
     }
 
@@ -172,6 +216,8 @@ struct Activations {
     d_trunk_b_out: Vec<f32>,
     d_feature: Vec<f32>,
     d_trunk_a_out: Vec<f32>,
+    /// The colour gradient through the padding.
+    d_colour: Vec<f32>,
 }
 
 /// NeRF's field on the `cpu` engine.
@@ -200,6 +246,7 @@ impl NerfField {
                 d_trunk_b_out: Vec::new(),
                 d_feature: Vec::new(),
                 d_trunk_a_out: Vec::new(),
+                d_colour: Vec::new(),
             },
         }
     }
@@ -229,12 +276,19 @@ impl TrunkInput {
 
     /// Encodes `positions` (m × 3), runs trunk A and writes trunk B's input
     /// for the m rows; returns it.
-    fn fill(&mut self, shape: &NerfShape, trunk_a: &[f32], positions: &[f32], m: usize) -> &[f32] {
+    fn fill(
+        &mut self,
+        shape: &NerfShape,
+        trunk_a: &[f32],
+        positions: &[f32],
+        variances: Option<&[f32]>,
+        m: usize,
+    ) -> &[f32] {
         let (width, enc) = (shape.width(), shape.position.output_width());
         frequency::encode(
             &shape.position,
             positions,
-            None,
+            variances,
             &mut self.encoded[..m * enc],
         );
         mlp_inference(
@@ -298,14 +352,25 @@ impl Field for NerfField {
         params
     }
 
-    fn density(&self, params: &[f32], positions: &[f32], sigma: &mut [f32]) {
+    fn density(
+        &self,
+        params: &[f32],
+        positions: &[f32],
+        variances: Option<&[f32]>,
+        sigma: &mut [f32],
+    ) {
         let s = &self.shape;
         let [ra, rb, _] = s.ranges();
         let rows = INFERENCE_ROWS.min(sigma.len().max(1));
         let mut trunk = TrunkInput::new(s, rows);
-        for (positions, sigma) in positions.chunks(3 * rows).zip(sigma.chunks_mut(rows)) {
+        for (chunk, (positions, sigma)) in positions
+            .chunks(3 * rows)
+            .zip(sigma.chunks_mut(rows))
+            .enumerate()
+        {
             let m = sigma.len();
-            let b_in = trunk.fill(s, &params[ra.clone()], positions, m);
+            let variances = variances.map(|v| &v[3 * rows * chunk..][..3 * m]);
+            let b_in = trunk.fill(s, &params[ra.clone()], positions, variances, m);
             mlp_inference_leading(&s.trunk_b, &params[rb.clone()], b_in, m, sigma, 1);
             for x in sigma.iter_mut() {
                 *x = s.density.apply(*x);
@@ -317,6 +382,7 @@ impl Field for NerfField {
         &mut self,
         params: &[f32],
         positions: &[f32],
+        variances: Option<&[f32]>,
         directions: &[f32],
         sigma: &mut [f32],
         rgb: &mut [f32],
@@ -332,7 +398,7 @@ impl Field for NerfField {
         let k = &mut self.kept;
         k.rows = n;
         set_len(&mut k.encoded_position, n * enc);
-        frequency::encode(&s.position, positions, None, &mut k.encoded_position);
+        frequency::encode(&s.position, positions, variances, &mut k.encoded_position);
         set_len(&mut k.trunk_a_out, n * width);
         self.a.reserve(n);
         mlp_forward(
@@ -384,6 +450,7 @@ impl Field for NerfField {
             });
         self.c.reserve(n);
         mlp_forward(&s.colour, &params[rc], &k.colour_in, n, &mut self.c, rgb);
+        s.pad_colours(rgb);
     }
 
     fn backward(&mut self, params: &[f32], d_sigma: &[f32], d_rgb: &[f32], gradients: &mut [f32]) {
@@ -396,6 +463,17 @@ impl Field for NerfField {
             "gradients of {n} samples"
         );
         let width = s.width();
+        // Through the widening of the colours: a constant factor.
+        let d_rgb = if s.colour_padding != 0.0 {
+            let scale = 1.0 + 2.0 * s.colour_padding;
+            set_len(&mut k.d_colour, 3 * n);
+            for (out, &g) in k.d_colour.iter_mut().zip(d_rgb) {
+                *out = g * scale;
+            }
+            &k.d_colour[..]
+        } else {
+            d_rgb
+        };
         let (grad_a, rest) = gradients.split_at_mut(ra.end);
         let (grad_b, grad_c) = rest.split_at_mut(rb.len());
         // Colour network; the input gradient of its feature columns only
@@ -459,6 +537,7 @@ impl Field for NerfField {
         &self,
         params: &[f32],
         positions: &[f32],
+        variances: Option<&[f32]>,
         directions: &[f32],
         sigma: &mut [f32],
         rgb: &mut [f32],
@@ -472,14 +551,16 @@ impl Field for NerfField {
         let mut b_out = vec![0f32; rows * (width + 1)];
         let mut encoded_direction = vec![0f32; rows * enc_dir];
         let mut colour_in = vec![0f32; rows * (width + enc_dir)];
-        for (((positions, directions), sigma), rgb) in positions
+        for (chunk, (((positions, directions), sigma), rgb)) in positions
             .chunks(3 * rows)
             .zip(directions.chunks(3 * rows))
             .zip(sigma.chunks_mut(rows))
             .zip(rgb.chunks_mut(3 * rows))
+            .enumerate()
         {
             let m = sigma.len();
-            let b_in = trunk.fill(s, &params[ra.clone()], positions, m);
+            let variances = variances.map(|v| &v[3 * rows * chunk..][..3 * m]);
+            let b_in = trunk.fill(s, &params[ra.clone()], positions, variances, m);
             mlp_inference(
                 &s.trunk_b,
                 &params[rb.clone()],
@@ -516,6 +597,7 @@ impl Field for NerfField {
                 m,
                 rgb,
             );
+            s.pad_colours(rgb);
         }
     }
 
@@ -535,6 +617,7 @@ impl Field for NerfField {
             &k.d_trunk_b_out,
             &k.d_feature,
             &k.d_trunk_a_out,
+            &k.d_colour,
         ]
         .iter()
         .map(|v| v.capacity())

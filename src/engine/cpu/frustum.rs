@@ -1,0 +1,243 @@
+//! Mip-NeRF's conical frustums as Gaussians (Barron et al. 2021, section 3.1
+//! and appendix A; reference `mip.py`, `conical_frustum_to_gaussian` and
+//! `lift_gaussian`).
+//!
+//! A pixel's cone has its apex at the camera and radius `r·t` at distance
+//! `t`. The part of it between `t₀` and `t₁` is approximated by the Gaussian
+//! with the frustum's mean and covariance. With t_μ = (t₀ + t₁)/2 and
+//! t_δ = (t₁ − t₀)/2, the moments along the axis and across it are
+//!
+//! ```text
+//! μ_t  = t_μ + 2 t_μ t_δ² / (3 t_μ² + t_δ²)
+//! σ_t² = t_δ²/3 − (4/15) t_δ⁴ (12 t_μ² − t_δ²) / (3 t_μ² + t_δ²)²
+//! σ_r² = r² (t_μ²/4 + (5/12) t_δ² − (4/15) t_δ⁴ / (3 t_μ² + t_δ²))
+//! ```
+//!
+//! the paper's stable form: written with the centre and half-width instead
+//! of t₀ and t₁, no term cancels catastrophically when the interval is thin
+//! and far away, which the direct moment formulas (ratios of differences of
+//! t⁵ and t³) do in floating point. In world space, the mean is o + μ_t d
+//! and the covariance's diagonal σ_t² d∘d + σ_r² (1 − d∘d) for a unit
+//! direction d (the diagonal of σ_t² ddᵀ + σ_r² (I − ddᵀ)): the
+//! integrated encoding only needs the diagonal.
+//!
+//! No gradient flows into the frustums (sample positions are not learned),
+//! so only the forward pass exists.
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+/// Moments of one frustum along and across the cone's axis.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FrustumMoments {
+    /// Mean distance along the axis.
+    pub t_mean: f32,
+    /// Variance along the axis.
+    pub t_variance: f32,
+    /// Variance across the axis, per perpendicular direction.
+    pub radial_variance: f32,
+}
+
+/// The moments of the frustum of a cone of radius `radius` at unit distance
+/// between distances `t0` ≤ `t1` (both ≥ 0).
+///
+/// A frustum of zero extent (t₀ = t₁ = 0, the apex) has all of its moments
+/// at the apex: the mean is 0 and both variances 0. Elsewhere the formulas'
+/// denominator 3 t_μ² + t_δ² is positive.
+pub fn frustum_moments(t0: f32, t1: f32, radius: f32) -> FrustumMoments {
+    let mid = 0.5 * (t0 + t1);
+    let half = 0.5 * (t1 - t0);
+    let (mid2, half2) = (mid * mid, half * half);
+    let denominator = 3.0 * mid2 + half2;
+    if !(denominator > 0.0) {
+        return FrustumMoments {
+            t_mean: mid,
+            t_variance: 0.0,
+            radial_variance: 0.0,
+        };
+    }
+    let half4_over = half2 * half2 / denominator;
+    let t_mean = mid + 2.0 * mid * half2 / denominator;
+    // Both variances are non-negative in exact arithmetic; rounding may not
+    // keep them so for vanishing widths, and the encoding takes a square
+    // root's worth of them.
+    let t_variance =
+        (half2 / 3.0 - (4.0 / 15.0) * half4_over * (12.0 * mid2 - half2) / denominator).max(0.0);
+    let radial_variance =
+        (radius * radius * (mid2 / 4.0 + (5.0 / 12.0) * half2 - (4.0 / 15.0) * half4_over))
+            .max(0.0);
+    FrustumMoments {
+        t_mean,
+        t_variance,
+        radial_variance,
+    }
+}
+
+/// The world-space Gaussian of a frustum: mean o + μ_t d and the diagonal
+/// of its covariance, for a unit `direction` d.
+pub fn frustum_gaussian(
+    origin: Vec3,
+    direction: Vec3,
+    radius: f32,
+    t0: f32,
+    t1: f32,
+) -> (Vec3, Vec3) {
+    let m = frustum_moments(t0, t1, radius);
+    let along = direction * direction;
+    let variance = along * m.t_variance + (Vec3::ONE - along).max(Vec3::ZERO) * m.radial_variance;
+    (origin + direction * m.t_mean, variance)
+}
+
+/// Samples per rayon task.
+const SAMPLES_PER_TASK: usize = 4096;
+
+/// Gaussians of many frustums: frustum i lies on ray `rays[i]` (origins,
+/// unit directions and cone radii per ray) between `starts[i]` and
+/// `ends[i]`. Writes means and covariance diagonals (n × 3 each).
+#[allow(clippy::too_many_arguments)]
+pub fn frustum_gaussians(
+    origins: &[f32],
+    directions: &[f32],
+    radii: &[f32],
+    rays: &[u32],
+    starts: &[f32],
+    ends: &[f32],
+    means: &mut [f32],
+    variances: &mut [f32],
+) {
+    let n = rays.len();
+    assert!(
+        starts.len() == n && ends.len() == n && means.len() == 3 * n && variances.len() == 3 * n,
+        "frustum buffers of {n} samples"
+    );
+    means
+        .par_chunks_mut(3 * SAMPLES_PER_TASK)
+        .zip(variances.par_chunks_mut(3 * SAMPLES_PER_TASK))
+        .enumerate()
+        .for_each(|(task, (means, variances))| {
+            let first = task * SAMPLES_PER_TASK;
+            for (i, (mean, variance)) in means
+                .chunks_exact_mut(3)
+                .zip(variances.chunks_exact_mut(3))
+                .enumerate()
+            {
+                let s = first + i;
+                let r = rays[s] as usize;
+                let (m, v) = frustum_gaussian(
+                    Vec3::from_slice(&origins[3 * r..]),
+                    Vec3::from_slice(&directions[3 * r..]),
+                    radii[r],
+                    starts[s],
+                    ends[s],
+                );
+                mean.copy_from_slice(&m.to_array());
+                variance.copy_from_slice(&v.to_array());
+            }
+        });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Mean and variances of the frustum by numerical integration in f64:
+    /// the cone's cross-section at distance t is a disc of radius r·t, its
+    /// area ∝ t², so along the axis the density is ∝ t² on [t₀, t₁], and a
+    /// disc of radius ρ has variance ρ²/4 along each perpendicular
+    /// direction.
+    fn integrated(t0: f64, t1: f64, radius: f64) -> (f64, f64, f64) {
+        let steps = 200_000;
+        let h = (t1 - t0) / steps as f64;
+        let (mut mass, mut first, mut second, mut radial) = (0.0, 0.0, 0.0, 0.0);
+        // Midpoint rule: error O(h²) relative, far below the tolerances.
+        for i in 0..steps {
+            let t = t0 + (i as f64 + 0.5) * h;
+            let w = t * t * h;
+            mass += w;
+            first += w * t;
+            second += w * t * t;
+            radial += w * (radius * t).powi(2) / 4.0;
+        }
+        let mean = first / mass;
+        (mean, second / mass - mean * mean, radial / mass)
+    }
+
+    #[test]
+    fn moments_match_numerical_integration() {
+        // Thin and thick, near and far, starting at the apex.
+        let cases = [
+            (2.0, 2.01, 0.0015),
+            (2.0, 6.0, 0.0015),
+            (0.05, 0.06, 0.01),
+            (5.9, 5.9001, 0.0015),
+            (0.0, 1.0, 0.3),
+            (0.0, 1e-3, 1.0),
+            (1.0, 3.0, 100.0),
+        ];
+        for (t0, t1, r) in cases {
+            let m = frustum_moments(t0 as f32, t1 as f32, r as f32);
+            let (mean, var_t, var_r) = integrated(t0, t1, r);
+            // f32 holds ~7 digits: the mean to a few ulps of t₁; each
+            // variance to 1e-4 of itself (the formulas' terms are of the
+            // variance's own size, no cancellation) or an absolute floor of
+            // a few ulps of t₁² for the near-zero axial variance of the
+            // thinnest intervals.
+            let ulp = (t1 * t1 * 4.0 * f32::EPSILON as f64).max(1e-30);
+            assert!(
+                (m.t_mean as f64 - mean).abs() <= 4.0 * f32::EPSILON as f64 * t1.max(1e-6),
+                "mean of [{t0}, {t1}]: {} vs {mean}",
+                m.t_mean
+            );
+            assert!(
+                (m.t_variance as f64 - var_t).abs() <= 1e-4 * var_t + ulp,
+                "axial variance of [{t0}, {t1}]: {} vs {var_t}",
+                m.t_variance
+            );
+            assert!(
+                (m.radial_variance as f64 - var_r).abs() <= 1e-4 * var_r + ulp * r * r,
+                "radial variance of [{t0}, {t1}] r {r}: {} vs {var_r}",
+                m.radial_variance
+            );
+        }
+    }
+
+    #[test]
+    fn degenerate_frustums_are_finite() {
+        for (t0, t1) in [(0.0, 0.0), (3.0, 3.0), (0.0, 1e-30), (1e-30, 1e-30)] {
+            for radius in [1e-8, 1.5e-3, 1e2] {
+                let m = frustum_moments(t0, t1, radius);
+                assert!(
+                    m.t_mean.is_finite() && m.t_variance >= 0.0 && m.radial_variance >= 0.0,
+                    "[{t0}, {t1}] r {radius}: {m:?}"
+                );
+                assert!(m.t_variance.is_finite() && m.radial_variance.is_finite());
+                // A zero-length interval is a point: its mean is that point,
+                // the axial variance 0, the radial one the disc's (r t)²/4.
+                if t0 == t1 {
+                    assert_eq!(m.t_mean, t0);
+                    assert_eq!(m.t_variance, 0.0);
+                    let disc = radius * radius * t0 * t0 / 4.0;
+                    assert!((m.radial_variance - disc).abs() <= 1e-6 * disc + 1e-37);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn world_gaussian_follows_the_direction() {
+        // Along +x: the axial variance on x, the radial on y and z.
+        let (mean, var) = frustum_gaussian(Vec3::new(1.0, 2.0, 3.0), Vec3::X, 0.1, 2.0, 4.0);
+        let m = frustum_moments(2.0, 4.0, 0.1);
+        assert!((mean - Vec3::new(1.0 + m.t_mean, 2.0, 3.0)).length() < 1e-6);
+        assert_eq!(
+            var,
+            Vec3::new(m.t_variance, m.radial_variance, m.radial_variance)
+        );
+        // A diagonal direction splits both among the axes; the total
+        // variance (trace) is σ_t² + 2 σ_r² whatever the direction.
+        let d = Vec3::new(1.0, 2.0, -2.0).normalize();
+        let (_, var) = frustum_gaussian(Vec3::ZERO, d, 0.1, 2.0, 4.0);
+        let trace = m.t_variance + 2.0 * m.radial_variance;
+        assert!(((var.x + var.y + var.z) - trace).abs() < 1e-5 * trace);
+    }
+}
