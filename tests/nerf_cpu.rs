@@ -153,7 +153,14 @@ fn check_field_gradient(kind: Kind) {
     let b: Vec<f32> = (0..3 * n).map(|_| uniform(&mut rng, -1.0, 1.0)).collect();
     let loss = |field: &mut NerfField, params: &[f32]| -> f64 {
         let (mut sigma, mut rgb) = (vec![0f32; n], vec![0f32; 3 * n]);
-        field.forward(params, &positions, variances, &directions, &mut sigma, &mut rgb);
+        field.forward(
+            params,
+            &positions,
+            variances,
+            &directions,
+            &mut sigma,
+            &mut rgb,
+        );
         sigma
             .iter()
             .zip(&a)
@@ -241,11 +248,7 @@ fn check_field_gradient(kind: Kind) {
 /// loss, for the parameters with the largest gradients in each field.
 fn check_step_gradient(kind: Kind, sampling: Sampling) {
     let scene = small_scene();
-    let mut trainer = Trainer::new(
-        Box::new(model_of(&scene, kind, sampling)),
-        scene.clone(),
-        3,
-    );
+    let mut trainer = Trainer::new(Box::new(model_of(&scene, kind, sampling)), scene.clone(), 3);
     for _ in 0..20 {
         trainer.step();
     }

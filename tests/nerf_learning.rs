@@ -1,16 +1,17 @@
-//! End to end: NeRF (the paper's field, with the occupancy sampler) on the
-//! cpu engine learns the built-in demo scene, measured on held-out views
-//! against the simplest possible predictor.
+//! End to end: NeRF and Mip-NeRF (the papers' fields, with the occupancy
+//! sampler) on the cpu engine learn the built-in demo scene, measured on
+//! held-out views against the simplest possible predictor.
 
 use std::sync::Arc;
 use std::time::Instant;
 
+use zrak::engine::cpu::fields::nerf::NerfShape;
 use zrak::field::nerf::Sampling;
 use zrak::field::ngp::LossKind;
 use zrak::scene::demo::{self, DemoConfig};
 use zrak::train::eval::{mean_colour_psnr, score_view};
 use zrak::train::trainer::Trainer;
-use zrak::train::{ModelSettings, cpu_nerf};
+use zrak::train::{ModelSettings, cpu_mipnerf_with_shape, cpu_nerf};
 
 fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
     std::env::var(name)
@@ -19,8 +20,15 @@ fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
         .unwrap_or(default)
 }
 
-#[test]
-fn nerf_learns_the_demo_scene_above_the_mean_colour() {
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Kind {
+    Nerf,
+    MipNerf,
+}
+
+/// Trains `kind` for `steps` on the 32-pixel demo; returns (baseline,
+/// held-out PSNR) in dB.
+fn train_demo(kind: Kind, default_steps: u32) -> (f64, f64) {
     // 32×32 views and batches of 2^12 samples keep a step of the 8 × 256
     // network near a quarter of a second on two cores. Measured on the
     // development machine (AVX2 kernels, seed 0): 10.0 dB for the mean
@@ -29,7 +37,7 @@ fn nerf_learns_the_demo_scene_above_the_mean_colour() {
     // box, so the occupancy grid samples every ray end to end (~300
     // samples) and a batch holds a dozen rays until the fog clears.
     let size = env_or("ZRAK_NERF_E2E_SIZE", 32u32);
-    let steps = env_or("ZRAK_NERF_E2E_STEPS", 400u32);
+    let steps = env_or("ZRAK_NERF_E2E_STEPS", default_steps);
     let batch = env_or("ZRAK_NERF_E2E_BATCH", 1usize << 12);
     let scene = Arc::new(demo::build(&DemoConfig {
         size,
@@ -42,15 +50,16 @@ fn nerf_learns_the_demo_scene_above_the_mean_colour() {
     // colour of the training images on white.
     let baseline = mean_colour_psnr(&scene.train, &scene.val);
 
-    let model = cpu_nerf(
-        &scene,
-        &ModelSettings {
-            seed: 0,
-            loss: LossKind::L2,
-            batch_samples: Some(batch),
-            sampling: Sampling::Occupancy,
-        },
-    );
+    let settings = ModelSettings {
+        seed: 0,
+        loss: LossKind::L2,
+        batch_samples: Some(batch),
+        sampling: Sampling::Occupancy,
+    };
+    let model = match kind {
+        Kind::Nerf => cpu_nerf(&scene, &settings),
+        Kind::MipNerf => cpu_mipnerf_with_shape(&scene, &settings, &NerfShape::mipnerf()),
+    };
     let mut trainer = Trainer::new(Box::new(model), scene.clone(), 0);
     let started = Instant::now();
     let mut last_loss = 0.0;
@@ -70,7 +79,7 @@ fn nerf_learns_the_demo_scene_above_the_mean_colour() {
         last_loss = trainer.step().loss;
         if progress && trainer.step.is_multiple_of(100) {
             eprintln!(
-                "step {} loss {last_loss:.5} val psnr {:.2} ({:.0} s)",
+                "{kind:?} step {} loss {last_loss:.5} val psnr {:.2} ({:.0} s)",
                 trainer.step,
                 held_out(&trainer),
                 started.elapsed().as_secs_f64()
@@ -79,9 +88,15 @@ fn nerf_learns_the_demo_scene_above_the_mean_colour() {
     }
     let trained = held_out(&trainer);
     eprintln!(
-        "baseline {baseline:.2} dB, trained {trained:.2} dB after {steps} steps ({:.0} s), loss {last_loss:.5}",
+        "{kind:?}: baseline {baseline:.2} dB, trained {trained:.2} dB after {steps} steps ({:.0} s), loss {last_loss:.5}",
         started.elapsed().as_secs_f64()
     );
+    (baseline, trained)
+}
+
+#[test]
+fn nerf_learns_the_demo_scene_above_the_mean_colour() {
+    let (baseline, trained) = train_demo(Kind::Nerf, 400);
     // 2.5 dB over the baseline is 56 % of its squared error, 1 dB short of
     // what was measured (other kernels round differently and the run
     // diverges in its last bits); the mean colour cannot get there, and a
@@ -89,6 +104,22 @@ fn nerf_learns_the_demo_scene_above_the_mean_colour() {
     // 100, before the fog has cleared).
     assert!(
         trained > baseline + 2.5,
+        "baseline {baseline:.2} dB, trained {trained:.2} dB"
+    );
+}
+
+#[test]
+fn mipnerf_learns_the_demo_scene_above_the_mean_colour() {
+    // Measured on the development machine (AVX2 kernels, seed 0, two cores
+    // shared with other builds): 11.6, 13.0 and 14.9 dB at steps 100, 200
+    // and 300 against the mean colour's 10.0. Mip-NeRF starts faster than
+    // NeRF: softplus(raw − 1) begins nearly transparent, so there is no fog
+    // to clear. 200 steps keep the test near NeRF's in time.
+    let (baseline, trained) = train_demo(Kind::MipNerf, 200);
+    // 2 dB over the baseline (63 % of its squared error), 1 dB below what
+    // was measured, for the same reasons as NeRF's margin.
+    assert!(
+        trained > baseline + 2.0,
         "baseline {baseline:.2} dB, trained {trained:.2} dB"
     );
 }
