@@ -240,19 +240,11 @@ fn render_requests_follow_mode_and_nothing_else() {
     assert_eq!(request.generation, 1);
     assert_eq!(request.mode, RenderMode::Rgb);
     assert!(!request.moving);
-    // The request has the viewport's shape (the central panel: wider than
-    // tall) at no finer than the photographs' resolution, and at least
-    // 128 pixels along its longer side.
+    // The request has the viewport's own size in pixels (render scale 1×,
+    // the default), whatever the photographs' resolution.
     let k = request.camera.intrinsics;
-    let photo_side = harness
-        .state()
-        .scene()
-        .unwrap()
-        .scene
-        .resolution()
-        .unwrap()
-        .0;
-    assert_eq!(k.width, photo_side.max(128), "{k:?}");
+    let [_, _, width, height] = harness.state().viewport().rect_pixels.unwrap();
+    assert_eq!((k.width, k.height), (width, height), "{k:?}");
     assert!(k.height > k.width / 4 && k.height < k.width, "{k:?}");
 
     // Frames with nothing changed send nothing.
@@ -272,6 +264,15 @@ fn render_requests_follow_mode_and_nothing_else() {
     harness.run_steps(2);
     let last = link.render_requests().pop().unwrap();
     assert_eq!((last.generation, last.mode), (3, RenderMode::Opacity));
+
+    // Half the resolution: half the pixels along each side (rounded).
+    harness.get_by_label("½×").click();
+    harness.run_steps(2);
+    let half = link.render_requests().pop().unwrap();
+    assert_eq!(half.generation, 4);
+    let k = half.camera.intrinsics;
+    let round_half = |side: u32| (side as f32 * 0.5).round() as u32;
+    assert_eq!((k.width, k.height), (round_half(width), round_half(height)));
 }
 
 #[test]

@@ -352,6 +352,18 @@ fn render_section(state: &mut ViewerUi, ui: &mut egui::Ui) {
         }
     });
     ui.horizontal(|ui| {
+        ui.label("Resolution");
+        for scale in viewport::RENDER_SCALES {
+            let name = match scale {
+                0.25 => "¼×".to_string(),
+                0.5 => "½×".to_string(),
+                _ => format!("{scale}×"),
+            };
+            ui.selectable_value(&mut state.viewport.render_scale, scale, name)
+                .on_hover_text("pixels rendered per viewport pixel, once the view rests");
+        }
+    });
+    ui.horizontal(|ui| {
         ui.label("Compare");
         let compare = &mut state.viewport.compare;
         ui.selectable_value(compare, CompareMode::Off, "Render only");

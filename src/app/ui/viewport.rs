@@ -101,6 +101,9 @@ pub struct ViewportState {
     pub compare_with: CompareWith,
     /// Where the split divider stands, as a fraction of the image width.
     pub split: f32,
+    /// Pixels rendered per viewport pixel along each side, once the
+    /// progressive levels reach full resolution (one of [`RENDER_SCALES`]).
+    pub render_scale: f32,
     /// The training view last snapped to.
     pub view_index: Option<usize>,
     /// True while the camera still stands exactly at `view_index`.
@@ -143,6 +146,7 @@ impl Default for ViewportState {
             compare: CompareMode::Off,
             compare_with: CompareWith::GroundTruth,
             split: 0.5,
+            render_scale: 1.0,
             view_index: None,
             snapped: false,
             truth: None,
@@ -418,27 +422,25 @@ fn error_image(frame: &RenderedFrame, truth: &GroundTruth) -> (egui::ColorImage,
     )
 }
 
-/// The size to render a viewport of `width × height` pixels at: no finer
-/// than the training photographs (the field holds no detail beyond them),
-/// so a full-resolution refinement of a large window costs what one
-/// training view costs; the texture is stretched to the viewport.
-pub fn render_size(width: u32, height: u32, scene: &Scene) -> (u32, u32) {
-    let longest_photo_side = scene
-        .resolution()
-        .map_or(800, |(w, h)| w.max(h))
-        .max(MIN_RENDER_SIDE);
-    let longest = width.max(height);
-    if longest <= longest_photo_side {
-        return (width, height);
-    }
-    let scale = longest_photo_side as f32 / longest as f32;
-    let shrink = |side: u32| ((side as f32 * scale).round() as u32).max(1);
-    (shrink(width), shrink(height))
+/// The render scales offered, as instant-ngp's testbed offers a render
+/// resolution factor: below 1 for speed (the texture is stretched to the
+/// viewport), 2 for supersampling.
+pub const RENDER_SCALES: [f32; 4] = [0.25, 0.5, 1.0, 2.0];
+
+/// The size to render a viewport of `width × height` pixels at: `scale`
+/// times each side, whatever the training photographs' size, so that
+/// moving closer shows what the field holds between their pixels (NeRF's
+/// aliasing, Mip-NeRF's answer to it). The longer side stays within the
+/// largest viewport the training thread accepts.
+pub fn render_size(width: u32, height: u32, scale: f32) -> (u32, u32) {
+    let longest = width.max(height).max(1) as f32;
+    let scale = scale.min(MAX_RENDER_SIDE as f32 / longest);
+    let side = |s: u32| ((s as f32 * scale).round() as u32).max(1);
+    (side(width), side(height))
 }
 
-/// Scenes of tiny photographs still render this many pixels along the
-/// longer side, so the viewport shows a usable image.
-const MIN_RENDER_SIDE: u32 = 128;
+/// The longest side rendered (the training thread refuses larger ones).
+const MAX_RENDER_SIDE: u32 = 8192;
 
 /// The largest rect of aspect `width / height` centred in `outer`.
 fn fit(outer: Rect, width: f32, height: f32) -> Rect {
@@ -613,7 +615,7 @@ pub fn show(ui_state: &mut ViewerUi, ui: &mut egui::Ui) {
             let (width, height) = render_size(
                 (rect.width() * pixels_per_point).round() as u32,
                 (rect.height() * pixels_per_point).round() as u32,
-                &scene,
+                ui_state.viewport.render_scale,
             );
             (width > 0 && height > 0).then(|| camera.camera(width, height))
         }

@@ -49,7 +49,8 @@ pub fn frustum_moments(t0: f32, t1: f32, radius: f32) -> FrustumMoments {
     let half = 0.5 * (t1 - t0);
     let (mid2, half2) = (mid * mid, half * half);
     let denominator = 3.0 * mid2 + half2;
-    if !(denominator > 0.0) {
+    // Also catches NaN from non-finite distances.
+    if denominator.is_nan() || denominator <= 0.0 {
         return FrustumMoments {
             t_mean: mid,
             t_variance: 0.0,
