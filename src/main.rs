@@ -19,7 +19,7 @@ use zrak::render::export::{ExportSettings, export_turntable};
 use zrak::render::path::Turntable;
 use zrak::render::{RenderMode, render_pixels, to_image};
 use zrak::scene::demo::{self, DemoConfig};
-use zrak::scene::{Camera, LoadOptions, Scene, Split};
+use zrak::scene::{Camera, Frame, LoadOptions, Scene, Split};
 use zrak::train::eval::{SplitScores, evaluate_split};
 use zrak::train::run::{Limits, RunFolder, Schedule, load_checkpoint, run};
 use zrak::train::trainer::Trainer;
@@ -66,6 +66,11 @@ enum Command {
         /// Force an engine (default: the run's own choice rules).
         #[arg(long, value_enum)]
         engine: Option<EngineKind>,
+        /// Evaluate at 1/N of the views' resolution: intrinsics scaled, the
+        /// photographs area-averaged (Mip-NeRF's multiscale protocol: how
+        /// much a model aliases when it sees the scene from further away).
+        #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
+        downscale: u32,
     },
     /// Render views of a trained run to PNG files.
     Render(RenderArgs),
@@ -264,7 +269,12 @@ fn main() -> ExitCode {
         Some(Command::Info { scene, downscale }) => info(&scene, downscale),
         Some(Command::Demo { out, size, views }) => write_demo(&out, size, views),
         Some(Command::Train(args)) => train(args),
-        Some(Command::Eval { run, split, engine }) => eval(&run, split.into(), engine),
+        Some(Command::Eval {
+            run,
+            split,
+            engine,
+            downscale,
+        }) => eval(&run, split.into(), engine, downscale),
         Some(Command::Render(args)) => render(args),
         Some(Command::Bench(BenchCommand::Throughput {
             scene,
@@ -604,13 +614,35 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn eval(run_dir: &Path, split: Split, engine: Option<EngineKind>) -> anyhow::Result<()> {
+fn eval(
+    run_dir: &Path,
+    split: Split,
+    engine: Option<EngineKind>,
+    downscale: u32,
+) -> anyhow::Result<()> {
     let folder = RunFolder::open(run_dir).map_err(anyhow::Error::msg)?;
     let (_, trainer) = restore_run(&folder, engine)?;
     let frames = trainer.scene.split(split);
     if frames.is_empty() {
         bail!("the scene has no {} views", split.name());
     }
+    let smaller: Vec<Frame>;
+    let frames = if downscale > 1 {
+        smaller = frames.iter().map(|f| f.downscaled(downscale)).collect();
+        if smaller
+            .iter()
+            .any(|f| f.camera.intrinsics.width == 0 || f.camera.intrinsics.height == 0)
+        {
+            bail!(
+                "the {} views are smaller than {downscale} pixels",
+                split.name()
+            );
+        }
+        println!("at 1/{downscale} of the views' resolution");
+        &smaller[..]
+    } else {
+        frames
+    };
     println!("{:>5}  {:>8}  {:>7}  image", "view", "PSNR", "SSIM");
     let scores: SplitScores = evaluate_split(trainer.model.as_ref(), split.name(), frames, |v| {
         println!(
@@ -622,7 +654,14 @@ fn eval(run_dir: &Path, split: Split, engine: Option<EngineKind>) -> anyhow::Res
         "{:>5}  {:>8.3}  {:>7.4}",
         "mean", scores.mean_psnr, scores.mean_ssim
     );
-    let path = folder.dir.join(format!("eval_{}.json", split.name()));
+    let suffix = if downscale > 1 {
+        format!("_d{downscale}")
+    } else {
+        String::new()
+    };
+    let path = folder
+        .dir
+        .join(format!("eval_{}{suffix}.json", split.name()));
     std::fs::write(&path, serde_json::to_string_pretty(&scores)?)
         .with_context(|| format!("{}: cannot write", path.display()))?;
     println!("step {}; written to {}", trainer.step, path.display());

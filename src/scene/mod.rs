@@ -72,6 +72,23 @@ pub struct Frame {
     pub image_path: PathBuf,
 }
 
+impl Frame {
+    /// The view at 1/`factor` of its resolution: the same pose, the
+    /// intrinsics scaled, and the photograph area-averaged (what a camera
+    /// with pixels `factor` times wider records; Mip-NeRF's multiscale
+    /// Blender protocol).
+    pub fn downscaled(&self, factor: u32) -> Frame {
+        Frame {
+            camera: Camera::new(
+                self.camera.intrinsics.downscaled(factor),
+                self.camera.camera_to_world,
+            ),
+            image: self.image.downscaled(factor),
+            image_path: self.image_path.clone(),
+        }
+    }
+}
+
 /// How world coordinates map into the unit cube that grid-based models work
 /// in: `unit = world · scale + offset`. The scene's content lies in the cube
 /// of side `aabb_scale` centred at (0.5, 0.5, 0.5) in unit coordinates
