@@ -805,5 +805,11 @@ fn bench_throughput(
     let report = zrak::bench::throughput(&mut trainer, warmup, steps);
     zrak::bench::print_report(&report, &scene, &engine_line);
     println!("machine peak         {peak:.0} GFLOP/s (f32 matrix multiply, median)");
+    if let Some(gflops) = report.network_gflops {
+        println!(
+            "networks at          {:.0} % of the machine peak",
+            100.0 * gflops / peak
+        );
+    }
     Ok(())
 }

@@ -23,6 +23,9 @@ pub struct ThroughputReport {
     /// How a gpu engine measured its stages (timestamps or wall clock);
     /// `None` on the cpu engine.
     pub stage_timing: Option<String>,
+    /// The networks' achieved rate over their own (forward and backward)
+    /// time, GFLOP/s, for models that count their FLOPs.
+    pub network_gflops: Option<f64>,
 }
 
 fn median(values: &mut [f64]) -> f64 {
@@ -76,7 +79,14 @@ pub fn throughput(trainer: &mut Trainer, warmup: usize, steps: usize) -> Through
         grid_update: records.iter().map(|r| r.1.times.grid_update).sum::<f64>()
             / steps.max(1) as f64,
     };
+    let network_flops: f64 = records.iter().map(|r| r.1.network_flops).sum();
+    let network_seconds: f64 = records
+        .iter()
+        .map(|r| r.1.times.networks_forward + r.1.times.networks_backward)
+        .sum();
     ThroughputReport {
+        network_gflops: (network_flops > 0.0 && network_seconds > 0.0)
+            .then(|| network_flops / network_seconds / 1e9),
         warmup,
         steps,
         median_step_seconds: median(&mut step_seconds),
@@ -141,6 +151,11 @@ pub fn print_report(report: &ThroughputReport, scene: &Arc<Scene>, engine: &str)
             "  {name:<20} {:>8.2}  {:>5.1}%",
             seconds * 1e3,
             100.0 * seconds / total.max(1e-12)
+        );
+    }
+    if let Some(gflops) = report.network_gflops {
+        println!(
+            "networks             {gflops:.1} GFLOP/s (forward and backward, over their time)"
         );
     }
     if let Some(bytes) = report.peak_memory_bytes {

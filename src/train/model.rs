@@ -72,6 +72,9 @@ pub struct StepStats {
     /// Samples the networks were evaluated on.
     pub samples: usize,
     pub times: StageTimes,
+    /// Floating-point operations of the networks' forward and backward
+    /// passes in this step, for models that count them (0 otherwise).
+    pub network_flops: f64,
 }
 
 impl StepStats {

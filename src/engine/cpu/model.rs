@@ -468,6 +468,10 @@ impl CpuModel {
             rays: if rays == 0 { 0 } else { kept },
             samples: s,
             times,
+            // σ of every marched sample, then forward (2 FLOP a
+            // multiply-add) and backward (twice the forward) of the used.
+            network_flops: 2.0 * (self.fields[level.field].density_macs_per_sample() * s) as f64
+                + 6.0 * (self.fields[level.field].macs_per_sample() * u) as f64,
         }
     }
 
@@ -479,6 +483,7 @@ impl CpuModel {
         let mut loss = 0.0f64;
         let mut level_losses = [0f32; 2];
         let mut samples = 0usize;
+        let mut network_flops = 0f64;
         let (mut near, mut far) = (Vec::new(), Vec::new());
         {
             let b = &self.buffers;
@@ -508,6 +513,7 @@ impl CpuModel {
                 let lb = &mut b.levels[level_index];
                 let n = lb.t.len();
                 samples += n;
+                network_flops += 6.0 * (self.fields[level.field].macs_per_sample() * n) as f64;
                 let field_range = self.ranges[level.field].clone();
                 let field_params = &self.params[field_range.clone()];
                 set_len(&mut lb.sigma, n);
@@ -556,6 +562,7 @@ impl CpuModel {
             rays,
             samples,
             times,
+            network_flops,
         }
     }
 

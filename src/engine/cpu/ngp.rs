@@ -557,6 +557,7 @@ impl CpuNgp {
             rays: if rays == 0 { 0 } else { kept },
             samples: s,
             times,
+            network_flops: 0.0,
         }
     }
 

@@ -727,6 +727,7 @@ impl GpuNgp {
             rays: if rays == 0 { 0 } else { kept },
             samples,
             times,
+            network_flops: 0.0,
         }
     }
 

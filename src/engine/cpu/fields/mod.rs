@@ -64,6 +64,9 @@ pub trait Field: Send + Sync {
     /// backward pass does twice as many), for the benchmark's FLOP/s.
     fn macs_per_sample(&self) -> usize;
 
+    /// Multiply-adds per sample of [`Field::density`].
+    fn density_macs_per_sample(&self) -> usize;
+
     /// Bytes of scratch held.
     fn workspace_bytes(&self) -> usize;
 }

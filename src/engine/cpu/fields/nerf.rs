@@ -606,6 +606,13 @@ impl Field for NerfField {
         s.trunk_a.macs_per_row() + s.trunk_b.macs_per_row() + s.colour.macs_per_row()
     }
 
+    fn density_macs_per_sample(&self) -> usize {
+        // Trunk A, and trunk B without the feature columns of its last
+        // layer (inference computes its leading σ output only).
+        let s = &self.shape;
+        s.trunk_a.macs_per_row() + s.trunk_b.macs_per_row() - s.width() * s.width()
+    }
+
     fn workspace_bytes(&self) -> usize {
         let k = &self.kept;
         4 * [
