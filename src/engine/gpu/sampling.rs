@@ -51,6 +51,8 @@ pub struct GpuSampling {
     merge: Kernel,
     blur: Kernel,
     intervals: Kernel,
+    points: Kernel,
+    bins: Kernel,
 }
 
 impl GpuSampling {
@@ -77,6 +79,14 @@ impl GpuSampling {
             intervals: kernel(
                 "sample_intervals",
                 include_str!("../../../shaders/sample_intervals.wgsl"),
+            )?,
+            points: kernel(
+                "sample_points",
+                include_str!("../../../shaders/sample_points.wgsl"),
+            )?,
+            bins: kernel(
+                "sample_bins",
+                include_str!("../../../shaders/sample_bins.wgsl"),
             )?,
         })
     }
@@ -270,6 +280,79 @@ impl GpuSampling {
                 float_range(t, n * p.start, n * p.len()),
                 float_range(far, p.start, p.len()),
                 float_range(dt_out, n * p.start, n * p.len()),
+            ]
+        });
+    }
+
+    /// Records the positions o + t·d and directions (R × N × 3 each) of
+    /// `samples_per_ray` samples at distances `t` (R × N) along rays
+    /// `origins`, `directions` (R × 3), as the cpu model's
+    /// `points_along_rays`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_points(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        origins: &wgpu::Buffer,
+        directions: &wgpu::Buffer,
+        t: &wgpu::Buffer,
+        rays: usize,
+        samples_per_ray: usize,
+        positions_out: &wgpu::Buffer,
+        directions_out: &wgpu::Buffer,
+    ) {
+        let n = samples_per_ray;
+        if n == 0 || rays == 0 {
+            return;
+        }
+        let template = SampleUniforms {
+            samples: n as u32,
+            ..Default::default()
+        };
+        Self::record_rays(context, encoder, &self.points, rays, 3 * n, template, |p| {
+            vec![
+                float_range(origins, 3 * p.start, 3 * p.len()),
+                float_range(directions, 3 * p.start, 3 * p.len()),
+                float_range(t, n * p.start, n * p.len()),
+                float_range(positions_out, 3 * n * p.start, 3 * n * p.len()),
+                float_range(directions_out, 3 * n * p.start, 3 * n * p.len()),
+            ]
+        });
+    }
+
+    /// Records the bins of NeRF's importance sampling from the previous
+    /// level's `samples_per_ray` (M ≥ 3) sorted samples `t` and their
+    /// `weights` (R × M each): `edges_out` (R × (M − 1)) are the midpoints
+    /// between samples, `bin_weights_out` (R × (M − 2)) the weights of the
+    /// interior samples, as the cpu model's `importance_samples` gives
+    /// [`crate::engine::cpu::sampling::sample_pdf`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_importance_bins(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        t: &wgpu::Buffer,
+        weights: &wgpu::Buffer,
+        rays: usize,
+        samples_per_ray: usize,
+        edges_out: &wgpu::Buffer,
+        bin_weights_out: &wgpu::Buffer,
+    ) {
+        let m = samples_per_ray;
+        assert!(m >= 3, "importance sampling needs three samples per ray");
+        if rays == 0 {
+            return;
+        }
+        let template = SampleUniforms {
+            samples: m as u32,
+            ..Default::default()
+        };
+        Self::record_rays(context, encoder, &self.bins, rays, m, template, |p| {
+            vec![
+                float_range(t, m * p.start, m * p.len()),
+                float_range(weights, m * p.start, m * p.len()),
+                float_range(edges_out, (m - 1) * p.start, (m - 1) * p.len()),
+                float_range(bin_weights_out, (m - 2) * p.start, (m - 2) * p.len()),
             ]
         });
     }
