@@ -69,7 +69,12 @@ pub fn build_model(
         }
         (ModelKind::Nerf, EngineKind::Cpu) => Ok(Box::new(cpu_nerf(scene, settings))),
         (ModelKind::Nerf, EngineKind::Gpu) => {
-            Err("NeRF is not yet built on the gpu engine: use --engine cpu".into())
+            let context = engine
+                .gpu
+                .ok_or("the gpu engine was chosen without a gpu context")?;
+            gpu_nerf(context, scene, settings)
+                .map(|model| Box::new(model) as Box<dyn RadianceModel>)
+                .map_err(|e| format!("building NeRF on the gpu engine: {e}"))
         }
     }
 }
@@ -93,34 +98,96 @@ pub fn cpu_nerf_with_shape(
 ) -> crate::engine::cpu::model::CpuModel {
     use crate::engine::cpu::fields::Field;
     use crate::engine::cpu::fields::nerf::NerfField;
-    use crate::field::common::BatchSize;
-    use crate::field::nerf;
-    let recipe = nerf::recipe(
-        settings.sampling,
-        scene.format == crate::scene::SceneFormat::Blender,
-    );
+    let recipe = nerf_recipe(scene, settings);
     let fields: Vec<Box<dyn Field>> = (0..recipe.fields)
         .map(|_| Box::new(NerfField::new(shape.clone())) as Box<dyn Field>)
         .collect();
-    let batch = settings
+    crate::engine::cpu::model::CpuModel::new(
+        nerf_identity(settings),
+        recipe,
+        fields,
+        scene,
+        settings.seed,
+        settings.loss,
+        nerf_batch(settings),
+    )
+}
+
+/// NeRF on the `gpu` engine, with the cpu engine's recipe, parameters and
+/// checkpoints (see [`cpu_nerf`]).
+pub fn gpu_nerf(
+    context: crate::engine::gpu::GpuContext,
+    scene: &Scene,
+    settings: &ModelSettings,
+) -> Result<crate::engine::gpu::model::GpuModel, String> {
+    gpu_nerf_with_shape(
+        context,
+        scene,
+        settings,
+        &crate::engine::cpu::fields::nerf::NerfShape::paper(),
+    )
+}
+
+/// [`gpu_nerf`] with networks of another size (tests use small ones).
+pub fn gpu_nerf_with_shape(
+    context: crate::engine::gpu::GpuContext,
+    scene: &Scene,
+    settings: &ModelSettings,
+    shape: &crate::engine::cpu::fields::nerf::NerfShape,
+) -> Result<crate::engine::gpu::model::GpuModel, String> {
+    use crate::engine::cpu::fields::Field;
+    use crate::engine::cpu::fields::nerf::NerfField;
+    use crate::engine::gpu::fields::GpuField;
+    use crate::engine::gpu::fields::nerf::GpuNerfField;
+    let recipe = nerf_recipe(scene, settings);
+    // The cpu fields give the initial parameters (the same for the same
+    // seed on either engine); they hold no workspace until used.
+    let cpu_fields: Vec<Box<dyn Field>> = (0..recipe.fields)
+        .map(|_| Box::new(NerfField::new(shape.clone())) as Box<dyn Field>)
+        .collect();
+    let (params, ranges) = crate::engine::cpu::model::init_field_params(&cpu_fields, settings.seed);
+    crate::engine::gpu::model::GpuModel::new(
+        context,
+        nerf_identity(settings),
+        recipe,
+        params,
+        ranges,
+        |context, _, capacity| {
+            GpuNerfField::new(context, shape, capacity).map(|f| Box::new(f) as Box<dyn GpuField>)
+        },
+        scene,
+        settings.seed,
+        settings.loss,
+        nerf_batch(settings),
+    )
+}
+
+fn nerf_recipe(scene: &Scene, settings: &ModelSettings) -> crate::field::nerf::Recipe {
+    crate::field::nerf::recipe(
+        settings.sampling,
+        scene.format == crate::scene::SceneFormat::Blender,
+    )
+}
+
+fn nerf_identity(settings: &ModelSettings) -> crate::engine::cpu::model::ModelIdentity {
+    crate::engine::cpu::model::ModelIdentity {
+        name: "NeRF",
+        key: "nerf",
+        sampling: settings.sampling.name(),
+    }
+}
+
+/// The batch a `batch_samples` setting asks for: about that many samples
+/// with either sampler (the paper's evaluates 64 + 192 per ray).
+fn nerf_batch(settings: &ModelSettings) -> Option<crate::field::common::BatchSize> {
+    use crate::field::common::BatchSize;
+    use crate::field::nerf;
+    settings
         .batch_samples
         .map(|samples| match settings.sampling {
             Sampling::Occupancy => BatchSize::Samples(samples),
             Sampling::Paper => {
                 BatchSize::Rays((samples / (2 * nerf::COARSE_SAMPLES + nerf::FINE_SAMPLES)).max(1))
             }
-        });
-    crate::engine::cpu::model::CpuModel::new(
-        crate::engine::cpu::model::ModelIdentity {
-            name: "NeRF",
-            key: "nerf",
-            sampling: settings.sampling.name(),
-        },
-        recipe,
-        fields,
-        scene,
-        settings.seed,
-        settings.loss,
-        batch,
-    )
+        })
 }

@@ -126,6 +126,9 @@ pub struct CpuModel {
     /// Rays per batch for fixed-size batches, or samples per batch for
     /// marched ones.
     batch_size: BatchSize,
+    /// Rays per chunk of fixed-count levels ([`RAYS_PER_CHUNK`] unless a
+    /// test asks for fewer).
+    rays_per_chunk: usize,
 }
 
 impl CpuModel {
@@ -183,8 +186,16 @@ impl CpuModel {
             seed,
             buffers: StepBuffers::default(),
             batch_size,
+            rays_per_chunk: RAYS_PER_CHUNK,
             recipe,
         }
+    }
+
+    /// Processes fixed-count levels in chunks of `rays` (at least 1)
+    /// instead of [`RAYS_PER_CHUNK`]: the chunk index seeds the jitter, so
+    /// tests of a gpu model with smaller chunks set the same here.
+    pub fn set_rays_per_chunk(&mut self, rays: usize) {
+        self.rays_per_chunk = rays.max(1);
     }
 
     pub fn params(&self) -> &[f32] {
@@ -396,8 +407,9 @@ impl CpuModel {
             self.ray_bounds(&b.origins, &b.directions, &mut near, &mut far);
         }
         let step_seed = mix_seed(self.seed, step);
-        for (chunk, start) in (0..rays).step_by(RAYS_PER_CHUNK).enumerate() {
-            let end = (start + RAYS_PER_CHUNK).min(rays);
+        let per_chunk = self.rays_per_chunk;
+        for (chunk, start) in (0..rays).step_by(per_chunk).enumerate() {
+            let end = (start + per_chunk).min(rays);
             let chunk_rays = end - start;
             // Each chunk and level draws its own jitter.
             let seed_of = |level: usize| chunk_jitter_seed(step_seed, chunk, level);
@@ -694,7 +706,7 @@ pub fn ray_bounds(
 }
 
 /// The seed of the random sample positions of `level` for the rays of
-/// chunk `chunk` (of [`RAYS_PER_CHUNK`]) in the step seeded `step_seed`:
+/// chunk `chunk` (of [`RAYS_PER_CHUNK`] rays by default) in the step seeded `step_seed`:
 /// each chunk and level draws its own jitter, the same on either engine.
 pub fn chunk_jitter_seed(step_seed: u32, chunk: usize, level: usize) -> u32 {
     mix32(step_seed ^ mix32((chunk * 8 + level) as u32))
