@@ -852,7 +852,7 @@ fn points_along_rays(
 }
 
 /// Unit-cube positions (n × 3) to world positions.
-fn to_world(mapping: &UnitCubeMapping, unit: &[f32], world: &mut Vec<f32>) {
+pub fn to_world(mapping: &UnitCubeMapping, unit: &[f32], world: &mut Vec<f32>) {
     set_len(world, unit.len());
     let (scale, offset) = (mapping.scale, mapping.offset.to_array());
     world

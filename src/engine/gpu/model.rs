@@ -28,11 +28,16 @@
 //! section 5.2): they are computed from the coarse weights, which are
 //! values, not part of the backward pass.
 //!
-//! Not built yet: the occupancy-grid sampler (the recipe's
-//! [`SamplerKind::Occupancy`]); [`GpuModel::new`] refuses it with an error.
+//! A recipe whose level marches through the occupancy grid
+//! ([`SamplerKind::Occupancy`]) runs as Instant-NGP's gpu driver does: the
+//! grid's values on the host with the cpu engine's update code, its
+//! bitfield on the device, the march ([`GpuMarch`]) and everything after
+//! it on the device (see [`GpuModel::run_marched`] for the one difference
+//! from the cpu: no σ-first compaction yet).
 
 use std::ops::Range;
 use std::sync::Mutex;
+use std::time::Instant;
 
 use glam::Vec3;
 
@@ -40,25 +45,52 @@ use super::adam::GpuAdam;
 use super::composite::{CompositeOutputBuffers, GpuComposite};
 use super::context::{GpuContext, GpuError};
 use super::fields::GpuField;
-use super::kernel::{read_buffer, storage_buffer, zeroed_storage_buffer};
+use super::kernel::{read_buffer, read_mapped, storage_buffer, zeroed_storage_buffer};
 use super::loss::GpuLoss;
+use super::march::{GpuGrid, GpuMarch, GpuMarchBuffers, GpuRays};
 use super::sampling::GpuSampling;
 use super::step::{CompositeAndLoss, RayBuffers, SampleBuffers, SampleGradientBuffers};
 use super::timing::{Stage, StageClock, StageTiming};
-use crate::engine::cpu::march::{BatchSizer, mix_seed};
-use crate::engine::cpu::model::{ModelIdentity, RAYS_PER_CHUNK, chunk_jitter_seed, ray_bounds};
+use crate::engine::cpu::march::{BatchSizer, MarchParams, mix_seed, render_through_grid};
+use crate::engine::cpu::model::{
+    ModelIdentity, RAYS_PER_CHUNK, chunk_jitter_seed, ray_bounds, to_world,
+};
+use crate::engine::cpu::occupancy::OccupancyGrid;
 use crate::engine::cpu::state::{ModelHeader, ModelState};
 use crate::field::common::{BatchSize, SamplerKind};
 use crate::field::nerf::Recipe;
 use crate::field::ngp::LossKind;
-use crate::scene::{Aabb, Scene};
+use crate::scene::{Aabb, Scene, UnitCubeMapping};
 use crate::train::batch::RayBatch;
 use crate::train::checkpoint::Checkpoint;
 use crate::train::model::{RadianceModel, RenderedPixel, StepStats};
 
-/// Samples per ray of each level of `recipe` (an importance level evaluates
-/// the previous level's samples and its own), or why the gpu engine cannot
-/// drive it.
+/// How a recipe's samples are placed.
+enum Plan {
+    /// One level marching through the occupancy grid.
+    Marched,
+    /// Fixed-count levels, with their samples per ray.
+    Fixed(Vec<usize>),
+}
+
+/// What the gpu driver makes of `recipe`'s levels, or why it cannot drive
+/// them.
+fn plan(recipe: &Recipe) -> Result<Plan, String> {
+    if recipe.levels.is_empty() {
+        return Err("the recipe has no levels".into());
+    }
+    if recipe.levels[0].sampler == SamplerKind::Occupancy {
+        if recipe.levels.len() != 1 {
+            return Err("a recipe that marches through the occupancy grid has one level".into());
+        }
+        return Ok(Plan::Marched);
+    }
+    samples_per_ray(recipe).map(Plan::Fixed)
+}
+
+/// Samples per ray of each fixed-count level of `recipe` (an importance
+/// level evaluates the previous level's samples and its own), or why the
+/// levels cannot be sampled so.
 pub fn samples_per_ray(recipe: &Recipe) -> Result<Vec<usize>, String> {
     let mut out: Vec<usize> = Vec::with_capacity(recipe.levels.len());
     for (i, level) in recipe.levels.iter().enumerate() {
@@ -75,11 +107,10 @@ pub fn samples_per_ray(recipe: &Recipe) -> Result<Vec<usize>, String> {
                 None => return Err("the first level cannot be an importance level".into()),
             },
             SamplerKind::Occupancy => {
-                return Err(
-                    "the occupancy-grid sampler is not yet built for this model on the \
-                            gpu engine: use --sampling paper, or --engine cpu"
-                        .into(),
-                );
+                return Err(format!(
+                    "level {i} marches through the occupancy grid, which only a first and only \
+                     level can"
+                ));
             }
         };
         if n == 0 {
@@ -91,6 +122,51 @@ pub fn samples_per_ray(recipe: &Recipe) -> Result<Vec<usize>, String> {
         return Err("the recipe has no levels".into());
     }
     Ok(out)
+}
+
+/// The occupancy grid and its marching, for a recipe that marches.
+struct Grid {
+    /// Values, cell choice and EMA on the host (the cpu engine's code and
+    /// random choices); the bitfield on the device.
+    grid: OccupancyGrid,
+    bitfield: wgpu::Buffer,
+    march: GpuMarch,
+    mapping: UnitCubeMapping,
+    /// Samples per batch: every per-sample buffer holds this many.
+    samples: usize,
+    counters_staging: wgpu::Buffer,
+}
+
+/// Per-sample and per-ray buffers of a marched step.
+struct MarchedBuffers {
+    out: GpuMarchBuffers,
+    rays: RayBuffers,
+    /// Marched positions in world space (the field's input).
+    world: wgpu::Buffer,
+    sigma: wgpu::Buffer,
+    rgb: wgpu::Buffer,
+    d_sigma: wgpu::Buffer,
+    d_rgb: wgpu::Buffer,
+}
+
+impl MarchedBuffers {
+    fn new(context: &GpuContext, rays: usize, samples: usize) -> Self {
+        let f = |label: &str, n: usize| zeroed_storage_buffer::<f32>(context, label, n);
+        Self {
+            out: GpuMarchBuffers::new(context, rays, samples),
+            rays: RayBuffers::new(context, rays),
+            world: f("marched world positions", 3 * samples),
+            sigma: f("marched sigma", samples),
+            rgb: f("marched rgb", 3 * samples),
+            d_sigma: f("marched d sigma", samples),
+            d_rgb: f("marched d rgb", 3 * samples),
+        }
+    }
+
+    fn bytes(&self) -> usize {
+        // The march's own (positions, directions, t, dt) and ours.
+        self.out.capacity * 4 * (3 + 3 + 1 + 1 + 3 + 1 + 3 + 1 + 3) + self.rays.bytes()
+    }
 }
 
 /// Buffers of one level for one chunk of rays.
@@ -163,6 +239,8 @@ struct Work {
     fine_t: wgpu::Buffer,
     scratch: Vec<f32>,
     clock: StageClock,
+    /// For a recipe that marches.
+    marched: Option<MarchedBuffers>,
 }
 
 /// The compiled stages the driver records.
@@ -193,6 +271,8 @@ pub struct GpuModel {
     seed: u64,
     /// Rays per chunk: [`RAYS_PER_CHUNK`], or fewer for tests.
     rays_per_chunk: usize,
+    /// For a recipe that marches through the occupancy grid.
+    grid: Option<Grid>,
 }
 
 impl GpuModel {
@@ -214,7 +294,32 @@ impl GpuModel {
         loss: LossKind,
         batch_size: Option<BatchSize>,
     ) -> Result<Self, String> {
-        let per_ray = samples_per_ray(&recipe)?;
+        let plan = plan(&recipe)?;
+        let per_ray = match &plan {
+            Plan::Fixed(per_ray) => per_ray.clone(),
+            Plan::Marched => Vec::new(),
+        };
+        let batch_size = batch_size.unwrap_or(recipe.batch);
+        // A marched batch is sized in samples; its buffers hold that many.
+        let marched_samples = match (&plan, batch_size) {
+            (Plan::Marched, BatchSize::Samples(samples)) => Some(samples.max(1)),
+            (Plan::Marched, BatchSize::Rays(_)) => {
+                return Err("marching through the occupancy grid needs a batch in samples".into());
+            }
+            (Plan::Fixed(_), _) => None,
+        };
+        if let Some(samples) = marched_samples {
+            // The march's and compositing's per-sample arrays (at most 3
+            // f32 per sample) are bound whole, as in Instant-NGP's driver.
+            let bytes = 12 * samples as u64;
+            let limit = context.storage_binding_limit();
+            if bytes > limit {
+                return Err(format!(
+                    "a batch of {samples} samples needs {bytes} bytes per binding, more than \
+                     the device's {limit}"
+                ));
+            }
+        }
         if ranges.len() != recipe.fields {
             return Err(format!(
                 "{} parameter ranges for the recipe's {} fields",
@@ -232,7 +337,8 @@ impl GpuModel {
         let gpu = |e: GpuError| e.to_string();
         let mut fields = Vec::with_capacity(recipe.fields);
         for (i, range) in ranges.iter().enumerate() {
-            // A field's passes hold one chunk of its busiest level.
+            // A field's passes hold one chunk of its busiest level, or a
+            // marched batch.
             let most = recipe
                 .levels
                 .iter()
@@ -241,7 +347,8 @@ impl GpuModel {
                 .map(|(_, &n)| n)
                 .max()
                 .unwrap_or(1);
-            let mut field = make_field(ctx, i, RAYS_PER_CHUNK * most).map_err(gpu)?;
+            let capacity = marched_samples.unwrap_or(RAYS_PER_CHUNK * most);
+            let mut field = make_field(ctx, i, capacity).map_err(gpu)?;
             if field.param_count() != range.len() {
                 return Err(format!(
                     "field {i} has {} parameters, its range {}",
@@ -272,7 +379,7 @@ impl GpuModel {
             }
         }
         let f = |label: &str, n: usize| zeroed_storage_buffer::<f32>(ctx, label, n);
-        let work = Work {
+        let mut work = Work {
             fields,
             rays: RayBuffers::new(ctx, RAYS_PER_CHUNK),
             near: f("ray near", RAYS_PER_CHUNK),
@@ -283,18 +390,46 @@ impl GpuModel {
             fine_t: f("importance samples", fine),
             scratch: Vec::new(),
             clock: StageClock::new(ctx, StageTiming::Timestamps),
+            marched: None,
         };
         let stages = Stages {
             sampling: GpuSampling::new(ctx).map_err(gpu)?,
             composite: GpuComposite::new(ctx).map_err(gpu)?,
             loss: GpuLoss::new(ctx).map_err(gpu)?,
         };
-        let batch_size = batch_size.unwrap_or(recipe.batch);
         // As the cpu model: the header's samples per ray comes from here.
         let batch_sizer = BatchSizer::new(match batch_size {
             BatchSize::Samples(samples) => samples,
             BatchSize::Rays(rays) => rays,
         });
+        let mapping = scene.unit_cube;
+        let grid = match marched_samples {
+            None => None,
+            Some(samples) => {
+                // As `CpuModel::new`: the grid stores σ · (Instant-NGP's
+                // smallest step) whatever step the recipe marches with.
+                let mut grid = OccupancyGrid::new(
+                    recipe.occupancy,
+                    crate::field::ngp::OccupancyConfig::cascades(mapping.aabb_scale),
+                    crate::field::ngp::MarchConfig::PAPER.step / mapping.scale,
+                );
+                grid.chunk = samples;
+                work.marched = Some(MarchedBuffers::new(ctx, batch_sizer.max_rays, samples));
+                Some(Grid {
+                    bitfield: storage_buffer(ctx, "occupancy bitfield", grid.bitfield()),
+                    grid,
+                    march: GpuMarch::new(ctx).map_err(gpu)?,
+                    mapping,
+                    samples,
+                    counters_staging: ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                        label: Some("march counters read-back"),
+                        size: 8,
+                        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                        mapped_at_creation: false,
+                    }),
+                })
+            }
+        };
         Ok(Self {
             adam: GpuAdam::new(ctx, param_count).map_err(gpu)?,
             params: storage_buffer(ctx, "model params", &params),
@@ -309,6 +444,7 @@ impl GpuModel {
             loss,
             seed,
             rays_per_chunk: RAYS_PER_CHUNK,
+            grid,
             identity,
             recipe,
             context,
@@ -342,6 +478,11 @@ impl GpuModel {
     /// [`Self::forward_backward`], in the parameters' layout.
     pub fn gradients(&self) -> Vec<f32> {
         read_buffer(&self.context, &self.gradients, self.param_count)
+    }
+
+    /// The occupancy grid, for a recipe that marches through one.
+    pub fn occupancy(&self) -> Option<&OccupancyGrid> {
+        self.grid.as_ref().map(|g| &g.grid)
     }
 
     /// Where each field sits in the parameters.
@@ -578,6 +719,257 @@ impl GpuModel {
 
     /// One step on `batch`; with `optimise`, Adam updates the parameters.
     fn run(&mut self, batch: &RayBatch, step: u32, optimise: bool) -> StepStats {
+        if self.grid.is_some() {
+            self.run_marched(batch, step, optimise)
+        } else {
+            self.run_fixed(batch, step, optimise)
+        }
+    }
+
+    /// A step through the occupancy grid, in two submissions as Instant-NGP's
+    /// (`super::ngp`): the march, whose two counters (samples, rays kept)
+    /// are read back to size the rest; then the field, compositing with the
+    /// march's transmittance cut, the loss, the backward passes and Adam.
+    ///
+    /// Unlike the cpu model, the field's forward and backward passes run on
+    /// every marched sample, not only on those before each ray's cut: the
+    /// gradient is the same (compositing's backward pass gives the samples
+    /// past the cut zero gradient), the work is larger by the share of
+    /// samples past the cut. A σ-first pass and compaction on the device
+    /// are not built yet.
+    fn run_marched(&mut self, batch: &RayBatch, step: u32, optimise: bool) -> StepStats {
+        let ctx = &self.context;
+        let grid = self.grid.as_ref().expect("a marched recipe has a grid");
+        let level = self.recipe.levels[0];
+        let rays = batch.len();
+        let mut guard = self.work.lock().unwrap_or_else(|e| e.into_inner());
+        let work = &mut *guard;
+        work.clock.reset();
+        let marched = work.marched.as_mut().expect("a marched recipe has buffers");
+        if rays > marched.rays.capacity {
+            *marched = MarchedBuffers::new(ctx, rays, grid.samples);
+        }
+        marched.rays.upload(ctx, batch, 0..rays, &mut work.scratch);
+
+        // Submission 1: the march and its counters.
+        let (samples, kept) = if rays == 0 {
+            (0, 0)
+        } else {
+            marched.out.ray_count = rays;
+            let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            work.clock.restart(ctx, &mut encoder);
+            grid.march.record(
+                ctx,
+                &mut encoder,
+                GpuGrid {
+                    geometry: grid.grid.geometry(),
+                    bitfield: &grid.bitfield,
+                },
+                GpuRays {
+                    origins: &marched.rays.origins,
+                    directions: &marched.rays.directions,
+                },
+                &MarchParams {
+                    config: self.recipe.march,
+                    mapping: grid.mapping,
+                    jitter_seed: Some(mix_seed(self.seed, step)),
+                    sample_budget: grid.samples,
+                },
+                &marched.out,
+            );
+            work.clock.mark(ctx, &mut encoder, Stage::March);
+            encoder.copy_buffer_to_buffer(&marched.out.counters, 0, &grid.counters_staging, 0, 8);
+            ctx.queue.submit([encoder.finish()]);
+            let counters: Vec<u32> = read_mapped(ctx, &grid.counters_staging, 2);
+            (counters[0] as usize, counters[1] as usize)
+        };
+
+        // Submission 2: field, compositing, loss, backward, Adam.
+        let s = &self.stages;
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        work.clock.restart(ctx, &mut encoder);
+        encoder.clear_buffer(&self.gradients, 0, None);
+        s.sampling.record_to_world(
+            ctx,
+            &mut encoder,
+            &grid.mapping,
+            &marched.out.positions,
+            samples,
+            &marched.world,
+        );
+        work.clock.mark(ctx, &mut encoder, Stage::March);
+        let field = &mut work.fields[level.field];
+        field.record_forward(
+            ctx,
+            &mut encoder,
+            &self.params,
+            &marched.world,
+            &marched.out.directions,
+            samples,
+            &marched.sigma,
+            &marched.rgb,
+        );
+        work.clock.mark(ctx, &mut encoder, Stage::NetworksForward);
+        CompositeAndLoss {
+            composite: &s.composite,
+            loss: &s.loss,
+        }
+        .record(
+            ctx,
+            &mut encoder,
+            &marched.rays,
+            SampleBuffers {
+                sigma: &marched.sigma,
+                rgb: &marched.rgb,
+                dt: &marched.out.dt,
+                t: &marched.out.t,
+                ray_offsets: &marched.out.ray_offsets,
+            },
+            kept,
+            self.recipe.march.min_transmittance,
+            self.loss,
+            level.loss_weight,
+            SampleGradientBuffers {
+                sigma: &marched.d_sigma,
+                rgb: &marched.d_rgb,
+            },
+        );
+        work.clock.mark(ctx, &mut encoder, Stage::Composite);
+        field.record_backward(
+            ctx,
+            &mut encoder,
+            &self.params,
+            &marched.d_sigma,
+            &marched.d_rgb,
+            samples,
+            &self.gradients,
+        );
+        work.clock.mark(ctx, &mut encoder, Stage::NetworksBackward);
+        if optimise {
+            self.adam.record_step(
+                ctx,
+                &mut encoder,
+                &self.recipe.optimiser,
+                0..self.param_count,
+                &self.params,
+                &self.gradients,
+            );
+        }
+        work.clock.mark(ctx, &mut encoder, Stage::Optimiser);
+        work.clock.resolve(&mut encoder);
+        ctx.queue.submit([encoder.finish()]);
+        let loss = read_buffer::<f32>(ctx, &marched.rays.loss_total, 1)[0];
+        let times = work.clock.read(ctx);
+        drop(guard);
+        self.batch_sizer.record(kept, samples);
+        StepStats {
+            loss,
+            level_losses: [loss, 0.0],
+            rays: if rays == 0 { 0 } else { kept },
+            samples,
+            times,
+        }
+    }
+
+    /// The occupancy update of `step`: cells and points chosen on the host
+    /// (the cpu engine's code and random choices), densities evaluated by
+    /// the field on the device in chunks of the batch's samples (one
+    /// submission) and read back, the EMA and bitfield on the host, the
+    /// bitfield uploaded.
+    fn update_grid(&mut self, step: u32) {
+        let ctx = &self.context;
+        let Some(grid) = self.grid.as_mut() else {
+            return;
+        };
+        let report = grid.grid.plan_update(step, self.seed);
+        let n = report.samples;
+        let mut world = Vec::new();
+        to_world(&grid.mapping, grid.grid.update_positions(), &mut world);
+        let positions = storage_buffer(ctx, "grid update positions", &world);
+        let all_sigma = zeroed_storage_buffer::<f32>(ctx, "grid update sigma", n);
+        let mut guard = self.work.lock().unwrap_or_else(|e| e.into_inner());
+        let work = &mut *guard;
+        let marched = work.marched.as_ref().expect("a marched recipe has buffers");
+        let field = &mut work.fields[self.recipe.levels[0].field];
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        for start in (0..n).step_by(grid.samples) {
+            let count = grid.samples.min(n - start);
+            encoder.copy_buffer_to_buffer(
+                &positions,
+                12 * start as u64,
+                &marched.world,
+                0,
+                12 * count as u64,
+            );
+            field.record_density(
+                ctx,
+                &mut encoder,
+                &self.params,
+                &marched.world,
+                count,
+                &marched.sigma,
+            );
+            encoder.copy_buffer_to_buffer(
+                &marched.sigma,
+                0,
+                &all_sigma,
+                4 * start as u64,
+                4 * count as u64,
+            );
+        }
+        ctx.queue.submit([encoder.finish()]);
+        let sigma: Vec<f32> = read_buffer(ctx, &all_sigma, n);
+        grid.grid.apply_update(&sigma);
+        ctx.queue.write_buffer(
+            &grid.bitfield,
+            0,
+            bytemuck::cast_slice(grid.grid.bitfield()),
+        );
+    }
+
+    /// σ and colour at unit-cube `positions` and `directions` (n × 3), on
+    /// the device in chunks of the batch's samples (rendering through the
+    /// grid).
+    fn radiance(&self, positions: &[f32], directions: &[f32], sigma: &mut [f32], rgb: &mut [f32]) {
+        let ctx = &self.context;
+        let grid = self.grid.as_ref().expect("a marched recipe has a grid");
+        let mut guard = self.work();
+        let work = &mut *guard;
+        let marched = work.marched.as_ref().expect("a marched recipe has buffers");
+        let field = &mut work.fields[self.recipe.levels[0].field];
+        let chunk = grid.samples;
+        let mut world = Vec::new();
+        for (((p, d), sigma), rgb) in positions
+            .chunks(3 * chunk)
+            .zip(directions.chunks(3 * chunk))
+            .zip(sigma.chunks_mut(chunk))
+            .zip(rgb.chunks_mut(3 * chunk))
+        {
+            let count = sigma.len();
+            to_world(&grid.mapping, p, &mut world);
+            ctx.queue
+                .write_buffer(&marched.world, 0, bytemuck::cast_slice(&world));
+            ctx.queue
+                .write_buffer(&marched.out.directions, 0, bytemuck::cast_slice(d));
+            let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            field.record_forward(
+                ctx,
+                &mut encoder,
+                &self.params,
+                &marched.world,
+                &marched.out.directions,
+                count,
+                &marched.sigma,
+                &marched.rgb,
+            );
+            ctx.queue.submit([encoder.finish()]);
+            sigma.copy_from_slice(&read_buffer::<f32>(ctx, &marched.sigma, count));
+            rgb.copy_from_slice(&read_buffer::<f32>(ctx, &marched.rgb, 3 * count));
+        }
+    }
+
+    /// A step of fixed-count levels, in chunks of rays.
+    fn run_fixed(&mut self, batch: &RayBatch, step: u32, optimise: bool) -> StepStats {
         let ctx = &self.context;
         let rays = batch.len();
         let levels = self.recipe.levels.len();
@@ -695,7 +1087,14 @@ impl RadianceModel for GpuModel {
     }
 
     fn step(&mut self, batch: &RayBatch, step: u32) -> StepStats {
-        self.run(batch, step, true)
+        let clock = Instant::now();
+        if self.grid.as_ref().is_some_and(|g| g.grid.is_due(step)) {
+            self.update_grid(step);
+        }
+        let grid_update = clock.elapsed().as_secs_f64();
+        let mut stats = self.run(batch, step, true);
+        stats.times.grid_update = grid_update;
+        stats
     }
 
     fn render(
@@ -705,6 +1104,20 @@ impl RadianceModel for GpuModel {
         background: [f32; 3],
         out: &mut [RenderedPixel],
     ) {
+        if let Some(grid) = &self.grid {
+            render_through_grid(
+                &grid.grid,
+                &grid.mapping,
+                origins,
+                directions,
+                background,
+                &self.recipe.march,
+                grid.samples,
+                |positions, dirs, sigma, rgb| self.radiance(positions, dirs, sigma, rgb),
+                out,
+            );
+            return;
+        }
         let ctx = &self.context;
         let rays = origins.len().min(directions.len()).min(out.len());
         let flat = |v: &[Vec3]| v.iter().flat_map(|x| x.to_array()).collect::<Vec<f32>>();
@@ -767,14 +1180,18 @@ impl RadianceModel for GpuModel {
             },
             params: self.params(),
             adam,
-            occupancy: None,
+            occupancy: self.grid.as_ref().map(|g| g.grid.values().to_vec()),
         }
         .into_checkpoint()
     }
 
     fn load(&mut self, checkpoint: &Checkpoint) -> Result<(), String> {
-        let state =
-            ModelState::from_checkpoint(checkpoint, self.identity.key, self.param_count, None)?;
+        let state = ModelState::from_checkpoint(
+            checkpoint,
+            self.identity.key,
+            self.param_count,
+            self.grid.as_ref().map(|g| g.grid.values().len()),
+        )?;
         let sampling = state.header.sampling.as_deref().unwrap_or("");
         if sampling != self.identity.sampling {
             return Err(format!(
@@ -793,6 +1210,15 @@ impl RadianceModel for GpuModel {
             queue.write_buffer(buffer, 0, bytemuck::cast_slice(values));
         }
         self.adam.step = state.adam.step;
+        if let (Some(grid), Some(values)) = (self.grid.as_mut(), &state.occupancy) {
+            grid.grid.values_mut().copy_from_slice(values);
+            grid.grid.build_bitfield();
+            queue.write_buffer(
+                &grid.bitfield,
+                0,
+                bytemuck::cast_slice(grid.grid.bitfield()),
+            );
+        }
         self.batch_sizer
             .set_samples_per_ray(state.header.samples_per_ray);
         self.loss = state.header.loss;
@@ -811,6 +1237,11 @@ impl RadianceModel for GpuModel {
             .sum::<usize>()
             + work.levels.iter().map(LevelBuffers::bytes).sum::<usize>()
             + work.rays.bytes()
+            + work.marched.as_ref().map_or(0, MarchedBuffers::bytes)
+            + self
+                .grid
+                .as_ref()
+                .map_or(0, |g| 4 * (g.grid.values().len() + g.grid.bitfield().len()))
             + [&work.edges, &work.bin_weights, &work.fine_t]
                 .iter()
                 .map(|b| b.size() as usize)

@@ -44,6 +44,18 @@ struct SampleUniforms {
     _pad: u32,
 }
 
+/// `Params` in `shaders/sample_to_world.wgsl`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct ToWorldUniforms {
+    count: u32,
+    row_stride: u32,
+    scale: f32,
+    _pad0: u32,
+    offset: [f32; 3],
+    _pad1: u32,
+}
+
 /// The compiled sampling kernels.
 pub struct GpuSampling {
     stratified: Kernel,
@@ -53,6 +65,7 @@ pub struct GpuSampling {
     intervals: Kernel,
     points: Kernel,
     bins: Kernel,
+    to_world: Kernel,
 }
 
 impl GpuSampling {
@@ -87,6 +100,13 @@ impl GpuSampling {
             bins: kernel(
                 "sample_bins",
                 include_str!("../../../shaders/sample_bins.wgsl"),
+            )?,
+            // Its own uniform: not prepended with sample_common.wgsl.
+            to_world: Kernel::new(
+                context,
+                "sample_to_world",
+                include_str!("../../../shaders/sample_to_world.wgsl"),
+                "main",
             )?,
         })
     }
@@ -355,5 +375,43 @@ impl GpuSampling {
                 float_range(bin_weights_out, (m - 2) * p.start, (m - 2) * p.len()),
             ]
         });
+    }
+
+    /// Records world positions of `count` unit-cube positions (n × 3 each)
+    /// under `mapping`, as the cpu model's `to_world`.
+    pub fn record_to_world(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        mapping: &crate::scene::UnitCubeMapping,
+        unit: &wgpu::Buffer,
+        count: usize,
+        world_out: &wgpu::Buffer,
+    ) {
+        if count == 0 {
+            return;
+        }
+        for piece in pieces(count, rows_per_piece(context, 3, 1)) {
+            let (groups, row_stride) = dispatch_grid(piece.len(), WORKGROUP);
+            let uniform = ToWorldUniforms {
+                count: piece.len() as u32,
+                row_stride,
+                scale: mapping.scale,
+                _pad0: 0,
+                offset: mapping.offset.to_array(),
+                _pad1: 0,
+            };
+            let uniform = uniform_buffer(context, "sample to world", &uniform);
+            self.to_world.record_bindings(
+                context,
+                encoder,
+                &[
+                    uniform.as_entire_buffer_binding(),
+                    float_range(unit, 3 * piece.start, 3 * piece.len()),
+                    float_range(world_out, 3 * piece.start, 3 * piece.len()),
+                ],
+                groups,
+            );
+        }
     }
 }
