@@ -24,14 +24,7 @@ struct Params {
 @group(0) @binding(8) var<storage, read_write> d_colour: array<f32>;
 @group(0) @binding(9) var<storage, read_write> d_background: array<f32>;
 
-// As in composite_forward.wgsl.
-fn one_minus_exp_neg(tau: f32) -> f32 {
-    if (tau < 0.25) {
-        return tau * (1.0 - tau / 2.0 * (1.0 - tau / 3.0 * (1.0 - tau / 4.0 * (1.0 - tau / 5.0
-            * (1.0 - tau / 6.0 * (1.0 - tau / 7.0 * (1.0 - tau / 8.0)))))));
-    }
-    return 1.0 - exp(-tau);
-}
+// one_minus_exp_neg comes from volume_common.wgsl.
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {

@@ -4,7 +4,10 @@
 //   L2:    d²;                                 gradient 2d
 // (instant-ngp's `huber_loss` and `l2_loss`). Everything is scaled by
 // 1/(3R), so the per-ray values sum to the mean over rays × channels and
-// the gradient is that of the mean.
+// the gradient is that of the mean. The gradient (not the value) is further
+// multiplied by `gradient_weight`: a model with levels, or with rays in
+// chunks, weights each part's mean (the cpu engine's `CpuModel` scales its
+// `d_rgb` the same way, after the 1/(3R)).
 
 struct Params {
     ray_count: u32,
@@ -13,7 +16,7 @@ struct Params {
     kind: u32,
     huber_delta: f32,
     scale: f32,
-    _pad0: u32,
+    gradient_weight: f32,
     _pad1: u32,
     _pad2: u32,
 }
@@ -46,7 +49,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
             value = abs(d) - 0.5 * params.huber_delta;
             derivative = sign(d);
         }
-        gradient[i] = derivative * params.scale;
+        gradient[i] = (derivative * params.scale) * params.gradient_weight;
         sum += value;
     }
     ray_loss[ray] = sum * params.scale;

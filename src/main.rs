@@ -763,6 +763,11 @@ fn bench_dense(rows: usize, repeats: usize) {
     println!("machine peak         {peak:.0} GFLOP/s (f32 matrix multiply, median)");
 }
 
+/// Samples per NeRF batch when the bench runs the gpu engine on a software
+/// adapter: 16 rays with the paper's sampler, ~14 G FLOP a step, seconds on
+/// lavapipe.
+const SOFTWARE_GPU_NERF_SAMPLES: usize = 1 << 12;
+
 fn bench_throughput(
     scene: Option<String>,
     engine: Option<EngineKind>,
@@ -793,14 +798,23 @@ fn bench_throughput(
             Sampling::Paper => 2,
         },
     });
+    // On a software adapter NeRF's paper-size batch (1024 rays × 256
+    // samples of an 8 × 256 network, ~1 T FLOP a step) would take many
+    // minutes a step at lavapipe's few GFLOP/s: there the bench is a
+    // correctness run on a small batch.
+    let batch_samples =
+        (software_gpu && model == ModelKind::Nerf).then_some(SOFTWARE_GPU_NERF_SAMPLES);
     let settings = ModelSettings {
         seed: 0,
         loss: model.default_loss(),
-        batch_samples: None,
+        batch_samples,
         sampling,
     };
     let model = build_model(model, choice, &scene, &settings).map_err(anyhow::Error::msg)?;
     let mut trainer = Trainer::new(model, scene.clone(), 0);
+    if let Some(samples) = batch_samples {
+        println!("software adapter: NeRF batches of ~{samples} samples (a correctness run)");
+    }
     let peak = zrak::engine::cpu::dense::measure_peak_gflops();
     let report = zrak::bench::throughput(&mut trainer, warmup, steps);
     zrak::bench::print_report(&report, &scene, &engine_line);

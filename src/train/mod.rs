@@ -69,7 +69,12 @@ pub fn build_model(
         }
         (ModelKind::Nerf, EngineKind::Cpu) => Ok(Box::new(cpu_nerf(scene, settings))),
         (ModelKind::Nerf, EngineKind::Gpu) => {
-            Err("NeRF is not yet built on the gpu engine: use --engine cpu".into())
+            let context = engine
+                .gpu
+                .ok_or("the gpu engine was chosen without a gpu context")?;
+            gpu_nerf(context, scene, settings)
+                .map(|model| Box::new(model) as Box<dyn RadianceModel>)
+                .map_err(|e| format!("building NeRF on the gpu engine: {e}"))
         }
         (ModelKind::MipNerf, EngineKind::Cpu) => Ok(Box::new(cpu_mipnerf_with_shape(
             scene,
@@ -99,12 +104,8 @@ pub fn cpu_nerf_with_shape(
     settings: &ModelSettings,
     shape: &crate::engine::cpu::fields::nerf::NerfShape,
 ) -> crate::engine::cpu::model::CpuModel {
-    use crate::field::nerf;
-    let recipe = nerf::recipe(
-        settings.sampling,
-        scene.format == crate::scene::SceneFormat::Blender,
-    );
-    cpu_model_of_nerf_fields("NeRF", "nerf", recipe, scene, settings, shape)
+    let recipe = nerf_recipe(scene, settings);
+    cpu_model_of_nerf_fields(nerf_identity(settings), recipe, scene, settings, shape)
 }
 
 /// Mip-NeRF on the `cpu` engine with networks of `shape` (the paper's is
@@ -118,13 +119,17 @@ pub fn cpu_mipnerf_with_shape(
         settings.sampling,
         scene.format == crate::scene::SceneFormat::Blender,
     );
-    cpu_model_of_nerf_fields("Mip-NeRF", "mipnerf", recipe, scene, settings, shape)
+    let identity = crate::engine::cpu::model::ModelIdentity {
+        name: "Mip-NeRF",
+        key: "mipnerf",
+        sampling: settings.sampling.name(),
+    };
+    cpu_model_of_nerf_fields(identity, recipe, scene, settings, shape)
 }
 
 /// A model of the recipe's levels over fields of NeRF's shape.
 fn cpu_model_of_nerf_fields(
-    name: &'static str,
-    key: &'static str,
+    identity: crate::engine::cpu::model::ModelIdentity,
     recipe: crate::field::common::Recipe,
     scene: &Scene,
     settings: &ModelSettings,
@@ -132,12 +137,94 @@ fn cpu_model_of_nerf_fields(
 ) -> crate::engine::cpu::model::CpuModel {
     use crate::engine::cpu::fields::Field;
     use crate::engine::cpu::fields::nerf::NerfField;
-    use crate::field::common::{BatchSize, SamplerKind};
     let fields: Vec<Box<dyn Field>> = (0..recipe.fields)
         .map(|_| Box::new(NerfField::new(shape.clone())) as Box<dyn Field>)
         .collect();
-    // Samples per ray of the paper's levels: each level evaluates its own
-    // samples, and importance samples join the previous level's.
+    let batch = batch_of(&recipe, settings);
+    crate::engine::cpu::model::CpuModel::new(
+        identity,
+        recipe,
+        fields,
+        scene,
+        settings.seed,
+        settings.loss,
+        batch,
+    )
+}
+
+/// NeRF on the `gpu` engine, with the cpu engine's recipe, parameters and
+/// checkpoints (see [`cpu_nerf`]).
+pub fn gpu_nerf(
+    context: crate::engine::gpu::GpuContext,
+    scene: &Scene,
+    settings: &ModelSettings,
+) -> Result<crate::engine::gpu::model::GpuModel, String> {
+    gpu_nerf_with_shape(
+        context,
+        scene,
+        settings,
+        &crate::engine::cpu::fields::nerf::NerfShape::paper(),
+    )
+}
+
+/// [`gpu_nerf`] with networks of another size (tests use small ones).
+pub fn gpu_nerf_with_shape(
+    context: crate::engine::gpu::GpuContext,
+    scene: &Scene,
+    settings: &ModelSettings,
+    shape: &crate::engine::cpu::fields::nerf::NerfShape,
+) -> Result<crate::engine::gpu::model::GpuModel, String> {
+    use crate::engine::cpu::fields::Field;
+    use crate::engine::cpu::fields::nerf::NerfField;
+    use crate::engine::gpu::fields::GpuField;
+    use crate::engine::gpu::fields::nerf::GpuNerfField;
+    let recipe = nerf_recipe(scene, settings);
+    // The cpu fields give the initial parameters (the same for the same
+    // seed on either engine); they hold no workspace until used.
+    let cpu_fields: Vec<Box<dyn Field>> = (0..recipe.fields)
+        .map(|_| Box::new(NerfField::new(shape.clone())) as Box<dyn Field>)
+        .collect();
+    let (params, ranges) = crate::engine::cpu::model::init_field_params(&cpu_fields, settings.seed);
+    let batch = batch_of(&recipe, settings);
+    crate::engine::gpu::model::GpuModel::new(
+        context,
+        nerf_identity(settings),
+        recipe,
+        params,
+        ranges,
+        |context, _, capacity| {
+            GpuNerfField::new(context, shape, capacity).map(|f| Box::new(f) as Box<dyn GpuField>)
+        },
+        scene,
+        settings.seed,
+        settings.loss,
+        batch,
+    )
+}
+
+fn nerf_recipe(scene: &Scene, settings: &ModelSettings) -> crate::field::nerf::Recipe {
+    crate::field::nerf::recipe(
+        settings.sampling,
+        scene.format == crate::scene::SceneFormat::Blender,
+    )
+}
+
+fn nerf_identity(settings: &ModelSettings) -> crate::engine::cpu::model::ModelIdentity {
+    crate::engine::cpu::model::ModelIdentity {
+        name: "NeRF",
+        key: "nerf",
+        sampling: settings.sampling.name(),
+    }
+}
+
+/// The batch a `batch_samples` setting asks for: about that many samples
+/// per step with either sampler (with the paper's, each level evaluates
+/// its own samples, and importance samples join the previous level's).
+fn batch_of(
+    recipe: &crate::field::common::Recipe,
+    settings: &ModelSettings,
+) -> Option<crate::field::common::BatchSize> {
+    use crate::field::common::{BatchSize, SamplerKind};
     let mut per_ray = 0;
     let mut level_samples = 0;
     for level in &recipe.levels {
@@ -148,23 +235,10 @@ fn cpu_model_of_nerf_fields(
         };
         per_ray += level_samples;
     }
-    let batch = settings
+    settings
         .batch_samples
         .map(|samples| match settings.sampling {
             Sampling::Occupancy => BatchSize::Samples(samples),
             Sampling::Paper => BatchSize::Rays((samples / per_ray.max(1)).max(1)),
-        });
-    crate::engine::cpu::model::CpuModel::new(
-        crate::engine::cpu::model::ModelIdentity {
-            name,
-            key,
-            sampling: settings.sampling.name(),
-        },
-        recipe,
-        fields,
-        scene,
-        settings.seed,
-        settings.loss,
-        batch,
-    )
+        })
 }

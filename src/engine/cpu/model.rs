@@ -135,6 +135,9 @@ pub struct CpuModel {
     /// Sample distances kept per (chunk, level) while samples are held
     /// (see [`Self::hold_samples`]).
     held_samples: Option<std::collections::HashMap<(usize, usize), Vec<f32>>>,
+    /// Rays per chunk of fixed-count levels ([`RAYS_PER_CHUNK`] unless a
+    /// test asks for fewer).
+    rays_per_chunk: usize,
 }
 
 impl CpuModel {
@@ -163,13 +166,7 @@ impl CpuModel {
             }),
             "importance sampling adds points; resampling draws frustums"
         );
-        let mut params = Vec::new();
-        let mut ranges = Vec::new();
-        for (i, field) in fields.iter().enumerate() {
-            let start = params.len();
-            params.extend(field.init_params(seed ^ (0x6669_656c_6400 + i as u64)));
-            ranges.push(start..params.len());
-        }
+        let (params, ranges) = init_field_params(&fields, seed);
         let marches = recipe.levels[0].sampler == SamplerKind::Occupancy;
         let mapping = scene.unit_cube;
         let grid = marches.then(|| {
@@ -206,6 +203,7 @@ impl CpuModel {
             seed,
             buffers: StepBuffers::default(),
             batch_size,
+            rays_per_chunk: RAYS_PER_CHUNK,
             recipe,
             held_samples: None,
         }
@@ -219,6 +217,13 @@ impl CpuModel {
     /// samples held still.
     pub fn hold_samples(&mut self, hold: bool) {
         self.held_samples = hold.then(Default::default);
+    }
+
+    /// Processes fixed-count levels in chunks of `rays` (at least 1)
+    /// instead of [`RAYS_PER_CHUNK`]: the chunk index seeds the jitter, so
+    /// tests of a gpu model with smaller chunks set the same here.
+    pub fn set_rays_per_chunk(&mut self, rays: usize) {
+        self.rays_per_chunk = rays.max(1);
     }
 
     pub fn params(&self) -> &[f32] {
@@ -266,27 +271,14 @@ impl CpuModel {
         near: &mut Vec<f32>,
         far: &mut Vec<f32>,
     ) {
-        let rays = origins.len() / 3;
-        set_len(near, rays);
-        set_len(far, rays);
-        for r in 0..rays {
-            let (n, f) = match self.recipe.bounds {
-                RayBounds::Fixed { near, far } => (near, far),
-                RayBounds::SceneBox => self
-                    .bounds
-                    .intersect(
-                        Vec3::from_slice(&origins[3 * r..]),
-                        Vec3::from_slice(&directions[3 * r..]),
-                        0.0,
-                    )
-                    // A ray that misses the box gets an empty interval:
-                    // every sample at its origin with zero length, so it
-                    // shows the background.
-                    .unwrap_or((0.0, 0.0)),
-            };
-            near[r] = n;
-            far[r] = f.max(n);
-        }
+        ray_bounds(
+            self.recipe.bounds,
+            &self.bounds,
+            origins,
+            directions,
+            near,
+            far,
+        );
     }
 
     /// Evaluates `batch` and writes the gradient of the loss with respect
@@ -490,11 +482,12 @@ impl CpuModel {
             self.ray_bounds(&b.origins, &b.directions, &mut near, &mut far);
         }
         let step_seed = mix_seed(self.seed, step);
-        for (chunk, start) in (0..rays).step_by(RAYS_PER_CHUNK).enumerate() {
-            let end = (start + RAYS_PER_CHUNK).min(rays);
+        let per_chunk = self.rays_per_chunk;
+        for (chunk, start) in (0..rays).step_by(per_chunk).enumerate() {
+            let end = (start + per_chunk).min(rays);
             let chunk_rays = end - start;
             // Each chunk and level draws its own jitter.
-            let seed_of = |level: usize| mix32(step_seed ^ mix32((chunk * 8 + level) as u32));
+            let seed_of = |level: usize| chunk_jitter_seed(step_seed, chunk, level);
             let share = chunk_rays as f32 / rays as f32;
             for level_index in 0..self.recipe.levels.len() {
                 let level = self.recipe.levels[level_index];
@@ -919,6 +912,66 @@ fn composite_level(lb: &mut LevelBuffers, backgrounds: &[f32], pixels: &mut RayS
     );
 }
 
+/// The parameters of `fields` laid out one after the other, each from its
+/// own seed, and where each sits. Both engines start a model from these,
+/// so a model starts identical on either.
+pub fn init_field_params<F: AsRef<dyn Field>>(
+    fields: &[F],
+    seed: u64,
+) -> (Vec<f32>, Vec<Range<usize>>) {
+    let mut params = Vec::new();
+    let mut ranges = Vec::new();
+    for (i, field) in fields.iter().enumerate() {
+        let start = params.len();
+        params.extend(
+            field
+                .as_ref()
+                .init_params(seed ^ (0x6669_656c_6400 + i as u64)),
+        );
+        ranges.push(start..params.len());
+    }
+    (params, ranges)
+}
+
+/// Near and far bounds of each ray (R × 3 origins and directions) under
+/// `bounds`, `scene_box` being the scene's box.
+pub fn ray_bounds(
+    bounds: RayBounds,
+    scene_box: &Aabb,
+    origins: &[f32],
+    directions: &[f32],
+    near: &mut Vec<f32>,
+    far: &mut Vec<f32>,
+) {
+    let rays = origins.len() / 3;
+    set_len(near, rays);
+    set_len(far, rays);
+    for r in 0..rays {
+        let (n, f) = match bounds {
+            RayBounds::Fixed { near, far } => (near, far),
+            RayBounds::SceneBox => scene_box
+                .intersect(
+                    Vec3::from_slice(&origins[3 * r..]),
+                    Vec3::from_slice(&directions[3 * r..]),
+                    0.0,
+                )
+                // A ray that misses the box gets an empty interval:
+                // every sample at its origin with zero length, so it
+                // shows the background.
+                .unwrap_or((0.0, 0.0)),
+        };
+        near[r] = n;
+        far[r] = f.max(n);
+    }
+}
+
+/// The seed of the random sample positions of `level` for the rays of
+/// chunk `chunk` (of [`RAYS_PER_CHUNK`] rays by default) in the step seeded `step_seed`:
+/// each chunk and level draws its own jitter, the same on either engine.
+pub fn chunk_jitter_seed(step_seed: u32, chunk: usize, level: usize) -> u32 {
+    mix32(step_seed ^ mix32((chunk * 8 + level) as u32))
+}
+
 /// Per-ray values of compositing and the loss, reused between levels and
 /// steps.
 #[derive(Default)]
@@ -1059,7 +1112,7 @@ fn points_along_rays(
 }
 
 /// Unit-cube positions (n × 3) to world positions.
-fn to_world(mapping: &UnitCubeMapping, unit: &[f32], world: &mut Vec<f32>) {
+pub fn to_world(mapping: &UnitCubeMapping, unit: &[f32], world: &mut Vec<f32>) {
     set_len(world, unit.len());
     let (scale, offset) = (mapping.scale, mapping.offset.to_array());
     world

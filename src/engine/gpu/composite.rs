@@ -1,11 +1,15 @@
 //! Batched volume rendering on the GPU (`shaders/composite_forward.wgsl`,
 //! `shaders/composite_backward.wgsl`): one invocation per ray, the same
 //! maths, layout and early termination as
-//! [`crate::engine::cpu::composite_batch`].
+//! [`crate::engine::cpu::composite_batch`]; and each sample's weight
+//! (`shaders/composite_weights.wgsl`), which importance sampling draws from.
+//! `shaders/volume_common.wgsl` is prepended to each kernel.
 
 use super::context::{GpuContext, GpuError};
 use super::kernel::{Kernel, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer};
 use crate::engine::cpu::composite_batch::RayBatch;
+
+const VOLUME_COMMON: &str = include_str!("../../../shaders/volume_common.wgsl");
 
 /// Threads per workgroup in the compositing kernels.
 const WORKGROUP: u32 = 64;
@@ -98,24 +102,77 @@ pub struct BackwardResult {
 pub struct GpuComposite {
     forward: Kernel,
     backward: Kernel,
+    weights: Kernel,
 }
 
 impl GpuComposite {
     pub fn new(context: &GpuContext) -> Result<Self, GpuError> {
+        let kernel = |name: &str, source: &str| {
+            Kernel::new(context, name, &format!("{VOLUME_COMMON}\n{source}"), "main")
+        };
         Ok(Self {
-            forward: Kernel::new(
-                context,
+            forward: kernel(
                 "composite_forward",
                 include_str!("../../../shaders/composite_forward.wgsl"),
-                "main",
             )?,
-            backward: Kernel::new(
-                context,
+            backward: kernel(
                 "composite_backward",
                 include_str!("../../../shaders/composite_backward.wgsl"),
-                "main",
+            )?,
+            weights: kernel(
+                "composite_weights",
+                include_str!("../../../shaders/composite_weights.wgsl"),
             )?,
         })
+    }
+
+    /// Records each sample's weight Tᵢ (1 − e^{−σᵢ dtᵢ}) into `weights` (S),
+    /// zero from each ray's cut on, as
+    /// [`crate::engine::cpu::composite_batch::sample_weights`].
+    pub fn record_weights(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        batch: &RayBatchBuffers,
+        min_transmittance: f32,
+        weights: &wgpu::Buffer,
+    ) {
+        let (uniform, groups) = Self::params(context, batch.ray_count, min_transmittance);
+        self.weights.record(
+            context,
+            encoder,
+            &[
+                &uniform,
+                batch.density,
+                batch.dt,
+                batch.ray_offsets,
+                weights,
+            ],
+            groups,
+        );
+    }
+
+    /// Uploads `batch`, records [`Self::record_weights`] and reads the
+    /// weights back (tests and tools).
+    pub fn weights(
+        &self,
+        context: &GpuContext,
+        batch: &RayBatch<f32>,
+        min_transmittance: f32,
+    ) -> Vec<f32> {
+        let uploaded = Upload::new(context, batch);
+        let samples = batch.sample_count();
+        let weights = zeroed_storage_buffer::<f32>(context, "composite weights", samples);
+        let mut encoder = context.device.create_command_encoder(&Default::default());
+        self.record_weights(
+            context,
+            &mut encoder,
+            &uploaded.buffers(batch.ray_count()),
+            min_transmittance,
+            &weights,
+        );
+        context.queue.submit([encoder.finish()]);
+        read_buffer(context, &weights, samples)
     }
 
     fn params(

@@ -95,6 +95,16 @@ pub struct GpuMlpWorkspace {
 }
 
 impl GpuMlpWorkspace {
+    /// Bytes of the workspace's buffers on the device.
+    pub fn bytes(&self) -> usize {
+        let buffers = self
+            .activations
+            .iter()
+            .chain(&self.gradients)
+            .chain([&self.partials]);
+        buffers.map(|b| b.size() as usize).sum()
+    }
+
     pub fn new(context: &GpuContext, layout: &MlpLayout, capacity: usize) -> Self {
         let limit = context.storage_binding_limit() as usize;
         let max_width = *layout.widths.iter().max().expect("widths");

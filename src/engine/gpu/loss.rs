@@ -18,7 +18,8 @@ struct GradientParams {
     kind: u32,
     huber_delta: f32,
     scale: f32,
-    _pad: [u32; 3],
+    gradient_weight: f32,
+    _pad: [u32; 2],
 }
 
 #[repr(C)]
@@ -76,6 +77,20 @@ impl GpuLoss {
         kind: LossKind,
         buffers: &LossBuffers,
     ) {
+        self.record_weighted(context, encoder, kind, buffers, 1.0);
+    }
+
+    /// As [`Self::record`], the gradient multiplied by `gradient_weight`
+    /// (a level's loss weight times the chunk's share of the batch's rays);
+    /// the loss values stay the plain mean.
+    pub fn record_weighted(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        kind: LossKind,
+        buffers: &LossBuffers,
+        gradient_weight: f32,
+    ) {
         let rays = buffers.ray_count;
         let (groups, row_stride) = grid(rays, WORKGROUP);
         let params = GradientParams {
@@ -91,7 +106,8 @@ impl GpuLoss {
             } else {
                 1.0 / (3 * rays) as f32
             },
-            _pad: [0; 3],
+            gradient_weight,
+            _pad: [0; 2],
         };
         let uniform = uniform_buffer(context, "loss params", &params);
         self.gradient.record(

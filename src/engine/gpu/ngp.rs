@@ -35,9 +35,7 @@ use std::time::Instant;
 use glam::Vec3;
 
 use super::adam::GpuAdam;
-use super::composite::{
-    CompositeGradientBuffers, CompositeOutputBuffers, GpuComposite, RayBatchBuffers,
-};
+use super::composite::GpuComposite;
 use super::context::{GpuContext, GpuError};
 use super::dense::{GpuDense, GpuMlpWorkspace};
 use super::hash_grid::GpuHashGrid;
@@ -45,13 +43,14 @@ use super::kernel::{
     Kernel, float_range, pieces, read_buffer, read_mapped, rows_per_piece, storage_buffer,
     uniform_buffer, zeroed_storage_buffer,
 };
-use super::loss::{GpuLoss, LossBuffers};
+use super::loss::GpuLoss;
 use super::march::{GpuGrid, GpuMarch, GpuMarchBuffers, GpuRays, dispatch_grid};
 use super::render::{
     CompactUniforms, CompositeUniforms, ImageUniforms, RAY_GROUP_ALIGN, RenderBuffers,
     RenderKernels, check_target,
 };
 use super::sh::GpuSh;
+use super::step::{self, CompositeAndLoss, RayBuffers, SampleGradientBuffers};
 use super::timing::{Stage, StageClock, StageTiming};
 use crate::engine::cpu::hash_grid;
 use crate::engine::cpu::march::{BatchSizer, MarchParams, Marcher};
@@ -81,46 +80,6 @@ struct ActivationUniforms {
     colour_width: u32,
     exp_clamp: f32,
     _pad: [u32; 3],
-}
-
-/// Buffers that depend on the number of rays in a batch.
-struct RayBuffers {
-    capacity: usize,
-    origins: wgpu::Buffer,
-    directions: wgpu::Buffer,
-    targets: wgpu::Buffer,
-    backgrounds: wgpu::Buffer,
-    rgb: wgpu::Buffer,
-    opacity: wgpu::Buffer,
-    depth: wgpu::Buffer,
-    samples_used: wgpu::Buffer,
-    d_rgb: wgpu::Buffer,
-    ray_loss: wgpu::Buffer,
-    d_background: wgpu::Buffer,
-}
-
-impl RayBuffers {
-    fn new(context: &GpuContext, capacity: usize) -> Self {
-        let f = |label: &str, n: usize| zeroed_storage_buffer::<f32>(context, label, n);
-        Self {
-            capacity,
-            origins: f("ngp ray origins", 3 * capacity),
-            directions: f("ngp ray directions", 3 * capacity),
-            targets: f("ngp ray targets", 3 * capacity),
-            backgrounds: f("ngp ray backgrounds", 3 * capacity),
-            rgb: f("ngp ray rgb", 3 * capacity),
-            opacity: f("ngp ray opacity", capacity),
-            depth: f("ngp ray depth", capacity),
-            samples_used: zeroed_storage_buffer::<u32>(context, "ngp samples used", capacity),
-            d_rgb: f("ngp d ray rgb", 3 * capacity),
-            ray_loss: f("ngp ray loss", capacity),
-            d_background: f("ngp d background", 3 * capacity),
-        }
-    }
-
-    fn bytes(&self) -> usize {
-        self.capacity * 4 * (3 * 7 + 4)
-    }
 }
 
 /// Per-sample buffers, sized once for the batch's sample budget.
@@ -172,7 +131,6 @@ pub struct GpuNgp {
     march_out: GpuMarchBuffers,
     rays: RayBuffers,
     samples: SampleBuffers,
-    loss_total: wgpu::Buffer,
     /// Mappable copies of the step's two read-backs.
     counters_staging: wgpu::Buffer,
     loss_staging: wgpu::Buffer,
@@ -299,7 +257,6 @@ impl GpuNgp {
             march_out: GpuMarchBuffers::new(ctx, ray_capacity, capacity),
             rays: RayBuffers::new(ctx, ray_capacity),
             samples,
-            loss_total: f("ngp loss", 1),
             counters_staging: staging("ngp counters read-back", 8),
             loss_staging: staging("ngp loss read-back", 4),
             batch_sizer,
@@ -520,25 +477,8 @@ impl GpuNgp {
             self.rays = RayBuffers::new(&self.context, rays);
             self.march_out = GpuMarchBuffers::new(&self.context, rays, self.batch_samples.max(1));
         }
-        if rays == 0 {
-            return;
-        }
-        let queue = &self.context.queue;
-        for (vectors, buffer) in [
-            (&batch.origins, &self.rays.origins),
-            (&batch.directions, &self.rays.directions),
-        ] {
-            self.scratch.clear();
-            self.scratch
-                .extend(vectors.iter().flat_map(|v| v.to_array()));
-            queue.write_buffer(buffer, 0, bytemuck::cast_slice(&self.scratch));
-        }
-        queue.write_buffer(&self.rays.targets, 0, bytemuck::cast_slice(&batch.targets));
-        queue.write_buffer(
-            &self.rays.backgrounds,
-            0,
-            bytemuck::cast_slice(&batch.backgrounds),
-        );
+        self.rays
+            .upload(&self.context, batch, 0..rays, &mut self.scratch);
     }
 
     /// One step on `batch`; with `optimise`, Adam updates the parameters.
@@ -607,51 +547,28 @@ impl GpuNgp {
         let s = &self.stages;
         let b = &self.samples;
         let r = &self.rays;
-        let ray_batch = RayBatchBuffers {
-            density: &b.sigma,
-            rgb: b.colour.output(),
-            dt: &self.march_out.dt,
-            t: &self.march_out.t,
-            ray_offsets: &self.march_out.ray_offsets,
-            background: &r.backgrounds,
-            ray_count: kept,
-        };
-        let min_transmittance = MarchConfig::PAPER.min_transmittance;
-        s.composite.record_forward(
+        CompositeAndLoss {
+            composite: &s.composite,
+            loss: &s.loss,
+        }
+        .record(
             ctx,
             &mut encoder,
-            &ray_batch,
-            min_transmittance,
-            &CompositeOutputBuffers {
-                rgb: &r.rgb,
-                opacity: &r.opacity,
-                depth: &r.depth,
-                samples_used: &r.samples_used,
+            r,
+            step::SampleBuffers {
+                sigma: &b.sigma,
+                rgb: b.colour.output(),
+                dt: &self.march_out.dt,
+                t: &self.march_out.t,
+                ray_offsets: &self.march_out.ray_offsets,
             },
-        );
-        s.loss.record(
-            ctx,
-            &mut encoder,
+            kept,
+            MarchConfig::PAPER.min_transmittance,
             self.loss,
-            &LossBuffers {
-                predicted: &r.rgb,
-                target: &r.targets,
-                gradient: &r.d_rgb,
-                ray_loss: &r.ray_loss,
-                total: &self.loss_total,
-                ray_count: kept,
-            },
-        );
-        s.composite.record_backward(
-            ctx,
-            &mut encoder,
-            &ray_batch,
-            min_transmittance,
-            &r.d_rgb,
-            &CompositeGradientBuffers {
-                density: &b.d_sigma,
+            1.0,
+            SampleGradientBuffers {
+                sigma: &b.d_sigma,
                 rgb: &b.d_rgb,
-                background: &r.d_background,
             },
         );
         clock.mark(ctx, &mut encoder, Stage::Composite);
@@ -715,7 +632,7 @@ impl GpuNgp {
         }
         clock.mark(ctx, &mut encoder, Stage::Optimiser);
         clock.resolve(&mut encoder);
-        encoder.copy_buffer_to_buffer(&self.loss_total, 0, &self.loss_staging, 0, 4);
+        encoder.copy_buffer_to_buffer(&self.rays.loss_total, 0, &self.loss_staging, 0, 4);
         ctx.queue.submit([encoder.finish()]);
         let loss: Vec<f32> = read_mapped(ctx, &self.loss_staging, 1);
         let times = clock.read(ctx);

@@ -44,6 +44,18 @@ struct SampleUniforms {
     _pad: u32,
 }
 
+/// `Params` in `shaders/sample_to_world.wgsl`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct ToWorldUniforms {
+    count: u32,
+    row_stride: u32,
+    scale: f32,
+    _pad0: u32,
+    offset: [f32; 3],
+    _pad1: u32,
+}
+
 /// The compiled sampling kernels.
 pub struct GpuSampling {
     stratified: Kernel,
@@ -51,6 +63,9 @@ pub struct GpuSampling {
     merge: Kernel,
     blur: Kernel,
     intervals: Kernel,
+    points: Kernel,
+    bins: Kernel,
+    to_world: Kernel,
 }
 
 impl GpuSampling {
@@ -77,6 +92,21 @@ impl GpuSampling {
             intervals: kernel(
                 "sample_intervals",
                 include_str!("../../../shaders/sample_intervals.wgsl"),
+            )?,
+            points: kernel(
+                "sample_points",
+                include_str!("../../../shaders/sample_points.wgsl"),
+            )?,
+            bins: kernel(
+                "sample_bins",
+                include_str!("../../../shaders/sample_bins.wgsl"),
+            )?,
+            // Its own uniform: not prepended with sample_common.wgsl.
+            to_world: Kernel::new(
+                context,
+                "sample_to_world",
+                include_str!("../../../shaders/sample_to_world.wgsl"),
+                "main",
             )?,
         })
     }
@@ -272,5 +302,116 @@ impl GpuSampling {
                 float_range(dt_out, n * p.start, n * p.len()),
             ]
         });
+    }
+
+    /// Records the positions o + t·d and directions (R × N × 3 each) of
+    /// `samples_per_ray` samples at distances `t` (R × N) along rays
+    /// `origins`, `directions` (R × 3), as the cpu model's
+    /// `points_along_rays`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_points(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        origins: &wgpu::Buffer,
+        directions: &wgpu::Buffer,
+        t: &wgpu::Buffer,
+        rays: usize,
+        samples_per_ray: usize,
+        positions_out: &wgpu::Buffer,
+        directions_out: &wgpu::Buffer,
+    ) {
+        let n = samples_per_ray;
+        if n == 0 || rays == 0 {
+            return;
+        }
+        let template = SampleUniforms {
+            samples: n as u32,
+            ..Default::default()
+        };
+        Self::record_rays(context, encoder, &self.points, rays, 3 * n, template, |p| {
+            vec![
+                float_range(origins, 3 * p.start, 3 * p.len()),
+                float_range(directions, 3 * p.start, 3 * p.len()),
+                float_range(t, n * p.start, n * p.len()),
+                float_range(positions_out, 3 * n * p.start, 3 * n * p.len()),
+                float_range(directions_out, 3 * n * p.start, 3 * n * p.len()),
+            ]
+        });
+    }
+
+    /// Records the bins of NeRF's importance sampling from the previous
+    /// level's `samples_per_ray` (M ≥ 3) sorted samples `t` and their
+    /// `weights` (R × M each): `edges_out` (R × (M − 1)) are the midpoints
+    /// between samples, `bin_weights_out` (R × (M − 2)) the weights of the
+    /// interior samples, as the cpu model's `importance_samples` gives
+    /// [`crate::engine::cpu::sampling::sample_pdf`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_importance_bins(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        t: &wgpu::Buffer,
+        weights: &wgpu::Buffer,
+        rays: usize,
+        samples_per_ray: usize,
+        edges_out: &wgpu::Buffer,
+        bin_weights_out: &wgpu::Buffer,
+    ) {
+        let m = samples_per_ray;
+        assert!(m >= 3, "importance sampling needs three samples per ray");
+        if rays == 0 {
+            return;
+        }
+        let template = SampleUniforms {
+            samples: m as u32,
+            ..Default::default()
+        };
+        Self::record_rays(context, encoder, &self.bins, rays, m, template, |p| {
+            vec![
+                float_range(t, m * p.start, m * p.len()),
+                float_range(weights, m * p.start, m * p.len()),
+                float_range(edges_out, (m - 1) * p.start, (m - 1) * p.len()),
+                float_range(bin_weights_out, (m - 2) * p.start, (m - 2) * p.len()),
+            ]
+        });
+    }
+
+    /// Records world positions of `count` unit-cube positions (n × 3 each)
+    /// under `mapping`, as the cpu model's `to_world`.
+    pub fn record_to_world(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        mapping: &crate::scene::UnitCubeMapping,
+        unit: &wgpu::Buffer,
+        count: usize,
+        world_out: &wgpu::Buffer,
+    ) {
+        if count == 0 {
+            return;
+        }
+        for piece in pieces(count, rows_per_piece(context, 3, 1)) {
+            let (groups, row_stride) = dispatch_grid(piece.len(), WORKGROUP);
+            let uniform = ToWorldUniforms {
+                count: piece.len() as u32,
+                row_stride,
+                scale: mapping.scale,
+                _pad0: 0,
+                offset: mapping.offset.to_array(),
+                _pad1: 0,
+            };
+            let uniform = uniform_buffer(context, "sample to world", &uniform);
+            self.to_world.record_bindings(
+                context,
+                encoder,
+                &[
+                    uniform.as_entire_buffer_binding(),
+                    float_range(unit, 3 * piece.start, 3 * piece.len()),
+                    float_range(world_out, 3 * piece.start, 3 * piece.len()),
+                ],
+                groups,
+            );
+        }
     }
 }

@@ -5,3 +5,64 @@
 //! are.
 
 pub mod nerf;
+
+use super::context::GpuContext;
+
+/// A field on the `gpu` engine, as a model driver records it: a forward
+/// pass that keeps its activations, the backward pass of that forward
+/// pass, and σ alone (for the occupancy grid). Parameters and gradients are
+/// flat f32 buffers holding every field of a model; a field reads its own
+/// from the offset [`GpuField::set_param_offset`] gave it.
+pub trait GpuField: Send {
+    /// Parameters of the field.
+    fn param_count(&self) -> usize;
+
+    /// Where the field's parameters (and gradients) start in the buffers
+    /// passed to the `record_*` methods, in f32s.
+    fn set_param_offset(&mut self, offset: usize);
+
+    /// Samples one pass can hold.
+    fn capacity(&self) -> usize;
+
+    /// Records σ (`rows`) and colour (`rows` × 3) at `rows` samples.
+    #[allow(clippy::too_many_arguments)]
+    fn record_forward(
+        &mut self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        params: &wgpu::Buffer,
+        positions: &wgpu::Buffer,
+        directions: &wgpu::Buffer,
+        rows: usize,
+        sigma_out: &wgpu::Buffer,
+        rgb_out: &wgpu::Buffer,
+    );
+
+    /// Records the backward pass of the last forward pass, adding (+=)
+    /// the parameter gradient into `gradients`.
+    #[allow(clippy::too_many_arguments)]
+    fn record_backward(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        params: &wgpu::Buffer,
+        d_sigma: &wgpu::Buffer,
+        d_rgb: &wgpu::Buffer,
+        rows: usize,
+        gradients: &wgpu::Buffer,
+    );
+
+    /// Records σ alone at `rows` positions.
+    fn record_density(
+        &mut self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        params: &wgpu::Buffer,
+        positions: &wgpu::Buffer,
+        rows: usize,
+        sigma_out: &wgpu::Buffer,
+    );
+
+    /// Bytes of the field's workspaces on the device.
+    fn workspace_bytes(&self) -> usize;
+}

@@ -155,6 +155,9 @@ pub struct GpuNerfField {
     /// Rows of the last recorded forward pass whose activations are still
     /// held (None after [`Self::record_density`], which overwrites them).
     forward_rows: Option<usize>,
+    /// Where the field's parameters start in the buffers it is given (a
+    /// model keeps several fields in one flat buffer), in f32s.
+    param_offset: usize,
 }
 
 impl GpuNerfField {
@@ -184,6 +187,7 @@ impl GpuNerfField {
             d_trunk_b_in: f("nerf d trunk B input", capacity * (width + enc)),
             d_trunk_a_out: f("nerf d trunk A output", capacity * width),
             forward_rows: None,
+            param_offset: 0,
             shape: shape.clone(),
             capacity,
         })
@@ -199,16 +203,26 @@ impl GpuNerfField {
 
     /// Parameters of the field, `[A | B | C]`.
     pub fn param_count(&self) -> usize {
-        self.ranges()[2].end
+        let s = &self.shape;
+        s.trunk_a.param_count() + s.trunk_b.param_count() + s.colour.param_count()
     }
 
-    /// Where A, B and C sit in the flat parameters (as the cpu field).
+    /// Reads the field's parameters (and writes its gradients) from f32
+    /// `offset` of the buffers passed to the `record_*` methods on, instead
+    /// of from their start.
+    pub fn set_param_offset(&mut self, offset: usize) {
+        self.param_offset = offset;
+    }
+
+    /// Where A, B and C sit in the buffers the field is given (as the cpu
+    /// field lays them out, from [`Self::set_param_offset`]).
     fn ranges(&self) -> [Range<usize>; 3] {
         let s = &self.shape;
-        let a = s.trunk_a.param_count();
+        let o = self.param_offset;
+        let a = o + s.trunk_a.param_count();
         let b = a + s.trunk_b.param_count();
         let c = b + s.colour.param_count();
-        [0..a, a..b, b..c]
+        [o..a, a..b, b..c]
     }
 
     fn width(&self) -> usize {
@@ -670,6 +684,10 @@ impl GpuNerfField {
             "directions and positions differ in size"
         );
         assert_eq!(params.len(), self.param_count(), "parameter count");
+        assert_eq!(
+            self.param_offset, 0,
+            "the *_once helpers take the field's own parameters"
+        );
         OnceBuffers {
             params: storage_buffer(context, "nerf params", params),
             positions: storage_buffer(context, "nerf positions", positions),
@@ -677,6 +695,80 @@ impl GpuNerfField {
             sigma: zeroed_storage_buffer::<f32>(context, "nerf sigma", rows),
             rgb: zeroed_storage_buffer::<f32>(context, "nerf rgb", 3 * rows),
         }
+    }
+}
+
+impl super::GpuField for GpuNerfField {
+    fn param_count(&self) -> usize {
+        GpuNerfField::param_count(self)
+    }
+
+    fn set_param_offset(&mut self, offset: usize) {
+        GpuNerfField::set_param_offset(self, offset)
+    }
+
+    fn capacity(&self) -> usize {
+        self.capacity
+    }
+
+    fn record_forward(
+        &mut self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        params: &wgpu::Buffer,
+        positions: &wgpu::Buffer,
+        directions: &wgpu::Buffer,
+        rows: usize,
+        sigma_out: &wgpu::Buffer,
+        rgb_out: &wgpu::Buffer,
+    ) {
+        GpuNerfField::record_forward(
+            self, context, encoder, params, positions, directions, rows, sigma_out, rgb_out,
+        )
+    }
+
+    fn record_backward(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        params: &wgpu::Buffer,
+        d_sigma: &wgpu::Buffer,
+        d_rgb: &wgpu::Buffer,
+        rows: usize,
+        gradients: &wgpu::Buffer,
+    ) {
+        GpuNerfField::record_backward(
+            self, context, encoder, params, d_sigma, d_rgb, rows, gradients,
+        )
+    }
+
+    fn record_density(
+        &mut self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        params: &wgpu::Buffer,
+        positions: &wgpu::Buffer,
+        rows: usize,
+        sigma_out: &wgpu::Buffer,
+    ) {
+        GpuNerfField::record_density(self, context, encoder, params, positions, rows, sigma_out)
+    }
+
+    fn workspace_bytes(&self) -> usize {
+        let buffers = [
+            &self.encoded_position,
+            &self.trunk_b_in,
+            &self.encoded_direction,
+            &self.colour_in,
+            &self.d_colour_in,
+            &self.d_trunk_b_out,
+            &self.d_trunk_b_in,
+            &self.d_trunk_a_out,
+        ];
+        buffers.iter().map(|b| b.size() as usize).sum::<usize>()
+            + self.a.bytes()
+            + self.b.bytes()
+            + self.c.bytes()
     }
 }
 

@@ -1,0 +1,216 @@
+//! What every model driver on the `gpu` engine does with its rays, whatever
+//! its sampler and field: the per-ray buffers of a batch and their upload,
+//! and compositing → loss → compositing's backward pass, recorded into one
+//! command encoder. Instant-NGP's driver ([`super::ngp::GpuNgp`]) and the
+//! recipe driver ([`super::model::GpuModel`]) both call these.
+
+use std::ops::Range;
+
+use super::composite::{
+    CompositeGradientBuffers, CompositeOutputBuffers, GpuComposite, RayBatchBuffers,
+};
+use super::context::GpuContext;
+use super::kernel::zeroed_storage_buffer;
+use super::loss::{GpuLoss, LossBuffers};
+use crate::field::ngp::LossKind;
+use crate::train::batch::RayBatch;
+
+/// Buffers that hold one value (or colour) per ray of a batch.
+pub struct RayBuffers {
+    /// Rays the buffers hold.
+    pub capacity: usize,
+    /// R × 3, world space.
+    pub origins: wgpu::Buffer,
+    /// R × 3, unit length.
+    pub directions: wgpu::Buffer,
+    /// R × 3 target colours, composited on the ray's background.
+    pub targets: wgpu::Buffer,
+    /// R × 3.
+    pub backgrounds: wgpu::Buffer,
+    /// R × 3 composited colours.
+    pub rgb: wgpu::Buffer,
+    pub opacity: wgpu::Buffer,
+    pub depth: wgpu::Buffer,
+    /// Samples before each ray's cut (u32).
+    pub samples_used: wgpu::Buffer,
+    /// R × 3: ∂loss/∂colour.
+    pub d_rgb: wgpu::Buffer,
+    /// Each ray's share of the mean loss.
+    pub ray_loss: wgpu::Buffer,
+    /// R × 3 (compositing writes it; training ignores it).
+    pub d_background: wgpu::Buffer,
+    /// One f32: the mean loss of the last [`record_composite_and_loss`].
+    pub loss_total: wgpu::Buffer,
+}
+
+impl RayBuffers {
+    pub fn new(context: &GpuContext, capacity: usize) -> Self {
+        let f = |label: &str, n: usize| zeroed_storage_buffer::<f32>(context, label, n);
+        Self {
+            capacity,
+            origins: f("ray origins", 3 * capacity),
+            directions: f("ray directions", 3 * capacity),
+            targets: f("ray targets", 3 * capacity),
+            backgrounds: f("ray backgrounds", 3 * capacity),
+            rgb: f("ray rgb", 3 * capacity),
+            opacity: f("ray opacity", capacity),
+            depth: f("ray depth", capacity),
+            samples_used: zeroed_storage_buffer::<u32>(context, "ray samples used", capacity),
+            d_rgb: f("d ray rgb", 3 * capacity),
+            ray_loss: f("ray loss", capacity),
+            d_background: f("d ray background", 3 * capacity),
+            loss_total: f("loss total", 1),
+        }
+    }
+
+    /// Bytes on the device.
+    pub fn bytes(&self) -> usize {
+        self.capacity * 4 * (3 * 7 + 4) + 4
+    }
+
+    /// Writes rays `rays` of `batch` (origins, directions, targets and
+    /// backgrounds) to the start of the buffers; the queue applies the
+    /// writes before its next submission. `scratch` is reused between
+    /// calls.
+    pub fn upload(
+        &self,
+        context: &GpuContext,
+        batch: &RayBatch,
+        rays: Range<usize>,
+        scratch: &mut Vec<f32>,
+    ) {
+        assert!(
+            rays.len() <= self.capacity,
+            "{} rays exceed the buffers' {}",
+            rays.len(),
+            self.capacity
+        );
+        if rays.is_empty() {
+            return;
+        }
+        let queue = &context.queue;
+        for (vectors, buffer) in [
+            (&batch.origins, &self.origins),
+            (&batch.directions, &self.directions),
+        ] {
+            scratch.clear();
+            scratch.extend(vectors[rays.clone()].iter().flat_map(|v| v.to_array()));
+            queue.write_buffer(buffer, 0, bytemuck::cast_slice(scratch));
+        }
+        for (colours, buffer) in [
+            (&batch.targets, &self.targets),
+            (&batch.backgrounds, &self.backgrounds),
+        ] {
+            queue.write_buffer(buffer, 0, bytemuck::cast_slice(&colours[rays.clone()]));
+        }
+    }
+
+    /// The compositing input of `samples`' σ, colours, intervals, distances
+    /// and per-ray offsets, over these rays' backgrounds.
+    pub fn batch<'a>(
+        &'a self,
+        samples: SampleBuffers<'a>,
+        ray_count: usize,
+    ) -> RayBatchBuffers<'a> {
+        RayBatchBuffers {
+            density: samples.sigma,
+            rgb: samples.rgb,
+            dt: samples.dt,
+            t: samples.t,
+            ray_offsets: samples.ray_offsets,
+            background: &self.backgrounds,
+            ray_count,
+        }
+    }
+}
+
+/// The per-sample values compositing reads.
+#[derive(Debug, Clone, Copy)]
+pub struct SampleBuffers<'a> {
+    /// S densities (activated).
+    pub sigma: &'a wgpu::Buffer,
+    /// S × 3 colours.
+    pub rgb: &'a wgpu::Buffer,
+    /// S interval lengths.
+    pub dt: &'a wgpu::Buffer,
+    /// S distances along the ray.
+    pub t: &'a wgpu::Buffer,
+    /// R + 1 offsets (u32).
+    pub ray_offsets: &'a wgpu::Buffer,
+}
+
+/// Where a level's per-sample gradients go.
+#[derive(Debug, Clone, Copy)]
+pub struct SampleGradientBuffers<'a> {
+    /// S: ∂loss/∂σ.
+    pub sigma: &'a wgpu::Buffer,
+    /// S × 3: ∂loss/∂colour.
+    pub rgb: &'a wgpu::Buffer,
+}
+
+/// The compositing and loss kernels.
+pub struct CompositeAndLoss<'a> {
+    pub composite: &'a GpuComposite,
+    pub loss: &'a GpuLoss,
+}
+
+impl CompositeAndLoss<'_> {
+    /// Records compositing of `ray_count` rays from `samples` over the
+    /// rays' backgrounds (into `rays.rgb`, `opacity`, `depth`,
+    /// `samples_used`), the loss against `rays.targets` (its mean into
+    /// `rays.loss_total`, its gradient times `gradient_weight` into
+    /// `rays.d_rgb`), and compositing's backward pass into `gradients`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        rays: &RayBuffers,
+        samples: SampleBuffers,
+        ray_count: usize,
+        min_transmittance: f32,
+        loss: LossKind,
+        gradient_weight: f32,
+        gradients: SampleGradientBuffers,
+    ) {
+        let batch = rays.batch(samples, ray_count);
+        self.composite.record_forward(
+            context,
+            encoder,
+            &batch,
+            min_transmittance,
+            &CompositeOutputBuffers {
+                rgb: &rays.rgb,
+                opacity: &rays.opacity,
+                depth: &rays.depth,
+                samples_used: &rays.samples_used,
+            },
+        );
+        self.loss.record_weighted(
+            context,
+            encoder,
+            loss,
+            &LossBuffers {
+                predicted: &rays.rgb,
+                target: &rays.targets,
+                gradient: &rays.d_rgb,
+                ray_loss: &rays.ray_loss,
+                total: &rays.loss_total,
+                ray_count,
+            },
+            gradient_weight,
+        );
+        self.composite.record_backward(
+            context,
+            encoder,
+            &batch,
+            min_transmittance,
+            &rays.d_rgb,
+            &CompositeGradientBuffers {
+                density: gradients.sigma,
+                rgb: gradients.rgb,
+                background: &rays.d_background,
+            },
+        );
+    }
+}
