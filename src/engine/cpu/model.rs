@@ -687,7 +687,7 @@ impl CpuModel {
                     &mut lb.sigma,
                     &mut lb.rgb,
                 );
-                composite_level(lb, &backgrounds, &mut pixels);
+                composite_level(lb, &backgrounds, 0.0, &mut pixels);
             }
             for (i, pixel) in out[start..end].iter_mut().enumerate() {
                 *pixel = RenderedPixel {
@@ -882,9 +882,16 @@ fn sample_distances(
     }
 }
 
-/// Composites a level's samples for rendering: the pixels into `pixels`,
-/// the per-sample weights into `lb.weights` (for the next level).
-fn composite_level(lb: &mut LevelBuffers, backgrounds: &[f32], pixels: &mut RayScratch) {
+/// Composites a level's samples (σ, rgb, dt, t, ray offsets in `lb`) over
+/// the rays' backgrounds, each ray stopping where its transmittance falls
+/// below `min_transmittance`: the pixels into `pixels`, the per-sample
+/// weights into `lb.weights` (for the next level).
+fn composite_level(
+    lb: &mut LevelBuffers,
+    backgrounds: &[f32],
+    min_transmittance: f32,
+    pixels: &mut RayScratch,
+) {
     let rays = lb.ray_offsets.len() - 1;
     let batch = composite_batch::RayBatch {
         density: &lb.sigma,
@@ -895,14 +902,14 @@ fn composite_level(lb: &mut LevelBuffers, backgrounds: &[f32], pixels: &mut RayS
         background: backgrounds,
     };
     set_len(&mut lb.weights, lb.sigma.len());
-    composite_batch::sample_weights(&batch, 0.0, &mut lb.weights);
+    composite_batch::sample_weights(&batch, min_transmittance, &mut lb.weights);
     set_len(&mut pixels.rgb, 3 * rays);
     set_len(&mut pixels.opacity, rays);
     set_len(&mut pixels.depth, rays);
     set_len(&mut pixels.samples_used, rays);
     composite_batch::composite_forward(
         &batch,
-        0.0,
+        min_transmittance,
         CompositeOutputs {
             rgb: &mut pixels.rgb,
             opacity: &mut pixels.opacity,
@@ -999,32 +1006,9 @@ fn composite_and_loss(
     scale: f32,
     scratch: &mut RayScratch,
 ) -> f64 {
+    composite_level(lb, backgrounds, min_transmittance, scratch);
     let rays = lb.ray_offsets.len() - 1;
     let n = lb.sigma.len();
-    let batch = composite_batch::RayBatch {
-        density: &lb.sigma,
-        rgb: &lb.rgb,
-        dt: &lb.dt,
-        t: &lb.t,
-        ray_offsets: &lb.ray_offsets,
-        background: backgrounds,
-    };
-    set_len(&mut scratch.rgb, 3 * rays);
-    set_len(&mut scratch.opacity, rays);
-    set_len(&mut scratch.depth, rays);
-    set_len(&mut scratch.samples_used, rays);
-    composite_batch::composite_forward(
-        &batch,
-        min_transmittance,
-        CompositeOutputs {
-            rgb: &mut scratch.rgb,
-            opacity: &mut scratch.opacity,
-            depth: &mut scratch.depth,
-            samples_used: &mut scratch.samples_used,
-        },
-    );
-    set_len(&mut lb.weights, n);
-    composite_batch::sample_weights(&batch, min_transmittance, &mut lb.weights);
     set_len(&mut scratch.d_rgb, 3 * rays);
     let loss = loss_and_gradient(loss_kind, &scratch.rgb, targets, &mut scratch.d_rgb);
     if scale != 1.0 {
@@ -1034,6 +1018,14 @@ fn composite_and_loss(
     }
     set_len(&mut lb.d_sigma, n);
     set_len(&mut lb.d_rgb, 3 * n);
+    let batch = composite_batch::RayBatch {
+        density: &lb.sigma,
+        rgb: &lb.rgb,
+        dt: &lb.dt,
+        t: &lb.t,
+        ray_offsets: &lb.ray_offsets,
+        background: backgrounds,
+    };
     composite_batch::composite_backward(
         &batch,
         min_transmittance,
