@@ -440,6 +440,9 @@ fn print_info(scene: &Scene) {
         k.fov_x().to_degrees(),
         k.fov_y().to_degrees()
     );
+    if k.lens != zrak::scene::Lens::Pinhole {
+        println!("lens        {}", k.lens.describe());
+    }
     let b = scene.bounds;
     println!(
         "bounds      [{:.3}, {:.3}, {:.3}] to [{:.3}, {:.3}, {:.3}]",

@@ -8,6 +8,7 @@ pub mod demo;
 pub mod error;
 pub mod image;
 pub mod instant_ngp;
+pub mod lens;
 pub mod pose;
 
 use std::path::{Path, PathBuf};
@@ -18,6 +19,7 @@ pub use bounds::Aabb;
 pub use camera::{Camera, Intrinsics, Ray};
 pub use error::{SceneError, SceneResult};
 pub use image::ImageRgba8;
+pub use lens::Lens;
 
 /// Options for loading a scene from disk.
 #[derive(Debug, Clone, Copy, PartialEq)]
