@@ -37,7 +37,7 @@ struct Cli {
 enum Command {
     /// Print a scene's splits, resolution, intrinsics and bounds.
     Info {
-        /// A folder in the NeRF-synthetic layout or with a transforms.json.
+        /// A folder in the NeRF-synthetic layout, with a transforms.json, or with a COLMAP model.
         scene: PathBuf,
         /// Integer image downscale, as training would load it.
         #[arg(long, default_value_t = 1)]
@@ -54,6 +54,15 @@ enum Command {
         /// Number of training views (val and test get a tenth each, at least one).
         #[arg(long, default_value_t = DemoConfig::default().train_views)]
         views: usize,
+    },
+    /// Convert a COLMAP model (sparse/0 and images/) into an instant-ngp /
+    /// nerfstudio transforms.json, centred and scaled as zrak loads it.
+    Convert {
+        /// A folder with sparse/0/cameras.bin and images.bin (or .txt) and images/.
+        colmap: PathBuf,
+        /// The transforms.json to write.
+        #[arg(long)]
+        out: PathBuf,
     },
     /// Train a model on a scene, writing checkpoints and metrics to a run folder.
     Train(TrainArgs),
@@ -271,6 +280,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Some(Command::Info { scene, downscale }) => info(&scene, downscale),
         Some(Command::Demo { out, size, views }) => write_demo(&out, size, views),
+        Some(Command::Convert { colmap, out }) => convert(&colmap, &out),
         Some(Command::Train(args)) => train(args),
         Some(Command::Eval { run, split, engine }) => eval(&run, split.into(), engine),
         Some(Command::Render(args)) => render(args),
@@ -346,6 +356,35 @@ fn info(path: &Path, downscale: u32) -> anyhow::Result<()> {
     let scene = Scene::load(path, LoadOptions { downscale })?;
     print_info(&scene);
     println!("loaded in {:.2} s", started.elapsed().as_secs_f64());
+    Ok(())
+}
+
+fn convert(colmap: &Path, out: &Path) -> anyhow::Result<()> {
+    let converted = zrak::scene::colmap::convert(colmap)?;
+    let out_folder = out
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    // Image paths relative to the output's folder need both in the same
+    // form; an absolute path is written otherwise.
+    let absolute = |p: &Path| std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
+    let mut absolute_images = converted.clone();
+    for image in &mut absolute_images.images {
+        image.image_path = absolute(&image.image_path);
+    }
+    let json = zrak::scene::colmap::transforms_json(&absolute_images, &absolute(out_folder));
+    let text = serde_json::to_string_pretty(&json)?;
+    std::fs::write(out, text).with_context(|| format!("writing {}", out.display()))?;
+    println!(
+        "wrote {} ({} frames, centre [{:.4}, {:.4}, {:.4}] and scale {:.5} applied, aabb_scale {})",
+        out.display(),
+        converted.images.len(),
+        converted.centre.x,
+        converted.centre.y,
+        converted.centre.z,
+        converted.scale,
+        converted.unit_cube.aabb_scale
+    );
     Ok(())
 }
 

@@ -4,6 +4,7 @@
 pub mod blender;
 pub mod bounds;
 pub mod camera;
+pub mod colmap;
 pub mod demo;
 pub mod error;
 pub mod image;
@@ -43,6 +44,8 @@ pub enum SceneFormat {
     InstantNgp,
     /// zrak's built-in procedural scene, built in memory.
     Demo,
+    /// A COLMAP sparse model and its `images/` folder.
+    Colmap,
 }
 
 /// The splits of a scene.
@@ -193,9 +196,10 @@ impl Scene {
 
 impl Scene {
     /// Loads a scene from disk: a folder in the NeRF-synthetic layout
-    /// (`transforms_{train,val,test}.json`, see [`blender`]) or the
+    /// (`transforms_{train,val,test}.json`, see [`blender`]), the
     /// instant-ngp / nerfstudio layout (`transforms.json`, see
-    /// [`instant_ngp`]), or the path of one of those JSON files. A folder
+    /// [`instant_ngp`]) or with a COLMAP model (see [`colmap`]), or the path
+    /// of one of those JSON files. A folder
     /// with both prefers the split files, because they carry the dataset's
     /// own train/val/test division.
     pub fn load(path: &Path, options: LoadOptions) -> SceneResult<Scene> {
@@ -218,11 +222,14 @@ impl Scene {
             blender::load(path, options)
         } else if path.join(instant_ngp::FILE_NAME).is_file() {
             instant_ngp::load(path, options)
+        } else if colmap::is_colmap_folder(path) {
+            colmap::load(path, options)
         } else {
             Err(SceneError::new(
                 path,
                 "not a scene folder: it holds none of transforms_train.json, \
-                 transforms_val.json, transforms_test.json or transforms.json",
+                 transforms_val.json, transforms_test.json, transforms.json or a COLMAP \
+                 model (sparse/0/cameras.bin and images.bin, or the .txt forms)",
             ))
         }
     }
