@@ -137,6 +137,11 @@ pub struct MarchConfig {
     pub max_steps: u32,
     /// Stop marching once transmittance falls below this (testbed: 1e-4).
     pub min_transmittance: f32,
+    /// For scenes with aabb_scale > 1, the step grows to this fraction of
+    /// the distance from the camera (testbed: `cone_angle_constant` 1/256,
+    /// used when aabb_scale > 1; Blender scenes keep the fixed step). See
+    /// `engine::cpu::march::Lattice`.
+    pub cone_angle: f32,
 }
 
 impl MarchConfig {
@@ -144,6 +149,7 @@ impl MarchConfig {
         step: 1.732_050_8 / 1024.0,
         max_steps: 1024,
         min_transmittance: 1e-4,
+        cone_angle: 1.0 / 256.0,
     };
 }
 
