@@ -54,6 +54,10 @@ enum Command {
         /// Number of training views (val and test get a tenth each, at least one).
         #[arg(long, default_value_t = DemoConfig::default().train_views)]
         views: usize,
+        /// The large-extent variant: an opaque backdrop sphere around the
+        /// objects, aabb_scale 8, written as an instant-ngp transforms.json.
+        #[arg(long)]
+        large: bool,
     },
     /// Convert a COLMAP model (sparse/0 and images/) into an instant-ngp /
     /// nerfstudio transforms.json, centred and scaled as zrak loads it.
@@ -279,7 +283,12 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Some(Command::Info { scene, downscale }) => info(&scene, downscale),
-        Some(Command::Demo { out, size, views }) => write_demo(&out, size, views),
+        Some(Command::Demo {
+            out,
+            size,
+            views,
+            large,
+        }) => write_demo(&out, size, views, large),
         Some(Command::Convert { colmap, out }) => convert(&colmap, &out),
         Some(Command::Train(args)) => train(args),
         Some(Command::Eval { run, split, engine }) => eval(&run, split.into(), engine),
@@ -400,10 +409,14 @@ fn demo_config(size: u32, views: usize) -> anyhow::Result<DemoConfig> {
     })
 }
 
-fn write_demo(out: &Path, size: u32, views: usize) -> anyhow::Result<()> {
+fn write_demo(out: &Path, size: u32, views: usize, large: bool) -> anyhow::Result<()> {
     let config = demo_config(size, views)?;
     let started = Instant::now();
-    demo::write(&config, out).context("writing the demo scene")?;
+    if large {
+        demo::write_large(&config, out).context("writing the large demo scene")?;
+    } else {
+        demo::write(&config, out).context("writing the demo scene")?;
+    }
     println!(
         "wrote the demo scene to {} ({} / {} / {} views at {size}×{size}) in {:.2} s",
         out.display(),

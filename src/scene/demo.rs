@@ -147,6 +147,47 @@ pub fn write(config: &DemoConfig, dir: &Path) -> SceneResult<()> {
     Ok(())
 }
 
+/// Writes the large-extent demo ([`build_large`]) under `dir` in the
+/// instant-ngp layout: `transforms.json` (with `aabb_scale` and nerfstudio's
+/// split lists) and `{train,val,test}/r_N.png`, opaque.
+pub fn write_large(config: &DemoConfig, dir: &Path) -> SceneResult<()> {
+    let scene = build_large(config);
+    let mut frames = Vec::new();
+    let mut lists: [Vec<String>; 3] = Default::default();
+    for (list, split) in lists.iter_mut().zip(Split::ALL) {
+        let folder = dir.join(split.name());
+        std::fs::create_dir_all(&folder)
+            .map_err(|e| SceneError::new(&folder, format!("cannot create folder: {e}")))?;
+        let views = scene.split(split);
+        views
+            .par_iter()
+            .enumerate()
+            .try_for_each(|(index, frame)| {
+                frame.image.save_png(&folder.join(format!("r_{index}.png")))
+            })?;
+        for (index, frame) in views.iter().enumerate() {
+            let file_path = format!("{}/r_{index}.png", split.name());
+            let rows: [[f32; 4]; 4] =
+                std::array::from_fn(|row| frame.camera.camera_to_world.row(row).to_array());
+            frames.push(serde_json::json!({ "file_path": file_path, "transform_matrix": rows }));
+            list.push(file_path);
+        }
+    }
+    let json = serde_json::json!({
+        "camera_angle_x": CAMERA_ANGLE_X,
+        "aabb_scale": LARGE_AABB_SCALE,
+        "train_filenames": lists[0],
+        "val_filenames": lists[1],
+        "test_filenames": lists[2],
+        "frames": frames,
+    });
+    let path = dir.join("transforms.json");
+    let text = serde_json::to_string_pretty(&json)
+        .map_err(|e| SceneError::new(&path, format!("cannot encode JSON: {e}")))?;
+    std::fs::write(&path, text)
+        .map_err(|e| SceneError::new(&path, format!("cannot write file: {e}")))
+}
+
 #[derive(Serialize)]
 struct TransformsFile {
     camera_angle_x: f32,
