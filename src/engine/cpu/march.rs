@@ -182,7 +182,7 @@ impl Cone {
     #[inline(always)]
     fn octave_of(&self, t: f32) -> i32 {
         let v = t * self.inverse_octave_start;
-        if !(v >= 2.0) {
+        if v.is_nan() || v < 2.0 {
             return 0;
         }
         let exponent = ((v.to_bits() >> 23) & 0xff) as i32 - 127;
@@ -276,7 +276,7 @@ impl Lattice {
     /// inverse of [`Self::s`], to rounding).
     #[inline(always)]
     pub fn x(&self, s: f32, t_enter: f32) -> f32 {
-        if !(s >= self.first_length) {
+        if s.is_nan() || s < self.first_length {
             return s * self.inverse_first_step;
         }
         let t = t_enter + s;
