@@ -789,12 +789,17 @@ pub fn convert(root: &Path) -> SceneResult<Converted> {
         ..UnitCubeMapping::BLENDER
     };
     let image_folder = root.join("images");
+    let cameras_file = ["cameras.bin", "cameras.txt"]
+        .iter()
+        .map(|f| folder.join(f))
+        .find(|p| p.is_file())
+        .unwrap_or_else(|| folder.clone());
     let mut posed = Vec::with_capacity(images.len());
     for (image, (rotation, position)) in images.iter().zip(&poses) {
         let camera = &model.cameras[&image.camera_id];
         let intrinsics = camera
             .intrinsics()
-            .map_err(|p| SceneError::new(folder.join("cameras"), p))?;
+            .map_err(|p| SceneError::new(&cameras_file, p))?;
         let p = to_zrak(*position).as_vec3();
         let r = rotation.as_mat3();
         posed.push(PosedImage {
