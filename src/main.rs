@@ -37,7 +37,7 @@ struct Cli {
 enum Command {
     /// Print a scene's splits, resolution, intrinsics and bounds.
     Info {
-        /// A folder in the NeRF-synthetic layout or with a transforms.json.
+        /// A folder in the NeRF-synthetic layout, with a transforms.json, or with a COLMAP model.
         scene: PathBuf,
         /// Integer image downscale, as training would load it.
         #[arg(long, default_value_t = 1)]
@@ -54,6 +54,19 @@ enum Command {
         /// Number of training views (val and test get a tenth each, at least one).
         #[arg(long, default_value_t = DemoConfig::default().train_views)]
         views: usize,
+        /// The large-extent variant: an opaque backdrop sphere around the
+        /// objects, aabb_scale 8, written as an instant-ngp transforms.json.
+        #[arg(long)]
+        large: bool,
+    },
+    /// Convert a COLMAP model (sparse/0 and images/) into an instant-ngp /
+    /// nerfstudio transforms.json, centred and scaled as zrak loads it.
+    Convert {
+        /// A folder with sparse/0/cameras.bin and images.bin (or .txt) and images/.
+        colmap: PathBuf,
+        /// The transforms.json to write.
+        #[arg(long)]
+        out: PathBuf,
     },
     /// Train a model on a scene, writing checkpoints and metrics to a run folder.
     Train(TrainArgs),
@@ -267,7 +280,13 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Some(Command::Info { scene, downscale }) => info(&scene, downscale),
-        Some(Command::Demo { out, size, views }) => write_demo(&out, size, views),
+        Some(Command::Demo {
+            out,
+            size,
+            views,
+            large,
+        }) => write_demo(&out, size, views, large),
+        Some(Command::Convert { colmap, out }) => convert(&colmap, &out),
         Some(Command::Train(args)) => train(args),
         Some(Command::Eval {
             run,
@@ -351,6 +370,35 @@ fn info(path: &Path, downscale: u32) -> anyhow::Result<()> {
     Ok(())
 }
 
+fn convert(colmap: &Path, out: &Path) -> anyhow::Result<()> {
+    let converted = zrak::scene::colmap::convert(colmap)?;
+    let out_folder = out
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    // Image paths relative to the output's folder need both in the same
+    // form; an absolute path is written otherwise.
+    let absolute = |p: &Path| std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
+    let mut absolute_images = converted.clone();
+    for image in &mut absolute_images.images {
+        image.image_path = absolute(&image.image_path);
+    }
+    let json = zrak::scene::colmap::transforms_json(&absolute_images, &absolute(out_folder));
+    let text = serde_json::to_string_pretty(&json)?;
+    std::fs::write(out, text).with_context(|| format!("writing {}", out.display()))?;
+    println!(
+        "wrote {} ({} frames, centre [{:.4}, {:.4}, {:.4}] and scale {:.5} applied, aabb_scale {})",
+        out.display(),
+        converted.images.len(),
+        converted.centre.x,
+        converted.centre.y,
+        converted.centre.z,
+        converted.scale,
+        converted.unit_cube.aabb_scale
+    );
+    Ok(())
+}
+
 fn demo_config(size: u32, views: usize) -> anyhow::Result<DemoConfig> {
     anyhow::ensure!(size >= 8, "--size must be at least 8 pixels, got {size}");
     anyhow::ensure!(views >= 1, "--views must be at least 1");
@@ -363,10 +411,14 @@ fn demo_config(size: u32, views: usize) -> anyhow::Result<DemoConfig> {
     })
 }
 
-fn write_demo(out: &Path, size: u32, views: usize) -> anyhow::Result<()> {
+fn write_demo(out: &Path, size: u32, views: usize, large: bool) -> anyhow::Result<()> {
     let config = demo_config(size, views)?;
     let started = Instant::now();
-    demo::write(&config, out).context("writing the demo scene")?;
+    if large {
+        demo::write_large(&config, out).context("writing the large demo scene")?;
+    } else {
+        demo::write(&config, out).context("writing the demo scene")?;
+    }
     println!(
         "wrote the demo scene to {} ({} / {} / {} views at {size}×{size}) in {:.2} s",
         out.display(),
@@ -442,6 +494,9 @@ fn print_info(scene: &Scene) {
         k.fov_x().to_degrees(),
         k.fov_y().to_degrees()
     );
+    if k.lens != zrak::scene::Lens::Pinhole {
+        println!("lens        {}", k.lens.describe());
+    }
     let b = scene.bounds;
     println!(
         "bounds      [{:.3}, {:.3}, {:.3}] to [{:.3}, {:.3}, {:.3}]",

@@ -10,7 +10,7 @@
 use glam::{Mat4, Quat, Vec3};
 
 use crate::render::path::scene_up;
-use crate::scene::{Camera, Intrinsics, Scene};
+use crate::scene::{Camera, Intrinsics, Lens, Scene};
 
 /// How the mouse and keys move the camera.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -96,6 +96,9 @@ pub struct ViewCamera {
     pixel_aspect: f32,
     /// Principal point as fractions of the width and height (0.5 = centre).
     principal_point: (f32, f32),
+    /// The lens of the view last snapped to, so that a training view is
+    /// rendered through the same distortion as its photograph.
+    lens: Lens,
 }
 
 impl ViewCamera {
@@ -122,6 +125,7 @@ impl ViewCamera {
             scene_size,
             pixel_aspect: 1.0,
             principal_point: (0.5, 0.5),
+            lens: Lens::Pinhole,
         };
         let first = scene.train.first().or_else(|| scene.frames().next());
         match first {
@@ -268,6 +272,7 @@ impl ViewCamera {
             self.pixel_aspect = k.fx / k.fy;
             self.principal_point = (k.cx / k.width as f32, k.cy / k.height as f32);
         }
+        self.lens = k.lens;
         let centre_depth = (self.scene_centre - eye).dot(self.forward());
         let min_distance = MIN_DISTANCE_SCENE_SIZES * self.scene_size;
         if centre_depth > min_distance {
@@ -288,6 +293,7 @@ impl ViewCamera {
             fy,
             cx: self.principal_point.0 * width as f32,
             cy: self.principal_point.1 * height as f32,
+            lens: self.lens,
         };
         Camera::new(
             intrinsics,
@@ -435,6 +441,7 @@ mod tests {
         ] {
             assert!((x - y).abs() < 1e-3, "{ka:?} vs {kb:?}");
         }
+        assert_eq!(ka.lens, kb.lens);
     }
 
     /// Where the target lands in the image.
@@ -666,6 +673,7 @@ mod tests {
             fy: 45.0,
             cx: 21.5,
             cy: 14.0,
+            lens: Lens::Pinhole,
         };
         let odd = Camera::look_at(
             k,
@@ -675,6 +683,17 @@ mod tests {
         );
         view.snap_to(&odd);
         assert_same_camera(&view.camera(40, 30), &odd, 1e-5);
+        // A distorted training view keeps its lens.
+        let mut fisheye = odd;
+        fisheye.intrinsics.lens = Lens::Fisheye {
+            k1: 0.1,
+            k2: 0.0,
+            k3: 0.0,
+            k4: 0.0,
+        };
+        view.snap_to(&fisheye);
+        assert_eq!(view.camera(40, 30).intrinsics.lens, fisheye.intrinsics.lens);
+        assert_same_camera(&view.camera(40, 30), &fisheye, 1e-5);
     }
 
     #[test]

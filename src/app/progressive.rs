@@ -32,6 +32,7 @@ pub fn level_camera(camera: &Camera, downscale: u32) -> Camera {
             fy: k.fy * sy,
             cx: k.cx * sx,
             cy: k.cy * sy,
+            lens: k.lens,
         },
         camera.camera_to_world,
     )

@@ -107,6 +107,9 @@ pub const MARCH: MarchConfig = MarchConfig {
     step: 2.0 * 1.732_050_8 / 1024.0,
     max_steps: 512,
     min_transmittance: 1e-4,
+    // NeRF keeps the fixed step on every scene: its occupancy grid is
+    // tuned to it (see the grid's threshold below).
+    cone_angle: 0.0,
 };
 
 /// The occupancy grid for NeRF: Instant-NGP's rule (EMA 0.95, threshold

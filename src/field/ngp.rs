@@ -137,6 +137,11 @@ pub struct MarchConfig {
     pub max_steps: u32,
     /// Stop marching once transmittance falls below this (testbed: 1e-4).
     pub min_transmittance: f32,
+    /// For scenes with aabb_scale > 1, the step grows to this fraction of
+    /// the distance from the camera (testbed: `cone_angle_constant` 1/256,
+    /// used when aabb_scale > 1; Blender scenes keep the fixed step). See
+    /// `engine::cpu::march::Lattice`.
+    pub cone_angle: f32,
 }
 
 impl MarchConfig {
@@ -144,7 +149,26 @@ impl MarchConfig {
         step: 1.732_050_8 / 1024.0,
         max_steps: 1024,
         min_transmittance: 1e-4,
+        cone_angle: 1.0 / 256.0,
     };
+
+    /// [`Self::PAPER`], with the cone angle taken from the environment
+    /// variable `ZRAK_CONE_ANGLE` when it holds a number (0 marches large
+    /// scenes with the fixed step): for measuring what cone stepping buys.
+    /// Read once per process.
+    pub fn paper_or_environment() -> Self {
+        static CONE_ANGLE: std::sync::OnceLock<Option<f32>> = std::sync::OnceLock::new();
+        let cone_angle = *CONE_ANGLE.get_or_init(|| {
+            std::env::var("ZRAK_CONE_ANGLE")
+                .ok()
+                .and_then(|v| v.parse::<f32>().ok())
+                .filter(|c| c.is_finite() && *c >= 0.0)
+        });
+        Self {
+            cone_angle: cone_angle.unwrap_or(Self::PAPER.cone_angle),
+            ..Self::PAPER
+        }
+    }
 }
 
 /// Loss on pixel colours.

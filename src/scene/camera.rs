@@ -1,4 +1,5 @@
-//! Pinhole cameras and the rays through their pixels.
+//! Cameras and the rays through their pixels: a pinhole with an optional
+//! lens distortion ([`Lens`]).
 //!
 //! Convention (DESIGN.md): the pose is camera-to-world as in the
 //! `transform_matrix` of NeRF-synthetic and instant-ngp files, OpenGL axes
@@ -7,7 +8,9 @@
 
 use glam::{Mat3, Mat4, Vec3};
 
-/// Pinhole intrinsics in pixels.
+pub use super::lens::Lens;
+
+/// Intrinsics in pixels, and the lens that bends the rays.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Intrinsics {
     pub width: u32,
@@ -16,6 +19,9 @@ pub struct Intrinsics {
     pub fy: f32,
     pub cx: f32,
     pub cy: f32,
+    /// Lens distortion, in normalised image coordinates (unchanged by
+    /// downscaling).
+    pub lens: Lens,
 }
 
 impl Intrinsics {
@@ -31,6 +37,7 @@ impl Intrinsics {
             fy: focal,
             cx: 0.5 * width as f32,
             cy: 0.5 * height as f32,
+            lens: Lens::Pinhole,
         }
     }
 
@@ -46,6 +53,7 @@ impl Intrinsics {
             fy: self.fy / k,
             cx: self.cx / k,
             cy: self.cy / k,
+            lens: self.lens,
         }
     }
 
@@ -127,20 +135,44 @@ impl Camera {
         -self.camera_to_world.z_axis.truncate().normalize()
     }
 
-    /// The camera-space direction (z = -1) through image point (u, v) in
-    /// pixel units, v counting down from the top edge.
-    fn camera_space_direction(&self, u: f32, v: f32) -> Vec3 {
+    /// The camera-space directions through image point (u, v) in pixel
+    /// units, v counting down from the top edge: unit length, and scaled to
+    /// z = -1. Through the undistorted position of the point when the lens
+    /// distorts.
+    fn camera_space_directions(&self, u: f32, v: f32) -> (Vec3, Vec3) {
         let k = &self.intrinsics;
-        Vec3::new((u - k.cx) / k.fx, -(v - k.cy) / k.fy, -1.0)
+        if k.lens == Lens::Pinhole {
+            let on_plane = Vec3::new((u - k.cx) / k.fx, -(v - k.cy) / k.fy, -1.0);
+            return (on_plane.normalize(), on_plane);
+        }
+        let xd = (u as f64 - k.cx as f64) / k.fx as f64;
+        let yd = (v as f64 - k.cy as f64) / k.fy as f64;
+        // OpenCV axes (y down, z forward) to zrak's (y up, z back). A
+        // fisheye can see 90° off axis and beyond, where no z = -1 point
+        // exists: the depth is clamped so the vector stays finite and keeps
+        // its side (it only sizes Mip-NeRF's cones).
+        let [x, y, z] = k.lens.undistort(xd, yd).direction;
+        let unit = Vec3::new(x as f32, -y as f32, -z as f32);
+        let depth = z.max(MIN_UNIT_DEPTH);
+        let on_plane = Vec3::new((x / depth) as f32, (-y / depth) as f32, -1.0);
+        (unit, on_plane)
     }
 
     /// The ray through image point (u, v) in pixel units; the centre of
     /// pixel (i, j) is (i + 0.5, j + 0.5).
     pub fn ray_through(&self, u: f32, v: f32) -> Ray {
-        let direction_unnormalised = self.rotation() * self.camera_space_direction(u, v);
+        let (unit, on_plane) = self.camera_space_directions(u, v);
+        let rotation = self.rotation();
+        let direction_unnormalised = rotation * on_plane;
+        let direction = if self.intrinsics.lens == Lens::Pinhole {
+            // Bit for bit what it was before lenses existed.
+            direction_unnormalised.normalize()
+        } else {
+            (rotation * unit).normalize()
+        };
         Ray {
             origin: self.position(),
-            direction: direction_unnormalised.normalize(),
+            direction,
             direction_unnormalised,
             // The pixel is 1/fx wide at unit depth (mean of both axes for
             // non-square pixels).
@@ -162,18 +194,30 @@ impl Camera {
             .collect()
     }
 
-    /// Projects a world-space point to image coordinates (u, v) in pixels, or
-    /// `None` when it lies on or behind the camera plane.
+    /// Projects a world-space point to image coordinates (u, v) in pixels
+    /// through the lens, or `None` when the lens does not see it (on or
+    /// behind the camera plane, except for a fisheye).
     pub fn project(&self, point: Vec3) -> Option<(f32, f32)> {
         let in_camera = self.camera_to_world.inverse().transform_point3(point);
         if in_camera.z >= 0.0 {
             return None;
         }
-        let depth = -in_camera.z;
         let k = &self.intrinsics;
+        if k.lens == Lens::Pinhole {
+            let depth = -in_camera.z;
+            return Some((
+                k.cx + k.fx * in_camera.x / depth,
+                k.cy - k.fy * in_camera.y / depth,
+            ));
+        }
+        let (xd, yd) = k.lens.distort_direction(
+            in_camera.x as f64,
+            -in_camera.y as f64,
+            -in_camera.z as f64,
+        )?;
         Some((
-            k.cx + k.fx * in_camera.x / depth,
-            k.cy - k.fy * in_camera.y / depth,
+            (k.cx as f64 + k.fx as f64 * xd) as f32,
+            (k.cy as f64 + k.fy as f64 * yd) as f32,
         ))
     }
 
@@ -193,6 +237,12 @@ impl Camera {
     }
 }
 
+/// The smallest optical-axis component of a unit direction that
+/// [`Camera::ray_through`] scales to z = -1 (about 89.9° off axis).
+const MIN_UNIT_DEPTH: f64 = 1e-3;
+
+/// The cone's pixel width: the pinhole's, also for distorted lenses (whose
+/// pixels vary in footprint across the image; the centre's is kept).
 fn pixel_width_at_unit_depth(k: &Intrinsics) -> f32 {
     0.5 * (1.0 / k.fx + 1.0 / k.fy)
 }
@@ -209,6 +259,7 @@ mod tests {
             fy: 72.0,
             cx: 31.3,
             cy: 24.9,
+            lens: Lens::Pinhole,
         };
         Camera::look_at(
             intrinsics,
@@ -331,5 +382,89 @@ mod tests {
         assert_eq!((half.width, half.height), (200, 200));
         assert!((half.fov_x() - k.fov_x()).abs() < 1e-6);
         assert!((half.cx - 100.0).abs() < 1e-6);
+    }
+
+    /// Project → unproject through each lens model: the pixel comes back to
+    /// 1e-4 px, and the ray passes through the point.
+    #[test]
+    fn distorted_cameras_round_trip_to_a_ten_thousandth_of_a_pixel() {
+        let lenses = [
+            Lens::RadialTangential {
+                k1: -0.12,
+                k2: 0.05,
+                k3: -0.01,
+                k4: 0.0,
+                p1: 0.001,
+                p2: -0.0015,
+            },
+            Lens::Fisheye {
+                k1: 0.05,
+                k2: -0.01,
+                k3: 0.003,
+                k4: -0.0005,
+            },
+        ];
+        for lens in lenses {
+            let mut camera = test_camera();
+            camera.intrinsics.lens = lens;
+            for j in 0..=12 {
+                for i in 0..=16 {
+                    let (u, v) = (i as f32 * 4.0, j as f32 * 4.0);
+                    let ray = camera.ray_through(u, v);
+                    assert!((ray.direction.length() - 1.0).abs() < 1e-6);
+                    let point = ray.at(2.5);
+                    let (pu, pv) = camera.project(point).expect("seen");
+                    assert!(
+                        (pu - u).abs() < 1e-4 && (pv - v).abs() < 1e-4,
+                        "{lens:?}: ({u}, {v}) came back as ({pu}, {pv})"
+                    );
+                }
+            }
+        }
+    }
+
+    /// A closed-form case: k1 only, identity pose, fx = fy = 100, centre
+    /// (50, 50). The pixel (50 + 100 · x (1 + k1 x²), 50) sees direction
+    /// (x, 0, -1).
+    #[test]
+    fn radial_distortion_bends_rays_as_the_closed_form_says() {
+        let mut intrinsics = Intrinsics::from_fov_x(100, 100, std::f32::consts::FRAC_PI_2);
+        intrinsics.fx = 100.0;
+        intrinsics.fy = 100.0;
+        intrinsics.lens = Lens::RadialTangential {
+            k1: 0.2,
+            k2: 0.0,
+            k3: 0.0,
+            k4: 0.0,
+            p1: 0.0,
+            p2: 0.0,
+        };
+        let camera = Camera::new(intrinsics, Mat4::IDENTITY);
+        for x in [0.1f32, 0.3, -0.45] {
+            let u = 50.0 + 100.0 * x * (1.0 + 0.2 * x * x);
+            let ray = camera.ray_through(u, 50.0);
+            let want = Vec3::new(x, 0.0, -1.0);
+            assert!((ray.direction - want.normalize()).length() < 1e-6);
+            assert!((ray.direction_unnormalised - want).length() < 1e-6);
+        }
+        // Equidistant fisheye: a pixel 100 · θ from the centre sees θ off
+        // axis, also beyond 90°.
+        intrinsics.lens = Lens::Fisheye {
+            k1: 0.0,
+            k2: 0.0,
+            k3: 0.0,
+            k4: 0.0,
+        };
+        let camera = Camera::new(intrinsics, Mat4::IDENTITY);
+        for theta in [0.2f32, 1.2, 1.8] {
+            let ray = camera.ray_through(50.0, 50.0 - 100.0 * theta);
+            // Up the image is +y in zrak's axes.
+            let want = Vec3::new(0.0, theta.sin(), -theta.cos());
+            assert!(
+                (ray.direction - want).length() < 1e-6,
+                "{theta}: {}",
+                ray.direction
+            );
+        }
     }
 }

@@ -74,13 +74,25 @@ impl DemoConfig {
 
 /// Builds the scene in memory: every view of every split rendered.
 pub fn build(config: &DemoConfig) -> Scene {
+    build_with(config, |camera| *camera, render_view)
+}
+
+/// The demo with each camera changed by `camera` and rendered by `render`.
+fn build_with(
+    config: &DemoConfig,
+    camera: impl Fn(&Camera) -> Camera + Sync,
+    render: impl Fn(&Camera) -> ImageRgba8 + Sync,
+) -> Scene {
     let mut frames = Split::ALL.map(|split| {
         split_cameras(config, split)
             .par_iter()
-            .map(|camera| Frame {
-                camera: *camera,
-                image: render_view(camera),
-                image_path: PathBuf::new(),
+            .map(|original| {
+                let camera = camera(original);
+                Frame {
+                    camera,
+                    image: render(&camera),
+                    image_path: PathBuf::new(),
+                }
             })
             .collect::<Vec<_>>()
     });
@@ -133,6 +145,47 @@ pub fn write(config: &DemoConfig, dir: &Path) -> SceneResult<()> {
             .map_err(|e| SceneError::new(&path, format!("cannot write file: {e}")))?;
     }
     Ok(())
+}
+
+/// Writes the large-extent demo ([`build_large`]) under `dir` in the
+/// instant-ngp layout: `transforms.json` (with `aabb_scale` and nerfstudio's
+/// split lists) and `{train,val,test}/r_N.png`, opaque.
+pub fn write_large(config: &DemoConfig, dir: &Path) -> SceneResult<()> {
+    let scene = build_large(config);
+    let mut frames = Vec::new();
+    let mut lists: [Vec<String>; 3] = Default::default();
+    for (list, split) in lists.iter_mut().zip(Split::ALL) {
+        let folder = dir.join(split.name());
+        std::fs::create_dir_all(&folder)
+            .map_err(|e| SceneError::new(&folder, format!("cannot create folder: {e}")))?;
+        let views = scene.split(split);
+        views
+            .par_iter()
+            .enumerate()
+            .try_for_each(|(index, frame)| {
+                frame.image.save_png(&folder.join(format!("r_{index}.png")))
+            })?;
+        for (index, frame) in views.iter().enumerate() {
+            let file_path = format!("{}/r_{index}.png", split.name());
+            let rows: [[f32; 4]; 4] =
+                std::array::from_fn(|row| frame.camera.camera_to_world.row(row).to_array());
+            frames.push(serde_json::json!({ "file_path": file_path, "transform_matrix": rows }));
+            list.push(file_path);
+        }
+    }
+    let json = serde_json::json!({
+        "camera_angle_x": CAMERA_ANGLE_X,
+        "aabb_scale": LARGE_AABB_SCALE,
+        "train_filenames": lists[0],
+        "val_filenames": lists[1],
+        "test_filenames": lists[2],
+        "frames": frames,
+    });
+    let path = dir.join("transforms.json");
+    let text = serde_json::to_string_pretty(&json)
+        .map_err(|e| SceneError::new(&path, format!("cannot encode JSON: {e}")))?;
+    std::fs::write(&path, text)
+        .map_err(|e| SceneError::new(&path, format!("cannot write file: {e}")))
 }
 
 #[derive(Serialize)]
@@ -215,6 +268,84 @@ fn spiral_position(index: f32, length: usize) -> Vec3 {
 /// pixel) as seen by any camera. Where no sample hits anything the pixel is
 /// fully transparent.
 pub fn render_view(camera: &Camera) -> ImageRgba8 {
+    render(camera, false)
+}
+
+/// The radius of the large demo's backdrop: a sphere around the objects,
+/// 10 world units from the centre (2.5 camera distances), so that it lies
+/// well outside the unit cube (3.3 unit-cube units from its centre at
+/// scale 0.33) and inside the box of aabb_scale [`LARGE_AABB_SCALE`].
+pub const BACKDROP_RADIUS: f32 = 10.0;
+
+/// The large demo's aabb_scale: its box (half side 4 unit-cube units, 12
+/// world units) holds the backdrop.
+pub const LARGE_AABB_SCALE: f32 = 8.0;
+
+/// [`render_view`] with an opaque backdrop where no object is hit: an
+/// enclosing sphere of radius [`BACKDROP_RADIUS`] painted with a coarse
+/// checkerboard of latitude and longitude (so that it has detail to learn
+/// and parallax to show its depth), like the walls and sky of a real,
+/// unbounded capture. Every pixel is opaque.
+pub fn render_view_with_backdrop(camera: &Camera) -> ImageRgba8 {
+    render(camera, true)
+}
+
+/// The colour of the backdrop where the ray from `origin` (inside the
+/// sphere) along unit `direction` meets it.
+fn backdrop(origin: Vec3, direction: Vec3) -> Vec3 {
+    // |o + t d| = R, the positive root.
+    let b = origin.dot(direction);
+    let c = origin.length_squared() - BACKDROP_RADIUS * BACKDROP_RADIUS;
+    let t = -b + (b * b - c).max(0.0).sqrt();
+    let p = (origin + t * direction) / BACKDROP_RADIUS;
+    let longitude = p.y.atan2(p.x);
+    let latitude = p.z.clamp(-1.0, 1.0).asin();
+    let cells = 12.0 / std::f32::consts::PI;
+    let checker = ((longitude * cells).floor() as i32 + (latitude * cells).floor() as i32) & 1;
+    // Brighter towards the top, like a sky over walls.
+    let height = 0.5 + 0.5 * p.z;
+    let base = Vec3::new(0.35, 0.45, 0.6) * (0.6 + 0.4 * height);
+    if checker == 0 {
+        base
+    } else {
+        base * 0.6 + Vec3::new(0.25, 0.2, 0.1)
+    }
+}
+
+/// The large-extent demo: the same objects and cameras, every view
+/// rendered with the backdrop ([`render_view_with_backdrop`], no alpha),
+/// aabb_scale [`LARGE_AABB_SCALE`], as an instant-ngp scene.
+pub fn build_large(config: &DemoConfig) -> Scene {
+    let mut scene = build_with(config, |camera| *camera, render_view_with_backdrop);
+    scene.name = "demo-large".into();
+    scene.format = SceneFormat::InstantNgp;
+    scene.has_alpha = false;
+    scene.unit_cube = UnitCubeMapping {
+        aabb_scale: LARGE_AABB_SCALE,
+        ..UnitCubeMapping::BLENDER
+    };
+    scene.bounds = scene.unit_cube.world_bounds();
+    scene
+}
+
+/// The demo seen through cameras with `lens`: the photographs bent by the
+/// lens (rendered through [`Camera::ray_through`], which undistorts), as a
+/// capture with that lens would be.
+pub fn build_distorted(config: &DemoConfig, lens: super::Lens) -> Scene {
+    let mut scene = build_with(
+        config,
+        |camera| {
+            let mut camera = *camera;
+            camera.intrinsics.lens = lens;
+            camera
+        },
+        render_view,
+    );
+    scene.name = "demo-distorted".into();
+    scene
+}
+
+fn render(camera: &Camera, with_backdrop: bool) -> ImageRgba8 {
     let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
     let world = World::new();
     let mut data = vec![0u8; width as usize * height as usize * 4];
@@ -238,6 +369,9 @@ pub fn render_view(camera: &Camera) -> ImageRgba8 {
                     let ray = camera.ray_through(column as f32 + dx, row as f32 + dy);
                     if let Some(c) = world.trace(ray.origin, ray.direction) {
                         colour += c;
+                        hits += 1;
+                    } else if with_backdrop {
+                        colour += backdrop(ray.origin, ray.direction);
                         hits += 1;
                     }
                 }

@@ -121,7 +121,8 @@ pub struct LoadedImage {
 }
 
 /// Reads a PNG (8- or 16-bit) or JPEG, RGB or RGBA, grey or grey-alpha, into
-/// 8-bit RGBA. 16-bit channels are rounded to 8 bits.
+/// 8-bit RGBA, turned upright by its EXIF orientation when it has one.
+/// 16-bit channels are rounded to 8 bits.
 pub fn load_image(path: &Path) -> SceneResult<LoadedImage> {
     if !path.is_file() {
         return Err(SceneError::new(path, "image file not found"));
@@ -130,9 +131,15 @@ pub fn load_image(path: &Path) -> SceneResult<LoadedImage> {
         .map_err(|e| SceneError::new(path, format!("cannot open image: {e}")))?
         .with_guessed_format()
         .map_err(|e| SceneError::new(path, format!("cannot read image: {e}")))?;
-    let decoded = reader
-        .decode()
-        .map_err(|e| SceneError::new(path, format!("cannot decode image: {e}")))?;
+    // Phones store JPEGs in the sensor's orientation with an EXIF tag
+    // saying how to turn them; the intrinsics COLMAP and other tools
+    // estimate are for the turned image, as every viewer shows it.
+    let decode_error =
+        |e: image::ImageError| SceneError::new(path, format!("cannot decode image: {e}"));
+    let mut decoder = reader.into_decoder().map_err(decode_error)?;
+    let orientation = image::ImageDecoder::orientation(&mut decoder).map_err(decode_error)?;
+    let mut decoded = image::DynamicImage::from_decoder(decoder).map_err(decode_error)?;
+    decoded.apply_orientation(orientation);
     let file_has_alpha = decoded.color().has_alpha();
     let rgba = decoded.into_rgba8();
     let (width, height) = rgba.dimensions();
@@ -181,5 +188,27 @@ mod tests {
         let [r, g, b] = image.rgb_over(0, 0, [1.0, 1.0, 1.0]);
         assert!((r - 1.0).abs() < 1e-6);
         assert!((g - 0.8).abs() < 1e-6 && (b - 0.8).abs() < 1e-6);
+    }
+
+    /// A phone JPEG stored sideways with EXIF orientation 6 (turn 90°
+    /// clockwise to view) loads upright: 4×2 stored, 2×4 loaded.
+    #[test]
+    fn jpeg_exif_orientation_is_applied() {
+        use image::ImageEncoder;
+        // A little-endian TIFF header and one IFD entry: tag 0x0112
+        // (Orientation), type 3 (SHORT), count 1, value 6.
+        let mut exif = vec![0x49, 0x49, 42, 0, 8, 0, 0, 0, 1, 0];
+        exif.extend([0x12, 0x01, 3, 0, 1, 0, 0, 0, 6, 0, 0, 0]);
+        exif.extend([0, 0, 0, 0]);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("sideways.jpg");
+        let file = std::fs::File::create(&path).unwrap();
+        let mut encoder = image::codecs::jpeg::JpegEncoder::new(file);
+        encoder.set_exif_metadata(exif).unwrap();
+        encoder
+            .write_image(&[128u8; 4 * 2 * 3], 4, 2, image::ExtendedColorType::Rgb8)
+            .unwrap();
+        let loaded = load_image(&path).unwrap();
+        assert_eq!((loaded.image.width, loaded.image.height), (2, 4));
     }
 }

@@ -4,18 +4,19 @@
 //! frame, or both (a frame's own value wins).
 //!
 //! Keys read: `fl_x`, `fl_y`, `camera_angle_x`, `camera_angle_y`, `cx`, `cy`,
-//! `w`, `h`, for the unit cube `aabb_scale`, `scale`, `offset`, and
-//! nerfstudio's `train_filenames`, `val_filenames`, `test_filenames`. Lens
-//! distortion (`k1`..`k4`, `p1`, `p2`) and fisheye models are rejected: the
-//! rays are built for an ideal pinhole, and a distorted image would silently
-//! train a blurred field.
+//! `w`, `h`, the lens distortion `k1`..`k4`, `p1`, `p2` with the model
+//! (nerfstudio's `camera_model`: `OPENCV` or `PINHOLE` radial-tangential,
+//! `OPENCV_FISHEYE` fisheye; instant-ngp's `is_fisheye`), for the unit cube
+//! `aabb_scale`, `scale`, `offset`, and nerfstudio's `train_filenames`,
+//! `val_filenames`, `test_filenames`. Every camera key may be given at the
+//! top level, per frame, or both. Equirectangular cameras are refused.
 
 use std::path::{Path, PathBuf};
 
 use glam::{Mat4, Vec3};
 use serde_json::Value;
 
-use super::camera::{Camera, Intrinsics, focal_from_fov};
+use super::camera::{Camera, Intrinsics, Lens, focal_from_fov};
 use super::error::{SceneError, SceneResult};
 use super::pose::{
     FrameSource, JsonObject, check_downscale, decode_images, describe, frame_object, number,
@@ -41,8 +42,16 @@ const SPLIT_KEYS: [(&str, Split); 3] = [
     ("test_filenames", Split::Test),
 ];
 
-/// Lens distortion coefficients (OpenCV's radial k1..k4, tangential p1, p2).
+/// Lens distortion coefficients (OpenCV's radial k1..k4, tangential p1, p2),
+/// in this order in [`CameraFields::distortion`].
 const DISTORTION_KEYS: [&str; 6] = ["k1", "k2", "k3", "k4", "p1", "p2"];
+
+/// Which lens model the coefficients belong to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum LensModel {
+    RadialTangential,
+    Fisheye,
+}
 
 /// Loads a scene from a folder holding `transforms.json`, or from the JSON
 /// file itself (nerfstudio sometimes names it otherwise). Image paths are
@@ -253,19 +262,21 @@ struct CameraFields {
     focal_y: Option<Focal>,
     cx: Option<f64>,
     cy: Option<f64>,
+    distortion: [Option<f64>; 6],
+    model: Option<LensModel>,
 }
 
 impl CameraFields {
     fn read(object: &JsonObject) -> Result<Self, String> {
-        check_pinhole(object)?;
-        for key in DISTORTION_KEYS {
-            if let Some(value) = number(object, key)?
-                && value != 0.0
-            {
-                return Err(format!(
-                    "lens distortion {key} = {value} is not supported: undistort the images first"
-                ));
-            }
+        let model = lens_model(object)?;
+        let mut distortion = [None; 6];
+        for (slot, key) in distortion.iter_mut().zip(DISTORTION_KEYS) {
+            *slot = match number(object, key)? {
+                Some(v) if !(v as f32).is_finite() => {
+                    return Err(format!("lens distortion `{key}` = {v} is not finite"));
+                }
+                v => v,
+            };
         }
         let finite = |key: &str| -> Result<Option<f64>, String> {
             match number(object, key)? {
@@ -280,6 +291,8 @@ impl CameraFields {
             focal_y: Focal::read(object, "fl_y", "camera_angle_y")?,
             cx: finite("cx")?,
             cy: finite("cy")?,
+            distortion,
+            model,
         })
     }
 
@@ -294,6 +307,40 @@ impl CameraFields {
             focal_y: self.focal_y.or(fallback.focal_y),
             cx: self.cx.or(fallback.cx),
             cy: self.cy.or(fallback.cy),
+            distortion: std::array::from_fn(|i| self.distortion[i].or(fallback.distortion[i])),
+            model: self.model.or(fallback.model),
+        }
+    }
+
+    /// The lens the coefficients and model describe: a fisheye when the
+    /// model says so, otherwise radial-tangential when any coefficient is
+    /// non-zero, otherwise a pinhole.
+    fn lens(&self) -> Result<Lens, String> {
+        let [k1, k2, k3, k4, p1, p2] = self.distortion.map(|c| c.unwrap_or(0.0) as f32);
+        match self.model {
+            Some(LensModel::Fisheye) => {
+                if p1 != 0.0 || p2 != 0.0 {
+                    return Err(format!(
+                        "the fisheye model has no tangential terms, but p1 = {p1}, p2 = {p2}"
+                    ));
+                }
+                Ok(Lens::Fisheye { k1, k2, k3, k4 })
+            }
+            _ => {
+                let lens = Lens::RadialTangential {
+                    k1,
+                    k2,
+                    k3,
+                    k4,
+                    p1,
+                    p2,
+                };
+                Ok(if lens.is_pinhole() {
+                    Lens::Pinhole
+                } else {
+                    lens
+                })
+            }
         }
     }
 
@@ -329,30 +376,54 @@ impl CameraFields {
             fy: fy as f32,
             cx: self.cx.unwrap_or(0.5 * width as f64) as f32,
             cy: self.cy.unwrap_or(0.5 * height as f64) as f32,
+            lens: self.lens()?,
         })
     }
 }
 
-/// Rejects camera models other than the pinhole: nerfstudio writes
-/// `camera_model`, instant-ngp `is_fisheye`.
-fn check_pinhole(object: &JsonObject) -> Result<(), String> {
-    if let Some(model) = object.get("camera_model") {
-        let model = model
+/// The lens model a level of the file names, if it names one: nerfstudio
+/// writes `camera_model`, instant-ngp `is_fisheye`.
+fn lens_model(object: &JsonObject) -> Result<Option<LensModel>, String> {
+    let mut model = None;
+    if let Some(value) = object.get("camera_model") {
+        let name = value
             .as_str()
-            .ok_or_else(|| format!("`camera_model` must be a string, found {}", describe(model)))?;
-        let upper = model.to_ascii_uppercase();
-        if upper.contains("FISHEYE") || upper.contains("EQUIRECTANGULAR") {
+            .ok_or_else(|| format!("`camera_model` must be a string, found {}", describe(value)))?;
+        model = Some(match name.to_ascii_uppercase().as_str() {
+            // nerfstudio's names (its `CameraType` and COLMAP's models that
+            // its converters write).
+            "PINHOLE" | "SIMPLE_PINHOLE" | "OPENCV" | "PERSPECTIVE" | "SIMPLE_RADIAL"
+            | "RADIAL" | "FULL_OPENCV" => LensModel::RadialTangential,
+            "OPENCV_FISHEYE" | "FISHEYE" | "SIMPLE_RADIAL_FISHEYE" | "RADIAL_FISHEYE" => {
+                LensModel::Fisheye
+            }
+            _ => {
+                return Err(format!(
+                    "camera model `{name}` is not supported: zrak reads PINHOLE, OPENCV and \
+                     OPENCV_FISHEYE cameras"
+                ));
+            }
+        });
+    }
+    match object.get("is_fisheye") {
+        None => {}
+        Some(Value::Bool(true)) => {
+            if model == Some(LensModel::RadialTangential) {
+                return Err(
+                    "`is_fisheye` is true but `camera_model` names a non-fisheye model".into(),
+                );
+            }
+            model = Some(LensModel::Fisheye);
+        }
+        Some(Value::Bool(false)) => {}
+        Some(other) => {
             return Err(format!(
-                "camera model `{model}` is not supported: only pinhole cameras are; undistort the images first"
+                "`is_fisheye` must be true or false, found {}",
+                describe(other)
             ));
         }
     }
-    if object.get("is_fisheye").and_then(Value::as_bool) == Some(true) {
-        return Err(
-            "fisheye cameras (`is_fisheye`) are not supported: undistort the images first".into(),
-        );
-    }
-    Ok(())
+    Ok(model)
 }
 
 /// A width or height: a positive whole number (files often write 800.0).
@@ -657,36 +728,95 @@ mod tests {
     }
 
     #[test]
-    fn lens_distortion_is_rejected() {
+    fn lens_distortion_is_read_shared_and_per_frame() {
         let dir = tempfile::tempdir().unwrap();
-        write_scene(dir.path(), 2, |v| v["k1"] = json!(0.1));
-        let e = load_error(dir.path());
-        assert_mentions(
-            &e,
-            &[
-                "transforms.json: lens distortion k1 = 0.1 is not supported: undistort the images first",
-            ],
+        write_scene(dir.path(), 3, |v| {
+            v["k1"] = json!(0.1);
+            v["p2"] = json!(-0.002);
+            // Frame 1 has its own lens: a fisheye (instant-ngp's flag).
+            v["frames"][1]["is_fisheye"] = json!(true);
+            v["frames"][1]["p2"] = json!(0);
+            v["frames"][1]["k3"] = json!(0.01);
+            // Frame 2 says pinhole in nerfstudio's words, with zeros.
+            v["frames"][2]["camera_model"] = json!("PINHOLE");
+            v["frames"][2]["k1"] = json!(0);
+            v["frames"][2]["p2"] = json!(0);
+        });
+        let scene = load(dir.path(), LoadOptions::default()).unwrap();
+        let lens = |f: &Frame| f.camera.intrinsics.lens;
+        assert_eq!(
+            lens(&scene.val[0]),
+            Lens::RadialTangential {
+                k1: 0.1,
+                k2: 0.0,
+                k3: 0.0,
+                k4: 0.0,
+                p1: 0.0,
+                p2: -0.002
+            }
         );
-        write_scene(dir.path(), 2, |v| v["frames"][1]["p2"] = json!(-0.002));
-        let e = load_error(dir.path());
-        assert_mentions(
-            &e,
-            &["transforms.json: frame 1: lens distortion p2 = -0.002"],
+        assert_eq!(
+            lens(&scene.train[0]),
+            Lens::Fisheye {
+                k1: 0.1,
+                k2: 0.0,
+                k3: 0.01,
+                k4: 0.0
+            }
+        );
+        assert_eq!(lens(&scene.train[1]), Lens::Pinhole);
+        // Downscaling keeps the lens.
+        let half = load(dir.path(), LoadOptions { downscale: 2 }).unwrap();
+        assert_eq!(lens(&half.val[0]), lens(&scene.val[0]));
+    }
+
+    #[test]
+    fn nerfstudio_fisheye_model() {
+        let dir = tempfile::tempdir().unwrap();
+        write_scene(dir.path(), 2, |v| {
+            v["camera_model"] = json!("OPENCV_FISHEYE");
+            v["k4"] = json!(0.003);
+        });
+        let scene = load(dir.path(), LoadOptions::default()).unwrap();
+        assert_eq!(
+            scene.val[0].camera.intrinsics.lens,
+            Lens::Fisheye {
+                k1: 0.0,
+                k2: 0.0,
+                k3: 0.0,
+                k4: 0.003
+            }
         );
     }
 
     #[test]
-    fn fisheye_is_rejected() {
+    fn unsupported_lenses_are_refused_clearly() {
         let dir = tempfile::tempdir().unwrap();
         write_scene(dir.path(), 2, |v| {
-            v["camera_model"] = json!("OPENCV_FISHEYE")
+            v["camera_model"] = json!("EQUIRECTANGULAR")
         });
         assert_mentions(
             &load_error(dir.path()),
-            &["OPENCV_FISHEYE", "not supported"],
+            &["transforms.json", "EQUIRECTANGULAR", "not supported"],
         );
-        write_scene(dir.path(), 2, |v| v["is_fisheye"] = json!(true));
-        assert_mentions(&load_error(dir.path()), &["is_fisheye", "not supported"]);
+        write_scene(dir.path(), 2, |v| {
+            v["camera_model"] = json!("OPENCV_FISHEYE");
+            v["frames"][1]["p1"] = json!(0.01);
+        });
+        assert_mentions(
+            &load_error(dir.path()),
+            &[
+                "transforms.json: frame 1",
+                "fisheye model has no tangential terms",
+            ],
+        );
+        write_scene(dir.path(), 2, |v| v["is_fisheye"] = json!("yes"));
+        assert_mentions(
+            &load_error(dir.path()),
+            &["`is_fisheye` must be true or false"],
+        );
+        write_scene(dir.path(), 2, |v| v["k2"] = json!("big"));
+        assert_mentions(&load_error(dir.path()), &["`k2` must be a number"]);
     }
 
     #[test]

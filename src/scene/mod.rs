@@ -4,10 +4,12 @@
 pub mod blender;
 pub mod bounds;
 pub mod camera;
+pub mod colmap;
 pub mod demo;
 pub mod error;
 pub mod image;
 pub mod instant_ngp;
+pub mod lens;
 pub mod pose;
 
 use std::path::{Path, PathBuf};
@@ -18,6 +20,7 @@ pub use bounds::Aabb;
 pub use camera::{Camera, Intrinsics, Ray};
 pub use error::{SceneError, SceneResult};
 pub use image::ImageRgba8;
+pub use lens::Lens;
 
 /// Options for loading a scene from disk.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -41,6 +44,8 @@ pub enum SceneFormat {
     InstantNgp,
     /// zrak's built-in procedural scene, built in memory.
     Demo,
+    /// A COLMAP sparse model and its `images/` folder.
+    Colmap,
 }
 
 /// The splits of a scene.
@@ -208,9 +213,10 @@ impl Scene {
 
 impl Scene {
     /// Loads a scene from disk: a folder in the NeRF-synthetic layout
-    /// (`transforms_{train,val,test}.json`, see [`blender`]) or the
+    /// (`transforms_{train,val,test}.json`, see [`blender`]), the
     /// instant-ngp / nerfstudio layout (`transforms.json`, see
-    /// [`instant_ngp`]), or the path of one of those JSON files. A folder
+    /// [`instant_ngp`]) or with a COLMAP model (see [`colmap`]), or the path
+    /// of one of those JSON files. A folder
     /// with both prefers the split files, because they carry the dataset's
     /// own train/val/test division.
     pub fn load(path: &Path, options: LoadOptions) -> SceneResult<Scene> {
@@ -233,11 +239,14 @@ impl Scene {
             blender::load(path, options)
         } else if path.join(instant_ngp::FILE_NAME).is_file() {
             instant_ngp::load(path, options)
+        } else if colmap::is_colmap_folder(path) {
+            colmap::load(path, options)
         } else {
             Err(SceneError::new(
                 path,
                 "not a scene folder: it holds none of transforms_train.json, \
-                 transforms_val.json, transforms_test.json or transforms.json",
+                 transforms_val.json, transforms_test.json, transforms.json or a COLMAP \
+                 model (sparse/0/cameras.bin and images.bin, or the .txt forms)",
             ))
         }
     }

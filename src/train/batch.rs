@@ -98,13 +98,17 @@ pub fn sample_rays_cropped(
     }
 }
 
-/// The background policy for a scene: random where images have alpha.
-pub fn training_background(scene: &Scene) -> TrainingBackground {
-    if scene.has_alpha {
-        TrainingBackground::Random
-    } else {
-        TrainingBackground::Fixed([1.0; 3])
-    }
+/// The background policy for a scene: a random colour per ray on every
+/// scene, as instant-ngp trains (`random_bg_color`, on by default, also for
+/// captures without alpha). Where the images are opaque, the target does
+/// not depend on the background, so any transmittance a ray keeps lets a
+/// random colour into its prediction and is penalised: the field must
+/// explain sky and walls with opaque content (which settles at the far
+/// side of the box) instead of semi-transparent fog blended with a fixed
+/// background colour, which fills the occupancy grid along every ray.
+/// White stays the colour the reference protocol evaluates on.
+pub fn training_background(_scene: &Scene) -> TrainingBackground {
+    TrainingBackground::Random
 }
 
 #[cfg(test)]

@@ -40,6 +40,11 @@ impl SceneIdentity {
             for value in [k.fx, k.fy, k.cx, k.cy] {
                 hash.write(&value.to_le_bytes());
             }
+            // Only a distorting lens adds to the hash, so that checkpoints
+            // of pinhole scenes written before lenses existed still load.
+            if k.lens != crate::scene::Lens::Pinhole {
+                hash.write(format!("{:?}", k.lens).as_bytes());
+            }
         }
         let (width, height) = scene.resolution().unwrap_or((0, 0));
         Self {

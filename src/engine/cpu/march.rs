@@ -105,19 +105,191 @@ pub struct RayMarch {
     pub s_exit: f32,
     /// The first-sample offset u, in steps.
     pub jitter: f32,
+    /// Where along the ray the lattice points lie.
+    pub lattice: Lattice,
 }
 
 impl RayMarch {
     /// Distance of lattice point k past the entry point.
     #[inline(always)]
-    pub fn s(&self, k: u32, dt: f32) -> f32 {
-        (self.jitter + k as f32) * dt
+    pub fn s(&self, k: u32) -> f32 {
+        self.lattice.s(self.jitter + k as f32, self.t_enter)
     }
 
     /// Lattice point k.
     #[inline(always)]
-    pub fn position(&self, k: u32, dt: f32) -> Vec3 {
-        self.entry + self.direction * self.s(k, dt)
+    pub fn position(&self, k: u32) -> Vec3 {
+        self.entry + self.direction * self.s(k)
+    }
+
+    /// The step (unit-cube length) that lattice point k stands for.
+    #[inline(always)]
+    pub fn step(&self, k: u32) -> f32 {
+        self.lattice.step(self.jitter + k as f32)
+    }
+}
+
+/// The lattice of one ray: distances s(x) past the entry point for the
+/// continuous lattice coordinate x = u + k (u the jitter), and the inverse.
+///
+/// Without a cone angle: s = x · dt, the fixed step.
+///
+/// With cone angle c (aabb_scale > 1): the step grows with the distance t
+/// from the camera, as instant-ngp's cone stepping (step = c · t clamped to
+/// [dt, max]), but in whole octaves so that every engine computes the same
+/// points with exact operations (multiplications by powers of two, and a
+/// float's exponent instead of a logarithm): with A = dt / c, distances
+/// below 2A are stepped by dt, and octave j ≥ 1, t in [A·2ʲ, A·2ʲ⁺¹), by
+/// dt·2ʲ (= the octave's start distance times c, so the step is between
+/// t·c/2 and t·c), up to the octave whose step is the maximum. Each octave
+/// is exactly 1/c = 256 lattice points long. The ray starts in the octave
+/// of its entry distance with that octave's step, up to the next octave's
+/// start.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Lattice {
+    /// Step from the entry point to the first octave boundary (the fixed
+    /// step without a cone).
+    first_step: f32,
+    inverse_first_step: f32,
+    /// Lattice units from the entry point to that boundary (∞ without a
+    /// cone, or when the entry is already in the last octave), and its
+    /// length.
+    first_units: f32,
+    first_length: f32,
+    /// The octave the entry point lies in.
+    first_octave: i32,
+    cone: Cone,
+}
+
+/// The cone-stepping constants of a marcher (all in unit-cube lengths).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Cone {
+    /// dt, the smallest step, and its inverse.
+    min_step: f32,
+    inverse_min_step: f32,
+    /// A = dt / c: octave j starts at A · 2ʲ (j ≥ 1).
+    octave_start: f32,
+    inverse_octave_start: f32,
+    /// Lattice points per octave, 1/c.
+    points_per_octave: f32,
+    /// The octave whose step is the largest (the step stops growing).
+    last_octave: i32,
+}
+
+impl Cone {
+    /// The octave of distance t: 0 below 2A, floor(log2(t / A)) above,
+    /// at most the last. From the float's exponent, which is exact.
+    #[inline(always)]
+    fn octave_of(&self, t: f32) -> i32 {
+        let v = t * self.inverse_octave_start;
+        if v.is_nan() || v < 2.0 {
+            return 0;
+        }
+        let exponent = ((v.to_bits() >> 23) & 0xff) as i32 - 127;
+        exponent.min(self.last_octave)
+    }
+}
+
+/// 2ʲ as an f32, exactly, for |j| < 127.
+#[inline(always)]
+fn power_of_two(j: i32) -> f32 {
+    f32::from_bits(((j + 127) as u32) << 23)
+}
+
+impl Lattice {
+    /// The fixed-step lattice.
+    pub fn fixed(step: f32) -> Self {
+        Self {
+            first_step: step,
+            inverse_first_step: 1.0 / step,
+            first_units: f32::INFINITY,
+            first_length: f32::INFINITY,
+            first_octave: 0,
+            cone: Cone {
+                min_step: step,
+                inverse_min_step: 1.0 / step,
+                octave_start: f32::INFINITY,
+                inverse_octave_start: 0.0,
+                points_per_octave: f32::INFINITY,
+                last_octave: 0,
+            },
+        }
+    }
+
+    /// The cone lattice of a ray entering at distance `t_enter`.
+    pub fn cone(cone: Cone, t_enter: f32) -> Self {
+        let first_octave = cone.octave_of(t_enter);
+        let scale = power_of_two(first_octave);
+        let first_step = cone.min_step * scale;
+        let inverse_first_step = cone.inverse_min_step / scale;
+        let (first_units, first_length) = if first_octave >= cone.last_octave {
+            (f32::INFINITY, f32::INFINITY)
+        } else {
+            let boundary = cone.octave_start * power_of_two(first_octave + 1);
+            let length = boundary - t_enter;
+            (length * inverse_first_step, length)
+        };
+        Self {
+            first_step,
+            inverse_first_step,
+            first_units,
+            first_length,
+            first_octave,
+            cone,
+        }
+    }
+
+    /// The octave of lattice coordinate x past the first stretch, and the
+    /// lattice coordinate where it starts.
+    #[inline(always)]
+    fn octave_at(&self, x: f32) -> (i32, f32) {
+        let past = x - self.first_units;
+        let whole = (past / self.cone.points_per_octave) as i32;
+        let octave = (self.first_octave + 1 + whole).min(self.cone.last_octave);
+        let start = self.first_units
+            + (octave - self.first_octave - 1) as f32 * self.cone.points_per_octave;
+        (octave, start)
+    }
+
+    /// s(x): distance of lattice coordinate x past the entry point.
+    #[inline(always)]
+    pub fn s(&self, x: f32, t_enter: f32) -> f32 {
+        if x < self.first_units {
+            return x * self.first_step;
+        }
+        let (octave, start) = self.octave_at(x);
+        let scale = power_of_two(octave);
+        let t = self.cone.octave_start * scale + (x - start) * (self.cone.min_step * scale);
+        t - t_enter
+    }
+
+    /// The step at lattice coordinate x.
+    #[inline(always)]
+    pub fn step(&self, x: f32) -> f32 {
+        if x < self.first_units {
+            return self.first_step;
+        }
+        self.cone.min_step * power_of_two(self.octave_at(x).0)
+    }
+
+    /// The lattice coordinate of distance s past the entry point (the
+    /// inverse of [`Self::s`], to rounding).
+    #[inline(always)]
+    pub fn x(&self, s: f32, t_enter: f32) -> f32 {
+        if s.is_nan() || s < self.first_length {
+            return s * self.inverse_first_step;
+        }
+        let t = t_enter + s;
+        let octave = self.cone.octave_of(t).max(self.first_octave + 1);
+        let scale = power_of_two(octave);
+        let start = self.first_units
+            + (octave - self.first_octave - 1) as f32 * self.cone.points_per_octave;
+        start + (t - self.cone.octave_start * scale) * (self.cone.inverse_min_step / scale)
+    }
+
+    /// Whether the step varies along the ray.
+    pub fn is_cone(&self) -> bool {
+        self.cone.points_per_octave.is_finite()
     }
 }
 
@@ -134,7 +306,8 @@ pub struct Marcher<'a> {
     mapping: UnitCubeMapping,
     bounds: Aabb,
     dt: f32,
-    inverse_dt: f32,
+    /// Cone stepping, for scenes larger than the unit cube.
+    cone: Option<Cone>,
     margin: f32,
 }
 
@@ -164,9 +337,14 @@ impl<'a> Marcher<'a> {
             mapping: *mapping,
             bounds: Aabb::cube(Vec3::splat(0.5), half),
             dt: config.step,
-            inverse_dt: 1.0 / config.step,
+            cone: cone_for(config, mapping, &geometry),
             margin: skip_margin(&geometry),
         }
+    }
+
+    /// Whether steps grow with distance.
+    pub fn cones(&self) -> bool {
+        self.cone.is_some()
     }
 
     pub fn dt(&self) -> f32 {
@@ -216,13 +394,17 @@ impl<'a> Marcher<'a> {
             t_enter,
             s_exit: t_exit - t_enter,
             jitter,
+            lattice: match self.cone {
+                None => Lattice::fixed(self.dt),
+                Some(cone) => Lattice::cone(cone, t_enter),
+            },
         })
     }
 
     /// Whether lattice point k of `ray` is a sample (its cell is occupied).
     #[inline(always)]
     pub fn is_sample(&self, ray: &RayMarch, k: u32) -> bool {
-        let cell = self.geometry.cell_of(ray.position(k, self.dt));
+        let cell = self.geometry.cell_of(ray.position(k));
         bit_is_set(self.bitfield, self.geometry.linear_index(cell))
     }
 
@@ -289,7 +471,7 @@ impl<'a> Marcher<'a> {
         // ceil without the libm call: `as u32` truncates and saturates
         // (negative and NaN give 0, which callers lift past the current
         // index).
-        let v = s_cell * self.inverse_dt - ray.jitter;
+        let v = ray.lattice.x(s_cell, ray.t_enter) - ray.jitter;
         let truncated = v as u32;
         truncated.saturating_add(((truncated as f32) < v) as u32)
     }
@@ -309,7 +491,7 @@ impl<'a> Marcher<'a> {
         let mut index = *k;
         let mut emitted = 0;
         loop {
-            let s = ray.s(index, self.dt);
+            let s = ray.s(index);
             if s > ray.s_exit {
                 *k = index;
                 return true;
@@ -330,7 +512,7 @@ impl<'a> Marcher<'a> {
             }
             let next = self.exit_index(ray, cell).max(index.saturating_add(1));
             while index < next {
-                if ray.s(index, self.dt) > ray.s_exit {
+                if ray.s(index) > ray.s_exit {
                     *k = index;
                     return true;
                 }
@@ -348,13 +530,42 @@ impl<'a> Marcher<'a> {
     /// World distance along the ray of lattice point k.
     #[inline(always)]
     pub fn world_t(&self, ray: &RayMarch, k: u32) -> f32 {
-        (ray.t_enter + ray.s(k, self.dt)) * (1.0 / self.mapping.scale)
+        (ray.t_enter + ray.s(k)) * (1.0 / self.mapping.scale)
     }
 
-    /// The step in world units.
-    pub fn world_dt(&self) -> f32 {
-        self.dt / self.mapping.scale
+    /// The step of lattice point k in world units.
+    #[inline(always)]
+    pub fn world_dt(&self, ray: &RayMarch, k: u32) -> f32 {
+        ray.step(k) / self.mapping.scale
     }
+}
+
+/// The cone-stepping constants for a scene, or `None` for the fixed step:
+/// instant-ngp steps by cone angle only when aabb_scale > 1 (testbed:
+/// `cone_angle_constant` 1/256 unless `aabb_scale <= 1`); its largest step
+/// is the width of a cell of the coarsest cascade times NERF_STEPS /
+/// NERF_GRIDSIZE (`MAX_CONE_STEPSIZE`), dt · 2^(cascades − 1) · 1024 / 128
+/// here, a power of two times dt.
+pub fn cone_for(
+    config: &MarchConfig,
+    mapping: &UnitCubeMapping,
+    geometry: &GridGeometry,
+) -> Option<Cone> {
+    if !(mapping.aabb_scale > 1.0 && config.cone_angle > 0.0) {
+        return None;
+    }
+    // Whole octaves need 1/c lattice points each and a power-of-two cap.
+    let points_per_octave = (1.0 / config.cone_angle).round();
+    let steps_per_grid = (config.max_steps as f32 / geometry.resolution as f32).max(1.0);
+    let last_octave = (geometry.cascades as i32 - 1) + steps_per_grid.log2().round() as i32;
+    Some(Cone {
+        min_step: config.step,
+        inverse_min_step: 1.0 / config.step,
+        octave_start: config.step * points_per_octave,
+        inverse_octave_start: 1.0 / (config.step * points_per_octave),
+        points_per_octave,
+        last_octave: last_octave.max(0),
+    })
 }
 
 /// Cells per side of a block of the coarse occupancy.
@@ -607,13 +818,11 @@ pub fn march(
         (positions, directions_out, dts, ts) = (rest_p, rest_d, rest_dt, rest_t);
         tasks.push((b, p, d, dt, t));
     }
-    let world_dt = marcher.world_dt();
-    let dt = marcher.dt();
+    let inverse_scale = 1.0 / params.mapping.scale;
     let offsets = &out.ray_offsets;
     let rays = &workspace.rays;
     let counts = &workspace.counts;
     let block_indices = &workspace.blocks;
-    let inverse_scale = 1.0 / params.mapping.scale;
     tasks
         .into_par_iter()
         .for_each(|(b, mut p, mut d, mut dts, mut ts)| {
@@ -640,14 +849,14 @@ pub fn march(
                     {
                         // The same expression as `RayMarch::position`, so the
                         // positions are the ones pass 1 looked up.
-                        let s = ray.s(k, dt);
+                        let s = ray.s(k);
                         p[0] = ex + dx * s;
                         p[1] = ey + dy * s;
                         p[2] = ez + dz * s;
                         d[0] = dx;
                         d[1] = dy;
                         d[2] = dz;
-                        *dt_out = world_dt;
+                        *dt_out = ray.step(k) * inverse_scale;
                         *t_out = (ray.t_enter + s) * inverse_scale;
                     }
                 }
@@ -789,7 +998,7 @@ pub fn march_and_composite<F>(
             for (i, &r) in rays.iter().enumerate() {
                 let ray = states[r as usize].ray.as_ref().expect("active");
                 for &k in &lattice[i * per_ray..i * per_ray + counts[i] as usize] {
-                    positions.extend_from_slice(&ray.position(k, marcher.dt()).to_array());
+                    positions.extend_from_slice(&ray.position(k).to_array());
                     sample_directions.extend_from_slice(&ray.direction.to_array());
                     sample_t.push(marcher.world_t(ray, k));
                     sample_rays.push(r);
@@ -808,7 +1017,6 @@ pub fn march_and_composite<F>(
                 field(&samples, &mut sigma, &mut rgb);
             }
             // Composite, in order along each ray, and advance its state.
-            let world_dt = marcher.world_dt();
             let mut offset = 0;
             for (i, &r) in rays.iter().enumerate() {
                 let state = &mut states[r as usize];
@@ -819,7 +1027,7 @@ pub fn march_and_composite<F>(
                         break;
                     }
                     let k = lattice[i * per_ray + j];
-                    let tau = (sigma[offset + j] * world_dt).max(0.0);
+                    let tau = (sigma[offset + j] * marcher.world_dt(&ray, k)).max(0.0);
                     let weight = (-state.optical_depth).exp() * -(-tau).exp_m1();
                     for c in 0..3 {
                         state.colour[c] += weight * rgb[3 * (offset + j) + c];
@@ -1055,7 +1263,7 @@ mod tests {
     fn naive(marcher: &Marcher, ray: &RayMarch, max: u32) -> Vec<u32> {
         let mut out = Vec::new();
         let mut k = 0;
-        while ray.s(k, marcher.dt()) <= ray.s_exit && (out.len() as u32) < max {
+        while ray.s(k) <= ray.s_exit && (out.len() as u32) < max {
             if marcher.is_sample(ray, k) {
                 out.push(k);
             }
@@ -1220,6 +1428,60 @@ mod tests {
         assert_eq!(out.ray_offsets, vec![0; 501]);
     }
 
+    /// The cone lattice: steps of dt up to 2A, then octaves of 256 points
+    /// whose step doubles, capped; continuous, increasing, and x inverts s.
+    #[test]
+    fn cone_lattice_grows_by_octaves_and_inverts() {
+        let geometry = GridGeometry::new(128, 5);
+        let mapping = UnitCubeMapping {
+            aabb_scale: 16.0,
+            ..BLENDER
+        };
+        let config = MarchConfig::PAPER;
+        let cone = cone_for(&config, &mapping, &geometry).expect("aabb_scale 16 cones");
+        assert!(cone_for(&config, &BLENDER, &geometry).is_none());
+        let dt = config.step;
+        let a = dt * 256.0;
+        // 5 cascades: the largest step is dt · 2^4 · 1024/128 = 128 dt.
+        assert_eq!(cone.last_octave, 7);
+        for t_enter in [0.0f32, 0.3, 2.0 * a, 5.0 * a, 1000.0 * a] {
+            let lattice = Lattice::cone(cone, t_enter);
+            let mut previous = -1.0f32;
+            for i in 0..4000 {
+                let x = i as f32 * 0.75;
+                let s = lattice.s(x, t_enter);
+                assert!(s > previous, "t_enter {t_enter}: s not increasing at x {x}");
+                previous = s;
+                let t = t_enter + s;
+                // The step is dt below 2A, else between t·c/2 and t·c, at
+                // most 128 dt.
+                let step = lattice.step(x);
+                if t < 2.0 * a {
+                    assert_eq!(step, dt);
+                } else {
+                    let c = 1.0 / 256.0;
+                    assert!(step <= (t * c).max(dt) * 1.0001 || step == 128.0 * dt);
+                    assert!(step >= (0.5 * t * c).min(128.0 * dt) * 0.9999);
+                }
+                // One step on is one step further, except across octaves.
+                let next = lattice.s(x + 1.0, t_enter);
+                assert!(next - s <= 2.0 * step * 1.0001 && next - s >= step * 0.9999);
+                let back = lattice.x(s, t_enter);
+                assert!(
+                    (back - x).abs() < 2e-3 * x.max(1.0),
+                    "{x} came back as {back}"
+                );
+            }
+        }
+        // From the camera: the first 2A at dt (512 points), then 256 per
+        // octave.
+        let lattice = Lattice::cone(cone, 0.0);
+        assert!((lattice.s(512.0, 0.0) - 2.0 * a).abs() < 1e-5);
+        assert!((lattice.s(512.0 + 256.0, 0.0) - 4.0 * a).abs() < 1e-5);
+        assert!((lattice.s(512.0 + 512.0, 0.0) - 8.0 * a).abs() < 1e-4);
+        assert_eq!(lattice.step(512.0 + 300.0), 4.0 * dt);
+    }
+
     #[test]
     fn skipping_gives_exactly_the_naive_samples() {
         for (cascades, aabb_scale, seed) in [(1, 1.0, 5u64), (1, 1.0, 6), (2, 2.0, 7), (3, 3.0, 8)]
@@ -1260,7 +1522,7 @@ mod tests {
                     match marcher.prepare(origin, direction, jitter(seed as u32, r as u32)) {
                         Some(ray) => naive(&marcher, &ray, 1024)
                             .into_iter()
-                            .map(|k| ray.position(k, marcher.dt()))
+                            .map(|k| ray.position(k))
                             .collect::<Vec<_>>(),
                         None => Vec::new(),
                     };

@@ -318,6 +318,7 @@ impl CpuNgp {
         }
         let march_params = MarchParams {
             sample_budget: self.batch_samples,
+            config: MarchConfig::paper_or_environment(),
             ..MarchParams::training(shape.mapping, mix_seed(self.seed, step))
         };
         let marched = march(
@@ -651,7 +652,7 @@ impl RadianceModel for CpuNgp {
             origins,
             directions,
             background,
-            &MarchConfig::PAPER,
+            &MarchConfig::paper_or_environment(),
             INFERENCE_CHUNK,
             |samples, sigma, rgb| {
                 shape.radiance(params, samples.positions, samples.directions, sigma, rgb)

@@ -8,6 +8,12 @@
 //! the offsets, and a second walk that writes each sample at its offset.
 //! Every step is integer arithmetic or a fixed-order walk, so the result is
 //! deterministic; no sample's place depends on which invocation ran first.
+//!
+//! Not yet ported: the cpu engine's cone stepping for aabb_scale > 1
+//! (`MarchConfig::cone_angle`, `engine::cpu::march::Lattice`). This marcher
+//! always steps by `config.step`, so on large scenes the gpu engine takes
+//! more samples per ray than the cpu engine; its own training and
+//! rendering agree with each other.
 
 use super::context::{GpuContext, GpuError};
 use super::kernel::{Kernel, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer};
