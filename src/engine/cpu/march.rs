@@ -893,8 +893,8 @@ pub struct GridSamples<'a> {
     pub t: &'a [f32],
     /// n, the index of each sample's ray among the rays rendered.
     pub rays: &'a [u32],
-    /// The step in world units (every sample's).
-    pub dt: f32,
+    /// n, each sample's step in world units.
+    pub dt: &'a [f32],
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -957,6 +957,7 @@ pub fn march_and_composite<F>(
     let mut sample_directions: Vec<f32> = Vec::new();
     let mut sample_t: Vec<f32> = Vec::new();
     let mut sample_rays: Vec<u32> = Vec::new();
+    let mut sample_dt: Vec<f32> = Vec::new();
     let mut sigma: Vec<f32> = Vec::new();
     let mut rgb: Vec<f32> = Vec::new();
     let mut finished: Vec<bool> = Vec::new();
@@ -995,6 +996,7 @@ pub fn march_and_composite<F>(
             sample_directions.clear();
             sample_t.clear();
             sample_rays.clear();
+            sample_dt.clear();
             for (i, &r) in rays.iter().enumerate() {
                 let ray = states[r as usize].ray.as_ref().expect("active");
                 for &k in &lattice[i * per_ray..i * per_ray + counts[i] as usize] {
@@ -1002,6 +1004,7 @@ pub fn march_and_composite<F>(
                     sample_directions.extend_from_slice(&ray.direction.to_array());
                     sample_t.push(marcher.world_t(ray, k));
                     sample_rays.push(r);
+                    sample_dt.push(marcher.world_dt(ray, k));
                 }
             }
             sigma.resize(total, 0.0);
@@ -1012,7 +1015,7 @@ pub fn march_and_composite<F>(
                     directions: &sample_directions,
                     t: &sample_t,
                     rays: &sample_rays,
-                    dt: marcher.world_dt(),
+                    dt: &sample_dt,
                 };
                 field(&samples, &mut sigma, &mut rgb);
             }

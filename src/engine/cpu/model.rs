@@ -1191,14 +1191,20 @@ impl RadianceModel for CpuModel {
                             let n = samples.t.len();
                             set_len(&mut world, 3 * n);
                             set_len(&mut variances, 3 * n);
-                            for (i, (&t, &r)) in samples.t.iter().zip(samples.rays).enumerate() {
+                            for (i, ((&t, &dt), &r)) in samples
+                                .t
+                                .iter()
+                                .zip(samples.dt)
+                                .zip(samples.rays)
+                                .enumerate()
+                            {
                                 let r = r as usize;
                                 let (mean, variance) = frustum_gaussian(
                                     origins[r],
                                     directions[r],
                                     radii[r],
-                                    (t - 0.5 * samples.dt).max(0.0),
-                                    t + 0.5 * samples.dt,
+                                    (t - 0.5 * dt).max(0.0),
+                                    t + 0.5 * dt,
                                 );
                                 world[3 * i..3 * i + 3].copy_from_slice(&mean.to_array());
                                 variances[3 * i..3 * i + 3].copy_from_slice(&variance.to_array());
