@@ -146,15 +146,21 @@ enum BenchCommand {
 
 #[derive(Args)]
 struct TrainArgs {
-    /// A scene folder, or `demo` for the built-in demo scene.
-    scene: String,
-    #[arg(long, value_enum, default_value_t = ModelKind::Ngp)]
+    /// A scene folder, or `demo` for the built-in demo scene. With
+    /// `--resume` it may be left out (the run knows its scene).
+    #[arg(required_unless_present = "resume")]
+    scene: Option<String>,
+    // What the run is made of comes from its `run.json` when resuming, so
+    // these conflict with `--resume` instead of being silently ignored
+    // (clap does not count a default value as given).
+    #[arg(long, value_enum, default_value_t = ModelKind::Ngp, conflicts_with = "resume")]
     model: ModelKind,
     /// NeRF's sampler: the occupancy grid (default) or the paper's
     /// stratified + importance sampling.
-    #[arg(long, value_enum, default_value_t = Sampling::Occupancy)]
+    #[arg(long, value_enum, default_value_t = Sampling::Occupancy, conflicts_with = "resume")]
     sampling: Sampling,
-    /// Default: gpu on a real GPU, cpu otherwise.
+    /// Default: gpu on a real GPU, cpu otherwise; when resuming, the run's
+    /// own choice (this overrides it: checkpoints move between engines).
     #[arg(long, value_enum)]
     engine: Option<EngineKind>,
     /// Stop after this many steps (counted from the start of the run).
@@ -164,13 +170,13 @@ struct TrainArgs {
     #[arg(long, value_parser = parse_duration)]
     time: Option<f64>,
     /// Integer image downscale.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 1, conflicts_with = "resume")]
     downscale: u32,
     /// Default: Huber for Instant-NGP (instant-ngp's config), L2 for NeRF
     /// (the paper's).
-    #[arg(long, value_enum)]
+    #[arg(long, value_enum, conflicts_with = "resume")]
     loss: Option<LossArg>,
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = 0, conflicts_with = "resume")]
     seed: u64,
     /// The run folder (created; must be writable).
     #[arg(long, required_unless_present = "resume")]
@@ -252,6 +258,11 @@ struct RunConfig {
     /// NeRF's sampler (absent in runs made before NeRF existed).
     #[serde(default = "default_sampling")]
     sampling: Sampling,
+    /// The engine asked for with `--engine` (`None`: chosen by the
+    /// machine's adapter), so eval, render and resume choose the same way
+    /// (absent in runs made before it was recorded).
+    #[serde(default)]
+    engine: Option<EngineKind>,
 }
 
 fn default_sampling() -> Sampling {
@@ -470,7 +481,7 @@ fn restore_run(
 ) -> anyhow::Result<(RunConfig, Trainer)> {
     let config = read_run_config(folder)?;
     let scene = Arc::new(load_scene(&config.scene, config.downscale)?);
-    let choice = choose_engine(engine)?;
+    let choice = choose_engine(engine.or(config.engine))?;
     eprintln!("{}", choice.reason);
     let model = build_model(
         config.model,
@@ -492,12 +503,42 @@ fn restore_run(
     Ok((config, trainer))
 }
 
+/// How `run.json` names a scene: `demo`, or the folder's absolute path, so
+/// a run can be resumed, evaluated and rendered from any working folder.
+fn scene_key(scene: &str) -> String {
+    if scene == "demo" {
+        "demo".into()
+    } else {
+        std::fs::canonicalize(scene)
+            .unwrap_or_else(|_| PathBuf::from(scene))
+            .display()
+            .to_string()
+    }
+}
+
+/// A SCENE given with `--resume` must be the run's own: a checkpoint only
+/// continues on the scene it was trained on.
+fn check_same_scene(given: &str, recorded: &str, run: &Path) -> anyhow::Result<()> {
+    let key = scene_key(given);
+    if key != recorded {
+        bail!(
+            "the run in {} was trained on `{recorded}`, not on `{key}`: leave SCENE out to \
+             continue it on its own scene, or give --out instead of --resume to start a new run",
+            run.display()
+        );
+    }
+    Ok(())
+}
+
 fn train(args: TrainArgs) -> anyhow::Result<()> {
     if args.steps.is_none() && args.time.is_none() && args.resume.is_none() {
         bail!("give --steps N or --time DURATION (e.g. --time 10m)");
     }
     let (folder, config, mut trainer) = if let Some(dir) = &args.resume {
         let folder = RunFolder::create(dir).map_err(anyhow::Error::msg)?;
+        if let Some(scene) = &args.scene {
+            check_same_scene(scene, &read_run_config(&folder)?.scene, dir)?;
+        }
         let (config, trainer) = restore_run(&folder, args.engine)?;
         eprintln!(
             "resuming at step {} ({:.0} s trained)",
@@ -505,20 +546,12 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
         );
         (folder, config, trainer)
     } else {
-        let dir = args
-            .out
-            .as_ref()
-            .expect("clap requires --out without --resume");
+        let (Some(dir), Some(scene_arg)) = (&args.out, args.scene.as_deref()) else {
+            bail!("give SCENE and --out RUN to start a run, or --resume RUN to continue one");
+        };
         let folder = RunFolder::create(dir).map_err(anyhow::Error::msg)?;
         let config = RunConfig {
-            scene: if args.scene == "demo" {
-                "demo".into()
-            } else {
-                std::fs::canonicalize(&args.scene)
-                    .unwrap_or_else(|_| PathBuf::from(&args.scene))
-                    .display()
-                    .to_string()
-            },
+            scene: scene_key(scene_arg),
             model: args.model,
             downscale: args.downscale,
             loss: match args.loss {
@@ -528,8 +561,9 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
             },
             seed: args.seed,
             sampling: args.sampling,
+            engine: args.engine,
         };
-        let scene = Arc::new(load_scene(&args.scene, args.downscale)?);
+        let scene = Arc::new(load_scene(scene_arg, args.downscale)?);
         let choice = choose_engine(args.engine)?;
         eprintln!("{}", choice.reason);
         let model = build_model(
