@@ -15,12 +15,13 @@ use zrak::engine::{EngineKind, choose_engine};
 use zrak::field::ModelKind;
 use zrak::field::nerf::Sampling;
 use zrak::field::ngp::{LossKind, OccupancyConfig};
+use zrak::interrupt::{self, note, say};
 use zrak::render::export::{ExportSettings, export_turntable};
 use zrak::render::path::Turntable;
 use zrak::render::{RenderMode, render_pixels, to_image};
 use zrak::scene::demo::{self, DemoConfig};
 use zrak::scene::{Camera, LoadOptions, Scene, Split};
-use zrak::train::eval::{SplitScores, evaluate_split};
+use zrak::train::eval::{SplitScores, evaluate_split_until};
 use zrak::train::run::{Limits, RunFolder, Schedule, load_checkpoint, run};
 use zrak::train::trainer::Trainer;
 use zrak::train::{ModelSettings, build_model};
@@ -279,6 +280,31 @@ fn default_loss(model: ModelKind) -> LossKind {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    // Training keeps SIGPIPE ignored and prints without panicking, so that
+    // a closed pipe (`zrak train … 2>&1 | head`) never ends it before its
+    // checkpoint is written; the viewer has windows, not pipes, to care
+    // about; every other command only prints and may end with its reader.
+    if !matches!(
+        cli.command,
+        Some(Command::Train(_)) | Some(Command::View(_)) | None
+    ) {
+        interrupt::end_quietly_on_closed_pipe();
+    }
+    let on_interrupt = match &cli.command {
+        Some(Command::Train(_)) => Some("finishing the current step, then writing the checkpoint"),
+        Some(Command::Eval { .. }) => Some("finishing the current view"),
+        Some(Command::Render(_)) => Some("finishing the current frame"),
+        Some(Command::Bench(BenchCommand::Throughput { .. })) => {
+            Some("finishing the current step, then reporting the steps measured")
+        }
+        _ => None,
+    };
+    if let Some(what_happens) = on_interrupt
+        && let Err(error) = interrupt::install(what_happens)
+    {
+        interrupt::note(&format!("error: {error}"));
+        return ExitCode::FAILURE;
+    }
     let result = match cli.command {
         Some(Command::Info { scene, downscale }) => info(&scene, downscale),
         Some(Command::Demo { out, size, views }) => write_demo(&out, size, views),
@@ -312,9 +338,12 @@ fn main() -> ExitCode {
         }),
     };
     match result {
+        // The command has said what it kept; the status tells scripts it
+        // did not run to its end.
+        Ok(()) if interrupt::requested() => ExitCode::from(interrupt::EXIT_STATUS),
         Ok(()) => ExitCode::SUCCESS,
         Err(error) => {
-            eprintln!("error: {error:#}");
+            interrupt::note(&format!("error: {error:#}"));
             ExitCode::FAILURE
         }
     }
@@ -482,7 +511,7 @@ fn restore_run(
     let config = read_run_config(folder)?;
     let scene = Arc::new(load_scene(&config.scene, config.downscale)?);
     let choice = choose_engine(engine.or(config.engine))?;
-    eprintln!("{}", choice.reason);
+    note(&choice.reason);
     let model = build_model(
         config.model,
         choice,
@@ -540,10 +569,10 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
             check_same_scene(scene, &read_run_config(&folder)?.scene, dir)?;
         }
         let (config, trainer) = restore_run(&folder, args.engine)?;
-        eprintln!(
+        note(&format!(
             "resuming at step {} ({:.0} s trained)",
             trainer.step, trainer.train_seconds
-        );
+        ));
         (folder, config, trainer)
     } else {
         let (Some(dir), Some(scene_arg)) = (&args.out, args.scene.as_deref()) else {
@@ -565,7 +594,7 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
         };
         let scene = Arc::new(load_scene(scene_arg, args.downscale)?);
         let choice = choose_engine(args.engine)?;
-        eprintln!("{}", choice.reason);
+        note(&choice.reason);
         let model = build_model(
             config.model,
             choice,
@@ -585,14 +614,14 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
         let seed = config.seed;
         (folder, config, Trainer::new(model, scene, seed))
     };
-    eprintln!(
+    note(&format!(
         "training {} on {} ({} views, {}×{})",
         trainer.model.describe(),
         trainer.scene.name,
         trainer.scene.train.len(),
         trainer.scene.resolution().map_or(0, |r| r.0),
         trainer.scene.resolution().map_or(0, |r| r.1),
-    );
+    ));
     let limits = Limits {
         steps: args.steps,
         seconds: args.time,
@@ -617,6 +646,7 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
         schedule,
         &folder,
         &serde_json::to_value(&config)?,
+        interrupt::flag(),
         |p| {
             bar.set_position(if by_steps {
                 p.trainer.step as u64
@@ -635,14 +665,31 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
         },
     )
     .map_err(anyhow::Error::msg)?;
+    if interrupt::requested() {
+        bar.abandon();
+        let limit = match (args.steps, args.time) {
+            (Some(steps), _) => format!(" --steps {steps}"),
+            (None, Some(seconds)) => format!(" --time {seconds}s"),
+            (None, None) => String::new(),
+        };
+        note(&format!(
+            "interrupted at step {} ({:.1} s trained); checkpoint written to {}\n\
+             continue with: zrak train --resume {}{limit}",
+            trainer.step,
+            trainer.train_seconds,
+            folder.checkpoint_path().display(),
+            folder.dir.display(),
+        ));
+        return Ok(());
+    }
     bar.finish();
-    println!(
+    say(&format!(
         "trained {} steps in {:.1} s; held-out PSNR {}; run folder {}",
         trainer.step,
         trainer.train_seconds,
         psnr.map_or("-".into(), |v| format!("{v:.2} dB")),
         folder.dir.display()
-    );
+    ));
     Ok(())
 }
 
@@ -654,12 +701,31 @@ fn eval(run_dir: &Path, split: Split, engine: Option<EngineKind>) -> anyhow::Res
         bail!("the scene has no {} views", split.name());
     }
     println!("{:>5}  {:>8}  {:>7}  image", "view", "PSNR", "SSIM");
-    let scores: SplitScores = evaluate_split(trainer.model.as_ref(), split.name(), frames, |v| {
+    let scores: SplitScores = evaluate_split_until(
+        trainer.model.as_ref(),
+        split.name(),
+        frames,
+        interrupt::flag(),
+        |v| {
+            println!(
+                "{:>5}  {:>8.3}  {:>7.4}  {}",
+                v.index, v.psnr, v.ssim, v.image
+            );
+        },
+    );
+    if interrupt::requested() {
+        // A mean over some of the views is not the split's score: it is
+        // shown, but not written where a finished evaluation goes.
         println!(
-            "{:>5}  {:>8.3}  {:>7.4}  {}",
-            v.index, v.psnr, v.ssim, v.image
+            "{:>5}  {:>8.3}  {:>7.4}  (interrupted: {} of {} views; nothing written)",
+            "mean",
+            scores.mean_psnr,
+            scores.mean_ssim,
+            scores.views.len(),
+            frames.len()
         );
-    });
+        return Ok(());
+    }
     println!(
         "{:>5}  {:>8.3}  {:>7.4}",
         "mean", scores.mean_psnr, scores.mean_ssim
@@ -703,15 +769,27 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
                 write_gif: args.gif,
             };
             let bar = ProgressBar::new(frames as u64);
-            let never_cancelled = std::sync::atomic::AtomicBool::new(false);
-            let written = export_turntable(
+            let mut frames_done = 0;
+            let exported = export_turntable(
                 trainer.model.as_ref(),
                 scene,
                 settings,
-                &never_cancelled,
-                &mut |done, _| bar.set_position(done as u64),
-            )
-            .map_err(anyhow::Error::msg)?;
+                interrupt::flag(),
+                &mut |done, _| {
+                    frames_done = done;
+                    bar.set_position(done as u64);
+                },
+            );
+            if interrupt::requested() {
+                bar.abandon();
+                note(&format!(
+                    "interrupted after {frames_done} of {frames} frames; those are in {} \
+                     (no GIF)",
+                    args.out.display()
+                ));
+                return Ok(());
+            }
+            let written = exported.map_err(anyhow::Error::msg)?;
             bar.finish();
             println!("wrote {} files to {}", written.len(), args.out.display());
             return Ok(());
@@ -805,7 +883,17 @@ fn bench_throughput(
     let model = build_model(model, choice, &scene, &settings).map_err(anyhow::Error::msg)?;
     let mut trainer = Trainer::new(model, scene.clone(), 0);
     let peak = zrak::engine::cpu::dense::measure_peak_gflops();
-    let report = zrak::bench::throughput(&mut trainer, warmup, steps);
+    let report = zrak::bench::throughput(&mut trainer, warmup, steps, interrupt::flag());
+    if interrupt::requested() {
+        if report.steps == 0 {
+            note("interrupted before any measured step: nothing to report");
+            return Ok(());
+        }
+        note(&format!(
+            "interrupted: the figures below are over {} of {steps} measured steps",
+            report.steps
+        ));
+    }
     zrak::bench::print_report(&report, &scene, &engine_line);
     println!("machine peak         {peak:.0} GFLOP/s (f32 matrix multiply, median)");
     Ok(())

@@ -6,8 +6,14 @@ use std::process::{Command, Output, Stdio};
 
 use zrak::train::checkpoint::Checkpoint;
 
+/// The binary under test. `ZRAK_BIN` overrides cargo's path to it for a
+/// target folder shared by several checkouts, where another checkout's build
+/// may replace `target/debug/zrak` while these tests run.
 fn zrak() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_zrak"))
+    match std::env::var_os("ZRAK_BIN") {
+        Some(path) => Command::new(path),
+        None => Command::new(env!("CARGO_BIN_EXE_zrak")),
+    }
 }
 
 /// Runs `zrak ARGS` in `dir` and returns its output, whatever the status.
@@ -125,4 +131,197 @@ fn resume_takes_everything_from_the_run_folder() {
     );
     assert!(error.contains("--model"), "{error}");
     assert_eq!(checkpoint_step(&run), 4, "a refused resume must not train");
+}
+
+/// Trains the demo scene (small, fast) into `run` until told to stop.
+fn start_long_training(dir: &Path) -> std::process::Child {
+    zrak()
+        .args([
+            "train",
+            "demo",
+            "--downscale",
+            "4",
+            "--engine",
+            "cpu",
+            "--time",
+            "10m",
+            "--out",
+            "run",
+        ])
+        .current_dir(dir)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("the zrak binary starts")
+}
+
+/// Waits until training has logged `lines` lines of metrics (every 16
+/// steps, or at an evaluation), so a signal arrives mid-run, not during
+/// start-up; returns the last logged step.
+fn wait_for_metrics(dir: &Path, lines: usize, child: &mut std::process::Child) -> u64 {
+    let metrics = dir.join("run").join("metrics.jsonl");
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+    loop {
+        let text = std::fs::read_to_string(&metrics).unwrap_or_default();
+        let complete: Vec<&str> = text.lines().filter(|l| l.ends_with('}')).collect();
+        let logged = complete.len();
+        if logged >= lines {
+            let last: serde_json::Value =
+                serde_json::from_str(complete[logged - 1]).expect("a metrics line is JSON");
+            return last["step"].as_u64().expect("a metrics line has its step");
+        }
+        if let Some(status) = child.try_wait().expect("waiting on zrak") {
+            panic!("training ended ({status}) before it logged {lines} lines");
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "training logged {logged} lines in 120 s"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+}
+
+fn send(child: &std::process::Child, signal: i32) {
+    // SAFETY: kill(2) on the pid of a child we have not yet waited for, so
+    // the pid cannot have been reused.
+    let result = unsafe { libc::kill(child.id() as libc::pid_t, signal) };
+    assert_eq!(result, 0, "kill({}, {signal})", child.id());
+}
+
+/// Waits for the child to end (at most `seconds`), returning its output.
+fn finish(mut child: std::process::Child, seconds: u64) -> Output {
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(seconds);
+    while child.try_wait().expect("waiting on zrak").is_none() {
+        if std::time::Instant::now() > deadline {
+            let _ = child.kill();
+            panic!("zrak did not end within {seconds} s of the signal");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    child.wait_with_output().expect("collecting zrak's output")
+}
+
+#[test]
+fn an_interrupt_finishes_the_step_writes_the_checkpoint_and_says_how_to_resume() {
+    for signal in [libc::SIGINT, libc::SIGTERM] {
+        let dir = temp_dir();
+        let d = dir.path();
+        let mut child = start_long_training(d);
+        let logged_step = wait_for_metrics(d, 1, &mut child);
+        send(&child, signal);
+        let output = finish(child, 60);
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert_eq!(output.status.code(), Some(130), "signal {signal}: {stderr}");
+        let run = d.join("run");
+        assert!(
+            stderr.contains("checkpoint written to")
+                && stderr.contains("continue with: zrak train --resume run --time 600s"),
+            "{stderr}"
+        );
+        assert!(!stderr.contains("panicked"), "{stderr}");
+        // The checkpoint holds every step taken, at least those logged.
+        let step = checkpoint_step(&run);
+        assert!(
+            step >= logged_step,
+            "the checkpoint is at step {step}, the log at {logged_step}"
+        );
+        assert!(!run.join("checkpoint.tmp").exists());
+        // And the run continues from it.
+        let out = succeed(
+            d,
+            &[
+                "train",
+                "--resume",
+                "run",
+                "--steps",
+                &(step + 1).to_string(),
+            ],
+        );
+        assert!(
+            out.contains(&format!("trained {} steps", step + 1)),
+            "{out}"
+        );
+    }
+}
+
+#[test]
+fn a_second_interrupt_ends_the_process_at_once() {
+    let dir = temp_dir();
+    let d = dir.path();
+    let mut child = start_long_training(d);
+    wait_for_metrics(d, 1, &mut child);
+    send(&child, libc::SIGINT);
+    send(&child, libc::SIGINT);
+    let output = finish(child, 60);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(130), "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+}
+
+/// Runs `zrak ARGS` in `dir` with its standard output (or error) closed
+/// before it writes anything, as `zrak … | head -0` would.
+fn with_closed_pipe(dir: &Path, args: &[&str], close_stderr: bool) -> Output {
+    let mut child = zrak()
+        .args(args)
+        .current_dir(dir)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("the zrak binary starts");
+    // Dropping our end of the pipe closes it: the child's next write fails.
+    if close_stderr {
+        drop(child.stderr.take());
+    } else {
+        drop(child.stdout.take());
+    }
+    child.wait_with_output().expect("collecting zrak's output")
+}
+
+#[test]
+fn printing_to_a_closed_pipe_ends_quietly() {
+    use std::os::unix::process::ExitStatusExt;
+    let dir = temp_dir();
+    let d = dir.path();
+    succeed(
+        d,
+        &["demo", "--out", "scene", "--size", "16", "--views", "3"],
+    );
+    succeed(
+        d,
+        &[
+            "train", "scene", "--steps", "2", "--engine", "cpu", "--out", "run",
+        ],
+    );
+    for args in [
+        &["info", "scene"][..],
+        &["demo", "--out", "scene2", "--size", "16", "--views", "2"],
+        &["eval", "run", "--split", "val"],
+        &["render", "run", "--view", "0", "--out", "frames"],
+        &["--help"],
+    ] {
+        let output = with_closed_pipe(d, args, false);
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(!stderr.contains("panicked"), "zrak {args:?}: {stderr}");
+        // Ended by SIGPIPE (quietly, as `cat` would be) or finished.
+        assert!(
+            output.status.success() || output.status.signal() == Some(libc::SIGPIPE),
+            "zrak {args:?}: {} {stderr}",
+            output.status
+        );
+    }
+    // Training must not die of a closed pipe before its checkpoint: it
+    // keeps going and ends normally whichever stream is closed.
+    for close_stderr in [false, true] {
+        let output = with_closed_pipe(
+            d,
+            &[
+                "train", "scene", "--steps", "3", "--engine", "cpu", "--out", "run3",
+            ],
+            close_stderr,
+        );
+        assert!(output.status.success(), "{}", output.status);
+        assert_eq!(checkpoint_step(&d.join("run3")), 3);
+    }
 }
