@@ -325,3 +325,118 @@ fn printing_to_a_closed_pipe_ends_quietly() {
         assert_eq!(checkpoint_step(&d.join("run3")), 3);
     }
 }
+
+/// The commands of the README's "On the command line" block, one per
+/// line, comments and the leading `zrak` removed.
+fn readme_commands() -> Vec<String> {
+    let readme = include_str!("../README.md");
+    let block = readme
+        .split("On the command line:")
+        .nth(1)
+        .and_then(|rest| rest.split("```sh").nth(1))
+        .and_then(|rest| rest.split("```").next())
+        .expect("README.md has a ```sh block after \"On the command line:\"");
+    block
+        .lines()
+        .map(|line| line.split('#').next().unwrap_or("").trim())
+        .filter(|line| !line.is_empty())
+        .map(|line| {
+            line.strip_prefix("zrak ")
+                .unwrap_or_else(|| panic!("README command `{line}` does not start with zrak"))
+                .to_string()
+        })
+        .collect()
+}
+
+/// A README command as the test runs it, with `/tmp/` as `tmp`: SCENE is
+/// a small demo scene (`scene`: one 32×32 view per held-out split keeps
+/// evaluation quick), optional `[--flag a|b]` groups are given with their
+/// first choice, and budgets become tiny. `runs_made`
+/// counts the `--out RUN` seen so far: the first is RUN, later ones write
+/// beside it (`RUN2`, …) so that the commands reading RUN read the first,
+/// an Instant-NGP run, quick to evaluate and render.
+fn as_tested(command: &str, tmp: &Path, runs_made: &mut usize) -> Vec<String> {
+    let tmp = format!("{}/", tmp.display());
+    let mut words: Vec<String> = Vec::new();
+    let mut tokens = command.split_whitespace().peekable();
+    while let Some(token) = tokens.next() {
+        let token = token.trim_start_matches('[').trim_end_matches(']');
+        // `a|b` offers choices: take the first.
+        let token = token.split('|').next().unwrap_or(token);
+        words.push(token.replace("/tmp/", &tmp));
+        if matches!(token, "--time" | "--turntable") {
+            let value = tokens.next().expect("a value after the flag");
+            let budget = match token {
+                "--turntable" => "2",
+                _ if command.contains("--resume") => "4s",
+                _ => "2s",
+            };
+            let _ = value;
+            words.push(budget.to_string());
+        }
+    }
+    for i in 0..words.len() {
+        let previous = if i > 0 { words[i - 1].as_str() } else { "" };
+        match words[i].as_str() {
+            "SCENE" => words[i] = "scene".into(),
+            "RUN" if previous == "--out" => {
+                *runs_made += 1;
+                words[i] = match *runs_made {
+                    1 => "RUN".into(),
+                    n => format!("RUN{n}"),
+                };
+            }
+            _ => {}
+        }
+    }
+    match (
+        words.first().map(String::as_str),
+        words.get(1).map(String::as_str),
+    ) {
+        (Some("bench"), Some("throughput")) => {
+            words.extend(["--scene", "scene", "--warmup", "0", "--steps", "1"].map(String::from))
+        }
+        (Some("bench"), Some("dense")) => {
+            words.extend(["--rows", "512", "--repeats", "1"].map(String::from))
+        }
+        _ => {}
+    }
+    words
+}
+
+#[test]
+fn the_readme_commands_work_as_written() {
+    let dir = temp_dir();
+    let d = dir.path();
+    std::fs::create_dir_all(d.join("tmp")).unwrap();
+    succeed(
+        d,
+        &["demo", "--out", "scene", "--size", "32", "--views", "10"],
+    );
+    let commands = readme_commands();
+    assert!(commands.len() >= 10, "{commands:?}");
+    let mut runs_made = 0;
+    for command in &commands {
+        let words = as_tested(command, &d.join("tmp"), &mut runs_made);
+        let args: Vec<&str> = words.iter().map(String::as_str).collect();
+        let started = std::time::Instant::now();
+        let output = run_in(d, &args);
+        eprintln!(
+            "README `zrak {command}` ran as `zrak {}` in {:.1} s",
+            args.join(" "),
+            started.elapsed().as_secs_f64()
+        );
+        assert!(
+            output.status.success(),
+            "README `zrak {command}` failed as `zrak {}` ({}):\n{}\n{}",
+            args.join(" "),
+            output.status,
+            String::from_utf8_lossy(&output.stdout),
+            String::from_utf8_lossy(&output.stderr)
+        );
+    }
+    // What the block promises on disk.
+    assert!(d.join("RUN/checkpoint.zrak").is_file());
+    assert!(d.join("RUN/eval_val.json").is_file());
+    assert!(d.join("frames/turntable.gif").is_file());
+}
