@@ -26,4 +26,12 @@ impl ModelKind {
             ModelKind::Nerf => "NeRF",
         }
     }
+
+    /// The name on the command line and in files (`--model ngp`).
+    pub fn key(self) -> &'static str {
+        match self {
+            ModelKind::Ngp => "ngp",
+            ModelKind::Nerf => "nerf",
+        }
+    }
 }
