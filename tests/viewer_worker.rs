@@ -467,3 +467,39 @@ fn closing_keeps_each_model_trained_since_its_last_save() {
     worker.shutdown();
     assert!(kept_in(&runs).is_empty(), "{:?}", kept_in(&runs));
 }
+
+#[test]
+fn a_scene_loads_while_the_current_one_trains() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    // Large enough that reading and decoding it takes longer than a couple
+    // of small steps.
+    let big = dir.path().join("big");
+    demo::write(&DemoConfig::default(), &big).unwrap();
+    let worker = spawn(options());
+    assert_eq!(step_once(&worker), 1);
+    worker.send(Command::OpenScene(SceneSource::Folder(big)));
+    worker.send(Command::StepOnce);
+    worker.send(Command::StepOnce);
+    let mut steps_before_loaded = Vec::new();
+    let frames = wait_for(&worker, |e| match e {
+        Event::Stats(stats) => {
+            steps_before_loaded.push(stats.step);
+            None
+        }
+        Event::SceneLoaded(info) => Some(info.scene.train.len()),
+        Event::SceneFailed { error, .. } => panic!("{error}"),
+        _ => None,
+    });
+    assert_eq!(frames, DemoConfig::default().train_views);
+    // The steps asked for after the scene were taken while it loaded, on
+    // the scene of the moment (a stalled thread would take them after,
+    // on the new scene, from step 1).
+    assert!(
+        steps_before_loaded.contains(&2),
+        "steps answered before the scene loaded: {steps_before_loaded:?}"
+    );
+    // The new scene's model starts afresh.
+    assert_eq!(step_once(&worker), 1);
+    worker.shutdown();
+}

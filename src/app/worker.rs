@@ -534,7 +534,20 @@ struct Worker {
     /// The textures the view is drawn into, one per level size, reused
     /// from frame to frame.
     level_textures: Vec<wgpu::Texture>,
+    /// A scene being loaded on a thread of its own, so that reading and
+    /// decoding a large one never stalls training or rendering.
+    loading: Option<SceneLoad>,
 }
+
+/// A scene load under way: what was asked for, and where the result comes.
+struct SceneLoad {
+    source: SceneSource,
+    result: Receiver<Result<Scene, String>>,
+}
+
+/// How often the loop looks for a loaded scene when it has nothing else to
+/// do (it looks after every unit of work otherwise).
+const SCENE_POLL: Duration = Duration::from_millis(20);
 
 impl Worker {
     fn start(
@@ -612,6 +625,7 @@ impl Worker {
             next_revision: 0,
             textures_shared,
             level_textures: Vec::new(),
+            loading: None,
         };
         worker.send(Event::SceneLoaded(SceneInfo {
             scene: worker.scene.clone(),
@@ -637,6 +651,7 @@ impl Worker {
 
     fn work(&mut self) -> Result<(), UiGone> {
         loop {
+            self.poll_scene_load()?;
             loop {
                 match self.inbox.try_recv() {
                     Ok(command) => {
@@ -648,7 +663,11 @@ impl Worker {
                     Err(TryRecvError::Disconnected) => return Ok(()),
                 }
             }
-            match self.next_work() {
+            let mut work = self.next_work();
+            if let (Work::Wait(timeout), Some(_)) = (&mut work, &self.loading) {
+                *timeout = Some(timeout.map_or(SCENE_POLL, |t| t.min(SCENE_POLL)));
+            }
+            match work {
                 Work::Render { whole_level } => self.render_unit(whole_level)?,
                 Work::Export => self.export_unit()?,
                 Work::Evaluate => self.evaluate_unit()?,
@@ -860,8 +879,51 @@ impl Worker {
         Ok(Flow::Continue)
     }
 
+    /// Starts loading `source` on its own thread; training and rendering
+    /// go on with the current scene until it has loaded. A later request
+    /// replaces an unfinished one (whose result is then dropped).
     fn open_scene(&mut self, source: SceneSource) -> Result<(), UiGone> {
-        let scene = match load_scene(&source, &self.options.demo) {
+        let (sender, receiver) = mpsc::channel();
+        let demo = self.options.demo;
+        let to_load = source.clone();
+        let spawned = std::thread::Builder::new()
+            .name("zrak-scene-loading".into())
+            .spawn(move || {
+                // The receiver may be gone (another scene was asked for).
+                let _ = sender.send(load_scene(&to_load, &demo));
+            });
+        match spawned {
+            Ok(_) => {
+                self.loading = Some(SceneLoad {
+                    source,
+                    result: receiver,
+                });
+                Ok(())
+            }
+            Err(e) => self.send(Event::SceneFailed {
+                source,
+                error: format!("cannot start loading the scene: {e}"),
+            }),
+        }
+    }
+
+    /// Installs the scene being loaded, if it is ready.
+    fn poll_scene_load(&mut self) -> Result<(), UiGone> {
+        let Some(load) = self.loading.take() else {
+            return Ok(());
+        };
+        let result = match load.result.try_recv() {
+            Ok(result) => result,
+            Err(TryRecvError::Empty) => {
+                self.loading = Some(load);
+                return Ok(());
+            }
+            Err(TryRecvError::Disconnected) => {
+                Err("loading the scene stopped after an internal error".to_string())
+            }
+        };
+        let source = load.source;
+        let scene = match result {
             Ok(scene) => scene,
             Err(error) => return self.send(Event::SceneFailed { source, error }),
         };
