@@ -572,3 +572,26 @@ fn long_fuzz_of_every_parser() {
         );
     }
 }
+
+/// What the long mode found: focal lengths positive as f64 but 0 (or
+/// infinite) as the f32 the cameras use.
+#[test]
+fn focal_lengths_that_vanish_in_f32_are_refused() {
+    let dir = image_folder();
+    let mut document = instant_ngp_document();
+    document["frames"][0]["fl_x"] = json!(5.3e-134);
+    std::fs::write(dir.path().join("transforms.json"), document.to_string()).unwrap();
+    let error = Scene::load(dir.path(), LoadOptions::default()).unwrap_err();
+    assert!(error.to_string().contains("fl_x"), "{error}");
+    std::fs::remove_file(dir.path().join("transforms.json")).unwrap();
+
+    let mut document = blender_document("train");
+    document["camera_angle_x"] = json!(1e-50);
+    std::fs::write(
+        dir.path().join("transforms_train.json"),
+        document.to_string(),
+    )
+    .unwrap();
+    let error = Scene::load(dir.path(), LoadOptions::default()).unwrap_err();
+    assert!(error.to_string().contains("camera_angle_x"), "{error}");
+}
