@@ -8,6 +8,7 @@ pub mod app;
 pub mod bench;
 pub mod engine;
 pub mod field;
+pub mod interrupt;
 pub mod metrics;
 pub mod render;
 pub mod rng;

@@ -15,12 +15,13 @@ use zrak::engine::{EngineKind, choose_engine};
 use zrak::field::ModelKind;
 use zrak::field::nerf::Sampling;
 use zrak::field::ngp::{LossKind, OccupancyConfig};
+use zrak::interrupt::{self, note, say};
 use zrak::render::export::{ExportSettings, export_turntable};
 use zrak::render::path::Turntable;
 use zrak::render::{RenderMode, render_pixels, to_image};
 use zrak::scene::demo::{self, DemoConfig};
 use zrak::scene::{Camera, Frame, LoadOptions, Scene, Split};
-use zrak::train::eval::{SplitScores, evaluate_split};
+use zrak::train::eval::{SplitScores, evaluate_split_until};
 use zrak::train::run::{Limits, RunFolder, Schedule, load_checkpoint, run};
 use zrak::train::trainer::Trainer;
 use zrak::train::{ModelSettings, build_model};
@@ -164,15 +165,21 @@ enum BenchCommand {
 
 #[derive(Args)]
 struct TrainArgs {
-    /// A scene folder, or `demo` for the built-in demo scene.
-    scene: String,
-    #[arg(long, value_enum, default_value_t = ModelKind::Ngp)]
+    /// A scene folder, or `demo` for the built-in demo scene. With
+    /// `--resume` it may be left out (the run knows its scene).
+    #[arg(required_unless_present = "resume")]
+    scene: Option<String>,
+    // What the run is made of comes from its `run.json` when resuming, so
+    // these conflict with `--resume` instead of being silently ignored
+    // (clap does not count a default value as given).
+    #[arg(long, value_enum, default_value_t = ModelKind::Ngp, conflicts_with = "resume")]
     model: ModelKind,
     /// NeRF's sampler: the occupancy grid (default) or the paper's
     /// stratified + importance sampling.
-    #[arg(long, value_enum, default_value_t = Sampling::Occupancy)]
+    #[arg(long, value_enum, default_value_t = Sampling::Occupancy, conflicts_with = "resume")]
     sampling: Sampling,
-    /// Default: gpu on a real GPU, cpu otherwise.
+    /// Default: gpu on a real GPU, cpu otherwise; when resuming, the run's
+    /// own choice (this overrides it: checkpoints move between engines).
     #[arg(long, value_enum)]
     engine: Option<EngineKind>,
     /// Stop after this many steps (counted from the start of the run).
@@ -182,13 +189,13 @@ struct TrainArgs {
     #[arg(long, value_parser = parse_duration)]
     time: Option<f64>,
     /// Integer image downscale.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 1, conflicts_with = "resume")]
     downscale: u32,
     /// Default: Huber for Instant-NGP (instant-ngp's config), L2 for NeRF
     /// (the paper's).
-    #[arg(long, value_enum)]
+    #[arg(long, value_enum, conflicts_with = "resume")]
     loss: Option<LossArg>,
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = 0, conflicts_with = "resume")]
     seed: u64,
     /// The run folder (created; must be writable).
     #[arg(long, required_unless_present = "resume")]
@@ -270,6 +277,11 @@ struct RunConfig {
     /// NeRF's sampler (absent in runs made before NeRF existed).
     #[serde(default = "default_sampling")]
     sampling: Sampling,
+    /// The engine asked for with `--engine` (`None`: chosen by the
+    /// machine's adapter), so eval, render and resume choose the same way
+    /// (absent in runs made before it was recorded).
+    #[serde(default)]
+    engine: Option<EngineKind>,
 }
 
 fn default_sampling() -> Sampling {
@@ -278,6 +290,31 @@ fn default_sampling() -> Sampling {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    // Training keeps SIGPIPE ignored and prints without panicking, so that
+    // a closed pipe (`zrak train … 2>&1 | head`) never ends it before its
+    // checkpoint is written; the viewer has windows, not pipes, to care
+    // about; every other command only prints and may end with its reader.
+    if !matches!(
+        cli.command,
+        Some(Command::Train(_)) | Some(Command::View(_)) | None
+    ) {
+        interrupt::end_quietly_on_closed_pipe();
+    }
+    let on_interrupt = match &cli.command {
+        Some(Command::Train(_)) => Some("finishing the current step, then writing the checkpoint"),
+        Some(Command::Eval { .. }) => Some("finishing the current view"),
+        Some(Command::Render(_)) => Some("finishing the current frame"),
+        Some(Command::Bench(BenchCommand::Throughput { .. })) => {
+            Some("finishing the current step, then reporting the steps measured")
+        }
+        _ => None,
+    };
+    if let Some(what_happens) = on_interrupt
+        && let Err(error) = interrupt::install(what_happens)
+    {
+        interrupt::note(&format!("error: {error}"));
+        return ExitCode::FAILURE;
+    }
     let result = match cli.command {
         Some(Command::Info { scene, downscale }) => info(&scene, downscale),
         Some(Command::Demo {
@@ -322,9 +359,12 @@ fn main() -> ExitCode {
         }),
     };
     match result {
+        // The command has said what it kept; the status tells scripts it
+        // did not run to its end.
+        Ok(()) if interrupt::requested() => ExitCode::from(interrupt::EXIT_STATUS),
         Ok(()) => ExitCode::SUCCESS,
         Err(error) => {
-            eprintln!("error: {error:#}");
+            interrupt::note(&format!("error: {error:#}"));
             ExitCode::FAILURE
         }
     }
@@ -527,8 +567,8 @@ fn restore_run(
 ) -> anyhow::Result<(RunConfig, Trainer)> {
     let config = read_run_config(folder)?;
     let scene = Arc::new(load_scene(&config.scene, config.downscale)?);
-    let choice = choose_engine(engine)?;
-    eprintln!("{}", choice.reason);
+    let choice = choose_engine(engine.or(config.engine))?;
+    note(&choice.reason);
     let model = build_model(
         config.model,
         choice,
@@ -549,33 +589,55 @@ fn restore_run(
     Ok((config, trainer))
 }
 
+/// How `run.json` names a scene: `demo`, or the folder's absolute path, so
+/// a run can be resumed, evaluated and rendered from any working folder.
+fn scene_key(scene: &str) -> String {
+    if scene == "demo" {
+        "demo".into()
+    } else {
+        std::fs::canonicalize(scene)
+            .unwrap_or_else(|_| PathBuf::from(scene))
+            .display()
+            .to_string()
+    }
+}
+
+/// A SCENE given with `--resume` must be the run's own: a checkpoint only
+/// continues on the scene it was trained on.
+fn check_same_scene(given: &str, recorded: &str, run: &Path) -> anyhow::Result<()> {
+    let key = scene_key(given);
+    if key != recorded {
+        bail!(
+            "the run in {} was trained on `{recorded}`, not on `{key}`: leave SCENE out to \
+             continue it on its own scene, or give --out instead of --resume to start a new run",
+            run.display()
+        );
+    }
+    Ok(())
+}
+
 fn train(args: TrainArgs) -> anyhow::Result<()> {
     if args.steps.is_none() && args.time.is_none() && args.resume.is_none() {
         bail!("give --steps N or --time DURATION (e.g. --time 10m)");
     }
     let (folder, config, mut trainer) = if let Some(dir) = &args.resume {
         let folder = RunFolder::create(dir).map_err(anyhow::Error::msg)?;
+        if let Some(scene) = &args.scene {
+            check_same_scene(scene, &read_run_config(&folder)?.scene, dir)?;
+        }
         let (config, trainer) = restore_run(&folder, args.engine)?;
-        eprintln!(
+        note(&format!(
             "resuming at step {} ({:.0} s trained)",
             trainer.step, trainer.train_seconds
-        );
+        ));
         (folder, config, trainer)
     } else {
-        let dir = args
-            .out
-            .as_ref()
-            .expect("clap requires --out without --resume");
+        let (Some(dir), Some(scene_arg)) = (&args.out, args.scene.as_deref()) else {
+            bail!("give SCENE and --out RUN to start a run, or --resume RUN to continue one");
+        };
         let folder = RunFolder::create(dir).map_err(anyhow::Error::msg)?;
         let config = RunConfig {
-            scene: if args.scene == "demo" {
-                "demo".into()
-            } else {
-                std::fs::canonicalize(&args.scene)
-                    .unwrap_or_else(|_| PathBuf::from(&args.scene))
-                    .display()
-                    .to_string()
-            },
+            scene: scene_key(scene_arg),
             model: args.model,
             downscale: args.downscale,
             loss: match args.loss {
@@ -585,10 +647,11 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
             },
             seed: args.seed,
             sampling: args.sampling,
+            engine: args.engine,
         };
-        let scene = Arc::new(load_scene(&args.scene, args.downscale)?);
+        let scene = Arc::new(load_scene(scene_arg, args.downscale)?);
         let choice = choose_engine(args.engine)?;
-        eprintln!("{}", choice.reason);
+        note(&choice.reason);
         let model = build_model(
             config.model,
             choice,
@@ -608,14 +671,14 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
         let seed = config.seed;
         (folder, config, Trainer::new(model, scene, seed))
     };
-    eprintln!(
+    note(&format!(
         "training {} on {} ({} views, {}×{})",
         trainer.model.describe(),
         trainer.scene.name,
         trainer.scene.train.len(),
         trainer.scene.resolution().map_or(0, |r| r.0),
         trainer.scene.resolution().map_or(0, |r| r.1),
-    );
+    ));
     let limits = Limits {
         steps: args.steps,
         seconds: args.time,
@@ -640,6 +703,7 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
         schedule,
         &folder,
         &serde_json::to_value(&config)?,
+        interrupt::flag(),
         |p| {
             bar.set_position(if by_steps {
                 p.trainer.step as u64
@@ -658,14 +722,31 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
         },
     )
     .map_err(anyhow::Error::msg)?;
+    if interrupt::requested() {
+        bar.abandon();
+        let limit = match (args.steps, args.time) {
+            (Some(steps), _) => format!(" --steps {steps}"),
+            (None, Some(seconds)) => format!(" --time {seconds}s"),
+            (None, None) => String::new(),
+        };
+        note(&format!(
+            "interrupted at step {} ({:.1} s trained); checkpoint written to {}\n\
+             continue with: zrak train --resume {}{limit}",
+            trainer.step,
+            trainer.train_seconds,
+            folder.checkpoint_path().display(),
+            folder.dir.display(),
+        ));
+        return Ok(());
+    }
     bar.finish();
-    println!(
+    say(&format!(
         "trained {} steps in {:.1} s; held-out PSNR {}; run folder {}",
         trainer.step,
         trainer.train_seconds,
         psnr.map_or("-".into(), |v| format!("{v:.2} dB")),
         folder.dir.display()
-    );
+    ));
     Ok(())
 }
 
@@ -699,12 +780,31 @@ fn eval(
         frames
     };
     println!("{:>5}  {:>8}  {:>7}  image", "view", "PSNR", "SSIM");
-    let scores: SplitScores = evaluate_split(trainer.model.as_ref(), split.name(), frames, |v| {
+    let scores: SplitScores = evaluate_split_until(
+        trainer.model.as_ref(),
+        split.name(),
+        frames,
+        interrupt::flag(),
+        |v| {
+            println!(
+                "{:>5}  {:>8.3}  {:>7.4}  {}",
+                v.index, v.psnr, v.ssim, v.image
+            );
+        },
+    );
+    if interrupt::requested() {
+        // A mean over some of the views is not the split's score: it is
+        // shown, but not written where a finished evaluation goes.
         println!(
-            "{:>5}  {:>8.3}  {:>7.4}  {}",
-            v.index, v.psnr, v.ssim, v.image
+            "{:>5}  {:>8.3}  {:>7.4}  (interrupted: {} of {} views; nothing written)",
+            "mean",
+            scores.mean_psnr,
+            scores.mean_ssim,
+            scores.views.len(),
+            frames.len()
         );
-    });
+        return Ok(());
+    }
     println!(
         "{:>5}  {:>8.3}  {:>7.4}",
         "mean", scores.mean_psnr, scores.mean_ssim
@@ -755,15 +855,27 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
                 write_gif: args.gif,
             };
             let bar = ProgressBar::new(frames as u64);
-            let never_cancelled = std::sync::atomic::AtomicBool::new(false);
-            let written = export_turntable(
+            let mut frames_done = 0;
+            let exported = export_turntable(
                 trainer.model.as_ref(),
                 scene,
                 settings,
-                &never_cancelled,
-                &mut |done, _| bar.set_position(done as u64),
-            )
-            .map_err(anyhow::Error::msg)?;
+                interrupt::flag(),
+                &mut |done, _| {
+                    frames_done = done;
+                    bar.set_position(done as u64);
+                },
+            );
+            if interrupt::requested() {
+                bar.abandon();
+                note(&format!(
+                    "interrupted after {frames_done} of {frames} frames; those are in {} \
+                     (no GIF)",
+                    args.out.display()
+                ));
+                return Ok(());
+            }
+            let written = exported.map_err(anyhow::Error::msg)?;
             bar.finish();
             println!("wrote {} files to {}", written.len(), args.out.display());
             return Ok(());
@@ -871,7 +983,17 @@ fn bench_throughput(
         println!("software adapter: NeRF batches of ~{samples} samples (a correctness run)");
     }
     let peak = zrak::engine::cpu::dense::measure_peak_gflops();
-    let report = zrak::bench::throughput(&mut trainer, warmup, steps);
+    let report = zrak::bench::throughput(&mut trainer, warmup, steps, interrupt::flag());
+    if interrupt::requested() {
+        if report.steps == 0 {
+            note("interrupted before any measured step: nothing to report");
+            return Ok(());
+        }
+        note(&format!(
+            "interrupted: the figures below are over {} of {steps} measured steps",
+            report.steps
+        ));
+    }
     zrak::bench::print_report(&report, &scene, &engine_line);
     println!("machine peak         {peak:.0} GFLOP/s (f32 matrix multiply, median)");
     if let Some(gflops) = report.network_gflops {

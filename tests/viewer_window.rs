@@ -78,7 +78,9 @@ fn variety(image: &image::RgbaImage, [x, y, width, height]: [u32; 4]) -> (f64, u
     )
 }
 
-fn run_viewer(xvfb_run: &Path, screenshot: &Path) -> (bool, String) {
+/// Runs the viewer until it quits by itself; `data_dir` is its
+/// `XDG_DATA_HOME` (where it keeps unsaved training on closing).
+fn run_viewer(xvfb_run: &Path, screenshot: &Path, data_dir: &Path) -> (bool, String) {
     let runtime_dir = tempfile::tempdir().unwrap();
     let output = Command::new(xvfb_run)
         .args(["-a", "-s", "-screen 0 1280x800x24"])
@@ -91,6 +93,7 @@ fn run_viewer(xvfb_run: &Path, screenshot: &Path) -> (bool, String) {
         .arg("--quit-after")
         .arg(QUIT_AFTER_SECONDS.to_string())
         .env("XDG_RUNTIME_DIR", runtime_dir.path())
+        .env("XDG_DATA_HOME", data_dir)
         .output()
         .expect("xvfb-run starts");
     let log = format!(
@@ -113,8 +116,17 @@ fn window_trains_on_the_demo_scene_and_shows_it() {
     };
     let dir = tempfile::tempdir().unwrap();
     let screenshot = dir.path().join("window.png");
-    let (exited_cleanly, log) = run_viewer(&xvfb_run, &screenshot);
+    let data_dir = dir.path().join("data");
+    let (exited_cleanly, log) = run_viewer(&xvfb_run, &screenshot, &data_dir);
     assert!(exited_cleanly, "the viewer failed:\n{log}");
+    // Closing kept the training it had not saved, as a run folder.
+    let kept: Vec<_> = std::fs::read_dir(data_dir.join("zrak").join("runs"))
+        .map(|entries| entries.filter_map(Result::ok).map(|e| e.path()).collect())
+        .unwrap_or_default();
+    assert!(
+        kept.len() == 1 && kept[0].join("checkpoint.zrak").is_file(),
+        "kept on closing: {kept:?}\n{log}"
+    );
 
     let steps = logged_steps(&log);
     assert!(

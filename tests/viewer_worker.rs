@@ -422,3 +422,84 @@ fn a_turntable_export_reports_progress_and_can_be_cancelled() {
     assert!(!cancelled.join("turntable.gif").exists());
     worker.shutdown();
 }
+
+#[test]
+fn closing_keeps_each_model_trained_since_its_last_save() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    let kept_in = |runs: &Path| -> Vec<PathBuf> {
+        std::fs::read_dir(runs)
+            .map(|entries| entries.map(|e| e.unwrap().path()).collect())
+            .unwrap_or_default()
+    };
+
+    // Trained and never saved: kept as a run folder when the thread stops.
+    let runs = dir.path().join("runs");
+    let worker = spawn(WorkerOptions {
+        autosave: Some(runs.clone()),
+        ..options()
+    });
+    assert_eq!(step_once(&worker), 1);
+    assert_eq!(step_once(&worker), 2);
+    worker.shutdown();
+    let kept = kept_in(&runs);
+    assert_eq!(kept.len(), 1, "{kept:?}");
+    let name = kept[0].file_name().unwrap().to_string_lossy().into_owned();
+    assert!(name.starts_with("demo-ngp-"), "{name}");
+    let checkpoint =
+        zrak::train::checkpoint::Checkpoint::load(&kept[0].join("checkpoint.zrak")).unwrap();
+    assert_eq!(checkpoint.header["trainer"]["step"], 2);
+    let run: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(kept[0].join("run.json")).unwrap()).unwrap();
+    assert_eq!(
+        (&run["scene"], &run["model"]),
+        (&"demo".into(), &"ngp".into())
+    );
+
+    // Saved and not trained since: nothing more to keep.
+    let runs = dir.path().join("runs_after_save");
+    let worker = spawn(WorkerOptions {
+        autosave: Some(runs.clone()),
+        ..options()
+    });
+    assert_eq!(step_once(&worker), 1);
+    save(&worker, &dir.path().join("saved.zrak"));
+    worker.shutdown();
+    assert!(kept_in(&runs).is_empty(), "{:?}", kept_in(&runs));
+}
+
+#[test]
+fn a_scene_loads_while_the_current_one_trains() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    // Large enough that reading and decoding it takes longer than a couple
+    // of small steps.
+    let big = dir.path().join("big");
+    demo::write(&DemoConfig::default(), &big).unwrap();
+    let worker = spawn(options());
+    assert_eq!(step_once(&worker), 1);
+    worker.send(Command::OpenScene(SceneSource::Folder(big)));
+    worker.send(Command::StepOnce);
+    worker.send(Command::StepOnce);
+    let mut steps_before_loaded = Vec::new();
+    let frames = wait_for(&worker, |e| match e {
+        Event::Stats(stats) => {
+            steps_before_loaded.push(stats.step);
+            None
+        }
+        Event::SceneLoaded(info) => Some(info.scene.train.len()),
+        Event::SceneFailed { error, .. } => panic!("{error}"),
+        _ => None,
+    });
+    assert_eq!(frames, DemoConfig::default().train_views);
+    // The steps asked for after the scene were taken while it loaded, on
+    // the scene of the moment (a stalled thread would take them after,
+    // on the new scene, from step 1).
+    assert!(
+        steps_before_loaded.contains(&2),
+        "steps answered before the scene loaded: {steps_before_loaded:?}"
+    );
+    // The new scene's model starts afresh.
+    assert_eq!(step_once(&worker), 1);
+    worker.shutdown();
+}

@@ -209,6 +209,7 @@ impl ViewerApp {
             WorkerOptions {
                 gpu_device,
                 sampling: options.sampling,
+                autosave: super::worker::default_autosave_folder(),
                 ..WorkerOptions::default()
             },
         );

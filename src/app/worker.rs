@@ -114,6 +114,26 @@ pub struct WorkerOptions {
     /// sent as [`Event::GpuFrame`] (the window draws them without a copy
     /// through the CPU), except for requests that need the pixels.
     pub gpu_device: Option<GpuContext>,
+    /// Where the thread keeps, when it stops, every model trained since it
+    /// was last saved or loaded: one run folder each (`checkpoint.zrak` and
+    /// `run.json`), which `zrak train --resume`, `eval` and `render` and
+    /// the viewer's checkpoint loading reopen. `None` keeps nothing (the
+    /// default, so tests never write into the user's data folder; the
+    /// viewer gives [`default_autosave_folder`]).
+    pub autosave: Option<PathBuf>,
+}
+
+/// `$XDG_DATA_HOME/zrak/runs`, else `~/.local/share/zrak/runs`.
+pub fn default_autosave_folder() -> Option<PathBuf> {
+    let data = std::env::var_os("XDG_DATA_HOME")
+        .filter(|v| !v.is_empty())
+        .map(PathBuf::from)
+        .or_else(|| {
+            std::env::var_os("HOME")
+                .filter(|v| !v.is_empty())
+                .map(|home| PathBuf::from(home).join(".local").join("share"))
+        })?;
+    Some(data.join("zrak").join("runs"))
 }
 
 impl Default for WorkerOptions {
@@ -130,6 +150,7 @@ impl Default for WorkerOptions {
             refresh_every_seconds: 3.0,
             repaint: None,
             gpu_device: None,
+            autosave: None,
         }
     }
 }
@@ -381,6 +402,9 @@ struct ModelSlot {
     /// Changes whenever the field does (step, reset, load), so the view
     /// knows when what it shows is out of date.
     revision: u64,
+    /// The step last saved or loaded (0 for a fresh model): a model past
+    /// it has training that only memory holds.
+    saved_step: u32,
 }
 
 /// What the viewport asked for and how far it has been drawn.
@@ -511,7 +535,20 @@ struct Worker {
     /// The textures the view is drawn into, one per level size, reused
     /// from frame to frame.
     level_textures: Vec<wgpu::Texture>,
+    /// A scene being loaded on a thread of its own, so that reading and
+    /// decoding a large one never stalls training or rendering.
+    loading: Option<SceneLoad>,
 }
+
+/// A scene load under way: what was asked for, and where the result comes.
+struct SceneLoad {
+    source: SceneSource,
+    result: Receiver<Result<Scene, String>>,
+}
+
+/// How often the loop looks for a loaded scene when it has nothing else to
+/// do (it looks after every unit of work otherwise).
+const SCENE_POLL: Duration = Duration::from_millis(20);
 
 impl Worker {
     fn start(
@@ -589,6 +626,7 @@ impl Worker {
             next_revision: 0,
             textures_shared,
             level_textures: Vec::new(),
+            loading: None,
         };
         worker.send(Event::SceneLoaded(SceneInfo {
             scene: worker.scene.clone(),
@@ -604,8 +642,17 @@ impl Worker {
         self.outbox.send(event)
     }
 
+    /// Works until told to stop or the UI is gone, then keeps what has
+    /// not been saved.
     fn run(mut self) -> Result<(), UiGone> {
+        let result = self.work();
+        self.autosave();
+        result
+    }
+
+    fn work(&mut self) -> Result<(), UiGone> {
         loop {
+            self.poll_scene_load()?;
             loop {
                 match self.inbox.try_recv() {
                     Ok(command) => {
@@ -617,7 +664,11 @@ impl Worker {
                     Err(TryRecvError::Disconnected) => return Ok(()),
                 }
             }
-            match self.next_work() {
+            let mut work = self.next_work();
+            if let (Work::Wait(timeout), Some(_)) = (&mut work, &self.loading) {
+                *timeout = Some(timeout.map_or(SCENE_POLL, |t| t.min(SCENE_POLL)));
+            }
+            match work {
                 Work::Render { whole_level } => self.render_unit(whole_level)?,
                 Work::Export => self.export_unit()?,
                 Work::Evaluate => self.evaluate_unit()?,
@@ -741,6 +792,7 @@ impl Worker {
     }
 
     fn new_slot(&mut self, kind: ModelKind, trainer: Trainer, loss: LossKind) -> ModelSlot {
+        let saved_step = trainer.step;
         ModelSlot {
             kind,
             next_val_at: trainer.train_seconds + self.options.val_every_train_seconds,
@@ -751,6 +803,7 @@ impl Worker {
             pending_val: None,
             last_report: None,
             revision: self.revision(),
+            saved_step,
         }
     }
 
@@ -833,8 +886,51 @@ impl Worker {
         Ok(Flow::Continue)
     }
 
+    /// Starts loading `source` on its own thread; training and rendering
+    /// go on with the current scene until it has loaded. A later request
+    /// replaces an unfinished one (whose result is then dropped).
     fn open_scene(&mut self, source: SceneSource) -> Result<(), UiGone> {
-        let scene = match load_scene(&source, &self.options.demo) {
+        let (sender, receiver) = mpsc::channel();
+        let demo = self.options.demo;
+        let to_load = source.clone();
+        let spawned = std::thread::Builder::new()
+            .name("zrak-scene-loading".into())
+            .spawn(move || {
+                // The receiver may be gone (another scene was asked for).
+                let _ = sender.send(load_scene(&to_load, &demo));
+            });
+        match spawned {
+            Ok(_) => {
+                self.loading = Some(SceneLoad {
+                    source,
+                    result: receiver,
+                });
+                Ok(())
+            }
+            Err(e) => self.send(Event::SceneFailed {
+                source,
+                error: format!("cannot start loading the scene: {e}"),
+            }),
+        }
+    }
+
+    /// Installs the scene being loaded, if it is ready.
+    fn poll_scene_load(&mut self) -> Result<(), UiGone> {
+        let Some(load) = self.loading.take() else {
+            return Ok(());
+        };
+        let result = match load.result.try_recv() {
+            Ok(result) => result,
+            Err(TryRecvError::Empty) => {
+                self.loading = Some(load);
+                return Ok(());
+            }
+            Err(TryRecvError::Disconnected) => {
+                Err("loading the scene stopped after an internal error".to_string())
+            }
+        };
+        let source = load.source;
+        let scene = match result {
             Ok(scene) => scene,
             Err(error) => return self.send(Event::SceneFailed { source, error }),
         };
@@ -1252,9 +1348,100 @@ impl Worker {
             "loss": slot.loss,
             "saved_by": "viewer",
         }));
+        let step = slot.trainer.step;
         match checkpoint.save(path) {
-            Ok(()) => self.send(Event::CheckpointSaved(path.to_path_buf())),
+            Ok(()) => {
+                if let Some(slot) = self.slot_mut(self.active) {
+                    slot.saved_step = step;
+                }
+                self.send(Event::CheckpointSaved(path.to_path_buf()))
+            }
             Err(e) => self.send(Event::Error(e.to_string())),
+        }
+    }
+
+    /// Keeps every model trained since it was last saved or loaded in a run
+    /// folder of its own under [`WorkerOptions::autosave`], and says where
+    /// on standard error (the window is closing: nobody reads events).
+    ///
+    /// Why save rather than ask: the window is closing because the user
+    /// asked it to, and a prompt would make closing (and logging out, and
+    /// a script's `--quit-after`) wait for an answer; editors and Blender
+    /// keep unsaved work silently on quit for the same reason. Minutes of
+    /// training cost more to redo than the disk they take.
+    fn autosave(&mut self) {
+        let Some(base) = self.options.autosave.clone() else {
+            return;
+        };
+        let scene_key = match &self.source {
+            SceneSource::Demo => "demo".to_string(),
+            SceneSource::Folder(folder) => std::fs::canonicalize(folder)
+                .unwrap_or_else(|_| folder.clone())
+                .display()
+                .to_string(),
+        };
+        let stamp = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs());
+        for slot in &self.slots {
+            if slot.trainer.step <= slot.saved_step {
+                continue;
+            }
+            // Only plain characters of the scene's name: it may be any
+            // folder's name, the run folder's must be a safe one.
+            let scene_name: String = self
+                .scene
+                .name
+                .chars()
+                .map(|c| {
+                    if c.is_alphanumeric() || c == '-' {
+                        c
+                    } else {
+                        '_'
+                    }
+                })
+                .collect();
+            let folder = base.join(format!("{scene_name}-{}-{stamp}", slot.kind.key()));
+            // The same keys as the command line's run.json, so `zrak train
+            // --resume` rebuilds this scene and model.
+            let run = serde_json::json!({
+                "scene": scene_key,
+                "model": slot.kind,
+                "downscale": 1,
+                "loss": slot.loss,
+                "seed": slot.trainer.seed,
+                "sampling": self.options.sampling,
+                "engine": self.engine.kind,
+                "saved_by": "viewer",
+            });
+            let saved = std::fs::create_dir_all(&folder)
+                .map_err(|e| format!("{}: cannot create the folder: {e}", folder.display()))
+                .and_then(|()| {
+                    let path = folder.join(crate::train::run::CONFIG_FILE);
+                    std::fs::write(&path, format!("{run:#}"))
+                        .map_err(|e| format!("{}: cannot write: {e}", path.display()))
+                })
+                .and_then(|()| {
+                    slot.trainer
+                        .checkpoint(run.clone())
+                        .save(&folder.join(crate::train::run::CHECKPOINT_FILE))
+                        .map_err(|e| e.to_string())
+                });
+            match saved {
+                Ok(()) => crate::interrupt::note(&format!(
+                    "zrak view: kept {} at step {} in {}; continue it with \
+                     `zrak train --resume {}` or load its checkpoint.zrak in the viewer",
+                    slot.kind.name(),
+                    slot.trainer.step,
+                    folder.display(),
+                    folder.display()
+                )),
+                Err(error) => crate::interrupt::note(&format!(
+                    "zrak view: could not keep {} at step {}: {error}",
+                    slot.kind.name(),
+                    slot.trainer.step
+                )),
+            }
         }
     }
 

@@ -2,6 +2,7 @@
 //! the accuracy-versus-time experiment. Nothing here asserts on time.
 
 use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use crate::scene::Scene;
 use crate::train::model::{StageTimes, StepStats};
@@ -44,16 +45,31 @@ fn median(values: &mut [f64]) -> f64 {
 /// Runs `warmup` steps unmeasured (the occupancy grid's first updates and
 /// the workspaces' first allocations), then `steps` measured ones, and
 /// reports medians (these machines are shared: medians resist outliers).
-pub fn throughput(trainer: &mut Trainer, warmup: usize, steps: usize) -> ThroughputReport {
+/// Once `stop` is set no further step starts: the report then covers the
+/// measured steps taken so far (`steps` says how many; 0 gives NaN figures).
+pub fn throughput(
+    trainer: &mut Trainer,
+    warmup: usize,
+    steps: usize,
+    stop: &AtomicBool,
+) -> ThroughputReport {
+    let stopped = || stop.load(Ordering::SeqCst);
     for _ in 0..warmup {
+        if stopped() {
+            break;
+        }
         trainer.step();
     }
     let mut records: Vec<(f64, StepStats)> = Vec::with_capacity(steps);
     for _ in 0..steps {
+        if stopped() {
+            break;
+        }
         let before = trainer.train_seconds;
         let stats = trainer.step();
         records.push((trainer.train_seconds - before, stats));
     }
+    let steps = records.len();
     let mut step_seconds: Vec<f64> = records.iter().map(|r| r.0).collect();
     let total_seconds: f64 = step_seconds.iter().sum();
     let total_samples: usize = records.iter().map(|r| r.1.samples).sum();

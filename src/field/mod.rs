@@ -41,4 +41,13 @@ impl ModelKind {
             ModelKind::Nerf | ModelKind::MipNerf => ngp::LossKind::L2,
         }
     }
+
+    /// The name on the command line and in files (`--model ngp`).
+    pub fn key(self) -> &'static str {
+        match self {
+            ModelKind::Ngp => "ngp",
+            ModelKind::Nerf => "nerf",
+            ModelKind::MipNerf => "mipnerf",
+        }
+    }
 }

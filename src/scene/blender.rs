@@ -116,9 +116,13 @@ fn read_split_file(folder: &Path, path: &Path, split: Split) -> SceneResult<Spli
     let camera_angle_x = required_number(&json, "camera_angle_x").map_err(file_error)?;
     // tan(0.5 · angle) must be positive and finite for the focal length
     // 0.5 W / tan(0.5 · angle) to be.
+    // Checked as the f32 focal length it becomes: an angle of 1e-50 is
+    // positive, but its tangent is 0 in f32 and the focal length infinite.
+    let unit_focal = super::camera::focal_from_fov(1, camera_angle_x as f32);
     let usable = camera_angle_x > 0.0
         && camera_angle_x < std::f64::consts::PI
-        && (camera_angle_x as f32).tan().is_finite();
+        && unit_focal > 0.0
+        && unit_focal.is_finite();
     if !usable {
         return Err(file_error(format!(
             "camera_angle_x = {camera_angle_x} does not give a positive, finite focal length: \

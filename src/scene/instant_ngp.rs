@@ -225,7 +225,9 @@ impl Focal {
     /// positive, finite focal length.
     fn read(object: &JsonObject, fl_key: &str, angle_key: &str) -> Result<Option<Self>, String> {
         if let Some(fl) = number(object, fl_key)? {
-            if !(fl > 0.0 && (fl as f32).is_finite()) {
+            // Checked as the f32 it becomes: 1e-100 is positive as an f64
+            // but a focal length of 0 as an f32.
+            if !((fl as f32) > 0.0 && (fl as f32).is_finite()) {
                 return Err(format!(
                     "focal length {fl_key} = {fl} must be positive and finite"
                 ));
@@ -233,7 +235,12 @@ impl Focal {
             return Ok(Some(Focal::Pixels(fl)));
         }
         if let Some(angle) = number(object, angle_key)? {
-            if !(angle > 0.0 && angle < std::f64::consts::PI && (angle as f32).tan().is_finite()) {
+            let unit_focal = focal_from_fov(1, angle as f32);
+            if !(angle > 0.0
+                && angle < std::f64::consts::PI
+                && unit_focal > 0.0
+                && unit_focal.is_finite())
+            {
                 return Err(format!(
                     "{angle_key} = {angle} does not give a positive, finite focal length: \
                      it must be an angle between 0 and π radians"
@@ -363,7 +370,7 @@ impl CameraFields {
             );
         };
         for (key, f) in [("fl_x", fx), ("fl_y", fy)] {
-            if !(f > 0.0 && (f as f32).is_finite()) {
+            if !((f as f32) > 0.0 && (f as f32).is_finite()) {
                 return Err(format!(
                     "focal length {key} = {f} must be positive and finite"
                 ));

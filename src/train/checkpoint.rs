@@ -162,6 +162,17 @@ impl Checkpoint {
             path: path.to_path_buf(),
             problem: format!("cannot open checkpoint: {e}"),
         })?;
+        // Lengths read from the file are checked against what it holds
+        // before anything is allocated for them: a damaged length must give
+        // an error, not an allocation failure that aborts the process.
+        let file_length = file
+            .metadata()
+            .map_err(|e| CheckpointError::Io {
+                path: path.to_path_buf(),
+                problem: format!("cannot read checkpoint: {e}"),
+            })?
+            .len();
+        let mut remaining = file_length.saturating_sub(20);
         let mut input = BufReader::new(file);
         let mut magic = [0u8; 8];
         input
@@ -184,11 +195,14 @@ impl Checkpoint {
         input
             .read_exact(&mut long)
             .map_err(|_| format("file too short"))?;
-        let header_length = u64::from_le_bytes(long) as usize;
-        if header_length > 64 << 20 {
-            return Err(format("header length is implausible"));
+        let header_length = u64::from_le_bytes(long);
+        if header_length > remaining.min(64 << 20) {
+            return Err(format(&format!(
+                "header length {header_length} is more than the file holds"
+            )));
         }
-        let mut header = vec![0u8; header_length];
+        remaining -= header_length;
+        let mut header = vec![0u8; header_length as usize];
         input
             .read_exact(&mut header)
             .map_err(|_| format("truncated header"))?;
@@ -196,6 +210,14 @@ impl Checkpoint {
             serde_json::from_slice(&header).map_err(|e| format(&format!("bad header: {e}")))?;
         let mut tensors = Vec::with_capacity(stored.tensors.len());
         for (name, length) in stored.tensors {
+            let bytes = (length as u64).checked_mul(4).filter(|&b| b <= remaining);
+            let Some(bytes) = bytes else {
+                return Err(format(&format!(
+                    "truncated in tensor `{name}` ({length} values, {} bytes left)",
+                    remaining
+                )));
+            };
+            remaining -= bytes;
             let mut values = vec![0f32; length];
             input
                 .read_exact(bytemuck::cast_slice_mut(&mut values))

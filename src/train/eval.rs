@@ -111,11 +111,32 @@ pub fn evaluate_split(
     model: &dyn RadianceModel,
     split: &str,
     frames: &[Frame],
+    on_view: impl FnMut(&ViewScores),
+) -> SplitScores {
+    evaluate_split_until(
+        model,
+        split,
+        frames,
+        &std::sync::atomic::AtomicBool::new(false),
+        on_view,
+    )
+}
+
+/// [`evaluate_split`], stopping before the next view once `stop` is set
+/// (the means are then over the views scored so far).
+pub fn evaluate_split_until(
+    model: &dyn RadianceModel,
+    split: &str,
+    frames: &[Frame],
+    stop: &std::sync::atomic::AtomicBool,
     mut on_view: impl FnMut(&ViewScores),
 ) -> SplitScores {
     let started = std::time::Instant::now();
     let mut views = Vec::with_capacity(frames.len());
     for (index, frame) in frames.iter().enumerate() {
+        if stop.load(std::sync::atomic::Ordering::SeqCst) {
+            break;
+        }
         let scores = score_view(model, frame, true);
         let view = ViewScores {
             index,

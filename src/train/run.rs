@@ -2,6 +2,7 @@
 //! periodic evaluation on held-out views, and checkpoints.
 
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use super::checkpoint::Checkpoint;
@@ -115,15 +116,18 @@ impl RunFolder {
     }
 }
 
-/// Trains until `limits`, logging, evaluating and checkpointing on
-/// `schedule`. `run_config` is stored in every checkpoint's header. Returns
-/// the last held-out PSNR.
+/// Trains until `limits` or until `stop` is set (checked between steps, so
+/// an interrupt finishes the current step), logging, evaluating and
+/// checkpointing on `schedule`, and always writing the checkpoint at the
+/// end. `run_config` is stored in every checkpoint's header. Returns the
+/// last held-out PSNR.
 pub fn run(
     trainer: &mut Trainer,
     limits: Limits,
     schedule: Schedule,
     folder: &RunFolder,
     run_config: &serde_json::Value,
+    stop: &AtomicBool,
     mut on_step: impl FnMut(&Progress),
 ) -> Result<Option<f64>, String> {
     let mut log = MetricsLog::open(&folder.metrics_path())
@@ -158,7 +162,7 @@ pub fn run(
             .map_err(|e| e.to_string())
     };
 
-    while !limits.reached(trainer) {
+    while !limits.reached(trainer) && !stop.load(Ordering::SeqCst) {
         let before = trainer.train_seconds;
         let stats = trainer.step();
         window_samples += stats.samples;

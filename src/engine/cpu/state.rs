@@ -102,3 +102,100 @@ impl ModelState {
         })
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use proptest::prelude::*;
+    use serde_json::{Value, json};
+
+    use super::*;
+
+    fn valid_header() -> Value {
+        json!({"model": "ngp", "loss": "Huber", "seed": 0, "adam_step": 3,
+            "samples_per_ray": 4.0, "param_count": 4})
+    }
+
+    /// Header values of the wrong type, size or content.
+    fn header_value() -> impl Strategy<Value = Value> {
+        prop_oneof![
+            Just(Value::Null),
+            any::<i64>().prop_map(Value::from),
+            any::<u64>().prop_map(Value::from),
+            (-1e40f64..1e40).prop_map(Value::from),
+            prop::sample::select(vec!["ngp", "nerf", "Huber", "L2", "", "paper"])
+                .prop_map(Value::from),
+            Just(json!([])),
+            Just(json!({})),
+        ]
+    }
+
+    fn header() -> impl Strategy<Value = Value> {
+        prop::collection::vec(
+            (
+                prop::sample::select(vec![
+                    "model",
+                    "loss",
+                    "seed",
+                    "adam_step",
+                    "samples_per_ray",
+                    "param_count",
+                    "sampling",
+                ]),
+                prop::option::of(header_value()),
+            ),
+            0..4,
+        )
+        .prop_map(|edits| {
+            let mut header = valid_header();
+            for (key, value) in edits {
+                match value {
+                    Some(value) => header[key] = value,
+                    None => {
+                        header.as_object_mut().expect("an object").remove(key);
+                    }
+                }
+            }
+            header
+        })
+    }
+
+    fn tensors() -> impl Strategy<Value = Vec<(String, Vec<f32>)>> {
+        prop::collection::vec(
+            (
+                prop::sample::select(vec![
+                    "params",
+                    "adam.m",
+                    "adam.v",
+                    "adam.m_norm",
+                    "adam.v_norm",
+                    "occupancy",
+                    "other",
+                ]),
+                prop::collection::vec(any::<f32>(), 0..10),
+            ),
+            0..8,
+        )
+        .prop_map(|list| list.into_iter().map(|(n, v)| (n.to_string(), v)).collect())
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig {
+            cases: 500,
+            failure_persistence: None,
+            ..ProptestConfig::default()
+        })]
+
+        /// Whatever a checkpoint file held, reading a model's state from it
+        /// gives that state with every length as the model needs, or an
+        /// error; it never panics.
+        #[test]
+        fn model_state_from_any_checkpoint(header in header(), tensors in tensors()) {
+            let checkpoint = Checkpoint { header, tensors };
+            if let Ok(state) = ModelState::from_checkpoint(&checkpoint, "ngp", 4, Some(8)) {
+                prop_assert_eq!(state.params.len(), 4);
+                prop_assert_eq!(state.adam.v_norm.len(), 4);
+                prop_assert_eq!(state.occupancy.map(|o| o.len()), Some(8));
+            }
+        }
+    }
+}
