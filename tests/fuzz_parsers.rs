@@ -1,24 +1,41 @@
 //! Property-based fuzzing of every parser that reads a user's files: the
-//! Blender `transforms_*.json`, instant-ngp's `transforms.json` and the
-//! checkpoint reader. Random and mutated inputs must give a scene (with
+//! Blender `transforms_*.json`, instant-ngp's `transforms.json`, COLMAP
+//! sparse models (text and binary) and the checkpoint reader. Random and mutated inputs must give a scene (with
 //! finite, positive intrinsics and finite poses), a checkpoint, or an error
 //! naming the problem; never a panic or an abort.
 //!
 //! `cargo test` runs a bounded number of cases. The long mode is ignored by
-//! default: `ZRAK_FUZZ_CASES=1000000 cargo test --test fuzz_parsers --
-//! --ignored` runs that many cases per parser and prints the counts.
+//! default: `ZRAK_FUZZ_MINUTES=60 cargo test --release --test fuzz_parsers
+//! -- --ignored --nocapture` runs every parser in turn, in rounds of
+//! `ZRAK_FUZZ_CASES` cases (default 2000), until that much time has passed,
+//! and prints the counts.
 
 use std::cell::Cell;
 use std::path::{Path, PathBuf};
 
 use proptest::prelude::*;
-use proptest::test_runner::{Config, TestRunner};
+use proptest::test_runner::{Config, RngAlgorithm, TestRng, TestRunner};
 use serde_json::{Value, json};
+use zrak::scene::colmap::{self, ColmapCamera, ColmapImage, ColmapModel};
 use zrak::scene::{ImageRgba8, LoadOptions, Scene};
 use zrak::train::checkpoint::Checkpoint;
 
 /// Cases per parser in `cargo test`: a few seconds in all.
 const BOUNDED_CASES: u32 = 300;
+
+/// A runner for `cases` cases: the bounded runs in `cargo test` draw the
+/// same inputs every time (a failure in CI reproduces anywhere); the long
+/// mode's rounds draw new ones.
+fn runner(cases: u32) -> TestRunner {
+    if cases <= BOUNDED_CASES {
+        TestRunner::new_with_rng(
+            config(cases),
+            TestRng::deterministic_rng(RngAlgorithm::ChaCha),
+        )
+    } else {
+        TestRunner::new(config(cases))
+    }
+}
 
 fn config(cases: u32) -> Config {
     Config {
@@ -404,7 +421,7 @@ impl Counts {
 fn fuzz_blender(cases: u32) -> Counts {
     let dir = image_folder();
     let counts = Counts::default();
-    let mut runner = TestRunner::new(config(cases));
+    let mut runner = runner(cases);
     let outcome = runner.run(
         &(input(), 0usize..3, any::<bool>()),
         |(input, which, keep_others)| {
@@ -434,7 +451,7 @@ fn fuzz_instant_ngp(cases: u32) -> Counts {
     let dir = image_folder();
     let path: PathBuf = dir.path().join("transforms.json");
     let counts = Counts::default();
-    let mut runner = TestRunner::new(config(cases));
+    let mut runner = runner(cases);
     let outcome = runner.run(&input(), |input| {
         std::fs::write(&path, render_input(instant_ngp_document(), &input)).unwrap();
         let loaded = check_load(dir.path())?;
@@ -485,7 +502,7 @@ fn fuzz_checkpoint(cases: u32) -> Counts {
     let header: Value = serde_json::from_slice(&valid[20..20 + header_length]).unwrap();
     let path = dir.path().join("checkpoint.zrak");
     let counts = Counts::default();
-    let mut runner = TestRunner::new(config(cases));
+    let mut runner = runner(cases);
     let strategy = prop_oneof![
         2 => prop::collection::vec(byte_edit(), 1..4).prop_map(CheckpointInput::Bytes),
         3 => (prop::collection::vec(edit(), 1..4), -8i64..8)
@@ -527,6 +544,139 @@ fn fuzz_checkpoint(cases: u32) -> Counts {
     counts
 }
 
+/// A valid COLMAP model for the three images of [`image_folder`]: one
+/// OPENCV camera with a little distortion, three images facing the origin,
+/// a few sparse points.
+fn colmap_model() -> ColmapModel {
+    let mut model = ColmapModel::default();
+    model.cameras.insert(
+        1,
+        ColmapCamera {
+            id: 1,
+            model: "OPENCV".into(),
+            width: 2,
+            height: 2,
+            params: vec![2.5, 2.5, 1.0, 1.0, 0.01, -0.002, 0.0001, 0.0],
+        },
+    );
+    for i in 0..3u32 {
+        let half_turn = 0.3 * i as f64;
+        model.images.push(ColmapImage {
+            id: i + 1,
+            rotation: [half_turn.cos(), 0.0, half_turn.sin(), 0.0],
+            translation: [0.1 * i as f64, 0.0, 4.0],
+            camera_id: 1,
+            name: format!("r_{i}.png"),
+        });
+    }
+    model.points = vec![[0.0, 0.0, 0.0], [0.5, -0.2, 0.1], [-0.3, 0.4, 0.2]];
+    model
+}
+
+/// COLMAP damage: one of the three files of a text or binary model, edited
+/// bytewise, or (text) a token replaced by an odd one, or replaced whole.
+#[derive(Debug, Clone)]
+enum ColmapInput {
+    Bytes(bool, usize, Vec<ByteEdit>),
+    Token(usize, usize, String),
+    Whole(bool, usize, Vec<u8>),
+}
+
+const COLMAP_FILES: [&str; 3] = ["cameras", "images", "points3D"];
+
+fn odd_token() -> impl Strategy<Value = String> {
+    prop_oneof![
+        prop::sample::select(vec![
+            "",
+            "0",
+            "-1",
+            "4294967296",
+            "1e308",
+            "-1e308",
+            "nan",
+            "inf",
+            "1e-320",
+            "PINHOLE",
+            "OPENCV_FISHEYE",
+            "FOV",
+            "THIN_PRISM_FISHEYE",
+            "r_0.png",
+            "../r_1.png",
+            "#",
+            "\n",
+            "18446744073709551615",
+        ])
+        .prop_map(String::from),
+        "[-0-9.eE]{1,8}",
+        any::<f64>().prop_map(|v| v.to_string()),
+    ]
+}
+
+fn fuzz_colmap(cases: u32) -> Counts {
+    let dir = image_folder();
+    let model = colmap_model();
+    let valid = |binary: bool| -> Vec<Vec<u8>> {
+        let scratch = tempfile::tempdir().unwrap();
+        if binary {
+            colmap::write_binary(&model, scratch.path()).unwrap();
+        } else {
+            colmap::write_text(&model, scratch.path()).unwrap();
+        }
+        let extension = if binary { "bin" } else { "txt" };
+        COLMAP_FILES
+            .iter()
+            .map(|file| std::fs::read(scratch.path().join(format!("{file}.{extension}"))).unwrap())
+            .collect()
+    };
+    let (text, binary) = (valid(false), valid(true));
+    let sparse = dir.path().join("sparse/0");
+    let counts = Counts::default();
+    let mut runner = runner(cases);
+    let strategy = prop_oneof![
+        3 => (any::<bool>(), 0usize..3, prop::collection::vec(byte_edit(), 1..4))
+            .prop_map(|(b, f, e)| ColmapInput::Bytes(b, f, e)),
+        3 => (0usize..3, any::<usize>(), odd_token())
+            .prop_map(|(f, t, s)| ColmapInput::Token(f, t, s)),
+        1 => (any::<bool>(), 0usize..3, prop::collection::vec(any::<u8>(), 0..64))
+            .prop_map(|(b, f, bytes)| ColmapInput::Whole(b, f, bytes)),
+    ];
+    let outcome = runner.run(&strategy, |input| {
+        let (is_binary, damaged_file, bytes) = match &input {
+            ColmapInput::Bytes(b, f, edits) => {
+                let files = if *b { &binary } else { &text };
+                (*b, *f, damage(files[*f].clone(), edits))
+            }
+            ColmapInput::Token(f, which, token) => {
+                let content = String::from_utf8(text[*f].clone()).unwrap();
+                let tokens: Vec<&str> = content.split(' ').collect();
+                let i = which % tokens.len();
+                let mut edited = tokens.clone();
+                edited[i] = token;
+                (false, *f, edited.join(" ").into_bytes())
+            }
+            ColmapInput::Whole(b, f, bytes) => (*b, *f, bytes.clone()),
+        };
+        let _ = std::fs::remove_dir_all(&sparse);
+        std::fs::create_dir_all(&sparse).unwrap();
+        let (files, extension) = if is_binary {
+            (&binary, "bin")
+        } else {
+            (&text, "txt")
+        };
+        for (i, file) in COLMAP_FILES.iter().enumerate() {
+            let content = if i == damaged_file { &bytes } else { &files[i] };
+            std::fs::write(sparse.join(format!("{file}.{extension}")), content).unwrap();
+        }
+        let loaded = check_load(dir.path())?;
+        counts.tally(loaded);
+        Ok(())
+    });
+    if let Err(failure) = outcome {
+        panic!("COLMAP model: {failure}");
+    }
+    counts
+}
+
 #[test]
 fn blender_transforms_never_panic() {
     let counts = fuzz_blender(BOUNDED_CASES);
@@ -540,35 +690,56 @@ fn instant_ngp_transforms_never_panic() {
 }
 
 #[test]
+fn colmap_models_never_panic() {
+    let counts = fuzz_colmap(BOUNDED_CASES);
+    assert!(counts.both_seen(), "{counts:?}");
+}
+
+#[test]
 fn checkpoint_reader_never_panics() {
     let counts = fuzz_checkpoint(BOUNDED_CASES);
     assert!(counts.both_seen(), "{counts:?}");
 }
 
-/// The long mode: `ZRAK_FUZZ_CASES` cases per parser (default 100 000).
+/// The long mode: every parser in turn, `ZRAK_FUZZ_CASES` cases at a time
+/// (default 2000), for `ZRAK_FUZZ_MINUTES` (default 10) minutes.
 #[test]
-#[ignore = "long: set ZRAK_FUZZ_CASES and run with --ignored"]
+#[ignore = "long: set ZRAK_FUZZ_MINUTES and run with --ignored"]
 fn long_fuzz_of_every_parser() {
-    let cases: u32 = std::env::var("ZRAK_FUZZ_CASES")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(100_000);
-    let started = std::time::Instant::now();
-    for (name, run) in [
-        (
-            "Blender transforms_*.json",
-            fuzz_blender as fn(u32) -> Counts,
-        ),
+    let setting = |name: &str, default: u64| -> u64 {
+        std::env::var(name)
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(default)
+    };
+    let round = setting("ZRAK_FUZZ_CASES", 2000) as u32;
+    let budget = std::time::Duration::from_secs(60 * setting("ZRAK_FUZZ_MINUTES", 10));
+    let parsers: [(&str, fn(u32) -> Counts); 4] = [
+        ("Blender transforms_*.json", fuzz_blender),
         ("instant-ngp transforms.json", fuzz_instant_ngp),
+        ("COLMAP sparse model", fuzz_colmap),
         ("checkpoint reader", fuzz_checkpoint),
-    ] {
-        let counts = run(cases);
+    ];
+    let mut totals = [(0u64, 0u64, 0u64); 4];
+    let started = std::time::Instant::now();
+    let mut rounds = 0;
+    while started.elapsed() < budget {
+        rounds += 1;
+        for ((_, run), total) in parsers.iter().zip(&mut totals) {
+            let counts = run(round);
+            total.0 += counts.cases.get();
+            total.1 += counts.loaded.get();
+            total.2 += counts.refused.get();
+        }
         eprintln!(
-            "{name}: {} cases, {} loaded, {} refused with an error, 0 panics ({:.0} s so far)",
-            counts.cases.get(),
-            counts.loaded.get(),
-            counts.refused.get(),
+            "round {rounds}: {} cases in all, 0 panics ({:.0} s)",
+            totals.iter().map(|t| t.0).sum::<u64>(),
             started.elapsed().as_secs_f64()
+        );
+    }
+    for ((name, _), (cases, loaded, refused)) in parsers.iter().zip(totals) {
+        eprintln!(
+            "{name}: {cases} cases, {loaded} loaded, {refused} refused with an error, 0 panics"
         );
     }
 }
@@ -594,4 +765,29 @@ fn focal_lengths_that_vanish_in_f32_are_refused() {
     .unwrap();
     let error = Scene::load(dir.path(), LoadOptions::default()).unwrap_err();
     assert!(error.to_string().contains("camera_angle_x"), "{error}");
+}
+
+/// What the long mode found in COLMAP models: parameters finite as f64 but
+/// infinite as f32, focal lengths positive as f64 but 0 as f32, and a
+/// quaternion whose squared norm overflows (its rotation becomes NaN).
+#[test]
+fn colmap_values_that_break_in_f32_are_refused() {
+    let load_with = |edit: &dyn Fn(&mut ColmapModel)| {
+        let dir = image_folder();
+        let mut model = colmap_model();
+        edit(&mut model);
+        let sparse = dir.path().join("sparse/0");
+        std::fs::create_dir_all(&sparse).unwrap();
+        colmap::write_text(&model, &sparse).unwrap();
+        Scene::load(dir.path(), LoadOptions::default())
+            .map(|_| ())
+            .unwrap_err()
+            .to_string()
+    };
+    let error = load_with(&|m| m.cameras.get_mut(&1).unwrap().params[0] = 1e-300);
+    assert!(error.contains("cameras.txt") && error.contains("focal"), "{error}");
+    let error = load_with(&|m| m.cameras.get_mut(&1).unwrap().params[2] = 1e308);
+    assert!(error.contains("cameras.txt") && error.contains("finite"), "{error}");
+    let error = load_with(&|m| m.images[1].rotation[0] = 3e179);
+    assert!(error.contains("images.txt") && error.contains("r_1.png"), "{error}");
 }

@@ -150,15 +150,21 @@ impl ColmapCamera {
                 ));
             }
         };
-        if !(fx > 0.0 && fy > 0.0 && (fx as f32).is_finite() && (fy as f32).is_finite()) {
+        // Positive and finite as the f32 the cameras keep: 1e-300 is a
+        // positive f64 but 0 as an f32.
+        let usable = |f: f64| (f as f32) > 0.0 && (f as f32).is_finite();
+        if !(usable(fx) && usable(fy)) {
             return Err(format!(
-                "camera {}: focal lengths {fx}, {fy} must be positive and finite",
+                "camera {}: focal lengths {fx}, {fy} must be positive and finite in single \
+                 precision",
                 self.id
             ));
         }
-        if !(cx.is_finite() && cy.is_finite()) || p.iter().any(|v| !v.is_finite()) {
+        // Finite as the f32 the cameras keep, not only as read: 1e308 is a
+        // finite f64 but an infinite f32.
+        if p.iter().any(|&v| !(v as f32).is_finite()) {
             return Err(format!(
-                "camera {}: parameters {p:?} are not finite",
+                "camera {}: parameters {p:?} are not finite in single precision",
                 self.id
             ));
         }
@@ -802,6 +808,16 @@ pub fn convert(root: &Path) -> SceneResult<Converted> {
             .map_err(|p| SceneError::new(&cameras_file, p))?;
         let p = to_zrak(*position).as_vec3();
         let r = rotation.as_mat3();
+        if !(p.is_finite() && r.is_finite()) {
+            return Err(SceneError::new(
+                &images_file,
+                format!(
+                    "image {} ({}): its pose (rotation {:?}, translation {:?}) is not finite \
+                     in single precision once the scene is centred and scaled",
+                    image.id, image.name, image.rotation, image.translation
+                ),
+            ));
+        }
         posed.push(PosedImage {
             name: image.name.clone(),
             image_path: image_folder.join(&image.name),
