@@ -714,7 +714,8 @@ fn long_fuzz_of_every_parser() {
     };
     let round = setting("ZRAK_FUZZ_CASES", 2000) as u32;
     let budget = std::time::Duration::from_secs(60 * setting("ZRAK_FUZZ_MINUTES", 10));
-    let parsers: [(&str, fn(u32) -> Counts); 4] = [
+    type Fuzzer = fn(u32) -> Counts;
+    let parsers: [(&str, Fuzzer); 4] = [
         ("Blender transforms_*.json", fuzz_blender),
         ("instant-ngp transforms.json", fuzz_instant_ngp),
         ("COLMAP sparse model", fuzz_colmap),
@@ -785,9 +786,18 @@ fn colmap_values_that_break_in_f32_are_refused() {
             .to_string()
     };
     let error = load_with(&|m| m.cameras.get_mut(&1).unwrap().params[0] = 1e-300);
-    assert!(error.contains("cameras.txt") && error.contains("focal"), "{error}");
+    assert!(
+        error.contains("cameras.txt") && error.contains("focal"),
+        "{error}"
+    );
     let error = load_with(&|m| m.cameras.get_mut(&1).unwrap().params[2] = 1e308);
-    assert!(error.contains("cameras.txt") && error.contains("finite"), "{error}");
+    assert!(
+        error.contains("cameras.txt") && error.contains("finite"),
+        "{error}"
+    );
     let error = load_with(&|m| m.images[1].rotation[0] = 3e179);
-    assert!(error.contains("images.txt") && error.contains("r_1.png"), "{error}");
+    assert!(
+        error.contains("images.txt") && error.contains("r_1.png"),
+        "{error}"
+    );
 }
