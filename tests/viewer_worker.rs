@@ -503,3 +503,54 @@ fn a_scene_loads_while_the_current_one_trains() {
     assert_eq!(step_once(&worker), 1);
     worker.shutdown();
 }
+
+#[test]
+fn training_goes_on_while_the_camera_never_rests() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let worker = spawn(options());
+    wait_for(&worker, |event| match event {
+        Event::Engine { .. } => Some(()),
+        _ => None,
+    });
+    // A new moving camera every 20 ms, as a long drag or `--auto-orbit`
+    // sends, the first before training starts: each coarse frame (1/8 of
+    // 256 px, an untrained field marched end to end) takes longer than
+    // that, so without a share kept for training the renders would follow
+    // one another and no step would run.
+    let moving_camera = |generation: u64| {
+        Command::Render(RenderRequest {
+            generation,
+            camera: camera(256, generation as f32 * 0.05),
+            mode: RenderMode::Rgb,
+            moving: true,
+            needs_pixels: false,
+        })
+    };
+    let mut generation = 100;
+    worker.send(moving_camera(generation));
+    worker.send(Command::Start);
+    let started = Instant::now();
+    let mut trained_seconds = 0.0;
+    let mut steps = Vec::new();
+    while started.elapsed() < Duration::from_secs(8) {
+        generation += 1;
+        worker.send(moving_camera(generation));
+        let next_request = Instant::now() + Duration::from_millis(20);
+        while let Some(left) = next_request.checked_duration_since(Instant::now()) {
+            if let Some(Event::Stats(stats)) = worker.recv_timeout(left) {
+                steps.push(stats.step);
+                trained_seconds = stats.train_seconds;
+            }
+        }
+    }
+    let elapsed = started.elapsed().as_secs_f64();
+    worker.shutdown();
+    // Training gets a quarter of the time while the camera moves (a step
+    // of d seconds, then 3 d for rendering: `MOVING_IDLE_PER_STEP`); a
+    // tenth allows for the step in progress when the clock stops and for
+    // a loaded machine.
+    assert!(
+        trained_seconds >= 0.1 * elapsed,
+        "{trained_seconds:.2} s of training in {elapsed:.1} s of a moving camera, steps {steps:?}"
+    );
+}

@@ -703,6 +703,14 @@ impl Worker {
         let share = self.training_share();
         let mut wake_after: Option<Duration> = None;
         let revision = self.slot(self.active).map(|s| s.revision);
+        // While the camera moves, training still gets its share: a camera
+        // that moves on every frame (a long drag, `--auto-orbit`) brings a
+        // new coarse frame to render before the last one is done, and
+        // letting every such frame go first stopped training altogether.
+        let step_due_while_moving = training
+            && self.last_step.is_none_or(|(ended, seconds)| {
+                ended.elapsed().as_secs_f64() >= seconds * MOVING_IDLE_PER_STEP
+            });
         if let Some(view) = self.view.as_mut() {
             if !view.has_work()
                 && let (Some((_, shown_revision, shown_at)), Some(revision)) =
@@ -718,7 +726,7 @@ impl Worker {
                 view.train_seconds = 0.0;
             }
             if view.has_work() {
-                if view.shown.is_none() {
+                if view.shown.is_none() && !(view.moving() && step_due_while_moving) {
                     // A new camera: its coarsest level at once.
                     return Work::Render { whole_level: true };
                 }
