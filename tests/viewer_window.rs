@@ -7,14 +7,14 @@
 //! line reopens. (One window for both: a window that trains long enough to
 //! show something costs half a minute.)
 //!
-//! Needs `xvfb-run` (Debian's xvfb; `.ci/run` installs it). Without it the
-//! tests say so and pass, except under CI, where a missing Xvfb fails.
+//! Needs `Xvfb` (Debian's xvfb; `.ci/run` installs it). Without it the
+//! test says so and passes, except under CI, where a missing Xvfb fails.
 
 mod common;
 
 use std::io::BufRead;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::{Child, Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant};
 
 /// Seconds of training before the screenshot; the interrupt comes once it
@@ -31,17 +31,66 @@ fn find_program(name: &str) -> Option<PathBuf> {
     })
 }
 
-/// `xvfb-run`, or `None` (after saying so) where it is missing outside CI.
-fn xvfb_run() -> Option<PathBuf> {
-    let found = find_program("xvfb-run");
-    if found.is_none() {
+/// A virtual X display (Xvfb), stopped when dropped.
+struct Display {
+    server: Child,
+    /// The value for `DISPLAY`, e.g. ":99".
+    name: String,
+}
+
+impl Display {
+    /// Starts Xvfb on a free display number, or `None` (after saying so)
+    /// where it is missing outside CI. Started here rather than through
+    /// `xvfb-run` so the viewer is this process's own child: its exit
+    /// status is its own (through xvfb-run's shell, an exit with status
+    /// 130 and a death by SIGINT look the same).
+    fn start() -> Option<Display> {
+        let Some(xvfb) = find_program("Xvfb") else {
+            assert!(
+                std::env::var_os("CI").is_none(),
+                "Xvfb is missing: .ci/run should have installed xvfb"
+            );
+            eprintln!("skipped: Xvfb is not installed (apt-get install xvfb)");
+            return None;
+        };
+        // `-displayfd 1`: Xvfb picks a free display and writes its number
+        // to standard output once it accepts connections.
+        let mut server = Command::new(xvfb)
+            .args([
+                "-displayfd",
+                "1",
+                "-screen",
+                "0",
+                "1280x800x24",
+                "-nolisten",
+                "tcp",
+            ])
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("Xvfb starts");
+        let mut number = String::new();
+        std::io::BufReader::new(server.stdout.take().expect("stdout is piped"))
+            .read_line(&mut number)
+            .expect("Xvfb says which display it took");
+        let number = number.trim();
         assert!(
-            std::env::var_os("CI").is_none(),
-            "xvfb-run is missing: .ci/run should have installed xvfb"
+            !number.is_empty() && number.bytes().all(|b| b.is_ascii_digit()),
+            "Xvfb wrote no display number: {number:?}"
         );
-        eprintln!("skipped: xvfb-run is not installed (apt-get install xvfb)");
+        Some(Display {
+            name: format!(":{number}"),
+            server,
+        })
     }
-    found
+}
+
+impl Drop for Display {
+    fn drop(&mut self) {
+        let _ = self.server.kill();
+        let _ = self.server.wait();
+    }
 }
 
 /// The run folders the viewer kept under `data_dir` (its `XDG_DATA_HOME`).
@@ -106,38 +155,32 @@ fn variety(image: &image::RgbaImage, [x, y, width, height]: [u32; 4]) -> (f64, u
 }
 
 /// Runs the viewer until it has saved its screenshot and logged two
-/// training steps, then sends it SIGINT
-/// as Ctrl-C in its terminal would, and waits for it to end; `data_dir` is
-/// its `XDG_DATA_HOME` (where it keeps unsaved training on closing).
-/// Returns its exit status and its log (standard error).
+/// training steps, then sends it SIGINT as Ctrl-C in its terminal would,
+/// and waits for it to end; `data_dir` is its `XDG_DATA_HOME` (where it
+/// keeps unsaved training on closing). Returns how it ended and its log
+/// (standard error).
 fn run_viewer_until_interrupted(
-    xvfb_run: &Path,
+    display: &Display,
     screenshot: &Path,
     data_dir: &Path,
-) -> (Option<i32>, String) {
+) -> (ExitStatus, String) {
     let runtime_dir = tempfile::tempdir().unwrap();
-    let pid_dir = tempfile::tempdir().unwrap();
-    let pid_file = pid_dir.path().join("zrak.pid");
-    // xvfb-run starts the command under a shell of its own: this one
-    // writes its pid, then becomes zrak, so the signal goes to zrak alone
-    // (not to xvfb-run, which would stop the X server under the window).
-    let mut child = Command::new(xvfb_run)
-        .args(["-a", "-s", "-screen 0 1280x800x24"])
-        .args(["sh", "-c", "echo $$ > \"$0\"; exec \"$@\""])
-        .arg(&pid_file)
-        .arg(common::zrak_bin())
+    let mut child = Command::new(common::zrak_bin())
         .arg("view")
         .arg("--screenshot")
         .arg(screenshot)
         .arg("--screenshot-after")
         .arg(SCREENSHOT_AFTER_SECONDS.to_string())
+        .env("DISPLAY", &display.name)
+        // X11 only, whatever the session running the tests offers.
+        .env_remove("WAYLAND_DISPLAY")
         .env("XDG_RUNTIME_DIR", runtime_dir.path())
         .env("XDG_DATA_HOME", data_dir)
         .stdin(Stdio::null())
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
         .spawn()
-        .expect("xvfb-run starts");
+        .expect("zrak starts");
     // The log, line by line, as it comes.
     let (lines, log) = std::sync::mpsc::channel::<String>();
     let stderr = child.stderr.take().expect("stderr is piped");
@@ -169,18 +212,13 @@ fn run_viewer_until_interrupted(
             break;
         }
     }
-    let pid: u32 = std::fs::read_to_string(&pid_file)
-        .expect("the shell wrote its pid")
-        .trim()
-        .parse()
-        .expect("a pid");
-    // zrak is running (it just logged), so xvfb-run has not reaped it.
-    common::send_signal(pid, libc::SIGINT);
+    // Not yet waited for, so the pid is still the viewer's.
+    common::send_signal(child.id(), libc::SIGINT);
     // Closing finishes the current training step first.
     let output = common::finish(child, 120);
     reader.join().expect("the log reader ends with the log");
     seen.extend(log.try_iter().map(|line| line + "\n"));
-    (output.status.code(), seen)
+    (output.status, seen)
 }
 
 /// The window trains and shows the demo scene; Ctrl-C in the terminal
@@ -190,14 +228,15 @@ fn run_viewer_until_interrupted(
 /// the status of an interrupted command (130, as `zrak train`).
 #[test]
 fn window_trains_on_the_demo_scene_shows_it_and_keeps_it_on_ctrl_c() {
-    let Some(xvfb_run) = xvfb_run() else {
+    let Some(display) = Display::start() else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
     let screenshot = dir.path().join("window.png");
     let data_dir = dir.path().join("data");
-    let (status, log) = run_viewer_until_interrupted(&xvfb_run, &screenshot, &data_dir);
-    assert_eq!(status, Some(130), "{log}");
+    let (status, log) = run_viewer_until_interrupted(&display, &screenshot, &data_dir);
+    // Its own exit with the interrupted status, not a death by the signal.
+    assert_eq!(status.code(), Some(130), "{status}\n{log}");
     assert!(!log.contains("panicked"), "{log}");
     assert!(log.contains("interrupted: closing the window"), "{log}");
 
