@@ -3,9 +3,11 @@
 //! The first interrupt asks the work to stop at its next safe point (after
 //! the current training step, turntable frame or evaluated view), so a run
 //! keeps everything it has trained; a second one ends the process at once,
-//! for when that point is too far away.
+//! for when that point is too far away. The viewer closes its window on the
+//! first, as its close button does, and so keeps what it has trained.
 
 use std::io::Write;
+use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 /// The exit status of a command stopped by an interrupt: 128 + SIGINT, what
@@ -15,6 +17,13 @@ use std::sync::atomic::{AtomicBool, Ordering};
 pub const EXIT_STATUS: u8 = 130;
 
 static REQUESTED: AtomicBool = AtomicBool::new(false);
+
+type Wake = Box<dyn Fn() + Send>;
+
+/// What the first interrupt calls besides setting the flag, for work that
+/// sleeps until woken rather than polling [`requested`] (the viewer's
+/// window waits for events).
+static WAKE: Mutex<Option<Wake>> = Mutex::new(None);
 
 /// Installs the handler for SIGINT, SIGTERM and SIGHUP. `what_happens`
 /// finishes the sentence "interrupted: …" printed on the first one.
@@ -27,8 +36,22 @@ pub fn install(what_happens: &'static str) -> Result<(), String> {
         note(&format!(
             "\ninterrupted: {what_happens} (interrupt again to stop at once)"
         ));
+        if let Ok(wake) = WAKE.lock()
+            && let Some(wake) = wake.as_ref()
+        {
+            wake();
+        }
     })
     .map_err(|e| format!("cannot install the interrupt handler: {e}"))
+}
+
+/// Has `wake` called on the first interrupt, after [`requested`] turns
+/// true, replacing any earlier one. (An interrupt that came before is seen
+/// by polling [`requested`].)
+pub fn on_request(wake: impl Fn() + Send + 'static) {
+    if let Ok(mut slot) = WAKE.lock() {
+        *slot = Some(Box::new(wake));
+    }
 }
 
 /// The flag the handler sets, for loops that poll it.

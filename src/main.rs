@@ -307,6 +307,9 @@ fn main() -> ExitCode {
         Some(Command::Bench(BenchCommand::Throughput { .. })) => {
             Some("finishing the current step, then reporting the steps measured")
         }
+        Some(Command::View(_)) | None => {
+            Some("closing the window, keeping every model trained since its last save")
+        }
         _ => None,
     };
     if let Some(what_happens) = on_interrupt

@@ -1,19 +1,16 @@
 //! The `zrak` binary as a user runs it: resuming from a run folder alone,
 //! interrupts, closed pipes and the README's own commands.
 
+mod common;
+
 use std::path::Path;
 use std::process::{Command, Output, Stdio};
 
+use common::finish;
 use zrak::train::checkpoint::Checkpoint;
 
-/// The binary under test. `ZRAK_BIN` overrides cargo's path to it for a
-/// target folder shared by several checkouts, where another checkout's build
-/// may replace `target/debug/zrak` while these tests run.
 fn zrak() -> Command {
-    match std::env::var_os("ZRAK_BIN") {
-        Some(path) => Command::new(path),
-        None => Command::new(env!("CARGO_BIN_EXE_zrak")),
-    }
+    Command::new(common::zrak_bin())
 }
 
 /// Runs `zrak ARGS` in `dir` and returns its output, whatever the status.
@@ -182,24 +179,9 @@ fn wait_for_metrics(dir: &Path, lines: usize, child: &mut std::process::Child) -
     }
 }
 
+/// Signals a child we have not yet waited for.
 fn send(child: &std::process::Child, signal: i32) {
-    // SAFETY: kill(2) on the pid of a child we have not yet waited for, so
-    // the pid cannot have been reused.
-    let result = unsafe { libc::kill(child.id() as libc::pid_t, signal) };
-    assert_eq!(result, 0, "kill({}, {signal})", child.id());
-}
-
-/// Waits for the child to end (at most `seconds`), returning its output.
-fn finish(mut child: std::process::Child, seconds: u64) -> Output {
-    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(seconds);
-    while child.try_wait().expect("waiting on zrak").is_none() {
-        if std::time::Instant::now() > deadline {
-            let _ = child.kill();
-            panic!("zrak did not end within {seconds} s of the signal");
-        }
-        std::thread::sleep(std::time::Duration::from_millis(20));
-    }
-    child.wait_with_output().expect("collecting zrak's output")
+    common::send_signal(child.id(), signal);
 }
 
 #[test]

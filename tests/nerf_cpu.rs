@@ -1,82 +1,33 @@
 //! NeRF and Mip-NeRF on the cpu engine (one driver, one field shape, two
 //! recipes): the field's gradients, the whole step's gradient with either
-//! sampler, exact resumption, and hard cases.
+//! sampler, exact resumption, and recovery from an emptied grid. Hard
+//! numerical cases are in tests/hard_cases.rs, for every model.
+
+mod common;
 
 use std::sync::Arc;
 
+use common::{NerfKind, batch, small_nerf_shape};
 use glam::Vec3;
 use zrak::engine::cpu::fields::Field;
-use zrak::engine::cpu::fields::nerf::{DensityActivation, NerfField, NerfShape};
-use zrak::engine::cpu::frequency::FrequencyEncoding;
+use zrak::engine::cpu::fields::nerf::NerfField;
 use zrak::engine::cpu::model::CpuModel;
 use zrak::field::nerf::Sampling;
 use zrak::field::ngp::LossKind;
 use zrak::rng::Pcg32;
 use zrak::scene::Scene;
-use zrak::scene::demo::{self, DemoConfig};
-use zrak::train::batch::{RayBatch, TrainingBackground, sample_rays};
 use zrak::train::checkpoint::Checkpoint;
 use zrak::train::model::RadianceModel;
 use zrak::train::trainer::Trainer;
 use zrak::train::{ModelSettings, cpu_mipnerf_with_shape, cpu_nerf_with_shape};
 
 fn small_scene() -> Arc<Scene> {
-    Arc::new(demo::build(&DemoConfig {
-        size: 24,
-        train_views: 12,
-        val_views: 2,
-        test_views: 1,
-    }))
+    common::small_scene(24)
 }
 
-#[derive(Debug, Clone, Copy, PartialEq)]
-enum Kind {
-    Nerf,
-    MipNerf,
-}
+const KINDS: [NerfKind; 2] = [NerfKind::Nerf, NerfKind::MipNerf];
 
-const KINDS: [Kind; 2] = [Kind::Nerf, Kind::MipNerf];
-
-/// Each model's field in miniature: the same parts (NeRF: both encodings
-/// with their raw inputs, ReLU density; Mip-NeRF: the integrated position
-/// encoding without it, shifted softplus, widened colours; both: a trunk
-/// with the skip, the σ and feature heads, the colour branch), narrow
-/// enough for finite differences to be quick.
-fn small_shape(kind: Kind) -> NerfShape {
-    let shape = |position, density| {
-        NerfShape::new(
-            position,
-            FrequencyEncoding {
-                frequencies: 2,
-                include_input: true,
-            },
-            16,
-            4,
-            2,
-            8,
-            density,
-        )
-    };
-    match kind {
-        Kind::Nerf => shape(
-            FrequencyEncoding {
-                frequencies: 3,
-                include_input: true,
-            },
-            DensityActivation::Relu,
-        ),
-        Kind::MipNerf => shape(
-            FrequencyEncoding {
-                frequencies: 4,
-                include_input: false,
-            },
-            DensityActivation::ShiftedSoftplus { shift: 1.0 },
-        )
-        .with_colour_padding(zrak::field::mipnerf::RGB_PADDING),
-    }
-}
-
-fn model_of(scene: &Scene, kind: Kind, sampling: Sampling) -> CpuModel {
+fn model_of(scene: &Scene, kind: NerfKind, sampling: Sampling) -> CpuModel {
     let settings = ModelSettings {
         seed: 3,
         loss: LossKind::L2,
@@ -84,25 +35,13 @@ fn model_of(scene: &Scene, kind: Kind, sampling: Sampling) -> CpuModel {
         sampling,
     };
     match kind {
-        Kind::Nerf => cpu_nerf_with_shape(scene, &settings, &small_shape(kind)),
-        Kind::MipNerf => cpu_mipnerf_with_shape(scene, &settings, &small_shape(kind)),
+        NerfKind::Nerf => cpu_nerf_with_shape(scene, &settings, &small_nerf_shape(kind)),
+        NerfKind::MipNerf => cpu_mipnerf_with_shape(scene, &settings, &small_nerf_shape(kind)),
     }
 }
 
 fn model(scene: &Scene, sampling: Sampling) -> CpuModel {
-    model_of(scene, Kind::Nerf, sampling)
-}
-
-fn batch(scene: &Scene, rays: usize, seed: u64) -> RayBatch {
-    let mut batch = RayBatch::default();
-    sample_rays(
-        &scene.train,
-        rays,
-        TrainingBackground::Random,
-        &mut Pcg32::new(seed, 0),
-        &mut batch,
-    );
-    batch
+    model_of(scene, NerfKind::Nerf, sampling)
 }
 
 /// Variances log-uniform in [1e-6, 1e-1]: from nearly points (every
@@ -124,8 +63,8 @@ fn field_gradient_matches_finite_differences() {
     }
 }
 
-fn check_field_gradient(kind: Kind) {
-    let mut field = NerfField::new(small_shape(kind));
+fn check_field_gradient(kind: NerfKind) {
+    let mut field = NerfField::new(small_nerf_shape(kind));
     let mut rng = Pcg32::new(17, 0);
     let mut params = field.init_params(5);
     // Biases away from zero, so every layer's bias gradient is exercised
@@ -146,7 +85,7 @@ fn check_field_gradient(kind: Kind) {
             d.to_array()
         })
         .collect();
-    let variances = (kind == Kind::MipNerf).then(|| variances(&mut rng, n));
+    let variances = (kind == NerfKind::MipNerf).then(|| variances(&mut rng, n));
     let variances = variances.as_deref();
     // The loss Σ a·σ + Σ b·rgb with fixed random a, b.
     let a: Vec<f32> = (0..n).map(|_| uniform(&mut rng, -1.0, 1.0)).collect();
@@ -207,7 +146,7 @@ fn check_field_gradient(kind: Kind) {
 
     // The eight parameters with the largest gradient in each network
     // (trunk before the skip, after it, colour branch).
-    let shape = small_shape(kind);
+    let shape = small_nerf_shape(kind);
     let a = shape.trunk_a.param_count();
     let b = a + shape.trunk_b.param_count();
     let networks = [0..a, a..b, b..params.len()];
@@ -246,7 +185,7 @@ fn check_field_gradient(kind: Kind) {
 
 /// The whole step's gradient against central differences of the step's
 /// loss, for the parameters with the largest gradients in each field.
-fn check_step_gradient(kind: Kind, sampling: Sampling) {
+fn check_step_gradient(kind: NerfKind, sampling: Sampling) {
     let scene = small_scene();
     let mut trainer = Trainer::new(Box::new(model_of(&scene, kind, sampling)), scene.clone(), 3);
     for _ in 0..20 {
@@ -304,7 +243,7 @@ fn step_gradient_matches_finite_differences_with_the_paper_sampler() {
     }
 }
 
-fn check_resume(kind: Kind, sampling: Sampling) {
+fn check_resume(kind: NerfKind, sampling: Sampling) {
     let scene = small_scene();
     let steps = 36; // spans two occupancy-grid updates (every 16 steps)
     let model = |scene: &Scene, sampling| model_of(scene, kind, sampling);
@@ -367,118 +306,9 @@ fn checkpoint_of_the_other_sampler_or_model_is_refused() {
         .load(&ngp.save())
         .unwrap_err();
     assert!(error.contains("`ngp`"), "{error}");
-    let mip = model_of(&scene, Kind::MipNerf, Sampling::Occupancy).save();
+    let mip = model_of(&scene, NerfKind::MipNerf, Sampling::Occupancy).save();
     let error = model(&scene, Sampling::Occupancy).load(&mip).unwrap_err();
     assert!(error.contains("`mipnerf`"), "{error}");
-}
-
-/// Sets the σ head's bias (the first output of the field's second trunk)
-/// of every field to `bias`, which with small weights sets raw σ ≈ bias.
-fn set_density_bias(nerf: &mut CpuModel, kind: Kind, bias: f32) {
-    let shape = small_shape(kind);
-    let b_start = shape.trunk_a.param_count();
-    let last = shape.trunk_b.layers() - 1;
-    let offset = shape.trunk_b.bias_offset(last).unwrap();
-    for range in nerf.parameter_ranges().to_vec() {
-        nerf.params_mut()[range.start + b_start + offset] = bias;
-    }
-}
-
-fn assert_all_finite(nerf: &mut CpuModel, rays: &RayBatch, label: &str) {
-    let stats = nerf.step(rays, 7);
-    assert!(stats.loss.is_finite(), "{label}: {stats:?}");
-    assert!(
-        nerf.params().iter().all(|p| p.is_finite()),
-        "{label}: a parameter is not finite"
-    );
-    assert!(
-        nerf.gradients().iter().all(|g| g.is_finite()),
-        "{label}: a gradient is not finite"
-    );
-    let mut out = vec![Default::default(); rays.len()];
-    nerf.render(
-        &rays.origins,
-        &rays.directions,
-        &rays.radii,
-        [1.0; 3],
-        &mut out,
-    );
-    for pixel in &out {
-        assert!(
-            pixel
-                .rgb
-                .iter()
-                // Mip-NeRF's colours are widened to [−0.001, 1.001].
-                .all(|c| c.is_finite() && (-1.001e-3..=1.0 + 1.001e-3).contains(c)),
-            "{label}: {pixel:?}"
-        );
-        assert!(
-            (0.0..=1.0 + 1e-6).contains(&pixel.opacity) && pixel.depth.is_finite(),
-            "{label}: {pixel:?}"
-        );
-    }
-}
-
-#[test]
-fn hard_cases_stay_finite() {
-    let scene = small_scene();
-    let mut rays = batch(&scene, 48, 2);
-    // Missing the box, pointing away from it, starting at its centre, and
-    // axis-parallel along a face.
-    for (origin, direction) in [
-        (Vec3::new(10.0, 10.0, 10.0), Vec3::X),
-        (Vec3::new(0.0, 0.0, 4.0), Vec3::Z),
-        (Vec3::ZERO, Vec3::new(0.0, 0.0, -1.0)),
-        (scene.bounds.max, -Vec3::Y),
-    ] {
-        rays.origins.push(origin);
-        rays.directions.push(direction);
-        rays.targets.push([1.0; 3]);
-        rays.backgrounds.push([1.0; 3]);
-        rays.radii.push(1e-3);
-    }
-    // A cone of zero radius (a frustum of zero width) and a very wide one.
-    rays.radii[0] = 0.0;
-    rays.radii[1] = 1e2;
-    for (kind, sampling) in KINDS
-        .into_iter()
-        .flat_map(|k| [(k, Sampling::Occupancy), (k, Sampling::Paper)])
-    {
-        let label = format!("{kind:?} {sampling:?}");
-        // Raw σ of 1e4 everywhere: every ray opaque at its first sample.
-        let mut nerf = model_of(&scene, kind, sampling);
-        set_density_bias(&mut nerf, kind, 1e4);
-        assert_all_finite(&mut nerf, &rays, &format!("{label}, σ 1e4"));
-        // Raw σ of −1e4: all weights exactly zero, so the importance
-        // sampler sees a zero pdf.
-        let mut nerf = model_of(&scene, kind, sampling);
-        set_density_bias(&mut nerf, kind, -1e4);
-        assert_all_finite(&mut nerf, &rays, &format!("{label}, σ 0"));
-        // A learning-rate spike's aftermath: large weights everywhere.
-        let mut nerf = model_of(&scene, kind, sampling);
-        for p in nerf.params_mut() {
-            *p *= 50.0;
-        }
-        assert_all_finite(&mut nerf, &rays, &format!("{label}, large weights"));
-    }
-    // The ray that misses the box shows the background under either
-    // sampler (the demo is not a Blender scene: rays are bounded by its box).
-    for (kind, sampling) in KINDS
-        .into_iter()
-        .flat_map(|k| [(k, Sampling::Occupancy), (k, Sampling::Paper)])
-    {
-        let nerf = model_of(&scene, kind, sampling);
-        let mut out = vec![Default::default(); 1];
-        nerf.render(
-            &rays.origins[48..49],
-            &rays.directions[48..49],
-            &rays.radii[48..49],
-            [1.0; 3],
-            &mut out,
-        );
-        assert_eq!(out[0].rgb, [1.0; 3], "{kind:?} {sampling:?}");
-        assert_eq!(out[0].opacity, 0.0, "{kind:?} {sampling:?}");
-    }
 }
 
 #[test]

@@ -1,43 +1,27 @@
 //! Instant-NGP on the cpu engine as a whole: the chained step's gradient
-//! against finite differences, exact resumption, recovery from an empty
-//! occupancy grid, and hard rays.
+//! against finite differences, exact resumption, and recovery from an
+//! empty occupancy grid. Hard numerical cases are in tests/hard_cases.rs,
+//! for every model.
+
+mod common;
 
 use std::sync::Arc;
 
-use glam::Vec3;
+use common::batch;
 use zrak::engine::cpu::ngp::CpuNgp;
 use zrak::field::ngp::LossKind;
-use zrak::rng::Pcg32;
 use zrak::scene::Scene;
 use zrak::scene::demo::{self, DemoConfig};
-use zrak::train::batch::{RayBatch, TrainingBackground, sample_rays};
 use zrak::train::checkpoint::Checkpoint;
 use zrak::train::model::RadianceModel;
 use zrak::train::trainer::Trainer;
 
 fn small_scene() -> Arc<Scene> {
-    Arc::new(demo::build(&DemoConfig {
-        size: 32,
-        train_views: 12,
-        val_views: 2,
-        test_views: 1,
-    }))
+    common::small_scene(32)
 }
 
 fn model(scene: &Scene) -> CpuNgp {
     CpuNgp::with_batch_samples(scene, 3, LossKind::Huber, 1 << 13)
-}
-
-fn batch(scene: &Scene, rays: usize, seed: u64) -> RayBatch {
-    let mut batch = RayBatch::default();
-    sample_rays(
-        &scene.train,
-        rays,
-        TrainingBackground::Random,
-        &mut Pcg32::new(seed, 0),
-        &mut batch,
-    );
-    batch
 }
 
 #[test]
@@ -171,48 +155,4 @@ fn training_recovers_from_an_emptied_occupancy_grid() {
     }
     assert!(last.samples > 0, "the grid was not re-occupied: {last:?}");
     assert!(last.loss.is_finite() && last.loss < 0.1, "{last:?}");
-}
-
-#[test]
-fn rays_that_miss_or_start_inside_the_box_stay_finite() {
-    let scene = small_scene();
-    let mut ngp = model(&scene);
-    let mut rays = batch(&scene, 64, 2);
-    // Missing the box, pointing away from it, starting at its centre, and
-    // axis-parallel along a face.
-    let extra = [
-        (Vec3::new(10.0, 10.0, 10.0), Vec3::X),
-        (Vec3::new(0.0, 0.0, 4.0), Vec3::Z),
-        (Vec3::ZERO, Vec3::new(0.0, 0.0, -1.0)),
-        (scene.bounds.max, -Vec3::Y),
-    ];
-    for (origin, direction) in extra {
-        rays.origins.push(origin);
-        rays.directions.push(direction);
-        rays.targets.push([1.0; 3]);
-        rays.backgrounds.push([1.0; 3]);
-    }
-    let stats = ngp.step(&rays, 0);
-    assert!(stats.loss.is_finite(), "{stats:?}");
-    assert!(ngp.params().iter().all(|p| p.is_finite()));
-    let mut out = vec![Default::default(); rays.len()];
-    ngp.render(
-        &rays.origins,
-        &rays.directions,
-        &rays.radii,
-        [1.0; 3],
-        &mut out,
-    );
-    for pixel in &out {
-        assert!(
-            pixel
-                .rgb
-                .iter()
-                .all(|c| c.is_finite() && (0.0..=1.0).contains(c))
-        );
-        assert!((0.0..=1.0).contains(&pixel.opacity) && pixel.depth.is_finite());
-    }
-    // The ray that misses sees exactly the background.
-    assert_eq!(out[64].rgb, [1.0; 3]);
-    assert_eq!(out[64].opacity, 0.0);
 }

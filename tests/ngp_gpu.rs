@@ -2,20 +2,19 @@
 //! whole training step from the same state, the occupancy update, and a
 //! checkpoint moved from the gpu engine to the cpu engine.
 
+mod common;
+
 use std::ops::Range;
 use std::sync::Arc;
 use std::time::Instant;
 
+use common::{batch, relative, relative_norm};
 use glam::Vec3;
 use zrak::engine::cpu::ngp::CpuNgp;
-use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::ngp::GpuNgp;
 use zrak::engine::gpu::timing::StageTiming;
 use zrak::field::ngp::LossKind;
-use zrak::rng::Pcg32;
 use zrak::scene::Scene;
-use zrak::scene::demo::{self, DemoConfig};
-use zrak::train::batch::{RayBatch, TrainingBackground, sample_rays};
 use zrak::train::model::{RadianceModel, RenderedPixel};
 
 /// 2^12 samples per batch: a few dozen rays through a sparse grid.
@@ -23,29 +22,12 @@ const BATCH_SAMPLES: usize = 1 << 12;
 const SEED: u64 = 5;
 
 fn small_scene() -> Arc<Scene> {
-    Arc::new(demo::build(&DemoConfig {
-        size: 32,
-        train_views: 12,
-        val_views: 2,
-        test_views: 1,
-    }))
-}
-
-fn batch(scene: &Scene, rays: usize, seed: u64) -> RayBatch {
-    let mut batch = RayBatch::default();
-    sample_rays(
-        &scene.train,
-        rays,
-        TrainingBackground::Random,
-        &mut Pcg32::new(seed, 0),
-        &mut batch,
-    );
-    batch
+    common::small_scene(32)
 }
 
 fn models(scene: &Scene) -> (CpuNgp, GpuNgp) {
     let cpu = CpuNgp::with_batch_samples(scene, SEED, LossKind::Huber, BATCH_SAMPLES);
-    let context = GpuContext::new().expect("lavapipe or a GPU");
+    let context = common::gpu_context();
     let gpu = GpuNgp::with_batch_samples(context, scene, SEED, LossKind::Huber, BATCH_SAMPLES)
         .expect("gpu model");
     (cpu, gpu)
@@ -72,20 +54,6 @@ fn share_ball_grid(cpu: &mut CpuNgp, gpu: &mut GpuNgp) {
     }
     gpu.load(&cpu.save()).unwrap();
     assert_eq!(gpu.occupancy().bitfield(), cpu.occupancy().bitfield());
-}
-
-fn relative(a: f32, b: f32) -> f32 {
-    (a - b).abs() / b.abs().max(1e-30)
-}
-
-/// ‖a − b‖ / ‖b‖ in f64.
-fn relative_norm(a: &[f32], b: &[f32]) -> f64 {
-    let (mut d, mut n) = (0.0f64, 0.0f64);
-    for (&x, &y) in a.iter().zip(b) {
-        d += (x as f64 - y as f64).powi(2);
-        n += (y as f64).powi(2);
-    }
-    (d / n.max(1e-300)).sqrt()
 }
 
 #[test]

@@ -214,7 +214,11 @@ impl ViewerApp {
             },
         );
         // Events wake the window; without this it would sleep until input.
-        worker.set_repaint(Box::new(move || ctx.request_repaint()));
+        let wake = ctx.clone();
+        worker.set_repaint(Box::new(move || wake.request_repaint()));
+        // So does an interrupt (Ctrl-C in the terminal, SIGTERM), which the
+        // next frame turns into closing the window.
+        crate::interrupt::on_request(move || ctx.request_repaint());
         // The viewer trains from the start, as instant-ngp's testbed does.
         worker.send(Command::Start);
         let mut ui = ViewerUi::new(Box::new(worker), options.model);
@@ -309,6 +313,12 @@ impl eframe::App for ViewerApp {
         self.ui.show(ui);
         let ctx = ui.ctx().clone();
         self.automation(&ctx);
+        // An interrupt closes the window as its close button does, so the
+        // models trained since their last save are kept on the way out
+        // (`on_exit`); `zrak view` then exits with the interrupted status.
+        if crate::interrupt::requested() {
+            ctx.send_viewport_cmd(egui::ViewportCommand::Close);
+        }
 
         if self.options.frame_log.is_some() {
             self.frames.push(FrameTime {

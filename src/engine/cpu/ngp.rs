@@ -258,7 +258,13 @@ impl CpuNgp {
         loss: LossKind,
         batch_samples: usize,
     ) -> Self {
-        let shape = NgpShape::for_scene(scene);
+        Self::with_shape(NgpShape::for_scene(scene), seed, loss, batch_samples)
+    }
+
+    /// [`Self::with_batch_samples`] with parts of another size than the
+    /// paper's (tests use a small hash table, as they use small NeRF
+    /// networks: the same stages on fewer parameters).
+    pub fn with_shape(shape: NgpShape, seed: u64, loss: LossKind, batch_samples: usize) -> Self {
         let mut params = hash_grid::init_params(&shape.grid, seed);
         params.extend(shape.density.init_params(seed ^ 0x64656e73));
         params.extend(shape.colour.init_params(seed ^ 0x636f6c6f));

@@ -170,7 +170,27 @@ impl GpuNgp {
         loss: LossKind,
         batch_samples: usize,
     ) -> Result<Self, GpuError> {
-        let shape = NgpShape::for_scene(scene);
+        Self::with_shape(
+            context,
+            NgpShape::for_scene(scene),
+            scene.depth_range(),
+            seed,
+            loss,
+            batch_samples,
+        )
+    }
+
+    /// [`Self::with_batch_samples`] with parts of another size than the
+    /// paper's (see `CpuNgp::with_shape`); `depth_range` is the scene's
+    /// ([`Scene::depth_range`]), for depth images.
+    pub fn with_shape(
+        context: GpuContext,
+        shape: NgpShape,
+        depth_range: (f32, f32),
+        seed: u64,
+        loss: LossKind,
+        batch_samples: usize,
+    ) -> Result<Self, GpuError> {
         // The wide per-sample matrices (encodings, activations) and the
         // parameter arrays are bound a piece at a time when they exceed the
         // storage-binding limit; the march's and compositing's per-sample
@@ -267,7 +287,7 @@ impl GpuNgp {
             scratch: Vec::new(),
             clock: Some(StageClock::new(ctx, StageTiming::Timestamps)),
             render_buffers: Mutex::new(None),
-            depth_range: scene.depth_range(),
+            depth_range,
             stages,
             shape,
             context,
