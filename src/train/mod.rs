@@ -134,8 +134,9 @@ pub fn cpu_mipnerf_with_shape(
     )
 }
 
-/// A model of the recipe's levels over fields of NeRF's shape.
-fn cpu_model_of_nerf_fields(
+/// A model of the recipe's levels over fields of NeRF's shape (NeRF and
+/// Mip-NeRF are such models; tests build them with other recipes too).
+pub fn cpu_model_of_nerf_fields(
     identity: crate::engine::cpu::model::ModelIdentity,
     recipe: crate::field::common::Recipe,
     scene: &Scene,
@@ -210,8 +211,9 @@ pub fn gpu_mipnerf_with_shape(
     )
 }
 
-/// A gpu model of the recipe's levels over fields of NeRF's shape.
-fn gpu_model_of_nerf_fields(
+/// A gpu model of the recipe's levels over fields of NeRF's shape, the gpu
+/// twin of [`cpu_model_of_nerf_fields`].
+pub fn gpu_model_of_nerf_fields(
     context: crate::engine::gpu::GpuContext,
     identity: crate::engine::cpu::model::ModelIdentity,
     recipe: crate::field::common::Recipe,
@@ -246,21 +248,24 @@ fn gpu_model_of_nerf_fields(
     )
 }
 
-fn nerf_recipe(scene: &Scene, settings: &ModelSettings) -> crate::field::nerf::Recipe {
+/// NeRF's recipe for `scene` with the settings' sampler.
+pub fn nerf_recipe(scene: &Scene, settings: &ModelSettings) -> crate::field::nerf::Recipe {
     crate::field::nerf::recipe(
         settings.sampling,
         scene.format == crate::scene::SceneFormat::Blender,
     )
 }
 
-fn mipnerf_recipe(scene: &Scene, settings: &ModelSettings) -> crate::field::common::Recipe {
+/// Mip-NeRF's recipe for `scene` with the settings' sampler.
+pub fn mipnerf_recipe(scene: &Scene, settings: &ModelSettings) -> crate::field::common::Recipe {
     crate::field::mipnerf::recipe(
         settings.sampling,
         scene.format == crate::scene::SceneFormat::Blender,
     )
 }
 
-fn mipnerf_identity(settings: &ModelSettings) -> crate::engine::cpu::model::ModelIdentity {
+/// What Mip-NeRF's models are called, in the viewer and in checkpoints.
+pub fn mipnerf_identity(settings: &ModelSettings) -> crate::engine::cpu::model::ModelIdentity {
     crate::engine::cpu::model::ModelIdentity {
         name: "Mip-NeRF",
         key: "mipnerf",
@@ -268,7 +273,8 @@ fn mipnerf_identity(settings: &ModelSettings) -> crate::engine::cpu::model::Mode
     }
 }
 
-fn nerf_identity(settings: &ModelSettings) -> crate::engine::cpu::model::ModelIdentity {
+/// What NeRF's models are called, in the viewer and in checkpoints.
+pub fn nerf_identity(settings: &ModelSettings) -> crate::engine::cpu::model::ModelIdentity {
     crate::engine::cpu::model::ModelIdentity {
         name: "NeRF",
         key: "nerf",
