@@ -933,9 +933,9 @@ fn bench_dense(rows: usize, repeats: usize) {
     println!("machine peak         {peak:.0} GFLOP/s (f32 matrix multiply, median)");
 }
 
-/// Samples per NeRF batch when the bench runs the gpu engine on a software
-/// adapter: 16 rays with the paper's sampler, ~14 G FLOP a step, seconds on
-/// lavapipe.
+/// Samples per NeRF or Mip-NeRF batch when the bench runs the gpu engine on
+/// a software adapter: 16 rays with the paper's sampler, ~14 G FLOP a step,
+/// seconds on lavapipe.
 const SOFTWARE_GPU_NERF_SAMPLES: usize = 1 << 12;
 
 fn bench_throughput(
@@ -972,8 +972,8 @@ fn bench_throughput(
     // samples of an 8 × 256 network, ~1 T FLOP a step) would take many
     // minutes a step at lavapipe's few GFLOP/s: there the bench is a
     // correctness run on a small batch.
-    let batch_samples =
-        (software_gpu && model == ModelKind::Nerf).then_some(SOFTWARE_GPU_NERF_SAMPLES);
+    let batch_samples = (software_gpu && matches!(model, ModelKind::Nerf | ModelKind::MipNerf))
+        .then_some(SOFTWARE_GPU_NERF_SAMPLES);
     let settings = ModelSettings {
         seed: 0,
         loss: model.default_loss(),

@@ -513,9 +513,16 @@ fn check_parity(shape: &NerfShape, rows: usize, seed: u64) {
     let context = context();
     let mut gpu = GpuNerfField::new(&context, shape, rows).expect("the kernels compile");
     assert_eq!(gpu.param_count(), params.len());
-    let (g_sigma, g_rgb, g_grad) =
-        gpu.forward_backward_once(&context, &params, &positions, &directions, &d_sigma, &d_rgb);
-    let g_density = gpu.density_once(&context, &params, &positions);
+    let (g_sigma, g_rgb, g_grad) = gpu.forward_backward_once(
+        &context,
+        &params,
+        &positions,
+        None,
+        &directions,
+        &d_sigma,
+        &d_rgb,
+    );
+    let g_density = gpu.density_once(&context, &params, &positions, None);
 
     let exact = reference(
         shape,
@@ -596,8 +603,15 @@ fn backward_accumulates() {
     let d_rgb = vec![-0.25f32; 3 * rows];
     let context = context();
     let mut gpu = GpuNerfField::new(&context, &shape, rows).expect("the kernels compile");
-    let (_, _, once) =
-        gpu.forward_backward_once(&context, &params, &positions, &directions, &d_sigma, &d_rgb);
+    let (_, _, once) = gpu.forward_backward_once(
+        &context,
+        &params,
+        &positions,
+        None,
+        &directions,
+        &d_sigma,
+        &d_rgb,
+    );
 
     let buffer = |label, v: &[f32]| storage_buffer(&context, label, v);
     let (p, x, d) = (
@@ -613,7 +627,7 @@ fn backward_accumulates() {
     let start: Vec<f32> = (0..params.len()).map(|i| (i % 7) as f32).collect();
     let gradients = buffer("gradients", &start);
     let mut encoder = context.device.create_command_encoder(&Default::default());
-    gpu.record_forward(&context, &mut encoder, &p, &x, &d, rows, &sigma, &rgb);
+    gpu.record_forward(&context, &mut encoder, &p, &x, None, &d, rows, &sigma, &rgb);
     gpu.record_backward(&context, &mut encoder, &p, &ds, &dc, rows, &gradients);
     context.queue.submit([encoder.finish()]);
     let accumulated: Vec<f32> = read_buffer(&context, &gradients, params.len());
@@ -638,7 +652,15 @@ fn split_bindings_give_the_same_bits() {
         .collect();
     let run = |context: &GpuContext| {
         let mut gpu = GpuNerfField::new(context, &shape, rows).expect("the kernels compile");
-        gpu.forward_backward_once(context, &params, &positions, &directions, &d_sigma, &d_rgb)
+        gpu.forward_backward_once(
+            context,
+            &params,
+            &positions,
+            None,
+            &directions,
+            &d_sigma,
+            &d_rgb,
+        )
     };
     let whole = run(&context());
     let mut capped = context();

@@ -1,8 +1,9 @@
-//! NeRF on the gpu engine (lavapipe) against the cpu engine, with a small
-//! field: one whole training step from the same state with the paper's
-//! sampler (loss, gradient, parameters after Adam) and with the occupancy
-//! sampler (loss, gradient, the grid's update), and a checkpoint moved from
-//! the gpu engine to the cpu engine.
+//! NeRF and Mip-NeRF on the gpu engine (lavapipe) against the cpu engine,
+//! each with a small field: one whole training step from the same state
+//! with the paper's sampler (loss, gradient, parameters after Adam) and with
+//! the occupancy sampler (loss, gradient, the grid's update), and a
+//! checkpoint moved from the gpu engine to the cpu engine. Every test runs
+//! once per model: the two models are one gpu driver with two recipes.
 //!
 //! Tolerances. Every stage of the step has its own parity test against the
 //! cpu (tests/nerf_field_gpu.rs, sampling_gpu.rs, composite and loss
@@ -15,7 +16,17 @@
 //! weights they are drawn from, so the chain's error is ~1e-5 of the
 //! quantities; the tolerances below are 1e-4 (relative), ten times that,
 //! and still far below what a wrong sample, weight, chunk share or
-//! parameter offset gives (those are off by O(1)).
+//! parameter offset gives (those are off by O(1)). Mip-NeRF's step adds
+//! two stages to the chain, both with parity tests of their own: the
+//! frustum Gaussians (tests/sampling_gpu.rs: within a few ulps, bit-equal
+//! on lavapipe) and the integrated encoding (tests/frequency_gpu.rs: within
+//! 2.2e-7 absolute, the exp of the damping); its resampled edges move
+//! continuously with the blurred coarse weights, as NeRF's importance
+//! samples do. So the same 1e-4 holds for it, and a frustum stage or
+//! encoding that ignored the variances would be off by far more: the small
+//! field's highest frequency, 2⁷, is damped by exp(−½·4⁷·σ²), far from 1
+//! for this 24-pixel scene's frustums (σ² ~ 1e-5 along a ray, more across
+//! its cone).
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -26,6 +37,8 @@ use zrak::engine::cpu::frequency::FrequencyEncoding;
 use zrak::engine::cpu::model::CpuModel;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::model::GpuModel;
+use zrak::field::common::Recipe;
+use zrak::field::mipnerf;
 use zrak::field::nerf::Sampling;
 use zrak::field::ngp::LossKind;
 use zrak::rng::Pcg32;
@@ -33,7 +46,10 @@ use zrak::scene::Scene;
 use zrak::scene::demo::{self, DemoConfig};
 use zrak::train::batch::{RayBatch, TrainingBackground, sample_rays};
 use zrak::train::model::{RadianceModel, RenderedPixel};
-use zrak::train::{ModelSettings, cpu_nerf_with_shape, gpu_nerf_with_shape};
+use zrak::train::{
+    ModelSettings, cpu_model_of_nerf_fields, gpu_model_of_nerf_fields, mipnerf_identity,
+    mipnerf_recipe, nerf_identity, nerf_recipe,
+};
 
 const SEED: u64 = 3;
 
@@ -46,26 +62,78 @@ fn small_scene() -> Arc<Scene> {
     }))
 }
 
-/// NeRF's field in miniature, as tests/nerf_cpu.rs: every part of the
-/// paper's (both encodings with raw inputs, the skip, σ and feature heads,
-/// the colour branch), narrow enough for lavapipe to run a step in
-/// seconds.
-fn small_shape() -> NerfShape {
-    NerfShape::new(
-        FrequencyEncoding {
-            frequencies: 3,
-            include_input: true,
-        },
-        FrequencyEncoding {
+/// The two models the gpu driver runs on NeRF's field.
+#[derive(Debug, Clone, Copy)]
+enum Model {
+    Nerf,
+    MipNerf,
+}
+
+impl Model {
+    /// The model's field in miniature, as tests/nerf_cpu.rs: every part of
+    /// the paper's (NeRF: both encodings with raw inputs; Mip-NeRF: the
+    /// integrated position encoding without, the shifted softplus and the
+    /// widened colour; the skip, σ and feature heads, the colour branch),
+    /// narrow enough for lavapipe to run a step in seconds.
+    fn shape(self) -> NerfShape {
+        let direction = FrequencyEncoding {
             frequencies: 2,
             include_input: true,
-        },
-        16,
-        4,
-        2,
-        8,
-        DensityActivation::Relu,
-    )
+        };
+        match self {
+            Model::Nerf => NerfShape::new(
+                FrequencyEncoding {
+                    frequencies: 3,
+                    include_input: true,
+                },
+                direction,
+                16,
+                4,
+                2,
+                8,
+                DensityActivation::Relu,
+            ),
+            // Six frequencies: the frustums' variances damp the highest
+            // ones strongly (see the tolerances above).
+            Model::MipNerf => NerfShape::new(
+                FrequencyEncoding {
+                    frequencies: 6,
+                    include_input: false,
+                },
+                direction,
+                16,
+                4,
+                2,
+                8,
+                DensityActivation::ShiftedSoftplus {
+                    shift: -mipnerf::DENSITY_BIAS,
+                },
+            )
+            .with_colour_padding(mipnerf::RGB_PADDING),
+        }
+    }
+
+    /// The model on the cpu engine and on the gpu engine, from the same
+    /// recipe (the model's own for `scene`, with `change` applied) and
+    /// seed.
+    fn engines(
+        self,
+        scene: &Scene,
+        settings: &ModelSettings,
+        change: impl FnOnce(&mut Recipe),
+    ) -> (CpuModel, GpuModel) {
+        let (mut recipe, identity) = match self {
+            Model::Nerf => (nerf_recipe(scene, settings), nerf_identity(settings)),
+            Model::MipNerf => (mipnerf_recipe(scene, settings), mipnerf_identity(settings)),
+        };
+        change(&mut recipe);
+        let shape = self.shape();
+        let cpu =
+            cpu_model_of_nerf_fields(identity.clone(), recipe.clone(), scene, settings, &shape);
+        let gpu = gpu_model_of_nerf_fields(context(), identity, recipe, scene, settings, &shape)
+            .expect("gpu model");
+        (cpu, gpu)
+    }
 }
 
 fn settings(sampling: Sampling) -> ModelSettings {
@@ -86,12 +154,10 @@ fn context() -> GpuContext {
 /// lavapipe runs the step in seconds.
 const RAYS_PER_CHUNK: usize = 8;
 
-fn models(scene: &Scene) -> (CpuModel, GpuModel) {
-    let settings = settings(Sampling::Paper);
-    let mut cpu = cpu_nerf_with_shape(scene, &settings, &small_shape());
+/// The model with the paper's sampler on both engines.
+fn models(model: Model, scene: &Scene) -> (CpuModel, GpuModel) {
+    let (mut cpu, mut gpu) = model.engines(scene, &settings(Sampling::Paper), |_| {});
     cpu.set_rays_per_chunk(RAYS_PER_CHUNK);
-    let mut gpu =
-        gpu_nerf_with_shape(context(), scene, &settings, &small_shape()).expect("gpu model");
     gpu.set_rays_per_chunk(RAYS_PER_CHUNK).unwrap();
     (cpu, gpu)
 }
@@ -122,12 +188,21 @@ fn relative_norm(a: &[f32], b: &[f32]) -> f64 {
     (d / n.max(1e-300)).sqrt()
 }
 
+#[test]
+fn nerf_training_step_matches_the_cpu_engine() {
+    one_training_step_matches_the_cpu_engine(Model::Nerf);
+}
+
+#[test]
+fn mipnerf_training_step_matches_the_cpu_engine() {
+    one_training_step_matches_the_cpu_engine(Model::MipNerf);
+}
+
 /// One whole step, gpu against cpu, on a batch of two chunks (8 rays and
 /// 4: the chunk shares and each chunk's jitter seed are exercised).
-#[test]
-fn one_training_step_matches_the_cpu_engine() {
+fn one_training_step_matches_the_cpu_engine(model: Model) {
     let scene = small_scene();
-    let (mut cpu, mut gpu) = models(&scene);
+    let (mut cpu, mut gpu) = models(model, &scene);
     assert!(
         gpu.params() == cpu.params(),
         "initial parameters differ: the engines must start identical"
@@ -141,7 +216,7 @@ fn one_training_step_matches_the_cpu_engine() {
     let clock = Instant::now();
     let gpu_stats = gpu.forward_backward(&rays, step);
     println!(
-        "gpu forward + backward: {:.0} ms for {} samples; times {:?}",
+        "{model:?}: gpu forward + backward: {:.0} ms for {} samples; times {:?}",
         clock.elapsed().as_secs_f64() * 1e3,
         gpu_stats.samples,
         gpu_stats.times
@@ -195,9 +270,19 @@ fn one_training_step_matches_the_cpu_engine() {
             }
             changed += 1;
             // Compared as the update (after − before): 1e-3 of the
-            // learning rate is ~1e-3 of a step, far above rounding.
+            // learning rate is ~1e-3 of a step, far above the rounding of
+            // the update itself. Each engine then rounds p − update to f32,
+            // half an ulp of the parameter each, so one ulp (≤ ε·|p|) more
+            // may separate them: with NeRF's rate (5e-4) that is ~1e-4 of a
+            // step, with Mip-NeRF's first warm-up rate (5e-6, 0.01 of its
+            // 5e-4) ~1e-2.
             let (dc, dg) = (cpu_after[i] - before[i], gpu_after[i] - before[i]);
-            if (dc - dg).abs() > 1e-3 * dc.abs().max(dg.abs()) {
+            let ulp = f32::EPSILON
+                * before[i]
+                    .abs()
+                    .max(cpu_after[i].abs())
+                    .max(gpu_after[i].abs());
+            if (dc - dg).abs() > 1e-3 * dc.abs().max(dg.abs()) + ulp {
                 mismatched += 1;
                 // Only a gradient at the level of summation noise may
                 // differ in sign (see tests/ngp_gpu.rs for the bound).
@@ -220,29 +305,39 @@ fn one_training_step_matches_the_cpu_engine() {
 fn render(model: &dyn RadianceModel, scene: &Scene) -> Vec<RenderedPixel> {
     let camera = &scene.val[0].camera;
     let k = camera.intrinsics;
-    let (mut origins, mut directions): (Vec<Vec3>, Vec<Vec3>) = (Vec::new(), Vec::new());
-    // Every sixth row: 96 rays, twelve chunks.
-    for y in (0..k.height).step_by(6) {
+    let (mut origins, mut directions, mut radii) = (Vec::new(), Vec::new(), Vec::new());
+    // Every twelfth row: 48 rays, six chunks.
+    for y in (0..k.height).step_by(12) {
         for x in 0..k.width {
             let ray = camera.pixel_ray(x, y);
             origins.push(ray.origin);
             directions.push(ray.direction);
+            radii.push(ray.radius());
         }
     }
     let mut out = vec![RenderedPixel::default(); origins.len()];
-    let radii = vec![0.0; origins.len()];
     model.render(&origins, &directions, &radii, [1.0; 3], &mut out);
     out
 }
 
-/// A few steps on the gpu, saved, loaded by the cpu engine: the same
-/// parameters and Adam state, and the same rendered pixels (rendering has
-/// no jitter, so the only differences are f32 rounding, as above).
 #[test]
-fn a_gpu_checkpoint_loads_on_the_cpu_engine_and_renders_the_same() {
+fn a_nerf_gpu_checkpoint_loads_on_the_cpu_engine_and_renders_the_same() {
+    a_gpu_checkpoint_loads_on_the_cpu_engine_and_renders_the_same(Model::Nerf);
+}
+
+#[test]
+fn a_mipnerf_gpu_checkpoint_loads_on_the_cpu_engine_and_renders_the_same() {
+    a_gpu_checkpoint_loads_on_the_cpu_engine_and_renders_the_same(Model::MipNerf);
+}
+
+/// Two steps on the gpu (Adam's moments and step count past their first
+/// values), saved, loaded by the cpu engine: the same parameters and Adam
+/// state, and the same rendered pixels (rendering has no jitter, so the
+/// only differences are f32 rounding, as above).
+fn a_gpu_checkpoint_loads_on_the_cpu_engine_and_renders_the_same(model: Model) {
     let scene = small_scene();
-    let (mut cpu, mut gpu) = models(&scene);
-    for step in 0..3 {
+    let (mut cpu, mut gpu) = models(model, &scene);
+    for step in 0..2 {
         gpu.step(&batch(&scene, 16, 100 + step as u64), step);
     }
     let checkpoint = gpu.save();
@@ -265,26 +360,41 @@ fn a_gpu_checkpoint_loads_on_the_cpu_engine_and_renders_the_same() {
         }
         worst = worst.max((g.opacity - c.opacity).abs());
     }
-    println!("worst pixel difference: {worst:e}");
+    println!("{model:?}: worst pixel difference: {worst:e}");
     // Colours and opacities are in [0, 1]: 1e-4 absolute.
     assert!(worst < 1e-4, "{worst}");
+}
+
+#[test]
+fn nerf_occupancy_step_and_grid_update_match_the_cpu_engine() {
+    one_occupancy_step_and_grid_update_match_the_cpu_engine(Model::Nerf);
+}
+
+#[test]
+fn mipnerf_occupancy_step_and_grid_update_match_the_cpu_engine() {
+    one_occupancy_step_and_grid_update_match_the_cpu_engine(Model::MipNerf);
 }
 
 /// With the occupancy sampler: both engines march the same grid (a ball
 /// of occupied cells, shared through a cpu checkpoint, which also checks
 /// that one loads on the gpu); one step's loss and gradient agree; then a
 /// step whose occupancy update is due gives the same grid (densities by
-/// the gpu field, EMA on the host) and the same loss.
-#[test]
-fn one_occupancy_step_and_grid_update_match_the_cpu_engine() {
+/// the gpu field, EMA on the host) and the same loss. For Mip-NeRF each
+/// marched sample is the frustum of its step, and the grid's densities
+/// are those of cell-sized Gaussians.
+///
+/// The grid has 32³ cells instead of the recipe's 64³: the same code on a
+/// grid an eighth the size, whose update lavapipe evaluates in seconds
+/// rather than half a minute.
+fn one_occupancy_step_and_grid_update_match_the_cpu_engine(model: Model) {
     let scene = small_scene();
     let settings = ModelSettings {
         batch_samples: Some(1 << 13),
         ..settings(Sampling::Occupancy)
     };
-    let mut cpu = cpu_nerf_with_shape(&scene, &settings, &small_shape());
-    let mut gpu =
-        gpu_nerf_with_shape(context(), &scene, &settings, &small_shape()).expect("gpu model");
+    let (mut cpu, mut gpu) = model.engines(&scene, &settings, |recipe| {
+        recipe.occupancy.resolution = 32;
+    });
     assert!(gpu.params() == cpu.params(), "initial parameters differ");
     {
         let grid = cpu.occupancy_mut().expect("a grid");
@@ -304,7 +414,7 @@ fn one_occupancy_step_and_grid_update_match_the_cpu_engine() {
     // no gradient at all); the σ head's bias at 10 makes the ball's samples
     // dense enough that rays become opaque inside it, so the march's
     // transmittance cut is exercised too.
-    let shape = small_shape();
+    let shape = model.shape();
     let last = shape.trunk_b.layers() - 1;
     let bias = shape.trunk_a.param_count() + shape.trunk_b.bias_offset(last).unwrap();
     cpu.params_mut()[bias] = 10.0;
@@ -321,7 +431,8 @@ fn one_occupancy_step_and_grid_update_match_the_cpu_engine() {
     let clock = Instant::now();
     let gpu_stats = gpu.forward_backward(&rays, step);
     println!(
-        "gpu marched forward + backward: {:.0} ms, {} samples, {} rays; loss cpu {} gpu {}",
+        "{model:?}: gpu marched forward + backward: {:.0} ms, {} samples, {} rays; \
+         loss cpu {} gpu {}",
         clock.elapsed().as_secs_f64() * 1e3,
         gpu_stats.samples,
         gpu_stats.rays,
@@ -341,13 +452,13 @@ fn one_occupancy_step_and_grid_update_match_the_cpu_engine() {
     let (c, g) = (cpu.gradients().to_vec(), gpu.gradients());
     assert!(c.iter().any(|&x| x != 0.0));
     let error = relative_norm(&g, &c);
-    println!("marched gradient: relative error {error:.2e}");
+    println!("{model:?}: marched gradient: relative error {error:.2e}");
     assert!(error < 1e-4, "{error:e}");
 
     // Step 272: an update is due (every 16 steps) and the warm-up (256
     // steps, every cell measured) is over, so a quarter of the cells and
-    // the occupied ones are measured: the same code path, a quarter of
-    // lavapipe's time.
+    // a quarter's worth of occupied ones are measured: the same code path,
+    // half of lavapipe's time.
     let rays = batch(&scene, 48, 23);
     let cpu_stats = cpu.step(&rays, 272);
     let gpu_stats = gpu.step(&rays, 272);
@@ -360,7 +471,7 @@ fn one_occupancy_step_and_grid_update_match_the_cpu_engine() {
         .zip(gv)
         .map(|(&c, &g)| (c - g).abs() / c.abs().max(1e-3))
         .fold(0f32, f32::max);
-    println!("grid values: worst relative difference {worst:e}");
+    println!("{model:?}: grid values: worst relative difference {worst:e}");
     // σ · step per cell from the same field, EMA'd: f32 rounding.
     assert!(worst < 1e-4, "{worst}");
     assert_eq!(

@@ -1,15 +1,17 @@
-//! The gpu sampling stages against the cpu engine on lavapipe. Stratified
-//! samples, merges, blurs and intervals repeat the cpu's arithmetic with
-//! operations WGSL rounds correctly (+, −, ×, min, max; fma prevented), so
-//! they must match bit for bit, and with them the (seed, ray, index)
-//! uniforms. Inverse-CDF samples pick their bin with those operations too;
-//! only the position inside the bin involves a division, which WGSL allows
-//! to be 2.5 ulp off.
+//! The gpu sampling stages (and Mip-NeRF's frustums, at the end) against
+//! the cpu engine on lavapipe. Stratified samples, merges, blurs and
+//! intervals repeat the cpu's arithmetic with operations WGSL rounds
+//! correctly (+, −, ×, min, max; fma prevented), so they must match bit for
+//! bit, and with them the (seed, ray, index) uniforms. Inverse-CDF samples
+//! pick their bin with those operations too; only the position inside the
+//! bin involves a division, which WGSL allows to be 2.5 ulp off.
 
+use zrak::engine::cpu::frustum::frustum_gaussians;
 use zrak::engine::cpu::sampling::{
     blur_weights, intervals_to_far, merge_sorted, sample_pdf, stratified,
 };
 use zrak::engine::gpu::GpuContext;
+use zrak::engine::gpu::frustum::{FrustumRays, FrustumSamples, GpuFrustums, MarchedIntervals};
 use zrak::engine::gpu::kernel::{read_buffer, storage_buffer, zeroed_storage_buffer};
 use zrak::engine::gpu::sampling::GpuSampling;
 use zrak::rng::Pcg32;
@@ -251,4 +253,324 @@ fn merge_blur_and_intervals_match_cpu_bit_for_bit() {
     let mut dt = vec![0.0; rays * n];
     intervals_to_far(&merged, &far, n, &mut dt);
     assert_bits_equal(&gpu, &dt, "intervals");
+}
+
+// ---------------------------------------------------------------------------
+// Mip-NeRF's frustums (engine::gpu::frustum against engine::cpu::frustum).
+//
+// Tolerance. The kernels repeat the cpu's f32 operations in the cpu's order
+// with every product rounded before the sum it feeds, so only the divisions
+// may round differently: WGSL allows 2.5 ulp, the cpu rounds exactly. A
+// frustum's axial mean adds one quotient to t_μ; each variance is a sum of
+// at most three terms, each with at most two chained divisions (≤ 5 ulp of
+// the term), and the terms cancel by at most a factor 2.2 (the axial
+// variance of a frustum from the apex, t_δ²/3 − (11/60) t_δ², the worst
+// case of the formula); so each variance is within ~11 ulp (7e-7) of itself
+// and the mean within ~3 ulp of |o| + |d|·t₁ (the origin's coordinate may
+// cancel the distance). The asserts allow 4e-6 and 1e-6: 5× and ~6× those
+// bounds, while a wrong constant, index or ray gives relative errors of
+// 1e-2 and more. On lavapipe every value is bit-equal (printed).
+
+/// Rays with every kind of cone: `rays` origins in [−4, 4]³, unit
+/// directions, radii from 0 and 1e-8 (a pixel of an enormous image) to 1e2.
+fn cone_rays(rays: usize, seed: u64) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+    let mut rng = Pcg32::new(seed, 3);
+    let mut origins = Vec::with_capacity(3 * rays);
+    let mut directions = Vec::with_capacity(3 * rays);
+    while directions.len() < 3 * rays {
+        let d: Vec<f32> = (0..3).map(|_| 2.0 * rng.next_f32() - 1.0).collect();
+        let n = d.iter().map(|v| v * v).sum::<f32>().sqrt();
+        if (0.1..=1.0).contains(&n) {
+            directions.extend(d.iter().map(|v| v / n));
+            origins.extend((0..3).map(|_| 8.0 * rng.next_f32() - 4.0));
+        }
+    }
+    // An axis-aligned ray: one coordinate carries all of the axial variance.
+    directions[..3].copy_from_slice(&[0.0, 0.0, -1.0]);
+    let radii = (0..rays)
+        .map(|r| match r % 5 {
+            0 => 0.0,
+            1 => 1e-8,
+            2 => 1e2,
+            _ => (-7.0 * rng.next_f32()).exp2() * 0.01,
+        })
+        .collect();
+    (origins, directions, radii)
+}
+
+/// Each ray's `n` + 1 sorted edges: ordinary stratified spans, spans from
+/// the apex (t₀ = 0), thin far ones, and repeated edges (t₀ = t₁).
+fn frustum_edges(rays: usize, n: usize, seed: u64) -> Vec<f32> {
+    let (mut near, mut far) = planes(rays, seed);
+    for r in (0..rays).step_by(4) {
+        near[r] = 0.0;
+    }
+    for r in (1..rays).step_by(6) {
+        far[r] = near[r] * (1.0 + 1e-5);
+    }
+    let mut edges = vec![0.0; rays * (n + 1)];
+    stratified(&near, &far, n + 1, Some(seed as u32), &mut edges);
+    for r in (2..rays).step_by(5) {
+        edges[r * (n + 1) + 2] = edges[r * (n + 1) + 1];
+    }
+    edges
+}
+
+/// `gpu` against `cpu` within `tolerance(i)` each; returns the count of
+/// bit-equal values.
+fn assert_close(gpu: &[f32], cpu: &[f32], tolerance: impl Fn(usize) -> f32, what: &str) -> usize {
+    assert_eq!(gpu.len(), cpu.len(), "{what}: lengths");
+    for (i, (&g, &c)) in gpu.iter().zip(cpu).enumerate() {
+        assert!(
+            g.is_finite() && (g - c).abs() <= tolerance(i),
+            "{what}, value {i}: gpu {g} cpu {c}"
+        );
+    }
+    gpu.iter().zip(cpu).filter(|(g, c)| g == c).count()
+}
+
+/// Means within 1e-6 of |o| + |d|·t₁ of their ray, variances within 4e-6 of
+/// themselves (see the tolerance above); returns the bit-equal count.
+#[allow(clippy::too_many_arguments)]
+fn check_gaussians(
+    (gpu_means, gpu_variances): (&[f32], &[f32]),
+    (cpu_means, cpu_variances): (&[f32], &[f32]),
+    origins: &[f32],
+    directions: &[f32],
+    rays_of: &[u32],
+    ends: &[f32],
+    what: &str,
+) -> usize {
+    let scale = |i: usize| {
+        let (s, c) = (i / 3, i % 3);
+        let r = rays_of[s] as usize;
+        origins[3 * r + c].abs() + directions[3 * r + c].abs() * ends[s]
+    };
+    assert_close(
+        gpu_means,
+        cpu_means,
+        |i| 1e-6 * scale(i),
+        &format!("{what} means"),
+    ) + assert_close(
+        gpu_variances,
+        cpu_variances,
+        |i| 4e-6 * cpu_variances[i] + f32::MIN_POSITIVE,
+        &format!("{what} variances"),
+    )
+}
+
+#[test]
+fn frustums_between_edges_match_cpu() {
+    let Some((context, _)) = setup() else {
+        return;
+    };
+    // 70 rays (a workgroup and a bit), 5 frustums each.
+    let (rays, n) = (70, 5);
+    let (origins, directions, radii) = cone_rays(rays, 21);
+    let edges = frustum_edges(rays, n, 22);
+    // The cpu model's fixed-count level: midpoints, lengths, Gaussians.
+    let (mut starts, mut ends, mut rays_of) = (Vec::new(), Vec::new(), Vec::new());
+    for (r, e) in edges.chunks(n + 1).enumerate() {
+        for pair in e.windows(2) {
+            starts.push(pair[0]);
+            ends.push(pair[1]);
+            rays_of.push(r as u32);
+        }
+    }
+    let s = rays * n;
+    let (mut means, mut variances) = (vec![0.0; 3 * s], vec![0.0; 3 * s]);
+    frustum_gaussians(
+        &origins,
+        &directions,
+        &radii,
+        &rays_of,
+        &starts,
+        &ends,
+        &mut means,
+        &mut variances,
+    );
+    let mid: Vec<f32> = starts
+        .iter()
+        .zip(&ends)
+        .map(|(a, b)| 0.5 * (a + b))
+        .collect();
+    let length: Vec<f32> = starts.iter().zip(&ends).map(|(a, b)| b - a).collect();
+    let per_sample_directions: Vec<f32> = rays_of
+        .iter()
+        .flat_map(|&r| directions[3 * r as usize..][..3].to_vec())
+        .collect();
+
+    // Whole, and with the rays in two pieces (64 + 6) under a storage
+    // binding limit of 64 rays' widest rows (3N floats): the same bits.
+    let capped = {
+        let mut c = GpuContext {
+            adapter: context.adapter.clone(),
+            device: context.device.clone(),
+            queue: context.queue.clone(),
+            info: context.info.clone(),
+            features: context.features,
+            limits: context.limits.clone(),
+        };
+        c.cap_storage_binding_size(64 * 4 * 3 * n as u64);
+        c
+    };
+    let mut runs = Vec::new();
+    for context in [&context, &capped] {
+        let frustums = GpuFrustums::new(context).expect("the frustum kernels compile");
+        let buffer = |label: &str, data: &[f32]| storage_buffer(context, label, data);
+        let (o, d, r, e) = (
+            buffer("origins", &origins),
+            buffer("directions", &directions),
+            buffer("radii", &radii),
+            buffer("edges", &edges),
+        );
+        let out: Vec<wgpu::Buffer> = [1, 1, 3, 3, 3]
+            .iter()
+            .map(|w| zeroed_storage_buffer::<f32>(context, "frustum out", w * s))
+            .collect();
+        let mut encoder = context.device.create_command_encoder(&Default::default());
+        frustums.record_edges(
+            context,
+            &mut encoder,
+            FrustumRays {
+                origins: &o,
+                directions: &d,
+                radii: &r,
+            },
+            &e,
+            rays,
+            n,
+            FrustumSamples {
+                t: &out[0],
+                dt: &out[1],
+                means: &out[2],
+                variances: &out[3],
+                directions: &out[4],
+            },
+        );
+        context.queue.submit([encoder.finish()]);
+        let read: Vec<Vec<f32>> = out
+            .iter()
+            .zip([1, 1, 3, 3, 3])
+            .map(|(b, w)| read_buffer(context, b, w * s))
+            .collect();
+        runs.push(read);
+    }
+    assert!(runs[0] == runs[1], "the pieces differ from one binding");
+    let gpu = &runs[0];
+    assert_bits_equal(&gpu[0], &mid, "frustum midpoints");
+    assert_bits_equal(&gpu[1], &length, "frustum lengths");
+    assert_bits_equal(&gpu[4], &per_sample_directions, "frustum directions");
+    let equal = check_gaussians(
+        (&gpu[2], &gpu[3]),
+        (&means, &variances),
+        &origins,
+        &directions,
+        &rays_of,
+        &ends,
+        "between edges",
+    );
+    assert!(
+        variances.iter().any(|&v| v > 1e3) && variances.contains(&0.0),
+        "the inputs cover wide cones and points"
+    );
+    eprintln!("{equal} of {} means and variances bit-equal", 6 * s);
+}
+
+#[test]
+fn frustums_of_marched_steps_match_cpu() {
+    let Some((context, _)) = setup() else {
+        return;
+    };
+    let rays = 70;
+    let (origins, directions, radii) = cone_rays(rays, 31);
+    // 0 to 6 samples a ray (rays without samples, as the march leaves
+    // them), consecutive steps of varied length; the first ray's first step
+    // starts behind the origin (t < dt/2), which clamps to the apex.
+    let mut rng = Pcg32::new(32, 1);
+    let (mut offsets, mut t, mut dt) = (vec![0u32], Vec::new(), Vec::new());
+    for r in 0..rays {
+        let mut at = if r == 0 { 1e-3 } else { 4.0 * rng.next_f32() };
+        let count = if r == 0 { 3 } else { rng.below(7) };
+        for _ in 0..count {
+            let step = if r == 0 {
+                0.02
+            } else {
+                [1.7e-3, 0.02, 0.3][rng.below(3) as usize]
+            };
+            t.push(at);
+            dt.push(step);
+            at += step;
+        }
+        offsets.push(t.len() as u32);
+    }
+    let s = t.len();
+    let starts: Vec<f32> = t
+        .iter()
+        .zip(&dt)
+        .map(|(t, d)| (t - 0.5 * d).max(0.0))
+        .collect();
+    let ends: Vec<f32> = t.iter().zip(&dt).map(|(t, d)| t + 0.5 * d).collect();
+    let rays_of: Vec<u32> = (0..rays as u32)
+        .flat_map(|r| {
+            std::iter::repeat_n(r, (offsets[r as usize + 1] - offsets[r as usize]) as usize)
+        })
+        .collect();
+    let (mut means, mut variances) = (vec![0.0; 3 * s], vec![0.0; 3 * s]);
+    frustum_gaussians(
+        &origins,
+        &directions,
+        &radii,
+        &rays_of,
+        &starts,
+        &ends,
+        &mut means,
+        &mut variances,
+    );
+
+    let frustums = GpuFrustums::new(&context).expect("the frustum kernels compile");
+    let buffer = |label: &str, data: &[f32]| storage_buffer(&context, label, data);
+    let (o, d, r) = (
+        buffer("origins", &origins),
+        buffer("directions", &directions),
+        buffer("radii", &radii),
+    );
+    let offsets_buffer = storage_buffer(&context, "offsets", &offsets);
+    let (t_buffer, dt_buffer) = (buffer("t", &t), buffer("dt", &dt));
+    let means_out = zeroed_storage_buffer::<f32>(&context, "means", 3 * s);
+    let variances_out = zeroed_storage_buffer::<f32>(&context, "variances", 3 * s);
+    let mut encoder = context.device.create_command_encoder(&Default::default());
+    frustums.record_marched(
+        &context,
+        &mut encoder,
+        FrustumRays {
+            origins: &o,
+            directions: &d,
+            radii: &r,
+        },
+        MarchedIntervals {
+            ray_offsets: &offsets_buffer,
+            t: &t_buffer,
+            dt: &dt_buffer,
+            samples: s,
+        },
+        rays,
+        &means_out,
+        &variances_out,
+    );
+    context.queue.submit([encoder.finish()]);
+    let equal = check_gaussians(
+        (
+            &read_buffer(&context, &means_out, 3 * s),
+            &read_buffer(&context, &variances_out, 3 * s),
+        ),
+        (&means, &variances),
+        &origins,
+        &directions,
+        &rays_of,
+        &ends,
+        "of marched steps",
+    );
+    assert!(starts[0] == 0.0 && s > 100, "{s} samples");
+    eprintln!("{equal} of {} means and variances bit-equal", 6 * s);
 }

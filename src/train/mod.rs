@@ -82,7 +82,17 @@ pub fn build_model(
             &crate::engine::cpu::fields::nerf::NerfShape::mipnerf(),
         ))),
         (ModelKind::MipNerf, EngineKind::Gpu) => {
-            Err("Mip-NeRF is not yet built on the gpu engine: use --engine cpu".into())
+            let context = engine
+                .gpu
+                .ok_or("the gpu engine was chosen without a gpu context")?;
+            gpu_mipnerf_with_shape(
+                context,
+                scene,
+                settings,
+                &crate::engine::cpu::fields::nerf::NerfShape::mipnerf(),
+            )
+            .map(|model| Box::new(model) as Box<dyn RadianceModel>)
+            .map_err(|e| format!("building Mip-NeRF on the gpu engine: {e}"))
         }
     }
 }
@@ -115,20 +125,18 @@ pub fn cpu_mipnerf_with_shape(
     settings: &ModelSettings,
     shape: &crate::engine::cpu::fields::nerf::NerfShape,
 ) -> crate::engine::cpu::model::CpuModel {
-    let recipe = crate::field::mipnerf::recipe(
-        settings.sampling,
-        scene.format == crate::scene::SceneFormat::Blender,
-    );
-    let identity = crate::engine::cpu::model::ModelIdentity {
-        name: "Mip-NeRF",
-        key: "mipnerf",
-        sampling: settings.sampling.name(),
-    };
-    cpu_model_of_nerf_fields(identity, recipe, scene, settings, shape)
+    cpu_model_of_nerf_fields(
+        mipnerf_identity(settings),
+        mipnerf_recipe(scene, settings),
+        scene,
+        settings,
+        shape,
+    )
 }
 
-/// A model of the recipe's levels over fields of NeRF's shape.
-fn cpu_model_of_nerf_fields(
+/// A model of the recipe's levels over fields of NeRF's shape (NeRF and
+/// Mip-NeRF are such models; tests build them with other recipes too).
+pub fn cpu_model_of_nerf_fields(
     identity: crate::engine::cpu::model::ModelIdentity,
     recipe: crate::field::common::Recipe,
     scene: &Scene,
@@ -174,11 +182,49 @@ pub fn gpu_nerf_with_shape(
     settings: &ModelSettings,
     shape: &crate::engine::cpu::fields::nerf::NerfShape,
 ) -> Result<crate::engine::gpu::model::GpuModel, String> {
+    gpu_model_of_nerf_fields(
+        context,
+        nerf_identity(settings),
+        nerf_recipe(scene, settings),
+        scene,
+        settings,
+        shape,
+    )
+}
+
+/// Mip-NeRF on the `gpu` engine with networks of `shape`, with the cpu
+/// engine's recipe, parameters and checkpoints (see
+/// [`cpu_mipnerf_with_shape`]).
+pub fn gpu_mipnerf_with_shape(
+    context: crate::engine::gpu::GpuContext,
+    scene: &Scene,
+    settings: &ModelSettings,
+    shape: &crate::engine::cpu::fields::nerf::NerfShape,
+) -> Result<crate::engine::gpu::model::GpuModel, String> {
+    gpu_model_of_nerf_fields(
+        context,
+        mipnerf_identity(settings),
+        mipnerf_recipe(scene, settings),
+        scene,
+        settings,
+        shape,
+    )
+}
+
+/// A gpu model of the recipe's levels over fields of NeRF's shape, the gpu
+/// twin of [`cpu_model_of_nerf_fields`].
+pub fn gpu_model_of_nerf_fields(
+    context: crate::engine::gpu::GpuContext,
+    identity: crate::engine::cpu::model::ModelIdentity,
+    recipe: crate::field::common::Recipe,
+    scene: &Scene,
+    settings: &ModelSettings,
+    shape: &crate::engine::cpu::fields::nerf::NerfShape,
+) -> Result<crate::engine::gpu::model::GpuModel, String> {
     use crate::engine::cpu::fields::Field;
     use crate::engine::cpu::fields::nerf::NerfField;
     use crate::engine::gpu::fields::GpuField;
     use crate::engine::gpu::fields::nerf::GpuNerfField;
-    let recipe = nerf_recipe(scene, settings);
     // The cpu fields give the initial parameters (the same for the same
     // seed on either engine); they hold no workspace until used.
     let cpu_fields: Vec<Box<dyn Field>> = (0..recipe.fields)
@@ -188,7 +234,7 @@ pub fn gpu_nerf_with_shape(
     let batch = batch_of(&recipe, settings);
     crate::engine::gpu::model::GpuModel::new(
         context,
-        nerf_identity(settings),
+        identity,
         recipe,
         params,
         ranges,
@@ -202,14 +248,33 @@ pub fn gpu_nerf_with_shape(
     )
 }
 
-fn nerf_recipe(scene: &Scene, settings: &ModelSettings) -> crate::field::nerf::Recipe {
+/// NeRF's recipe for `scene` with the settings' sampler.
+pub fn nerf_recipe(scene: &Scene, settings: &ModelSettings) -> crate::field::nerf::Recipe {
     crate::field::nerf::recipe(
         settings.sampling,
         scene.format == crate::scene::SceneFormat::Blender,
     )
 }
 
-fn nerf_identity(settings: &ModelSettings) -> crate::engine::cpu::model::ModelIdentity {
+/// Mip-NeRF's recipe for `scene` with the settings' sampler.
+pub fn mipnerf_recipe(scene: &Scene, settings: &ModelSettings) -> crate::field::common::Recipe {
+    crate::field::mipnerf::recipe(
+        settings.sampling,
+        scene.format == crate::scene::SceneFormat::Blender,
+    )
+}
+
+/// What Mip-NeRF's models are called, in the viewer and in checkpoints.
+pub fn mipnerf_identity(settings: &ModelSettings) -> crate::engine::cpu::model::ModelIdentity {
+    crate::engine::cpu::model::ModelIdentity {
+        name: "Mip-NeRF",
+        key: "mipnerf",
+        sampling: settings.sampling.name(),
+    }
+}
+
+/// What NeRF's models are called, in the viewer and in checkpoints.
+pub fn nerf_identity(settings: &ModelSettings) -> crate::engine::cpu::model::ModelIdentity {
     crate::engine::cpu::model::ModelIdentity {
         name: "NeRF",
         key: "nerf",

@@ -619,19 +619,14 @@ impl CpuModel {
         let params = &self.params[self.ranges[level.field].clone()];
         let mapping = self.mapping;
         let mut world = Vec::new();
-        // Frustum fields are asked for the density of a cell as a whole: a
-        // Gaussian with the variance of a uniform distribution over the
-        // finest cascade's cell (side²/12 per axis), so the grid sees what
-        // the frustums that fill such a cell see, not the alias of the
-        // highest frequencies at one point.
         let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
-        let cell = 1.0 / (grid.geometry().cells_per_unit(0) * mapping.scale);
+        let cell_variance = grid_cell_variance(grid, &mapping);
         let mut variances = Vec::new();
         grid.update(step, self.seed, |positions, sigma| {
             to_world(&mapping, positions, &mut world);
             if frustums {
                 set_len(&mut variances, world.len());
-                variances.fill(cell * cell / 12.0);
+                variances.fill(cell_variance);
             }
             field.density(params, &world, frustums.then_some(&variances[..]), sigma);
         });
@@ -1103,6 +1098,51 @@ fn points_along_rays(
         });
 }
 
+/// The variance per axis at which a frustum field is asked for the density
+/// of a grid cell as a whole: that of a uniform distribution over the finest
+/// cascade's cell (side²/12), so the grid sees what the frustums that fill
+/// such a cell see, not the alias of the highest frequencies at one point.
+pub fn grid_cell_variance(grid: &OccupancyGrid, mapping: &UnitCubeMapping) -> f32 {
+    let cell = 1.0 / (grid.geometry().cells_per_unit(0) * mapping.scale);
+    cell * cell / 12.0
+}
+
+/// World Gaussians (means and covariance diagonals, n × 3 each) of samples
+/// marched through the grid for rendering: as in training, each sample
+/// stands for the frustum of its step, centred on it. `origins`,
+/// `directions` and cone `radii` are the rendered rays' (a missing radius
+/// is 0: a ray without a cone).
+pub fn grid_sample_gaussians(
+    samples: &GridSamples,
+    origins: &[Vec3],
+    directions: &[Vec3],
+    radii: &[f32],
+    world: &mut Vec<f32>,
+    variances: &mut Vec<f32>,
+) {
+    let n = samples.t.len();
+    set_len(world, 3 * n);
+    set_len(variances, 3 * n);
+    for (i, ((&t, &dt), &r)) in samples
+        .t
+        .iter()
+        .zip(samples.dt)
+        .zip(samples.rays)
+        .enumerate()
+    {
+        let r = r as usize;
+        let (mean, variance) = frustum_gaussian(
+            origins[r],
+            directions[r],
+            radii.get(r).copied().unwrap_or(0.0),
+            (t - 0.5 * dt).max(0.0),
+            t + 0.5 * dt,
+        );
+        world[3 * i..3 * i + 3].copy_from_slice(&mean.to_array());
+        variances[3 * i..3 * i + 3].copy_from_slice(&variance.to_array());
+    }
+}
+
 /// Unit-cube positions (n × 3) to world positions.
 pub fn to_world(mapping: &UnitCubeMapping, unit: &[f32], world: &mut Vec<f32>) {
     set_len(world, unit.len());
@@ -1187,28 +1227,14 @@ impl RadianceModel for CpuModel {
                     INFERENCE_CHUNK,
                     |samples: &GridSamples, sigma, rgb| {
                         if frustums {
-                            // As in training: the frustum of each step.
-                            let n = samples.t.len();
-                            set_len(&mut world, 3 * n);
-                            set_len(&mut variances, 3 * n);
-                            for (i, ((&t, &dt), &r)) in samples
-                                .t
-                                .iter()
-                                .zip(samples.dt)
-                                .zip(samples.rays)
-                                .enumerate()
-                            {
-                                let r = r as usize;
-                                let (mean, variance) = frustum_gaussian(
-                                    origins[r],
-                                    directions[r],
-                                    radii[r],
-                                    (t - 0.5 * dt).max(0.0),
-                                    t + 0.5 * dt,
-                                );
-                                world[3 * i..3 * i + 3].copy_from_slice(&mean.to_array());
-                                variances[3 * i..3 * i + 3].copy_from_slice(&variance.to_array());
-                            }
+                            grid_sample_gaussians(
+                                samples,
+                                origins,
+                                directions,
+                                radii,
+                                &mut world,
+                                &mut variances,
+                            );
                         } else {
                             to_world(&mapping, samples.positions, &mut world);
                         }

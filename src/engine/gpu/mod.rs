@@ -10,6 +10,7 @@ pub mod composite;
 pub mod dense;
 pub mod fields;
 pub mod frequency;
+pub mod frustum;
 pub mod loss;
 pub mod march;
 pub mod model;

@@ -1,10 +1,19 @@
 //! A model on the `gpu` engine as a composition of stages, driven by the
 //! same [`Recipe`] as the cpu engine's [`crate::engine::cpu::model::CpuModel`]:
-//! per level a sampler (stratified, or importance sampling of the previous
-//! level's weights merged with its samples), a field, compositing and the
-//! loss; then one Adam step over every field's parameters. NeRF is this
-//! driver with [`super::fields::nerf::GpuNerfField`] and the recipe of
-//! [`crate::field::nerf`].
+//! per level a sampler (stratified, importance sampling of the previous
+//! level's weights merged with its samples, or Mip-NeRF's resampling of
+//! frustums), a field, compositing and the loss; then one Adam step over
+//! every field's parameters. NeRF is this driver with
+//! [`super::fields::nerf::GpuNerfField`] and the recipe of
+//! [`crate::field::nerf`]; Mip-NeRF is the same driver and field with the
+//! recipe of [`crate::field::mipnerf`] (one field for both levels).
+//!
+//! A recipe of conical frustums ([`SampleShape::ConicalFrustums`]) places
+//! interval edges instead of points: stratified edges, or edges resampled
+//! from the previous level's blurred weights; the frustum stage
+//! ([`GpuFrustums`]) turns each interval into a Gaussian (the field's input,
+//! through the integrated encoding) and its midpoint and length
+//! (compositing's). Marched samples become the frustums of their steps.
 //!
 //! The parameter layout, initial values, random choices and checkpoint
 //! format are the cpu model's, so a model moves between engines through a
@@ -45,15 +54,19 @@ use super::adam::GpuAdam;
 use super::composite::{CompositeOutputBuffers, GpuComposite};
 use super::context::{GpuContext, GpuError};
 use super::fields::GpuField;
+use super::frustum::{FrustumRays, FrustumSamples, GpuFrustums, MarchedIntervals};
 use super::kernel::{read_buffer, read_mapped, storage_buffer, zeroed_storage_buffer};
 use super::loss::GpuLoss;
 use super::march::{GpuGrid, GpuMarch, GpuMarchBuffers, GpuRays};
 use super::sampling::GpuSampling;
 use super::step::{CompositeAndLoss, RayBuffers, SampleBuffers, SampleGradientBuffers};
 use super::timing::{Stage, StageClock, StageTiming};
-use crate::engine::cpu::march::{BatchSizer, MarchParams, mix_seed, render_through_grid};
+use crate::engine::cpu::march::{
+    BatchSizer, GridSamples, MarchParams, mix_seed, render_through_grid,
+};
 use crate::engine::cpu::model::{
-    ModelIdentity, RAYS_PER_CHUNK, chunk_jitter_seed, ray_bounds, to_world,
+    ModelIdentity, RAYS_PER_CHUNK, chunk_jitter_seed, grid_cell_variance, grid_sample_gaussians,
+    ray_bounds, to_world,
 };
 use crate::engine::cpu::occupancy::OccupancyGrid;
 use crate::engine::cpu::state::{ModelHeader, ModelState};
@@ -78,9 +91,6 @@ fn plan(recipe: &Recipe) -> Result<Plan, String> {
     if recipe.levels.is_empty() {
         return Err("the recipe has no levels".into());
     }
-    if recipe.samples != SampleShape::Points {
-        return Err("conical frustums (Mip-NeRF) are not built on the gpu engine yet".into());
-    }
     if recipe.levels[0].sampler == SamplerKind::Occupancy {
         if recipe.levels.len() != 1 {
             return Err("a recipe that marches through the occupancy grid has one level".into());
@@ -91,13 +101,28 @@ fn plan(recipe: &Recipe) -> Result<Plan, String> {
 }
 
 /// Samples per ray of each fixed-count level of `recipe` (an importance
-/// level evaluates the previous level's samples and its own), or why the
-/// levels cannot be sampled so.
+/// level evaluates the previous level's samples and its own; a resampled
+/// level only its own frustums), or why the levels cannot be sampled so.
 pub fn samples_per_ray(recipe: &Recipe) -> Result<Vec<usize>, String> {
+    let frustums = recipe.samples == SampleShape::ConicalFrustums;
     let mut out: Vec<usize> = Vec::with_capacity(recipe.levels.len());
     for (i, level) in recipe.levels.iter().enumerate() {
         let n = match level.sampler {
             SamplerKind::Stratified { count } => count,
+            SamplerKind::Importance { .. } if frustums => {
+                return Err(format!(
+                    "level {i} adds importance points to frustums: frustum levels resample"
+                ));
+            }
+            SamplerKind::Resample { .. } if !frustums => {
+                return Err(format!(
+                    "level {i} resamples frustums, but the recipe's samples are points"
+                ));
+            }
+            SamplerKind::Resample { count, .. } => match out.last() {
+                Some(_) => count,
+                None => return Err("the first level cannot be a resampled level".into()),
+            },
             SamplerKind::Importance { count, .. } => match out.last() {
                 Some(&previous) if previous >= 3 => previous + count,
                 Some(_) => {
@@ -112,11 +137,6 @@ pub fn samples_per_ray(recipe: &Recipe) -> Result<Vec<usize>, String> {
                 return Err(format!(
                     "level {i} marches through the occupancy grid, which only a first and only \
                      level can"
-                ));
-            }
-            SamplerKind::Resample { .. } => {
-                return Err(format!(
-                    "level {i} resamples frustums (Mip-NeRF), which the gpu engine does not yet"
                 ));
             }
         };
@@ -142,14 +162,22 @@ struct Grid {
     /// Samples per batch: every per-sample buffer holds this many.
     samples: usize,
     counters_staging: wgpu::Buffer,
+    /// Frustum recipes: the covariance diagonal the field's density is
+    /// asked for at each grid update position (one cell's,
+    /// [`grid_cell_variance`], `samples` × 3).
+    cell_variances: Option<wgpu::Buffer>,
 }
 
 /// Per-sample and per-ray buffers of a marched step.
 struct MarchedBuffers {
     out: GpuMarchBuffers,
     rays: RayBuffers,
-    /// Marched positions in world space (the field's input).
+    /// Marched positions in world space (the field's input): the frustums'
+    /// means for a frustum recipe.
     world: wgpu::Buffer,
+    /// Frustum recipes: the frustums' covariance diagonals (else one
+    /// float, unused).
+    variances: wgpu::Buffer,
     sigma: wgpu::Buffer,
     rgb: wgpu::Buffer,
     d_sigma: wgpu::Buffer,
@@ -157,12 +185,13 @@ struct MarchedBuffers {
 }
 
 impl MarchedBuffers {
-    fn new(context: &GpuContext, rays: usize, samples: usize) -> Self {
+    fn new(context: &GpuContext, rays: usize, samples: usize, frustums: bool) -> Self {
         let f = |label: &str, n: usize| zeroed_storage_buffer::<f32>(context, label, n);
         Self {
             out: GpuMarchBuffers::new(context, rays, samples),
             rays: RayBuffers::new(context, rays),
             world: f("marched world positions", 3 * samples),
+            variances: f("marched variances", if frustums { 3 * samples } else { 1 }),
             sigma: f("marched sigma", samples),
             rgb: f("marched rgb", 3 * samples),
             d_sigma: f("marched d sigma", samples),
@@ -172,13 +201,21 @@ impl MarchedBuffers {
 
     fn bytes(&self) -> usize {
         // The march's own (positions, directions, t, dt) and ours.
-        self.out.capacity * 4 * (3 + 3 + 1 + 1 + 3 + 1 + 3 + 1 + 3) + self.rays.bytes()
+        self.out.capacity * 4 * (3 + 3 + 1 + 1 + 3 + 1 + 3 + 1 + 3)
+            + self.variances.size() as usize
+            + self.rays.bytes()
     }
 }
 
 /// Buffers of one level for one chunk of rays.
 struct LevelBuffers {
     per_ray: usize,
+    /// Frustum levels: each ray's per_ray + 1 interval edges (else one
+    /// float, unused).
+    edges: wgpu::Buffer,
+    /// Frustum levels: each sample's covariance diagonal (else one float,
+    /// unused).
+    variances: wgpu::Buffer,
     t: wgpu::Buffer,
     dt: wgpu::Buffer,
     positions: wgpu::Buffer,
@@ -193,14 +230,21 @@ struct LevelBuffers {
 }
 
 impl LevelBuffers {
-    fn new(context: &GpuContext, per_ray: usize) -> Self {
+    fn new(context: &GpuContext, per_ray: usize, frustums: bool) -> Self {
         let n = RAYS_PER_CHUNK * per_ray;
         let f = |label: &str, count: usize| zeroed_storage_buffer::<f32>(context, label, count);
         let offsets: Vec<u32> = (0..=RAYS_PER_CHUNK)
             .map(|r| u32::try_from(r * per_ray).expect("a chunk's samples fit in u32"))
             .collect();
+        let (edges, variances) = if frustums {
+            (RAYS_PER_CHUNK * (per_ray + 1), 3 * n)
+        } else {
+            (1, 1)
+        };
         Self {
             per_ray,
+            edges: f("level edges", edges),
+            variances: f("level variances", variances),
             t: f("level t", n),
             dt: f("level dt", n),
             positions: f("level positions", 3 * n),
@@ -216,6 +260,7 @@ impl LevelBuffers {
 
     fn bytes(&self) -> usize {
         RAYS_PER_CHUNK * self.per_ray * 4 * (1 + 1 + 3 + 3 + 1 + 3 + 1 + 1 + 3)
+            + (self.edges.size() + self.variances.size()) as usize
     }
 }
 
@@ -240,7 +285,8 @@ struct Work {
     near: wgpu::Buffer,
     far: wgpu::Buffer,
     levels: Vec<LevelBuffers>,
-    /// Importance sampling's bin edges, bin weights and new samples.
+    /// Importance sampling's bin edges, bin weights (or resampling's
+    /// blurred weights) and new samples.
     edges: wgpu::Buffer,
     bin_weights: wgpu::Buffer,
     fine_t: wgpu::Buffer,
@@ -253,6 +299,7 @@ struct Work {
 /// The compiled stages the driver records.
 struct Stages {
     sampling: GpuSampling,
+    frustums: GpuFrustums,
     composite: GpuComposite,
     loss: GpuLoss,
 }
@@ -373,25 +420,34 @@ impl GpuModel {
                 params.len()
             ));
         }
-        // The widest importance bins and sample sets.
+        // The widest importance bins and sample sets, and resampling's
+        // blurred weights (the previous level's, in the bin weights).
         let mut edges = 1;
         let mut bins = 1;
         let mut fine = 1;
         for (i, level) in recipe.levels.iter().enumerate() {
-            if let SamplerKind::Importance { count, .. } = level.sampler {
-                let m = per_ray[i - 1];
-                edges = edges.max(RAYS_PER_CHUNK * (m - 1));
-                bins = bins.max(RAYS_PER_CHUNK * (m - 2));
-                fine = fine.max(RAYS_PER_CHUNK * count);
+            match level.sampler {
+                SamplerKind::Importance { count, .. } => {
+                    let m = per_ray[i - 1];
+                    edges = edges.max(RAYS_PER_CHUNK * (m - 1));
+                    bins = bins.max(RAYS_PER_CHUNK * (m - 2));
+                    fine = fine.max(RAYS_PER_CHUNK * count);
+                }
+                SamplerKind::Resample { .. } => bins = bins.max(RAYS_PER_CHUNK * per_ray[i - 1]),
+                SamplerKind::Stratified { .. } | SamplerKind::Occupancy => {}
             }
         }
+        let frustums = recipe.samples == SampleShape::ConicalFrustums;
         let f = |label: &str, n: usize| zeroed_storage_buffer::<f32>(ctx, label, n);
         let mut work = Work {
             fields,
             rays: RayBuffers::new(ctx, RAYS_PER_CHUNK),
             near: f("ray near", RAYS_PER_CHUNK),
             far: f("ray far", RAYS_PER_CHUNK),
-            levels: per_ray.iter().map(|&n| LevelBuffers::new(ctx, n)).collect(),
+            levels: per_ray
+                .iter()
+                .map(|&n| LevelBuffers::new(ctx, n, frustums))
+                .collect(),
             edges: f("importance edges", edges),
             bin_weights: f("importance bin weights", bins),
             fine_t: f("importance samples", fine),
@@ -401,6 +457,7 @@ impl GpuModel {
         };
         let stages = Stages {
             sampling: GpuSampling::new(ctx).map_err(gpu)?,
+            frustums: GpuFrustums::new(ctx).map_err(gpu)?,
             composite: GpuComposite::new(ctx).map_err(gpu)?,
             loss: GpuLoss::new(ctx).map_err(gpu)?,
         };
@@ -421,8 +478,18 @@ impl GpuModel {
                     crate::field::ngp::MarchConfig::PAPER.step / mapping.scale,
                 );
                 grid.chunk = samples;
-                work.marched = Some(MarchedBuffers::new(ctx, batch_sizer.max_rays, samples));
+                work.marched = Some(MarchedBuffers::new(
+                    ctx,
+                    batch_sizer.max_rays,
+                    samples,
+                    frustums,
+                ));
+                let cell_variances = frustums.then(|| {
+                    let variance = grid_cell_variance(&grid, &mapping);
+                    storage_buffer(ctx, "grid cell variances", &vec![variance; 3 * samples])
+                });
                 Some(Grid {
+                    cell_variances,
                     bitfield: storage_buffer(ctx, "occupancy bitfield", grid.bitfield()),
                     grid,
                     march: GpuMarch::new(ctx).map_err(gpu)?,
@@ -562,23 +629,50 @@ impl GpuModel {
                 clock.mark(ctx, encoder, stage);
             }
         };
+        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
         for (li, level) in self.recipe.levels.iter().enumerate() {
             let (before, rest) = levels.split_at_mut(li);
             let lb = &mut rest[0];
             let per_ray = lb.per_ray;
             let rows = count * per_ray;
             match level.sampler {
+                // Frustums: n + 1 edges make n intervals.
                 SamplerKind::Stratified { count: n } => s.sampling.record_stratified(
                     ctx,
                     encoder,
                     near,
                     far,
                     count,
-                    n,
+                    n + frustums as usize,
                     jitter(li),
-                    &lb.t,
+                    if frustums { &lb.edges } else { &lb.t },
                 ),
-                SamplerKind::Resample { .. } => unreachable!("refused by samples_per_ray"),
+                SamplerKind::Resample { count: n, padding } => {
+                    // Mip-NeRF: new edges from the previous level's edges
+                    // and blurred weights (the cpu's `sample_distances`).
+                    let previous = before.last().expect("checked by samples_per_ray");
+                    let m = previous.per_ray;
+                    s.sampling.record_blur_weights(
+                        ctx,
+                        encoder,
+                        &previous.weights,
+                        count,
+                        m,
+                        bin_weights,
+                    );
+                    s.sampling.record_sample_pdf(
+                        ctx,
+                        encoder,
+                        &previous.edges,
+                        bin_weights,
+                        count,
+                        m,
+                        padding,
+                        n + 1,
+                        jitter(li),
+                        &lb.edges,
+                    );
+                }
                 SamplerKind::Importance { count: n, padding } => {
                     let previous = before.last().expect("checked by samples_per_ray");
                     let m = previous.per_ray;
@@ -617,19 +711,41 @@ impl GpuModel {
                 }
                 SamplerKind::Occupancy => unreachable!("refused by samples_per_ray"),
             }
-            s.sampling
-                .record_intervals_to_far(ctx, encoder, &lb.t, far, count, per_ray, &lb.dt);
-            s.sampling.record_points(
-                ctx,
-                encoder,
-                &rays.origins,
-                &rays.directions,
-                &lb.t,
-                count,
-                per_ray,
-                &lb.positions,
-                &lb.directions,
-            );
+            if frustums {
+                s.frustums.record_edges(
+                    ctx,
+                    encoder,
+                    FrustumRays {
+                        origins: &rays.origins,
+                        directions: &rays.directions,
+                        radii: &rays.radii,
+                    },
+                    &lb.edges,
+                    count,
+                    per_ray,
+                    FrustumSamples {
+                        t: &lb.t,
+                        dt: &lb.dt,
+                        means: &lb.positions,
+                        variances: &lb.variances,
+                        directions: &lb.directions,
+                    },
+                );
+            } else {
+                s.sampling
+                    .record_intervals_to_far(ctx, encoder, &lb.t, far, count, per_ray, &lb.dt);
+                s.sampling.record_points(
+                    ctx,
+                    encoder,
+                    &rays.origins,
+                    &rays.directions,
+                    &lb.t,
+                    count,
+                    per_ray,
+                    &lb.positions,
+                    &lb.directions,
+                );
+            }
             mark(encoder, Stage::March);
 
             let field = &mut fields[level.field];
@@ -638,6 +754,7 @@ impl GpuModel {
                 encoder,
                 &self.params,
                 &lb.positions,
+                frustums.then_some(&lb.variances),
                 &lb.directions,
                 rows,
                 &lb.sigma,
@@ -753,9 +870,10 @@ impl GpuModel {
         let mut guard = self.work.lock().unwrap_or_else(|e| e.into_inner());
         let work = &mut *guard;
         work.clock.reset();
+        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
         let marched = work.marched.as_mut().expect("a marched recipe has buffers");
         if rays > marched.rays.capacity {
-            *marched = MarchedBuffers::new(ctx, rays, grid.samples);
+            *marched = MarchedBuffers::new(ctx, rays, grid.samples, frustums);
         }
         marched.rays.upload(ctx, batch, 0..rays, &mut work.scratch);
 
@@ -797,14 +915,37 @@ impl GpuModel {
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
         work.clock.restart(ctx, &mut encoder);
         encoder.clear_buffer(&self.gradients, 0, None);
-        s.sampling.record_to_world(
-            ctx,
-            &mut encoder,
-            &grid.mapping,
-            &marched.out.positions,
-            samples,
-            &marched.world,
-        );
+        if frustums {
+            // Each marched sample stands for the frustum of its step,
+            // centred on it; its Gaussian's mean replaces the point.
+            s.frustums.record_marched(
+                ctx,
+                &mut encoder,
+                FrustumRays {
+                    origins: &marched.rays.origins,
+                    directions: &marched.rays.directions,
+                    radii: &marched.rays.radii,
+                },
+                MarchedIntervals {
+                    ray_offsets: &marched.out.ray_offsets,
+                    t: &marched.out.t,
+                    dt: &marched.out.dt,
+                    samples,
+                },
+                kept,
+                &marched.world,
+                &marched.variances,
+            );
+        } else {
+            s.sampling.record_to_world(
+                ctx,
+                &mut encoder,
+                &grid.mapping,
+                &marched.out.positions,
+                samples,
+                &marched.world,
+            );
+        }
         work.clock.mark(ctx, &mut encoder, Stage::March);
         let field = &mut work.fields[level.field];
         field.record_forward(
@@ -812,6 +953,7 @@ impl GpuModel {
             &mut encoder,
             &self.params,
             &marched.world,
+            frustums.then_some(&marched.variances),
             &marched.out.directions,
             samples,
             &marched.sigma,
@@ -915,6 +1057,7 @@ impl GpuModel {
                 &mut encoder,
                 &self.params,
                 &marched.world,
+                grid.cell_variances.as_ref(),
                 count,
                 &marched.sigma,
             );
@@ -936,36 +1079,70 @@ impl GpuModel {
         );
     }
 
-    /// σ and colour at unit-cube `positions` and `directions` (n × 3), on
-    /// the device in chunks of the batch's samples (rendering through the
-    /// grid).
-    fn radiance(&self, positions: &[f32], directions: &[f32], sigma: &mut [f32], rgb: &mut [f32]) {
+    /// σ and colour of `samples` marched through the grid for rendering
+    /// rays `origins`, `directions` (with cone `radii`, for frustums), on
+    /// the device in chunks of the batch's samples. The field's inputs are
+    /// made on the host (world positions, or the Gaussians of the steps'
+    /// frustums, with the cpu engine's code), as rendering on the cpu does.
+    fn radiance(
+        &self,
+        samples: &GridSamples,
+        origins: &[Vec3],
+        directions: &[Vec3],
+        radii: &[f32],
+        sigma: &mut [f32],
+        rgb: &mut [f32],
+    ) {
         let ctx = &self.context;
         let grid = self.grid.as_ref().expect("a marched recipe has a grid");
+        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+        let (mut world, mut variances) = (Vec::new(), Vec::new());
+        if frustums {
+            grid_sample_gaussians(
+                samples,
+                origins,
+                directions,
+                radii,
+                &mut world,
+                &mut variances,
+            );
+        } else {
+            to_world(&grid.mapping, samples.positions, &mut world);
+        }
         let mut guard = self.work();
         let work = &mut *guard;
         let marched = work.marched.as_ref().expect("a marched recipe has buffers");
         let field = &mut work.fields[self.recipe.levels[0].field];
         let chunk = grid.samples;
-        let mut world = Vec::new();
-        for (((p, d), sigma), rgb) in positions
-            .chunks(3 * chunk)
-            .zip(directions.chunks(3 * chunk))
-            .zip(sigma.chunks_mut(chunk))
+        for (i, ((sigma, rgb), d)) in sigma
+            .chunks_mut(chunk)
             .zip(rgb.chunks_mut(3 * chunk))
+            .zip(samples.directions.chunks(3 * chunk))
+            .enumerate()
         {
             let count = sigma.len();
-            to_world(&grid.mapping, p, &mut world);
-            ctx.queue
-                .write_buffer(&marched.world, 0, bytemuck::cast_slice(&world));
-            ctx.queue
-                .write_buffer(&marched.out.directions, 0, bytemuck::cast_slice(d));
+            let rows = 3 * chunk * i..3 * (chunk * i + count);
+            let queue = &ctx.queue;
+            queue.write_buffer(
+                &marched.world,
+                0,
+                bytemuck::cast_slice(&world[rows.clone()]),
+            );
+            queue.write_buffer(&marched.out.directions, 0, bytemuck::cast_slice(d));
+            if frustums {
+                queue.write_buffer(
+                    &marched.variances,
+                    0,
+                    bytemuck::cast_slice(&variances[rows]),
+                );
+            }
             let mut encoder = ctx.device.create_command_encoder(&Default::default());
             field.record_forward(
                 ctx,
                 &mut encoder,
                 &self.params,
                 &marched.world,
+                frustums.then_some(&marched.variances),
                 &marched.out.directions,
                 count,
                 &marched.sigma,
@@ -1111,7 +1288,7 @@ impl RadianceModel for GpuModel {
         &self,
         origins: &[Vec3],
         directions: &[Vec3],
-        _radii: &[f32],
+        radii: &[f32],
         background: [f32; 3],
         out: &mut [RenderedPixel],
     ) {
@@ -1125,7 +1302,7 @@ impl RadianceModel for GpuModel {
                 &self.recipe.march,
                 grid.samples,
                 |samples, sigma, rgb| {
-                    self.radiance(samples.positions, samples.directions, sigma, rgb)
+                    self.radiance(samples, origins, directions, radii, sigma, rgb)
                 },
                 out,
             );
@@ -1155,6 +1332,8 @@ impl RadianceModel for GpuModel {
                 .write_buffer(&work.rays.origins, 0, bytemuck::cast_slice(o));
             ctx.queue
                 .write_buffer(&work.rays.directions, 0, bytemuck::cast_slice(d));
+            work.rays
+                .upload_radii(ctx, radii.get(start..end).unwrap_or(&[]), count);
             self.upload_bounds(work, o, d);
             let mut encoder = ctx.device.create_command_encoder(&Default::default());
             self.record_levels(
@@ -1251,10 +1430,10 @@ impl RadianceModel for GpuModel {
             + work.levels.iter().map(LevelBuffers::bytes).sum::<usize>()
             + work.rays.bytes()
             + work.marched.as_ref().map_or(0, MarchedBuffers::bytes)
-            + self
-                .grid
-                .as_ref()
-                .map_or(0, |g| 4 * (g.grid.values().len() + g.grid.bitfield().len()))
+            + self.grid.as_ref().map_or(0, |g| {
+                4 * (g.grid.values().len() + g.grid.bitfield().len())
+                    + g.cell_variances.as_ref().map_or(0, |b| b.size() as usize)
+            })
             + [&work.edges, &work.bin_weights, &work.fine_t]
                 .iter()
                 .map(|b| b.size() as usize)

@@ -24,24 +24,24 @@ use crate::engine::cpu::sampling::stratified_step;
 /// Threads per workgroup of every sampling kernel.
 const WORKGROUP: u32 = 64;
 
-const COMMON: &str = include_str!("../../../shaders/sample_common.wgsl");
+pub(crate) const COMMON: &str = include_str!("../../../shaders/sample_common.wgsl");
 
 /// `SampleParams` in `shaders/sample_common.wgsl`.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, Default, bytemuck::Pod, bytemuck::Zeroable)]
-struct SampleUniforms {
-    rays: u32,
-    ray_base: u32,
-    row_stride: u32,
-    samples: u32,
-    bins: u32,
-    seed: u32,
-    use_jitter: u32,
-    zero: u32,
-    step: f32,
-    inverse_count: f32,
-    padding: f32,
-    _pad: u32,
+pub(crate) struct SampleUniforms {
+    pub rays: u32,
+    pub ray_base: u32,
+    pub row_stride: u32,
+    pub samples: u32,
+    pub bins: u32,
+    pub seed: u32,
+    pub use_jitter: u32,
+    pub zero: u32,
+    pub step: f32,
+    pub inverse_count: f32,
+    pub padding: f32,
+    pub _pad: u32,
 }
 
 /// `Params` in `shaders/sample_to_world.wgsl`.
@@ -115,7 +115,7 @@ impl GpuSampling {
     /// widest per-ray binding (`widest` floats per ray) would pass the
     /// device's storage-binding limit. `bind` gives the piece's storage
     /// bindings, after the uniform.
-    fn record_rays<'a>(
+    pub(crate) fn record_rays<'a>(
         context: &GpuContext,
         encoder: &mut wgpu::CommandEncoder,
         kernel: &Kernel,

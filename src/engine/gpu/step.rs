@@ -23,6 +23,8 @@ pub struct RayBuffers {
     pub origins: wgpu::Buffer,
     /// R × 3, unit length.
     pub directions: wgpu::Buffer,
+    /// R cone radii at unit distance (Mip-NeRF's frustums).
+    pub radii: wgpu::Buffer,
     /// R × 3 target colours, composited on the ray's background.
     pub targets: wgpu::Buffer,
     /// R × 3.
@@ -50,6 +52,7 @@ impl RayBuffers {
             capacity,
             origins: f("ray origins", 3 * capacity),
             directions: f("ray directions", 3 * capacity),
+            radii: f("ray radii", capacity),
             targets: f("ray targets", 3 * capacity),
             backgrounds: f("ray backgrounds", 3 * capacity),
             rgb: f("ray rgb", 3 * capacity),
@@ -65,11 +68,11 @@ impl RayBuffers {
 
     /// Bytes on the device.
     pub fn bytes(&self) -> usize {
-        self.capacity * 4 * (3 * 7 + 4) + 4
+        self.capacity * 4 * (3 * 7 + 5) + 4
     }
 
-    /// Writes rays `rays` of `batch` (origins, directions, targets and
-    /// backgrounds) to the start of the buffers; the queue applies the
+    /// Writes rays `rays` of `batch` (origins, directions, cone radii,
+    /// targets and backgrounds) to the start of the buffers; the queue applies the
     /// writes before its next submission. `scratch` is reused between
     /// calls.
     pub fn upload(
@@ -102,6 +105,29 @@ impl RayBuffers {
             (&batch.backgrounds, &self.backgrounds),
         ] {
             queue.write_buffer(buffer, 0, bytemuck::cast_slice(&colours[rays.clone()]));
+        }
+        self.upload_radii(
+            context,
+            batch.radii.get(rays.clone()).unwrap_or(&[]),
+            rays.len(),
+        );
+    }
+
+    /// Writes `count` cone radii to the start of the radii buffer: `radii`,
+    /// or zeros where it is shorter (a batch made without cones: each ray is
+    /// then a line, its frustums segments with no width).
+    pub fn upload_radii(&self, context: &GpuContext, radii: &[f32], count: usize) {
+        let count = count.min(self.capacity);
+        if count == 0 {
+            return;
+        }
+        let queue = &context.queue;
+        if radii.len() >= count {
+            queue.write_buffer(&self.radii, 0, bytemuck::cast_slice(&radii[..count]));
+        } else {
+            let mut padded = radii.to_vec();
+            padded.resize(count, 0.0);
+            queue.write_buffer(&self.radii, 0, bytemuck::cast_slice(&padded));
         }
     }
 

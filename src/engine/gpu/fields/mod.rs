@@ -25,6 +25,9 @@ pub trait GpuField: Send {
     fn capacity(&self) -> usize;
 
     /// Records σ (`rows`) and colour (`rows` × 3) at `rows` samples.
+    /// `variances` (rows × 3), where given, make each sample a Gaussian with
+    /// that diagonal covariance around its position (Mip-NeRF's frustums),
+    /// as the cpu's [`crate::engine::cpu::fields::Field::forward`].
     #[allow(clippy::too_many_arguments)]
     fn record_forward(
         &mut self,
@@ -32,6 +35,7 @@ pub trait GpuField: Send {
         encoder: &mut wgpu::CommandEncoder,
         params: &wgpu::Buffer,
         positions: &wgpu::Buffer,
+        variances: Option<&wgpu::Buffer>,
         directions: &wgpu::Buffer,
         rows: usize,
         sigma_out: &wgpu::Buffer,
@@ -52,13 +56,16 @@ pub trait GpuField: Send {
         gradients: &wgpu::Buffer,
     );
 
-    /// Records σ alone at `rows` positions.
+    /// Records σ alone at `rows` positions (with `variances` as in
+    /// [`GpuField::record_forward`]).
+    #[allow(clippy::too_many_arguments)]
     fn record_density(
         &mut self,
         context: &GpuContext,
         encoder: &mut wgpu::CommandEncoder,
         params: &wgpu::Buffer,
         positions: &wgpu::Buffer,
+        variances: Option<&wgpu::Buffer>,
         rows: usize,
         sigma_out: &wgpu::Buffer,
     );

@@ -8,8 +8,13 @@
 //! [h | γ(x)] ─ dense B ─► [σ_raw | feature] ─ density ─► σ
 //! directions ─ frequency ─► γ(d) ─┐
 //! [σ_raw | feature] ──────────────┴ concat (feature columns) ─► [feature | γ(d)]
-//! [feature | γ(d)] ─ dense C ─► RGB (sigmoid)
+//! [feature | γ(d)] ─ dense C ─► RGB (sigmoid, widened by the padding)
 //! ```
+//!
+//! Mip-NeRF is the same field with other constants (its `NerfShape`): the
+//! position encoding is the integrated one when the samples come with
+//! covariances (frustums), σ a shifted softplus, the colour widened
+//! (`shaders/nerf_colour_padding.wgsl`).
 //!
 //! The parameters are one flat buffer `[A | B | C]`, each network's
 //! `MlpLayout` in the cpu engine's layout; the dense kernels read each
@@ -51,6 +56,18 @@ struct ConcatUniform {
     right_stride: u32,
     right_start: u32,
     right_width: u32,
+}
+
+/// `Params` in shaders/nerf_colour_padding.wgsl.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct PaddingUniform {
+    count: u32,
+    row_stride: u32,
+    scale: f32,
+    offset: f32,
+    zero: u32,
+    _pad: [u32; 3],
 }
 
 /// `Params` in shaders/nerf_density_common.wgsl.
@@ -96,6 +113,7 @@ pub struct GpuNerfKernels {
     concat: Kernel,
     density: Kernel,
     density_backward: Kernel,
+    colour_padding: Kernel,
 }
 
 impl GpuNerfKernels {
@@ -125,6 +143,12 @@ impl GpuNerfKernels {
                 "nerf_density_backward",
                 include_str!("../../../../shaders/nerf_density_backward.wgsl"),
             )?,
+            colour_padding: Kernel::new(
+                context,
+                "nerf_colour_padding",
+                include_str!("../../../../shaders/nerf_colour_padding.wgsl"),
+                "main",
+            )?,
         })
     }
 }
@@ -152,6 +176,9 @@ pub struct GpuNerfField {
     d_trunk_b_out: wgpu::Buffer,
     d_trunk_b_in: wgpu::Buffer,
     d_trunk_a_out: wgpu::Buffer,
+    /// ∂L/∂(the sigmoid's output), when the colour is widened (else one
+    /// float, unused).
+    d_colour: wgpu::Buffer,
     /// Rows of the last recorded forward pass whose activations are still
     /// held (None after [`Self::record_density`], which overwrites them).
     forward_rows: Option<usize>,
@@ -186,6 +213,14 @@ impl GpuNerfField {
             d_trunk_b_out: f("nerf d trunk B output", capacity * (width + 1)),
             d_trunk_b_in: f("nerf d trunk B input", capacity * (width + enc)),
             d_trunk_a_out: f("nerf d trunk A output", capacity * width),
+            d_colour: f(
+                "nerf d colour",
+                if shape.colour_padding != 0.0 {
+                    3 * capacity
+                } else {
+                    1
+                },
+            ),
             forward_rows: None,
             param_offset: 0,
             shape: shape.clone(),
@@ -326,14 +361,16 @@ impl GpuNerfField {
         }
     }
 
-    /// Records the position encoding, trunk A, the skip concatenation and
-    /// trunk B: trunk B's output [σ_raw | feature] is then in `b.output()`.
+    /// Records the position encoding (integrated, damped by `variances`,
+    /// when they are given), trunk A, the skip concatenation and trunk B:
+    /// trunk B's output [σ_raw | feature] is then in `b.output()`.
     fn record_trunk(
         &self,
         context: &GpuContext,
         encoder: &mut wgpu::CommandEncoder,
         params: &wgpu::Buffer,
         positions: &wgpu::Buffer,
+        variances: Option<&wgpu::Buffer>,
         rows: usize,
     ) {
         let k = &self.kernels;
@@ -344,7 +381,7 @@ impl GpuNerfField {
             encoder,
             &self.shape.position,
             positions,
-            None,
+            variances,
             rows as u32,
             &self.encoded_position,
         );
@@ -380,8 +417,9 @@ impl GpuNerfField {
     /// Records the forward pass over `rows` samples: σ into `sigma_out`
     /// (rows) and colour into `rgb_out` (rows × 3), from `params` (the
     /// field's flat parameters `[A | B | C]`, as the cpu field), `positions`
-    /// and unit `directions` (rows × 3 f32 each). Keeps the activations for
-    /// [`Self::record_backward`].
+    /// and unit `directions` (rows × 3 f32 each), and, for Gaussians
+    /// (Mip-NeRF's frustums), their covariance diagonals `variances`
+    /// (rows × 3). Keeps the activations for [`Self::record_backward`].
     #[allow(clippy::too_many_arguments)]
     pub fn record_forward(
         &mut self,
@@ -389,13 +427,14 @@ impl GpuNerfField {
         encoder: &mut wgpu::CommandEncoder,
         params: &wgpu::Buffer,
         positions: &wgpu::Buffer,
+        variances: Option<&wgpu::Buffer>,
         directions: &wgpu::Buffer,
         rows: usize,
         sigma_out: &wgpu::Buffer,
         rgb_out: &wgpu::Buffer,
     ) {
         self.check_rows(rows);
-        self.record_trunk(context, encoder, params, positions, rows);
+        self.record_trunk(context, encoder, params, positions, variances, rows);
         self.record_sigma(context, encoder, sigma_out, rows);
         let [_, _, rc] = self.ranges();
         let (width, enc_dir) = (self.width(), self.shape.direction.output_width());
@@ -434,11 +473,51 @@ impl GpuNerfField {
         );
         // The colour network's output stays in its workspace (its backward
         // pass reads it for the sigmoid's derivative); the caller gets a
-        // copy, 12 bytes a row.
-        if rows > 0 {
+        // copy, 12 bytes a row, widened when the shape says so.
+        let padding = self.shape.colour_padding;
+        if padding != 0.0 {
+            self.record_padding(context, encoder, self.c.output(), rgb_out, rows, padding);
+        } else if rows > 0 {
             encoder.copy_buffer_to_buffer(self.c.output(), 0, rgb_out, 0, 12 * rows as u64);
         }
         self.forward_rows = Some(rows);
+    }
+
+    /// Records `out` = `x` · (1 + 2p) − `offset` over `rows` × 3 values: the
+    /// colour's widening (offset p) or its backward (offset 0), with the
+    /// scale rounded as the cpu rounds it.
+    fn record_padding(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        x: &wgpu::Buffer,
+        out: &wgpu::Buffer,
+        rows: usize,
+        offset: f32,
+    ) {
+        let scale = 1.0 + 2.0 * self.shape.colour_padding;
+        for piece in pieces(rows, rows_per_piece(context, 3, 1)) {
+            let (groups, row_stride) = dispatch_grid(3 * piece.len(), WORKGROUP);
+            let uniform = PaddingUniform {
+                count: 3 * piece.len() as u32,
+                row_stride,
+                scale,
+                offset,
+                zero: 0,
+                _pad: [0; 3],
+            };
+            let uniform = uniform_buffer(context, "nerf colour padding", &uniform);
+            self.kernels.colour_padding.record_bindings(
+                context,
+                encoder,
+                &[
+                    uniform.as_entire_buffer_binding(),
+                    float_range(x, 3 * piece.start, 3 * piece.len()),
+                    float_range(out, 3 * piece.start, 3 * piece.len()),
+                ],
+                groups,
+            );
+        }
     }
 
     /// Records the backward pass of the last [`Self::record_forward`] (same
@@ -466,6 +545,13 @@ impl GpuNerfField {
         let [ra, rb, rc] = self.ranges();
         let (width, enc) = (self.width(), self.shape.position.output_width());
         let k = &self.kernels;
+        // Through the colour's widening: a constant factor.
+        let d_rgb = if self.shape.colour_padding != 0.0 {
+            self.record_padding(context, encoder, d_rgb, &self.d_colour, rows, 0.0);
+            &self.d_colour
+        } else {
+            d_rgb
+        };
         // Colour network. Its input gradient includes γ(d)'s columns, which
         // nothing uses (γ(d) has no parameters): 27 of 283 columns in the
         // paper's shape, computed rather than adding a column-range option
@@ -549,23 +635,25 @@ impl GpuNerfField {
         );
     }
 
-    /// Records σ alone at `rows` `positions` into `sigma_out` (for the
-    /// occupancy grid). Trunk B is evaluated in full although only its
+    /// Records σ alone at `rows` `positions` (Gaussians with `variances`
+    /// when given) into `sigma_out` (for the occupancy grid). Trunk B is evaluated in full although only its
     /// first output is used (its last layer is about a quarter of B in
     /// the paper's shape). Overwrites the activations a forward pass kept:
     /// record it outside a forward/backward pair.
+    #[allow(clippy::too_many_arguments)]
     pub fn record_density(
         &mut self,
         context: &GpuContext,
         encoder: &mut wgpu::CommandEncoder,
         params: &wgpu::Buffer,
         positions: &wgpu::Buffer,
+        variances: Option<&wgpu::Buffer>,
         rows: usize,
         sigma_out: &wgpu::Buffer,
     ) {
         self.check_rows(rows);
         self.forward_rows = None;
-        self.record_trunk(context, encoder, params, positions, rows);
+        self.record_trunk(context, encoder, params, positions, variances, rows);
         self.record_sigma(context, encoder, sigma_out, rows);
     }
 
@@ -576,16 +664,18 @@ impl GpuNerfField {
         context: &GpuContext,
         params: &[f32],
         positions: &[f32],
+        variances: Option<&[f32]>,
         directions: &[f32],
     ) -> (Vec<f32>, Vec<f32>) {
         let rows = positions.len() / 3;
-        let buffers = self.upload(context, params, positions, directions);
+        let buffers = self.upload(context, params, positions, variances, directions);
         let mut encoder = context.device.create_command_encoder(&Default::default());
         self.record_forward(
             context,
             &mut encoder,
             &buffers.params,
             &buffers.positions,
+            buffers.variances.as_ref(),
             &buffers.directions,
             rows,
             &buffers.sigma,
@@ -606,6 +696,7 @@ impl GpuNerfField {
         context: &GpuContext,
         params: &[f32],
         positions: &[f32],
+        variances: Option<&[f32]>,
         directions: &[f32],
         d_sigma: &[f32],
         d_rgb: &[f32],
@@ -615,7 +706,7 @@ impl GpuNerfField {
             d_sigma.len() == rows && d_rgb.len() == 3 * rows,
             "gradients of {rows} samples"
         );
-        let buffers = self.upload(context, params, positions, directions);
+        let buffers = self.upload(context, params, positions, variances, directions);
         let d_sigma = storage_buffer(context, "nerf d sigma", d_sigma);
         let d_rgb = storage_buffer(context, "nerf d rgb", d_rgb);
         let gradients = zeroed_storage_buffer::<f32>(context, "nerf gradients", params.len());
@@ -626,6 +717,7 @@ impl GpuNerfField {
             &mut encoder,
             &buffers.params,
             &buffers.positions,
+            buffers.variances.as_ref(),
             &buffers.directions,
             rows,
             &buffers.sigma,
@@ -654,15 +746,17 @@ impl GpuNerfField {
         context: &GpuContext,
         params: &[f32],
         positions: &[f32],
+        variances: Option<&[f32]>,
     ) -> Vec<f32> {
         let rows = positions.len() / 3;
-        let buffers = self.upload(context, params, positions, &[]);
+        let buffers = self.upload(context, params, positions, variances, &[]);
         let mut encoder = context.device.create_command_encoder(&Default::default());
         self.record_density(
             context,
             &mut encoder,
             &buffers.params,
             &buffers.positions,
+            buffers.variances.as_ref(),
             rows,
             &buffers.sigma,
         );
@@ -675,10 +769,15 @@ impl GpuNerfField {
         context: &GpuContext,
         params: &[f32],
         positions: &[f32],
+        variances: Option<&[f32]>,
         directions: &[f32],
     ) -> OnceBuffers {
         let rows = positions.len() / 3;
         assert_eq!(positions.len(), 3 * rows, "positions are not rows of 3");
+        assert!(
+            variances.is_none_or(|v| v.len() == positions.len()),
+            "variances and positions differ in size"
+        );
         assert!(
             directions.is_empty() || directions.len() == positions.len(),
             "directions and positions differ in size"
@@ -691,6 +790,7 @@ impl GpuNerfField {
         OnceBuffers {
             params: storage_buffer(context, "nerf params", params),
             positions: storage_buffer(context, "nerf positions", positions),
+            variances: variances.map(|v| storage_buffer(context, "nerf variances", v)),
             directions: storage_buffer(context, "nerf directions", directions),
             sigma: zeroed_storage_buffer::<f32>(context, "nerf sigma", rows),
             rgb: zeroed_storage_buffer::<f32>(context, "nerf rgb", 3 * rows),
@@ -717,13 +817,15 @@ impl super::GpuField for GpuNerfField {
         encoder: &mut wgpu::CommandEncoder,
         params: &wgpu::Buffer,
         positions: &wgpu::Buffer,
+        variances: Option<&wgpu::Buffer>,
         directions: &wgpu::Buffer,
         rows: usize,
         sigma_out: &wgpu::Buffer,
         rgb_out: &wgpu::Buffer,
     ) {
         GpuNerfField::record_forward(
-            self, context, encoder, params, positions, directions, rows, sigma_out, rgb_out,
+            self, context, encoder, params, positions, variances, directions, rows, sigma_out,
+            rgb_out,
         )
     }
 
@@ -748,10 +850,13 @@ impl super::GpuField for GpuNerfField {
         encoder: &mut wgpu::CommandEncoder,
         params: &wgpu::Buffer,
         positions: &wgpu::Buffer,
+        variances: Option<&wgpu::Buffer>,
         rows: usize,
         sigma_out: &wgpu::Buffer,
     ) {
-        GpuNerfField::record_density(self, context, encoder, params, positions, rows, sigma_out)
+        GpuNerfField::record_density(
+            self, context, encoder, params, positions, variances, rows, sigma_out,
+        )
     }
 
     fn workspace_bytes(&self) -> usize {
@@ -764,6 +869,7 @@ impl super::GpuField for GpuNerfField {
             &self.d_trunk_b_out,
             &self.d_trunk_b_in,
             &self.d_trunk_a_out,
+            &self.d_colour,
         ];
         buffers.iter().map(|b| b.size() as usize).sum::<usize>()
             + self.a.bytes()
@@ -776,6 +882,7 @@ impl super::GpuField for GpuNerfField {
 struct OnceBuffers {
     params: wgpu::Buffer,
     positions: wgpu::Buffer,
+    variances: Option<wgpu::Buffer>,
     directions: wgpu::Buffer,
     sigma: wgpu::Buffer,
     rgb: wgpu::Buffer,
