@@ -215,6 +215,11 @@ struct QualityArgs {
     engine: Option<EngineKind>,
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Samples per training batch (default: each model's own, the papers'
+    /// batches). Smaller batches make shorter steps, e.g. for a quick look;
+    /// the figures then are not the papers' recipe.
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+    batch_samples: Option<u64>,
     /// PSNR targets in dB for the time-to-quality columns, comma-separated.
     #[arg(long, value_delimiter = ',', default_value = "25,30,33")]
     targets: Vec<f64>,
@@ -343,6 +348,10 @@ struct RunConfig {
     /// (absent in runs made before it was recorded).
     #[serde(default)]
     engine: Option<EngineKind>,
+    /// Samples per training batch when not the model's paper batch (runs
+    /// of `bench quality --batch-samples`; absent otherwise).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    batch_samples: Option<usize>,
 }
 
 fn default_sampling() -> Sampling {
@@ -656,7 +665,7 @@ fn build_trainer(
         &ModelSettings {
             seed: config.seed,
             loss: config.loss,
-            batch_samples: None,
+            batch_samples: config.batch_samples,
             sampling: config.sampling,
         },
     )
@@ -740,6 +749,7 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
             seed: args.seed,
             sampling: args.sampling,
             engine: args.engine,
+            batch_samples: None,
         };
         let scene = Arc::new(load_scene(scene_arg, args.downscale)?);
         let choice = choose_engine(args.engine)?;

@@ -6,7 +6,7 @@
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
-use plotters::coord::Shift;
+use plotters::coord::{CoordTranslate, Shift};
 use plotters::prelude::*;
 use plotters::style::FontStyle;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
@@ -156,6 +156,41 @@ fn log_range(values: impl Iterator<Item = f64>, fallback: (f64, f64)) -> (f64, f
     (low / 1.25, high * 1.25)
 }
 
+/// A grey note, right-aligned, just above the pixel `at`.
+fn note_above<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    at: (i32, i32),
+    text: String,
+) -> Result<(), String> {
+    root.draw(&Text::new(
+        text,
+        (at.0 - 4, at.1 - 3),
+        (FAMILY, 14)
+            .into_font()
+            .color(&GREY)
+            .pos(Pos::new(HPos::Right, VPos::Bottom)),
+    ))
+    .map_err(err)
+}
+
+/// The legend of the series drawn with labels, in a framed box.
+fn draw_legend<'a, DB: DrawingBackend + 'a, CT: CoordTranslate>(
+    chart: &mut ChartContext<'a, DB, CT>,
+    position: SeriesLabelPosition,
+) -> Result<(), String> {
+    chart
+        .configure_series_labels()
+        .position(position)
+        .background_style(WHITE.mix(0.9))
+        .border_style(RGBColor(0xbb, 0xbb, 0xbb))
+        .label_font((FAMILY, 16))
+        .draw()
+        .map_err(err)
+}
+
+/// The colour of reference lines and their notes.
+const GREY: RGBColor = RGBColor(0x88, 0x88, 0x88);
+
 /// PSNR against training time (log axis), every series overlaid, with a
 /// dotted line at each target; writes `<base>.png` and `<base>.svg`.
 pub fn write_psnr_plot(
@@ -222,28 +257,21 @@ fn draw_psnr<DB: DrawingBackend>(
         .light_line_style(RGBColor(0xee, 0xee, 0xee))
         .draw()
         .map_err(err)?;
-    let grey = RGBColor(0x88, 0x88, 0x88);
     for &target in targets.iter().filter(|t| (y_low..=y_high).contains(*t)) {
         chart
             .draw_series(DashedLineSeries::new(
                 [(x_low, target), (x_high, target)],
                 4,
                 6,
-                grey.stroke_width(1),
+                GREY.stroke_width(1),
             ))
             .map_err(err)?;
-        // Right-aligned just above its line, at the right edge, where the
-        // legend (upper left) is not.
-        let (x, y) = chart.backend_coord(&(x_high, target));
-        root.draw(&Text::new(
+        // At the right edge, where the legend (upper left) is not.
+        note_above(
+            &root,
+            chart.backend_coord(&(x_high, target)),
             format!("{target:.0} dB"),
-            (x - 4, y - 3),
-            (FAMILY, 14)
-                .into_font()
-                .color(&grey)
-                .pos(Pos::new(HPos::Right, VPos::Bottom)),
-        ))
-        .map_err(err)?;
+        )?;
     }
     for s in series {
         let colour = s.style.colour();
@@ -284,33 +312,27 @@ fn draw_psnr<DB: DrawingBackend>(
             .map_err(err)?;
     }
     if !series.is_empty() {
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperLeft)
-            .background_style(WHITE.mix(0.9))
-            .border_style(RGBColor(0xbb, 0xbb, 0xbb))
-            .label_font((FAMILY, 16))
-            .draw()
-            .map_err(err)?;
+        draw_legend(&mut chart, SeriesLabelPosition::UpperLeft)?;
     }
     Ok(())
 }
 
 /// Grouped bars: for each PSNR target, the training time each model took
-/// to reach it (log axis). A target reached by the first mark is drawn to
-/// that mark and labelled "≤"; one never reached is an empty outline to
-/// the end of training, labelled "not reached". Writes `<base>.png` and
-/// `<base>.svg`.
+/// to reach it (log axis), under a dashed line at the budget. A target
+/// reached by the first mark is drawn to that mark and labelled "≤"; one
+/// never reached is an empty outline up to the budget line, labelled "not
+/// reached". Writes `<base>.png` and `<base>.svg`.
 pub fn write_time_to_quality_plot(
     title: &str,
     targets: &[f64],
     bars: &[Bars],
+    budget_seconds: f64,
     base: &Path,
 ) -> Result<Vec<PathBuf>, String> {
     write_both(
         base,
-        |root| draw_bars(root, title, targets, bars),
-        |root| draw_bars(root, title, targets, bars),
+        |root| draw_bars(root, title, targets, bars, budget_seconds),
+        |root| draw_bars(root, title, targets, bars, budget_seconds),
     )
 }
 
@@ -319,21 +341,19 @@ fn draw_bars<DB: DrawingBackend>(
     title: &str,
     targets: &[f64],
     bars: &[Bars],
+    budget_seconds: f64,
 ) -> Result<(), String> {
     root.fill(&WHITE).map_err(err)?;
-    let all_seconds = || {
-        bars.iter().flat_map(|b| {
-            b.reached.iter().filter_map(|r| match *r {
-                Reached::Interpolated { seconds }
-                | Reached::AtMost { seconds }
-                | Reached::NotReached { seconds } => Some(seconds),
-                Reached::NoMarks => None,
-            })
-        })
-    };
-    let (y_low, y_high) = log_range(all_seconds(), (1.0, 600.0));
-    // Room above the tallest bar for its label.
-    let y_high = y_high * 1.6;
+    // From a twentyfifth of the budget (below the first default mark) to
+    // the budget, wider if a bar needs it, with room above for labels.
+    let reached = bars
+        .iter()
+        .flat_map(|b| b.reached.iter().filter_map(Reached::seconds));
+    let (y_low, y_high) = log_range(
+        reached.chain([budget_seconds / 25.0, budget_seconds]),
+        (1.0, 600.0),
+    );
+    let y_high = y_high * 1.8;
     let groups = targets.len().max(1) as f64;
     let mut chart = ChartBuilder::on(&root)
         .caption(title, (FAMILY, 24))
@@ -358,6 +378,19 @@ fn draw_bars<DB: DrawingBackend>(
         .light_line_style(RGBColor(0xee, 0xee, 0xee))
         .draw()
         .map_err(err)?;
+    chart
+        .draw_series(DashedLineSeries::new(
+            [(0.0, budget_seconds), (groups, budget_seconds)],
+            4,
+            6,
+            GREY.stroke_width(1),
+        ))
+        .map_err(err)?;
+    note_above(
+        &root,
+        chart.backend_coord(&(groups, budget_seconds)),
+        format!("budget {}", format_seconds(budget_seconds)),
+    )?;
     let per_group = bars.len().max(1) as f64;
     let width = 0.8 / per_group;
     let text = |size: i32, colour: RGBColor| (FAMILY, size).into_font().color(&colour);
@@ -381,15 +414,19 @@ fn draw_bars<DB: DrawingBackend>(
                 Some(&Reached::AtMost { seconds }) => {
                     (seconds, true, format!("≤ {}", format_seconds(seconds)))
                 }
-                Some(&Reached::NotReached { seconds }) => (seconds, false, "not reached".into()),
+                Some(&Reached::NotReached { .. }) => (budget_seconds, false, "not reached".into()),
                 Some(Reached::NoMarks) | None => continue,
             };
-            let style = if filled && !b.style.dashed {
-                colour.filled()
-            } else if filled {
-                colour.mix(0.45).filled()
+            // The paper's sampler in a lighter shade of its model's colour.
+            let shade = if b.style.dashed {
+                colour.mix(0.45)
             } else {
-                colour.stroke_width(2)
+                colour.mix(1.0)
+            };
+            let style = if filled {
+                shade.filled()
+            } else {
+                shade.stroke_width(2)
             };
             chart
                 .draw_series(std::iter::once(Rectangle::new(
@@ -429,14 +466,7 @@ fn draw_bars<DB: DrawingBackend>(
             });
     }
     if !bars.is_empty() {
-        chart
-            .configure_series_labels()
-            .position(SeriesLabelPosition::UpperLeft)
-            .background_style(WHITE.mix(0.9))
-            .border_style(RGBColor(0xbb, 0xbb, 0xbb))
-            .label_font((FAMILY, 16))
-            .draw()
-            .map_err(err)?;
+        draw_legend(&mut chart, SeriesLabelPosition::UpperLeft)?;
     }
     Ok(())
 }
@@ -490,7 +520,7 @@ mod tests {
             ],
         }];
         let written =
-            write_time_to_quality_plot("demo", &[25.0, 30.0], &bars, &dir.path().join("b"))
+            write_time_to_quality_plot("demo", &[25.0, 30.0], &bars, 120.0, &dir.path().join("b"))
                 .unwrap();
         let svg = std::fs::read_to_string(&written[1]).unwrap();
         assert!(

@@ -57,9 +57,19 @@ pub struct Protocol {
     /// Training images are loaded at 1/this of their resolution.
     pub downscale: u32,
     pub seed: u64,
+    /// Samples per training batch, when not each model's own (the papers').
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub batch_samples: Option<usize>,
 }
 
 impl Protocol {
+    /// The same protocol with training batches of `samples` (`None`: each
+    /// model's own).
+    pub fn with_batch_samples(mut self, samples: Option<usize>) -> Self {
+        self.batch_samples = samples;
+        self
+    }
+
     /// Checks the settings; `marks` `None` takes [`DEFAULT_MARK_FRACTIONS`]
     /// of the budget. The budget is always the last mark.
     pub fn new(
@@ -119,6 +129,7 @@ impl Protocol {
             eval_downscale,
             downscale,
             seed,
+            batch_samples: None,
         })
     }
 
@@ -134,12 +145,14 @@ impl Protocol {
             .into_iter()
             .map(|i| frames[i].downscaled(self.eval_downscale))
             .collect();
+        let least = crate::metrics::ssim::SSIM_WINDOW as u32;
         if let Some(small) = views
             .iter()
-            .find(|f| f.camera.intrinsics.width < 8 || f.camera.intrinsics.height < 8)
+            .find(|f| f.camera.intrinsics.width < least || f.camera.intrinsics.height < least)
         {
             return Err(format!(
-                "--eval-downscale {} leaves {}×{} pixels a view: too few to score (SSIM needs 8 or more a side)",
+                "--eval-downscale {} leaves {}×{} pixels a view: too few to score (SSIM's \
+                 window needs {least} or more a side)",
                 self.eval_downscale, small.camera.intrinsics.width, small.camera.intrinsics.height
             ));
         }
@@ -361,12 +374,13 @@ pub enum CellOutcome {
 
 /// The progress evaluations inside each training segment: only the one
 /// `run` makes when the segment ends (the marks are the scores that
-/// count), on a small pixel budget so that it costs seconds even for a
-/// NeRF whose occupancy grid has not tightened yet.
+/// count), of 256 pixels of one view, so that it costs a second or two
+/// even for NeRF with the paper's 256 samples a ray.
 fn schedule() -> Schedule {
     Schedule {
         eval_every_seconds: f64::INFINITY,
-        eval_rays: 1 << 10,
+        eval_views: 1,
+        eval_rays: 1 << 8,
         ..Schedule::default()
     }
 }

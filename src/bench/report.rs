@@ -119,8 +119,8 @@ pub struct CellResult {
     pub model: ModelKind,
     pub sampling: Sampling,
     pub label: String,
-    /// The cell's run folder (`zrak eval`, `render` and `train --resume`
-    /// take it).
+    /// The cell's run folder, relative to the experiment's (`zrak eval`,
+    /// `render` and `train --resume` take it).
     pub run_folder: String,
     pub finished: bool,
     pub engine: String,
@@ -453,7 +453,7 @@ pub fn report_markdown(results: &Results) -> String {
          stops while a mark is scored, so evaluation is not counted. At each \
          mark ({}) PSNR and SSIM are the means over the views scored, rendered \
          on white and compared with the photographs composited on white (the \
-         reference protocol). Training images {}; seed {}.\n\n",
+         reference protocol). Training images {}; seed {}; {}.\n\n",
         format_seconds(p.budget_seconds),
         p.marks_seconds
             .iter()
@@ -466,6 +466,10 @@ pub fn report_markdown(results: &Results) -> String {
             format!("at 1/{} resolution", p.downscale)
         },
         p.seed,
+        match p.batch_samples {
+            None => "each model's own batch (the papers')".to_string(),
+            Some(n) => format!("batches of {n} samples, not the papers'"),
+        },
     ));
     if p.split != "test" {
         out.push_str(&format!(
@@ -527,9 +531,10 @@ pub fn report_markdown(results: &Results) -> String {
     );
     out.push_str(
         "- **model memory**: parameters, optimiser state and workspaces as the model \
-         counts them; **peak memory**: the process's peak resident memory while the \
-         cell trained and was scored (Linux VmHWM, reset when each segment between \
-         marks starts), which includes the loaded scene.\n",
+         counts them (allocated, so it can exceed what is resident); **peak memory**: \
+         the process's peak resident memory while the cell trained and was scored \
+         (Linux VmHWM, reset when each segment between marks starts), which includes \
+         the loaded scene.\n",
     );
     out.push_str(
         "- Each cell is a run folder under `runs/`: `zrak eval`, `zrak render` and \
@@ -588,6 +593,7 @@ pub fn write_outputs(dir: &Path, results: &Results) -> Result<Vec<PathBuf>, Stri
             &format!("{scene}: training time to reach each PSNR"),
             &results.settings.targets_db,
             &bars,
+            results.settings.protocol.budget_seconds,
             &dir.join(format!("time_to_quality_{file}")),
         )?);
     }

@@ -72,7 +72,7 @@ fn claim_folder(dir: &Path, protocol: &Protocol) -> anyhow::Result<()> {
                 bail!(
                     "{} holds an experiment with other settings ({}); give another --out, \
                      or the same --budget, --marks, --split, --every, --eval-downscale, \
-                     --downscale and --seed to continue it",
+                     --downscale, --seed and --batch-samples to continue it",
                     dir.display(),
                     describe_protocol(&recorded)
                 );
@@ -89,7 +89,8 @@ fn claim_folder(dir: &Path, protocol: &Protocol) -> anyhow::Result<()> {
 
 fn describe_protocol(p: &Protocol) -> String {
     format!(
-        "budget {}, marks {}, split {}, every {}, eval downscale {}, downscale {}, seed {}",
+        "budget {}, marks {}, split {}, every {}, eval downscale {}, downscale {}, seed {}, \
+         batch {}",
         format_mark(p.budget_seconds),
         p.marks_seconds
             .iter()
@@ -100,7 +101,9 @@ fn describe_protocol(p: &Protocol) -> String {
         p.every,
         p.eval_downscale,
         p.downscale,
-        p.seed
+        p.seed,
+        p.batch_samples
+            .map_or("each model's own".to_string(), |n| format!("{n} samples"))
     )
 }
 
@@ -130,6 +133,7 @@ fn run_config(cell: &CellSpec, argument: &str, args: &QualityArgs) -> RunConfig 
         seed: args.seed,
         sampling: cell.sampling,
         engine: args.engine,
+        batch_samples: args.batch_samples.map(|n| n as usize),
     }
 }
 
@@ -145,7 +149,8 @@ pub fn bench_quality(args: QualityArgs) -> anyhow::Result<()> {
         args.downscale,
         args.seed,
     )
-    .map_err(anyhow::Error::msg)?;
+    .map_err(anyhow::Error::msg)?
+    .with_batch_samples(args.batch_samples.map(|n| n as usize));
     if let Some(bad) = args.targets.iter().find(|t| !(t.is_finite() && **t > 0.0)) {
         bail!("--targets: {bad} is not a PSNR in dB (give positive numbers, e.g. 25,30,33)");
     }
@@ -272,10 +277,11 @@ pub fn bench_quality(args: QualityArgs) -> anyhow::Result<()> {
             .zip(records)
             .filter_map(|(cell, record)| {
                 let record = record.as_ref()?;
+                // Relative to the experiment's folder, which may move.
                 Some(CellResult::new(
                     cell,
                     record,
-                    &runs.join(cell.folder_name()),
+                    &Path::new(RUNS_FOLDER).join(cell.folder_name()),
                     &args.targets,
                 ))
             })
