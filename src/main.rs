@@ -26,6 +26,9 @@ use zrak::train::run::{Limits, RunFolder, Schedule, load_checkpoint, run};
 use zrak::train::trainer::Trainer;
 use zrak::train::{ModelSettings, build_model};
 
+mod cli;
+use cli::quality::bench_quality;
+
 /// Train neural radiance fields (NeRF, Mip-NeRF, Instant-NGP) while you watch.
 #[derive(Parser)]
 #[command(name = "zrak", version, about, long_about = None)]
@@ -161,6 +164,69 @@ enum BenchCommand {
         #[arg(long, default_value_t = 32)]
         steps: usize,
     },
+    /// The accuracy-versus-time experiment: trains each model on each scene
+    /// for a budget of training time, scores PSNR and SSIM at marks along
+    /// the way, and writes results.json, results.csv, report.md and plots
+    /// into --out. Run it again to continue an interrupted experiment.
+    Quality(QualityArgs),
+}
+
+#[derive(Args)]
+struct QualityArgs {
+    /// Scene folders, or `demo` for the built-in demo scene.
+    #[arg(required = true)]
+    scenes: Vec<String>,
+    /// The models, comma-separated.
+    #[arg(
+        long,
+        value_enum,
+        value_delimiter = ',',
+        default_value = "ngp,nerf,mipnerf"
+    )]
+    models: Vec<ModelKind>,
+    /// NeRF's and Mip-NeRF's samplers, comma-separated: each of those models
+    /// runs once with each (Instant-NGP has only the occupancy grid).
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "occupancy")]
+    sampling: Vec<Sampling>,
+    /// Training time per model and scene, evaluation excluded: `90s`, `10m`.
+    #[arg(long, value_parser = parse_duration, default_value = "10m")]
+    budget: f64,
+    /// Training times to score at, comma-separated (default: 1/20, 1/10,
+    /// 1/5, 1/2 and all of the budget, i.e. 30s,1m,2m,5m,10m for 10m).
+    #[arg(long, value_parser = parse_duration, value_delimiter = ',')]
+    marks: Option<Vec<f64>>,
+    /// The split scored (the papers use test; the NeRF-synthetic folders in
+    /// ../shared have only train and val).
+    #[arg(long, value_enum, default_value_t = SplitArg::Test)]
+    split: SplitArg,
+    /// Score every N-th view of the split, from the first (1: all views).
+    #[arg(long, default_value_t = zrak::bench::quality::DEFAULT_EVERY,
+          value_parser = clap::value_parser!(usize))]
+    every: usize,
+    /// Score the views at 1/N of their resolution (the photographs
+    /// area-averaged), so that NeRF's slow renders stay affordable.
+    #[arg(long, default_value_t = zrak::bench::quality::DEFAULT_EVAL_DOWNSCALE)]
+    eval_downscale: u32,
+    /// Integer image downscale for training.
+    #[arg(long, default_value_t = 1)]
+    downscale: u32,
+    /// Default: gpu on a real GPU, cpu otherwise.
+    #[arg(long, value_enum)]
+    engine: Option<EngineKind>,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Samples per training batch (default: each model's own, the papers'
+    /// batches). Smaller batches make shorter steps, e.g. for a quick look;
+    /// the figures then are not the papers' recipe.
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+    batch_samples: Option<u64>,
+    /// PSNR targets in dB for the time-to-quality columns, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "25,30,33")]
+    targets: Vec<f64>,
+    /// The experiment's folder (created; one holding an experiment with the
+    /// same settings is continued).
+    #[arg(long)]
+    out: PathBuf,
 }
 
 #[derive(Args)]
@@ -282,6 +348,10 @@ struct RunConfig {
     /// (absent in runs made before it was recorded).
     #[serde(default)]
     engine: Option<EngineKind>,
+    /// Samples per training batch when not the model's paper batch (runs
+    /// of `bench quality --batch-samples`; absent otherwise).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    batch_samples: Option<usize>,
 }
 
 fn default_sampling() -> Sampling {
@@ -296,7 +366,10 @@ fn main() -> ExitCode {
     // about; every other command only prints and may end with its reader.
     if !matches!(
         cli.command,
-        Some(Command::Train(_)) | Some(Command::View(_)) | None
+        Some(Command::Train(_))
+            | Some(Command::Bench(BenchCommand::Quality(_)))
+            | Some(Command::View(_))
+            | None
     ) {
         interrupt::end_quietly_on_closed_pipe();
     }
@@ -310,6 +383,10 @@ fn main() -> ExitCode {
         Some(Command::View(_)) | None => {
             Some("closing the window, keeping every model trained since its last save")
         }
+        Some(Command::Bench(BenchCommand::Quality(_))) => Some(
+            "finishing the current step or scored view, then writing the checkpoint and \
+             the report so far",
+        ),
         _ => None,
     };
     if let Some(what_happens) = on_interrupt
@@ -344,6 +421,7 @@ fn main() -> ExitCode {
             warmup,
             steps,
         })) => bench_throughput(scene, engine, downscale, model, sampling, warmup, steps),
+        Some(Command::Bench(BenchCommand::Quality(args))) => bench_quality(args),
         Some(Command::Bench(BenchCommand::Dense { rows, repeats })) => {
             bench_dense(rows, repeats);
             Ok(())
@@ -572,6 +650,17 @@ fn restore_run(
     let scene = Arc::new(load_scene(&config.scene, config.downscale)?);
     let choice = choose_engine(engine.or(config.engine))?;
     note(&choice.reason);
+    let mut trainer = build_trainer(&config, scene, choice)?;
+    restore_checkpoint(folder, &mut trainer)?;
+    Ok((config, trainer))
+}
+
+/// A fresh trainer of the run's model on `scene` (loaded as the run says).
+fn build_trainer(
+    config: &RunConfig,
+    scene: Arc<Scene>,
+    choice: zrak::engine::EngineChoice,
+) -> anyhow::Result<Trainer> {
     let model = build_model(
         config.model,
         choice,
@@ -579,17 +668,29 @@ fn restore_run(
         &ModelSettings {
             seed: config.seed,
             loss: config.loss,
-            batch_samples: None,
+            batch_samples: config.batch_samples,
             sampling: config.sampling,
         },
     )
     .map_err(anyhow::Error::msg)?;
-    let mut trainer = Trainer::new(model, scene, config.seed);
+    Ok(Trainer::new(model, scene, config.seed))
+}
+
+/// Restores the run folder's checkpoint into `trainer`.
+fn restore_checkpoint(folder: &RunFolder, trainer: &mut Trainer) -> anyhow::Result<()> {
     let checkpoint = load_checkpoint(folder).map_err(anyhow::Error::msg)?;
     trainer
         .restore(&checkpoint)
-        .map_err(|e| anyhow::anyhow!("{}: {e}", folder.checkpoint_path().display()))?;
-    Ok((config, trainer))
+        .map_err(|e| anyhow::anyhow!("{}: {e}", folder.checkpoint_path().display()))
+}
+
+/// Writes a new run's `run.json` and clears any earlier log: a fresh run
+/// starts a fresh history.
+fn start_run_folder(folder: &RunFolder, config: &RunConfig) -> anyhow::Result<()> {
+    std::fs::write(folder.config_path(), serde_json::to_string_pretty(config)?)
+        .with_context(|| format!("{}: cannot write", folder.config_path().display()))?;
+    let _ = std::fs::remove_file(folder.metrics_path());
+    Ok(())
 }
 
 /// How `run.json` names a scene: `demo`, or the folder's absolute path, so
@@ -651,28 +752,14 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
             seed: args.seed,
             sampling: args.sampling,
             engine: args.engine,
+            batch_samples: None,
         };
         let scene = Arc::new(load_scene(scene_arg, args.downscale)?);
         let choice = choose_engine(args.engine)?;
         note(&choice.reason);
-        let model = build_model(
-            config.model,
-            choice,
-            &scene,
-            &ModelSettings {
-                seed: config.seed,
-                loss: config.loss,
-                batch_samples: None,
-                sampling: config.sampling,
-            },
-        )
-        .map_err(anyhow::Error::msg)?;
-        std::fs::write(folder.config_path(), serde_json::to_string_pretty(&config)?)
-            .with_context(|| format!("{}: cannot write", folder.config_path().display()))?;
-        // A fresh run starts a fresh log.
-        let _ = std::fs::remove_file(folder.metrics_path());
-        let seed = config.seed;
-        (folder, config, Trainer::new(model, scene, seed))
+        let trainer = build_trainer(&config, scene, choice)?;
+        start_run_folder(&folder, &config)?;
+        (folder, config, trainer)
     };
     note(&format!(
         "training {} on {} ({} views, {}×{})",

@@ -12,8 +12,10 @@ use std::time::{Duration, Instant};
 use eframe::egui;
 use egui_kittest::Harness;
 use egui_kittest::kittest::Queryable;
-use zrak::app::protocol::{Command, Event, RenderedFrame, SceneInfo, SceneSource, TrainingStats};
-use zrak::app::ui::{TrainingLink, ViewerUi};
+use zrak::app::protocol::{
+    Command, Event, InTurn, RenderedFrame, SceneInfo, SceneSource, TrainingStats,
+};
+use zrak::app::ui::{PlotAxis, TrainingLink, ViewerUi};
 use zrak::app::worker::TrainingWorker;
 use zrak::engine::EngineKind;
 use zrak::field::ModelKind;
@@ -491,4 +493,99 @@ fn comparing_at_a_training_view_measures_the_error() {
     if let Ok(path) = std::env::var("ZRAK_VIEWER_SNAPSHOT") {
         harness.render().unwrap().save(path).unwrap();
     }
+}
+
+#[test]
+fn training_all_models_in_turn_is_one_click_and_plots_against_training_time() {
+    let (mut harness, link) = harness_with_scene();
+    link.clear();
+    button(&harness, "Train all models in turn").click();
+    harness.run_steps(2);
+    let sent: Vec<String> = link
+        .sent()
+        .into_iter()
+        .filter(|c| !matches!(c, Command::Render(_)))
+        .map(|c| format!("{c:?}"))
+        .collect();
+    // Every model, two seconds of training a turn, and training starts.
+    assert_eq!(
+        sent,
+        [
+            "TrainInTurn(Some(InTurn { models: [Ngp, Nerf, MipNerf], slice_seconds: 2.0 }))",
+            "Start"
+        ]
+    );
+    assert!(harness.state().is_running());
+    assert_eq!(harness.state().plot_axis(), PlotAxis::TrainTime);
+    // The thread's answer is what the window shows.
+    link.push(Event::InTurn(Some(InTurn {
+        models: vec![ModelKind::Ngp, ModelKind::Nerf],
+        slice_seconds: 2.0,
+    })));
+    harness.run_steps(2);
+    assert_eq!(harness.state().in_turn().unwrap().models.len(), 2);
+    harness.get_by_label_contains("take turns of 2 s");
+    link.clear();
+    button(&harness, "Train all models in turn").click();
+    harness.run_steps(2);
+    assert!(
+        link.sent()
+            .iter()
+            .any(|c| matches!(c, Command::TrainInTurn(None)))
+    );
+    assert!(harness.state().in_turn().is_none());
+}
+
+/// Stats of `model` at `step`, `train_seconds` in, with a held-out PSNR.
+fn evaluated(model: ModelKind, step: u32, train_seconds: f64, val_psnr: f32) -> TrainingStats {
+    TrainingStats {
+        model,
+        train_seconds,
+        val_psnr: Some(val_psnr),
+        samples_per_second: 1.5e6,
+        memory_bytes: 32 << 20,
+        ..stats(step, 0.01)
+    }
+}
+
+#[test]
+fn the_plot_and_table_export_from_the_window_with_the_sessions_numbers() {
+    let (mut harness, link) = harness_with_scene();
+    // Instant-NGP: 20 dB after 10 s of training, 30 dB after 40 s;
+    // NeRF: 15 dB after 10 s.
+    link.push(Event::Stats(evaluated(ModelKind::Ngp, 100, 10.0, 20.0)));
+    link.push(Event::Stats(evaluated(ModelKind::Ngp, 400, 40.0, 30.0)));
+    link.push(Event::Stats(evaluated(ModelKind::Nerf, 50, 10.0, 15.0)));
+    harness.run_steps(2);
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("comparison");
+    harness
+        .state_mut()
+        .set_comparison_folder(out.display().to_string());
+    button(&harness, "Export plot and table").click();
+    harness.run_steps(2);
+    for file in ["psnr.png", "psnr.svg", "table.md", "table.csv"] {
+        assert!(out.join(file).is_file(), "{file} not exported");
+    }
+    let csv = std::fs::read_to_string(out.join("table.csv")).unwrap();
+    // 25 dB half-way from 20 to 30 dB, in log time between 10 and 40 s:
+    // √(10 · 40) = 20 s.
+    assert_eq!(
+        csv,
+        "model,steps,training time,held-out PSNR,to 25 dB,to 30 dB,to 33 dB,samples/s,memory\n\
+         Instant-NGP,400,40 s,30.00,20 s,40 s,not in 40 s,1.50 M,32 MiB\n\
+         NeRF,50,10 s,15.00,not in 10 s,not in 10 s,not in 10 s,1.50 M,32 MiB\n"
+    );
+    let markdown = std::fs::read_to_string(out.join("table.md")).unwrap();
+    assert!(markdown.contains("| Instant-NGP | 400 | 40 s | 30.00 | 20 s | 40 s |"));
+    let png = image::open(out.join("psnr.png")).unwrap();
+    assert_eq!((png.width(), png.height()), (1000, 620));
+    let svg = std::fs::read_to_string(out.join("psnr.svg")).unwrap();
+    assert!(svg.contains("Instant-NGP") && svg.contains("NeRF"));
+    assert!(
+        harness
+            .state()
+            .notices()
+            .any(|n| !n.is_error && n.text.starts_with("Exported 4 files"))
+    );
 }

@@ -6,10 +6,11 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use glam::Vec3;
-use zrak::app::protocol::{Command, Event, RenderRequest, RenderedFrame, SceneSource};
+use zrak::app::protocol::{Command, Event, InTurn, RenderRequest, RenderedFrame, SceneSource};
 use zrak::app::worker::{TrainingWorker, WorkerOptions};
 use zrak::engine::EngineKind;
 use zrak::field::ModelKind;
+use zrak::field::nerf::Sampling;
 use zrak::field::ngp::LossKind;
 use zrak::render::RenderMode;
 use zrak::render::export::ExportSettings;
@@ -501,6 +502,84 @@ fn a_scene_loads_while_the_current_one_trains() {
     );
     // The new scene's model starts afresh.
     assert_eq!(step_once(&worker), 1);
+    worker.shutdown();
+}
+
+#[test]
+fn models_in_turn_train_in_order_at_equal_shares_of_training_time() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let worker = spawn(WorkerOptions {
+        // NeRF with the paper's sampler on batches of 4 rays (1024
+        // samples): steps of tens of ms and no occupancy-grid update, so
+        // turns come quickly. No held-out evaluations, which would pause
+        // training.
+        sampling: Sampling::Paper,
+        batch_samples: Some(1 << 10),
+        val_every_train_seconds: 1e9,
+        ..options()
+    });
+    const SLICE: f64 = 0.4;
+    let turns = InTurn {
+        models: vec![ModelKind::Ngp, ModelKind::Nerf],
+        slice_seconds: SLICE,
+    };
+    worker.send(Command::TrainInTurn(Some(turns.clone())));
+    let echoed = wait_for(&worker, |e| match e {
+        Event::InTurn(settings) => Some(settings.clone()),
+        _ => None,
+    });
+    assert_eq!(echoed, Some(turns));
+    worker.send(Command::Start);
+    // Each turn's model, and its training seconds and step time at the
+    // last report of the turn (the one sent when the turn passes on).
+    let mut ends: Vec<(ModelKind, f64, f64)> = Vec::new();
+    wait_for(&worker, |e| {
+        let Event::Stats(stats) = e else {
+            return None;
+        };
+        let report = (
+            stats.model,
+            stats.train_seconds,
+            stats.ms_per_step as f64 / 1e3,
+        );
+        match ends.last_mut() {
+            Some(last) if last.0 == stats.model => *last = report,
+            _ => ends.push(report),
+        }
+        // Five turns started: four have ended.
+        (ends.len() == 5).then_some(())
+    });
+    worker.send(Command::Pause);
+    let order: Vec<ModelKind> = ends.iter().map(|e| e.0).collect();
+    assert_eq!(
+        order,
+        [
+            ModelKind::Ngp,
+            ModelKind::Nerf,
+            ModelKind::Ngp,
+            ModelKind::Nerf,
+            ModelKind::Ngp
+        ]
+    );
+    // The k-th turn of a model ends once it has trained k slices, within
+    // one step after (a step is not cut short); a slow step would not let
+    // the overshoot add up across turns.
+    for (i, &(model, seconds, step)) in ends[..4].iter().enumerate() {
+        let k = (i / 2 + 1) as f64;
+        assert!(
+            seconds >= k * SLICE && seconds <= k * SLICE + 3.0 * step + 0.25,
+            "turn {i} of {model:?} ended at {seconds:.3} s (steps of {step:.3} s): {ends:?}"
+        );
+    }
+    // So after two turns each, the shares are equal to within a step.
+    let (ngp, nerf) = (ends[2].1, ends[3].1);
+    assert!((ngp - nerf).abs() <= SLICE, "{ends:?}");
+    worker.send(Command::TrainInTurn(None));
+    let echoed = wait_for(&worker, |e| match e {
+        Event::InTurn(settings) => Some(settings.clone()),
+        _ => None,
+    });
+    assert_eq!(echoed, None);
     worker.shutdown();
 }
 

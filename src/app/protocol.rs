@@ -55,6 +55,28 @@ impl Default for Balance {
     }
 }
 
+/// Several models trained in turn, so that one session compares them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct InTurn {
+    /// In the order they take turns.
+    pub models: Vec<ModelKind>,
+    /// Training seconds of each turn: every model gets the same share of
+    /// training time, whatever its steps cost.
+    pub slice_seconds: f64,
+}
+
+impl InTurn {
+    /// Every model, two seconds of training each turn: long enough that a
+    /// turn holds many of the viewer's short steps, short enough that the
+    /// curves grow side by side.
+    pub fn all() -> Self {
+        Self {
+            models: ModelKind::ALL.to_vec(),
+            slice_seconds: 2.0,
+        }
+    }
+}
+
 #[derive(Debug, Clone)]
 pub enum Command {
     /// Load a scene; every model's state of the previous scene is dropped
@@ -67,8 +89,12 @@ pub enum Command {
     StepOnce,
     /// Forget the active model's training and start it afresh.
     Reset,
-    /// Make `kind` the active model; each model keeps its own state.
+    /// Make `kind` the active model (the one shown, and trained unless
+    /// models take turns); each model keeps its own state.
     SelectModel(ModelKind),
+    /// Train the models in turn at equal shares of training time while
+    /// training runs (`None`: only the active model trains again).
+    TrainInTurn(Option<InTurn>),
     SetBalance(Balance),
     Render(RenderRequest),
     SaveCheckpoint(PathBuf),
@@ -158,6 +184,9 @@ pub enum Event {
         description: String,
     },
     ModelSelected(ModelKind),
+    /// The models now taking turns (only those that could be built), or
+    /// `None` when the active model trains alone.
+    InTurn(Option<InTurn>),
     Running(bool),
     Stats(TrainingStats),
     Frame(RenderedFrame),

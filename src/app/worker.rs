@@ -36,8 +36,8 @@ use crate::train::{ModelSettings, build_model};
 
 use super::progressive::{ChunkPacer, LevelRender, level_camera, refinement_levels};
 use super::protocol::{
-    Balance, Command, Event, GpuFrame, RenderRequest, RenderedFrame, SceneInfo, SceneSource,
-    TrainingStats,
+    Balance, Command, Event, GpuFrame, InTurn, RenderRequest, RenderedFrame, SceneInfo,
+    SceneSource, TrainingStats,
 };
 
 /// Called after every event is queued, so the UI wakes up to read it (the
@@ -489,6 +489,68 @@ struct ValJob {
     psnr_sum: f64,
 }
 
+/// Models trained in turn at equal shares of training time.
+///
+/// Each model trains until it has had one more slice than it had finished
+/// turns since the turns began, then the next model in order takes over.
+/// A step cannot be cut short, so a turn runs a little past its slice; the
+/// next turn's end is counted from the turns' start, not from where that
+/// turn ended, so the overshoot never adds up: every model's training
+/// time stays within one slice and one step of every other's.
+#[derive(Debug, Clone)]
+pub struct Turns {
+    models: Vec<ModelKind>,
+    slice_seconds: f64,
+    /// Each model's training seconds when the turns began.
+    base: Vec<f64>,
+    /// Turns each model has finished.
+    finished: Vec<u32>,
+    current: usize,
+}
+
+impl Turns {
+    /// Turns among `settings.models` (at least one), starting with the
+    /// first; `trained` gives a model's training seconds so far.
+    pub fn new(settings: &InTurn, trained: impl Fn(ModelKind) -> f64) -> Self {
+        Self {
+            base: settings.models.iter().map(|&m| trained(m)).collect(),
+            finished: vec![0; settings.models.len()],
+            models: settings.models.clone(),
+            slice_seconds: settings.slice_seconds.max(1e-3),
+            current: 0,
+        }
+    }
+
+    pub fn settings(&self) -> InTurn {
+        InTurn {
+            models: self.models.clone(),
+            slice_seconds: self.slice_seconds,
+        }
+    }
+
+    /// The model whose turn it is.
+    pub fn current(&self) -> ModelKind {
+        self.models[self.current]
+    }
+
+    /// The model to train next, moving on to the next model when the
+    /// current one has had its slice; `trained` gives a model's training
+    /// seconds so far.
+    pub fn model_to_train(&mut self, trained: impl Fn(ModelKind) -> f64) -> ModelKind {
+        // Bounded: after a round every model has a slice left to train.
+        for _ in 0..self.models.len() {
+            let i = self.current;
+            let since = trained(self.models[i]) - self.base[i];
+            if since < f64::from(self.finished[i] + 1) * self.slice_seconds {
+                break;
+            }
+            self.finished[i] += 1;
+            self.current = (i + 1) % self.models.len();
+        }
+        self.current()
+    }
+}
+
 /// What the loop does next.
 enum Work {
     /// Draw the view: a whole level, or one chunk of rays.
@@ -518,6 +580,9 @@ struct Worker {
     val_frames: Vec<Frame>,
     slots: Vec<ModelSlot>,
     active: ModelKind,
+    /// When set, the models take turns at training instead of the active
+    /// model training alone.
+    turns: Option<Turns>,
     running: bool,
     balance: Balance,
     view: Option<View>,
@@ -616,6 +681,7 @@ impl Worker {
             val_frames,
             slots: Vec::new(),
             active: model,
+            turns: None,
             running: false,
             balance: Balance::default(),
             view: None,
@@ -695,7 +761,12 @@ impl Worker {
     }
 
     fn training_active(&self) -> bool {
-        self.running && self.export.is_none() && self.slot(self.active).is_some()
+        self.running && self.export.is_none() && self.slot(self.trainee()).is_some()
+    }
+
+    /// The model that trains: the one whose turn it is, else the active one.
+    fn trainee(&self) -> ModelKind {
+        self.turns.as_ref().map_or(self.active, Turns::current)
     }
 
     fn next_work(&mut self) -> Work {
@@ -744,10 +815,10 @@ impl Worker {
             return Work::Export;
         }
         if let Some(job) = &self.val_job {
-            if self.slot(job.model).is_some() && job.model == self.active {
+            if self.slot(job.model).is_some() && job.model == self.trainee() {
                 return Work::Evaluate;
             }
-            // Its model was switched away from: evaluate again when due.
+            // Its model no longer trains: evaluate again when due.
             self.val_job = None;
         }
         if training {
@@ -839,21 +910,22 @@ impl Worker {
         match command {
             Command::OpenScene(source) => self.open_scene(source)?,
             Command::Start => {
-                self.ensure_slot(self.active)?;
-                self.running = self.slot(self.active).is_some();
+                self.ensure_slot(self.trainee())?;
+                self.running = self.slot(self.trainee()).is_some();
                 self.send(Event::Running(self.running))?;
             }
             Command::Pause => {
                 self.running = false;
-                self.flush_stats(self.active)?;
+                self.flush_stats(self.trainee())?;
                 self.send(Event::Running(false))?;
             }
             Command::StepOnce => {
-                self.ensure_slot(self.active)?;
-                if self.slot(self.active).is_some() {
+                self.ensure_slot(self.trainee())?;
+                if self.slot(self.trainee()).is_some() {
                     self.train_step(true)?;
                 }
             }
+            Command::TrainInTurn(settings) => self.set_turns(settings)?,
             Command::Reset => self.reset()?,
             Command::SelectModel(kind) => {
                 if kind != self.active {
@@ -956,6 +1028,11 @@ impl Worker {
         );
         self.slots.clear();
         self.val_job = None;
+        if self.turns.take().is_some() {
+            // The models of the old scene are gone; the user starts the
+            // turns again on the new one.
+            self.send(Event::InTurn(None))?;
+        }
         // The camera belongs to the old scene; the UI sends a new one.
         self.view = None;
         self.send(Event::SceneLoaded(SceneInfo {
@@ -986,8 +1063,75 @@ impl Worker {
             None => self.slots.push(slot),
         }
         self.val_job = None;
+        self.rebase_turns();
         if let Some(view) = self.view.as_mut() {
             view.restart_level();
+        }
+        Ok(())
+    }
+
+    /// Starts or stops the models' taking turns. Models that cannot be
+    /// built are left out (and reported); fewer than two leave the active
+    /// model training alone.
+    fn set_turns(&mut self, settings: Option<InTurn>) -> Result<(), UiGone> {
+        self.flush_stats(self.trainee())?;
+        self.val_job = None;
+        self.turns = None;
+        if let Some(settings) = settings {
+            let mut models = Vec::new();
+            for &kind in &settings.models {
+                self.ensure_slot(kind)?;
+                if self.slot(kind).is_some() && !models.contains(&kind) {
+                    models.push(kind);
+                }
+            }
+            if models.len() >= 2 {
+                self.turns = Some(Turns::new(
+                    &InTurn {
+                        models,
+                        slice_seconds: settings.slice_seconds,
+                    },
+                    |kind| self.trained_seconds(kind),
+                ));
+            } else {
+                self.send(Event::Error(
+                    "taking turns needs at least two models that can be built".into(),
+                ))?;
+            }
+        }
+        self.send(Event::InTurn(self.turns.as_ref().map(Turns::settings)))
+    }
+
+    /// Training seconds of `kind`'s model (0 when it has none).
+    fn trained_seconds(&self, kind: ModelKind) -> f64 {
+        self.slot(kind).map_or(0.0, |s| s.trainer.train_seconds)
+    }
+
+    /// Starts the turns afresh after a model was reset or loaded, so that
+    /// its new training time does not count as a share it had or owes.
+    fn rebase_turns(&mut self) {
+        if let Some(turns) = &self.turns {
+            let settings = turns.settings();
+            self.turns = Some(Turns::new(&settings, |kind| self.trained_seconds(kind)));
+        }
+    }
+
+    /// Moves the turns on if the current model has had its slice, sending
+    /// the stats of the model whose turn ended.
+    fn take_turn(&mut self) -> Result<(), UiGone> {
+        let slots = &self.slots;
+        let Some(turns) = self.turns.as_mut() else {
+            return Ok(());
+        };
+        let before = turns.current();
+        let now = turns.model_to_train(|kind| {
+            slots
+                .iter()
+                .find(|s| s.kind == kind)
+                .map_or(0.0, |s| s.trainer.train_seconds)
+        });
+        if now != before {
+            self.flush_stats(before)?;
         }
         Ok(())
     }
@@ -1182,11 +1326,13 @@ impl Worker {
         self.train_step(false)
     }
 
-    /// One step of the active model; `report` sends its stats at once.
+    /// One step of the model that trains (the active one, or the one whose
+    /// turn it is); `report` sends its stats at once.
     fn train_step(&mut self, report: bool) -> Result<(), UiGone> {
+        self.take_turn()?;
         let revision = self.revision();
         let every = self.options.val_every_train_seconds;
-        let active = self.active;
+        let active = self.trainee();
         let Some(slot) = self.slots.iter_mut().find(|s| s.kind == active) else {
             return Ok(());
         };
@@ -1499,6 +1645,7 @@ impl Worker {
             Some(existing) => *existing = slot,
             None => self.slots.push(slot),
         }
+        self.rebase_turns();
         Ok((kind, step))
     }
 
@@ -1663,5 +1810,75 @@ impl ExportJob {
 
     fn finish(self) -> Result<Vec<PathBuf>, String> {
         self.export.finish()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Simulates the worker's loop: each model's steps take a fixed time;
+    /// returns each model's training seconds and the order of the turns.
+    fn simulate(
+        settings: &InTurn,
+        step_seconds: &[f64],
+        total_seconds: f64,
+    ) -> (Vec<f64>, Vec<ModelKind>) {
+        let index = |kind: ModelKind| settings.models.iter().position(|&m| m == kind).unwrap();
+        let mut trained = vec![0.0; settings.models.len()];
+        let mut turns = Turns::new(settings, |_| 0.0);
+        let mut order = Vec::new();
+        while trained.iter().sum::<f64>() < total_seconds {
+            let kind = turns.model_to_train(|m| trained[index(m)]);
+            if order.last() != Some(&kind) {
+                order.push(kind);
+            }
+            trained[index(kind)] += step_seconds[index(kind)];
+        }
+        (trained, order)
+    }
+
+    #[test]
+    fn turns_go_round_in_order_at_equal_shares_of_training_time() {
+        let settings = InTurn {
+            models: vec![ModelKind::Ngp, ModelKind::Nerf, ModelKind::MipNerf],
+            slice_seconds: 0.5,
+        };
+        // Steps of very different cost, none dividing the slice evenly.
+        let steps = [0.013, 0.07, 0.3];
+        let (trained, order) = simulate(&settings, &steps, 60.0);
+        let expected: Vec<ModelKind> = (0..order.len()).map(|i| settings.models[i % 3]).collect();
+        assert_eq!(order, expected);
+        assert!(order.len() >= 3 * 30, "{} turns", order.len());
+        // Within one slice and one step of each other, however many turns
+        // (the overshoot of each turn does not add up).
+        let (low, high) = trained
+            .iter()
+            .fold((f64::INFINITY, 0f64), |(l, h), &t| (l.min(t), h.max(t)));
+        assert!(high - low <= 0.5 + 0.3 + 1e-9, "{trained:?}");
+        // The slowest model's share is a third to within that bound.
+        assert!((trained[2] / trained.iter().sum::<f64>() - 1.0 / 3.0).abs() < 0.02);
+    }
+
+    #[test]
+    fn a_step_longer_than_the_slice_still_passes_the_turn_on() {
+        let settings = InTurn {
+            models: vec![ModelKind::Ngp, ModelKind::Nerf],
+            slice_seconds: 0.1,
+        };
+        let (trained, order) = simulate(&settings, &[0.01, 0.35], 10.0);
+        assert_eq!(
+            &order[..4],
+            [
+                ModelKind::Ngp,
+                ModelKind::Nerf,
+                ModelKind::Ngp,
+                ModelKind::Nerf
+            ]
+        );
+        assert!(
+            (trained[0] - trained[1]).abs() <= 0.1 + 0.35 + 1e-9,
+            "{trained:?}"
+        );
     }
 }

@@ -1,5 +1,12 @@
-//! Benchmarks that print figures: training throughput per stage, and (later)
-//! the accuracy-versus-time experiment. Nothing here asserts on time.
+//! Benchmarks that print figures: training throughput per stage, and the
+//! accuracy-versus-time experiment with its report. Nothing here asserts
+//! on time.
+
+pub mod plot;
+pub mod published;
+pub mod quality;
+pub mod report;
+pub mod table;
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -124,6 +131,15 @@ pub fn peak_memory_bytes() -> Option<u64> {
     let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
     let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
     Some(kib * 1024)
+}
+
+/// Starts a new peak for [`peak_memory_bytes`] at the current resident
+/// memory (Linux: writing 5 to `/proc/self/clear_refs`), so that each
+/// cell of the quality experiment reports its own peak rather than the
+/// largest one before it. Where that is not possible the peak stays the
+/// process's.
+pub fn reset_peak_memory() {
+    let _ = std::fs::write("/proc/self/clear_refs", "5");
 }
 
 /// The scene the benchmark uses by default: lego_400 beside the checkout

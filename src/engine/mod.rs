@@ -34,6 +34,23 @@ pub struct EngineChoice {
     pub reason: String,
 }
 
+impl EngineChoice {
+    /// The same choice for one more model, on the same device (wgpu's
+    /// handles are reference-counted clones), without looking for an
+    /// adapter again.
+    pub fn share(&self) -> Result<EngineChoice, gpu::GpuError> {
+        Ok(EngineChoice {
+            kind: self.kind,
+            gpu: self
+                .gpu
+                .as_ref()
+                .map(|c| GpuContext::from_existing(&c.adapter, c.device.clone(), c.queue.clone()))
+                .transpose()?,
+            reason: self.reason.clone(),
+        })
+    }
+}
+
 /// Chooses an engine: `requested` when given; otherwise `gpu` on a real GPU
 /// and `cpu` when the only adapter is a software one (lavapipe runs the
 /// engine's WGSL 40–150× slower than the `cpu` engine, DESIGN.md) or there

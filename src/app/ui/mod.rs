@@ -16,14 +16,16 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use crate::app::camera::ViewCamera;
-use crate::app::protocol::{Balance, Command, Event, SceneInfo, SceneSource, TrainingStats};
+use crate::app::protocol::{
+    Balance, Command, Event, InTurn, SceneInfo, SceneSource, TrainingStats,
+};
 use crate::app::worker::TrainingWorker;
 use crate::engine::EngineKind;
 use crate::field::ModelKind;
 use crate::render::RenderMode;
 
 pub use panels::ExportDialog;
-pub use plots::{History, HistoryPoint, PlotAxis};
+pub use plots::{History, HistoryPoint, PlotAxis, comparison_table, export_comparison};
 pub use viewport::{CompareMode, CompareWith, ViewportState};
 
 /// The UI's end of the channel to the training thread.
@@ -113,6 +115,8 @@ pub struct ViewerUi {
     display_adapter: Option<String>,
     active_model: ModelKind,
     running: bool,
+    /// The models taking turns at training, as the thread last said.
+    in_turn: Option<InTurn>,
     histories: Vec<History>,
     balance: Balance,
     mode: RenderMode,
@@ -122,6 +126,8 @@ pub struct ViewerUi {
     export: ExportDialog,
     scene_path_text: String,
     checkpoint_path_text: String,
+    /// Where the plot and table are exported.
+    comparison_folder: String,
     /// Whether a native file dialog can open here (portal or zenity).
     dialogs_available: bool,
     /// The camera turns by itself as if dragged (for measuring).
@@ -148,6 +154,7 @@ impl ViewerUi {
             display_adapter: None,
             active_model: model,
             running: false,
+            in_turn: None,
             histories: Vec::new(),
             balance: Balance::default(),
             mode: RenderMode::Rgb,
@@ -157,6 +164,10 @@ impl ViewerUi {
             export: ExportDialog::default(),
             scene_path_text: String::new(),
             checkpoint_path_text: String::new(),
+            comparison_folder: std::env::temp_dir()
+                .join("zrak-comparison")
+                .display()
+                .to_string(),
             dialogs_available: panels::file_dialog_available(),
             auto_orbit: false,
             last_progress_log: None,
@@ -276,6 +287,55 @@ impl ViewerUi {
             self.link.send(Command::Start);
         }
         self.running = !self.running;
+    }
+
+    /// The models taking turns at training, if they are.
+    pub fn in_turn(&self) -> Option<&InTurn> {
+        self.in_turn.as_ref()
+    }
+
+    pub fn plot_axis(&self) -> PlotAxis {
+        self.plot_axis
+    }
+
+    /// Starts every model training in turn at equal shares of training
+    /// time (and training, if paused), with the curves against training
+    /// time; or stops the turns, leaving the active model training alone.
+    pub fn toggle_in_turn(&mut self) {
+        if self.in_turn.is_some() {
+            self.link.send(Command::TrainInTurn(None));
+            self.in_turn = None;
+            return;
+        }
+        let settings = InTurn::all();
+        self.link.send(Command::TrainInTurn(Some(settings.clone())));
+        self.in_turn = Some(settings);
+        // Models trained in turn share the wall clock: their own training
+        // time is what compares them.
+        self.plot_axis = PlotAxis::TrainTime;
+        if !self.running {
+            self.toggle_running();
+        }
+    }
+
+    /// Sets the folder the plot and the table are exported to.
+    pub fn set_comparison_folder(&mut self, folder: impl Into<String>) {
+        self.comparison_folder = folder.into();
+    }
+
+    /// Writes the session's comparison (PSNR plot as PNG and SVG, the table
+    /// as Markdown and CSV) into the export folder, and says so.
+    pub fn export_comparison(&mut self) -> Result<Vec<PathBuf>, String> {
+        let folder = PathBuf::from(self.comparison_folder.trim());
+        let result = export_comparison(&self.histories, &folder);
+        match &result {
+            Ok(files) => self.notice(
+                format!("Exported {} files to {}", files.len(), folder.display()),
+                false,
+            ),
+            Err(error) => self.notice(format!("Export failed: {error}"), true),
+        }
+        result
     }
 
     /// Hands the link back (for shutdown), leaving a closed one behind.
@@ -402,6 +462,7 @@ impl ViewerUi {
             Event::ModelSelected(kind) => {
                 self.active_model = kind;
             }
+            Event::InTurn(settings) => self.in_turn = settings,
             Event::Running(running) => self.running = running,
             Event::Stats(stats) => self.record_stats(stats),
             Event::Frame(_) | Event::GpuFrame(_) => {}

@@ -314,6 +314,36 @@ fn training_section(state: &mut ViewerUi, ui: &mut egui::Ui) {
             }
         }
     });
+    let in_turn = state.in_turn.is_some();
+    if ui
+        .selectable_label(in_turn, "Train all models in turn")
+        .on_hover_text(
+            "every model trains in turn, at equal shares of training time, so the \
+             plots compare them; the view shows the model selected above",
+        )
+        .clicked()
+    {
+        state.toggle_in_turn();
+    }
+    if let Some(turns) = &state.in_turn {
+        // The model whose figures came last is the one training now.
+        let now = state
+            .histories
+            .iter()
+            .filter_map(|h| h.points.last().map(|p| (p.wall_seconds, h.model)))
+            .max_by(|a, b| a.0.total_cmp(&b.0))
+            .map(|(_, m)| m);
+        let names: Vec<&str> = turns.models.iter().map(|m| m.name()).collect();
+        ui.label(
+            RichText::new(format!(
+                "{} take turns of {} s of training{}",
+                names.join(", "),
+                turns.slice_seconds,
+                now.map_or(String::new(), |m| format!("; now {}", m.name()))
+            ))
+            .small(),
+        );
+    }
     let mut share = state.balance.training_share;
     let slider = ui.add(
         egui::Slider::new(&mut share, 0.0..=1.0)
@@ -482,6 +512,28 @@ pub fn bottom_panel(state: &mut ViewerUi, ui: &mut egui::Ui) {
                         ui.label("against");
                         ui.selectable_value(&mut state.plot_axis, PlotAxis::Step, "steps");
                         ui.selectable_value(&mut state.plot_axis, PlotAxis::WallTime, "wall time");
+                        ui.selectable_value(
+                            &mut state.plot_axis,
+                            PlotAxis::TrainTime,
+                            "training time",
+                        );
+                        ui.separator();
+                        let name = ui.label("Export to");
+                        ui.add(
+                            egui::TextEdit::singleline(&mut state.comparison_folder)
+                                .desired_width(140.0),
+                        )
+                        .labelled_by(name.id);
+                        if ui
+                            .button("Export plot and table")
+                            .on_hover_text(
+                                "psnr.png, psnr.svg, table.md and table.csv: held-out PSNR \
+                                 against training time and each model's figures",
+                            )
+                            .clicked()
+                        {
+                            let _ = state.export_comparison();
+                        }
                     });
                     plots::show(ui, &state.histories, state.plot_axis);
                 });

@@ -1,9 +1,16 @@
-//! Loss and PSNR curves of every model trained in this session.
+//! Loss and PSNR curves of every model trained in this session, and their
+//! export as the quality report's plot and table.
+
+use std::path::{Path, PathBuf};
 
 use eframe::egui;
 use egui_plot::{Legend, Line, Plot, PlotPoints, Points};
 
 use crate::app::protocol::TrainingStats;
+use crate::bench::plot::{Series, SeriesStyle, write_psnr_plot};
+use crate::bench::table::{
+    DEFAULT_TARGETS_DB, Table, format_mib, format_psnr, format_seconds, time_to_reach,
+};
 use crate::field::ModelKind;
 
 /// Points kept per model before older ones are thinned: enough for a smooth
@@ -16,6 +23,9 @@ pub enum PlotAxis {
     Step,
     /// Seconds since the window opened.
     WallTime,
+    /// Seconds each model has spent training (rendering and evaluation
+    /// excluded): the axis on which models trained in turn compare.
+    TrainTime,
 }
 
 /// One logged step of one model.
@@ -24,6 +34,8 @@ pub struct HistoryPoint {
     pub step: u32,
     /// Seconds since the window opened, when the figures arrived.
     pub wall_seconds: f64,
+    /// The model's training seconds at that step.
+    pub train_seconds: f64,
     pub loss: f32,
     pub batch_psnr: Option<f32>,
     pub val_psnr: Option<f32>,
@@ -54,6 +66,7 @@ impl History {
         self.points.push(HistoryPoint {
             step: stats.step,
             wall_seconds,
+            train_seconds: stats.train_seconds,
             loss: stats.loss,
             batch_psnr: stats.batch_psnr,
             val_psnr: stats.val_psnr,
@@ -84,8 +97,95 @@ impl History {
         match axis {
             PlotAxis::Step => point.step as f64,
             PlotAxis::WallTime => point.wall_seconds,
+            PlotAxis::TrainTime => point.train_seconds,
         }
     }
+
+    /// (training seconds, held-out PSNR) at each evaluation.
+    pub fn val_curve(&self) -> Vec<(f64, f64)> {
+        self.points
+            .iter()
+            .filter_map(|p| Some((p.train_seconds, p.val_psnr? as f64)))
+            .filter(|(_, psnr)| psnr.is_finite())
+            .collect()
+    }
+}
+
+/// The comparison of the session's models as a table: steps, training
+/// time, the latest held-out PSNR, the training time to each target
+/// (interpolated between evaluations as the quality report does), speed
+/// and memory.
+pub fn comparison_table(histories: &[History]) -> Table {
+    let mut headers = vec![
+        "model".to_string(),
+        "steps".to_string(),
+        "training time".to_string(),
+        "held-out PSNR".to_string(),
+    ];
+    headers.extend(DEFAULT_TARGETS_DB.iter().map(|t| format!("to {t:.0} dB")));
+    headers.extend(["samples/s".to_string(), "memory".to_string()]);
+    let mut table = Table::new(headers);
+    for history in histories {
+        let Some(latest) = history.latest else {
+            continue;
+        };
+        let curve = history.val_curve();
+        let mut row = vec![
+            history.model.name().to_string(),
+            latest.step.to_string(),
+            format_seconds(latest.train_seconds),
+            curve
+                .last()
+                .map_or("—".to_string(), |&(_, psnr)| format_psnr(psnr)),
+        ];
+        row.extend(
+            DEFAULT_TARGETS_DB
+                .iter()
+                .map(|&t| time_to_reach(&curve, t).describe()),
+        );
+        row.push(format!("{:.2} M", latest.samples_per_second / 1e6));
+        row.push(format_mib(Some(latest.memory_bytes as u64)));
+        table.push(row);
+    }
+    table
+}
+
+/// Writes the session's comparison into `dir`: `psnr.png` and `psnr.svg`
+/// (held-out PSNR against training time, as the quality report plots it),
+/// `table.md` and `table.csv`. Returns the files written.
+pub fn export_comparison(histories: &[History], dir: &Path) -> Result<Vec<PathBuf>, String> {
+    let trained: Vec<&History> = histories.iter().filter(|h| h.latest.is_some()).collect();
+    if trained.is_empty() {
+        return Err("nothing to export yet: train a model first".into());
+    }
+    std::fs::create_dir_all(dir)
+        .map_err(|e| format!("{}: cannot create the folder: {e}", dir.display()))?;
+    let series: Vec<Series> = trained
+        .iter()
+        .map(|h| Series {
+            label: h.model.name().to_string(),
+            style: SeriesStyle::of(h.model, false),
+            points: h.val_curve(),
+        })
+        .collect();
+    let mut written = write_psnr_plot(
+        "Held-out PSNR against training time",
+        "training time of each model (log scale; rendering and evaluation excluded)",
+        &series,
+        &DEFAULT_TARGETS_DB,
+        &dir.join("psnr"),
+    )?;
+    let table = comparison_table(histories);
+    for (name, text) in [
+        ("table.md", table.to_markdown()),
+        ("table.csv", table.to_csv()),
+    ] {
+        let path = dir.join(name);
+        std::fs::write(&path, text)
+            .map_err(|e| format!("{}: cannot write: {e}", path.display()))?;
+        written.push(path);
+    }
+    Ok(written)
 }
 
 /// A colour per model, stable across frames and plots.
@@ -105,6 +205,7 @@ pub fn show(ui: &mut egui::Ui, histories: &[History], axis: PlotAxis) {
     let x_label = match axis {
         PlotAxis::Step => "step",
         PlotAxis::WallTime => "wall time (s)",
+        PlotAxis::TrainTime => "training time (s)",
     };
     let link = egui::Id::unique("zrak training plots");
     let width = ((ui.available_width() - ui.spacing().item_spacing.x) / 2.0).max(50.0);

@@ -1,0 +1,540 @@
+//! The accuracy-versus-time experiment behind `zrak bench quality`: each
+//! model trains on each scene for a budget of training time and is scored
+//! at fixed marks along the way.
+//!
+//! A cell (one model on one scene) is an ordinary run folder (`run.json`,
+//! `metrics.jsonl`, `checkpoint.zrak`) with one more file, `marks.json`,
+//! the scores recorded so far. The checkpoint is written at every mark and
+//! at an interrupt, so an experiment that stops continues from its folders:
+//! finished marks and cells are never trained or scored again.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+
+use serde::{Deserialize, Serialize};
+
+use crate::field::ModelKind;
+use crate::field::nerf::Sampling;
+use crate::scene::Frame;
+use crate::train::eval::{ViewScores, evaluate_split_until};
+use crate::train::run::{Limits, RunFolder, Schedule, run};
+use crate::train::trainer::Trainer;
+
+/// The experiment's settings, in its output folder.
+pub const PROTOCOL_FILE: &str = "experiment.json";
+/// A cell's scores, in its run folder.
+pub const MARKS_FILE: &str = "marks.json";
+/// Where the cells' run folders go inside the output folder.
+pub const RUNS_FOLDER: &str = "runs";
+
+/// Evaluate every this-many-th view of the split by default: 4 of the
+/// 100 views of a NeRF-synthetic val or test split. NeRF renders a
+/// 400×400 view in minutes on two cores, so all 100 at every mark would
+/// cost hours; a fixed, stated subset keeps the cost bounded.
+pub const DEFAULT_EVERY: usize = 25;
+/// Evaluate at 1/this of the views' resolution by default, for the same
+/// reason (a sixteenth of the pixels).
+pub const DEFAULT_EVAL_DOWNSCALE: u32 = 4;
+/// The marks as fractions of the budget: for 10 minutes, the issue's
+/// 30 s, 1, 2, 5 and 10 minutes.
+pub const DEFAULT_MARK_FRACTIONS: [f64; 5] = [0.05, 0.1, 0.2, 0.5, 1.0];
+
+/// What every cell of an experiment shares. A folder holds one protocol:
+/// its scores are only comparable under the same one.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Protocol {
+    /// Training seconds per cell (evaluation excluded).
+    pub budget_seconds: f64,
+    /// Training seconds at which each cell is scored, increasing, the last
+    /// equal to the budget.
+    pub marks_seconds: Vec<f64>,
+    /// The split scored ("val" or "test").
+    pub split: String,
+    /// Every this-many-th view of the split is scored, from the first.
+    pub every: usize,
+    /// Views are scored at 1/this of their resolution.
+    pub eval_downscale: u32,
+    /// Training images are loaded at 1/this of their resolution.
+    pub downscale: u32,
+    pub seed: u64,
+    /// Samples per training batch, when not each model's own (the papers').
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub batch_samples: Option<usize>,
+}
+
+impl Protocol {
+    /// The same protocol with training batches of `samples` (`None`: each
+    /// model's own).
+    pub fn with_batch_samples(mut self, samples: Option<usize>) -> Self {
+        self.batch_samples = samples;
+        self
+    }
+
+    /// Checks the settings; `marks` `None` takes [`DEFAULT_MARK_FRACTIONS`]
+    /// of the budget. The budget is always the last mark.
+    pub fn new(
+        budget_seconds: f64,
+        marks: Option<&[f64]>,
+        split: &str,
+        every: usize,
+        eval_downscale: u32,
+        downscale: u32,
+        seed: u64,
+    ) -> Result<Self, String> {
+        if !(budget_seconds.is_finite() && budget_seconds > 0.0) {
+            return Err(format!(
+                "--budget must be a positive duration, got {budget_seconds} s"
+            ));
+        }
+        let mut marks_seconds: Vec<f64> = match marks {
+            None => DEFAULT_MARK_FRACTIONS
+                .iter()
+                .map(|f| f * budget_seconds)
+                .collect(),
+            Some(marks) => {
+                if marks.is_empty() {
+                    return Err("--marks needs at least one time, e.g. 30s,1m,2m".into());
+                }
+                for &mark in marks {
+                    if !(mark.is_finite() && mark > 0.0) {
+                        return Err(format!("--marks: {mark} s is not a positive duration"));
+                    }
+                    if mark > budget_seconds {
+                        return Err(format!(
+                            "--marks: {} is past the budget of {}; raise --budget or drop the mark",
+                            super::table::format_mark(mark),
+                            super::table::format_mark(budget_seconds)
+                        ));
+                    }
+                }
+                marks.to_vec()
+            }
+        };
+        marks_seconds.sort_by(f64::total_cmp);
+        marks_seconds.dedup();
+        if marks_seconds.last() != Some(&budget_seconds) {
+            marks_seconds.push(budget_seconds);
+        }
+        if every == 0 {
+            return Err("--every must be at least 1 (1 scores every view)".into());
+        }
+        if eval_downscale == 0 || downscale == 0 {
+            return Err("--downscale and --eval-downscale must be at least 1".into());
+        }
+        Ok(Self {
+            budget_seconds,
+            marks_seconds,
+            split: split.to_string(),
+            every,
+            eval_downscale,
+            downscale,
+            seed,
+            batch_samples: None,
+        })
+    }
+
+    /// The indices in the split of the views scored, out of `count`.
+    pub fn view_indices(&self, count: usize) -> Vec<usize> {
+        (0..count).step_by(self.every.max(1)).collect()
+    }
+
+    /// The views scored, at the evaluation's resolution.
+    pub fn views(&self, frames: &[Frame]) -> Result<Vec<Frame>, String> {
+        let views: Vec<Frame> = self
+            .view_indices(frames.len())
+            .into_iter()
+            .map(|i| frames[i].downscaled(self.eval_downscale))
+            .collect();
+        let least = crate::metrics::ssim::SSIM_WINDOW as u32;
+        if let Some(small) = views
+            .iter()
+            .find(|f| f.camera.intrinsics.width < least || f.camera.intrinsics.height < least)
+        {
+            return Err(format!(
+                "--eval-downscale {} leaves {}×{} pixels a view: too few to score (SSIM's \
+                 window needs {least} or more a side)",
+                self.eval_downscale, small.camera.intrinsics.width, small.camera.intrinsics.height
+            ));
+        }
+        Ok(views)
+    }
+
+    /// One sentence: which views are scored and how.
+    pub fn describe_views(&self, count: usize) -> String {
+        let indices = self.view_indices(count);
+        let which = if self.every == 1 {
+            format!("all {count} views of the {} split", self.split)
+        } else {
+            let shown: Vec<String> = indices.iter().take(12).map(|i| i.to_string()).collect();
+            let more = if indices.len() > 12 { ", …" } else { "" };
+            format!(
+                "every {}th view of the {} split ({} of {count}: views {}{more})",
+                self.every,
+                self.split,
+                indices.len(),
+                shown.join(", ")
+            )
+        };
+        let resolution = if self.eval_downscale == 1 {
+            "at full resolution".to_string()
+        } else {
+            format!(
+                "at 1/{} of the views' resolution (the photographs area-averaged)",
+                self.eval_downscale
+            )
+        };
+        format!("{which}, {resolution}")
+    }
+}
+
+/// One model (with one sampler) on one scene.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CellSpec {
+    /// The scene's short name (its folder's name, or `demo`).
+    pub scene: String,
+    pub model: ModelKind,
+    pub sampling: Sampling,
+}
+
+impl CellSpec {
+    /// True for NeRF and Mip-NeRF with the paper's sampler (Instant-NGP
+    /// has only the occupancy grid).
+    pub fn paper_sampler(&self) -> bool {
+        self.model != ModelKind::Ngp && self.sampling == Sampling::Paper
+    }
+
+    /// `NeRF`, `NeRF (paper sampler)`, `Instant-NGP`.
+    pub fn label(&self) -> String {
+        if self.paper_sampler() {
+            format!("{} (paper sampler)", self.model.name())
+        } else {
+            self.model.name().to_string()
+        }
+    }
+
+    /// The run folder's name: `lego_400-nerf-paper`.
+    pub fn folder_name(&self) -> String {
+        let scene = safe_name(&self.scene);
+        if self.paper_sampler() {
+            format!("{scene}-{}-paper", self.model.key())
+        } else {
+            format!("{scene}-{}", self.model.key())
+        }
+    }
+}
+
+/// A name fit for a file: letters, digits, `-` and `_` kept, anything
+/// else (a scene folder may be called anything) made `_`.
+pub fn safe_name(name: &str) -> String {
+    name.chars()
+        .map(|c| {
+            if c.is_alphanumeric() || c == '-' || c == '_' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
+}
+
+/// The cells of an experiment, scene by scene: each model with each
+/// sampler; Instant-NGP once, whatever the samplers (it has one).
+pub fn cells_for(scenes: &[String], models: &[ModelKind], samplings: &[Sampling]) -> Vec<CellSpec> {
+    let mut cells = Vec::new();
+    for scene in scenes {
+        for &model in models {
+            let own: &[Sampling] = if model == ModelKind::Ngp {
+                &[Sampling::Occupancy]
+            } else {
+                samplings
+            };
+            for &sampling in own {
+                let cell = CellSpec {
+                    scene: scene.clone(),
+                    model,
+                    sampling,
+                };
+                if !cells.contains(&cell) {
+                    cells.push(cell);
+                }
+            }
+        }
+    }
+    cells
+}
+
+/// The scores at one mark.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MarkResult {
+    /// The mark (training seconds).
+    pub mark_seconds: f64,
+    /// Training seconds when scored: the end of the step that passed the
+    /// mark, so a little past it.
+    pub train_seconds: f64,
+    pub step: u32,
+    /// Means over the views (per-view PSNR, then the mean).
+    pub psnr: f64,
+    pub ssim: f64,
+    pub views: Vec<ViewScores>,
+    /// Wall seconds the scoring took (not training time).
+    pub eval_seconds: f64,
+    /// Samples the networks were trained on since the previous mark, and
+    /// the training seconds they took (after a resume: since the resume).
+    pub samples: u64,
+    pub sample_seconds: f64,
+    /// What the model holds (parameters, optimiser state, workspaces).
+    pub memory_bytes: u64,
+    /// The process's peak resident memory since the segment before this
+    /// mark began (Linux), including the loaded scene.
+    pub peak_rss_bytes: Option<u64>,
+}
+
+/// A cell's `marks.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CellRecord {
+    pub protocol: Protocol,
+    pub scene: String,
+    pub model: ModelKind,
+    pub sampling: Sampling,
+    /// The engine the cell trained on, as chosen then.
+    pub engine: String,
+    pub marks: Vec<MarkResult>,
+}
+
+impl CellRecord {
+    pub fn path(folder: &Path) -> PathBuf {
+        folder.join(MARKS_FILE)
+    }
+
+    /// The record in `folder`, if one was written.
+    pub fn load(folder: &Path) -> Result<Option<CellRecord>, String> {
+        let path = Self::path(folder);
+        let text = match std::fs::read_to_string(&path) {
+            Ok(text) => text,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(format!("{}: cannot read: {e}", path.display())),
+        };
+        serde_json::from_str(&text)
+            .map(Some)
+            .map_err(|e| format!("{}: not a cell record: {e}", path.display()))
+    }
+
+    /// Writes the record through a temporary file, so that a crash leaves
+    /// the previous one whole.
+    pub fn save(&self, folder: &Path) -> Result<(), String> {
+        let path = Self::path(folder);
+        let temporary = folder.join(format!("{MARKS_FILE}.tmp"));
+        let text = serde_json::to_string_pretty(self).map_err(|e| e.to_string())?;
+        std::fs::write(&temporary, text)
+            .and_then(|()| std::fs::rename(&temporary, &path))
+            .map_err(|e| format!("{}: cannot write: {e}", path.display()))
+    }
+
+    pub fn finished(&self) -> bool {
+        self.marks.len() >= self.protocol.marks_seconds.len()
+    }
+
+    /// (training seconds, PSNR) at each mark scored.
+    pub fn curve(&self) -> Vec<(f64, f64)> {
+        self.marks
+            .iter()
+            .map(|m| (m.train_seconds, m.psnr))
+            .collect()
+    }
+}
+
+/// What a cell is doing, for a progress bar.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum CellProgress {
+    Training {
+        /// The mark being trained towards.
+        mark: usize,
+        train_seconds: f64,
+        step: u32,
+        samples_per_second: f64,
+    },
+    Scoring {
+        mark: usize,
+        /// Views scored so far, and in all.
+        view: usize,
+        views: usize,
+        /// The last view's PSNR.
+        psnr: f64,
+    },
+}
+
+/// How a cell's run ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CellOutcome {
+    Finished,
+    /// `stop` was set: the checkpoint holds the training so far and the
+    /// record every mark scored.
+    Interrupted,
+}
+
+/// The progress evaluations inside each training segment: only the one
+/// `run` makes when the segment ends (the marks are the scores that
+/// count), of 256 pixels of one view, so that it costs a second or two
+/// even for NeRF with the paper's 256 samples a ray.
+fn schedule() -> Schedule {
+    Schedule {
+        eval_every_seconds: f64::INFINITY,
+        eval_views: 1,
+        eval_rays: 1 << 8,
+        ..Schedule::default()
+    }
+}
+
+/// Trains `trainer` through each mark of `record` not yet scored, scoring
+/// `views` at each (the training clock stands still meanwhile) and saving
+/// the record after each. Returns early, with the checkpoint written, once
+/// `stop` is set: after the current step, or after the current view.
+pub fn run_cell(
+    trainer: &mut Trainer,
+    record: &mut CellRecord,
+    folder: &RunFolder,
+    run_config: &serde_json::Value,
+    views: &[Frame],
+    stop: &AtomicBool,
+    mut on_progress: impl FnMut(CellProgress),
+) -> Result<CellOutcome, String> {
+    let marks = record.protocol.marks_seconds.clone();
+    for (index, &mark) in marks.iter().enumerate().skip(record.marks.len()) {
+        super::reset_peak_memory();
+        let mut samples = 0u64;
+        let mut sample_seconds = 0f64;
+        let mut last_seconds = trainer.train_seconds;
+        run(
+            trainer,
+            Limits {
+                steps: None,
+                seconds: Some(mark),
+            },
+            schedule(),
+            folder,
+            run_config,
+            stop,
+            |p| {
+                samples += p.stats.samples as u64;
+                sample_seconds += p.trainer.train_seconds - last_seconds;
+                last_seconds = p.trainer.train_seconds;
+                on_progress(CellProgress::Training {
+                    mark: index,
+                    train_seconds: p.trainer.train_seconds,
+                    step: p.trainer.step,
+                    samples_per_second: p.samples_per_second,
+                });
+            },
+        )?;
+        if stop.load(std::sync::atomic::Ordering::SeqCst) {
+            return Ok(CellOutcome::Interrupted);
+        }
+        let mut scored = 0;
+        let scores = evaluate_split_until(
+            trainer.model.as_ref(),
+            &record.protocol.split,
+            views,
+            stop,
+            |view| {
+                scored += 1;
+                on_progress(CellProgress::Scoring {
+                    mark: index,
+                    view: scored,
+                    views: views.len(),
+                    psnr: view.psnr,
+                });
+            },
+        );
+        if scores.views.len() < views.len() {
+            // Interrupted: a mean over some of the views is not the mark's
+            // score; the mark is scored again on resume.
+            return Ok(CellOutcome::Interrupted);
+        }
+        let every = record.protocol.every;
+        let mut view_scores = scores.views;
+        for view in &mut view_scores {
+            // Scored views are every `every`-th of the split: give each
+            // its index in the split, not in the subset.
+            view.index *= every;
+        }
+        record.marks.push(MarkResult {
+            mark_seconds: mark,
+            train_seconds: trainer.train_seconds,
+            step: trainer.step,
+            psnr: scores.mean_psnr,
+            ssim: scores.mean_ssim,
+            views: view_scores,
+            eval_seconds: scores.render_seconds,
+            samples,
+            sample_seconds,
+            memory_bytes: trainer.model.memory_bytes() as u64,
+            peak_rss_bytes: super::peak_memory_bytes(),
+        });
+        record.save(&folder.dir)?;
+    }
+    Ok(CellOutcome::Finished)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn default_marks_are_fractions_of_the_budget_ending_at_it() {
+        let p = Protocol::new(600.0, None, "val", 25, 4, 1, 0).unwrap();
+        assert_eq!(p.marks_seconds, vec![30.0, 60.0, 120.0, 300.0, 600.0]);
+        let p = Protocol::new(20.0, Some(&[10.0, 5.0, 5.0]), "val", 1, 1, 1, 0).unwrap();
+        assert_eq!(p.marks_seconds, vec![5.0, 10.0, 20.0]);
+    }
+
+    #[test]
+    fn bad_settings_are_refused_by_name() {
+        let e = Protocol::new(60.0, Some(&[30.0, 120.0]), "val", 1, 1, 1, 0).unwrap_err();
+        assert!(e.contains("2 min is past the budget of 1 min"), "{e}");
+        let e = Protocol::new(60.0, Some(&[]), "val", 1, 1, 1, 0).unwrap_err();
+        assert!(e.contains("--marks"), "{e}");
+        let e = Protocol::new(60.0, None, "val", 0, 1, 1, 0).unwrap_err();
+        assert!(e.contains("--every"), "{e}");
+        let e = Protocol::new(f64::NAN, None, "val", 1, 1, 1, 0).unwrap_err();
+        assert!(e.contains("--budget"), "{e}");
+    }
+
+    #[test]
+    fn every_nth_view_from_the_first_is_scored_and_said_so() {
+        let p = Protocol::new(600.0, None, "val", 25, 4, 1, 0).unwrap();
+        assert_eq!(p.view_indices(100), vec![0, 25, 50, 75]);
+        assert_eq!(p.view_indices(10), vec![0]);
+        assert_eq!(
+            p.describe_views(100),
+            "every 25th view of the val split (4 of 100: views 0, 25, 50, 75), \
+             at 1/4 of the views' resolution (the photographs area-averaged)"
+        );
+        let all = Protocol::new(600.0, None, "test", 1, 1, 1, 0).unwrap();
+        assert_eq!(
+            all.describe_views(3),
+            "all 3 views of the test split, at full resolution"
+        );
+    }
+
+    #[test]
+    fn instant_ngp_has_one_cell_whatever_the_samplers() {
+        let cells = cells_for(
+            &["lego_400".into()],
+            &[ModelKind::Ngp, ModelKind::Nerf, ModelKind::MipNerf],
+            &[Sampling::Occupancy, Sampling::Paper],
+        );
+        let names: Vec<String> = cells.iter().map(|c| c.folder_name()).collect();
+        assert_eq!(
+            names,
+            [
+                "lego_400-ngp",
+                "lego_400-nerf",
+                "lego_400-nerf-paper",
+                "lego_400-mipnerf",
+                "lego_400-mipnerf-paper"
+            ]
+        );
+        assert_eq!(cells[2].label(), "NeRF (paper sampler)");
+        assert_eq!(cells[0].label(), "Instant-NGP");
+    }
+}

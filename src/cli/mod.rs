@@ -1,0 +1,3 @@
+//! Command bodies that have outgrown `main.rs`, one file per command.
+
+pub mod quality;

@@ -1,0 +1,477 @@
+//! `zrak bench quality`: the command-line side of the accuracy-versus-time
+//! experiment (the library's `bench::quality` and `bench::report` do the
+//! measuring and the writing): loading the scenes, building or resuming
+//! each cell's trainer, the progress bar, interrupts.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use anyhow::{Context, bail};
+use indicatif::{ProgressBar, ProgressStyle};
+use zrak::bench::quality::{
+    CellOutcome, CellProgress, CellRecord, CellSpec, PROTOCOL_FILE, Protocol, RUNS_FOLDER,
+    cells_for,
+};
+use zrak::bench::report::{
+    CellResult, EngineInfo, REPORT_MD, Results, SceneEntry, Settings, machine, write_outputs,
+};
+use zrak::bench::table::{Table, format_mark, format_seconds};
+use zrak::engine::{EngineKind, choose_engine};
+use zrak::interrupt::{self, note, say};
+use zrak::scene::{Scene, Split};
+use zrak::train::run::RunFolder;
+use zrak::train::trainer::Trainer;
+
+use crate::{
+    QualityArgs, RunConfig, build_trainer, load_scene, read_run_config, restore_checkpoint,
+    scene_key, start_run_folder,
+};
+
+/// A scene of the experiment, loaded once for all its cells.
+struct LoadedScene {
+    name: String,
+    /// As given on the command line (`demo` or a folder).
+    argument: String,
+    scene: Arc<Scene>,
+}
+
+/// The short name a scene goes by in folders and the report.
+fn scene_name(argument: &str) -> String {
+    if argument == "demo" {
+        return "demo".into();
+    }
+    let path = Path::new(argument);
+    let canonical = std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf());
+    canonical
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| argument.to_string())
+}
+
+/// Creates `dir` and checks that files can be written there, before any
+/// training, so a bad `--out` fails at once.
+fn create_output_folder(dir: &Path) -> anyhow::Result<()> {
+    std::fs::create_dir_all(dir)
+        .with_context(|| format!("{}: cannot create the experiment folder", dir.display()))?;
+    let probe = dir.join(".zrak-write-test");
+    std::fs::write(&probe, b"")
+        .with_context(|| format!("{}: the experiment folder is not writable", dir.display()))?;
+    let _ = std::fs::remove_file(probe);
+    Ok(())
+}
+
+/// Records the protocol in a new folder; refuses a folder holding an
+/// experiment made with other settings (its scores would not compare).
+fn claim_folder(dir: &Path, protocol: &Protocol) -> anyhow::Result<()> {
+    let path = dir.join(PROTOCOL_FILE);
+    match std::fs::read_to_string(&path) {
+        Ok(text) => {
+            let recorded: Protocol = serde_json::from_str(&text)
+                .with_context(|| format!("{}: not an experiment's settings", path.display()))?;
+            if &recorded != protocol {
+                bail!(
+                    "{} holds an experiment with other settings ({}); give another --out, \
+                     or the same --budget, --marks, --split, --every, --eval-downscale, \
+                     --downscale, --seed and --batch-samples to continue it",
+                    dir.display(),
+                    describe_protocol(&recorded)
+                );
+            }
+            Ok(())
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            std::fs::write(&path, serde_json::to_string_pretty(protocol)?)
+                .with_context(|| format!("{}: cannot write", path.display()))
+        }
+        Err(e) => Err(e).with_context(|| format!("{}: cannot read", path.display())),
+    }
+}
+
+fn describe_protocol(p: &Protocol) -> String {
+    format!(
+        "budget {}, marks {}, split {}, every {}, eval downscale {}, downscale {}, seed {}, \
+         batch {}",
+        format_mark(p.budget_seconds),
+        p.marks_seconds
+            .iter()
+            .map(|&m| format_mark(m))
+            .collect::<Vec<_>>()
+            .join(","),
+        p.split,
+        p.every,
+        p.eval_downscale,
+        p.downscale,
+        p.seed,
+        p.batch_samples
+            .map_or("each model's own".to_string(), |n| format!("{n} samples"))
+    )
+}
+
+/// The command as typed, to print in the report and to resume with.
+fn command_line() -> String {
+    let words: Vec<String> = std::env::args()
+        .enumerate()
+        .map(|(i, w)| if i == 0 { "zrak".to_string() } else { w })
+        .map(|w| {
+            if w.is_empty() || w.contains(|c: char| c.is_whitespace() || "'\"$`\\".contains(c)) {
+                format!("'{}'", w.replace('\'', "'\\''"))
+            } else {
+                w
+            }
+        })
+        .collect();
+    words.join(" ")
+}
+
+/// How one cell's run folder is set up.
+fn run_config(cell: &CellSpec, argument: &str, args: &QualityArgs) -> RunConfig {
+    RunConfig {
+        scene: scene_key(argument),
+        model: cell.model,
+        downscale: args.downscale,
+        loss: cell.model.default_loss(),
+        seed: args.seed,
+        sampling: cell.sampling,
+        engine: args.engine,
+        batch_samples: args.batch_samples.map(|n| n as usize),
+    }
+}
+
+pub fn bench_quality(args: QualityArgs) -> anyhow::Result<()> {
+    let split: Split = args.split.into();
+    let marks = args.marks.clone();
+    let protocol = Protocol::new(
+        args.budget,
+        marks.as_deref(),
+        split.name(),
+        args.every,
+        args.eval_downscale,
+        args.downscale,
+        args.seed,
+    )
+    .map_err(anyhow::Error::msg)?
+    .with_batch_samples(args.batch_samples.map(|n| n as usize));
+    if let Some(bad) = args.targets.iter().find(|t| !(t.is_finite() && **t > 0.0)) {
+        bail!("--targets: {bad} is not a PSNR in dB (give positive numbers, e.g. 25,30,33)");
+    }
+    create_output_folder(&args.out)?;
+    claim_folder(&args.out, &protocol)?;
+
+    // Every scene loads (and has the split) before anything trains.
+    let mut scenes: Vec<LoadedScene> = Vec::new();
+    for argument in &args.scenes {
+        let name = scene_name(argument);
+        if let Some(other) = scenes.iter().find(|s| s.name == name) {
+            bail!(
+                "the scenes `{}` and `{argument}` are both called {name}: their cells would \
+                 share run folders; give them folders of different names",
+                other.argument
+            );
+        }
+        let scene = load_scene(argument, args.downscale)
+            .with_context(|| format!("{argument}: cannot load the scene"))?;
+        let frames = scene.split(split);
+        if frames.is_empty() {
+            bail!(
+                "{argument}: the scene has no {} views to score; choose another with --split \
+                 (the NeRF-synthetic folders in ../shared have train and val)",
+                split.name()
+            );
+        }
+        protocol
+            .views(frames)
+            .map_err(|e| anyhow::anyhow!("{argument}: {e}"))?;
+        scenes.push(LoadedScene {
+            name,
+            argument: argument.clone(),
+            scene: Arc::new(scene),
+        });
+    }
+    let names: Vec<String> = scenes.iter().map(|s| s.name.clone()).collect();
+    let cells = cells_for(&names, &args.models, &args.sampling);
+
+    let choice = choose_engine(args.engine)?;
+    note(&choice.reason);
+    let engine = EngineInfo {
+        engine: choice.kind.name().to_string(),
+        description: choice.reason.clone(),
+        kernels: match choice.kind {
+            EngineKind::Cpu => format!(
+                "{:?} ({} threads)",
+                zrak::engine::cpu::dense::backend(),
+                rayon::current_num_threads()
+            ),
+            EngineKind::Gpu => "WGSL compute shaders".to_string(),
+        },
+        precision: "f32 products and sums".to_string(),
+    };
+    let runs = args.out.join(RUNS_FOLDER);
+
+    // Each unfinished cell's model is built once up front, so that a
+    // combination the engine cannot run fails now, not after hours.
+    let mut records: Vec<Option<CellRecord>> = Vec::new();
+    for cell in &cells {
+        let folder = runs.join(cell.folder_name());
+        let record = CellRecord::load(&folder).map_err(anyhow::Error::msg)?;
+        if let Some(record) = &record
+            && record.protocol != protocol
+        {
+            bail!(
+                "{}: scored under other settings ({}) than this experiment's",
+                CellRecord::path(&folder).display(),
+                describe_protocol(&record.protocol)
+            );
+        }
+        if !record.as_ref().is_some_and(CellRecord::finished) {
+            let scene = &scenes
+                .iter()
+                .find(|s| s.name == cell.scene)
+                .expect("loaded");
+            let config = run_config(cell, &scene.argument, &args);
+            build_trainer(&config, scene.scene.clone(), choice.share()?)
+                .with_context(|| format!("{} on {}", cell.label(), cell.scene))?;
+        }
+        records.push(record);
+    }
+
+    let budget = protocol.budget_seconds;
+    let total = budget * cells.len() as f64;
+    let trained_before: f64 = records
+        .iter()
+        .flatten()
+        .map(|r| r.marks.last().map_or(0.0, |m| m.train_seconds.min(budget)))
+        .sum();
+    let bar = ProgressBar::new(total.ceil() as u64);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{bar:30} {percent:>3}% of the training | {msg} | about {eta} left",
+        )
+        .expect("valid template"),
+    );
+    bar.set_position(trained_before as u64);
+    bar.reset_eta();
+
+    let settings = |scenes: &[LoadedScene]| Settings {
+        protocol: protocol.clone(),
+        models: args.models.clone(),
+        samplings: args.sampling.clone(),
+        scenes: scenes
+            .iter()
+            .map(|s| {
+                let count = s.scene.split(split).len();
+                SceneEntry {
+                    name: s.name.clone(),
+                    source: scene_key(&s.argument),
+                    split_views: count,
+                    scored: protocol.describe_views(count),
+                }
+            })
+            .collect(),
+        targets_db: args.targets.clone(),
+        background: "white".to_string(),
+        command: command_line(),
+    };
+    let write_report = |records: &[Option<CellRecord>]| -> anyhow::Result<PathBuf> {
+        let results: Vec<CellResult> = cells
+            .iter()
+            .zip(records)
+            .filter_map(|(cell, record)| {
+                let record = record.as_ref()?;
+                // Relative to the experiment's folder, which may move.
+                Some(CellResult::new(
+                    cell,
+                    record,
+                    &Path::new(RUNS_FOLDER).join(cell.folder_name()),
+                    &args.targets,
+                ))
+            })
+            .collect();
+        let results = Results::new(machine(), engine.clone(), settings(&scenes), results);
+        write_outputs(&args.out, &results).map_err(anyhow::Error::msg)?;
+        Ok(args.out.join(REPORT_MD))
+    };
+
+    for (index, cell) in cells.iter().enumerate() {
+        if records[index].as_ref().is_some_and(CellRecord::finished) {
+            continue;
+        }
+        let scene = scenes
+            .iter()
+            .find(|s| s.name == cell.scene)
+            .expect("loaded");
+        let folder_path = runs.join(cell.folder_name());
+        let folder = RunFolder::create(&folder_path).map_err(anyhow::Error::msg)?;
+        let config = run_config(cell, &scene.argument, &args);
+        let mut trainer = open_cell(&folder, &config, scene, choice.share()?)?;
+        let mut record = records[index].take().unwrap_or_else(|| CellRecord {
+            protocol: protocol.clone(),
+            scene: cell.scene.clone(),
+            model: cell.model,
+            sampling: cell.sampling,
+            engine: engine.description.clone(),
+            marks: Vec::new(),
+        });
+        let views = protocol
+            .views(scene.scene.split(split))
+            .map_err(anyhow::Error::msg)?;
+        let done_before = index as f64 * budget;
+        let label = format!("{} · {}", cell.scene, cell.label());
+        let outcome = zrak::bench::quality::run_cell(
+            &mut trainer,
+            &mut record,
+            &folder,
+            &serde_json::to_value(&config)?,
+            &views,
+            interrupt::flag(),
+            |progress| match progress {
+                CellProgress::Training {
+                    mark,
+                    train_seconds,
+                    step,
+                    samples_per_second,
+                } => {
+                    bar.set_position((done_before + train_seconds.min(budget)) as u64);
+                    bar.set_message(format!(
+                        "{label} · training to {} · step {step} · {:.2} M samples/s",
+                        format_mark(protocol.marks_seconds[mark]),
+                        samples_per_second / 1e6
+                    ));
+                }
+                CellProgress::Scoring {
+                    mark,
+                    view,
+                    views,
+                    psnr,
+                } => bar.set_message(format!(
+                    "{label} · scoring at {}: view {view} of {views} ({psnr:.2} dB)",
+                    format_mark(protocol.marks_seconds[mark])
+                )),
+            },
+        );
+        records[index] = Some(record);
+        let outcome = match outcome {
+            Ok(outcome) => outcome,
+            Err(error) => {
+                bar.abandon();
+                // What was scored so far is kept in the report.
+                let _ = write_report(&records);
+                bail!("{} on {}: {error}", cell.label(), cell.scene);
+            }
+        };
+        let report = write_report(&records)?;
+        if outcome == CellOutcome::Interrupted {
+            bar.abandon();
+            note(&format!(
+                "interrupted during {} on {} (step {}, {:.1} s trained); the checkpoint \
+                 and every mark scored are kept, and {} holds the results so far.\n\
+                 continue with: {}",
+                cell.label(),
+                cell.scene,
+                trainer.step,
+                trainer.train_seconds,
+                report.display(),
+                command_line()
+            ));
+            return Ok(());
+        }
+        let last = records[index]
+            .as_ref()
+            .and_then(|r| r.marks.last())
+            .map_or(f64::NAN, |m| m.psnr);
+        bar.suspend(|| {
+            note(&format!(
+                "{} on {}: {:.2} dB after {} of training",
+                cell.label(),
+                cell.scene,
+                last,
+                format_seconds(budget)
+            ))
+        });
+    }
+    bar.finish_with_message("done");
+    let report = write_report(&records)?;
+    say(&summary(&cells, &records, &args.targets));
+    say(&format!(
+        "wrote {} (and results.json, results.csv, the plots) in {}",
+        report.display(),
+        args.out.display()
+    ));
+    Ok(())
+}
+
+/// The trainer of a cell: resumed from its checkpoint when one is there,
+/// else new (its `run.json` written and any old log cleared).
+fn open_cell(
+    folder: &RunFolder,
+    config: &RunConfig,
+    scene: &LoadedScene,
+    choice: zrak::engine::EngineChoice,
+) -> anyhow::Result<Trainer> {
+    if folder.checkpoint_path().is_file() {
+        let recorded = read_run_config(folder)?;
+        if (
+            recorded.model,
+            recorded.sampling,
+            &recorded.scene,
+            recorded.downscale,
+            recorded.seed,
+        ) != (
+            config.model,
+            config.sampling,
+            &config.scene,
+            config.downscale,
+            config.seed,
+        ) {
+            bail!(
+                "{}: the run there is not this cell's (another model, sampler, scene, \
+                 downscale or seed); move it away or give another --out",
+                folder.dir.display()
+            );
+        }
+        let mut trainer = build_trainer(config, scene.scene.clone(), choice)?;
+        restore_checkpoint(folder, &mut trainer)?;
+        return Ok(trainer);
+    }
+    let trainer = build_trainer(config, scene.scene.clone(), choice)?;
+    start_run_folder(folder, config)?;
+    Ok(trainer)
+}
+
+/// A few lines for the terminal: each cell's last score and the time to
+/// each target.
+fn summary(cells: &[CellSpec], records: &[Option<CellRecord>], targets: &[f64]) -> String {
+    let mut headers = vec!["scene".to_string(), "model".to_string(), "PSNR".to_string()];
+    headers.extend(targets.iter().map(|t| format!("to {t:.0} dB")));
+    let mut table = Table::new(headers);
+    for (cell, record) in cells.iter().zip(records) {
+        let Some(record) = record else { continue };
+        let curve = record.curve();
+        let mut row = vec![
+            cell.scene.clone(),
+            cell.label(),
+            record
+                .marks
+                .last()
+                .map_or("—".into(), |m| format!("{:.2}", m.psnr)),
+        ];
+        row.extend(
+            targets
+                .iter()
+                .map(|&t| zrak::bench::table::time_to_reach(&curve, t).describe()),
+        );
+        table.push(row);
+    }
+    table.to_markdown()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn scene_names_come_from_folders() {
+        assert_eq!(scene_name("demo"), "demo");
+        assert_eq!(scene_name("/data/nerf_synthetic/lego_400"), "lego_400");
+        assert_eq!(scene_name("/data/nerf_synthetic/lego_400/"), "lego_400");
+    }
+}
