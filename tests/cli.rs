@@ -750,7 +750,7 @@ fn an_interrupted_bench_quality_continues_where_it_stopped() {
         .unwrap();
     assert_eq!(
         record.marks,
-        [first.clone()],
+        std::slice::from_ref(&first),
         "only the first mark is scored"
     );
     let stopped_at = checkpoint_step(&run);

@@ -203,7 +203,7 @@ impl Layout {
         match self {
             Layout::Ngp(shape) => {
                 let start = shape.grid.param_count() + shape.density.param_count();
-                vec![start..start + shape.colour.param_count()]
+                std::iter::once(start..start + shape.colour.param_count()).collect()
             }
             Layout::Nerf(shape) => {
                 let start = shape.trunk_a.param_count() + shape.trunk_b.param_count();
@@ -640,8 +640,8 @@ fn check_saturated_colours(o: &Outcome, failures: &mut Vec<String>) {
     let (lo, hi) = o.layout.colour_bounds();
     let colour = [hi, lo, hi];
     for (i, pixel) in o.pixels.iter().enumerate() {
-        for c in 0..3 {
-            let want = colour[c] * pixel.opacity + o.background[c] * (1.0 - pixel.opacity);
+        for (c, end) in colour.iter().enumerate() {
+            let want = end * pixel.opacity + o.background[c] * (1.0 - pixel.opacity);
             if (pixel.rgb[c] - want).abs() > 1e-4 {
                 failures.push(format!(
                     "ray {i}: channel {c} is {}, saturated colours give {want} ({pixel:?})",

@@ -98,6 +98,7 @@ impl GpuFrustums {
     /// `out`, as [`crate::engine::cpu::frustum::frustum_gaussians`] over
     /// the cpu model's fixed-count level. Rays beyond one storage binding go
     /// a piece at a time.
+    #[allow(clippy::too_many_arguments)]
     pub fn record_edges(
         &self,
         context: &GpuContext,
