@@ -42,7 +42,8 @@ use zrak::train::batch::RayBatch;
 use zrak::train::checkpoint::Checkpoint;
 use zrak::train::model::{RadianceModel, RenderedPixel};
 use zrak::train::{
-    ModelSettings, cpu_mipnerf_with_shape, cpu_nerf_with_shape, gpu_nerf_with_shape,
+    ModelSettings, cpu_mipnerf_with_shape, cpu_nerf_with_shape, gpu_mipnerf_with_shape,
+    gpu_nerf_with_shape,
 };
 
 use common::{NerfKind, small_nerf_shape};
@@ -266,8 +267,7 @@ fn mipnerf_layout(_: &Scene) -> Layout {
     Layout::Nerf(small_nerf_shape(NerfKind::MipNerf))
 }
 
-/// Every model on every engine that has it. Mip-NeRF on the gpu engine is
-/// one more row when it lands.
+/// Every model on every engine, each sampler of NeRF and Mip-NeRF.
 fn rows() -> Vec<Row> {
     use EngineKind::{Cpu, Gpu};
     vec![
@@ -379,6 +379,32 @@ fn rows() -> Vec<Row> {
                 )
             },
             layout: nerf_layout,
+        },
+        Row {
+            name: "Mip-NeRF, occupancy sampler (gpu)",
+            engine: Gpu,
+            build: |scene| {
+                let shape = small_nerf_shape(NerfKind::MipNerf);
+                let settings = settings(Sampling::Occupancy);
+                Box::new(
+                    gpu_mipnerf_with_shape(common::gpu_context(), scene, &settings, &shape)
+                        .expect("gpu model"),
+                )
+            },
+            layout: mipnerf_layout,
+        },
+        Row {
+            name: "Mip-NeRF, paper sampler (gpu)",
+            engine: Gpu,
+            build: |scene| {
+                let shape = small_nerf_shape(NerfKind::MipNerf);
+                let settings = settings(Sampling::Paper);
+                Box::new(
+                    gpu_mipnerf_with_shape(common::gpu_context(), scene, &settings, &shape)
+                        .expect("gpu model"),
+                )
+            },
+            layout: mipnerf_layout,
         },
     ]
 }

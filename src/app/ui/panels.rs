@@ -507,7 +507,8 @@ pub fn bottom_panel(state: &mut ViewerUi, ui: &mut egui::Ui) {
                 });
                 ui.separator();
                 ui.vertical(|ui| {
-                    ui.horizontal(|ui| {
+                    // Wrapped so the export stays on screen in a narrow window.
+                    ui.horizontal_wrapped(|ui| {
                         ui.label(RichText::new("Loss and PSNR").strong());
                         ui.label("against");
                         ui.selectable_value(&mut state.plot_axis, PlotAxis::Step, "steps");
