@@ -13,6 +13,17 @@ struct RayMarch {
     s_exit: f32,
     jitter: f32,
     hit: bool,
+    // The ray's lattice (`engine::cpu::march::Lattice`): the step from the
+    // entry point to the first octave boundary and its inverse, the lattice
+    // units and the length up to that boundary (`whole_ray` when the
+    // first step holds to the end: no cone, or the entry already in the
+    // last octave), and the octave of the entry point.
+    first_step: f32,
+    inverse_first_step: f32,
+    first_units: f32,
+    first_length: f32,
+    first_octave: i32,
+    whole_ray: bool,
 }
 
 fn unfused(x: f32) -> f32 {
@@ -88,11 +99,102 @@ fn prepare(ray: u32) -> RayMarch {
     m.s_exit = t_exit - t_enter;
     m.jitter = ray_jitter(ray);
     m.hit = true;
+    set_lattice(&m);
     return m;
 }
 
+fn is_nan(x: f32) -> bool {
+    return (bitcast<u32>(x) & 0x7fffffffu) > 0x7f800000u;
+}
+
+// The octave of distance t: 0 below 2A, floor(log2(t / A)) above, at most
+// the last; from the float's exponent, as `Cone::octave_of`.
+fn octave_of(t: f32) -> i32 {
+    let v = t * params.inverse_octave_start;
+    if (is_nan(v) || v < 2.0) {
+        return 0;
+    }
+    let exponent = i32((bitcast<u32>(v) >> 23u) & 0xffu) - 127;
+    return min(exponent, params.last_octave);
+}
+
+// `Lattice::fixed` or `Lattice::cone` for the ray's entry distance.
+fn set_lattice(m: ptr<function, RayMarch>) {
+    (*m).first_step = params.dt;
+    (*m).inverse_first_step = params.inverse_dt;
+    (*m).first_units = 0.0;
+    (*m).first_length = 0.0;
+    (*m).first_octave = 0;
+    (*m).whole_ray = true;
+    if (params.use_cone == 0u) {
+        return;
+    }
+    let octave = octave_of((*m).t_enter);
+    (*m).first_octave = octave;
+    (*m).first_step = params.dt * power_of_two(octave);
+    (*m).inverse_first_step = params.inverse_dt * power_of_two(-octave);
+    if (octave < params.last_octave) {
+        let length = params.octave_start * power_of_two(octave + 1) - (*m).t_enter;
+        (*m).first_length = length;
+        (*m).first_units = length * (*m).inverse_first_step;
+        (*m).whole_ray = false;
+    }
+}
+
+// The octave of lattice coordinate x past the first stretch and the
+// lattice coordinate where it starts (`Lattice::octave_at`).
+fn octave_at(m: RayMarch, x: f32) -> vec2<f32> {
+    let past = x - m.first_units;
+    let whole = i32(min(past / params.points_per_octave, 1.0e9));
+    let octave = min(m.first_octave + 1 + whole, params.last_octave);
+    let start = m.first_units
+        + unfused(f32(octave - m.first_octave - 1) * params.points_per_octave);
+    return vec2<f32>(f32(octave), start);
+}
+
+fn in_first_stretch(m: RayMarch, x: f32) -> bool {
+    return m.whole_ray || x < m.first_units;
+}
+
+// s(x): the distance of lattice coordinate x past the entry point.
+fn lattice_s_at(m: RayMarch, x: f32) -> f32 {
+    if (in_first_stretch(m, x)) {
+        return x * m.first_step;
+    }
+    let at = octave_at(m, x);
+    let scale = power_of_two(i32(at.x));
+    let t = params.octave_start * scale + unfused((x - at.y) * (params.dt * scale));
+    return t - m.t_enter;
+}
+
+// The step at lattice coordinate x over the smallest step: 2^octave.
+fn lattice_step_scale(m: RayMarch, x: f32) -> f32 {
+    if (in_first_stretch(m, x)) {
+        return power_of_two(m.first_octave);
+    }
+    return power_of_two(i32(octave_at(m, x).x));
+}
+
+// The lattice coordinate of distance s past the entry point, the inverse
+// of `lattice_s_at` to rounding (`Lattice::x`).
+fn lattice_x(m: RayMarch, s: f32) -> f32 {
+    if (is_nan(s) || m.whole_ray || s < m.first_length) {
+        return s * m.inverse_first_step;
+    }
+    let t = m.t_enter + s;
+    let octave = max(octave_of(t), m.first_octave + 1);
+    let start = m.first_units
+        + unfused(f32(octave - m.first_octave - 1) * params.points_per_octave);
+    return start + unfused((t - params.octave_start * power_of_two(octave))
+        * (params.inverse_dt * power_of_two(-octave)));
+}
+
+fn lattice_coordinate(m: RayMarch, k: u32) -> f32 {
+    return m.jitter + f32(k);
+}
+
 fn lattice_s(m: RayMarch, k: u32) -> f32 {
-    return (m.jitter + f32(k)) * params.dt;
+    return lattice_s_at(m, lattice_coordinate(m, k));
 }
 
 fn lattice_position(m: RayMarch, s: f32) -> vec3<f32> {
@@ -167,6 +269,6 @@ fn exit_index(m: RayMarch, c: Cell) -> u32 {
             axis_exit(lo.z, size, m.entry.z, m.direction.z, m.inverse_direction.z),
         ),
     );
-    let v = s_cell * params.inverse_dt - m.jitter;
+    let v = lattice_x(m, s_cell) - m.jitter;
     return u32(clamp(ceil(v), 0.0, 4294967040.0));
 }

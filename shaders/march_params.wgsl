@@ -26,4 +26,13 @@ struct MarchParams {
     block_count: u32,
     world_dt: f32,
     inverse_scale: f32,
+    // Cone stepping (`engine::cpu::march::Cone`), read when use_cone is 1:
+    // lattice points per octave (1 / cone angle), the distance A = dt / c
+    // where octave 1 starts and its inverse, and the octave whose step is
+    // the largest.
+    use_cone: u32,
+    points_per_octave: f32,
+    octave_start: f32,
+    inverse_octave_start: f32,
+    last_octave: i32,
 }

@@ -12,7 +12,7 @@
 @group(0) @binding(7) var<storage, read_write> out_dt: array<f32>;
 @group(0) @binding(8) var<storage, read_write> out_t: array<f32>;
 
-fn write_sample(m: RayMarch, index: u32, s: f32) {
+fn write_sample(m: RayMarch, index: u32, k: u32, s: f32) {
     let p = lattice_position(m, s);
     out_positions[3u * index] = p.x;
     out_positions[3u * index + 1u] = p.y;
@@ -20,7 +20,7 @@ fn write_sample(m: RayMarch, index: u32, s: f32) {
     out_directions[3u * index] = m.direction.x;
     out_directions[3u * index + 1u] = m.direction.y;
     out_directions[3u * index + 2u] = m.direction.z;
-    out_dt[index] = params.world_dt;
+    out_dt[index] = params.world_dt * lattice_step_scale(m, lattice_coordinate(m, k));
     out_t[index] = (m.t_enter + s) * params.inverse_scale;
 }
 
@@ -57,7 +57,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
                 if (!(sk <= m.s_exit)) {
                     break;
                 }
-                write_sample(m, base + emitted, sk);
+                write_sample(m, base + emitted, k, sk);
                 emitted += 1u;
                 k += 1u;
             }

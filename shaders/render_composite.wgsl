@@ -20,10 +20,10 @@ struct Params {
     row_stride: u32,
     per_ray: u32,
     max_samples: u32,
-    world_dt: f32,
     stop_depth: f32,
     _pad0: u32,
     _pad1: u32,
+    _pad2: u32,
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -33,6 +33,8 @@ struct Params {
 @group(0) @binding(4) var<storage, read> sigma: array<f32>;
 @group(0) @binding(5) var<storage, read> rgb: array<f32>;
 @group(0) @binding(6) var<storage, read> t: array<f32>;
+// Each sample's step in world units (they grow with distance on large scenes).
+@group(0) @binding(7) var<storage, read> dt: array<f32>;
 
 const LEFT_THE_BOX: u32 = 0x80000000u;
 
@@ -61,7 +63,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         }
         let s = base + j;
         // Negative densities are empty space, as on the cpu.
-        let tau = max(sigma[s] * params.world_dt, 0.0);
+        let tau = max(sigma[s] * dt[s], 0.0);
         let weight = exp(-state.optical_depth) * one_minus_exp_neg(tau);
         state.r += weight * rgb[3u * s];
         state.g += weight * rgb[3u * s + 1u];

@@ -31,10 +31,11 @@ struct RayState {
 @group(0) @binding(7) var<storage, read_write> out_positions: array<f32>;
 @group(0) @binding(8) var<storage, read_write> out_directions: array<f32>;
 @group(0) @binding(9) var<storage, read_write> out_t: array<f32>;
+@group(0) @binding(10) var<storage, read_write> out_dt: array<f32>;
 
 const LEFT_THE_BOX: u32 = 0x80000000u;
 
-fn emit(m: RayMarch, slot: u32, s: f32) {
+fn emit(m: RayMarch, slot: u32, k: u32, s: f32) {
     let p = lattice_position(m, s);
     out_positions[3u * slot] = p.x;
     out_positions[3u * slot + 1u] = p.y;
@@ -43,6 +44,7 @@ fn emit(m: RayMarch, slot: u32, s: f32) {
     out_directions[3u * slot + 1u] = m.direction.y;
     out_directions[3u * slot + 2u] = m.direction.z;
     out_t[slot] = (m.t_enter + s) * params.inverse_scale;
+    out_dt[slot] = params.world_dt * lattice_step_scale(m, lattice_coordinate(m, k));
 }
 
 @compute @workgroup_size(64)
@@ -91,7 +93,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
                     stop = true;
                     break;
                 }
-                emit(m, base + emitted, sk);
+                emit(m, base + emitted, index, sk);
                 emitted += 1u;
                 index += 1u;
             }

@@ -203,10 +203,16 @@ struct QualityArgs {
     #[arg(long, default_value_t = zrak::bench::quality::DEFAULT_EVERY,
           value_parser = clap::value_parser!(usize))]
     every: usize,
-    /// Score the views at 1/N of their resolution (the photographs
-    /// area-averaged), so that NeRF's slow renders stay affordable.
+    /// Score 1/N² of each view's pixels, chosen by --eval-pixels, so that
+    /// NeRF's slow renders stay affordable (1: every pixel).
     #[arg(long, default_value_t = zrak::bench::quality::DEFAULT_EVAL_DOWNSCALE)]
     eval_downscale: u32,
+    /// tiles: full-resolution tiles, one from each block of N×N (estimates
+    /// the full-resolution scores the papers report); downscaled: the whole
+    /// view at 1/N resolution against area-averaged photographs (Mip-NeRF's
+    /// multiscale protocol, which penalises aliasing).
+    #[arg(long, value_enum, default_value_t = zrak::bench::quality::EvalPixels::Tiles)]
+    eval_pixels: zrak::bench::quality::EvalPixels,
     /// Integer image downscale for training.
     #[arg(long, default_value_t = 1)]
     downscale: u32,

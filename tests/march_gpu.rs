@@ -107,7 +107,9 @@ fn assert_same_samples(cpu: &MarchedSamples, gpu: &MarchedSamples, label: &str) 
         cpu.directions, gpu.directions,
         "{label}: directions are copied"
     );
-    assert_eq!(cpu.dt, gpu.dt, "{label}: dt is one constant");
+    // A sample's step is the fixed step times a power of two (cone steps
+    // on large scenes), exact on both engines.
+    assert_eq!(cpu.dt, gpu.dt, "{label}: dt");
     for (i, (a, b)) in cpu.t.iter().zip(&gpu.t).enumerate() {
         assert!(
             (a - b).abs() <= 1e-5 * a.abs().max(1.0),
@@ -124,9 +126,20 @@ fn assert_same_samples(cpu: &MarchedSamples, gpu: &MarchedSamples, label: &str) 
 fn march_matches_cpu() {
     let context = GpuContext::new().expect("lavapipe or a GPU");
     let gpu = GpuMarch::new(&context).unwrap();
-    for (cascades, aabb_scale, seed, jitter) in
-        [(1, 1.0, 1u64, true), (1, 1.0, 2, false), (3, 3.0, 3, true)]
-    {
+    // (cascades, aabb_scale, seed, jitter, cone angle, distance of the
+    // random rays' origins in multiples of 4 world units): Blender scenes
+    // with the fixed step; larger boxes with the fixed step and with cone
+    // steps, from inside the box (entry at distance 0, octave 0) and from
+    // far outside it (entry in a later octave, the first stretch shorter
+    // than an octave).
+    for (cascades, aabb_scale, seed, jitter, cone_angle, distance) in [
+        (1, 1.0, 1u64, true, 1.0 / 256.0, 1.0),
+        (1, 1.0, 2, false, 1.0 / 256.0, 1.0),
+        (3, 3.0, 3, true, 0.0, 1.0),
+        (3, 3.0, 4, true, 1.0 / 256.0, 1.0),
+        (3, 3.0, 5, false, 1.0 / 256.0, 6.0),
+        (4, 8.0, 6, true, 1.0 / 256.0, 1.0),
+    ] {
         let grid = random_grid(cascades, seed);
         let mapping = UnitCubeMapping {
             aabb_scale,
@@ -137,10 +150,12 @@ fn march_matches_cpu() {
         } else {
             MarchParams::rendering(mapping)
         };
-        // The gpu marcher keeps the fixed step on every scene (cone stepping
-        // is the cpu engine's so far): compare it with the cpu's fixed step.
-        params.config.cone_angle = 0.0;
-        let (origins, directions) = rays(400, seed);
+        params.config.cone_angle = cone_angle;
+        let (mut origins, directions) = rays(400, seed);
+        // The seven hard-case rays stay where they are.
+        for o in &mut origins[21..] {
+            *o *= distance;
+        }
         let (cpu, cpu_stats) = cpu_march(&grid, &origins, &directions, &params);
         let (marched, stats) = gpu.march(
             &context,
@@ -163,7 +178,18 @@ fn march_matches_cpu() {
         assert_eq!(marched.ray(5).is_empty(), aabb_scale == 1.0);
         assert!(marched.ray(6).is_empty());
         assert!(cpu.sample_count() > 10_000, "{}", cpu.sample_count());
-        assert_same_samples(&cpu, &marched, &format!("{cascades} cascades, seed {seed}"));
+        if cone_angle > 0.0 && aabb_scale > 1.0 {
+            // Steps grow along the rays: at least three sizes of step.
+            let mut steps = cpu.dt.clone();
+            steps.sort_by(f32::total_cmp);
+            steps.dedup();
+            assert!(steps.len() >= 3, "{steps:?}");
+        }
+        assert_same_samples(
+            &cpu,
+            &marched,
+            &format!("{cascades} cascades, seed {seed}, cone angle {cone_angle}"),
+        );
     }
 }
 

@@ -398,6 +398,7 @@ pub fn results_table(results: &Results) -> Table {
         "ssim",
         "views",
         "eval_downscale",
+        "eval_pixels",
         "eval_seconds",
         "samples_per_second",
     ]);
@@ -414,6 +415,7 @@ pub fn results_table(results: &Results) -> Table {
                 format!("{:.5}", m.ssim),
                 m.views.len().to_string(),
                 results.settings.protocol.eval_downscale.to_string(),
+                format!("{:?}", results.settings.protocol.eval_pixels).to_lowercase(),
                 format!("{:.2}", m.eval_seconds),
                 if m.sample_seconds > 0.0 {
                     format!("{:.0}", m.samples as f64 / m.sample_seconds)

@@ -72,6 +72,7 @@ fn claim_folder(dir: &Path, protocol: &Protocol) -> anyhow::Result<()> {
                 bail!(
                     "{} holds an experiment with other settings ({}); give another --out, \
                      or the same --budget, --marks, --split, --every, --eval-downscale, \
+                     --eval-pixels, \
                      --downscale, --seed and --batch-samples to continue it",
                     dir.display(),
                     describe_protocol(&recorded)
@@ -89,8 +90,8 @@ fn claim_folder(dir: &Path, protocol: &Protocol) -> anyhow::Result<()> {
 
 fn describe_protocol(p: &Protocol) -> String {
     format!(
-        "budget {}, marks {}, split {}, every {}, eval downscale {}, downscale {}, seed {}, \
-         batch {}",
+        "budget {}, marks {}, split {}, every {}, eval downscale {} ({:?}), downscale {}, \
+         seed {}, batch {}",
         format_mark(p.budget_seconds),
         p.marks_seconds
             .iter()
@@ -100,6 +101,7 @@ fn describe_protocol(p: &Protocol) -> String {
         p.split,
         p.every,
         p.eval_downscale,
+        p.eval_pixels,
         p.downscale,
         p.seed,
         p.batch_samples
@@ -150,6 +152,7 @@ pub fn bench_quality(args: QualityArgs) -> anyhow::Result<()> {
         args.seed,
     )
     .map_err(anyhow::Error::msg)?
+    .with_eval_pixels(args.eval_pixels)
     .with_batch_samples(args.batch_samples.map(|n| n as usize));
     if let Some(bad) = args.targets.iter().find(|t| !(t.is_finite() && **t > 0.0)) {
         bail!("--targets: {bad} is not a PSNR in dB (give positive numbers, e.g. 25,30,33)");

@@ -57,6 +57,20 @@ impl Intrinsics {
         }
     }
 
+    /// The pixels `x0..x0 + width`, `y0..y0 + height` of this camera's
+    /// image as an image of their own: the same focal lengths and lens, the
+    /// principal point moved by the crop's corner, so every pixel keeps its
+    /// ray.
+    pub fn cropped(&self, x0: u32, y0: u32, width: u32, height: u32) -> Self {
+        Self {
+            width,
+            height,
+            cx: self.cx - x0 as f32,
+            cy: self.cy - y0 as f32,
+            ..*self
+        }
+    }
+
     /// Horizontal field of view in radians.
     pub fn fov_x(&self) -> f32 {
         2.0 * (0.5 * self.width as f32 / self.fx).atan()

@@ -57,6 +57,17 @@ impl ImageRgba8 {
         self.data.chunks_exact(4).any(|p| p[3] < 255)
     }
 
+    /// The pixels `x0..x0 + width`, `y0..y0 + height` (inside the image).
+    pub fn cropped(&self, x0: u32, y0: u32, width: u32, height: u32) -> Self {
+        assert!(x0 + width <= self.width && y0 + height <= self.height);
+        let mut data = Vec::with_capacity(width as usize * height as usize * 4);
+        for y in y0..y0 + height {
+            let row = (y as usize * self.width as usize + x0 as usize) * 4;
+            data.extend_from_slice(&self.data[row..row + width as usize * 4]);
+        }
+        Self::new(width, height, data)
+    }
+
     /// The image at 1/`factor` of its resolution: each output pixel is the
     /// area average of a `factor`×`factor` block, averaged in premultiplied
     /// colour so that transparent pixels do not bleed their (meaningless)

@@ -92,6 +92,20 @@ impl Frame {
             image_path: self.image_path.clone(),
         }
     }
+
+    /// The pixels `x0..x0 + width`, `y0..y0 + height` of the view at full
+    /// resolution: the camera's rays through them and the photograph's
+    /// values, for scoring part of a view.
+    pub fn cropped(&self, x0: u32, y0: u32, width: u32, height: u32) -> Frame {
+        Frame {
+            camera: Camera::new(
+                self.camera.intrinsics.cropped(x0, y0, width, height),
+                self.camera.camera_to_world,
+            ),
+            image: self.image.cropped(x0, y0, width, height),
+            image_path: self.image_path.clone(),
+        }
+    }
 }
 
 /// How world coordinates map into the unit cube that grid-based models work

@@ -177,6 +177,25 @@ pub struct Cone {
 }
 
 impl Cone {
+    /// Lattice points per octave (1 / cone angle).
+    pub fn points_per_octave(&self) -> f32 {
+        self.points_per_octave
+    }
+
+    /// A = dt / c, where octave 1 starts.
+    pub fn octave_start(&self) -> f32 {
+        self.octave_start
+    }
+
+    pub fn inverse_octave_start(&self) -> f32 {
+        self.inverse_octave_start
+    }
+
+    /// The octave whose step is the largest.
+    pub fn last_octave(&self) -> i32 {
+        self.last_octave
+    }
+
     /// The octave of distance t: 0 below 2A, floor(log2(t / A)) above,
     /// at most the last. From the float's exponent, which is exact.
     #[inline(always)]

@@ -10,7 +10,8 @@ pub const WANTED_FEATURES: Features = Features::SHADER_FLOAT32_ATOMIC
     .union(Features::TIMESTAMP_QUERY)
     .union(Features::SHADER_F16);
 
-/// Storage buffers one kernel binds at most (`composite_forward.wgsl`).
+/// Storage buffers one kernel binds at most (`composite_forward.wgsl`,
+/// `render_walk.wgsl`).
 pub const REQUIRED_STORAGE_BUFFERS: u32 = 10;
 
 /// Why no GPU context could be made.

@@ -9,15 +9,14 @@
 //! Every step is integer arithmetic or a fixed-order walk, so the result is
 //! deterministic; no sample's place depends on which invocation ran first.
 //!
-//! Not yet ported: the cpu engine's cone stepping for aabb_scale > 1
-//! (`MarchConfig::cone_angle`, `engine::cpu::march::Lattice`). This marcher
-//! always steps by `config.step`, so on large scenes the gpu engine takes
-//! more samples per ray than the cpu engine; its own training and
-//! rendering agree with each other.
+//! Large scenes (aabb_scale > 1) step by cone angle as the cpu engine does
+//! (`engine::cpu::march::Lattice`, in whole octaves with exact power-of-two
+//! arithmetic), so both engines take the same samples with the same steps;
+//! each sample carries its own step.
 
 use super::context::{GpuContext, GpuError};
 use super::kernel::{Kernel, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer};
-use crate::engine::cpu::march::{MarchParams, MarchStats, MarchedSamples, skip_margin};
+use crate::engine::cpu::march::{MarchParams, MarchStats, MarchedSamples, cone_for, skip_margin};
 use crate::engine::cpu::occupancy::{GridGeometry, OccupancyGrid};
 
 /// Threads per workgroup of the per-ray and per-element kernels.
@@ -49,7 +48,12 @@ pub struct MarchUniforms {
     block_count: u32,
     world_dt: f32,
     inverse_scale: f32,
-    _pad: [u32; 2],
+    use_cone: u32,
+    points_per_octave: f32,
+    octave_start: f32,
+    inverse_octave_start: f32,
+    last_octave: i32,
+    _pad: [u32; 1],
 }
 
 /// The dispatch for `count` invocations, 2-D past 65535 workgroups, and the
@@ -192,6 +196,7 @@ impl GpuMarch {
         let element_count = ray_count + 1;
         let (_, row_stride) = dispatch_grid(element_count, WORKGROUP);
         let budget = params.sample_budget.min(capacity).min(u32::MAX as usize) as u32;
+        let cone = cone_for(&params.config, mapping, &geometry);
         MarchUniforms {
             offset: mapping.offset.to_array(),
             scale: mapping.scale,
@@ -213,7 +218,12 @@ impl GpuMarch {
             block_count: element_count.div_ceil(SCAN_BLOCK) as u32,
             world_dt: params.config.step / mapping.scale,
             inverse_scale: 1.0 / mapping.scale,
-            _pad: [0; 2],
+            use_cone: cone.is_some() as u32,
+            points_per_octave: cone.map_or(0.0, |c| c.points_per_octave()),
+            octave_start: cone.map_or(0.0, |c| c.octave_start()),
+            inverse_octave_start: cone.map_or(0.0, |c| c.inverse_octave_start()),
+            last_octave: cone.map_or(0, |c| c.last_octave()),
+            _pad: [0; 1],
         }
     }
 

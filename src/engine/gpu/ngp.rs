@@ -516,6 +516,7 @@ impl GpuNgp {
             (0, 0)
         } else {
             let params = MarchParams {
+                config: MarchConfig::paper_or_environment(),
                 sample_budget: self.batch_samples,
                 ..MarchParams::training(self.shape.mapping, mix_seed(self.seed, step))
             };
@@ -780,7 +781,7 @@ impl GpuNgp {
         // Which rays cross the box: the cpu's own test, so both engines
         // march the same rays (the walk kernel repeats it on the gpu for
         // the entry point).
-        let config = MarchConfig::PAPER;
+        let config = MarchConfig::paper_or_environment();
         let marcher = Marcher::new(&self.grid, &config, &self.shape.mapping);
         let mut active: Vec<u32> = Vec::with_capacity(pixels);
         let mut origins = Vec::with_capacity(3 * pixels);
@@ -812,7 +813,10 @@ impl GpuNgp {
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
         encoder.clear_buffer(&buffers.states, 0, None);
         self.record_network_params(&mut encoder);
-        let march = MarchParams::rendering(self.shape.mapping);
+        let march = MarchParams {
+            config,
+            ..MarchParams::rendering(self.shape.mapping)
+        };
         let geometry = self.grid.geometry();
         let mut count = active.len();
         let mut current = 0;
@@ -855,6 +859,7 @@ impl GpuNgp {
                         self.march_out.positions.as_entire_buffer_binding(),
                         self.march_out.directions.as_entire_buffer_binding(),
                         self.march_out.t.as_entire_buffer_binding(),
+                        self.march_out.dt.as_entire_buffer_binding(),
                     ],
                     dispatch_grid(n + 1, WORKGROUP).0,
                 );
@@ -865,9 +870,8 @@ impl GpuNgp {
                     row_stride,
                     per_ray: per_ray as u32,
                     max_samples: config.max_steps,
-                    world_dt: config.step / self.shape.mapping.scale,
                     stop_depth: -config.min_transmittance.ln(),
-                    _pad: [0; 2],
+                    _pad: [0; 3],
                 };
                 let composite = uniform_buffer(ctx, "render composite", &composite);
                 self.stages.render.composite.record_bindings(
@@ -881,6 +885,7 @@ impl GpuNgp {
                         self.samples.sigma.as_entire_buffer_binding(),
                         self.samples.colour.output().as_entire_buffer_binding(),
                         self.march_out.t.as_entire_buffer_binding(),
+                        self.march_out.dt.as_entire_buffer_binding(),
                     ],
                     groups,
                 );
@@ -985,7 +990,7 @@ impl RadianceModel for GpuNgp {
             origins,
             directions,
             background,
-            &MarchConfig::PAPER,
+            &MarchConfig::paper_or_environment(),
             self.batch_samples.max(1),
             |samples, sigma, rgb| self.radiance(samples.positions, samples.directions, sigma, rgb),
             out,

@@ -34,9 +34,8 @@ pub(crate) struct CompositeUniforms {
     pub row_stride: u32,
     pub per_ray: u32,
     pub max_samples: u32,
-    pub world_dt: f32,
     pub stop_depth: f32,
-    pub _pad: [u32; 2],
+    pub _pad: [u32; 3],
 }
 
 /// `Params` in render_compact.wgsl.
