@@ -118,6 +118,7 @@ pub fn tiles(frame: &Frame, n: u32, side: u32, index: usize, seed: u64) -> Vec<F
     }
     parts
 }
+
 /// The marks as fractions of the budget: for 10 minutes, the issue's
 /// 30 s, 1, 2, 5 and 10 minutes.
 pub const DEFAULT_MARK_FRACTIONS: [f64; 5] = [0.05, 0.1, 0.2, 0.5, 1.0];
@@ -137,6 +138,7 @@ pub struct Protocol {
     pub every: usize,
     /// 1/this² of each view's pixels are scored, chosen by `eval_pixels`.
     pub eval_downscale: u32,
+    /// Which pixels: full-resolution tiles, or the whole view downscaled.
     #[serde(default = "EvalPixels::before_tiles")]
     pub eval_pixels: EvalPixels,
     /// Training images are loaded at 1/this of their resolution.
@@ -244,6 +246,14 @@ impl Protocol {
                 },
             })
             .collect();
+        if views.iter().any(|v| v.parts.is_empty()) {
+            // A view without parts is a view of the split: frames has one.
+            let k = frames[0].camera.intrinsics;
+            return Err(format!(
+                "--eval-downscale {} is larger than the views ({}×{} pixels)",
+                self.eval_downscale, k.width, k.height
+            ));
+        }
         let least = crate::metrics::ssim::SSIM_WINDOW as u32;
         if let Some(small) = views
             .iter()
@@ -719,6 +729,14 @@ mod tests {
         assert_ne!(first, other);
         // Every pixel when nothing is to be saved.
         assert_eq!(tiles(&frame, 1, TILE_SIDE, 7, 0)[0].image, frame.image);
+        // More blocks than pixels: no tile, and the protocol says so.
+        assert!(tiles(&frame, 400, TILE_SIDE, 7, 0).is_empty());
+        let p = Protocol::new(60.0, None, "val", 1, 400, 1, 0).unwrap();
+        let e = p.views(std::slice::from_ref(&frame)).unwrap_err();
+        assert_eq!(
+            e,
+            "--eval-downscale 400 is larger than the views (400×300 pixels)"
+        );
     }
 
     /// Renders every ray white.

@@ -763,7 +763,7 @@ mod tests {
         assert_eq!(lines.len(), 1 + 3 + 1);
         assert_eq!(
             lines[2],
-            "lego_400,ngp,occupancy,30,30.250,20,30.0000,0.75000,0,4,1.00,500000"
+            "lego_400,ngp,occupancy,30,30.250,20,30.0000,0.75000,0,4,tiles,1.00,500000"
         );
 
         let report = report_markdown(&results);
