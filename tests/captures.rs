@@ -296,3 +296,47 @@ fn large_demo_figures() {
         }
     }
 }
+
+/// Where a trained grid on the large-extent demo keeps its samples, not run
+/// by default: the occupied share of each cascade and the samples per ray
+/// of training rays, from the checkpoint of a run of `zrak train` on the
+/// scene `zrak demo --large` writes (`ZRAK_GRID_RUN=RUN cargo test --test
+/// captures large_demo_grid_by_cascade -- --ignored --nocapture`).
+#[test]
+#[ignore]
+fn large_demo_grid_by_cascade() {
+    use zrak::field::ngp::MarchConfig;
+    use zrak::train::checkpoint::Checkpoint;
+    use zrak::train::model::RadianceModel;
+    let run = std::path::PathBuf::from(std::env::var("ZRAK_GRID_RUN").expect("ZRAK_GRID_RUN"));
+    let scene = demo::build_large(&DemoConfig::default());
+    let mut checkpoint = Checkpoint::load(&run.join("checkpoint.zrak")).expect("checkpoint");
+    // A run's checkpoint holds the trainer's state beside the model's.
+    checkpoint.header = checkpoint.header["model"].clone();
+    let mut model = CpuNgp::with_batch_samples(&scene, 0, LossKind::Huber, 1 << 18);
+    model
+        .load(&checkpoint)
+        .expect("an Instant-NGP checkpoint of this scene");
+    let grid = model.occupancy();
+    let geometry = grid.geometry();
+    let per = geometry.cells_per_cascade();
+    for cascade in 0..geometry.cascades as usize {
+        let occupied = (cascade * per..(cascade + 1) * per)
+            .filter(|&i| grid.is_occupied(geometry.cell_at(i)))
+            .count();
+        eprintln!(
+            "cascade {cascade}: {:.2} % of cells occupied",
+            100.0 * occupied as f64 / per as f64
+        );
+    }
+    let fixed = MarchConfig {
+        cone_angle: 0.0,
+        ..MarchConfig::PAPER
+    };
+    eprintln!(
+        "threshold {:.4}; samples per ray: fixed step {:.0}, cone steps {:.0}",
+        grid.threshold(),
+        samples_per_ray(&scene, grid, fixed, 4000),
+        samples_per_ray(&scene, grid, MarchConfig::PAPER, 4000)
+    );
+}
