@@ -345,7 +345,9 @@ fn draw_bars<DB: DrawingBackend>(
 ) -> Result<(), String> {
     root.fill(&WHITE).map_err(err)?;
     // From a twentyfifth of the budget (below the first default mark) to
-    // the budget, wider if a bar needs it, with room above for labels.
+    // the budget, wider if a bar needs it, with room above for the bars'
+    // labels and, above those, the legend (at 1.8× the legend covered the
+    // labels and tops of the first group's bars).
     let reached = bars
         .iter()
         .flat_map(|b| b.reached.iter().filter_map(Reached::seconds));
@@ -353,7 +355,7 @@ fn draw_bars<DB: DrawingBackend>(
         reached.chain([budget_seconds / 25.0, budget_seconds]),
         (1.0, 600.0),
     );
-    let y_high = y_high * 1.8;
+    let y_high = y_high * 8.0;
     let groups = targets.len().max(1) as f64;
     let mut chart = ChartBuilder::on(&root)
         .caption(title, (FAMILY, 24))
