@@ -246,9 +246,10 @@ impl Protocol {
                 },
             })
             .collect();
-        if views.iter().any(|v| v.parts.is_empty()) {
-            // A view without parts is a view of the split: frames has one.
-            let k = frames[0].camera.intrinsics;
+        // Views of a split may differ in size: name the one left without
+        // pixels to score.
+        if let Some(position) = views.iter().position(|v| v.parts.is_empty()) {
+            let k = frames[position * self.every.max(1)].camera.intrinsics;
             return Err(format!(
                 "--eval-downscale {} is larger than the views ({}×{} pixels)",
                 self.eval_downscale, k.width, k.height
