@@ -361,7 +361,9 @@ fn draw_bars<DB: DrawingBackend>(
         .caption(title, (FAMILY, 24))
         .margin(16)
         .x_label_area_size(40)
-        .y_label_area_size(64)
+        // Wide enough for the rotated axis title beside tick labels as long
+        // as "20 min" (at 64 pixels the title ran over them).
+        .y_label_area_size(88)
         .build_cartesian_2d(
             0f64..groups,
             (y_low..y_high)
