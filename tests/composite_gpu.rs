@@ -4,7 +4,8 @@
 #![allow(clippy::needless_range_loop)]
 
 use zrak::engine::cpu::composite_batch::{
-    CompositeGradients, CompositeOutputs, RayBatch, composite_backward, composite_forward,
+    CompositeGradients, CompositeOutputs, Distortion, RayBatch, composite_backward,
+    composite_forward,
 };
 use zrak::engine::cpu::loss::loss_and_gradient;
 use zrak::engine::gpu::GpuContext;
@@ -111,6 +112,18 @@ impl Batch {
     /// δₖ (Tₖ₊₁ |gₖ| + Σ_{i>k} wᵢ |gᵢ| + T_cut |∂L/∂rgb · bg|), in f64 on
     /// the samples before the cut.
     fn density_gradient_scale(&self, d_rgb: &[f32], used: &[u32]) -> Vec<f64> {
+        self.density_gradient_scale_with(d_rgb, used, None)
+    }
+
+    /// As [`Self::density_gradient_scale`], with |gₖ| grown by the size of
+    /// the distortion loss's terms, λ′ (2 (sₖ W + S) + ⅔ wₖ δₖ) (W and S
+    /// the ray's sums of wᵢ and wᵢ sᵢ).
+    fn density_gradient_scale_with(
+        &self,
+        d_rgb: &[f32],
+        used: &[u32],
+        distortion: Option<Distortion<f32>>,
+    ) -> Vec<f64> {
         let mut scale = vec![0f64; self.density.len()];
         for ray in 0..self.rays() {
             let samples = self.samples(ray);
@@ -128,12 +141,26 @@ impl Batch {
                 .map(|c| grad[c] * self.background[3 * ray + c] as f64)
                 .sum();
             let mut behind = transmittance[n] * bg.abs();
+            let weight = |k: usize| transmittance[k] - transmittance[k + 1];
+            let (weight_sum, moment_sum) = distortion.map_or((0.0, 0.0), |d| {
+                (0..n).fold((0.0, 0.0), |(w, m), k| {
+                    let distance = self.t[samples.start + k] as f64 * d.distance_scale as f64;
+                    (w + weight(k), m + weight(k) * distance)
+                })
+            });
             for k in (0..n).rev() {
                 let s = samples.start + k;
-                let g: f64 = (0..3)
+                let mut g: f64 = (0..3)
                     .map(|c| grad[c] * self.rgb[3 * s + c] as f64)
                     .sum::<f64>()
                     .abs();
+                if let Some(d) = distortion {
+                    let scale = d.distance_scale as f64;
+                    let distance = self.t[s] as f64 * scale;
+                    g += d.weight_per_ray as f64
+                        * (2.0 * (distance * weight_sum + moment_sum)
+                            + 2.0 / 3.0 * weight(k) * self.dt[s] as f64 * scale);
+                }
                 scale[s] = self.dt[s] as f64 * (transmittance[k + 1] * g + behind);
                 behind += (transmittance[k] - transmittance[k + 1]) * g;
             }
@@ -171,6 +198,14 @@ fn cpu_forward(batch: &Batch) -> CpuForward {
 }
 
 fn cpu_backward(batch: &Batch, d_rgb: &[f32]) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+    cpu_backward_with(batch, d_rgb, None)
+}
+
+fn cpu_backward_with(
+    batch: &Batch,
+    d_rgb: &[f32],
+    distortion: Option<Distortion<f32>>,
+) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
     let n = batch.density.len();
     let (mut density, mut rgb, mut background) =
         (vec![0.0; n], vec![0.0; 3 * n], vec![0.0; 3 * batch.rays()]);
@@ -178,6 +213,7 @@ fn cpu_backward(batch: &Batch, d_rgb: &[f32]) -> (Vec<f32>, Vec<f32>, Vec<f32>) 
         &batch.view(),
         CUT,
         d_rgb,
+        distortion,
         CompositeGradients {
             density: &mut density,
             rgb: &mut rgb,
@@ -272,7 +308,7 @@ fn compositing_matches_cpu() {
     let d_rgb = d_rgb_for(rays, 2);
     let (cpu_density, cpu_colour, cpu_background) = cpu_backward(&batch, &d_rgb);
     let start = std::time::Instant::now();
-    let grads = composite.backward(&context, &batch.view(), CUT, &d_rgb);
+    let grads = composite.backward(&context, &batch.view(), CUT, &d_rgb, None);
     eprintln!(
         "gpu backward (with upload and read-back): {:?}",
         start.elapsed()
@@ -323,6 +359,55 @@ fn compositing_matches_cpu() {
     eprintln!(
         "worst ∂σ error relative to its terms: {worst_density:e}; worst ∂c error: {worst_colour:e}"
     );
+}
+
+#[test]
+fn backward_with_the_distortion_loss_matches_cpu() {
+    let context = GpuContext::new().expect("an adapter exists");
+    let composite = GpuComposite::new(&context).expect("the kernels compile");
+    let batch = Batch::random(2000, 5);
+    let rays = batch.rays();
+    let cpu = cpu_forward(&batch);
+    let ambiguous: Vec<bool> = (0..rays).map(|r| batch.cut_is_ambiguous(r)).collect();
+    // Distances 2…3.5 become s ≈ 0.6…1; λ′ = 0.5 makes the distortion
+    // terms as large as the colour's (d_rgb in [−1, 1]).
+    let distortion = Some(Distortion {
+        weight_per_ray: 0.5,
+        distance_scale: 0.3,
+    });
+    let d_rgb = d_rgb_for(rays, 6);
+    let (cpu_density, cpu_colour, _) = cpu_backward_with(&batch, &d_rgb, distortion);
+    let (plain_density, _, _) = cpu_backward(&batch, &d_rgb);
+    let grads = composite.backward(&context, &batch.view(), CUT, &d_rgb, distortion);
+    // The error bound of `compositing_matches_cpu`, on terms grown by the
+    // distortion's; the moments S_<k are differences of sums of at most
+    // ~120 terms ≤ 1, a few ulp of S each: inside the same 1e-4.
+    let scale = batch.density_gradient_scale_with(&d_rgb, &cpu.used, distortion);
+    let mut changed = 0;
+    for ray in (0..rays).filter(|&r| !ambiguous[r]) {
+        for s in batch.samples(ray) {
+            let error = (grads.density[s] as f64 - cpu_density[s] as f64).abs();
+            assert!(
+                error <= 1e-4 * scale[s] + 1e-12,
+                "ray {ray} sample {s}: ∂σ gpu {} cpu {} (terms {:e})",
+                grads.density[s],
+                cpu_density[s],
+                scale[s]
+            );
+            // The loss on the weights leaves ∂L/∂c alone.
+            for i in 3 * s..3 * s + 3 {
+                assert!(close(grads.rgb[i], cpu_colour[i], 1e-12));
+            }
+            let shift = (cpu_density[s] as f64 - plain_density[s] as f64).abs();
+            changed += usize::from(shift > 1e-2 * scale[s] && shift > 1e-9);
+        }
+    }
+    // The distortion must move many gradients of the samples before the
+    // cuts by 100 times the tolerance, or a kernel that ignored it would
+    // pass (14 % of them here; the bound's terms are sums of absolute
+    // values, so most shifts are smaller than that against them).
+    let used: usize = cpu.used.iter().map(|&n| n as usize).sum();
+    assert!(changed > used / 10, "{changed} of {used} gradients changed");
 }
 
 #[test]
@@ -443,6 +528,7 @@ fn forward_loss_backward_chain_in_one_submission() {
         &buffers,
         CUT,
         &d_rgb,
+        None,
         &CompositeGradientBuffers {
             density: &d_density,
             rgb: &d_colour,

@@ -95,6 +95,7 @@ fn stats(step: u32, loss: f32) -> TrainingStats {
         val_psnr: None,
         ms_per_step: 123.4,
         samples_per_ray: 17.5,
+        composited_per_ray: Some(9.3),
         samples_per_second: 2.5e6,
         memory_bytes: 64 << 20,
         times: StageTimes {
@@ -164,6 +165,7 @@ fn panels_show_every_control() {
     // The stats show the figures that arrived, formatted.
     harness.get_by_label("123.4");
     harness.get_by_label("17.5");
+    harness.get_by_label("9.3");
     harness.get_by_label("2.50 M");
     harness.get_by_label("64.0 MiB");
     harness.get_by_label("0.01230");

@@ -125,7 +125,11 @@ pub struct TrainingStats {
     /// PSNR on held-out views, when the thread evaluated this step.
     pub val_psnr: Option<f32>,
     pub ms_per_step: f32,
+    /// Samples marched per ray (what the networks' density pass ran on).
     pub samples_per_ray: f32,
+    /// Of those, the samples before each ray's cut, per ray, where the
+    /// engine counts them (`StepStats::samples_composited`).
+    pub composited_per_ray: Option<f32>,
     pub samples_per_second: f32,
     pub memory_bytes: usize,
     pub times: StageTimes,

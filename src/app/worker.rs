@@ -368,6 +368,9 @@ struct StatsWindow {
     seconds: f64,
     rays: usize,
     samples: usize,
+    /// Samples before the rays' cuts, while every step of the window
+    /// reported them.
+    composited: Option<usize>,
     /// Σ loss × rays, so the mean is over every ray of the window.
     loss_times_rays: f64,
     times: StageTimes,
@@ -375,6 +378,11 @@ struct StatsWindow {
 
 impl StatsWindow {
     fn add(&mut self, stats: &StepStats, seconds: f64) {
+        self.composited = match (self.steps, self.composited, stats.samples_composited) {
+            (0, _, now) => now,
+            (_, Some(sum), Some(now)) => Some(sum + now),
+            _ => None,
+        };
         self.steps += 1;
         self.seconds += seconds;
         self.rays += stats.rays;
@@ -1415,6 +1423,9 @@ impl Worker {
             } else {
                 0.0
             },
+            composited_per_ray: window
+                .composited
+                .map(|n| n as f32 / window.rays.max(1) as f32),
             samples_per_second: if window.seconds > 0.0 {
                 (window.samples as f64 / window.seconds) as f32
             } else {

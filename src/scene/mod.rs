@@ -128,6 +128,12 @@ impl UnitCubeMapping {
         aabb_scale: 1.0,
     };
 
+    /// Multiplies a world length into a fraction of the scene box's
+    /// diagonal (√3 · aabb_scale in unit-cube lengths).
+    pub fn diagonal_scale(&self) -> f32 {
+        self.scale / (3f32.sqrt() * self.aabb_scale)
+    }
+
     pub fn to_unit(&self, world: Vec3) -> Vec3 {
         world * self.scale + self.offset
     }

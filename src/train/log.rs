@@ -21,6 +21,10 @@ pub struct LogLine {
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub psnr: Option<f64>,
     pub samples_per_ray: f32,
+    /// Samples per ray before the rays' cuts, where the engine counts them
+    /// (see `StepStats::samples_composited`).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub composited_per_ray: Option<f32>,
     pub samples_per_second: f64,
     pub rays_per_batch: usize,
 }

@@ -71,6 +71,11 @@ pub struct StepStats {
     pub rays: usize,
     /// Samples the networks were evaluated on.
     pub samples: usize,
+    /// Of those, the samples before the rays' cuts (transmittance below
+    /// 1e-4), which compositing weighs and the backward passes run on:
+    /// instant-ngp's testbed calls these per ray "samples/ray", after
+    /// compaction. Reported by the engines that count them on the host.
+    pub samples_composited: Option<usize>,
     pub times: StageTimes,
     /// Floating-point operations of the networks' forward and backward
     /// passes in this step, for models that count them (0 otherwise).
@@ -84,6 +89,17 @@ impl StepStats {
         } else {
             self.samples as f32 / self.rays as f32
         }
+    }
+
+    /// [`Self::samples_composited`] per ray.
+    pub fn composited_per_ray(&self) -> Option<f32> {
+        self.samples_composited.map(|n| {
+            if self.rays == 0 {
+                0.0
+            } else {
+                n as f32 / self.rays as f32
+            }
+        })
     }
 }
 

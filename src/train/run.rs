@@ -199,6 +199,7 @@ pub fn run(
                 loss: stats.loss,
                 psnr: evaluated,
                 samples_per_ray: stats.samples_per_ray(),
+                composited_per_ray: stats.composited_per_ray(),
                 samples_per_second,
                 rays_per_batch: stats.rays,
             })

@@ -573,6 +573,14 @@ fn stats(state: &ViewerUi, ui: &mut egui::Ui) {
             figure(latest.map(|s| format!("{:.1}", s.samples_per_ray))),
         ),
         (
+            "composited/ray",
+            figure(
+                latest
+                    .and_then(|s| s.composited_per_ray)
+                    .map(|v| format!("{v:.1}")),
+            ),
+        ),
+        (
             "samples/s",
             figure(latest.map(|s| format!("{:.2} M", s.samples_per_second / 1e6))),
         ),

@@ -137,6 +137,19 @@ pub struct CompositeGradients<'a, F> {
     pub background: Option<&'a mut [F]>,
 }
 
+/// Mip-NeRF 360's distortion loss ([`super::composite::distortion`]) added
+/// to the loss on colours: λ × the mean over rays of each ray's distortion,
+/// on the samples before its cut, at distances s = t × `distance_scale`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Distortion<F> {
+    /// λ divided by the rays of the batch.
+    pub weight_per_ray: F,
+    /// Converts distances along the ray into the loss's unit (the models
+    /// use the scene box's diagonal as 1, so λ means the same in every
+    /// scene).
+    pub distance_scale: F,
+}
+
 /// τ = σ δ with negative densities treated as empty space (as the
 /// reference does).
 #[inline(always)]
@@ -354,10 +367,17 @@ fn forward_block<F: Float + Send + Sync>(
 /// with the bracket summed from the back of the ray. Tₖ for the ray is
 /// kept in `gradients.density` between the two walks, so nothing is
 /// allocated.
+///
+/// With `distortion`, gₖ gains ∂L_dist/∂wₖ (the formula above holds for any
+/// loss on the weights): λ′ (2 (sₖ W_<k − S_<k + S_>k − sₖ W_>k) + ⅔ wₖ δₖ),
+/// where W_<k = 1 − Tₖ and W_>k = Tₖ₊₁ − T_cut come from the
+/// transmittances already at hand and S (the sums of wⱼ sⱼ) from one more
+/// running sum in the forward walk.
 pub fn composite_backward<F: Float + Send + Sync>(
     batch: &RayBatch<F>,
     min_transmittance: F,
     d_rgb: &[F],
+    distortion: Option<Distortion<F>>,
     gradients: CompositeGradients<F>,
 ) {
     batch.validate();
@@ -378,6 +398,7 @@ pub fn composite_backward<F: Float + Send + Sync>(
         batch,
         min_transmittance,
         d_rgb,
+        distortion,
         0..rays,
         &mut gradients.density[first..samples],
         &mut gradients.rgb[3 * first..3 * samples],
@@ -387,10 +408,12 @@ pub fn composite_backward<F: Float + Send + Sync>(
 
 /// As [`forward_block`]: `d_density` and `d_colour` cover exactly the
 /// samples of `rays`, `d_background` exactly the rays.
+#[allow(clippy::too_many_arguments)]
 fn backward_block<F: Float + Send + Sync>(
     batch: &RayBatch<F>,
     min_transmittance: F,
     d_rgb: &[F],
+    distortion: Option<Distortion<F>>,
     rays: Range<usize>,
     d_density: &mut [F],
     d_colour: &mut [F],
@@ -415,6 +438,7 @@ fn backward_block<F: Float + Send + Sync>(
                     batch,
                     min_transmittance,
                     d_rgb,
+                    distortion,
                     rays.start..mid,
                     density_a,
                     colour_a,
@@ -426,6 +450,7 @@ fn backward_block<F: Float + Send + Sync>(
                     batch,
                     min_transmittance,
                     d_rgb,
+                    distortion,
                     mid..rays.end,
                     density_b,
                     colour_b,
@@ -442,9 +467,11 @@ fn backward_block<F: Float + Send + Sync>(
         let grad = [d_rgb[3 * ray], d_rgb[3 * ray + 1], d_rgb[3 * ray + 2]];
         let transmittance_before = &mut d_density[local.clone()];
 
-        // Forward: Tₖ into the density gradient's slots, and the cut.
+        // Forward: Tₖ into the density gradient's slots, the cut, and for
+        // the distortion loss Σ wₖ sₖ.
         let mut accumulated = F::zero();
         let mut used = samples.len();
+        let mut moment_total = F::zero();
         for (k, s) in samples.clone().enumerate() {
             let transmittance = (-accumulated).exp();
             if transmittance < min_transmittance {
@@ -452,7 +479,12 @@ fn backward_block<F: Float + Send + Sync>(
                 break;
             }
             transmittance_before[k] = transmittance;
-            accumulated = accumulated + optical_depth(batch.density[s], batch.dt[s]);
+            let tau = optical_depth(batch.density[s], batch.dt[s]);
+            if let Some(d) = distortion {
+                let weight = transmittance * -(-tau).exp_m1();
+                moment_total = moment_total + weight * (batch.t[s] * d.distance_scale);
+            }
+            accumulated = accumulated + tau;
         }
         let final_transmittance = (-accumulated).exp();
         transmittance_before[used..].fill(F::zero());
@@ -465,13 +497,26 @@ fn backward_block<F: Float + Send + Sync>(
         let mut behind = final_transmittance
             * (grad[0] * background[0] + grad[1] * background[1] + grad[2] * background[2]);
         let mut transmittance_after = final_transmittance;
+        let mut moment_after = F::zero();
         for k in (0..used).rev() {
             let s = samples.start + k;
             let transmittance = transmittance_before[k];
             let tau = optical_depth(batch.density[s], batch.dt[s]);
             let weight = transmittance * -(-tau).exp_m1();
             let c = &batch.rgb[3 * s..3 * s + 3];
-            let g = grad[0] * c[0] + grad[1] * c[1] + grad[2] * c[2];
+            let mut g = grad[0] * c[0] + grad[1] * c[1] + grad[2] * c[2];
+            if let Some(d) = distortion {
+                let distance = batch.t[s] * d.distance_scale;
+                let weight_before = F::one() - transmittance;
+                let weight_after = transmittance_after - final_transmittance;
+                let moment_before = moment_total - moment_after - weight * distance;
+                let spread = distance * weight_before - moment_before + moment_after
+                    - distance * weight_after;
+                let two = F::one() + F::one();
+                let own = two / (two + F::one()) * weight * (batch.dt[s] * d.distance_scale);
+                g = g + d.weight_per_ray * (two * spread + own);
+                moment_after = moment_after + weight * distance;
+            }
             let d_tau = transmittance_after * g - behind;
             // Negative densities were clamped to empty space: no gradient.
             transmittance_before[k] = if batch.density[s] * batch.dt[s] >= F::zero() {
@@ -599,6 +644,15 @@ mod tests {
             min_transmittance: f64,
             d_rgb: &[f64],
         ) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+            self.backward_with(min_transmittance, d_rgb, None)
+        }
+
+        fn backward_with(
+            &self,
+            min_transmittance: f64,
+            d_rgb: &[f64],
+            distortion: Option<Distortion<f64>>,
+        ) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
             let n = self.density.len();
             // NaN-filled, so a slot the backward forgets to write shows up.
             let mut d_density = vec![f64::NAN; n];
@@ -608,6 +662,7 @@ mod tests {
                 &self.view(),
                 min_transmittance,
                 d_rgb,
+                distortion,
                 CompositeGradients {
                     density: &mut d_density,
                     rgb: &mut d_colour,
@@ -752,14 +807,45 @@ mod tests {
         }
     }
 
-    /// A scalar loss on the batch's colours, for finite differences.
-    fn loss(batch: &Batch, weights: &[f64]) -> f64 {
+    /// A scalar loss on the batch's colours, plus the distortion loss if
+    /// asked (from the reference on each ray's samples before the cut), for
+    /// finite differences.
+    fn loss(batch: &Batch, weights: &[f64], distortion: Option<Distortion<f64>>) -> f64 {
         let out = batch.forward(PAPER_CUT);
-        out.rgb.iter().zip(weights).map(|(c, w)| c * w).sum()
+        let colour: f64 = out.rgb.iter().zip(weights).map(|(c, w)| c * w).sum();
+        let Some(d) = distortion else {
+            return colour;
+        };
+        let mut w = vec![0.0; batch.density.len()];
+        sample_weights(&batch.view(), PAPER_CUT, &mut w);
+        let scaled = |v: &[f64]| v.iter().map(|x| x * d.distance_scale).collect::<Vec<_>>();
+        let (s, delta) = (scaled(&batch.t), scaled(&batch.dt));
+        let spread: f64 = (0..batch.rays())
+            .map(|r| {
+                let samples = batch.ray_offsets[r] as usize..batch.ray_offsets[r + 1] as usize;
+                reference::distortion(&w[samples.clone()], &s[samples.clone()], &delta[samples])
+            })
+            .sum();
+        colour + d.weight_per_ray * spread
     }
 
     #[test]
     fn gradients_match_central_differences_with_the_cut() {
+        gradients_match_central_differences(None);
+    }
+
+    #[test]
+    fn gradients_with_the_distortion_loss_match_central_differences() {
+        // λ′ large enough that the distortion term is as large as the
+        // colour term's gradients (a weak λ′ would pass with a wrong
+        // distortion gradient inside the tolerance).
+        gradients_match_central_differences(Some(Distortion {
+            weight_per_ray: 0.7,
+            distance_scale: 0.4,
+        }));
+    }
+
+    fn gradients_match_central_differences(distortion: Option<Distortion<f64>>) {
         let counts = [0usize, 1, 3, 12, 30, 30, 45, 8];
         // Scales from near-empty rays to rays cut after a few samples.
         let batch = Batch::random(3, &counts, &[0.5, 30.0, 150.0, 2000.0]);
@@ -775,7 +861,8 @@ mod tests {
             cut_rays >= 3,
             "the test needs rays that are cut: {cut_rays}"
         );
-        let (d_density, d_colour, d_background) = batch.backward(PAPER_CUT, &weights);
+        let (d_density, d_colour, d_background) =
+            batch.backward_with(PAPER_CUT, &weights, distortion);
 
         // Central differences with h ≤ 1e-6: truncation O(h²|L'''|) and
         // rounding O(ε|L|/h) ≈ 1e-10 in f64, far below the 1e-6 relative
@@ -799,7 +886,8 @@ mod tests {
                 base.used,
                 "{what}: the cut moved"
             );
-            let numeric = (loss(&plus, &weights) - loss(&minus, &weights)) / (2.0 * h);
+            let numeric = (loss(&plus, &weights, distortion) - loss(&minus, &weights, distortion))
+                / (2.0 * h);
             let error = (analytic - numeric).abs() / analytic.abs().max(numeric.abs()).max(1e-3);
             assert!(
                 error < 1e-6,
@@ -830,6 +918,82 @@ mod tests {
                 1e-6,
                 &format!("bg[{i}]"),
             );
+        }
+    }
+
+    #[test]
+    fn the_distortion_loss_drains_fog_the_colour_loss_cannot_see() {
+        // One ray: a faint fog over 40 samples, then a surface; fog,
+        // surface and target all grey, so every split of the weight between
+        // fog and surface renders the target and the colour loss has no
+        // gradient to choose. Gradient descent on log-densities (as the
+        // fields parametrise σ) with the distortion loss moves the weight
+        // into the surface; without it the fog stays.
+        let n = 60;
+        let dt = vec![0.05; n];
+        let t: Vec<f64> = (0..n).map(|i| 2.0 + 0.05 * (i as f64 + 0.5)).collect();
+        let initial: Vec<f64> = (0..n)
+            .map(|i| {
+                if (40..44).contains(&i) {
+                    100f64.ln()
+                } else {
+                    0.2f64.ln()
+                }
+            })
+            .collect();
+        let target = [0.5; 3];
+        let fog_weight = |log_density: &[f64],
+                          distortion: Option<Distortion<f64>>,
+                          steps: usize| {
+            let mut log_density = log_density.to_vec();
+            // Fog samples have ∂L/∂x = σ δ ∂L/∂τ ≈ 0.01 ∂L/∂τ: a step of
+            // 100 moves them at a rate of order one per step.
+            for _ in 0..steps {
+                let batch = Batch {
+                    density: log_density.iter().map(|x| x.exp()).collect(),
+                    rgb: vec![0.5; 3 * n],
+                    dt: dt.clone(),
+                    t: t.clone(),
+                    ray_offsets: vec![0, n as u32],
+                    background: vec![0.0; 3],
+                };
+                let out = batch.forward(PAPER_CUT);
+                let d_rgb: Vec<f64> = (0..3).map(|c| (out.rgb[c] - target[c]) / 3.0).collect();
+                let (d_density, _, _) = batch.backward_with(PAPER_CUT, &d_rgb, distortion);
+                for ((x, sigma), d) in log_density.iter_mut().zip(&batch.density).zip(d_density) {
+                    *x -= 100.0 * sigma * d;
+                }
+            }
+            let batch = Batch {
+                density: log_density.iter().map(|x| x.exp()).collect(),
+                rgb: vec![0.5; 3 * n],
+                dt: dt.clone(),
+                t: t.clone(),
+                ray_offsets: vec![0, n as u32],
+                background: vec![0.0; 3],
+            };
+            let mut w = vec![0.0; n];
+            sample_weights(&batch.view(), PAPER_CUT, &mut w);
+            let colour = batch.forward(PAPER_CUT).rgb[0];
+            (w[..40].iter().sum::<f64>(), colour)
+        };
+        let (fog_before, _) = fog_weight(&initial, None, 0);
+        // 1 − e^{−40 · 0.2 · 0.05} = 1 − e^{−0.4}.
+        assert!((fog_before - (1.0 - (-0.4f64).exp())).abs() < 1e-9);
+        let (fog_plain, colour_plain) = fog_weight(&initial, None, 300);
+        let (fog_drained, colour_drained) = fog_weight(
+            &initial,
+            Some(Distortion {
+                weight_per_ray: 0.1,
+                distance_scale: 1.0 / 3.0,
+            }),
+            300,
+        );
+        // Measured: 0.33 stays 0.33 without the loss, falls to 0.04 with it.
+        assert!((fog_plain - fog_before).abs() < 1e-3, "{fog_plain}");
+        assert!(fog_drained < 0.25 * fog_before, "{fog_drained}");
+        for colour in [colour_plain, colour_drained] {
+            assert!((colour - 0.5).abs() < 1e-3, "{colour}");
         }
     }
 
@@ -964,6 +1128,7 @@ mod tests {
             &view,
             MarchConfig::PAPER.min_transmittance,
             &to32(&d_rgb),
+            None,
             CompositeGradients {
                 density: &mut d_density,
                 rgb: &mut d_colour,
@@ -1054,6 +1219,7 @@ mod tests {
                 &view,
                 cut,
                 &d_rgb,
+                None,
                 CompositeGradients {
                     density: &mut d_density,
                     rgb: &mut d_colour,

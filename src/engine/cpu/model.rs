@@ -459,6 +459,7 @@ impl CpuModel {
             level_losses: [loss as f32, 0.0],
             rays: if rays == 0 { 0 } else { kept },
             samples: s,
+            samples_composited: Some(u),
             times,
             // σ of every marched sample, then forward (2 FLOP a
             // multiply-add) and backward (twice the forward) of the used.
@@ -554,6 +555,7 @@ impl CpuModel {
             level_losses,
             rays,
             samples,
+            samples_composited: None,
             times,
             network_flops,
         }
@@ -1025,6 +1027,7 @@ fn composite_and_loss(
         &batch,
         min_transmittance,
         &scratch.d_rgb,
+        None,
         CompositeGradients {
             density: &mut lb.d_sigma,
             rgb: &mut lb.d_rgb,

@@ -12,7 +12,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use super::adam::Adam;
-use super::composite_batch::{self, CompositeGradients, CompositeOutputs};
+use super::composite_batch::{self, CompositeGradients, CompositeOutputs, Distortion};
 use super::dense::{
     MlpLayout, MlpWorkspace, mlp_backward, mlp_backward_columns, mlp_forward, mlp_inference,
     mlp_inference_leading,
@@ -488,10 +488,16 @@ impl CpuNgp {
         let loss = loss_and_gradient(self.loss, &b.ray_rgb, &b.targets, &mut b.d_ray_rgb);
         set_len(&mut b.d_sigma, u);
         set_len(&mut b.d_rgb, u * 3);
+        let distortion_weight = crate::field::ngp::distortion_weight(shape.mapping.aabb_scale);
+        let distortion = (distortion_weight > 0.0 && kept > 0).then(|| Distortion {
+            weight_per_ray: distortion_weight / kept as f32,
+            distance_scale: shape.mapping.diagonal_scale(),
+        });
         composite_batch::composite_backward(
             &ray_batch,
             min_transmittance,
             &b.d_ray_rgb,
+            distortion,
             CompositeGradients {
                 density: &mut b.d_sigma,
                 rgb: &mut b.d_rgb,
@@ -563,6 +569,7 @@ impl CpuNgp {
             level_losses: [loss as f32, 0.0],
             rays: if rays == 0 { 0 } else { kept },
             samples: s,
+            samples_composited: Some(u),
             times,
             network_flops: 0.0,
         }

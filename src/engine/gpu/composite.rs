@@ -7,7 +7,7 @@
 
 use super::context::{GpuContext, GpuError};
 use super::kernel::{Kernel, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer};
-use crate::engine::cpu::composite_batch::RayBatch;
+use crate::engine::cpu::composite_batch::{Distortion, RayBatch};
 
 const VOLUME_COMMON: &str = include_str!("../../../shaders/volume_common.wgsl");
 
@@ -35,7 +35,10 @@ struct Params {
     ray_count: u32,
     row_stride: u32,
     min_transmittance: f32,
-    _pad: u32,
+    /// λ′ of the distortion loss (0: none).
+    distortion_weight: f32,
+    distance_scale: f32,
+    _pad: [u32; 3],
 }
 
 /// A batch of rays on the GPU, in the layout of [`RayBatch`].
@@ -180,12 +183,23 @@ impl GpuComposite {
         ray_count: usize,
         min_transmittance: f32,
     ) -> (wgpu::Buffer, [u32; 3]) {
+        Self::params_with(context, ray_count, min_transmittance, None)
+    }
+
+    fn params_with(
+        context: &GpuContext,
+        ray_count: usize,
+        min_transmittance: f32,
+        distortion: Option<Distortion<f32>>,
+    ) -> (wgpu::Buffer, [u32; 3]) {
         let (groups, row_stride) = grid(ray_count, WORKGROUP);
         let params = Params {
             ray_count: ray_count as u32,
             row_stride,
             min_transmittance,
-            _pad: 0,
+            distortion_weight: distortion.map_or(0.0, |d| d.weight_per_ray),
+            distance_scale: distortion.map_or(0.0, |d| d.distance_scale),
+            _pad: [0; 3],
         };
         (uniform_buffer(context, "composite params", &params), groups)
     }
@@ -221,8 +235,10 @@ impl GpuComposite {
         );
     }
 
-    /// Records the backward pass for ∂L/∂rgb per ray (R × 3 in `d_rgb`).
+    /// Records the backward pass for ∂L/∂rgb per ray (R × 3 in `d_rgb`),
+    /// with the distortion loss if asked.
     /// Every sample of every ray is written (zero after a ray's cut).
+    #[allow(clippy::too_many_arguments)]
     pub fn record_backward(
         &self,
         context: &GpuContext,
@@ -230,9 +246,11 @@ impl GpuComposite {
         batch: &RayBatchBuffers,
         min_transmittance: f32,
         d_rgb: &wgpu::Buffer,
+        distortion: Option<Distortion<f32>>,
         gradients: &CompositeGradientBuffers,
     ) {
-        let (uniform, groups) = Self::params(context, batch.ray_count, min_transmittance);
+        let (uniform, groups) =
+            Self::params_with(context, batch.ray_count, min_transmittance, distortion);
         self.backward.record(
             context,
             encoder,
@@ -247,6 +265,7 @@ impl GpuComposite {
                 gradients.density,
                 gradients.rgb,
                 gradients.background,
+                batch.t,
             ],
             groups,
         );
@@ -296,6 +315,7 @@ impl GpuComposite {
         batch: &RayBatch<f32>,
         min_transmittance: f32,
         d_rgb: &[f32],
+        distortion: Option<Distortion<f32>>,
     ) -> BackwardResult {
         let uploaded = Upload::new(context, batch);
         let rays = batch.ray_count();
@@ -312,6 +332,7 @@ impl GpuComposite {
             &uploaded.buffers(rays),
             min_transmittance,
             &d_rgb,
+            distortion,
             &CompositeGradientBuffers {
                 density: &density,
                 rgb: &rgb,

@@ -800,6 +800,7 @@ impl GpuModel {
                         min_transmittance,
                         self.loss,
                         level.loss_weight * share,
+                        None,
                         SampleGradientBuffers {
                             sigma: &lb.d_sigma,
                             rgb: &lb.d_rgb,
@@ -979,6 +980,7 @@ impl GpuModel {
             self.recipe.march.min_transmittance,
             self.loss,
             level.loss_weight,
+            None,
             SampleGradientBuffers {
                 sigma: &marched.d_sigma,
                 rgb: &marched.d_rgb,
@@ -1017,6 +1019,7 @@ impl GpuModel {
             level_losses: [loss, 0.0],
             rays: if rays == 0 { 0 } else { kept },
             samples,
+            samples_composited: None,
             times,
             network_flops: 0.0,
         }
@@ -1246,6 +1249,7 @@ impl GpuModel {
             level_losses,
             rays,
             samples,
+            samples_composited: None,
             times,
             network_flops: 0.0,
         }

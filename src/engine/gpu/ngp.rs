@@ -52,6 +52,7 @@ use super::render::{
 use super::sh::GpuSh;
 use super::step::{self, CompositeAndLoss, RayBuffers, SampleGradientBuffers};
 use super::timing::{Stage, StageClock, StageTiming};
+use crate::engine::cpu::composite_batch::Distortion;
 use crate::engine::cpu::hash_grid;
 use crate::engine::cpu::march::{BatchSizer, MarchParams, Marcher};
 use crate::engine::cpu::march::{mix_seed, render_through_grid};
@@ -568,6 +569,11 @@ impl GpuNgp {
         let s = &self.stages;
         let b = &self.samples;
         let r = &self.rays;
+        let distortion_weight = crate::field::ngp::distortion_weight(self.shape.mapping.aabb_scale);
+        let distortion = (distortion_weight > 0.0 && kept > 0).then(|| Distortion {
+            weight_per_ray: distortion_weight / kept as f32,
+            distance_scale: self.shape.mapping.diagonal_scale(),
+        });
         CompositeAndLoss {
             composite: &s.composite,
             loss: &s.loss,
@@ -587,6 +593,7 @@ impl GpuNgp {
             MarchConfig::PAPER.min_transmittance,
             self.loss,
             1.0,
+            distortion,
             SampleGradientBuffers {
                 sigma: &b.d_sigma,
                 rgb: &b.d_rgb,
@@ -664,6 +671,7 @@ impl GpuNgp {
             level_losses: [loss[0], 0.0],
             rays: if rays == 0 { 0 } else { kept },
             samples,
+            samples_composited: None,
             times,
             network_flops: 0.0,
         }

@@ -12,6 +12,7 @@ use super::composite::{
 use super::context::GpuContext;
 use super::kernel::zeroed_storage_buffer;
 use super::loss::{GpuLoss, LossBuffers};
+use crate::engine::cpu::composite_batch::Distortion;
 use crate::field::ngp::LossKind;
 use crate::train::batch::RayBatch;
 
@@ -185,7 +186,8 @@ impl CompositeAndLoss<'_> {
     /// rays' backgrounds (into `rays.rgb`, `opacity`, `depth`,
     /// `samples_used`), the loss against `rays.targets` (its mean into
     /// `rays.loss_total`, its gradient times `gradient_weight` into
-    /// `rays.d_rgb`), and compositing's backward pass into `gradients`.
+    /// `rays.d_rgb`), and compositing's backward pass into `gradients`
+    /// (with the distortion loss if asked).
     #[allow(clippy::too_many_arguments)]
     pub fn record(
         &self,
@@ -197,6 +199,7 @@ impl CompositeAndLoss<'_> {
         min_transmittance: f32,
         loss: LossKind,
         gradient_weight: f32,
+        distortion: Option<Distortion<f32>>,
         gradients: SampleGradientBuffers,
     ) {
         let batch = rays.batch(samples, ray_count);
@@ -232,6 +235,7 @@ impl CompositeAndLoss<'_> {
             &batch,
             min_transmittance,
             &rays.d_rgb,
+            distortion,
             &CompositeGradientBuffers {
                 density: gradients.sigma,
                 rgb: gradients.rgb,
