@@ -164,8 +164,7 @@ fn panels_show_every_control() {
     }
     // The stats show the figures that arrived, formatted.
     harness.get_by_label("123.4");
-    harness.get_by_label("17.5");
-    harness.get_by_label("9.3");
+    harness.get_by_label("17.5 (9.3 composited)");
     harness.get_by_label("2.50 M");
     harness.get_by_label("64.0 MiB");
     harness.get_by_label("0.01230");

@@ -569,16 +569,15 @@ fn stats(state: &ViewerUi, ui: &mut egui::Ui) {
             figure(latest.map(|s| format!("{:.1}", s.ms_per_step))),
         ),
         (
+            // Marched, and where the engine counts them, composited (before
+            // each ray's cut): one row, so the panel keeps its height.
             "samples/ray",
-            figure(latest.map(|s| format!("{:.1}", s.samples_per_ray))),
-        ),
-        (
-            "composited/ray",
-            figure(
-                latest
-                    .and_then(|s| s.composited_per_ray)
-                    .map(|v| format!("{v:.1}")),
-            ),
+            figure(latest.map(|s| match s.composited_per_ray {
+                Some(composited) => {
+                    format!("{:.1} ({composited:.1} composited)", s.samples_per_ray)
+                }
+                None => format!("{:.1}", s.samples_per_ray),
+            })),
         ),
         (
             "samples/s",
