@@ -182,6 +182,53 @@ fn samples_per_ray(
     stats.samples as f64 / rays as f64
 }
 
+/// Mean samples per ray, and of them those beyond the large demo's
+/// backdrop sphere (where no training ray's gradient reaches: every ray
+/// that gets there is opaque), of `rays` training rays marched through
+/// `grid` with `config`.
+fn samples_beyond_backdrop(
+    scene: &Scene,
+    grid: &zrak::engine::cpu::occupancy::OccupancyGrid,
+    config: zrak::field::ngp::MarchConfig,
+    rays: usize,
+) -> (f64, f64) {
+    use zrak::engine::cpu::march::{MarchParams, MarchWorkspace, MarchedSamples, march};
+    let (mut origins, mut directions) = (Vec::new(), Vec::new());
+    for r in 0..rays {
+        let frame = &scene.train[r % scene.train.len()];
+        let k = frame.camera.intrinsics;
+        let i = (r * 7919) as u32;
+        let ray = frame
+            .camera
+            .pixel_ray(i % k.width, (i / k.width) % k.height);
+        origins.push(ray.origin);
+        directions.push(ray.direction);
+    }
+    let flat = |v: &[glam::Vec3]| v.iter().flat_map(|p| p.to_array()).collect::<Vec<f32>>();
+    let params = MarchParams {
+        config,
+        ..MarchParams::training(scene.unit_cube, 1)
+    };
+    let mut out = MarchedSamples::default();
+    let stats = march(
+        grid,
+        &flat(&origins),
+        &flat(&directions),
+        &params,
+        &mut MarchWorkspace::default(),
+        &mut out,
+    );
+    let mut beyond = 0usize;
+    for r in 0..stats.rays_kept {
+        for s in out.ray_offsets[r] as usize..out.ray_offsets[r + 1] as usize {
+            let p = origins[r] + out.t[s] * directions[r];
+            beyond += usize::from(p.length() > demo::BACKDROP_RADIUS);
+        }
+    }
+    let kept = stats.rays_kept.max(1) as f64;
+    (stats.samples as f64 / kept, beyond as f64 / kept)
+}
+
 /// On the large-extent demo (aabb_scale 8), with a grid occupied only near
 /// the objects and the backdrop, cone steps take a third of the fixed
 /// step's samples.
@@ -339,4 +386,6 @@ fn large_demo_grid_by_cascade() {
         samples_per_ray(&scene, grid, fixed, 4000),
         samples_per_ray(&scene, grid, MarchConfig::PAPER, 4000)
     );
+    let (marched, beyond) = samples_beyond_backdrop(&scene, grid, MarchConfig::PAPER, 4000);
+    eprintln!("cone steps: {marched:.0} samples per ray, {beyond:.0} of them beyond the backdrop");
 }
