@@ -11,6 +11,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde::{Deserialize, Serialize};
 use zrak::app::protocol::SceneSource;
 use zrak::app::viewer::ViewerOptions;
+use zrak::engine::cpu::dense::{Precision, backend_for};
 use zrak::engine::{EngineKind, choose_engine};
 use zrak::field::ModelKind;
 use zrak::field::nerf::Sampling;
@@ -127,6 +128,11 @@ struct ViewArgs {
     /// Orbit the camera by itself, as if dragged (to measure a moving camera).
     #[arg(long)]
     auto_orbit: bool,
+    /// How the cpu engine computes the networks' products: f32, or mixed
+    /// (bf16 products, f32 sums, on processors with AVX512-BF16). Default:
+    /// mixed where the processor has bf16 kernels, else f32.
+    #[arg(long, value_enum)]
+    precision: Option<Precision>,
 }
 
 #[derive(Subcommand)]
@@ -163,6 +169,11 @@ enum BenchCommand {
         /// Measured steps.
         #[arg(long, default_value_t = 32)]
         steps: usize,
+        /// How the cpu engine computes the networks' products: f32, or mixed
+        /// (bf16 products, f32 sums, on processors with AVX512-BF16). Default:
+        /// mixed where the processor has bf16 kernels, else f32.
+        #[arg(long, value_enum)]
+        precision: Option<Precision>,
     },
     /// The accuracy-versus-time experiment: trains each model on each scene
     /// for a budget of training time, scores PSNR and SSIM at marks along
@@ -233,6 +244,11 @@ struct QualityArgs {
     /// same settings is continued).
     #[arg(long)]
     out: PathBuf,
+    /// How the cpu engine computes the networks' products: f32, or mixed
+    /// (bf16 products, f32 sums, on processors with AVX512-BF16). Default:
+    /// mixed where the processor has bf16 kernels, else f32.
+    #[arg(long, value_enum)]
+    precision: Option<Precision>,
 }
 
 #[derive(Args)]
@@ -278,6 +294,12 @@ struct TrainArgs {
     /// Training seconds between held-out evaluations.
     #[arg(long, default_value_t = 30.0)]
     eval_every: f64,
+    /// How the cpu engine computes the networks' products: f32, or mixed
+    /// (bf16 products, f32 sums, on processors with AVX512-BF16). Default:
+    /// mixed where the processor has bf16 kernels, else f32; when
+    /// resuming, the run's own (this overrides it).
+    #[arg(long, value_enum)]
+    precision: Option<Precision>,
 }
 
 #[derive(Args)]
@@ -358,6 +380,10 @@ struct RunConfig {
     /// of `bench quality --batch-samples`; absent otherwise).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     batch_samples: Option<usize>,
+    /// How the cpu engine computed the networks' products (absent in runs
+    /// made before mixed precision existed: those trained in f32).
+    #[serde(default)]
+    precision: Precision,
 }
 
 fn default_sampling() -> Sampling {
@@ -426,7 +452,17 @@ fn main() -> ExitCode {
             sampling,
             warmup,
             steps,
-        })) => bench_throughput(scene, engine, downscale, model, sampling, warmup, steps),
+            precision,
+        })) => bench_throughput(
+            scene,
+            engine,
+            downscale,
+            model,
+            sampling,
+            warmup,
+            steps,
+            precision.unwrap_or_else(Precision::best_available),
+        ),
         Some(Command::Bench(BenchCommand::Quality(args))) => bench_quality(args),
         Some(Command::Bench(BenchCommand::Dense { rows, repeats })) => {
             bench_dense(rows, repeats);
@@ -443,6 +479,7 @@ fn main() -> ExitCode {
             quit_after: None,
             frame_log: None,
             auto_orbit: false,
+            precision: None,
         }),
     };
     match result {
@@ -583,6 +620,7 @@ fn view(args: ViewArgs) -> anyhow::Result<()> {
         quit_after: args.quit_after,
         frame_log: args.frame_log,
         auto_orbit: args.auto_orbit,
+        precision: args.precision.unwrap_or_else(Precision::best_available),
     })
 }
 
@@ -651,8 +689,12 @@ fn read_run_config(folder: &RunFolder) -> anyhow::Result<RunConfig> {
 fn restore_run(
     folder: &RunFolder,
     engine: Option<EngineKind>,
+    precision: Option<Precision>,
 ) -> anyhow::Result<(RunConfig, Trainer)> {
-    let config = read_run_config(folder)?;
+    let mut config = read_run_config(folder)?;
+    if let Some(precision) = precision {
+        config.precision = precision;
+    }
     let scene = Arc::new(load_scene(&config.scene, config.downscale)?);
     let choice = choose_engine(engine.or(config.engine))?;
     note(&choice.reason);
@@ -676,6 +718,7 @@ fn build_trainer(
             loss: config.loss,
             batch_samples: config.batch_samples,
             sampling: config.sampling,
+            precision: config.precision,
         },
     )
     .map_err(anyhow::Error::msg)?;
@@ -735,7 +778,7 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
         if let Some(scene) = &args.scene {
             check_same_scene(scene, &read_run_config(&folder)?.scene, dir)?;
         }
-        let (config, trainer) = restore_run(&folder, args.engine)?;
+        let (config, trainer) = restore_run(&folder, args.engine, args.precision)?;
         note(&format!(
             "resuming at step {} ({:.0} s trained)",
             trainer.step, trainer.train_seconds
@@ -759,6 +802,7 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
             sampling: args.sampling,
             engine: args.engine,
             batch_samples: None,
+            precision: args.precision.unwrap_or_else(Precision::best_available),
         };
         let scene = Arc::new(load_scene(scene_arg, args.downscale)?);
         let choice = choose_engine(args.engine)?;
@@ -767,6 +811,9 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
         start_run_folder(&folder, &config)?;
         (folder, config, trainer)
     };
+    if let Some(kernels) = trainer.model.cpu_kernels() {
+        note(&KernelsLine(kernels).to_string());
+    }
     note(&format!(
         "training {} on {} ({} views, {}×{})",
         trainer.model.describe(),
@@ -853,7 +900,7 @@ fn eval(
     downscale: u32,
 ) -> anyhow::Result<()> {
     let folder = RunFolder::open(run_dir).map_err(anyhow::Error::msg)?;
-    let (_, trainer) = restore_run(&folder, engine)?;
+    let (_, trainer) = restore_run(&folder, engine, None)?;
     let frames = trainer.scene.split(split);
     if frames.is_empty() {
         bail!("the scene has no {} views", split.name());
@@ -921,7 +968,7 @@ fn eval(
 
 fn render(args: RenderArgs) -> anyhow::Result<()> {
     let folder = RunFolder::open(&args.run).map_err(anyhow::Error::msg)?;
-    let (_, trainer) = restore_run(&folder, args.engine)?;
+    let (_, trainer) = restore_run(&folder, args.engine, None)?;
     let scene = &trainer.scene;
     let cameras: Vec<(String, Camera)> = match (args.view, args.turntable) {
         (Some(view), None) => {
@@ -995,35 +1042,72 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn bench_dense(rows: usize, repeats: usize) {
-    let peak = zrak::engine::cpu::dense::measure_peak_gflops();
-    println!(
-        "kernels              {:?}, {} threads",
-        zrak::engine::cpu::dense::backend(),
-        rayon::current_num_threads()
-    );
-    let figures = zrak::bench::dense_throughput(rows, repeats);
-    let (mut flop, mut seconds) = (0.0, 0.0);
-    for f in &figures {
-        println!(
-            "{:<22} {:?} × {} rows: forward {:>6.1} GFLOP/s ({:.1} ms), backward {:>6.1} GFLOP/s ({:.1} ms)",
-            f.name,
-            f.widths,
-            f.rows,
-            f.forward_gflops,
-            f.forward_seconds * 1e3,
-            f.backward_gflops,
-            f.backward_seconds * 1e3
-        );
-        flop += f.forward_gflops * f.forward_seconds + f.backward_gflops * f.backward_seconds;
-        seconds += f.forward_seconds + f.backward_seconds;
+/// The kernels and precision a cpu model computes with, as one line.
+struct KernelsLine(zrak::engine::cpu::dense::Backend);
+
+impl std::fmt::Display for KernelsLine {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "kernels              {:?}, {} threads; precision: {}",
+            self.0,
+            rayon::current_num_threads(),
+            self.0.precision().describe()
+        )
     }
-    let overall = flop / seconds;
+}
+
+/// NeRF's networks in f32 and, where the processor has bf16 kernels, in
+/// mixed precision, one after the other in one run, against the machine's
+/// f32 matrix-multiply rate and its multiply-add ceilings.
+fn bench_dense(rows: usize, repeats: usize) {
+    use zrak::engine::cpu::dense::{arithmetic_peak_gflops, measure_peak_gflops};
+    let gemm_peak = measure_peak_gflops();
+    let f32_kernels = backend_for(Precision::F32);
+    let f32_ceiling = arithmetic_peak_gflops(f32_kernels);
+    println!("threads              {}", rayon::current_num_threads());
+    let mut precisions = vec![Precision::F32];
+    if Precision::Mixed.kernels_here() == Precision::Mixed {
+        precisions.push(Precision::Mixed);
+    } else {
+        println!("mixed precision      skipped: this processor has no bf16 kernels (AVX512-BF16)");
+    }
+    for precision in precisions {
+        let kernels = backend_for(precision);
+        println!("{} ({kernels:?} kernels):", precision.name());
+        let figures = zrak::bench::dense_throughput(rows, repeats, precision);
+        let (mut flop, mut seconds) = (0.0, 0.0);
+        for f in &figures {
+            println!(
+                "  {:<22} {:?} × {} rows: forward {:>6.1} GFLOP/s ({:.1} ms), backward {:>6.1} GFLOP/s ({:.1} ms)",
+                f.name,
+                f.widths,
+                f.rows,
+                f.forward_gflops,
+                f.forward_seconds * 1e3,
+                f.backward_gflops,
+                f.backward_seconds * 1e3
+            );
+            flop += f.forward_gflops * f.forward_seconds + f.backward_gflops * f.backward_seconds;
+            seconds += f.forward_seconds + f.backward_seconds;
+        }
+        let overall = flop / seconds;
+        let ceiling = if kernels == f32_kernels {
+            f32_ceiling
+        } else {
+            arithmetic_peak_gflops(kernels)
+        };
+        println!(
+            "  NeRF networks        {overall:.1} GFLOP/s forward and backward together = {:.0}% of \
+             the f32 matrix multiply, {:.0}% of this precision's multiply-add ceiling ({ceiling:.0})",
+            100.0 * overall / gemm_peak,
+            100.0 * overall / ceiling,
+        );
+    }
     println!(
-        "NeRF networks        {overall:.1} GFLOP/s forward and backward together = {:.0}% of the peak",
-        100.0 * overall / peak
+        "machine peak         {gemm_peak:.0} GFLOP/s (f32 matrix multiply, best of 5); f32 \
+         multiply-add ceiling {f32_ceiling:.0} GFLOP/s (registers only)"
     );
-    println!("machine peak         {peak:.0} GFLOP/s (f32 matrix multiply, median)");
 }
 
 /// Samples per NeRF or Mip-NeRF batch when the bench runs the gpu engine on
@@ -1039,6 +1123,7 @@ fn bench_throughput(
     sampling: Sampling,
     warmup: Option<usize>,
     steps: usize,
+    precision: Precision,
 ) -> anyhow::Result<()> {
     let scene_name = match scene {
         Some(name) => name,
@@ -1072,6 +1157,7 @@ fn bench_throughput(
         loss: model.default_loss(),
         batch_samples,
         sampling,
+        precision,
     };
     let model = build_model(model, choice, &scene, &settings).map_err(anyhow::Error::msg)?;
     let mut trainer = Trainer::new(model, scene.clone(), 0);
@@ -1091,7 +1177,10 @@ fn bench_throughput(
         ));
     }
     zrak::bench::print_report(&report, &scene, &engine_line);
-    println!("machine peak         {peak:.0} GFLOP/s (f32 matrix multiply, median)");
+    if let Some(kernels) = trainer.model.cpu_kernels() {
+        println!("{}", KernelsLine(kernels));
+    }
+    println!("machine peak         {peak:.0} GFLOP/s (f32 matrix multiply, best of 5)");
     if let Some(gflops) = report.network_gflops {
         println!(
             "networks at          {:.0} % of the machine peak",

@@ -146,6 +146,22 @@ fn modelled_lens_distortion_trains_as_well_as_no_distortion() {
     }
 }
 
+/// Origins and directions of `rays` rays through pixels spread over the
+/// training views of `scene`.
+fn training_rays(scene: &Scene, rays: usize) -> (Vec<glam::Vec3>, Vec<glam::Vec3>) {
+    (0..rays)
+        .map(|r| {
+            let frame = &scene.train[r % scene.train.len()];
+            let k = frame.camera.intrinsics;
+            let i = (r * 7919) as u32;
+            let ray = frame
+                .camera
+                .pixel_ray(i % k.width, (i / k.width) % k.height);
+            (ray.origin, ray.direction)
+        })
+        .unzip()
+}
+
 /// Mean samples per ray of `rays` training rays of `scene` marched through
 /// `grid` with `config`.
 fn samples_per_ray(
@@ -155,17 +171,9 @@ fn samples_per_ray(
     rays: usize,
 ) -> f64 {
     use zrak::engine::cpu::march::{MarchParams, MarchWorkspace, MarchedSamples, march};
-    let (mut origins, mut directions) = (Vec::new(), Vec::new());
-    for r in 0..rays {
-        let frame = &scene.train[r % scene.train.len()];
-        let k = frame.camera.intrinsics;
-        let i = (r * 7919) as u32;
-        let ray = frame
-            .camera
-            .pixel_ray(i % k.width, (i / k.width) % k.height);
-        origins.extend_from_slice(&ray.origin.to_array());
-        directions.extend_from_slice(&ray.direction.to_array());
-    }
+    let (origins, directions) = training_rays(scene, rays);
+    let flat = |v: &[glam::Vec3]| v.iter().flat_map(|p| p.to_array()).collect::<Vec<f32>>();
+    let (origins, directions) = (flat(&origins), flat(&directions));
     let params = MarchParams {
         config,
         ..MarchParams::training(scene.unit_cube, 1)
@@ -193,17 +201,7 @@ fn samples_beyond_backdrop(
     rays: usize,
 ) -> (f64, f64) {
     use zrak::engine::cpu::march::{MarchParams, MarchWorkspace, MarchedSamples, march};
-    let (mut origins, mut directions) = (Vec::new(), Vec::new());
-    for r in 0..rays {
-        let frame = &scene.train[r % scene.train.len()];
-        let k = frame.camera.intrinsics;
-        let i = (r * 7919) as u32;
-        let ray = frame
-            .camera
-            .pixel_ray(i % k.width, (i / k.width) % k.height);
-        origins.push(ray.origin);
-        directions.push(ray.direction);
-    }
+    let (origins, directions) = training_rays(scene, rays);
     let flat = |v: &[glam::Vec3]| v.iter().flat_map(|p| p.to_array()).collect::<Vec<f32>>();
     let params = MarchParams {
         config,

@@ -16,6 +16,7 @@ use super::protocol::{Command, SceneSource};
 use super::ui::{NativeTextures, ViewerUi, describe_source};
 use super::worker::{TrainingWorker, WorkerOptions};
 use crate::engine::EngineKind;
+use crate::engine::cpu::dense::Precision;
 use crate::engine::gpu::GpuContext;
 use crate::field::ModelKind;
 use crate::field::nerf::Sampling;
@@ -37,6 +38,8 @@ pub struct ViewerOptions {
     pub frame_log: Option<PathBuf>,
     /// Orbit the camera by itself, as if dragged.
     pub auto_orbit: bool,
+    /// How the cpu engine computes the networks' products.
+    pub precision: Precision,
 }
 
 impl Default for ViewerOptions {
@@ -51,6 +54,7 @@ impl Default for ViewerOptions {
             quit_after: None,
             frame_log: None,
             auto_orbit: false,
+            precision: Precision::best_available(),
         }
     }
 }
@@ -209,6 +213,7 @@ impl ViewerApp {
             WorkerOptions {
                 gpu_device,
                 sampling: options.sampling,
+                precision: options.precision,
                 autosave: super::worker::default_autosave_folder(),
                 ..WorkerOptions::default()
             },

@@ -16,6 +16,7 @@ use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
+use crate::engine::cpu::dense::{Precision, backend_for};
 use crate::engine::gpu::GpuContext;
 use crate::engine::gpu::render::render_target;
 use crate::engine::{EngineChoice, EngineKind, choose_engine};
@@ -94,6 +95,9 @@ pub struct WorkerOptions {
     pub batch_samples: Option<usize>,
     /// NeRF's sampler.
     pub sampling: Sampling,
+    /// How the cpu engine computes the networks' products (f32 unless
+    /// asked: the viewer asks for the processor's best).
+    pub precision: Precision,
     /// The scene [`SceneSource::Demo`] builds.
     pub demo: DemoConfig,
     /// Training seconds between held-out PSNR evaluations.
@@ -143,6 +147,7 @@ impl Default for WorkerOptions {
             loss: None,
             batch_samples: None,
             sampling: Sampling::Occupancy,
+            precision: Precision::F32,
             demo: DemoConfig::default(),
             val_every_train_seconds: 5.0,
             val_views: 2,
@@ -636,7 +641,7 @@ impl Worker {
         let display_device = device.is_some();
         let (engine, description) = match choose_engine_on(requested_engine, device) {
             Ok(choice) => {
-                let description = describe_engine(&choice);
+                let description = describe_engine(&choice, options.precision);
                 (
                     Engine {
                         kind: choice.kind,
@@ -650,7 +655,7 @@ impl Worker {
                     "the gpu engine is not available ({e}); training on the cpu engine"
                 )))?;
                 let cpu = choose_engine(Some(EngineKind::Cpu)).map_err(|_| UiGone)?;
-                let description = describe_engine(&cpu);
+                let description = describe_engine(&cpu, options.precision);
                 (
                     Engine {
                         kind: EngineKind::Cpu,
@@ -873,6 +878,7 @@ impl Worker {
                     (EngineKind::Gpu, _) => None,
                 }),
             sampling: self.options.sampling,
+            precision: self.options.precision,
         };
         let model = build_model(kind, self.engine.choice()?, &self.scene, &settings)?;
         Ok(Trainer::new(model, self.scene.clone(), self.options.seed))
@@ -1577,6 +1583,7 @@ impl Worker {
                 "seed": slot.trainer.seed,
                 "sampling": self.options.sampling,
                 "engine": self.engine.kind,
+                "precision": self.options.precision,
                 "saved_by": "viewer",
             });
             let saved = std::fs::create_dir_all(&folder)
@@ -1705,13 +1712,15 @@ impl Worker {
 
 /// The engine in one line for the stats panel: the choice's reason (which
 /// names the adapter), and for the cpu engine its thread count.
-fn describe_engine(choice: &EngineChoice) -> String {
+fn describe_engine(choice: &EngineChoice, precision: Precision) -> String {
     match choice.kind {
         EngineKind::Gpu => choice.reason.clone(),
         EngineKind::Cpu => format!(
-            "{}; {} threads",
+            "{}; {} threads; {:?} kernels, {} precision",
             choice.reason,
-            rayon::current_num_threads()
+            rayon::current_num_threads(),
+            backend_for(precision),
+            precision.kernels_here().name()
         ),
     }
 }

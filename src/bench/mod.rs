@@ -215,11 +215,15 @@ pub struct DenseFigures {
 /// Times NeRF's three dense networks (the trunk up to the skip, after it,
 /// and the colour branch) forward and backward on `rows` rows, as a
 /// training step runs them. Medians of `repeats` runs after one warm-up.
-pub fn dense_throughput(rows: usize, repeats: usize) -> Vec<DenseFigures> {
+pub fn dense_throughput(
+    rows: usize,
+    repeats: usize,
+    precision: crate::engine::cpu::dense::Precision,
+) -> Vec<DenseFigures> {
     use crate::engine::cpu::dense::{MlpWorkspace, mlp_backward, mlp_forward};
     use crate::engine::cpu::fields::nerf::NerfShape;
     use crate::rng::Pcg32;
-    let shape = NerfShape::paper();
+    let shape = NerfShape::paper().with_precision(precision);
     let networks = [
         ("trunk before the skip", &shape.trunk_a),
         ("trunk after the skip", &shape.trunk_b),

@@ -16,6 +16,7 @@ use zrak::bench::report::{
     CellResult, EngineInfo, REPORT_MD, Results, SceneEntry, Settings, machine, write_outputs,
 };
 use zrak::bench::table::{Table, format_mark, format_seconds};
+use zrak::engine::cpu::dense::Precision;
 use zrak::engine::{EngineKind, choose_engine};
 use zrak::interrupt::{self, note, say};
 use zrak::scene::{Scene, Split};
@@ -136,7 +137,14 @@ fn run_config(cell: &CellSpec, argument: &str, args: &QualityArgs) -> RunConfig 
         sampling: cell.sampling,
         engine: args.engine,
         batch_samples: args.batch_samples.map(|n| n as usize),
+        precision: precision(args),
     }
+}
+
+/// The experiment's precision: as asked, else mixed where the processor
+/// has bf16 kernels.
+fn precision(args: &QualityArgs) -> Precision {
+    args.precision.unwrap_or_else(Precision::best_available)
 }
 
 pub fn bench_quality(args: QualityArgs) -> anyhow::Result<()> {
@@ -201,12 +209,15 @@ pub fn bench_quality(args: QualityArgs) -> anyhow::Result<()> {
         kernels: match choice.kind {
             EngineKind::Cpu => format!(
                 "{:?} ({} threads)",
-                zrak::engine::cpu::dense::backend(),
+                zrak::engine::cpu::dense::backend_for(precision(&args)),
                 rayon::current_num_threads()
             ),
             EngineKind::Gpu => "WGSL compute shaders".to_string(),
         },
-        precision: "f32 products and sums".to_string(),
+        precision: match choice.kind {
+            EngineKind::Cpu => precision(&args).kernels_here().describe().to_string(),
+            EngineKind::Gpu => Precision::F32.describe().to_string(),
+        },
     };
     let runs = args.out.join(RUNS_FOLDER);
 

@@ -9,6 +9,7 @@ pub mod model;
 pub mod run;
 pub mod trainer;
 
+use crate::engine::cpu::dense::Precision;
 use crate::engine::{EngineChoice, EngineKind};
 use crate::field::ModelKind;
 use crate::field::nerf::Sampling;
@@ -27,6 +28,9 @@ pub struct ModelSettings {
     pub batch_samples: Option<usize>,
     /// NeRF's sampler (the other models have one sampler each).
     pub sampling: Sampling,
+    /// How the cpu engine computes the networks' products (the gpu engine
+    /// computes in f32).
+    pub precision: Precision,
 }
 
 /// A fresh model of `kind` for `scene` on the chosen engine.
@@ -41,14 +45,14 @@ pub fn build_model(
             let samples = settings
                 .batch_samples
                 .unwrap_or(crate::field::ngp::SAMPLES_PER_BATCH);
-            Ok(Box::new(
-                crate::engine::cpu::ngp::CpuNgp::with_batch_samples(
-                    scene,
-                    settings.seed,
-                    settings.loss,
-                    samples,
-                ),
-            ))
+            let shape = crate::engine::cpu::ngp::NgpShape::for_scene(scene)
+                .with_precision(settings.precision);
+            Ok(Box::new(crate::engine::cpu::ngp::CpuNgp::with_shape(
+                shape,
+                settings.seed,
+                settings.loss,
+                samples,
+            )))
         }
         (ModelKind::Ngp, EngineKind::Gpu) => {
             let context = engine
@@ -146,7 +150,10 @@ pub fn cpu_model_of_nerf_fields(
     use crate::engine::cpu::fields::Field;
     use crate::engine::cpu::fields::nerf::NerfField;
     let fields: Vec<Box<dyn Field>> = (0..recipe.fields)
-        .map(|_| Box::new(NerfField::new(shape.clone())) as Box<dyn Field>)
+        .map(|_| {
+            let shape = shape.clone().with_precision(settings.precision);
+            Box::new(NerfField::new(shape)) as Box<dyn Field>
+        })
         .collect();
     let batch = batch_of(&recipe, settings);
     crate::engine::cpu::model::CpuModel::new(

@@ -187,4 +187,10 @@ pub trait RadianceModel: Send {
     fn texture_render(&self) -> Option<&dyn TextureRender> {
         None
     }
+
+    /// The dense kernels of a model on the cpu engine (`None` on the gpu
+    /// engine).
+    fn cpu_kernels(&self) -> Option<crate::engine::cpu::dense::Backend> {
+        None
+    }
 }

@@ -942,6 +942,15 @@ mod tests {
             })
             .collect();
         let target = [0.5; 3];
+        // The ray with densities exp(log_density), grey, over black.
+        let grey_ray = |log_density: &[f64]| Batch {
+            density: log_density.iter().map(|x| x.exp()).collect(),
+            rgb: vec![0.5; 3 * n],
+            dt: dt.clone(),
+            t: t.clone(),
+            ray_offsets: vec![0, n as u32],
+            background: vec![0.0; 3],
+        };
         let fog_weight = |log_density: &[f64],
                           distortion: Option<Distortion<f64>>,
                           steps: usize| {
@@ -949,14 +958,7 @@ mod tests {
             // Fog samples have ∂L/∂x = σ δ ∂L/∂τ ≈ 0.01 ∂L/∂τ: a step of
             // 100 moves them at a rate of order one per step.
             for _ in 0..steps {
-                let batch = Batch {
-                    density: log_density.iter().map(|x| x.exp()).collect(),
-                    rgb: vec![0.5; 3 * n],
-                    dt: dt.clone(),
-                    t: t.clone(),
-                    ray_offsets: vec![0, n as u32],
-                    background: vec![0.0; 3],
-                };
+                let batch = grey_ray(&log_density);
                 let out = batch.forward(PAPER_CUT);
                 let d_rgb: Vec<f64> = (0..3).map(|c| (out.rgb[c] - target[c]) / 3.0).collect();
                 let (d_density, _, _) = batch.backward_with(PAPER_CUT, &d_rgb, distortion);
@@ -964,14 +966,7 @@ mod tests {
                     *x -= 100.0 * sigma * d;
                 }
             }
-            let batch = Batch {
-                density: log_density.iter().map(|x| x.exp()).collect(),
-                rgb: vec![0.5; 3 * n],
-                dt: dt.clone(),
-                t: t.clone(),
-                ray_offsets: vec![0, n as u32],
-                background: vec![0.0; 3],
-            };
+            let batch = grey_ray(&log_density);
             let mut w = vec![0.0; n];
             sample_weights(&batch.view(), PAPER_CUT, &mut w);
             let colour = batch.forward(PAPER_CUT).rgb[0];

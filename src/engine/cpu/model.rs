@@ -1163,6 +1163,10 @@ pub fn to_world(mapping: &UnitCubeMapping, unit: &[f32], world: &mut Vec<f32>) {
 }
 
 impl RadianceModel for CpuModel {
+    fn cpu_kernels(&self) -> Option<crate::engine::cpu::dense::Backend> {
+        self.fields.first().map(|field| field.kernels())
+    }
+
     fn describe(&self) -> String {
         format!(
             "{} ({} sampling, cpu)",

@@ -14,8 +14,8 @@ use rayon::prelude::*;
 use super::adam::Adam;
 use super::composite_batch::{self, CompositeGradients, CompositeOutputs, Distortion};
 use super::dense::{
-    MlpLayout, MlpWorkspace, mlp_backward, mlp_backward_columns, mlp_forward, mlp_inference,
-    mlp_inference_leading,
+    MlpLayout, MlpWorkspace, Precision, mlp_backward, mlp_backward_columns, mlp_forward,
+    mlp_inference, mlp_inference_leading,
 };
 use super::fields::{gather_rows, set_len};
 use super::hash_grid::{self, HashGridLayout};
@@ -59,6 +59,13 @@ impl NgpShape {
             network,
             mapping: scene.unit_cube,
         }
+    }
+
+    /// The same model with its networks' products at `precision`.
+    pub fn with_precision(mut self, precision: Precision) -> Self {
+        self.density = self.density.with_precision(precision);
+        self.colour = self.colour.with_precision(precision);
+        self
     }
 
     fn grid_range(&self) -> Range<usize> {
@@ -621,6 +628,10 @@ impl CpuNgp {
 impl RadianceModel for CpuNgp {
     fn describe(&self) -> String {
         "Instant-NGP (cpu)".into()
+    }
+
+    fn cpu_kernels(&self) -> Option<super::dense::Backend> {
+        Some(self.shape.density.kernels())
     }
 
     fn rays_for_next_batch(&self) -> usize {

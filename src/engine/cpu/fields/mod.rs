@@ -14,6 +14,9 @@ pub mod nerf;
 pub trait Field: Send + Sync {
     fn param_count(&self) -> usize;
 
+    /// The dense kernels its networks run on.
+    fn kernels(&self) -> crate::engine::cpu::dense::Backend;
+
     /// Initial parameters, reproducible from `seed`.
     fn init_params(&self, seed: u64) -> Vec<f32>;
 

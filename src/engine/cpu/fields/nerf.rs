@@ -24,8 +24,8 @@ use rayon::prelude::*;
 
 use super::{Field, set_len};
 use crate::engine::cpu::dense::{
-    Activation, MlpLayout, MlpWorkspace, mlp_backward, mlp_backward_columns, mlp_forward,
-    mlp_inference, mlp_inference_leading,
+    Activation, MlpLayout, MlpWorkspace, Precision, mlp_backward, mlp_backward_columns,
+    mlp_forward, mlp_inference, mlp_inference_leading,
 };
 use crate::engine::cpu::frequency::{self, FrequencyEncoding};
 use crate::field::nerf as paper;
@@ -138,6 +138,14 @@ impl NerfShape {
             },
         )
         .with_colour_padding(mip::RGB_PADDING)
+    }
+
+    /// The same field with its networks' products at `precision`.
+    pub fn with_precision(mut self, precision: Precision) -> Self {
+        self.trunk_a = self.trunk_a.with_precision(precision);
+        self.trunk_b = self.trunk_b.with_precision(precision);
+        self.colour = self.colour.with_precision(precision);
+        self
     }
 
     pub fn with_colour_padding(mut self, padding: f32) -> Self {
@@ -342,6 +350,10 @@ fn take_columns(src: &[f32], width: usize, columns: std::ops::Range<usize>, dst:
 impl Field for NerfField {
     fn param_count(&self) -> usize {
         self.shape.ranges()[2].end
+    }
+
+    fn kernels(&self) -> crate::engine::cpu::dense::Backend {
+        self.shape.trunk_a.kernels()
     }
 
     fn init_params(&self, seed: u64) -> Vec<f32> {

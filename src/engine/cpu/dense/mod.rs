@@ -56,6 +56,11 @@ use rayon::prelude::*;
 use crate::field::ngp::{DENSITY_EXP_CLAMP, HashGridConfig, NetworkConfig};
 use crate::rng::Pcg32;
 
+mod bf16;
+mod peak;
+pub use bf16::round_to_bf16;
+pub use peak::{arithmetic_peak_gflops, measure_peak_gflops};
+
 /// Rows carried through all layers together. 64 rows of a 64-wide layer are
 /// 16 KiB: input, output and gradient blocks of one layer fit in L1.
 pub const BLOCK: usize = 64;
@@ -69,6 +74,11 @@ const MAX_CHUNKS: usize = 32;
 /// Rows per parallel task in the forward pass, where no reduction constrains
 /// the split.
 const FORWARD_CHUNK: usize = 16 * BLOCK;
+
+/// A task's scratch, in BLOCK × max-width units: two buffers the layers
+/// of a block alternate between, and one for the mixed-precision kernels'
+/// bf16 pairs of a block (at most BLOCK × max-width words).
+const SCRATCH_BLOCKS: usize = 3;
 
 /// An element-wise activation.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -128,6 +138,64 @@ fn exp_clamp<F: Float>() -> F {
     F::from(DENSITY_EXP_CLAMP).expect("representable")
 }
 
+/// The arithmetic of a network's matrix products.
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Default,
+    clap::ValueEnum,
+    serde::Serialize,
+    serde::Deserialize,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum Precision {
+    /// Products and sums in f32.
+    #[default]
+    F32,
+    /// Mixed-precision training: the operands of every product (weights,
+    /// activations, gradients) rounded to bf16, the products summed in f32;
+    /// master weights, bias, activations, gradient sums and the optimiser
+    /// stay f32. Runs on the processor's bf16 dot-product instructions
+    /// where it has them ([`mixed_kernels_available`]), in f32 elsewhere.
+    Mixed,
+}
+
+impl Precision {
+    pub fn name(self) -> &'static str {
+        match self {
+            Precision::F32 => "f32",
+            Precision::Mixed => "mixed",
+        }
+    }
+
+    /// What the precision computes, in words.
+    pub fn describe(self) -> &'static str {
+        match self {
+            Precision::F32 => "f32 products and sums",
+            Precision::Mixed => "mixed (bf16 products summed in f32, the rest f32)",
+        }
+    }
+
+    /// What runs here when this is asked for: mixed falls back to f32
+    /// on processors without bf16 kernels.
+    pub fn kernels_here(self) -> Self {
+        backend_for(self).precision()
+    }
+
+    /// Mixed where this processor has bf16 kernels, else f32: what a
+    /// user gets without asking.
+    pub fn best_available() -> Self {
+        if mixed_kernels_available() {
+            Precision::Mixed
+        } else {
+            Precision::F32
+        }
+    }
+}
+
 /// The shape of an MLP: `widths[0]` inputs, `widths.len() − 2` hidden layers,
 /// `widths[last]` outputs.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -139,6 +207,8 @@ pub struct MlpLayout {
     pub output: Activation,
     /// Whether every layer has a bias.
     pub bias: bool,
+    /// How the products are computed (f32 unless asked otherwise).
+    pub precision: Precision,
 }
 
 impl MlpLayout {
@@ -156,7 +226,19 @@ impl MlpLayout {
             hidden,
             output,
             bias,
+            precision: Precision::F32,
         }
+    }
+
+    /// The same network with its products computed at `precision`.
+    pub fn with_precision(mut self, precision: Precision) -> Self {
+        self.precision = precision;
+        self
+    }
+
+    /// The kernels this network runs on here.
+    pub fn kernels(&self) -> Backend {
+        backend_for(self.precision)
     }
 
     /// Instant-NGP's density network: hash features → hidden ReLU layers →
@@ -264,8 +346,12 @@ pub struct MlpWorkspace {
     packed: Vec<f32>,
     /// MAX_CHUNKS partial parameter gradients.
     partials: Vec<f32>,
-    /// Two BLOCK × max-width gradient buffers per chunk.
+    /// Per chunk: two BLOCK × max-width gradient buffers, then the
+    /// mixed-precision kernels' bf16 pairs (BLOCK × max-width words).
     scratch: Vec<f32>,
+    /// The weights as bf16 pairs for the mixed-precision kernels (empty
+    /// until they run).
+    pairs: bf16::PairedWeights,
 }
 
 impl MlpWorkspace {
@@ -280,7 +366,8 @@ impl MlpWorkspace {
                 .collect(),
             packed: vec![0.0; layout.macs_per_row()],
             partials: vec![0.0; chunks * layout.param_count()],
-            scratch: vec![0.0; chunks * 2 * BLOCK * layout.max_width()],
+            scratch: vec![0.0; chunks * SCRATCH_BLOCKS * BLOCK * layout.max_width()],
+            pairs: bf16::PairedWeights::default(),
         }
     }
 
@@ -293,7 +380,8 @@ impl MlpWorkspace {
         4 * (self.activations.iter().map(Vec::capacity).sum::<usize>()
             + self.packed.capacity()
             + self.partials.capacity()
-            + self.scratch.capacity())
+            + self.scratch.capacity()
+            + self.pairs.words())
     }
 
     /// Grows the workspace to hold `rows` rows (never shrinks).
@@ -328,12 +416,51 @@ impl MlpWorkspace {
 /// Which vector kernels run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Backend {
+    /// bf16 pair products (`vdpbf16ps`) for the layer products, AVX-512
+    /// for the rest: [`Precision::Mixed`].
+    Avx512Bf16,
     Avx512,
     Avx2,
     Portable,
 }
 
-/// The best kernels this CPU supports.
+impl Backend {
+    pub fn precision(self) -> Precision {
+        match self {
+            Backend::Avx512Bf16 => Precision::Mixed,
+            _ => Precision::F32,
+        }
+    }
+}
+
+/// Whether this processor runs [`Precision::Mixed`] on bf16 kernels
+/// (AVX512-BF16: AMD Zen 4 and later, Intel Cooper Lake and Sapphire
+/// Rapids and later).
+#[cfg(target_arch = "x86_64")]
+pub fn mixed_kernels_available() -> bool {
+    static DETECTED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *DETECTED.get_or_init(|| {
+        backend() == Backend::Avx512
+            && is_x86_feature_detected!("avx512bw")
+            && is_x86_feature_detected!("avx512vl")
+            && is_x86_feature_detected!("avx512bf16")
+    })
+}
+
+#[cfg(not(target_arch = "x86_64"))]
+pub fn mixed_kernels_available() -> bool {
+    false
+}
+
+/// The kernels a network at `precision` runs on here.
+pub fn backend_for(precision: Precision) -> Backend {
+    match precision {
+        Precision::Mixed if mixed_kernels_available() => Backend::Avx512Bf16,
+        _ => backend(),
+    }
+}
+
+/// The best f32 kernels this CPU supports.
 pub fn backend() -> Backend {
     static DETECTED: std::sync::OnceLock<Backend> = std::sync::OnceLock::new();
     *DETECTED.get_or_init(|| {
@@ -364,7 +491,15 @@ pub fn mlp_forward(
     workspace: &mut MlpWorkspace,
     output: &mut [f32],
 ) {
-    forward_with(backend(), layout, params, input, rows, workspace, output);
+    forward_with(
+        layout.kernels(),
+        layout,
+        params,
+        input,
+        rows,
+        workspace,
+        output,
+    );
 }
 
 /// Backward pass of the last [`mlp_forward`] on the same `input`:
@@ -384,7 +519,7 @@ pub fn mlp_backward(
 ) {
     let columns = 0..layout.input_width();
     backward_with(
-        backend(),
+        layout.kernels(),
         layout,
         params,
         input,
@@ -413,7 +548,7 @@ pub fn mlp_backward_columns(
     columns: Range<usize>,
 ) {
     backward_with(
-        backend(),
+        layout.kernels(),
         layout,
         params,
         input,
@@ -435,7 +570,15 @@ pub fn mlp_inference(
     output: &mut [f32],
 ) {
     let columns = layout.output_width();
-    inference_with(backend(), layout, params, input, rows, output, columns);
+    inference_with(
+        layout.kernels(),
+        layout,
+        params,
+        input,
+        rows,
+        output,
+        columns,
+    );
 }
 
 /// [`mlp_inference`] computing only the first `columns` outputs of the last
@@ -455,7 +598,15 @@ pub fn mlp_inference_leading(
         "{columns} leading outputs of {}",
         layout.output_width()
     );
-    inference_with(backend(), layout, params, input, rows, output, columns);
+    inference_with(
+        layout.kernels(),
+        layout,
+        params,
+        input,
+        rows,
+        output,
+        columns,
+    );
 }
 
 fn check_sizes(layout: &MlpLayout, params: &[f32], input: &[f32], rows: usize, output_len: usize) {
@@ -485,18 +636,28 @@ fn pack_transposed(layout: &MlpLayout, params: &[f32], packed: &mut [f32]) {
     }
 }
 
-fn net<'a>(layout: &'a MlpLayout, params: &'a [f32], packed: &'a [f32]) -> Net<'a> {
+/// The layers' pointers into `params`, the transposed weights `packed`
+/// and, for the mixed-precision kernels, the weights as bf16 pairs.
+fn net<'a>(
+    layout: &'a MlpLayout,
+    params: &'a [f32],
+    packed: &'a [f32],
+    pairs: &'a bf16::PairedWeights,
+) -> Net<'a> {
     let mut layers = Vec::with_capacity(layout.layers());
     let mut at = 0;
     for layer in 0..layout.layers() {
         let (i, o) = (layout.widths[layer], layout.widths[layer + 1]);
         let w_off = layout.weight_offset(layer);
         let b_off = layout.bias_offset(layer);
+        let (wt_pairs, w_pairs) = pairs.layer(layer);
         layers.push(Layer {
             inw: i,
             outw: o,
             w: params[w_off..].as_ptr(),
-            wt: packed[at..].as_ptr(),
+            wt: packed.get(at..).map_or(std::ptr::null(), <[f32]>::as_ptr),
+            wt_pairs,
+            w_pairs,
             bias: b_off.map_or(std::ptr::null(), |b| params[b..].as_ptr()),
             w_off,
             b_off,
@@ -522,8 +683,12 @@ fn forward_with(
 ) {
     check_sizes(layout, params, input, rows, output.len());
     workspace.check(layout, rows);
-    pack_transposed(layout, params, &mut workspace.packed);
-    let net = net(layout, params, &workspace.packed);
+    if backend == Backend::Avx512Bf16 {
+        workspace.pairs.pack_forward(layout, params);
+    } else {
+        pack_transposed(layout, params, &mut workspace.packed);
+    }
+    let net = net(layout, params, &workspace.packed, &workspace.pairs);
     let max_width = layout.max_width();
     let job = ForwardJob {
         net: &net,
@@ -538,7 +703,7 @@ fn forward_with(
     };
     let tasks = rows.div_ceil(FORWARD_CHUNK);
     (0..tasks).into_par_iter().for_each_init(
-        || vec![0.0f32; 2 * BLOCK * max_width],
+        || vec![0.0f32; SCRATCH_BLOCKS * BLOCK * max_width],
         |scratch, t| {
             let range = t * FORWARD_CHUNK..((t + 1) * FORWARD_CHUNK).min(rows);
             // SAFETY: tasks write disjoint row ranges of the activations
@@ -567,16 +732,23 @@ fn inference_with(
         rows,
         output_rows * layout.output_width(),
     );
-    let mut packed = vec![0.0; layout.macs_per_row()];
-    pack_transposed(layout, params, &mut packed);
-    let net = net(layout, params, &packed);
+    let mut packed = Vec::new();
+    let mut pairs = bf16::PairedWeights::default();
+    if backend == Backend::Avx512Bf16 {
+        pairs.pack_forward(layout, params);
+    } else {
+        packed.resize(layout.macs_per_row(), 0.0);
+        pack_transposed(layout, params, &mut packed);
+    }
+    let net = net(layout, params, &packed, &pairs);
     let job = InferenceJob {
         net: &net,
+        max_width: layout.max_width(),
         input: input.as_ptr(),
         output: SendPtr(output.as_mut_ptr()),
         out_columns,
     };
-    let scratch_len = 2 * BLOCK * layout.max_width();
+    let scratch_len = SCRATCH_BLOCKS * BLOCK * layout.max_width();
     let tasks = rows.div_ceil(FORWARD_CHUNK);
     (0..tasks).into_par_iter().for_each_init(
         || vec![0.0f32; scratch_len],
@@ -626,9 +798,13 @@ fn backward_with(
     if rows == 0 {
         return;
     }
-    // The forward pass packed Wᵀ; the backward pass uses W itself, so the
-    // pack is not needed here, but `net` wants a slice to point into.
-    let net = net(layout, params, &workspace.packed);
+    // The forward pass packed Wᵀ; the backward pass uses W itself (or, in
+    // mixed precision, W's pairs of rows), but `net` wants a slice to
+    // point into.
+    if backend == Backend::Avx512Bf16 {
+        workspace.pairs.pack_backward(layout, params);
+    }
+    let net = net(layout, params, &workspace.packed, &workspace.pairs);
     let n_params = layout.param_count();
     let max_width = layout.max_width();
     let (chunks, chunk_rows) = backward_chunks(rows);
@@ -650,7 +826,7 @@ fn backward_with(
         // its range.
         unsafe {
             let partial = partials.get().add(c * n_params);
-            let g = scratch.get().add(c * 2 * BLOCK * max_width);
+            let g = scratch.get().add(c * SCRATCH_BLOCKS * BLOCK * max_width);
             dispatch::backward(backend, &job, range, partial, g)
         }
     });
@@ -668,45 +844,6 @@ fn backward_with(
                 }
             }
         });
-}
-
-/// Single-precision GEMM throughput of this machine with these kernels: a
-/// 1024 × 1024 × 1024 product on all threads, the median of five runs, in
-/// GFLOP/s (2 FLOP per multiply-add). A reference for how close the MLPs
-/// come to the machine's peak.
-pub fn measure_peak_gflops() -> f64 {
-    let n = 1024;
-    let mut rng = Pcg32::new(1, 2);
-    let a: Vec<f32> = (0..n * n).map(|_| rng.next_f32() - 0.5).collect();
-    let b: Vec<f32> = (0..n * n).map(|_| rng.next_f32() - 0.5).collect();
-    let mut c = vec![0.0f32; n * n];
-    let backend = backend();
-    let mut run = || {
-        let start = std::time::Instant::now();
-        let cp = SendPtr(c.as_mut_ptr());
-        (0..n / BLOCK).into_par_iter().for_each(|t| {
-            let g = Gemm {
-                m: BLOCK,
-                n,
-                k: n,
-                a: a[t * BLOCK * n..].as_ptr(),
-                a_m: n,
-                a_k: 1,
-                b: b.as_ptr(),
-                b_k: n,
-                // SAFETY: each task writes its own BLOCK rows of c.
-                c: unsafe { cp.get().add(t * BLOCK * n) },
-                c_m: n,
-                epi: Epi::Store,
-            };
-            unsafe { dispatch::gemm(backend, &g) }
-        });
-        start.elapsed().as_secs_f64()
-    };
-    run();
-    let mut times: Vec<f64> = (0..5).map(|_| run()).collect();
-    times.sort_by(f64::total_cmp);
-    2.0 * (n * n * n) as f64 / times[2] / 1e9
 }
 
 // ---------------------------------------------------------------------------
@@ -730,8 +867,14 @@ struct Layer {
     outw: usize,
     /// W, out × in.
     w: *const f32,
-    /// Wᵀ, in × out.
+    /// Wᵀ, in × out (f32 kernels only).
     wt: *const f32,
+    /// Wᵀ as bf16 pairs along `in`: ⌈in/2⌉ × out words (mixed-precision
+    /// kernels only, else null).
+    wt_pairs: *const u32,
+    /// W as bf16 pairs along `out`: ⌈out/2⌉ × in words (mixed-precision
+    /// backward only, else null).
+    w_pairs: *const u32,
     /// Null without biases.
     bias: *const f32,
     w_off: usize,
@@ -769,6 +912,7 @@ unsafe impl Sync for ForwardJob<'_> {}
 
 struct InferenceJob<'a> {
     net: &'a Net<'a>,
+    max_width: usize,
     input: *const f32,
     output: SendPtr,
     /// The leading outputs of the last layer that are computed (rows ×
@@ -1170,13 +1314,26 @@ unsafe fn tile<L: Lanes, const R: usize, const NV: usize>(
             a = a.add(g.a_k);
             b = b.add(g.b_k);
         }
-        epilogue::<L, R, NV>(g, i0, j0, nj, masks, &acc);
+        let destination = Destination {
+            c: g.c,
+            c_m: g.c_m,
+            epi: g.epi,
+        };
+        epilogue::<L, R, NV>(destination, i0, j0, nj, masks, &acc);
     }
+}
+
+/// Where a tile's results go and what is done to them on the way.
+#[derive(Clone, Copy)]
+struct Destination {
+    c: *mut f32,
+    c_m: usize,
+    epi: Epi,
 }
 
 #[inline(always)]
 unsafe fn epilogue<L: Lanes, const R: usize, const NV: usize>(
-    g: &Gemm,
+    g: Destination,
     i0: usize,
     j0: usize,
     nj: usize,
@@ -1293,17 +1450,148 @@ trait BlockSink {
     unsafe fn after(&self, l: usize, block: *const f32);
 }
 
+/// How a layer's three products are computed: in f32 on lanes `L`
+/// ([`F32Products`]) or from bf16 pairs ([`bf16::Bf16Products`]). The
+/// block loops above and below are written once over this.
+trait Products {
+    /// The lanes of everything but the products (narrow layers, copies).
+    type L: Lanes;
+
+    /// `c = epi(a Wᵀ)` for `nb` rows of `a` (row stride `layer.inw`), the
+    /// first `n` outputs (row stride `n`). `pairs` is scratch for BLOCK ×
+    /// max-width words.
+    unsafe fn forward(
+        layer: &Layer,
+        a: *const f32,
+        nb: usize,
+        n: usize,
+        out: Destination,
+        pairs: *mut u32,
+    );
+
+    /// `dW += Gᵀ X` over `nb` rows: `g` is nb × out, `x` nb × in, `dw`
+    /// out × in.
+    unsafe fn weight_gradient(
+        layer: &Layer,
+        g: *const f32,
+        x: *const f32,
+        nb: usize,
+        dw: *mut f32,
+        pairs: *mut u32,
+    );
+
+    /// `c = epi(G W[:, first..first + n])` for `nb` rows of `g` (nb × out).
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn input_gradient(
+        layer: &Layer,
+        g: *const f32,
+        nb: usize,
+        first: usize,
+        n: usize,
+        out: Destination,
+        pairs: *mut u32,
+    );
+}
+
+/// The products in f32 with the register-tiled [`gemm`].
+struct F32Products<L>(std::marker::PhantomData<L>);
+
+impl<L: Lanes> Products for F32Products<L> {
+    type L = L;
+
+    #[inline(always)]
+    unsafe fn forward(
+        layer: &Layer,
+        a: *const f32,
+        nb: usize,
+        n: usize,
+        out: Destination,
+        _: *mut u32,
+    ) {
+        unsafe {
+            gemm::<L>(&Gemm {
+                m: nb,
+                n,
+                k: layer.inw,
+                a,
+                a_m: layer.inw,
+                a_k: 1,
+                b: layer.wt,
+                b_k: layer.outw,
+                c: out.c,
+                c_m: out.c_m,
+                epi: out.epi,
+            })
+        }
+    }
+
+    #[inline(always)]
+    unsafe fn weight_gradient(
+        layer: &Layer,
+        g: *const f32,
+        x: *const f32,
+        nb: usize,
+        dw: *mut f32,
+        _: *mut u32,
+    ) {
+        // Rows of dW are outputs; the reduction runs over the block's rows.
+        unsafe {
+            gemm::<L>(&Gemm {
+                m: layer.outw,
+                n: layer.inw,
+                k: nb,
+                a: g,
+                a_m: 1,
+                a_k: layer.outw,
+                b: x,
+                b_k: layer.inw,
+                c: dw,
+                c_m: layer.inw,
+                epi: Epi::Accumulate,
+            })
+        }
+    }
+
+    #[inline(always)]
+    unsafe fn input_gradient(
+        layer: &Layer,
+        g: *const f32,
+        nb: usize,
+        first: usize,
+        n: usize,
+        out: Destination,
+        _: *mut u32,
+    ) {
+        unsafe {
+            gemm::<L>(&Gemm {
+                m: nb,
+                n,
+                k: layer.outw,
+                a: g,
+                a_m: layer.outw,
+                a_k: 1,
+                b: layer.w.add(first),
+                b_k: layer.inw,
+                c: out.c,
+                c_m: out.c_m,
+                epi: out.epi,
+            })
+        }
+    }
+}
+
 /// One block of `nb` rows through every layer; layer l writes to
 /// `sink.destination(l)` with row stride equal to its width, except the
 /// last layer, which computes and writes only its first `last_columns`
 /// outputs.
 #[inline(always)]
-unsafe fn forward_block<L: Lanes>(
+unsafe fn forward_block<P: Products>(
     net: &Net,
     x: *const f32,
     nb: usize,
     last_columns: usize,
     sink: &impl BlockSink,
+    pairs: *mut u32,
 ) {
     let mut a = x;
     let last = net.layers.len() - 1;
@@ -1311,20 +1599,12 @@ unsafe fn forward_block<L: Lanes>(
         let c = unsafe { sink.destination(l) };
         let n = if l == last { last_columns } else { layer.outw };
         if n <= NARROW_COLUMNS {
-            unsafe { narrow_layer::<L>(layer, a, nb, n, net.act(l), c) };
+            unsafe { narrow_layer::<P::L>(layer, a, nb, n, net.act(l), c) };
             unsafe { sink.after(l, c) };
             a = c;
             continue;
         }
-        let g = Gemm {
-            m: nb,
-            n,
-            k: layer.inw,
-            a,
-            a_m: layer.inw,
-            a_k: 1,
-            b: layer.wt,
-            b_k: layer.outw,
+        let out = Destination {
             c,
             c_m: n,
             epi: Epi::Forward {
@@ -1332,7 +1612,7 @@ unsafe fn forward_block<L: Lanes>(
                 act: net.act(l),
             },
         };
-        unsafe { gemm::<L>(&g) };
+        unsafe { P::forward(layer, a, nb, n, out, pairs) };
         unsafe { sink.after(l, c) };
         a = c;
     }
@@ -1344,16 +1624,17 @@ unsafe fn forward_block<L: Lanes>(
 /// the caches and is only read again by the backward pass, so writing around
 /// the caches saves the read-for-ownership of every line.
 #[inline(always)]
-unsafe fn forward_rows<L: Lanes>(job: &ForwardJob, rows: Range<usize>, scratch: *mut f32) {
+unsafe fn forward_rows<P: Products>(job: &ForwardJob, rows: Range<usize>, scratch: *mut f32) {
     let net = job.net;
     let in_w = net.layers[0].inw;
     let last = net.layers.len() - 1;
     let out_w = net.layers[last].outw;
     let half = BLOCK * job.max_width;
+    let pairs = unsafe { scratch.add(2 * half) }.cast::<u32>();
     let mut r0 = rows.start;
     while r0 < rows.end {
         let nb = (rows.end - r0).min(BLOCK);
-        let sink = TrainingSink::<L> {
+        let sink = TrainingSink::<P::L> {
             job,
             scratch,
             half,
@@ -1363,10 +1644,10 @@ unsafe fn forward_rows<L: Lanes>(job: &ForwardJob, rows: Range<usize>, scratch: 
             out_w,
             lanes: std::marker::PhantomData,
         };
-        unsafe { forward_block::<L>(net, job.input.add(r0 * in_w), nb, out_w, &sink) };
+        unsafe { forward_block::<P>(net, job.input.add(r0 * in_w), nb, out_w, &sink, pairs) };
         r0 += nb;
     }
-    unsafe { L::store_fence() };
+    unsafe { P::L::store_fence() };
 }
 
 /// The training forward pass's blocks: computed in the scratch, streamed
@@ -1429,19 +1710,13 @@ impl BlockSink for InferenceSink {
 }
 
 #[inline(always)]
-unsafe fn inference_rows<L: Lanes>(job: &InferenceJob, rows: Range<usize>, scratch: *mut f32) {
+unsafe fn inference_rows<P: Products>(job: &InferenceJob, rows: Range<usize>, scratch: *mut f32) {
     let net = job.net;
     let in_w = net.layers[0].inw;
     let last = net.layers.len() - 1;
     let out_w = job.out_columns;
-    let half = BLOCK
-        * net
-            .layers
-            .iter()
-            .map(|l| l.outw)
-            .max()
-            .unwrap_or(0)
-            .max(in_w);
+    let half = BLOCK * job.max_width;
+    let pairs = unsafe { scratch.add(2 * half) }.cast::<u32>();
     let mut r0 = rows.start;
     while r0 < rows.end {
         let nb = (rows.end - r0).min(BLOCK);
@@ -1451,13 +1726,13 @@ unsafe fn inference_rows<L: Lanes>(job: &InferenceJob, rows: Range<usize>, scrat
             half,
             last,
         };
-        unsafe { forward_block::<L>(net, job.input.add(r0 * in_w), nb, out_w, &sink) };
+        unsafe { forward_block::<P>(net, job.input.add(r0 * in_w), nb, out_w, &sink, pairs) };
         r0 += nb;
     }
 }
 
 #[inline(always)]
-unsafe fn backward_rows<L: Lanes>(
+unsafe fn backward_rows<P: Products>(
     job: &BackwardJob,
     rows: Range<usize>,
     partial: *mut f32,
@@ -1469,6 +1744,7 @@ unsafe fn backward_rows<L: Lanes>(
     let out_w = layers[last].outw;
     let in_w = layers[0].inw;
     let half = BLOCK * job.max_width;
+    let pairs = unsafe { scratch.add(2 * half) }.cast::<u32>();
     unsafe {
         std::ptr::write_bytes(partial, 0, job.n_params);
         let mut r0 = rows.start;
@@ -1499,21 +1775,7 @@ unsafe fn backward_rows<L: Lanes>(
                 } else {
                     job.activations[l - 1].add(r0 * layer.inw)
                 };
-                // dW += Gᵀ X: rows of dW are outputs, the reduction runs
-                // over the block's rows.
-                gemm::<L>(&Gemm {
-                    m: layer.outw,
-                    n: layer.inw,
-                    k: nb,
-                    a: g,
-                    a_m: 1,
-                    a_k: layer.outw,
-                    b: x,
-                    b_k: layer.inw,
-                    c: partial.add(layer.w_off),
-                    c_m: layer.inw,
-                    epi: Epi::Accumulate,
-                });
+                P::weight_gradient(&layer, g, x, nb, partial.add(layer.w_off), pairs);
                 if let Some(b_off) = layer.b_off {
                     let db = partial.add(b_off);
                     for r in 0..nb {
@@ -1548,19 +1810,8 @@ unsafe fn backward_rows<L: Lanes>(
                     None
                 };
                 if let Some((c, epi, first, n)) = epi_dst {
-                    gemm::<L>(&Gemm {
-                        m: nb,
-                        n,
-                        k: layer.outw,
-                        a: g,
-                        a_m: layer.outw,
-                        a_k: 1,
-                        b: layer.w.add(first),
-                        b_k: layer.inw,
-                        c,
-                        c_m: n,
-                        epi,
-                    });
+                    let out = Destination { c, c_m: n, epi };
+                    P::input_gradient(&layer, g, nb, first, n, out, pairs);
                 }
                 g = buffers[next];
                 next ^= 1;
@@ -1576,67 +1827,56 @@ mod dispatch {
     use super::*;
 
     macro_rules! entry_points {
-        ($module:ident, $lanes:ty, $features:literal) => {
+        ($module:ident, $products:ty, $($features:literal)?) => {
             pub mod $module {
                 #[allow(unused_imports)]
                 #[cfg(target_arch = "x86_64")]
                 use super::super::x86::*;
                 use super::super::*;
 
-                #[target_feature(enable = $features)]
+                $(#[target_feature(enable = $features)])?
                 pub unsafe fn forward(job: &ForwardJob, rows: Range<usize>, scratch: *mut f32) {
-                    unsafe { forward_rows::<$lanes>(job, rows, scratch) }
+                    unsafe { forward_rows::<$products>(job, rows, scratch) }
                 }
-                #[target_feature(enable = $features)]
+                $(#[target_feature(enable = $features)])?
                 pub unsafe fn inference(job: &InferenceJob, rows: Range<usize>, scratch: *mut f32) {
-                    unsafe { inference_rows::<$lanes>(job, rows, scratch) }
+                    unsafe { inference_rows::<$products>(job, rows, scratch) }
                 }
-                #[target_feature(enable = $features)]
+                $(#[target_feature(enable = $features)])?
                 pub unsafe fn backward(
                     job: &BackwardJob,
                     rows: Range<usize>,
                     partial: *mut f32,
                     scratch: *mut f32,
                 ) {
-                    unsafe { backward_rows::<$lanes>(job, rows, partial, scratch) }
+                    unsafe { backward_rows::<$products>(job, rows, partial, scratch) }
                 }
-                #[target_feature(enable = $features)]
+                /// The f32 product alone (the peak measurement).
+                $(#[target_feature(enable = $features)])?
                 pub unsafe fn gemm(g: &Gemm) {
-                    unsafe { super::super::gemm::<$lanes>(g) }
+                    unsafe { super::super::gemm::<<$products as Products>::L>(g) }
                 }
             }
         };
     }
 
     #[cfg(target_arch = "x86_64")]
-    entry_points!(avx512, Avx512, "avx512f,avx512vl,avx2,fma");
+    entry_points!(
+        avx512bf16,
+        bf16::Bf16Products,
+        "avx512f,avx512vl,avx512bw,avx512bf16,avx2,fma"
+    );
     #[cfg(target_arch = "x86_64")]
-    entry_points!(avx2, Avx2, "avx2,fma");
-
-    pub mod portable {
-        use super::super::*;
-        pub unsafe fn forward(job: &ForwardJob, rows: Range<usize>, scratch: *mut f32) {
-            unsafe { forward_rows::<Portable>(job, rows, scratch) }
-        }
-        pub unsafe fn inference(job: &InferenceJob, rows: Range<usize>, scratch: *mut f32) {
-            unsafe { inference_rows::<Portable>(job, rows, scratch) }
-        }
-        pub unsafe fn backward(
-            job: &BackwardJob,
-            rows: Range<usize>,
-            partial: *mut f32,
-            scratch: *mut f32,
-        ) {
-            unsafe { backward_rows::<Portable>(job, rows, partial, scratch) }
-        }
-        pub unsafe fn gemm(g: &Gemm) {
-            unsafe { super::super::gemm::<Portable>(g) }
-        }
-    }
+    entry_points!(avx512, F32Products<Avx512>, "avx512f,avx512vl,avx2,fma");
+    #[cfg(target_arch = "x86_64")]
+    entry_points!(avx2, F32Products<Avx2>, "avx2,fma");
+    entry_points!(portable, F32Products<Portable>,);
 
     macro_rules! route {
         ($backend:expr, $f:ident($($arg:expr),*)) => {
             match $backend {
+                #[cfg(target_arch = "x86_64")]
+                Backend::Avx512Bf16 => unsafe { avx512bf16::$f($($arg),*) },
                 #[cfg(target_arch = "x86_64")]
                 Backend::Avx512 => unsafe { avx512::$f($($arg),*) },
                 #[cfg(target_arch = "x86_64")]
