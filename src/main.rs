@@ -148,38 +148,41 @@ enum BenchCommand {
     },
     /// Training-step throughput per stage on a scene (default: lego_400 when
     /// present beside the checkout, else the demo scene).
-    Throughput {
-        #[arg(long)]
-        scene: Option<String>,
-        #[arg(long, value_enum)]
-        engine: Option<EngineKind>,
-        #[arg(long, default_value_t = 1)]
-        downscale: u32,
-        #[arg(long, value_enum, default_value_t = ModelKind::Ngp)]
-        model: ModelKind,
-        /// NeRF's sampler.
-        #[arg(long, value_enum, default_value_t = Sampling::Occupancy)]
-        sampling: Sampling,
-        /// Unmeasured steps first. Default: past the occupancy grid's
-        /// warm-up (its first 256 steps update every cell, twice the work
-        /// of a later update) plus 32, so the figures are those of most of a
-        /// run; 1 on a software adapter, where a gpu step takes minutes.
-        #[arg(long)]
-        warmup: Option<usize>,
-        /// Measured steps.
-        #[arg(long, default_value_t = 32)]
-        steps: usize,
-        /// How the cpu engine computes the networks' products: f32, or mixed
-        /// (bf16 products, f32 sums, on processors with AVX512-BF16). Default:
-        /// mixed where the processor has bf16 kernels, else f32.
-        #[arg(long, value_enum)]
-        precision: Option<Precision>,
-    },
+    Throughput(ThroughputArgs),
     /// The accuracy-versus-time experiment: trains each model on each scene
     /// for a budget of training time, scores PSNR and SSIM at marks along
     /// the way, and writes results.json, results.csv, report.md and plots
     /// into --out. Run it again to continue an interrupted experiment.
     Quality(QualityArgs),
+}
+
+#[derive(Args)]
+struct ThroughputArgs {
+    #[arg(long)]
+    scene: Option<String>,
+    #[arg(long, value_enum)]
+    engine: Option<EngineKind>,
+    #[arg(long, default_value_t = 1)]
+    downscale: u32,
+    #[arg(long, value_enum, default_value_t = ModelKind::Ngp)]
+    model: ModelKind,
+    /// NeRF's sampler.
+    #[arg(long, value_enum, default_value_t = Sampling::Occupancy)]
+    sampling: Sampling,
+    /// Unmeasured steps first. Default: past the occupancy grid's
+    /// warm-up (its first 256 steps update every cell, twice the work
+    /// of a later update) plus 32, so the figures are those of most of a
+    /// run; 1 on a software adapter, where a gpu step takes minutes.
+    #[arg(long)]
+    warmup: Option<usize>,
+    /// Measured steps.
+    #[arg(long, default_value_t = 32)]
+    steps: usize,
+    /// How the cpu engine computes the networks' products: f32, or mixed
+    /// (bf16 products, f32 sums, on processors with AVX512-BF16). Default:
+    /// mixed where the processor has bf16 kernels, else f32.
+    #[arg(long, value_enum)]
+    precision: Option<Precision>,
 }
 
 #[derive(Args)]
@@ -409,7 +412,7 @@ fn main() -> ExitCode {
         Some(Command::Train(_)) => Some("finishing the current step, then writing the checkpoint"),
         Some(Command::Eval { .. }) => Some("finishing the current view"),
         Some(Command::Render(_)) => Some("finishing the current frame"),
-        Some(Command::Bench(BenchCommand::Throughput { .. })) => {
+        Some(Command::Bench(BenchCommand::Throughput(_))) => {
             Some("finishing the current step, then reporting the steps measured")
         }
         Some(Command::View(_)) | None => {
@@ -444,25 +447,7 @@ fn main() -> ExitCode {
             downscale,
         }) => eval(&run, split.into(), engine, downscale),
         Some(Command::Render(args)) => render(args),
-        Some(Command::Bench(BenchCommand::Throughput {
-            scene,
-            engine,
-            downscale,
-            model,
-            sampling,
-            warmup,
-            steps,
-            precision,
-        })) => bench_throughput(
-            scene,
-            engine,
-            downscale,
-            model,
-            sampling,
-            warmup,
-            steps,
-            precision.unwrap_or_else(Precision::best_available),
-        ),
+        Some(Command::Bench(BenchCommand::Throughput(args))) => bench_throughput(args),
         Some(Command::Bench(BenchCommand::Quality(args))) => bench_quality(args),
         Some(Command::Bench(BenchCommand::Dense { rows, repeats })) => {
             bench_dense(rows, repeats);
@@ -1115,16 +1100,18 @@ fn bench_dense(rows: usize, repeats: usize) {
 /// seconds on lavapipe.
 const SOFTWARE_GPU_NERF_SAMPLES: usize = 1 << 12;
 
-fn bench_throughput(
-    scene: Option<String>,
-    engine: Option<EngineKind>,
-    downscale: u32,
-    model: ModelKind,
-    sampling: Sampling,
-    warmup: Option<usize>,
-    steps: usize,
-    precision: Precision,
-) -> anyhow::Result<()> {
+fn bench_throughput(args: ThroughputArgs) -> anyhow::Result<()> {
+    let ThroughputArgs {
+        scene,
+        engine,
+        downscale,
+        model,
+        sampling,
+        warmup,
+        steps,
+        precision,
+    } = args;
+    let precision = precision.unwrap_or_else(Precision::best_available);
     let scene_name = match scene {
         Some(name) => name,
         None => zrak::bench::default_scene_path()

@@ -240,6 +240,7 @@ fn settings(sampling: Sampling) -> ModelSettings {
         loss: LossKind::L2,
         batch_samples: Some(BATCH_SAMPLES),
         sampling,
+        precision: zrak::engine::cpu::dense::Precision::F32,
     }
 }
 

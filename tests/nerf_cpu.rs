@@ -33,6 +33,7 @@ fn model_of(scene: &Scene, kind: NerfKind, sampling: Sampling) -> CpuModel {
         loss: LossKind::L2,
         batch_samples: Some(1 << 12),
         sampling,
+        precision: zrak::engine::cpu::dense::Precision::F32,
     };
     match kind {
         NerfKind::Nerf => cpu_nerf_with_shape(scene, &settings, &small_nerf_shape(kind)),

@@ -142,6 +142,7 @@ fn settings(sampling: Sampling) -> ModelSettings {
         loss: LossKind::L2,
         batch_samples: None,
         sampling,
+        precision: zrak::engine::cpu::dense::Precision::F32,
     }
 }
 

@@ -60,6 +60,7 @@ fn train_demo(kind: Kind, default_steps: u32) -> (f64, f64) {
         loss: LossKind::L2,
         batch_samples: Some(batch),
         sampling: Sampling::Occupancy,
+        precision: zrak::engine::cpu::dense::Precision::F32,
     };
     let (identity, mut recipe, shape) = match kind {
         Kind::Nerf => (

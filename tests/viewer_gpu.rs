@@ -55,6 +55,7 @@ fn settings() -> ModelSettings {
         loss: LossKind::Huber,
         batch_samples: Some(BATCH_SAMPLES),
         sampling: zrak::field::nerf::Sampling::Occupancy,
+        precision: zrak::engine::cpu::dense::Precision::F32,
     }
 }
 

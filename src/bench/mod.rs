@@ -149,6 +149,16 @@ pub fn default_scene_path() -> Option<std::path::PathBuf> {
     candidate.is_dir().then(|| candidate.to_path_buf())
 }
 
+/// A rate with three significant digits, in M or k as its size asks
+/// (NeRF's rays per second would read "0.000 M").
+fn per_second(rate: f64) -> String {
+    if rate >= 1e5 {
+        format!("{:.3} M", rate / 1e6)
+    } else {
+        format!("{:.1} k", rate / 1e3)
+    }
+}
+
 pub fn print_report(report: &ThroughputReport, scene: &Arc<Scene>, engine: &str) {
     println!(
         "scene                {} ({} training views)",
@@ -165,10 +175,13 @@ pub fn print_report(report: &ThroughputReport, scene: &Arc<Scene>, engine: &str)
         report.median_step_seconds * 1e3
     );
     println!(
-        "samples/s            {:.3} M",
-        report.samples_per_second / 1e6
+        "samples/s            {}",
+        per_second(report.samples_per_second)
     );
-    println!("rays/s               {:.3} M", report.rays_per_second / 1e6);
+    println!(
+        "rays/s               {}",
+        per_second(report.rays_per_second)
+    );
     println!(
         "samples per ray      {:.1} (median)",
         report.median_samples_per_ray

@@ -226,10 +226,9 @@ mod kernels {
                     bv[v] = _mm512_maskz_loadu_epi32(masks[v], b.add(v * 16).cast());
                 }
                 for (r, acc_r) in acc.iter_mut().enumerate() {
-                    let av: __m512bh =
-                        std::mem::transmute(_mm512_set1_epi32(*a.add(r * g.a_m) as i32));
+                    let av = as_bf16(_mm512_set1_epi32(*a.add(r * g.a_m) as i32));
                     for v in 0..NV {
-                        acc_r[v] = _mm512_dpbf16_ps(acc_r[v], av, std::mem::transmute(bv[v]));
+                        acc_r[v] = _mm512_dpbf16_ps(acc_r[v], av, as_bf16(bv[v]));
                     }
                 }
                 a = a.add(g.a_k);
@@ -237,6 +236,19 @@ mod kernels {
             }
             epilogue::<Avx512, R, NV>(g.out, i0, j0, nj, masks, &acc);
         }
+    }
+
+    /// 32 bf16 values as the bits they are stored in, and back.
+    #[inline(always)]
+    fn as_bf16(words: __m512i) -> __m512bh {
+        // SAFETY: both are 64 bytes of plain data.
+        unsafe { std::mem::transmute::<__m512i, __m512bh>(words) }
+    }
+
+    #[inline(always)]
+    fn as_words(halves: __m512bh) -> __m512i {
+        // SAFETY: both are 64 bytes of plain data.
+        unsafe { std::mem::transmute::<__m512bh, __m512i>(halves) }
     }
 
     #[inline(always)]
@@ -271,7 +283,7 @@ mod kernels {
                     let hi = _mm512_maskz_loadu_ps(mask(left.saturating_sub(16)), s.add(j + 16));
                     // Lanes 0-15 from `lo`, 16-31 from `hi`: the row's
                     // order, so word t holds columns 2t and 2t + 1.
-                    let words: __m512i = std::mem::transmute(_mm512_cvtne2ps_pbh(hi, lo));
+                    let words = as_words(_mm512_cvtne2ps_pbh(hi, lo));
                     _mm512_mask_storeu_epi32(
                         d.add(j / 2).cast(),
                         mask(left.min(32).div_ceil(2)),
@@ -321,7 +333,7 @@ mod kernels {
                     } else {
                         _mm512_setzero_ps()
                     };
-                    let halves: __m512i = std::mem::transmute(_mm512_cvtne2ps_pbh(hi, lo));
+                    let halves = as_words(_mm512_cvtne2ps_pbh(hi, lo));
                     let words = _mm512_permutexvar_epi16(zip, halves);
                     _mm512_mask_storeu_epi32(d.add(c).cast(), m, words);
                     c += 16;
