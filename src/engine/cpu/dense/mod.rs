@@ -1763,8 +1763,22 @@ unsafe fn backward_rows<P: Products>(
             } else {
                 let y = job.activations[last].add(r0 * out_w);
                 let into = buffers[1];
-                for i in 0..nb * out_w {
-                    *into.add(i) = *dy.add(i) * act.derivative_from_output(*y.add(i));
+                let n = nb * out_w;
+                if act == Activation::Relu {
+                    // A wide ReLU output (NeRF's trunk before the skip):
+                    // in vectors, as the hidden layers' gates are.
+                    let mut i = 0;
+                    while i < n {
+                        let m = P::L::mask(n - i);
+                        let gate =
+                            P::L::relu_gate(P::L::load(dy.add(i), m), P::L::load(y.add(i), m));
+                        P::L::store(into.add(i), gate, m);
+                        i += P::L::N;
+                    }
+                } else {
+                    for i in 0..n {
+                        *into.add(i) = *dy.add(i) * act.derivative_from_output(*y.add(i));
+                    }
                 }
                 into
             };
