@@ -201,12 +201,48 @@ fn check_step_gradient(kind: NerfKind, sampling: Sampling) {
 
     let rays = batch(&scene, 96, 11);
     let step = 1001; // seeds every jitter identically on each call
-    let stats = nerf.forward_backward(&rays, step);
-    assert!(stats.samples > 500, "{stats:?}");
-    let gradient = nerf.gradients().to_vec();
+    // The occupancy sampler finds each ray's cut with a σ pass first when
+    // the last step used few of its samples, else with the forward pass:
+    // both orders are checked, and give one gradient.
+    let orders: &[f64] = match sampling {
+        Sampling::Occupancy => &[0.0, 1.0],
+        Sampling::Paper => &[1.0],
+    };
+    let mut gradients: Vec<Vec<f32>> = Vec::new();
+    for &used in orders {
+        nerf.assume_used_fraction(used);
+        let stats = nerf.forward_backward(&rays, step);
+        assert!(stats.samples > 500, "{stats:?}");
+        gradients.push(nerf.gradients().to_vec());
+    }
+    if let [sigma_first, forward_first] = &gradients[..] {
+        // The same sums, but σ for the cut and the compositing from the
+        // σ-only inference (σ's head as one dot product) or from the
+        // forward pass (σ's head beside the features): last bits apart.
+        let difference = sigma_first
+            .iter()
+            .zip(forward_first)
+            .map(|(a, b)| ((a - b) as f64).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        let norm = forward_first
+            .iter()
+            .map(|&a| (a as f64).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        assert!(
+            difference < 1e-4 * norm,
+            "{kind:?}: the two orders' gradients differ by {difference:e} of {norm:e}"
+        );
+    }
+    let gradient = gradients[0].clone();
     let ranges = nerf.parameter_ranges().to_vec();
     for (field, range) in ranges.iter().enumerate() {
-        let level_loss = |nerf: &mut CpuModel| nerf.forward_backward(&rays, step).loss as f64;
+        // σ first, as the analytic gradient above.
+        let level_loss = |nerf: &mut CpuModel| {
+            nerf.assume_used_fraction(orders[0]);
+            nerf.forward_backward(&rays, step).loss as f64
+        };
         let mut order: Vec<usize> = range.clone().collect();
         order.sort_by(|&a, &b| gradient[b].abs().total_cmp(&gradient[a].abs()));
         for &index in order.iter().take(4) {

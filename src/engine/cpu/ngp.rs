@@ -695,6 +695,7 @@ impl RadianceModel for CpuNgp {
                 samples_per_ray: self.batch_sizer.samples_per_ray(),
                 param_count: self.params.len(),
                 sampling: None,
+                used_fraction: None,
             },
             params: self.params.clone(),
             adam: self.adam.clone(),

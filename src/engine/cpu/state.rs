@@ -21,6 +21,10 @@ pub(crate) struct ModelHeader {
     /// The sampler, for models that have a choice ("paper", "occupancy").
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sampling: Option<String>,
+    /// The share of marched samples the last step used (before their ray's
+    /// cut), by which the cpu engine orders its next step's passes.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub used_fraction: Option<f64>,
 }
 
 /// Everything a checkpoint holds.

@@ -1373,6 +1373,7 @@ impl RadianceModel for GpuModel {
                 samples_per_ray: self.batch_sizer.samples_per_ray(),
                 param_count: self.param_count,
                 sampling: Some(self.identity.sampling.into()),
+                used_fraction: None,
             },
             params: self.params(),
             adam,

@@ -1016,6 +1016,7 @@ impl RadianceModel for GpuNgp {
                 samples_per_ray: self.batch_sizer.samples_per_ray(),
                 param_count: self.shape.param_count(),
                 sampling: None,
+                used_fraction: None,
             },
             params: self.params(),
             adam,
