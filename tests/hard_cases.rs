@@ -28,6 +28,7 @@ use std::time::Instant;
 
 use glam::Vec3;
 use zrak::engine::EngineKind;
+use zrak::engine::cpu::dense::Precision;
 use zrak::engine::cpu::fields::nerf::NerfShape;
 use zrak::engine::cpu::hash_grid::HashGridLayout;
 use zrak::engine::cpu::model::CpuModel;
@@ -240,7 +241,7 @@ fn settings(sampling: Sampling) -> ModelSettings {
         loss: LossKind::L2,
         batch_samples: Some(BATCH_SAMPLES),
         sampling,
-        precision: zrak::engine::cpu::dense::Precision::F32,
+        precision: Precision::F32,
     }
 }
 
@@ -334,6 +335,47 @@ fn rows() -> Vec<Row> {
                     &settings(Sampling::Paper),
                     &shape,
                 ))
+            },
+            layout: mipnerf_layout,
+        },
+        // Mixed precision (bf16 products summed in f32) where the processor
+        // has bf16 kernels; elsewhere these rows run the f32 kernels again.
+        Row {
+            name: "Instant-NGP, mixed precision (cpu)",
+            engine: Cpu,
+            build: |scene| {
+                Box::new(CpuNgp::with_shape(
+                    small_ngp_shape(scene).with_precision(Precision::Mixed),
+                    SEED,
+                    LossKind::Huber,
+                    BATCH_SAMPLES,
+                ))
+            },
+            layout: ngp_layout,
+        },
+        Row {
+            name: "NeRF, occupancy sampler, mixed precision (cpu)",
+            engine: Cpu,
+            build: |scene| {
+                let shape = small_nerf_shape(NerfKind::Nerf);
+                let settings = ModelSettings {
+                    precision: Precision::Mixed,
+                    ..settings(Sampling::Occupancy)
+                };
+                Box::new(cpu_nerf_with_shape(scene, &settings, &shape))
+            },
+            layout: nerf_layout,
+        },
+        Row {
+            name: "Mip-NeRF, paper sampler, mixed precision (cpu)",
+            engine: Cpu,
+            build: |scene| {
+                let shape = small_nerf_shape(NerfKind::MipNerf);
+                let settings = ModelSettings {
+                    precision: Precision::Mixed,
+                    ..settings(Sampling::Paper)
+                };
+                Box::new(cpu_mipnerf_with_shape(scene, &settings, &shape))
             },
             layout: mipnerf_layout,
         },
@@ -813,6 +855,13 @@ fn run_row(row: &Row, scene: &Scene) -> Vec<String> {
 }
 
 fn run_rows(engine: EngineKind) {
+    if engine == EngineKind::Cpu && Precision::Mixed.kernels_here() != Precision::Mixed {
+        use std::io::Write;
+        let _ = writeln!(
+            std::io::stderr(),
+            "the mixed-precision rows run f32 kernels: this processor has no AVX512-BF16"
+        );
+    }
     let scene = common::small_scene(24);
     let mut failures = Vec::new();
     for row in rows().iter().filter(|r| r.engine == engine) {
