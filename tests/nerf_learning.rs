@@ -74,9 +74,9 @@ fn train_demo(kind: Kind, default_steps: u32) -> (f64, f64) {
             NerfShape::mipnerf(),
         ),
     };
-    // The batch is 1/8 of the shipped 2^15 samples, so the occupancy grid
-    // gets 1/8 of its cells (32³ instead of 64³): an update then costs the
-    // same share of a step as it does in a real run. With 64³ cells the
+    // The batch is 1/4 of the shipped 2^14 samples and the occupancy grid
+    // gets 1/8 of its cells (32³ instead of 64³): an update then costs no
+    // more of a step than it does in a real run. With 64³ cells the
     // grid's density queries took more than half of this test's time.
     recipe.occupancy.resolution = env_or("ZRAK_NERF_E2E_GRID", 32u32);
     let model = cpu_model_of_nerf_fields(identity, recipe, &scene, &settings, &shape);
