@@ -297,6 +297,12 @@ struct TrainArgs {
     /// Training seconds between held-out evaluations.
     #[arg(long, default_value_t = 30.0)]
     eval_every: f64,
+    /// Train on every view at this many sizes: full, ½, ¼, … (Mip-NeRF's
+    /// multiscale Blender protocol: 4), each size an equal share of the
+    /// rays.
+    #[arg(long, default_value_t = 1, conflicts_with = "resume",
+          value_parser = clap::value_parser!(u32).range(1..=8))]
+    training_scales: u32,
     /// How the cpu engine computes the networks' products: f32, or mixed
     /// (bf16 products, f32 sums, on processors with AVX512-BF16). Default:
     /// mixed where the processor has bf16 kernels, else f32; when
@@ -387,6 +393,18 @@ struct RunConfig {
     /// made before mixed precision existed: those trained in f32).
     #[serde(default)]
     precision: Precision,
+    /// Sizes of every training view trained on (1: the views as they are;
+    /// see `Scene::with_training_scales`).
+    #[serde(default = "single_scale", skip_serializing_if = "is_single_scale")]
+    training_scales: u32,
+}
+
+fn single_scale() -> u32 {
+    1
+}
+
+fn is_single_scale(scales: &u32) -> bool {
+    *scales == 1
 }
 
 fn default_sampling() -> Sampling {
@@ -680,7 +698,9 @@ fn restore_run(
     if let Some(precision) = precision {
         config.precision = precision;
     }
-    let scene = Arc::new(load_scene(&config.scene, config.downscale)?);
+    let scene = Arc::new(
+        load_scene(&config.scene, config.downscale)?.with_training_scales(config.training_scales),
+    );
     let choice = choose_engine(engine.or(config.engine))?;
     note(&choice.reason);
     let mut trainer = build_trainer(&config, scene, choice)?;
@@ -788,8 +808,11 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
             engine: args.engine,
             batch_samples: None,
             precision: args.precision.unwrap_or_else(Precision::best_available),
+            training_scales: args.training_scales,
         };
-        let scene = Arc::new(load_scene(scene_arg, args.downscale)?);
+        let scene = Arc::new(
+            load_scene(scene_arg, args.downscale)?.with_training_scales(args.training_scales),
+        );
         let choice = choose_engine(args.engine)?;
         note(&choice.reason);
         let trainer = build_trainer(&config, scene, choice)?;

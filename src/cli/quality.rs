@@ -138,6 +138,7 @@ fn run_config(cell: &CellSpec, argument: &str, args: &QualityArgs) -> RunConfig 
         engine: args.engine,
         batch_samples: args.batch_samples.map(|n| n as usize),
         precision: precision(args),
+        training_scales: 1,
     }
 }
 

@@ -834,6 +834,47 @@ mod tests {
     }
 
     #[test]
+    fn training_scales_add_each_view_at_half_and_quarter_size() {
+        let scene = build(&small());
+        let views = scene.train.len();
+        let scaled = build(&small()).with_training_scales(3);
+        assert_eq!(scaled.train.len(), 3 * views);
+        assert_eq!(scaled.val.len(), scene.val.len());
+        assert_eq!(scaled.test.len(), scene.test.len());
+        // Full-size views first, then each view at ½ and ¼.
+        for (index, original) in scene.train.iter().enumerate() {
+            assert_eq!(scaled.train[index].image.data, original.image.data);
+            for (level, factor) in [2u32, 4].into_iter().enumerate() {
+                let smaller = &scaled.train[views + 2 * index + level];
+                let k = smaller.camera.intrinsics;
+                assert_eq!((k.width, k.height), (64 / factor, 64 / factor));
+                assert_eq!(
+                    smaller.image.data,
+                    original.image.downscaled(factor).data,
+                    "the photograph is the area average of the full-size one"
+                );
+                // A pixel's cone is the one through the centre of the
+                // factor × factor block it covers, `factor` times as wide.
+                for (i, j) in [(0, 0), (3, 7), (k.width - 1, k.height - 1)] {
+                    let ray = smaller.camera.pixel_ray(i, j);
+                    let centre = original.camera.ray_through(
+                        factor as f32 * (i as f32 + 0.5),
+                        factor as f32 * (j as f32 + 0.5),
+                    );
+                    assert!((ray.origin - centre.origin).length() < 1e-5);
+                    assert!((ray.direction - centre.direction).length() < 1e-5);
+                    let ratio = ray.radius() / centre.radius();
+                    assert!(
+                        (ratio - factor as f32).abs() < 1e-4 * factor as f32,
+                        "{ratio}"
+                    );
+                }
+            }
+        }
+        assert_eq!(build(&small()).with_training_scales(1).train.len(), views);
+    }
+
+    #[test]
     fn cameras_look_at_origin_from_upper_hemisphere() {
         let config = DemoConfig::default();
         let mut all = Vec::new();

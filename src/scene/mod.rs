@@ -172,6 +172,29 @@ pub struct Scene {
 }
 
 impl Scene {
+    /// The scene with every training view also at ½, ¼, … of its
+    /// resolution, `scales` sizes in all (Mip-NeRF's multiscale Blender
+    /// protocol uses 4: full, ½, ¼, ⅛). Training draws views uniformly,
+    /// so each size gets an equal share of the rays: in expectation the
+    /// paper's loss over every pixel of every size, each weighted by its
+    /// footprint's area in the full-size image (Barron et al. 2021,
+    /// section 5). `scales` 1 leaves the scene as it is; sizes that would
+    /// fall below one pixel are left out.
+    pub fn with_training_scales(mut self, scales: u32) -> Self {
+        let sizes: Vec<u32> = (1..scales).map(|level| 1 << level).collect();
+        let mut extra = Vec::new();
+        for frame in &self.train {
+            let k = frame.camera.intrinsics;
+            for &factor in &sizes {
+                if k.width / factor >= 1 && k.height / factor >= 1 {
+                    extra.push(frame.downscaled(factor));
+                }
+            }
+        }
+        self.train.extend(extra);
+        self
+    }
+
     pub fn split(&self, split: Split) -> &[Frame] {
         match split {
             Split::Train => &self.train,
