@@ -2,8 +2,9 @@
 //! each with a small field: one whole training step from the same state
 //! with the paper's sampler (loss, gradient, parameters after Adam) and with
 //! the occupancy sampler (loss, gradient, the grid's update), and a
-//! checkpoint moved from the gpu engine to the cpu engine. Every test runs
-//! once per model: the two models are one gpu driver with two recipes.
+//! checkpoint moved from the gpu engine to the cpu engine, and the view
+//! the viewer draws into a texture. Every test runs once per model: the two
+//! models are one gpu driver with two recipes.
 //!
 //! Tolerances. Every stage of the step has its own parity test against the
 //! cpu (tests/nerf_field_gpu.rs, sampling_gpu.rs, composite and loss
@@ -37,10 +38,12 @@ use zrak::engine::cpu::frequency::FrequencyEncoding;
 use zrak::engine::cpu::model::CpuModel;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::model::GpuModel;
+use zrak::engine::gpu::render::{read_texture_rgba8, render_target};
 use zrak::field::common::Recipe;
 use zrak::field::mipnerf;
 use zrak::field::nerf::Sampling;
 use zrak::field::ngp::LossKind;
+use zrak::render::{RenderMode, render_pixels, to_image};
 use zrak::rng::Pcg32;
 use zrak::scene::Scene;
 use zrak::scene::demo::{self, DemoConfig};
@@ -481,4 +484,59 @@ fn one_occupancy_step_and_grid_update_match_the_cpu_engine(model: Model) {
     );
     assert_eq!(gpu_stats.samples, cpu_stats.samples);
     assert!(relative(gpu_stats.loss, cpu_stats.loss) < 1e-4);
+}
+
+#[test]
+fn nerf_draws_its_view_into_a_texture_as_the_cpu_engine_renders_it() {
+    texture_matches_the_cpu_render(Model::Nerf, Sampling::Paper);
+}
+
+#[test]
+fn mipnerf_draws_its_view_into_a_texture_as_the_cpu_engine_renders_it() {
+    texture_matches_the_cpu_render(Model::MipNerf, Sampling::Occupancy);
+}
+
+/// The viewer's texture path for the models that composite on the host:
+/// the texture read back holds the cpu engine's image of the same
+/// parameters (`to_image` of its rendered pixels, the scene's depth range)
+/// in every mode. One model per sampler, so both of the gpu driver's
+/// render paths (fixed samples, and marching through the grid) are drawn.
+fn texture_matches_the_cpu_render(model: Model, sampling: Sampling) {
+    let scene = small_scene();
+    // Both engines start from the same parameters (one seed, one layout),
+    // so no training is needed for the pixels to mean something.
+    let (cpu, gpu) = model.engines(&scene, &settings(sampling), |_| {});
+    assert!(cpu.params() == gpu.params().as_slice());
+    // 12 × 12 pixels: the val camera at half size.
+    let frame = scene.val[0].downscaled(2);
+    let camera = frame.camera;
+    let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
+    let drawer = gpu
+        .texture_render()
+        .expect("a model on the gpu engine draws into textures");
+    let expected_pixels = render_pixels(&cpu, &camera, [1.0; 3]);
+    for mode in [RenderMode::Rgb, RenderMode::Depth, RenderMode::Opacity] {
+        let texture = render_target(&gpu.context().device, width, height);
+        drawer
+            .render_to_texture(&camera, mode, [1.0; 3], &texture)
+            .expect("draws");
+        let drawn = read_texture_rgba8(gpu.context(), &texture);
+        let expected = to_image(&expected_pixels, width, height, mode, scene.depth_range());
+        assert_eq!(drawn.len(), expected.data.len());
+        // The engines' pixels agree to ~1e-5 (the render test above);
+        // the conversion to 8 bits may round such a difference either way
+        // at a half level, so one level is allowed, no more.
+        let worst = drawn
+            .iter()
+            .zip(&expected.data)
+            .map(|(a, b)| a.abs_diff(*b))
+            .max()
+            .unwrap_or(0);
+        let distinct: std::collections::HashSet<&[u8]> = expected.data.chunks(4).collect();
+        println!(
+            "{model:?} {mode:?}: worst byte difference {worst}, {} distinct pixels",
+            distinct.len()
+        );
+        assert!(worst <= 1, "{model:?} {mode:?}: {worst}");
+    }
 }

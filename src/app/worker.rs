@@ -1274,8 +1274,10 @@ impl Worker {
     }
 
     /// The view's next level, drawn whole by the gpu engine into a texture
-    /// the window can show: the pixels never leave the GPU. A level cannot
-    /// be split into chunks here, but on a real GPU it takes milliseconds.
+    /// the window can show (Instant-NGP's pixels never leave the GPU; NeRF
+    /// and Mip-NeRF composite on the host and upload the level). A level
+    /// cannot be split into chunks here, but on a real GPU it takes
+    /// milliseconds (Instant-NGP) to a fraction of a second (NeRF).
     fn render_level_to_texture(&mut self) -> Result<(), UiGone> {
         let active = self.active;
         let (Some(slot), Some(view), Some(context)) = (

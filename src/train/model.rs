@@ -124,8 +124,8 @@ pub enum RenderMode {
 }
 
 /// What a model on the gpu engine offers besides [`RadianceModel`]: drawing
-/// a view straight into a texture on its device (the viewer shows it
-/// without a copy through the CPU), and how its stages are timed.
+/// a view into a texture on its device (the viewer shows it from there),
+/// and how its stages are timed.
 pub trait TextureRender {
     /// Draws `camera`'s view in `mode` over `background` into `target`
     /// (RGBA8, the camera's size, on the model's device).

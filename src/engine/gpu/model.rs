@@ -58,6 +58,7 @@ use super::frustum::{FrustumRays, FrustumSamples, GpuFrustums, MarchedIntervals}
 use super::kernel::{read_buffer, read_mapped, storage_buffer, zeroed_storage_buffer};
 use super::loss::GpuLoss;
 use super::march::{GpuGrid, GpuMarch, GpuMarchBuffers, GpuRays};
+use super::render::check_target;
 use super::sampling::GpuSampling;
 use super::step::{CompositeAndLoss, RayBuffers, SampleBuffers, SampleGradientBuffers};
 use super::timing::{Stage, StageClock, StageTiming};
@@ -72,10 +73,12 @@ use crate::engine::cpu::occupancy::OccupancyGrid;
 use crate::engine::cpu::state::{ModelHeader, ModelState};
 use crate::field::common::{BatchSize, Recipe, SampleShape, SamplerKind};
 use crate::field::ngp::LossKind;
+use crate::render::{render_pixels, to_image};
+use crate::scene::Camera;
 use crate::scene::{Aabb, Scene, UnitCubeMapping};
 use crate::train::batch::RayBatch;
 use crate::train::checkpoint::Checkpoint;
-use crate::train::model::{RadianceModel, RenderedPixel, StepStats};
+use crate::train::model::{RadianceModel, RenderMode, RenderedPixel, StepStats, TextureRender};
 
 /// How a recipe's samples are placed.
 enum Plan {
@@ -327,6 +330,8 @@ pub struct GpuModel {
     rays_per_chunk: usize,
     /// For a recipe that marches through the occupancy grid.
     grid: Option<Grid>,
+    /// Near and far depth of depth images ([`Scene::depth_range`]).
+    depth_range: (f32, f32),
 }
 
 impl GpuModel {
@@ -519,6 +524,7 @@ impl GpuModel {
             seed,
             rays_per_chunk: RAYS_PER_CHUNK,
             grid,
+            depth_range: scene.depth_range(),
             identity,
             recipe,
             context,
@@ -1256,7 +1262,48 @@ impl GpuModel {
     }
 }
 
+/// NeRF and Mip-NeRF composite each ray's samples on the host (their
+/// marching, or their reads of the composited colours, go through it
+/// anyway), so their view reaches the texture as one upload of the
+/// finished pixels: the image `render::to_image(render_pixels(..))` makes,
+/// byte for byte. The viewer then draws every model on the gpu engine the
+/// same way, from a texture on the model's device.
+impl TextureRender for GpuModel {
+    fn render_to_texture(
+        &self,
+        camera: &Camera,
+        mode: RenderMode,
+        background: [f32; 3],
+        target: &wgpu::Texture,
+    ) -> Result<(), String> {
+        let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
+        check_target(target, width, height, wgpu::TextureUsages::COPY_DST)
+            .map_err(|e| e.to_string())?;
+        let pixels = render_pixels(self, camera, background);
+        let image = to_image(&pixels, width, height, mode, self.depth_range);
+        self.context.queue.write_texture(
+            target.as_image_copy(),
+            &image.data,
+            wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(4 * width),
+                rows_per_image: Some(height),
+            },
+            target.size(),
+        );
+        Ok(())
+    }
+
+    fn stage_timing_note(&self) -> String {
+        self.work().clock.timing().note()
+    }
+}
+
 impl RadianceModel for GpuModel {
+    fn texture_render(&self) -> Option<&dyn TextureRender> {
+        Some(self)
+    }
+
     fn describe(&self) -> String {
         format!(
             "{} ({} sampling, gpu)",

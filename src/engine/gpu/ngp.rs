@@ -311,12 +311,7 @@ impl GpuNgp {
 
     /// How stage times are measured, in words for reports.
     pub fn stage_timing_note(&self) -> String {
-        match self.stage_timing() {
-            StageTiming::Timestamps => "gpu timestamps: device time of each stage".into(),
-            StageTiming::WallClock => "the wall clock, waiting for the device at each stage \
-                                       boundary (the device has no timestamp queries)"
-                .into(),
-        }
+        self.stage_timing().note()
     }
 
     /// Chooses how stages are timed ([`StageTiming::Timestamps`] falls back
@@ -776,7 +771,7 @@ impl GpuNgp {
     ) -> Result<(), GpuError> {
         let ctx = &self.context;
         let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
-        check_target(target, width, height)?;
+        check_target(target, width, height, wgpu::TextureUsages::STORAGE_BINDING)?;
         let chunk = self.batch_samples;
         if chunk < RAY_GROUP_ALIGN {
             return Err(GpuError::RenderTarget(format!(

@@ -154,22 +154,21 @@ impl RenderBuffers {
     }
 }
 
-/// Checks that `target` is a texture `render_to_texture` can write: 2-D,
-/// rgba8unorm, with storage binding, `width` × `height`.
+/// Checks that `target` is a texture a `render_to_texture` can write: 2-D,
+/// rgba8unorm, `width` × `height`, with the `usage` its writer needs
+/// (storage binding for a shader, copy destination for an upload).
 pub(crate) fn check_target(
     target: &wgpu::Texture,
     width: u32,
     height: u32,
+    usage: wgpu::TextureUsages,
 ) -> Result<(), GpuError> {
     let mut problems = Vec::new();
     if target.format() != wgpu::TextureFormat::Rgba8Unorm {
         problems.push(format!("format {:?}, not Rgba8Unorm", target.format()));
     }
-    if !target
-        .usage()
-        .contains(wgpu::TextureUsages::STORAGE_BINDING)
-    {
-        problems.push("no STORAGE_BINDING usage".to_string());
+    if !target.usage().contains(usage) {
+        problems.push(format!("usage {:?} lacks {usage:?}", target.usage()));
     }
     if target.dimension() != wgpu::TextureDimension::D2 {
         problems.push(format!("dimension {:?}, not D2", target.dimension()));
@@ -188,9 +187,10 @@ pub(crate) fn check_target(
     }
 }
 
-/// A texture [`super::ngp::GpuNgp::render_to_texture`] can draw a
-/// `width × height` image into (Rgba8Unorm with storage binding), a window
-/// can sample (texture binding), and a test can read back (copy source).
+/// A texture any model on the gpu engine can draw a `width × height` image
+/// into (Rgba8Unorm; storage binding for Instant-NGP's render shader, copy
+/// destination for the models that composite on the host), a window can
+/// sample (texture binding), and a test can read back (copy source).
 pub fn render_target(device: &wgpu::Device, width: u32, height: u32) -> wgpu::Texture {
     device.create_texture(&wgpu::TextureDescriptor {
         label: Some("zrak render target"),
@@ -205,7 +205,8 @@ pub fn render_target(device: &wgpu::Device, width: u32, height: u32) -> wgpu::Te
         format: wgpu::TextureFormat::Rgba8Unorm,
         usage: wgpu::TextureUsages::STORAGE_BINDING
             | wgpu::TextureUsages::TEXTURE_BINDING
-            | wgpu::TextureUsages::COPY_SRC,
+            | wgpu::TextureUsages::COPY_SRC
+            | wgpu::TextureUsages::COPY_DST,
         view_formats: &[],
     })
 }

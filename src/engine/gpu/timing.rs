@@ -61,6 +61,18 @@ pub enum StageTiming {
     WallClock,
 }
 
+impl StageTiming {
+    /// How stage times are measured, in words for reports.
+    pub fn note(self) -> String {
+        match self {
+            StageTiming::Timestamps => "gpu timestamps: device time of each stage".into(),
+            StageTiming::WallClock => "the wall clock, waiting for the device at each stage \
+                                       boundary (the device has no timestamp queries)"
+                .into(),
+        }
+    }
+}
+
 /// Boundaries one step can mark (a step marks about 20).
 const MAX_MARKS: u32 = 128;
 
