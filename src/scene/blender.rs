@@ -80,6 +80,7 @@ pub fn load(folder: &Path, options: LoadOptions) -> SceneResult<Scene> {
         has_alpha,
         unit_cube: UnitCubeMapping::BLENDER,
         bounds: UnitCubeMapping::BLENDER.world_bounds(),
+        smaller_training_views: 0,
     };
     for file in files {
         let frames: Vec<Frame> = file

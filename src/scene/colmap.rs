@@ -937,6 +937,7 @@ pub fn load(root: &Path, options: LoadOptions) -> SceneResult<Scene> {
         has_alpha: decoded.iter().any(|d| d.file_has_alpha),
         unit_cube: converted.unit_cube,
         bounds: converted.unit_cube.world_bounds(),
+        smaller_training_views: 0,
     };
     for (index, ((source, image), posed)) in sources
         .into_iter()

@@ -107,6 +107,7 @@ fn build_with(
         has_alpha: true,
         unit_cube,
         bounds: unit_cube.world_bounds(),
+        smaller_training_views: 0,
     }
 }
 
@@ -872,6 +873,13 @@ mod tests {
             }
         }
         assert_eq!(build(&small()).with_training_scales(1).train.len(), views);
+        // The same scene to a checkpoint, so a multiscale run's checkpoint
+        // loads in the viewer, which trains at one size.
+        assert_eq!(scaled.photographed_training_views().len(), views);
+        assert_eq!(
+            crate::train::checkpoint::SceneIdentity::of(&scaled),
+            crate::train::checkpoint::SceneIdentity::of(&scene)
+        );
     }
 
     #[test]

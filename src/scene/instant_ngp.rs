@@ -114,6 +114,7 @@ pub fn load(path: &Path, options: LoadOptions) -> SceneResult<Scene> {
         has_alpha,
         unit_cube,
         bounds: unit_cube.world_bounds(),
+        smaller_training_views: 0,
     };
     for (((source, camera), image), split) in
         sources.into_iter().zip(cameras).zip(decoded).zip(splits)

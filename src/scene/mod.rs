@@ -169,6 +169,9 @@ pub struct Scene {
     pub unit_cube: UnitCubeMapping,
     /// The box that contains the object, in world coordinates.
     pub bounds: Aabb,
+    /// How many of the last training views are smaller copies of the
+    /// others ([`Scene::with_training_scales`]): 0 as loaded.
+    pub smaller_training_views: usize,
 }
 
 impl Scene {
@@ -183,7 +186,7 @@ impl Scene {
     pub fn with_training_scales(mut self, scales: u32) -> Self {
         let sizes: Vec<u32> = (1..scales).map(|level| 1 << level).collect();
         let mut extra = Vec::new();
-        for frame in &self.train {
+        for frame in self.photographed_training_views() {
             let k = frame.camera.intrinsics;
             for &factor in &sizes {
                 if k.width / factor >= 1 && k.height / factor >= 1 {
@@ -191,8 +194,15 @@ impl Scene {
                 }
             }
         }
+        self.smaller_training_views += extra.len();
         self.train.extend(extra);
         self
+    }
+
+    /// The training views as loaded, without the smaller copies
+    /// [`Self::with_training_scales`] adds: what identifies the scene.
+    pub fn photographed_training_views(&self) -> &[Frame] {
+        &self.train[..self.train.len() - self.smaller_training_views]
     }
 
     pub fn split(&self, split: Split) -> &[Frame] {

@@ -32,7 +32,10 @@ pub struct SceneIdentity {
 impl SceneIdentity {
     pub fn of(scene: &Scene) -> Self {
         let mut hash = Fnv1a::new();
-        for frame in &scene.train {
+        // Training at several sizes changes how the scene is trained, not
+        // which scene it is: its checkpoints load wherever the scene does.
+        let views = scene.photographed_training_views();
+        for frame in views {
             for value in frame.camera.camera_to_world.to_cols_array() {
                 hash.write(&value.to_le_bytes());
             }
@@ -49,7 +52,7 @@ impl SceneIdentity {
         let (width, height) = scene.resolution().unwrap_or((0, 0));
         Self {
             name: scene.name.clone(),
-            train_frames: scene.train.len(),
+            train_frames: views.len(),
             width,
             height,
             cameras_hash: hash.finish(),
