@@ -387,3 +387,80 @@ fn large_demo_grid_by_cascade() {
     let (marched, beyond) = samples_beyond_backdrop(&scene, grid, MarchConfig::PAPER, 4000);
     eprintln!("cone steps: {marched:.0} samples per ray, {beyond:.0} of them beyond the backdrop");
 }
+
+/// Whether the large demo's occupied cells hold density now or only held it
+/// once, not run by default: for each cascade, among the cells inside the
+/// backdrop sphere that the grid marks occupied, the share whose density at
+/// 16 random points (σ times the cascade's step, the grid's own measure)
+/// exceeds the threshold at the mean, at the median and at the largest of
+/// them. `ZRAK_GRID_RUN=RUN cargo test --release --test captures
+/// large_demo_occupied_cells_now -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn large_demo_occupied_cells_now() {
+    use zrak::train::checkpoint::Checkpoint;
+    use zrak::train::model::RadianceModel;
+    let run = std::path::PathBuf::from(std::env::var("ZRAK_GRID_RUN").expect("ZRAK_GRID_RUN"));
+    let scene = demo::build_large(&DemoConfig {
+        size: 16,
+        train_views: 100,
+        val_views: 1,
+        test_views: 1,
+    });
+    let mut checkpoint = Checkpoint::load(&run.join("checkpoint.zrak")).expect("checkpoint");
+    checkpoint.header = checkpoint.header["model"].clone();
+    let mut model = CpuNgp::with_batch_samples(&scene, 0, LossKind::Huber, 1 << 18);
+    model
+        .load(&checkpoint)
+        .expect("an Instant-NGP checkpoint of this scene");
+    let grid = model.occupancy();
+    let geometry = grid.geometry();
+    let per = geometry.cells_per_cascade();
+    let backdrop = demo::BACKDROP_RADIUS * scene.unit_cube.scale;
+    let centre = scene.unit_cube.offset;
+    const POINTS: usize = 16;
+    let mut state = 1u64;
+    let mut uniform = || {
+        state = zrak::engine::cpu::occupancy::mix64(state.wrapping_add(0x9E37_79B9_7F4A_7C15));
+        (state >> 40) as f32 / (1u64 << 24) as f32
+    };
+    for cascade in 0..geometry.cascades {
+        let size = geometry.cell_size(cascade);
+        let cells: Vec<_> = (cascade as usize * per..(cascade as usize + 1) * per)
+            .map(|i| geometry.cell_at(i))
+            .filter(|&cell| {
+                let middle = geometry.cell_min(cell) + glam::Vec3::splat(0.5 * size);
+                grid.is_occupied(cell) && (middle - centre).length() < backdrop - size
+            })
+            .collect();
+        let mut positions = Vec::with_capacity(cells.len() * POINTS * 3);
+        for &cell in &cells {
+            let min = geometry.cell_min(cell);
+            for _ in 0..POINTS {
+                let p = min + size * glam::Vec3::new(uniform(), uniform(), uniform());
+                positions.extend_from_slice(&p.to_array());
+            }
+        }
+        let sigma = model.densities(&positions);
+        let step = grid.cascade_step(cascade);
+        let threshold = grid.threshold();
+        let (mut by_mean, mut by_median, mut by_max) = (0usize, 0usize, 0usize);
+        for values in sigma.chunks_exact(POINTS) {
+            let mut thickness: Vec<f32> = values.iter().map(|s| s * step).collect();
+            thickness.sort_by(f32::total_cmp);
+            let mean = thickness.iter().sum::<f32>() / POINTS as f32;
+            by_mean += usize::from(mean > threshold);
+            by_median += usize::from(thickness[POINTS / 2] > threshold);
+            by_max += usize::from(thickness[POINTS - 1] > threshold);
+        }
+        let share = |n: usize| 100.0 * n as f64 / cells.len().max(1) as f64;
+        eprintln!(
+            "cascade {cascade}: {} occupied cells inside the backdrop; above the threshold \
+             now: mean {:.1} %, median {:.1} %, largest of {POINTS} points {:.1} %",
+            cells.len(),
+            share(by_mean),
+            share(by_median),
+            share(by_max)
+        );
+    }
+}

@@ -607,6 +607,21 @@ impl CpuNgp {
         ]
     }
 
+    /// σ at unit-cube positions (n × 3), as the occupancy grid's updates
+    /// see it: for probes of where the field holds density.
+    pub fn densities(&self, positions: &[f32]) -> Vec<f32> {
+        let mut sigma = vec![0f32; positions.len() / 3];
+        let (mut encoded, mut scratch) = (Vec::new(), Vec::new());
+        self.shape.density(
+            &self.params,
+            positions,
+            &mut sigma,
+            &mut encoded,
+            &mut scratch,
+        );
+        sigma
+    }
+
     fn update_grid(&mut self, step: u32) {
         let shape = &self.shape;
         let params = &self.params;
