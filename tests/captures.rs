@@ -342,6 +342,22 @@ fn large_demo_figures() {
     }
 }
 
+/// The Instant-NGP model of the run in `ZRAK_GRID_RUN` (a run of `zrak
+/// train` on the scene `zrak demo --large` writes), loaded for `scene`.
+fn model_of_run(scene: &Scene) -> CpuNgp {
+    use zrak::train::checkpoint::Checkpoint;
+    use zrak::train::model::RadianceModel;
+    let run = std::path::PathBuf::from(std::env::var("ZRAK_GRID_RUN").expect("ZRAK_GRID_RUN"));
+    let mut checkpoint = Checkpoint::load(&run.join("checkpoint.zrak")).expect("checkpoint");
+    // A run's checkpoint holds the trainer's state beside the model's.
+    checkpoint.header = checkpoint.header["model"].clone();
+    let mut model = CpuNgp::with_batch_samples(scene, 0, LossKind::Huber, 1 << 18);
+    model
+        .load(&checkpoint)
+        .expect("an Instant-NGP checkpoint of this scene");
+    model
+}
+
 /// Where a trained grid on the large-extent demo keeps its samples, not run
 /// by default: the occupied share of each cascade and the samples per ray
 /// of training rays, from the checkpoint of a run of `zrak train` on the
@@ -351,17 +367,8 @@ fn large_demo_figures() {
 #[ignore]
 fn large_demo_grid_by_cascade() {
     use zrak::field::ngp::MarchConfig;
-    use zrak::train::checkpoint::Checkpoint;
-    use zrak::train::model::RadianceModel;
-    let run = std::path::PathBuf::from(std::env::var("ZRAK_GRID_RUN").expect("ZRAK_GRID_RUN"));
     let scene = demo::build_large(&DemoConfig::default());
-    let mut checkpoint = Checkpoint::load(&run.join("checkpoint.zrak")).expect("checkpoint");
-    // A run's checkpoint holds the trainer's state beside the model's.
-    checkpoint.header = checkpoint.header["model"].clone();
-    let mut model = CpuNgp::with_batch_samples(&scene, 0, LossKind::Huber, 1 << 18);
-    model
-        .load(&checkpoint)
-        .expect("an Instant-NGP checkpoint of this scene");
+    let model = model_of_run(&scene);
     let grid = model.occupancy();
     let geometry = grid.geometry();
     let per = geometry.cells_per_cascade();
@@ -398,21 +405,13 @@ fn large_demo_grid_by_cascade() {
 #[test]
 #[ignore]
 fn large_demo_occupied_cells_now() {
-    use zrak::train::checkpoint::Checkpoint;
-    use zrak::train::model::RadianceModel;
-    let run = std::path::PathBuf::from(std::env::var("ZRAK_GRID_RUN").expect("ZRAK_GRID_RUN"));
     let scene = demo::build_large(&DemoConfig {
         size: 16,
         train_views: 100,
         val_views: 1,
         test_views: 1,
     });
-    let mut checkpoint = Checkpoint::load(&run.join("checkpoint.zrak")).expect("checkpoint");
-    checkpoint.header = checkpoint.header["model"].clone();
-    let mut model = CpuNgp::with_batch_samples(&scene, 0, LossKind::Huber, 1 << 18);
-    model
-        .load(&checkpoint)
-        .expect("an Instant-NGP checkpoint of this scene");
+    let model = model_of_run(&scene);
     let grid = model.occupancy();
     let geometry = grid.geometry();
     let per = geometry.cells_per_cascade();

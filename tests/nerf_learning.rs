@@ -11,7 +11,7 @@ use zrak::field::nerf::Sampling;
 use zrak::field::ngp::LossKind;
 use zrak::scene::Scene;
 use zrak::scene::demo::{self, DemoConfig};
-use zrak::train::eval::{mean_colour_psnr, score_view};
+use zrak::train::eval::{mean_colour_psnr, mean_psnr};
 use zrak::train::trainer::Trainer;
 use zrak::train::{
     ModelSettings, cpu_model_of_nerf_fields, mipnerf_identity, mipnerf_recipe, nerf_identity,
@@ -102,12 +102,10 @@ fn train_demo(kind: Kind, default_steps: u32) -> (f64, f64) {
     let started = Instant::now();
     let mut last_loss = 0.0;
     let held_out = |trainer: &Trainer| {
-        scene
-            .val
-            .iter()
-            .map(|f| score_view(trainer.model.as_ref(), f, false).psnr)
-            .sum::<f64>()
-            / scene.val.len() as f64
+        mean_psnr(
+            trainer.model.as_ref(),
+            &scene.val.iter().collect::<Vec<_>>(),
+        )
     };
     // Held-out views are rendered at the end only (each evaluation of the
     // fog-filled early field costs about as much as 80 training steps);
@@ -168,11 +166,7 @@ fn mipnerf_learns_the_demo_scene_above_the_mean_colour() {
 /// `factor` times wider: Mip-NeRF's cones widen with them).
 fn held_out_psnr_at(trainer: &Trainer, scene: &Scene, factor: u32) -> f64 {
     let views: Vec<_> = scene.val.iter().map(|f| f.downscaled(factor)).collect();
-    views
-        .iter()
-        .map(|f| score_view(trainer.model.as_ref(), f, false).psnr)
-        .sum::<f64>()
-        / views.len() as f64
+    mean_psnr(trainer.model.as_ref(), &views.iter().collect::<Vec<_>>())
 }
 
 /// Mean PSNR of the model's renders of `scene`'s validation views drawn at

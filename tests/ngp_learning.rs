@@ -10,7 +10,7 @@ use zrak::engine::cpu::ngp::{CpuNgp, NgpShape};
 use zrak::field::ngp::LossKind;
 use zrak::scene::Scene;
 use zrak::scene::demo::{self, DemoConfig};
-use zrak::train::eval::{mean_colour_psnr, score_view};
+use zrak::train::eval::{mean_colour_psnr, mean_psnr};
 use zrak::train::model::RadianceModel;
 use zrak::train::trainer::Trainer;
 
@@ -34,12 +34,7 @@ fn demo_scene(size: u32) -> Arc<Scene> {
 
 /// Mean held-out PSNR of `model` on `scene`'s val views.
 fn val_psnr(model: &dyn RadianceModel, scene: &Scene) -> f64 {
-    scene
-        .val
-        .iter()
-        .map(|f| score_view(model, f, false).psnr)
-        .sum::<f64>()
-        / scene.val.len() as f64
+    mean_psnr(model, &scene.val.iter().collect::<Vec<_>>())
 }
 
 /// Trains Instant-NGP with products at `precision` for `steps` steps of
