@@ -464,7 +464,17 @@ impl OccupancyGrid {
     }
 
     /// The step the optical thickness of `cascade` is measured with: the
-    /// smallest march step scaled by the cascade's cell size, 2^cascade.
+    /// smallest march step scaled by the cascade's cell size, 2^cascade,
+    /// about the cone step a ray takes there. The instant-ngp paper
+    /// (appendix E.2) and its testbed (`splat_grid_samples_nerf_max_nearest_neighbor`,
+    /// `level = 0`) measure every cascade with the smallest step, a σ
+    /// threshold 2^cascade times higher in the outer cascades. Measured on
+    /// the large demo (2 minutes, cpu, mixed precision): that sparser grid
+    /// marched 390 samples per ray and composited 118 against 440 and 194,
+    /// but scored 23.5 dB on the held-out views against 25.3 (25.4 against
+    /// 25.8 on the training views): the cells it skips hold the thin
+    /// density the walls are made of at that stage of training. Object
+    /// scenes (one cascade) are not affected.
     pub fn cascade_step(&self, cascade: u32) -> f32 {
         self.min_step * (1u32 << cascade) as f32
     }
