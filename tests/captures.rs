@@ -432,7 +432,7 @@ fn large_demo_occupied_cells_now() {
         let cells: Vec<_> = (cascade as usize * per..(cascade as usize + 1) * per)
             .map(|i| geometry.cell_at(i))
             .filter(|&cell| {
-                let middle = geometry.cell_min(cell) + glam::Vec3::splat(0.5 * size);
+                let middle = geometry.cell_centre(cell);
                 grid.is_occupied(cell) && (middle - centre).length() < backdrop - size
             })
             .collect();
@@ -488,7 +488,7 @@ fn large_demo_occupied_cells_now() {
     let mut volume = vec![0f64; shells.len() - 1];
     for cell in (0..geometry.cell_count()).map(|i| geometry.cell_at(i)) {
         let size = geometry.cell_size(cell.cascade);
-        let middle = geometry.cell_min(cell) + glam::Vec3::splat(0.5 * size);
+        let middle = geometry.cell_centre(cell);
         let inner_half_side =
             0.5 * geometry.cell_size(cell.cascade.saturating_sub(1)) * geometry.resolution as f32;
         let inner = cell.cascade > 0

@@ -592,7 +592,7 @@ fn occupy_a_ball(scene: &Scene, checkpoint: &mut Checkpoint) {
     let radius = BALL_RADIUS * mapping.scale;
     for (i, v) in values.iter_mut().enumerate() {
         let cell = geometry.cell_at(i);
-        let middle = geometry.cell_min(cell) + Vec3::splat(0.5 * geometry.cell_size(cell.cascade));
+        let middle = geometry.cell_centre(cell);
         *v = if (middle - centre).length() < radius {
             1.0
         } else {

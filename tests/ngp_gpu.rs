@@ -43,7 +43,7 @@ fn share_ball_grid(cpu: &mut CpuNgp, gpu: &mut GpuNgp) {
         let geometry = grid.geometry();
         for (i, v) in grid.values_mut().iter_mut().enumerate() {
             let cell = geometry.cell_at(i);
-            let centre = geometry.cell_min(cell) + Vec3::splat(0.5 * geometry.cell_size(0));
+            let centre = geometry.cell_centre(cell);
             *v = if (centre - Vec3::splat(0.5)).length() < 0.2 {
                 1.0
             } else {

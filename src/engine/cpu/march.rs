@@ -1235,8 +1235,7 @@ mod tests {
         let geometry = grid.geometry();
         for (i, v) in grid.values_mut().iter_mut().enumerate() {
             let cell = geometry.cell_at(i);
-            let centre =
-                geometry.cell_min(cell) + Vec3::splat(0.5 / geometry.cells_per_unit(cell.cascade));
+            let centre = geometry.cell_centre(cell);
             *v = if occupied(i, centre) { 1.0 } else { 0.0 };
         }
         grid.build_bitfield();

@@ -176,6 +176,12 @@ impl GridGeometry {
             corner(cell.xyz[2]),
         )
     }
+
+    /// The centre of `cell` in unit coordinates.
+    #[inline(always)]
+    pub fn cell_centre(&self, cell: Cell) -> Vec3 {
+        self.cell_min(cell) + Vec3::splat(0.5 * self.cell_size(cell.cascade))
+    }
 }
 
 /// 2^e for small e, exactly, without a division or a libm call.
@@ -672,7 +678,7 @@ mod tests {
         ] {
             let cell = g.cell_at(index);
             assert_eq!(g.linear_index(cell), index);
-            let centre = g.cell_min(cell) + Vec3::splat(0.5 / g.cells_per_unit(cell.cascade));
+            let centre = g.cell_centre(cell);
             if cell.cascade == 0 || centre.cmplt(Vec3::ZERO).any() || centre.cmpgt(Vec3::ONE).any()
             {
                 assert_eq!(g.cell_of(centre), cell, "{index}");
