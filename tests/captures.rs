@@ -162,6 +162,45 @@ fn training_rays(scene: &Scene, rays: usize) -> (Vec<glam::Vec3>, Vec<glam::Vec3
         .unzip()
 }
 
+/// `rays` training rays of `scene` ([`training_rays`]) marched through
+/// `grid` with `config` and the first-sample offsets of training, no budget.
+struct MarchedTrainingRays {
+    origins: Vec<glam::Vec3>,
+    directions: Vec<glam::Vec3>,
+    samples: zrak::engine::cpu::march::MarchedSamples,
+    stats: zrak::engine::cpu::march::MarchStats,
+}
+
+fn march_training_rays(
+    scene: &Scene,
+    grid: &zrak::engine::cpu::occupancy::OccupancyGrid,
+    config: zrak::field::ngp::MarchConfig,
+    rays: usize,
+) -> MarchedTrainingRays {
+    use zrak::engine::cpu::march::{MarchParams, MarchWorkspace, MarchedSamples, march};
+    let (origins, directions) = training_rays(scene, rays);
+    let flat = |v: &[glam::Vec3]| v.iter().flat_map(|p| p.to_array()).collect::<Vec<f32>>();
+    let params = MarchParams {
+        config,
+        ..MarchParams::training(scene.unit_cube, 1)
+    };
+    let mut samples = MarchedSamples::default();
+    let stats = march(
+        grid,
+        &flat(&origins),
+        &flat(&directions),
+        &params,
+        &mut MarchWorkspace::default(),
+        &mut samples,
+    );
+    MarchedTrainingRays {
+        origins,
+        directions,
+        samples,
+        stats,
+    }
+}
+
 /// Mean samples per ray of `rays` training rays of `scene` marched through
 /// `grid` with `config`.
 fn samples_per_ray(
@@ -170,24 +209,7 @@ fn samples_per_ray(
     config: zrak::field::ngp::MarchConfig,
     rays: usize,
 ) -> f64 {
-    use zrak::engine::cpu::march::{MarchParams, MarchWorkspace, MarchedSamples, march};
-    let (origins, directions) = training_rays(scene, rays);
-    let flat = |v: &[glam::Vec3]| v.iter().flat_map(|p| p.to_array()).collect::<Vec<f32>>();
-    let (origins, directions) = (flat(&origins), flat(&directions));
-    let params = MarchParams {
-        config,
-        ..MarchParams::training(scene.unit_cube, 1)
-    };
-    let mut out = MarchedSamples::default();
-    let stats = march(
-        grid,
-        &origins,
-        &directions,
-        &params,
-        &mut MarchWorkspace::default(),
-        &mut out,
-    );
-    stats.samples as f64 / rays as f64
+    march_training_rays(scene, grid, config, rays).stats.samples as f64 / rays as f64
 }
 
 /// Mean samples per ray, and of them those beyond the large demo's
@@ -200,26 +222,12 @@ fn samples_beyond_backdrop(
     config: zrak::field::ngp::MarchConfig,
     rays: usize,
 ) -> (f64, f64) {
-    use zrak::engine::cpu::march::{MarchParams, MarchWorkspace, MarchedSamples, march};
-    let (origins, directions) = training_rays(scene, rays);
-    let flat = |v: &[glam::Vec3]| v.iter().flat_map(|p| p.to_array()).collect::<Vec<f32>>();
-    let params = MarchParams {
-        config,
-        ..MarchParams::training(scene.unit_cube, 1)
-    };
-    let mut out = MarchedSamples::default();
-    let stats = march(
-        grid,
-        &flat(&origins),
-        &flat(&directions),
-        &params,
-        &mut MarchWorkspace::default(),
-        &mut out,
-    );
+    let marched = march_training_rays(scene, grid, config, rays);
+    let (out, stats) = (&marched.samples, marched.stats);
     let mut beyond = 0usize;
     for r in 0..stats.rays_kept {
-        for s in out.ray_offsets[r] as usize..out.ray_offsets[r + 1] as usize {
-            let p = origins[r] + out.t[s] * directions[r];
+        for s in out.ray(r) {
+            let p = marched.origins[r] + out.t[s] * marched.directions[r];
             beyond += usize::from(p.length() > demo::BACKDROP_RADIUS);
         }
     }
@@ -536,27 +544,11 @@ fn large_demo_occupied_cells_now() {
 #[test]
 #[ignore]
 fn large_demo_weight_by_distance() {
-    use zrak::engine::cpu::march::{MarchParams, MarchWorkspace, MarchedSamples, march};
     use zrak::field::ngp::MarchConfig;
     let scene = demo::build_large(&DemoConfig::default());
     let model = model_of_run(&scene);
-    let grid = model.occupancy();
-    let rays = 4000;
-    let (origins, directions) = training_rays(&scene, rays);
-    let flat = |v: &[glam::Vec3]| v.iter().flat_map(|p| p.to_array()).collect::<Vec<f32>>();
-    let params = MarchParams {
-        config: MarchConfig::PAPER,
-        ..MarchParams::training(scene.unit_cube, 1)
-    };
-    let mut out = MarchedSamples::default();
-    let stats = march(
-        grid,
-        &flat(&origins),
-        &flat(&directions),
-        &params,
-        &mut MarchWorkspace::default(),
-        &mut out,
-    );
+    let marched = march_training_rays(&scene, model.occupancy(), MarchConfig::PAPER, 4000);
+    let (out, stats) = (&marched.samples, marched.stats);
     let sigma = model.densities(&out.positions);
     let edges = [
         0.0f32,
