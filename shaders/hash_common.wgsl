@@ -15,8 +15,11 @@ struct Params {
     // tables larger than one storage binding go a group of levels at a time.
     first_level: u32,
     table_base: u32,
-    _pad0: u32,
-    _pad1: u32,
+    // The grid's box (side extent around the unit cube's centre): a
+    // position x maps to (x − box_min) · inverse_extent in [0, 1], as on
+    // the cpu (0 and 1 for the unit cube).
+    box_min: f32,
+    inverse_extent: f32,
 }
 
 struct Level {
@@ -52,12 +55,13 @@ fn sample_index(group: vec3<u32>, lane: u32) -> u32 {
 }
 
 // The 8 corners of the cell holding p at `level`; corner c is offset by
-// (c & 1, (c >> 1) & 1, c >> 2). Coordinates outside [0, 1] are clamped to
-// the box, as on the cpu (a NaN coordinate gives an unspecified corner of
+// (c & 1, (c >> 1) & 1, c >> 2). Coordinates outside the box are clamped to
+// it, as on the cpu (a NaN coordinate gives an unspecified corner of
 // the grid, still inside the table: the cpu reads it as 0).
 fn corners(level: Level, p: vec3<f32>) -> Corners {
     let n = level.resolution;
-    let scaled = clamp(p, vec3<f32>(0.0), vec3<f32>(1.0)) * f32(n);
+    let q = (p - vec3<f32>(params.box_min)) * params.inverse_extent;
+    let scaled = clamp(q, vec3<f32>(0.0), vec3<f32>(1.0)) * f32(n);
     // scaled ≥ 0, so truncation is floor; x = 1 lands in the last cell with
     // fraction 1 rather than one cell beyond the grid.
     let cell = min(vec3<u32>(scaled), vec3<u32>(n - 1u));

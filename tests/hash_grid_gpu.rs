@@ -29,6 +29,7 @@ const TOLERANCE: f32 = 1e-4;
 fn paper_layout() -> HashGridLayout {
     HashGridLayout::new(&HashGridConfig {
         init_range: 1.0,
+        extent: 1.0,
         ..HashGridConfig::paper(1.0)
     })
 }
@@ -83,22 +84,55 @@ fn worst_relative_error(gpu: &[f32], cpu: &[f32], scale: &[f32]) -> f32 {
     worst
 }
 
+/// The grid of a large scene (aabb_scale 8): it spans the box [−3.5, 4.5]³.
+fn box_layout() -> HashGridLayout {
+    HashGridLayout::new(&HashGridConfig {
+        init_range: 1.0,
+        ..HashGridConfig::paper(8.0)
+    })
+}
+
+/// [`positions`] spread over the box of `layout`'s grid (its hard cases
+/// land on the box's faces, its cells' boundaries and just outside).
+fn box_positions(layout: &HashGridLayout, count: usize, seed: u64) -> Vec<[f32; 3]> {
+    let extent = layout.config().extent;
+    positions(layout, count, seed)
+        .into_iter()
+        .map(|p| p.map(|x| x * extent + 0.5 - 0.5 * extent))
+        .collect()
+}
+
 #[test]
 fn forward_matches_cpu() {
-    let context = context();
     let layout = paper_layout();
-    let grid = GpuHashGrid::new(&context, &layout, true).expect("the kernels compile");
-    let params = init_params(&layout, 1);
-    let positions = positions(&layout, 4000, 2);
+    check_forward(&layout, &positions(&layout, 4000, 2));
+}
+
+#[test]
+fn forward_over_a_large_scenes_box_matches_cpu() {
+    let layout = box_layout();
+    check_forward(&layout, &box_positions(&layout, 4000, 2));
+}
+
+#[test]
+fn backward_over_a_large_scenes_box_matches_cpu() {
+    let layout = box_layout();
+    check_backward_at(&layout, &box_positions(&layout, 4000, 4), true);
+}
+
+fn check_forward(layout: &HashGridLayout, positions: &[[f32; 3]]) {
+    let context = context();
+    let grid = GpuHashGrid::new(&context, layout, true).expect("the kernels compile");
+    let params = init_params(layout, 1);
     let width = layout.output_width();
 
-    let gpu = grid.encode_once(&context, &params, &positions);
+    let gpu = grid.encode_once(&context, &params, positions);
     let mut cpu = vec![0.0; positions.len() * width];
-    encode(&layout, &params, &positions, &mut cpu);
+    encode(layout, &params, positions, &mut cpu);
     // Σ_c w_c |θ_c|: the weights are ≥ 0.
     let abs_params: Vec<f32> = params.iter().map(|p| p.abs()).collect();
     let mut scale = vec![0.0; cpu.len()];
-    encode(&layout, &abs_params, &positions, &mut scale);
+    encode(layout, &abs_params, positions, &mut scale);
 
     let worst = worst_relative_error(&gpu, &cpu, &scale);
     eprintln!("forward: worst error {worst:e} of Σ|w θ|");
@@ -107,6 +141,11 @@ fn forward_matches_cpu() {
 
 /// The gradient on the gpu (native atomics or the fallback) against the cpu.
 fn check_backward(layout: &HashGridLayout, count: usize, float_atomics: bool) {
+    check_backward_at(layout, &positions(layout, count, 4), float_atomics);
+}
+
+fn check_backward_at(layout: &HashGridLayout, positions: &[[f32; 3]], float_atomics: bool) {
+    let count = positions.len();
     let context = context();
     let grid = GpuHashGrid::new(&context, layout, float_atomics).expect("the kernels compile");
     assert_eq!(
@@ -116,15 +155,14 @@ fn check_backward(layout: &HashGridLayout, count: usize, float_atomics: bool) {
     if float_atomics && !grid.uses_float_atomics() {
         eprintln!("this adapter has no f32 atomics: the fallback was tested instead");
     }
-    let positions = positions(layout, count, 4);
     let d_out = symmetric(count * layout.output_width(), 5);
 
-    let gpu = grid.backward_once(&context, &positions, &d_out);
+    let gpu = grid.backward_once(&context, positions, &d_out);
     let mut cpu = vec![0.0; layout.param_count()];
-    encode_backward(layout, &positions, &d_out, &mut cpu);
+    encode_backward(layout, positions, &d_out, &mut cpu);
     let abs_d_out: Vec<f32> = d_out.iter().map(|g| g.abs()).collect();
     let mut scale = vec![0.0; layout.param_count()];
-    encode_backward(layout, &positions, &abs_d_out, &mut scale);
+    encode_backward(layout, positions, &abs_d_out, &mut scale);
 
     // n, the contributions per entry, sets the bound in the header; print
     // its average (the busiest entries of the coarsest level get a few
@@ -168,6 +206,7 @@ fn contended_layout() -> HashGridLayout {
         base_resolution: 2,
         finest_resolution: 16,
         init_range: 1.0,
+        extent: 1.0,
     })
 }
 
@@ -274,6 +313,7 @@ fn large_batches_fold_into_more_dispatch_dimensions() {
         base_resolution: 8,
         finest_resolution: 8,
         init_range: 1.0,
+        extent: 1.0,
     });
     let grid = GpuHashGrid::new(&context, &layout, true).expect("the kernels compile");
     let params = init_params(&layout, 3);

@@ -19,6 +19,12 @@ pub struct HashGridConfig {
     pub finest_resolution: u32,
     /// Entries start uniform in ±this (paper, section 4: U(−1e-4, 1e-4)).
     pub init_range: f32,
+    /// Side of the cube the grid spans, centred on the unit cube's centre:
+    /// the scene's box (side aabb_scale). Positions are mapped from it onto
+    /// the grid's [0, 1]³, as the testbed's `warp_position` maps its aabb,
+    /// so N_max = 2048 · aabb_scale across the box is 2048 per unit-cube
+    /// length on every scene.
+    pub extent: f32,
 }
 
 impl HashGridConfig {
@@ -32,6 +38,7 @@ impl HashGridConfig {
             base_resolution: 16,
             finest_resolution: (2048.0 * aabb_scale).round() as u32,
             init_range: 1e-4,
+            extent: aabb_scale,
         }
     }
 

@@ -15,7 +15,9 @@
 //! one small contiguous read. Output layout: S × (L·F) row-major, level 0's
 //! features first in each row.
 //!
-//! Positions outside [0,1] (rounding in the world → unit-cube mapping can
+//! Positions are unit-cube coordinates, mapped from the grid's box (side
+//! `extent` around the unit cube's centre, the scene's box) onto [0,1]³.
+//! Positions outside it (rounding in the world → unit-cube mapping can
 //! leave a sample a few ulps outside) are clamped to the box, per axis, so
 //! they take the value on the nearest face; a NaN coordinate is read as 0.
 //! Clamped coordinates get zero gradient with respect to position, which
@@ -87,6 +89,11 @@ impl HashGridLayout {
             config.features_per_level
         );
         assert!(config.log2_table_size <= 31, "T must fit in u32");
+        assert!(
+            config.extent.is_finite() && config.extent > 0.0,
+            "the grid's box must have a positive side, got {}",
+            config.extent
+        );
         let table_size = config.table_size();
         let growth = config.growth_factor();
         let mut levels = Vec::with_capacity(config.levels as usize);
@@ -213,6 +220,10 @@ fn splitmix64(x: u64) -> u64 {
 /// What the inner loops need of one level, converted once.
 #[derive(Clone, Copy)]
 struct LevelMath<T> {
+    /// The grid's box: a position x maps to (x − box_min) / extent in
+    /// [0, 1] (0 and 1 when the box is the unit cube, leaving x as it is).
+    box_min: T,
+    inverse_extent: T,
     scale: T,
     /// N_l − 1: the cell of a coordinate exactly on the far face.
     last_cell: u32,
@@ -249,7 +260,11 @@ impl<T: Real> Corners<T> {
 impl<T: Real> LevelMath<T> {
     fn new(layout: &HashGridLayout, level: &LevelLayout) -> Self {
         let side = level.resolution + 1;
+        let extent = layout.config.extent as f64;
+        let real = |v: f64| T::from(v).expect("a finite box");
         Self {
+            box_min: real(0.5 - 0.5 * extent),
+            inverse_extent: real(1.0 / extent),
             scale: T::from_index(level.resolution),
             last_cell: level.resolution - 1,
             stride_y: side,
@@ -293,7 +308,7 @@ impl<T: Real> LevelMath<T> {
             for axis in 0..3 {
                 // Compare-and-select rather than max/min, whose NaN rules do
                 // not vectorise; `x > 0` is false for NaN, which so becomes 0.
-                let x = positions[k][axis];
+                let x = (positions[k][axis] - self.box_min) * self.inverse_extent;
                 let x = if x > T::zero() { x } else { T::zero() };
                 let x = if x < T::one() { x } else { T::one() };
                 let scaled = x * self.scale;
@@ -899,6 +914,7 @@ mod tests {
             base_resolution: 4,
             finest_resolution: 16,
             init_range: 1.0,
+            extent: 1.0,
         }
     }
 
@@ -995,6 +1011,7 @@ mod tests {
             base_resolution: 16,
             finest_resolution: 64,
             init_range: 1.0,
+            extent: 1.0,
         };
         let layout = HashGridLayout::new(&config);
         let levels = layout.levels();
@@ -1165,6 +1182,56 @@ mod tests {
         encode(&layout, &params, &inside, &mut b);
         assert!(a.iter().all(|v| v.is_finite()));
         assert_eq!(a, b);
+    }
+
+    /// A large scene's grid spans its whole box (side aabb_scale around the
+    /// unit cube's centre), not the unit cube: a position x encodes as
+    /// (x − box_min) / extent does on a unit-cube grid with the same tables,
+    /// so points outside the unit cube but inside the box keep their own
+    /// features (clamping them to the unit cube's faces made the whole far
+    /// field of a large scene an extrusion of those faces), and only points
+    /// outside the box are clamped.
+    #[test]
+    fn a_grid_spans_its_box() {
+        let boxed = HashGridConfig::paper(8.0);
+        assert_eq!(boxed.extent, 8.0);
+        let unit = HashGridConfig {
+            extent: 1.0,
+            ..boxed
+        };
+        let (boxed, unit) = (HashGridLayout::new(&boxed), HashGridLayout::new(&unit));
+        let params = init_params(&boxed, 3);
+        let width = boxed.output_width();
+        // Unit-cube coordinates; the box is [−3.5, 4.5]³, and −3.5 + 8k/16 is
+        // exactly representable, so the mapped points are exact too.
+        let positions: Vec<[f32; 3]> = vec![
+            [0.5, 0.5, 0.5],
+            [2.0, 0.5, 0.5],
+            [3.0, 0.5, 0.5],
+            [-3.0, 4.0, 1.25],
+            [4.5, -3.5, 4.5],
+            [9.0, 0.5, 0.5],
+        ];
+        let mapped: Vec<[f32; 3]> = positions
+            .iter()
+            .map(|p| p.map(|x| ((x + 3.5) / 8.0).clamp(0.0, 1.0)))
+            .collect();
+        let mut from_box = vec![0.0f32; positions.len() * width];
+        let mut from_unit = vec![0.0f32; positions.len() * width];
+        encode(&boxed, &params, &positions, &mut from_box);
+        encode(&unit, &params, &mapped, &mut from_unit);
+        assert_eq!(from_box, from_unit);
+        let row = |i: usize| &from_box[i * width..(i + 1) * width];
+        // Two points past the unit cube's face along x differ (they were
+        // equal when the grid spanned the unit cube), as do the centre
+        // and a point beyond it.
+        assert_ne!(row(1), row(2));
+        assert_ne!(row(0), row(1));
+        // Past the box's face, the face's value.
+        let face = [[4.5f32, 0.5, 0.5]];
+        let mut on_face = vec![0.0f32; width];
+        encode(&boxed, &params, &face, &mut on_face);
+        assert_eq!(row(5), on_face.as_slice());
     }
 
     /// ⟨encode(θ, p), d_out⟩ as a function of θ.

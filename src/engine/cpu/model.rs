@@ -1361,6 +1361,7 @@ impl RadianceModel for CpuModel {
                 param_count: self.params.len(),
                 sampling: Some(self.identity.sampling.into()),
                 used_fraction: Some(self.used_fraction),
+                grid_extent: None,
             },
             params: self.params.clone(),
             adam: self.adam.clone(),

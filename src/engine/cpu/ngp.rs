@@ -711,6 +711,7 @@ impl RadianceModel for CpuNgp {
                 param_count: self.params.len(),
                 sampling: None,
                 used_fraction: None,
+                grid_extent: Some(self.shape.grid.config().extent),
             },
             params: self.params.clone(),
             adam: self.adam.clone(),
@@ -726,6 +727,9 @@ impl RadianceModel for CpuNgp {
             self.params.len(),
             Some(self.grid.values().len()),
         )?;
+        state
+            .header
+            .check_grid_extent(self.shape.grid.config().extent)?;
         self.params = state.params;
         self.adam = state.adam;
         if let Some(occupancy) = &state.occupancy {

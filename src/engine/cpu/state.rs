@@ -25,6 +25,32 @@ pub(crate) struct ModelHeader {
     /// cut), by which the cpu engine orders its next step's passes.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub used_fraction: Option<f64>,
+    /// The side of the box an Instant-NGP hash grid spans (the scene's
+    /// aabb_scale); absent from checkpoints written before the grid spanned
+    /// the box rather than the unit cube.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub grid_extent: Option<f32>,
+}
+
+impl ModelHeader {
+    /// Whether the checkpoint's hash grid spans the box this model's does
+    /// (`extent`). Checkpoints without the field spanned the unit cube: they
+    /// serve object scenes as before, but on a large scene their field
+    /// outside the unit cube was the cube's faces drawn outward, which the
+    /// box-spanning grid cannot read back.
+    pub fn check_grid_extent(&self, extent: f32) -> Result<(), String> {
+        match self.grid_extent {
+            Some(saved) if saved == extent => Ok(()),
+            None if extent == 1.0 => Ok(()),
+            Some(saved) => Err(format!(
+                "the checkpoint's hash grid spans a box of side {saved}, this scene's {extent}"
+            )),
+            None => Err(format!(
+                "the checkpoint was written before zrak's hash grid spanned a large scene's \
+                 whole box (aabb_scale {extent}); its field does not carry over: train the scene again"
+            )),
+        }
+    }
 }
 
 /// Everything a checkpoint holds.
@@ -117,6 +143,36 @@ mod tests {
     fn valid_header() -> Value {
         json!({"model": "ngp", "loss": "Huber", "seed": 0, "adam_step": 3,
             "samples_per_ray": 4.0, "param_count": 4})
+    }
+
+    /// An Instant-NGP checkpoint reads back only into a grid over the same
+    /// box; one without the field (written when every grid spanned the unit
+    /// cube) still serves object scenes, and a large scene refuses it,
+    /// saying why.
+    #[test]
+    fn grid_extent_must_match_the_scenes_box() {
+        let header = |extent: Option<f32>| {
+            let mut value = valid_header();
+            if let Some(extent) = extent {
+                value["grid_extent"] = json!(extent);
+            }
+            serde_json::from_value::<ModelHeader>(value).expect("a valid header")
+        };
+        assert_eq!(header(None).check_grid_extent(1.0), Ok(()));
+        assert_eq!(header(Some(8.0)).check_grid_extent(8.0), Ok(()));
+        let old = header(None).check_grid_extent(8.0).unwrap_err();
+        assert!(
+            old.contains("aabb_scale 8") && old.contains("train the scene again"),
+            "{old}"
+        );
+        let other = header(Some(4.0)).check_grid_extent(8.0).unwrap_err();
+        assert!(
+            other.contains("side 4") && other.contains("scene's 8"),
+            "{other}"
+        );
+        // Written and read back.
+        let written = serde_json::to_value(header(Some(8.0))).expect("serialisable");
+        assert_eq!(written["grid_extent"], json!(8.0));
     }
 
     /// Header values of the wrong type, size or content.

@@ -41,7 +41,9 @@ struct Params {
     // there), and the table binding starts at parameter table_base.
     first_level: u32,
     table_base: u32,
-    _pad: [u32; 2],
+    // The grid's box, see `LevelMath` in the cpu stage.
+    box_min: f32,
+    inverse_extent: f32,
 }
 
 /// Levels whose tables are bound together: `params[base..base + len]`
@@ -114,6 +116,8 @@ pub struct GpuHashGrid {
     groups: Vec<LevelGroup>,
     features: u32,
     width: u32,
+    box_min: f32,
+    inverse_extent: f32,
     param_count: usize,
     float_atomics: bool,
 }
@@ -178,6 +182,8 @@ impl GpuHashGrid {
             groups,
             features: layout.features() as u32,
             width: layout.output_width() as u32,
+            box_min: (0.5 - 0.5 * layout.config().extent as f64) as f32,
+            inverse_extent: (1.0 / layout.config().extent as f64) as f32,
             param_count: layout.param_count(),
             float_atomics,
         })
@@ -225,7 +231,8 @@ impl GpuHashGrid {
                     groups_x: x,
                     first_level: group.levels.start,
                     table_base: group.base as u32,
-                    _pad: [0; 2],
+                    box_min: self.box_min,
+                    inverse_extent: self.inverse_extent,
                 };
                 // A fresh uniform per recorded dispatch, so several can
                 // share one command encoder with different batch sizes.

@@ -1421,6 +1421,7 @@ impl RadianceModel for GpuModel {
                 param_count: self.param_count,
                 sampling: Some(self.identity.sampling.into()),
                 used_fraction: None,
+                grid_extent: None,
             },
             params: self.params(),
             adam,

@@ -1012,6 +1012,7 @@ impl RadianceModel for GpuNgp {
                 param_count: self.shape.param_count(),
                 sampling: None,
                 used_fraction: None,
+                grid_extent: Some(self.shape.grid.config().extent),
             },
             params: self.params(),
             adam,
@@ -1027,6 +1028,9 @@ impl RadianceModel for GpuNgp {
             self.shape.param_count(),
             Some(self.grid.values().len()),
         )?;
+        state
+            .header
+            .check_grid_extent(self.shape.grid.config().extent)?;
         let queue = &self.context.queue;
         for (values, buffer) in [
             (&state.adam.m, &self.adam.m),
