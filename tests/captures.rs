@@ -409,8 +409,9 @@ fn large_demo_grid_by_cascade() {
 /// 16 random points (σ times the cascade's step, the grid's own measure)
 /// exceeds the threshold at the mean, at the median and at the largest of
 /// them, with the quartiles of those medians; then the share of each
-/// spherical shell around the objects that occupied cells fill (after
-/// `zrak train large --time 2m`: 23 % inside the objects' sphere, 22 %
+/// spherical shell around the objects that occupied cells fill (while
+/// the hash grid spanned only the unit cube, after `zrak train large
+/// --time 2m`: 23 % inside the objects' sphere, 22 %
 /// between it and the cameras, 61, 78, 92, 96 % in the shells out to the
 /// backdrop; after 10 minutes 26, 28, 71, 85, 95, 98 %).
 /// `ZRAK_GRID_RUN=RUN cargo test --release --test captures
@@ -533,12 +534,12 @@ fn large_demo_occupied_cells_now() {
 /// it with a 40° field of view, and the objects lie within 1.25 of it, so
 /// a ray meets an object 2.75 to 5.25 units out or the backdrop (radius
 /// 10) 13.4 to 14 units out, and nothing in between. After `zrak train
-/// large --time 2m`, 46 % of the rays have their median depth 6 to 11
-/// units out and 0.9 % beyond 11; 2.5 % of all weight lies beyond 11: the
-/// backdrop is drawn as a thick cloud behind and under the objects,
-/// Mip-NeRF 360's "background collapse", and each ray composites ~150 of
-/// its ~195 samples in it (3 to 11 units out). After 10 minutes 35 % of
-/// the median depths lie 6 to 11 units out and 0.2 % beyond 11.
+/// large --time 2m`, 67 % of the rays have their median depth 11 to 14
+/// units out and 0.3 % 6 to 11 units out. While the hash grid spanned only
+/// the unit cube, 46 % had it 6 to 11 units out and 0.9 % beyond 11: the
+/// backdrop was drawn as a thick cloud behind and under the objects, where
+/// the extruded faces of the unit cube could draw it, and each ray
+/// composited ~150 of its ~195 samples in it.
 /// `ZRAK_GRID_RUN=RUN cargo test --release --test captures
 /// large_demo_weight_by_distance -- --ignored --nocapture`.
 #[test]
