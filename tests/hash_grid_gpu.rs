@@ -29,7 +29,6 @@ const TOLERANCE: f32 = 1e-4;
 fn paper_layout() -> HashGridLayout {
     HashGridLayout::new(&HashGridConfig {
         init_range: 1.0,
-        extent: 1.0,
         ..HashGridConfig::paper(1.0)
     })
 }

@@ -42,6 +42,15 @@ impl HashGridConfig {
         }
     }
 
+    /// How a unit-cube position x reaches the grid: (x − box_min) ·
+    /// inverse_extent, returned as (box_min, inverse_extent) in f64 for each
+    /// engine to round to its own precision ((0, 1) for the unit cube, which
+    /// leaves x as it is).
+    pub fn box_mapping(&self) -> (f64, f64) {
+        let extent = self.extent as f64;
+        (0.5 - 0.5 * extent, 1.0 / extent)
+    }
+
     /// b = exp((ln N_max − ln N_min) / (L − 1)) (paper, eq. 3).
     pub fn growth_factor(&self) -> f64 {
         if self.levels <= 1 {

@@ -260,11 +260,11 @@ impl<T: Real> Corners<T> {
 impl<T: Real> LevelMath<T> {
     fn new(layout: &HashGridLayout, level: &LevelLayout) -> Self {
         let side = level.resolution + 1;
-        let extent = layout.config.extent as f64;
+        let (box_min, inverse_extent) = layout.config.box_mapping();
         let real = |v: f64| T::from(v).expect("a finite box");
         Self {
-            box_min: real(0.5 - 0.5 * extent),
-            inverse_extent: real(1.0 / extent),
+            box_min: real(box_min),
+            inverse_extent: real(inverse_extent),
             scale: T::from_index(level.resolution),
             last_cell: level.resolution - 1,
             stride_y: side,

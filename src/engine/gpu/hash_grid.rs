@@ -175,6 +175,7 @@ impl GpuHashGrid {
                 mask,
             })
             .collect();
+        let (box_min, inverse_extent) = layout.config().box_mapping();
         Ok(Self {
             encode,
             backward,
@@ -182,8 +183,8 @@ impl GpuHashGrid {
             groups,
             features: layout.features() as u32,
             width: layout.output_width() as u32,
-            box_min: (0.5 - 0.5 * layout.config().extent as f64) as f32,
-            inverse_extent: (1.0 / layout.config().extent as f64) as f32,
+            box_min: box_min as f32,
+            inverse_extent: inverse_extent as f32,
             param_count: layout.param_count(),
             float_atomics,
         })
