@@ -113,6 +113,7 @@ impl Kernel {
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, &bind_group, &[]);
         pass.dispatch_workgroups(workgroups[0], workgroups[1], workgroups[2]);
+        context.counters.count_dispatch();
     }
 
     /// Records, submits and waits for one dispatch.
@@ -237,6 +238,7 @@ pub fn read_buffer<T: Pod>(context: &GpuContext, buffer: &wgpu::Buffer, count: u
     let mut encoder = context.device.create_command_encoder(&Default::default());
     encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, size);
     context.queue.submit([encoder.finish()]);
+    context.counters.count_blocking_readback();
     let slice = staging.slice(..);
     let (sender, receiver) = std::sync::mpsc::channel();
     slice.map_async(wgpu::MapMode::Read, move |result| {
@@ -261,6 +263,7 @@ pub fn read_mapped<T: bytemuck::Pod>(
     count: usize,
 ) -> Vec<T> {
     let size = (count * std::mem::size_of::<T>()) as u64;
+    context.counters.count_blocking_readback();
     let slice = staging.slice(..size);
     let (sender, receiver) = std::sync::mpsc::channel();
     slice.map_async(wgpu::MapMode::Read, move |result| {
