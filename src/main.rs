@@ -149,6 +149,12 @@ enum BenchCommand {
     /// Training-step throughput per stage on a scene (default: lego_400 when
     /// present beside the checkout, else the demo scene).
     Throughput(ThroughputArgs),
+    /// The gpu engine on this machine's GPU: the adapter, its limits and
+    /// features; a self-check of each model against the cpu engine (one
+    /// training step and one render, with the parity tests' tolerances);
+    /// then each model's stage times for a training step. Exits with
+    /// status 1 if a check fails.
+    Gpu(GpuBenchArgs),
     /// The accuracy-versus-time experiment: trains each model on each scene
     /// for a budget of training time, scores PSNR and SSIM at marks along
     /// the way, and writes results.json, results.csv, report.md and plots
@@ -183,6 +189,29 @@ struct ThroughputArgs {
     /// mixed where the processor has bf16 kernels, else f32.
     #[arg(long, value_enum)]
     precision: Option<Precision>,
+}
+
+#[derive(Args)]
+struct GpuBenchArgs {
+    /// The scene the stage times are measured on (default: lego_400 when
+    /// present beside the checkout, else the demo scene).
+    #[arg(long)]
+    scene: Option<String>,
+    /// The models, comma-separated.
+    #[arg(
+        long,
+        value_enum,
+        value_delimiter = ',',
+        default_value = "ngp,nerf,mipnerf"
+    )]
+    models: Vec<ModelKind>,
+    /// Unmeasured steps before the timed ones (default: each model's
+    /// occupancy warm-up and a few more, as `bench throughput`).
+    #[arg(long)]
+    warmup: Option<usize>,
+    /// Timed steps per model (0: the self-check only).
+    #[arg(long, default_value_t = 16)]
+    steps: usize,
 }
 
 #[derive(Args)]
@@ -466,6 +495,7 @@ fn main() -> ExitCode {
         }) => eval(&run, split.into(), engine, downscale),
         Some(Command::Render(args)) => render(args),
         Some(Command::Bench(BenchCommand::Throughput(args))) => bench_throughput(args),
+        Some(Command::Bench(BenchCommand::Gpu(args))) => bench_gpu(args),
         Some(Command::Bench(BenchCommand::Quality(args))) => bench_quality(args),
         Some(Command::Bench(BenchCommand::Dense { rows, repeats })) => {
             bench_dense(rows, repeats);
@@ -1123,6 +1153,121 @@ fn bench_dense(rows: usize, repeats: usize) {
 /// seconds on lavapipe.
 const SOFTWARE_GPU_NERF_SAMPLES: usize = 1 << 12;
 
+/// Unmeasured steps before a throughput measurement: past the occupancy
+/// grid's warm-up (its first 256 steps update every cell, twice the work of
+/// a later update) and a few more, so the figures are those of most of a
+/// run; 1 on a software adapter, where a gpu step takes minutes.
+fn default_warmup(model: ModelKind, sampling: Sampling, software_gpu: bool) -> usize {
+    match model {
+        _ if software_gpu => 1,
+        ModelKind::Ngp => OccupancyConfig::PAPER.warmup_steps as usize + 32,
+        // Past the grid's warm-up too, with the occupancy sampler; the
+        // paper's sampler has no grid, and a few steps settle its caches.
+        ModelKind::Nerf | ModelKind::MipNerf => match sampling {
+            Sampling::Occupancy => zrak::field::nerf::OCCUPANCY.warmup_steps as usize + 16,
+            Sampling::Paper => 2,
+        },
+    }
+}
+
+fn bench_gpu(args: GpuBenchArgs) -> anyhow::Result<()> {
+    use zrak::bench::gpu::{CheckSize, all_passed, check_scene_name, describe_device, self_check};
+    let context = zrak::engine::gpu::GpuContext::new()?;
+    for (name, value) in describe_device(&context) {
+        say(&format!("{name:<22} {value}"));
+    }
+    let software = context.is_software();
+    let size = if software {
+        CheckSize::SOFTWARE
+    } else {
+        CheckSize::DEVICE
+    };
+    say(&format!(
+        "\nself-check: each model, one training step and one render from the same state on \
+         both engines, {}, held to the parity tests' tolerances",
+        check_scene_name(size)
+    ));
+    let mut checks = Vec::new();
+    for &model in &args.models {
+        if interrupt::requested() {
+            break;
+        }
+        for check in self_check(&context, model, size) {
+            say(&format!(
+                "  {:<11} {:<22} {}  {} ({})",
+                check.model.name(),
+                check.what,
+                if check.passed { "pass" } else { "FAIL" },
+                check.measured,
+                check.limit
+            ));
+            checks.push(check);
+        }
+    }
+    let failed = checks.iter().filter(|c| !c.passed).count();
+    say(&format!(
+        "self-check: {} of {} checks passed",
+        checks.len() - failed,
+        checks.len()
+    ));
+
+    if args.steps > 0 && !interrupt::requested() {
+        let scene_name = match args.scene {
+            Some(name) => name,
+            None => zrak::bench::default_scene_path()
+                .map(|p| p.display().to_string())
+                .unwrap_or_else(|| "demo".into()),
+        };
+        let scene = Arc::new(load_scene(&scene_name, 1)?);
+        for &model in &args.models {
+            if interrupt::requested() {
+                break;
+            }
+            say(&format!("\n{} on {}:", model.name(), scene.name));
+            let choice = zrak::engine::EngineChoice {
+                kind: EngineKind::Gpu,
+                gpu: Some(zrak::engine::gpu::GpuContext::from_existing(
+                    &context.adapter,
+                    context.device.clone(),
+                    context.queue.clone(),
+                )?),
+                reason: format!("gpu engine on {}", context.describe()),
+            };
+            let counters = choice.gpu.as_ref().map(|gpu| gpu.counters.clone());
+            let engine_line = choice.reason.clone();
+            let settings = ModelSettings {
+                seed: 0,
+                loss: model.default_loss(),
+                batch_samples: (software && model != ModelKind::Ngp)
+                    .then_some(SOFTWARE_GPU_NERF_SAMPLES),
+                sampling: Sampling::Occupancy,
+                precision: Precision::F32,
+            };
+            let built =
+                build_model(model, choice, &scene, &settings).map_err(anyhow::Error::msg)?;
+            let mut trainer = Trainer::new(built, scene.clone(), 0);
+            let warmup = args
+                .warmup
+                .unwrap_or_else(|| default_warmup(model, Sampling::Occupancy, software));
+            let report = zrak::bench::throughput(
+                &mut trainer,
+                warmup,
+                args.steps,
+                interrupt::flag(),
+                counters.as_deref(),
+            );
+            zrak::bench::print_report(&report, &scene, &engine_line);
+        }
+    }
+    if !all_passed(&checks) {
+        anyhow::bail!(
+            "the gpu engine's self-check failed: {failed} of {} checks",
+            checks.len()
+        );
+    }
+    Ok(())
+}
+
 fn bench_throughput(args: ThroughputArgs) -> anyhow::Result<()> {
     let ThroughputArgs {
         scene,
@@ -1144,18 +1289,10 @@ fn bench_throughput(args: ThroughputArgs) -> anyhow::Result<()> {
     let scene = Arc::new(load_scene(&scene_name, downscale)?);
     let choice = choose_engine(engine)?;
     let engine_line = choice.reason.clone();
+    let counters = choice.gpu.as_ref().map(|gpu| gpu.counters.clone());
     let software_gpu =
         choice.kind == EngineKind::Gpu && choice.gpu.as_ref().is_some_and(|gpu| gpu.is_software());
-    let warmup = warmup.unwrap_or(match model {
-        _ if software_gpu => 1,
-        ModelKind::Ngp => OccupancyConfig::PAPER.warmup_steps as usize + 32,
-        // Past the grid's warm-up too, with the occupancy sampler; the
-        // paper's sampler has no grid, and a few steps settle its caches.
-        ModelKind::Nerf | ModelKind::MipNerf => match sampling {
-            Sampling::Occupancy => zrak::field::nerf::OCCUPANCY.warmup_steps as usize + 16,
-            Sampling::Paper => 2,
-        },
-    });
+    let warmup = warmup.unwrap_or_else(|| default_warmup(model, sampling, software_gpu));
     // On a software adapter NeRF's paper-size batch (1024 rays × 256
     // samples of an 8 × 256 network, ~1 T FLOP a step) would take many
     // minutes a step at lavapipe's few GFLOP/s: there the bench is a
@@ -1175,7 +1312,13 @@ fn bench_throughput(args: ThroughputArgs) -> anyhow::Result<()> {
         println!("software adapter: NeRF batches of ~{samples} samples (a correctness run)");
     }
     let peak = zrak::engine::cpu::dense::measure_peak_gflops();
-    let report = zrak::bench::throughput(&mut trainer, warmup, steps, interrupt::flag());
+    let report = zrak::bench::throughput(
+        &mut trainer,
+        warmup,
+        steps,
+        interrupt::flag(),
+        counters.as_deref(),
+    );
     if interrupt::requested() {
         if report.steps == 0 {
             note("interrupted before any measured step: nothing to report");
