@@ -282,6 +282,8 @@ pub fn self_check(context: &GpuContext, kind: ModelKind, size: CheckSize) -> Vec
         draw(cpu.as_ref(), &mut batch);
         cpu.step(&batch, step);
     }
+    // The step's own loss and the cpu engine's order of grid updates.
+    gpu.set_read_back_late(false);
     if let Err(error) = gpu.load(&cpu.save()) {
         check(
             "state",

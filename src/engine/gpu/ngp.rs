@@ -40,8 +40,8 @@ use super::context::{GpuContext, GpuError};
 use super::dense::{GpuDense, GpuMlpWorkspace};
 use super::hash_grid::GpuHashGrid;
 use super::kernel::{
-    Kernel, float_range, pieces, read_buffer, read_mapped, rows_per_piece, storage_buffer,
-    uniform_buffer, zeroed_storage_buffer,
+    Kernel, MapRequest, float_range, pieces, read_buffer, read_mapped, rows_per_piece,
+    staging_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer,
 };
 use super::loss::GpuLoss;
 use super::march::{GpuGrid, GpuMarch, GpuMarchBuffers, GpuRays, dispatch_grid};
@@ -50,7 +50,9 @@ use super::render::{
     RenderKernels, check_target,
 };
 use super::sh::GpuSh;
-use super::step::{self, CompositeAndLoss, RayBuffers, SampleGradientBuffers};
+use super::step::{
+    self, CompositeAndLoss, RayBuffers, SampleGradientBuffers, StepReadback, StepResults,
+};
 use super::timing::{Stage, StageClock, StageTiming};
 use crate::engine::cpu::composite_batch::Distortion;
 use crate::engine::cpu::hash_grid;
@@ -132,9 +134,14 @@ pub struct GpuNgp {
     march_out: GpuMarchBuffers,
     rays: RayBuffers,
     samples: SampleBuffers,
-    /// Mappable copies of the step's two read-backs.
+    /// Mappable copy of the march's counters.
     counters_staging: wgpu::Buffer,
-    loss_staging: wgpu::Buffer,
+    /// The loss and stage times of each step.
+    readback: StepReadback,
+    /// Densities of an occupancy update read a step late
+    /// ([`StepReadback`]): applied once the step's march read-back has
+    /// waited for them.
+    pending_grid: Option<MapRequest>,
     batch_sizer: BatchSizer,
     optimiser: OptimiserConfig,
     loss: LossKind,
@@ -279,7 +286,8 @@ impl GpuNgp {
             rays: RayBuffers::new(ctx, ray_capacity),
             samples,
             counters_staging: staging("ngp counters read-back", 8),
-            loss_staging: staging("ngp loss read-back", 4),
+            readback: StepReadback::new(ctx),
+            pending_grid: None,
             batch_sizer,
             optimiser: OptimiserConfig::PAPER,
             loss,
@@ -349,7 +357,19 @@ impl GpuNgp {
     /// of the mean loss in the gradient buffer ([`Self::gradients`])
     /// without changing any parameter, as `CpuNgp::forward_backward`.
     pub fn forward_backward(&mut self, batch: &RayBatch, step: u32) -> StepStats {
+        if let Some(clock) = self.clock.as_mut() {
+            clock.reset();
+        }
         self.run(batch, step, false)
+    }
+
+    /// Reads each step's loss, stage times and occupancy update back at
+    /// once (`false`: two or three waits for the device per step, each
+    /// step's own figures, the cpu engine's order of updates) or a step
+    /// late (`true`, the default: one wait per step; see
+    /// [`StepReadback`]).
+    pub fn set_read_back_late(&mut self, late: bool) {
+        self.readback.set_late(late);
     }
 
     /// Records copies of the two networks' parameters out of the flat
@@ -504,7 +524,6 @@ impl GpuNgp {
             .clock
             .take()
             .unwrap_or_else(|| StageClock::new(&self.context, StageTiming::Timestamps));
-        clock.reset();
 
         // Submission 1: the march, and its counters read back.
         self.upload_rays(batch);
@@ -548,6 +567,7 @@ impl GpuNgp {
             let counters: Vec<u32> = read_mapped(&self.context, &self.counters_staging, 2);
             (counters[0] as usize, counters[1] as usize)
         };
+        let previous = self.readback.take_previous(&self.context);
         // The samples are those of the kept rays (the rest are past the
         // budget), so they are what a ray holds on average.
         self.batch_sizer.record(kept, samples);
@@ -654,16 +674,15 @@ impl GpuNgp {
             );
         }
         clock.mark(ctx, &mut encoder, Stage::Optimiser);
-        clock.resolve(&mut encoder);
-        encoder.copy_buffer_to_buffer(&self.rays.loss_total, 0, &self.loss_staging, 0, 4);
+        self.readback
+            .record(&mut encoder, &clock, &self.rays.loss_total);
         ctx.queue.submit([encoder.finish()]);
-        let loss: Vec<f32> = read_mapped(ctx, &self.loss_staging, 1);
-        let times = clock.read(ctx);
+        let StepResults { loss, times } = self.readback.finish(ctx, &clock, previous);
         self.clock = Some(clock);
 
         StepStats {
-            loss: loss[0],
-            level_losses: [loss[0], 0.0],
+            loss,
+            level_losses: [loss, 0.0],
             rays: if rays == 0 { 0 } else { kept },
             samples,
             samples_composited: None,
@@ -675,7 +694,9 @@ impl GpuNgp {
     /// The occupancy update of `step`: cells and points chosen on the cpu,
     /// densities evaluated on the gpu (in chunks of the sample budget, all
     /// in one submission) and read back, the EMA and bitfield on the cpu,
-    /// the bitfield uploaded.
+    /// the bitfield uploaded. Read a step late, the densities come back
+    /// with the step's march read-back and the new bitfield is used from
+    /// the next step on ([`Self::apply_pending_grid_update`]).
     fn update_grid(&mut self, step: u32) {
         let report = self.grid.plan_update(step, self.seed);
         let n = report.samples;
@@ -687,6 +708,10 @@ impl GpuNgp {
         );
         let all_sigma = zeroed_storage_buffer::<f32>(ctx, "ngp grid update sigma", n);
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        let late = self.readback.is_late();
+        if late && let Some(clock) = self.clock.as_mut() {
+            clock.restart(ctx, &mut encoder);
+        }
         self.record_network_params(&mut encoder);
         let chunk = self.batch_samples.max(1);
         for start in (0..n).step_by(chunk) {
@@ -707,10 +732,33 @@ impl GpuNgp {
                 4 * count as u64,
             );
         }
+        if late {
+            if let Some(clock) = self.clock.as_mut() {
+                clock.mark(ctx, &mut encoder, Stage::GridUpdate);
+            }
+            let staging = staging_buffer(ctx, "ngp grid update read-back", 4 * n as u64);
+            encoder.copy_buffer_to_buffer(&all_sigma, 0, &staging, 0, 4 * n as u64);
+            ctx.queue.submit([encoder.finish()]);
+            self.pending_grid = Some(MapRequest::new(&staging, 4 * n as u64));
+            return;
+        }
         ctx.queue.submit([encoder.finish()]);
         let sigma: Vec<f32> = read_buffer(ctx, &all_sigma, n);
-        self.grid.apply_update(&sigma);
-        ctx.queue.write_buffer(
+        self.apply_grid_update(&sigma);
+    }
+
+    /// Applies densities read a step late by [`Self::update_grid`], once
+    /// the device is done with them.
+    fn apply_pending_grid_update(&mut self) {
+        if let Some(request) = self.pending_grid.take() {
+            let sigma: Vec<f32> = request.take(&self.context);
+            self.apply_grid_update(&sigma);
+        }
+    }
+
+    fn apply_grid_update(&mut self, sigma: &[f32]) {
+        self.grid.apply_update(sigma);
+        self.context.queue.write_buffer(
             &self.bitfield,
             0,
             bytemuck::cast_slice(self.grid.bitfield()),
@@ -969,14 +1017,27 @@ impl RadianceModel for GpuNgp {
     }
 
     fn step(&mut self, batch: &RayBatch, step: u32) -> StepStats {
+        if let Some(clock) = self.clock.as_mut() {
+            clock.reset();
+        }
         let clock = Instant::now();
         if self.grid.is_due(step) {
             self.update_grid(step);
         }
         let grid_update = clock.elapsed().as_secs_f64();
         let mut stats = self.run(batch, step, true);
-        stats.times.grid_update = grid_update;
+        if self.readback.is_late() {
+            // The update's device time is among the stage times; the host
+            // applies its densities while the device runs the step.
+            self.apply_pending_grid_update();
+        } else {
+            stats.times.grid_update = grid_update;
+        }
         stats
+    }
+
+    fn set_read_back_late(&mut self, late: bool) {
+        GpuNgp::set_read_back_late(self, late);
     }
 
     fn render(
