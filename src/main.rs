@@ -1148,10 +1148,12 @@ fn bench_dense(rows: usize, repeats: usize) {
     );
 }
 
-/// Samples per NeRF or Mip-NeRF batch when the bench runs the gpu engine on
-/// a software adapter: 16 rays with the paper's sampler, ~14 G FLOP a step,
-/// seconds on lavapipe.
-const SOFTWARE_GPU_NERF_SAMPLES: usize = 1 << 12;
+/// Samples per batch when a bench runs the gpu engine on a software
+/// adapter: NeRF's 16 rays with the paper's sampler, ~14 G FLOP a step
+/// (its paper-size batch, ~1 T FLOP, would take many minutes a step at
+/// lavapipe's few GFLOP/s), Instant-NGP's 1/64 of its 2^18; seconds on
+/// lavapipe. There the bench is a correctness run.
+const SOFTWARE_GPU_SAMPLES: usize = 1 << 12;
 
 /// Unmeasured steps before a throughput measurement: past the occupancy
 /// grid's warm-up (its first 256 steps update every cell, twice the work of
@@ -1172,7 +1174,11 @@ fn default_warmup(model: ModelKind, sampling: Sampling, software_gpu: bool) -> u
 
 fn bench_gpu(args: GpuBenchArgs) -> anyhow::Result<()> {
     use zrak::bench::gpu::{CheckSize, all_passed, check_scene_name, describe_device, self_check};
-    let context = zrak::engine::gpu::GpuContext::new()?;
+    // As `--engine gpu` does: a software adapter where the machine has a
+    // GPU is refused, naming both.
+    let context = choose_engine(Some(EngineKind::Gpu))?
+        .gpu
+        .context("the gpu engine's choice has a context")?;
     for (name, value) in describe_device(&context) {
         say(&format!("{name:<22} {value}"));
     }
@@ -1238,8 +1244,7 @@ fn bench_gpu(args: GpuBenchArgs) -> anyhow::Result<()> {
             let settings = ModelSettings {
                 seed: 0,
                 loss: model.default_loss(),
-                batch_samples: (software && model != ModelKind::Ngp)
-                    .then_some(SOFTWARE_GPU_NERF_SAMPLES),
+                batch_samples: software.then_some(SOFTWARE_GPU_SAMPLES),
                 sampling: Sampling::Occupancy,
                 precision: Precision::F32,
             };
@@ -1257,6 +1262,14 @@ fn bench_gpu(args: GpuBenchArgs) -> anyhow::Result<()> {
                 counters.as_deref(),
             );
             zrak::bench::print_report(&report, &scene, &engine_line);
+            if let Some(seconds) = texture_render_seconds(trainer.model.as_ref(), &context, &scene)
+            {
+                say(&format!(
+                    "texture render       {:.1} ms per 1280 × 720 level (median of 3, the viewer's \
+                     path: rendered on the device into the texture it draws)",
+                    seconds * 1e3
+                ));
+            }
         }
     }
     if !all_passed(&checks) {
@@ -1266,6 +1279,37 @@ fn bench_gpu(args: GpuBenchArgs) -> anyhow::Result<()> {
         );
     }
     Ok(())
+}
+
+/// Seconds for `model` to draw a 1280 × 720 view of `scene` into a
+/// texture on the device, the viewer's path (median of three), if it can.
+fn texture_render_seconds(
+    model: &dyn zrak::train::model::RadianceModel,
+    context: &zrak::engine::gpu::GpuContext,
+    scene: &Scene,
+) -> Option<f64> {
+    let renderer = model.texture_render()?;
+    let frame = scene.val.first().or(scene.train.first())?;
+    let (width, height) = (1280, 720);
+    let camera = Camera::new(
+        zrak::scene::camera::Intrinsics::from_fov_x(width, height, frame.camera.intrinsics.fov_x()),
+        frame.camera.camera_to_world,
+    );
+    let target = zrak::engine::gpu::render::render_target(&context.device, width, height);
+    let mut seconds = Vec::new();
+    for _ in 0..3 {
+        let clock = Instant::now();
+        renderer
+            .render_to_texture(&camera, RenderMode::Rgb, [1.0; 3], &target)
+            .ok()?;
+        context
+            .device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .ok()?;
+        seconds.push(clock.elapsed().as_secs_f64());
+    }
+    seconds.sort_by(f64::total_cmp);
+    Some(seconds[1])
 }
 
 fn bench_throughput(args: ThroughputArgs) -> anyhow::Result<()> {
@@ -1293,12 +1337,7 @@ fn bench_throughput(args: ThroughputArgs) -> anyhow::Result<()> {
     let software_gpu =
         choice.kind == EngineKind::Gpu && choice.gpu.as_ref().is_some_and(|gpu| gpu.is_software());
     let warmup = warmup.unwrap_or_else(|| default_warmup(model, sampling, software_gpu));
-    // On a software adapter NeRF's paper-size batch (1024 rays × 256
-    // samples of an 8 × 256 network, ~1 T FLOP a step) would take many
-    // minutes a step at lavapipe's few GFLOP/s: there the bench is a
-    // correctness run on a small batch.
-    let batch_samples = (software_gpu && matches!(model, ModelKind::Nerf | ModelKind::MipNerf))
-        .then_some(SOFTWARE_GPU_NERF_SAMPLES);
+    let batch_samples = software_gpu.then_some(SOFTWARE_GPU_SAMPLES);
     let settings = ModelSettings {
         seed: 0,
         loss: model.default_loss(),
@@ -1309,7 +1348,7 @@ fn bench_throughput(args: ThroughputArgs) -> anyhow::Result<()> {
     let model = build_model(model, choice, &scene, &settings).map_err(anyhow::Error::msg)?;
     let mut trainer = Trainer::new(model, scene.clone(), 0);
     if let Some(samples) = batch_samples {
-        println!("software adapter: NeRF batches of ~{samples} samples (a correctness run)");
+        println!("software adapter: batches of ~{samples} samples (a correctness run)");
     }
     let peak = zrak::engine::cpu::dense::measure_peak_gflops();
     let report = zrak::bench::throughput(

@@ -26,6 +26,14 @@ pub enum GpuError {
          libvulkan1`, or use `--engine cpu`"
     )]
     NoAdapter { backends: Backends },
+    #[error(
+        "the gpu engine was asked for, but the only adapter found is {software}, a software \
+         rasteriser, while this machine has {hardware}: its Vulkan driver was not found (for \
+         NVIDIA, install the driver's Vulkan ICD or point VK_DRIVER_FILES at its \
+         nvidia_icd.json). Use --engine cpu, or set ZRAK_ALLOW_SOFTWARE_GPU=1 to run the gpu \
+         engine on the software adapter anyway"
+    )]
+    SoftwareInsteadOfHardware { software: String, hardware: String },
     #[error("WGSL kernel `{name}` failed to compile: {message}")]
     Shader { name: String, message: String },
     #[error(

@@ -122,13 +122,6 @@ pub struct GpuNgp {
     params: wgpu::Buffer,
     /// Their gradient, same layout.
     gradients: wgpu::Buffer,
-    /// The two networks' parameters and gradients on their own, because a
-    /// dense kernel binds whole buffers and indexes from 0: copied out of
-    /// (and back into) the flat buffers inside each step's encoder.
-    density_params: wgpu::Buffer,
-    colour_params: wgpu::Buffer,
-    density_gradients: wgpu::Buffer,
-    colour_gradients: wgpu::Buffer,
     grid: OccupancyGrid,
     bitfield: wgpu::Buffer,
     march_out: GpuMarchBuffers,
@@ -276,10 +269,6 @@ impl GpuNgp {
             adam: GpuAdam::new(ctx, params.len())?,
             params: storage_buffer(ctx, "ngp params", &params),
             gradients: f("ngp gradients", params.len()),
-            density_params: f("ngp density params", shape.density.param_count()),
-            colour_params: f("ngp colour params", shape.colour.param_count()),
-            density_gradients: f("ngp density gradients", shape.density.param_count()),
-            colour_gradients: f("ngp colour gradients", shape.colour.param_count()),
             bitfield: storage_buffer(ctx, "ngp occupancy bitfield", grid.bitfield()),
             grid,
             march_out: GpuMarchBuffers::new(ctx, ray_capacity, capacity),
@@ -372,23 +361,6 @@ impl GpuNgp {
         self.readback.set_late(late);
     }
 
-    /// Records copies of the two networks' parameters out of the flat
-    /// buffer, so the dense kernels see the current values.
-    fn record_network_params(&self, encoder: &mut wgpu::CommandEncoder) {
-        for (range, buffer) in [
-            (self.density_range(), &self.density_params),
-            (self.colour_range(), &self.colour_params),
-        ] {
-            encoder.copy_buffer_to_buffer(
-                &self.params,
-                4 * range.start as u64,
-                buffer,
-                0,
-                4 * range.len() as u64,
-            );
-        }
-    }
-
     /// Records the density activation over `count` samples (forward, or
     /// with `backward` its gradient), a piece of samples at a time when the
     /// per-sample matrices exceed one storage binding.
@@ -444,8 +416,8 @@ impl GpuNgp {
 
     /// Records the field at the `count` positions (and directions) in the
     /// march buffers: σ into `samples.sigma`, and with `colour` the colour
-    /// network's output into `samples.colour.output()`. The networks'
-    /// parameters must have been copied ([`Self::record_network_params`]).
+    /// network's output into `samples.colour.output()`. The networks read
+    /// their parameters where they lie in the flat buffer.
     fn record_field(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -470,10 +442,11 @@ impl GpuNgp {
             count,
         );
         mark(encoder, Stage::Encode);
-        s.dense.record_forward(
+        s.dense.record_forward_at(
             ctx,
             encoder,
-            &self.density_params,
+            &self.params,
+            self.density_range().start,
             &b.encoded,
             &b.density,
             count,
@@ -493,10 +466,11 @@ impl GpuNgp {
                 density_width,
             );
             mark(encoder, Stage::Encode);
-            s.dense.record_forward(
+            s.dense.record_forward_at(
                 ctx,
                 encoder,
-                &self.colour_params,
+                &self.params,
+                self.colour_range().start,
                 &b.colour_input,
                 &b.colour,
                 count,
@@ -577,9 +551,6 @@ impl GpuNgp {
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
         clock.restart(ctx, &mut encoder);
         encoder.clear_buffer(&self.gradients, 0, None);
-        encoder.clear_buffer(&self.density_gradients, 0, None);
-        encoder.clear_buffer(&self.colour_gradients, 0, None);
-        self.record_network_params(&mut encoder);
         self.record_field(&mut encoder, samples, true, Some(&mut clock));
         let s = &self.stages;
         let b = &self.samples;
@@ -615,26 +586,30 @@ impl GpuNgp {
             },
         );
         clock.mark(ctx, &mut encoder, Stage::Composite);
-        s.dense.record_backward(
+        // The networks' gradients land at their parameters' offsets of the
+        // flat gradient buffer.
+        s.dense.record_backward_at(
             ctx,
             &mut encoder,
-            &self.colour_params,
+            &self.params,
+            self.colour_range().start,
             &b.colour_input,
             &b.colour,
             &b.d_rgb,
-            &self.colour_gradients,
+            &self.gradients,
             Some(&b.d_colour_input),
             samples,
         );
         self.record_activation(&mut encoder, samples, true);
-        s.dense.record_backward(
+        s.dense.record_backward_at(
             ctx,
             &mut encoder,
-            &self.density_params,
+            &self.params,
+            self.density_range().start,
             &b.encoded,
             &b.density,
             &b.d_density_out,
-            &self.density_gradients,
+            &self.gradients,
             Some(&b.d_encoded),
             samples,
         );
@@ -650,18 +625,6 @@ impl GpuNgp {
             samples,
         );
         clock.mark(ctx, &mut encoder, Stage::EncodeBackward);
-        for (range, buffer) in [
-            (self.density_range(), &self.density_gradients),
-            (self.colour_range(), &self.colour_gradients),
-        ] {
-            encoder.copy_buffer_to_buffer(
-                buffer,
-                0,
-                &self.gradients,
-                4 * range.start as u64,
-                4 * range.len() as u64,
-            );
-        }
         if optimise {
             let weights = self.density_range().start..self.shape.param_count();
             self.adam.record_step(
@@ -712,7 +675,6 @@ impl GpuNgp {
         if late && let Some(clock) = self.clock.as_mut() {
             clock.restart(ctx, &mut encoder);
         }
-        self.record_network_params(&mut encoder);
         let chunk = self.batch_samples.max(1);
         for start in (0..n).step_by(chunk) {
             let count = chunk.min(n - start);
@@ -782,7 +744,6 @@ impl GpuNgp {
             ctx.queue
                 .write_buffer(&self.march_out.directions, 0, bytemuck::cast_slice(d));
             let mut encoder = ctx.device.create_command_encoder(&Default::default());
-            self.record_network_params(&mut encoder);
             self.record_field(&mut encoder, count, true, None);
             ctx.queue.submit([encoder.finish()]);
             sigma.copy_from_slice(&read_buffer::<f32>(ctx, &self.samples.sigma, count));
@@ -863,7 +824,6 @@ impl GpuNgp {
 
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
         encoder.clear_buffer(&buffers.states, 0, None);
-        self.record_network_params(&mut encoder);
         let march = MarchParams {
             config,
             ..MarchParams::rendering(self.shape.mapping)
