@@ -124,7 +124,7 @@ mod tests {
         std::fs::create_dir_all(&folder).unwrap();
         let checkpoint = Checkpoint {
             header: serde_json::json!({"trainer": {"step": step}, "run": {"model": "Ngp"}}),
-            tensors: vec![("params".into(), vec![1.0; 1000])],
+            tensors: vec![("params".into(), (0..1000).map(|i| i as f32).collect())],
         };
         let path = folder.join(CHECKPOINT_FILE);
         checkpoint.save(&path).unwrap();
