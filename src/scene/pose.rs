@@ -50,7 +50,7 @@ fn json_text(bytes: &[u8]) -> Result<std::borrow::Cow<'_, [u8]>, String> {
         return Ok(Cow::Borrowed(rest));
     }
     let utf16 = |rest: &[u8], little_endian: bool| -> Result<Cow<'_, [u8]>, String> {
-        if rest.len() % 2 != 0 {
+        if !rest.len().is_multiple_of(2) {
             return Err("UTF-16 text with an odd number of bytes (the file is cut off)".into());
         }
         let units: Vec<u16> = rest

@@ -317,7 +317,9 @@ fn decode_sparse(bytes: &[u8], values: usize, nonzero: usize) -> Result<Vec<f32>
     let (mask, stored) = bytes.split_at(values.div_ceil(8));
     let set: usize = mask.iter().map(|b| b.count_ones() as usize).sum();
     // Bits past the last value must be clear, and the count must match.
-    if set != nonzero || (values % 8 != 0 && mask.last().is_some_and(|b| b >> (values % 8) != 0)) {
+    if set != nonzero
+        || (!values.is_multiple_of(8) && mask.last().is_some_and(|b| b >> (values % 8) != 0))
+    {
         return Err(format!(
             "its mask marks {set} values, its table says {nonzero}"
         ));

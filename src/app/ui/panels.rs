@@ -176,7 +176,7 @@ fn recent_runs_menu(state: &mut ViewerUi, ui: &mut egui::Ui) {
                 .clicked()
             {
                 match kept::remove(&base, &run.folder) {
-                    Ok(()) => state.notice(&format!("removed {}", run.folder.display()), false),
+                    Ok(()) => state.notice(format!("removed {}", run.folder.display()), false),
                     Err(error) => state.notice(&error, true),
                 }
             }
