@@ -1231,6 +1231,13 @@ const CASES: &[Case] = &[
             "no training camera's rays cross the scene's box",
         ],
     ),
+    // A field of view of nearly 180°: every ray leaves sideways.
+    refused(
+        &[
+            "train", "wide", "--steps", "1", "--engine", "cpu", "--out", "r5",
+        ],
+        &["wide: nothing to train", "rays cross"],
+    ),
     refused(
         &["info", "tiny-scale"],
         &["transforms.json", "`scale` = ", "not a finite box"],
@@ -1371,6 +1378,9 @@ fn bad_input_fixture(d: &Path) {
     copy_folder(&d.join("scene/val"), &d.join("noviews/val"));
     instant_ngp_variant(d, "far", |j| {
         j["offset"] = serde_json::json!([1e6, 1e6, 1e6])
+    });
+    instant_ngp_variant(d, "wide", |j| {
+        j["camera_angle_x"] = serde_json::json!(std::f64::consts::PI * 0.99999)
     });
     instant_ngp_variant(d, "tiny-scale", |j| j["scale"] = serde_json::json!(1e-45));
     instant_ngp_variant(d, "huge-aabb", |j| {
@@ -1702,4 +1712,80 @@ fn a_full_standard_output_is_an_error_not_a_panic() {
     // Their files were written all the same.
     assert!(d.join("converted.json").is_file());
     assert!(d.join("frames/val_000.png").is_file());
+}
+
+/// A small tmpfs mounted for a test, unmounted when dropped.
+struct SmallDisk(std::path::PathBuf);
+
+impl SmallDisk {
+    /// Mounts a tmpfs of `bytes` at `at`, where the machine allows it
+    /// (root, a kernel that lets this container mount): `None` otherwise.
+    fn mount(at: &Path, bytes: usize) -> Option<Self> {
+        std::fs::create_dir_all(at).unwrap();
+        let status = Command::new("mount")
+            .args(["-t", "tmpfs", "-o", &format!("size={bytes}"), "tmpfs"])
+            .arg(at)
+            .stderr(Stdio::null())
+            .status()
+            .ok()?;
+        status.success().then(|| Self(at.to_path_buf()))
+    }
+}
+
+impl Drop for SmallDisk {
+    fn drop(&mut self) {
+        let _ = Command::new("umount").arg(&self.0).status();
+    }
+}
+
+/// Fills the file system holding `folder` to the last byte.
+fn fill_disk(folder: &Path) {
+    use std::io::Write;
+    let mut filler = std::fs::File::create(folder.join("filler")).unwrap();
+    let block = vec![0u8; 4096];
+    while filler.write_all(&block).is_ok() {}
+    while filler.write_all(&block[..1]).is_ok() {}
+}
+
+/// On a full disk a write fails with the reason and leaves the file that
+/// was there whole (convert once left a user's transforms.json cut off
+/// at 4 KiB).
+#[test]
+fn a_full_disk_never_cuts_a_file_short() {
+    let dir = temp_dir();
+    let d = dir.path();
+    let Some(_disk) = SmallDisk::mount(&d.join("full"), 256 * 1024) else {
+        eprintln!("skipped: this machine does not let the test mount a tmpfs");
+        return;
+    };
+    colmap_scene(d, "colmap", |text| text);
+    let old = format!("{{\"mine\": \"{}\"}}", "x".repeat(6000));
+    let transforms = d.join("full/transforms.json");
+    std::fs::write(&transforms, &old).unwrap();
+    fill_disk(&d.join("full"));
+    let error = fail(
+        d,
+        &[
+            "convert",
+            "colmap",
+            "--out",
+            "full/transforms.json",
+            "--force",
+        ],
+    );
+    assert!(
+        error.contains("full/transforms.json") && error.contains("No space left on device"),
+        "{error}"
+    );
+    assert_eq!(std::fs::read_to_string(&transforms).unwrap(), old);
+    let mut left: Vec<String> = std::fs::read_dir(d.join("full"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    left.sort();
+    assert_eq!(
+        left,
+        ["filler", "transforms.json"],
+        "a temporary file was left"
+    );
 }
