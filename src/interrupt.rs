@@ -240,10 +240,14 @@ pub fn stdout_error() -> Option<String> {
 }
 
 /// A line on standard output; a reader that went away is not an error
-/// worth stopping (or panicking) for.
+/// worth stopping (or panicking) for. Another failure (a full disk) is
+/// kept for [`stdout_error`], which the command ends with once its work is
+/// saved.
 pub fn say(line: &str) {
     let mut out = std::io::stdout().lock();
-    let _ = writeln!(out, "{line}").and_then(|()| out.flush());
+    if let Err(error) = writeln!(out, "{line}").and_then(|()| out.flush()) {
+        remember_stdout_error(error);
+    }
 }
 
 /// A line on standard error, ignoring a closed or full stream.

@@ -1699,6 +1699,21 @@ fn a_full_standard_output_is_an_error_not_a_panic() {
         &["demo", "--out", "demo2", "--size", "16", "--views", "2"],
         &["convert", "colmap", "--out", "converted.json"],
         &["render", "run", "--view", "0", "--out", "frames"],
+        &[
+            "bench",
+            "throughput",
+            "--scene",
+            "scene",
+            "--warmup",
+            "0",
+            "--steps",
+            "1",
+            "--engine",
+            "cpu",
+        ],
+        &[
+            "train", "scene", "--steps", "1", "--engine", "cpu", "--out", "run2",
+        ],
     ] {
         let output = with_full_stdout(d, args);
         let stderr = String::from_utf8_lossy(&output.stderr);
@@ -1710,6 +1725,7 @@ fn a_full_standard_output_is_an_error_not_a_panic() {
         assert!(!stderr.contains("panicked"), "zrak {args:?}: {stderr}");
     }
     // Their files were written all the same.
+    assert_eq!(checkpoint_step(&d.join("run2")), 1);
     assert!(d.join("converted.json").is_file());
     assert!(d.join("frames/val_000.png").is_file());
 }
