@@ -55,7 +55,6 @@ pub fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> 
 /// that name the real problem rather than "not found": a folder, a named
 /// pipe, a symbolic link that points nowhere or at itself.
 pub fn describe_unreadable(path: &Path, error: &std::io::Error) -> String {
-    use std::os::unix::fs::FileTypeExt;
     match std::fs::symlink_metadata(path) {
         Err(_) => match error.kind() {
             std::io::ErrorKind::PermissionDenied => format!("permission denied ({error})"),
@@ -63,7 +62,7 @@ pub fn describe_unreadable(path: &Path, error: &std::io::Error) -> String {
         },
         Ok(meta) if meta.file_type().is_symlink() => match std::fs::metadata(path) {
             Ok(_) => format!("cannot read through the symbolic link: {error}"),
-            Err(e) if e.raw_os_error() == Some(libc::ELOOP) => {
+            Err(e) if is_link_loop(&e) => {
                 "a symbolic link that loops (it leads back to itself)".into()
             }
             Err(_) => match std::fs::read_link(path) {
@@ -75,14 +74,41 @@ pub fn describe_unreadable(path: &Path, error: &std::io::Error) -> String {
             },
         },
         Ok(meta) if meta.is_dir() => "a folder, not a file".into(),
-        Ok(meta) if meta.file_type().is_fifo() => {
-            "a named pipe (FIFO), not a file: zrak reads scenes from files".into()
-        }
-        Ok(meta) if meta.file_type().is_socket() => "a socket, not a file".into(),
-        Ok(meta) if meta.file_type().is_block_device() || meta.file_type().is_char_device() => {
-            "a device, not a file".into()
-        }
-        Ok(_) => error.to_string(),
+        Ok(meta) => special_file(&meta).map_or_else(|| error.to_string(), str::to_string),
+    }
+}
+
+/// What a file that is neither a regular file nor a folder is.
+#[cfg(unix)]
+fn special_file(meta: &std::fs::Metadata) -> Option<&'static str> {
+    use std::os::unix::fs::FileTypeExt;
+    let kind = meta.file_type();
+    if kind.is_fifo() {
+        Some("a named pipe (FIFO), not a file: zrak reads scenes from files")
+    } else if kind.is_socket() {
+        Some("a socket, not a file")
+    } else if kind.is_block_device() || kind.is_char_device() {
+        Some("a device, not a file")
+    } else {
+        None
+    }
+}
+
+#[cfg(not(unix))]
+fn special_file(_meta: &std::fs::Metadata) -> Option<&'static str> {
+    None
+}
+
+/// Whether opening failed on a chain of symbolic links that never ends.
+fn is_link_loop(error: &std::io::Error) -> bool {
+    #[cfg(unix)]
+    {
+        error.raw_os_error() == Some(libc::ELOOP)
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = error;
+        false
     }
 }
 
@@ -200,6 +226,7 @@ mod tests {
         assert_eq!(temporary_beside(path).parent(), Some(Path::new("/x")));
     }
 
+    #[cfg(unix)]
     #[test]
     fn unreadable_paths_are_described_by_what_they_are() {
         let dir = tempfile::tempdir().unwrap();

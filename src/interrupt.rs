@@ -25,7 +25,7 @@
 
 use std::io::Write;
 use std::sync::Mutex;
-use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 /// The exit status of a command stopped by an interrupt: 128 + SIGINT, what
@@ -40,8 +40,8 @@ pub const GRACE: Duration = Duration::from_secs(1);
 
 static REQUESTED: AtomicBool = AtomicBool::new(false);
 
-/// The pipe's write end, for the signal handler (-1 until installed).
-static SIGNAL_PIPE: AtomicI32 = AtomicI32::new(-1);
+/// When the first interrupt came.
+static FIRST: Mutex<Option<Instant>> = Mutex::new(None);
 
 type Wake = Box<dyn Fn() + Send>;
 
@@ -50,119 +50,166 @@ type Wake = Box<dyn Fn() + Send>;
 /// window waits for events).
 static WAKE: Mutex<Option<Wake>> = Mutex::new(None);
 
-/// The signals that ask zrak to stop.
-const SIGNALS: [libc::c_int; 3] = [libc::SIGINT, libc::SIGTERM, libc::SIGHUP];
-
-extern "C" fn on_signal(signal: libc::c_int) {
-    let fd = SIGNAL_PIPE.load(Ordering::Relaxed);
-    if fd >= 0 {
-        let byte = signal as u8;
-        // SAFETY: write(2) is async-signal-safe; the byte outlives the call.
-        // A full pipe (signals faster than the thread reads) drops the
-        // byte, which is fine: enough are queued to act on.
-        unsafe {
-            libc::write(fd, (&byte as *const u8).cast(), 1);
-        }
-    }
-}
-
-/// Whether `signal`'s disposition is "ignore", as inherited from the
-/// parent (`nohup`, background jobs of a non-interactive shell).
-fn is_ignored(signal: libc::c_int) -> Result<bool, String> {
-    // SAFETY: a zeroed sigaction is a valid out-parameter; no handler is
-    // installed by this query.
-    unsafe {
-        let mut current: libc::sigaction = std::mem::zeroed();
-        if libc::sigaction(signal, std::ptr::null(), &mut current) != 0 {
-            return Err(std::io::Error::last_os_error().to_string());
-        }
-        Ok(current.sa_sigaction == libc::SIG_IGN)
-    }
-}
-
 /// Installs the handler for SIGINT, SIGTERM and SIGHUP (each one not
-/// inherited as ignored). `what_happens` finishes the sentence
-/// "interrupted: …" printed on the first one.
+/// inherited as ignored; Ctrl-C and closing the console on Windows).
+/// `what_happens` finishes the sentence "interrupted: …" printed on the
+/// first one.
 pub fn install(what_happens: &'static str) -> Result<(), String> {
-    let fail = |what: &str| {
-        format!(
-            "cannot install the interrupt handler: {what}: {}",
-            std::io::Error::last_os_error()
-        )
-    };
-    let mut fds = [0 as libc::c_int; 2];
-    // SAFETY: pipe2 writes two descriptors into the array it is given.
-    if unsafe { libc::pipe2(fds.as_mut_ptr(), libc::O_CLOEXEC | libc::O_NONBLOCK) } != 0 {
-        return Err(fail("pipe"));
-    }
-    let [read_end, write_end] = fds;
-    // The reading end blocks: the thread sleeps until a signal comes.
-    // SAFETY: fcntl on a descriptor this function owns.
-    unsafe {
-        let flags = libc::fcntl(read_end, libc::F_GETFL);
-        libc::fcntl(read_end, libc::F_SETFL, flags & !libc::O_NONBLOCK);
-    }
-    if SIGNAL_PIPE
-        .compare_exchange(-1, write_end, Ordering::SeqCst, Ordering::SeqCst)
-        .is_err()
+    #[cfg(unix)]
     {
-        return Err("the interrupt handler is already installed".into());
+        signals::install(what_happens)
     }
-    std::thread::Builder::new()
-        .name("zrak-signals".into())
-        .spawn(move || watch(read_end, what_happens))
-        .map_err(|e| format!("cannot install the interrupt handler: {e}"))?;
-    for signal in SIGNALS {
-        if is_ignored(signal)? {
-            continue;
+    #[cfg(not(unix))]
+    {
+        ctrlc::set_handler(move || on_interrupt(what_happens))
+            .map_err(|e| format!("cannot install the interrupt handler: {e}"))
+    }
+}
+
+/// What an interrupt does, outside any signal handler: the first asks the
+/// work to stop; one within [`GRACE`] of it is the same request; a later
+/// one ends the process.
+fn on_interrupt(what_happens: &str) {
+    let first = FIRST.lock().map(|mut first| {
+        let at = *first;
+        first.get_or_insert_with(Instant::now);
+        at
+    });
+    match first {
+        Ok(None) => {
+            REQUESTED.store(true, Ordering::SeqCst);
+            note(&format!(
+                "\ninterrupted: {what_happens} (interrupt again to stop at once)"
+            ));
+            if let Ok(wake) = WAKE.lock()
+                && let Some(wake) = wake.as_ref()
+            {
+                wake();
+            }
         }
-        // SAFETY: the handler only calls write(2), which is
-        // async-signal-safe; the sigaction struct is fully initialised.
-        unsafe {
-            let mut action: libc::sigaction = std::mem::zeroed();
-            action.sa_sigaction = on_signal as *const () as libc::sighandler_t;
-            action.sa_flags = libc::SA_RESTART;
-            libc::sigemptyset(&mut action.sa_mask);
-            if libc::sigaction(signal, &action, std::ptr::null_mut()) != 0 {
-                return Err(fail("sigaction"));
+        // The same request delivered twice (see the module notes).
+        Ok(Some(at)) if at.elapsed() < GRACE => {}
+        _ => {
+            note("\ninterrupted again: stopping at once");
+            std::process::exit(EXIT_STATUS.into());
+        }
+    }
+}
+
+/// The unix signal handling: a handler that only writes the signal's
+/// number into a pipe, and a thread that reads it and calls
+/// [`on_interrupt`].
+#[cfg(unix)]
+mod signals {
+    use std::sync::atomic::{AtomicI32, Ordering};
+
+    /// The pipe's write end, for the signal handler (-1 until installed).
+    static SIGNAL_PIPE: AtomicI32 = AtomicI32::new(-1);
+
+    /// The signals that ask zrak to stop.
+    const SIGNALS: [libc::c_int; 3] = [libc::SIGINT, libc::SIGTERM, libc::SIGHUP];
+
+    extern "C" fn on_signal(signal: libc::c_int) {
+        let fd = SIGNAL_PIPE.load(Ordering::Relaxed);
+        if fd >= 0 {
+            let byte = signal as u8;
+            // SAFETY: write(2) is async-signal-safe; the byte outlives the
+            // call. A full pipe (signals faster than the thread reads) drops
+            // the byte, which is fine: enough are queued to act on. (That
+            // failure sets errno, which the interrupted code does not read
+            // across a signal it cannot see.)
+            unsafe {
+                libc::write(fd, (&byte as *const u8).cast(), 1);
             }
         }
     }
-    Ok(())
-}
 
-/// The thread that acts on signals read from the pipe.
-fn watch(read_end: libc::c_int, what_happens: &'static str) {
-    let mut first: Option<Instant> = None;
-    loop {
-        let mut byte = 0u8;
-        // SAFETY: reads one byte into a local.
-        let read = unsafe { libc::read(read_end, (&mut byte as *mut u8).cast(), 1) };
-        if read != 1 {
-            if read < 0 && std::io::Error::last_os_error().kind() == std::io::ErrorKind::Interrupted
-            {
+    /// Whether `signal`'s disposition is "ignore", as inherited from the
+    /// parent (`nohup`, background jobs of a non-interactive shell).
+    fn is_ignored(signal: libc::c_int) -> Result<bool, String> {
+        // SAFETY: a zeroed sigaction is a valid out-parameter; no handler is
+        // installed by this query.
+        unsafe {
+            let mut current: libc::sigaction = std::mem::zeroed();
+            if libc::sigaction(signal, std::ptr::null(), &mut current) != 0 {
+                return Err(format!(
+                    "cannot read the signal disposition: {}",
+                    std::io::Error::last_os_error()
+                ));
+            }
+            Ok(current.sa_sigaction == libc::SIG_IGN)
+        }
+    }
+
+    /// Sets `flags` on a descriptor this module owns.
+    fn set_flags(fd: libc::c_int, get: libc::c_int, set: libc::c_int, flags: libc::c_int) {
+        // SAFETY: fcntl on a descriptor from pipe(2), with no pointers.
+        unsafe {
+            let current = libc::fcntl(fd, get);
+            libc::fcntl(fd, set, current | flags);
+        }
+    }
+
+    pub fn install(what_happens: &'static str) -> Result<(), String> {
+        let fail = |what: &str| {
+            format!(
+                "cannot install the interrupt handler: {what}: {}",
+                std::io::Error::last_os_error()
+            )
+        };
+        let mut fds = [0 as libc::c_int; 2];
+        // SAFETY: pipe writes two descriptors into the array it is given.
+        if unsafe { libc::pipe(fds.as_mut_ptr()) } != 0 {
+            return Err(fail("pipe"));
+        }
+        let [read_end, write_end] = fds;
+        for fd in fds {
+            set_flags(fd, libc::F_GETFD, libc::F_SETFD, libc::FD_CLOEXEC);
+        }
+        // The handler must never block; the thread sleeps on its end until
+        // a signal comes.
+        set_flags(write_end, libc::F_GETFL, libc::F_SETFL, libc::O_NONBLOCK);
+        if SIGNAL_PIPE
+            .compare_exchange(-1, write_end, Ordering::SeqCst, Ordering::SeqCst)
+            .is_err()
+        {
+            return Err("the interrupt handler is already installed".into());
+        }
+        std::thread::Builder::new()
+            .name("zrak-signals".into())
+            .spawn(move || watch(read_end, what_happens))
+            .map_err(|e| format!("cannot install the interrupt handler: {e}"))?;
+        for signal in SIGNALS {
+            if is_ignored(signal)? {
                 continue;
             }
-            return;
-        }
-        match first {
-            None => {
-                first = Some(Instant::now());
-                REQUESTED.store(true, Ordering::SeqCst);
-                note(&format!(
-                    "\ninterrupted: {what_happens} (interrupt again to stop at once)"
-                ));
-                if let Ok(wake) = WAKE.lock()
-                    && let Some(wake) = wake.as_ref()
-                {
-                    wake();
+            // SAFETY: the handler only calls write(2), which is
+            // async-signal-safe; the sigaction struct is fully initialised.
+            unsafe {
+                let mut action: libc::sigaction = std::mem::zeroed();
+                action.sa_sigaction = on_signal as *const () as libc::sighandler_t;
+                action.sa_flags = libc::SA_RESTART;
+                libc::sigemptyset(&mut action.sa_mask);
+                if libc::sigaction(signal, &action, std::ptr::null_mut()) != 0 {
+                    return Err(fail("sigaction"));
                 }
             }
-            // The same request delivered twice (see the module notes).
-            Some(at) if at.elapsed() < GRACE => {}
-            Some(_) => {
-                note("\ninterrupted again: stopping at once");
-                std::process::exit(EXIT_STATUS.into());
+        }
+        Ok(())
+    }
+
+    /// The thread that acts on signals read from the pipe.
+    fn watch(read_end: libc::c_int, what_happens: &'static str) {
+        loop {
+            let mut byte = 0u8;
+            // SAFETY: reads one byte into a local.
+            let read = unsafe { libc::read(read_end, (&mut byte as *mut u8).cast(), 1) };
+            match read {
+                1 => super::on_interrupt(what_happens),
+                n if n < 0
+                    && std::io::Error::last_os_error().kind()
+                        == std::io::ErrorKind::Interrupted => {}
+                _ => return,
             }
         }
     }

@@ -192,6 +192,9 @@ pub fn bench_quality(args: QualityArgs) -> anyhow::Result<()> {
         }
         let scene = load_scene(argument, args.downscale)
             .with_context(|| format!("{argument}: cannot load the scene"))?;
+        if let Some(problem) = scene.training_problem() {
+            bail!("{argument}: nothing to train: {problem}");
+        }
         let frames = scene.split(split);
         if frames.is_empty() {
             bail!(

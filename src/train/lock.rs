@@ -1,14 +1,14 @@
-//! One writer per run folder: an advisory lock (`flock`) on the folder's
-//! `.zrak.lock`, held for as long as the [`RunLock`] lives and released by
-//! the kernel when the process ends however it ends, so a crashed run
-//! never leaves a stale lock behind. The file holds the holder's process
-//! id, so a refused writer can say who holds it. Readers (`eval`,
-//! `render`) take no lock: checkpoints are replaced whole by a rename, so
-//! a reader sees the old one or the new one.
+//! One writer per run folder: an advisory lock on the folder's
+//! `.zrak.lock` (the standard library's `File::try_lock`: `flock` on
+//! Linux, `LockFileEx` on Windows), held for as long as the [`RunLock`]
+//! lives and released by the system when the process ends however it
+//! ends, so a crashed run never leaves a stale lock behind. The file holds
+//! the holder's process id, so a refused writer can say who holds it.
+//! Readers (`eval`, `render`) take no lock: checkpoints are replaced whole
+//! by a rename, so a reader sees the old one or the new one.
 
-use std::fs::{File, OpenOptions};
+use std::fs::{File, OpenOptions, TryLockError};
 use std::io::{Read, Seek, Write};
-use std::os::unix::io::AsRawFd;
 use std::path::{Path, PathBuf};
 
 /// The lock file inside a run folder.
@@ -34,11 +34,9 @@ impl RunLock {
             .truncate(false)
             .open(&path)
             .map_err(|e| format!("{}: cannot open the run's lock file: {e}", path.display()))?;
-        // SAFETY: flock takes a descriptor this function owns and no pointers.
-        let locked = unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
-        if locked != 0 {
-            let error = std::io::Error::last_os_error();
-            if error.raw_os_error() == Some(libc::EWOULDBLOCK) {
+        match file.try_lock() {
+            Ok(()) => {}
+            Err(TryLockError::WouldBlock) => {
                 let mut text = String::new();
                 let _ = file.read_to_string(&mut text);
                 let holder = match text.trim().parse::<u32>() {
@@ -51,10 +49,12 @@ impl RunLock {
                     dir.display()
                 ));
             }
-            return Err(format!(
-                "{}: cannot lock the run folder: {error}",
-                dir.display()
-            ));
+            Err(TryLockError::Error(error)) => {
+                return Err(format!(
+                    "{}: cannot lock the run folder: {error}",
+                    dir.display()
+                ));
+            }
         }
         // Ours now: record who holds it.
         let record = (|| -> std::io::Result<()> {
@@ -80,8 +80,8 @@ mod tests {
     fn a_second_lock_on_one_folder_is_refused_naming_the_holder() {
         let dir = tempfile::tempdir().unwrap();
         let first = RunLock::acquire(dir.path()).unwrap();
-        // flock locks belong to the open file description, so a second
-        // open in the same process conflicts as another process would.
+        // The lock belongs to the open file, so a second open in the same
+        // process conflicts as another process would.
         let error = RunLock::acquire(dir.path()).unwrap_err();
         assert!(
             error.contains(&format!("process {}", std::process::id())),

@@ -83,7 +83,8 @@ pub struct Progress<'a> {
 /// [`RunLock`] for as long as this lives.
 pub struct RunFolder {
     pub dir: PathBuf,
-    lock: Option<RunLock>,
+    // Held, never read: the lock lasts as long as this value.
+    _lock: Option<RunLock>,
 }
 
 impl RunFolder {
@@ -110,7 +111,7 @@ impl RunFolder {
         let lock = RunLock::acquire(dir)?;
         Ok(Self {
             dir: dir.to_path_buf(),
-            lock: Some(lock),
+            _lock: Some(lock),
         })
     }
 
@@ -175,7 +176,7 @@ impl RunFolder {
         let lock = RunLock::acquire(dir)?;
         Ok(Self {
             dir: dir.to_path_buf(),
-            lock: Some(lock),
+            _lock: Some(lock),
         })
     }
 
@@ -196,13 +197,8 @@ impl RunFolder {
         }
         Ok(Self {
             dir: dir.to_path_buf(),
-            lock: None,
+            _lock: None,
         })
-    }
-
-    /// Whether this process holds the folder's lock.
-    pub fn is_locked(&self) -> bool {
-        self.lock.is_some()
     }
 
     pub fn checkpoint_path(&self) -> PathBuf {
