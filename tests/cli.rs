@@ -1206,6 +1206,11 @@ const CASES: &[Case] = &[
         &["convert", "colmap", "--out", "scene"],
         &["scene: is a folder"],
     ),
+    refused(
+        &["convert", "nowhere", "--out", "n.json"],
+        &["nowhere: folder not found"],
+    ),
+    refused(&["convert", "fifo", "--out", "n.json"], &["named pipe"]),
     // demo and render do not write over what is there.
     refused(
         &["demo", "--out", "scene", "--size", "16", "--views", "3"],

@@ -770,6 +770,12 @@ pub struct Converted {
 
 /// Reads and converts the COLMAP model under `root` (see the module notes).
 pub fn convert(root: &Path) -> SceneResult<Converted> {
+    if !root.is_dir() {
+        return Err(SceneError::new(
+            root,
+            crate::files::describe_not_a_folder(root),
+        ));
+    }
     let folder = find_model_folder(root).ok_or_else(|| {
         SceneError::new(
             root,
