@@ -17,6 +17,14 @@ use crate::scene::Scene;
 use crate::train::model::{StageTimes, StepStats};
 use crate::train::trainer::Trainer;
 
+/// `println!` that never panics: a report printed to a full disk ends the
+/// command with an error ([`crate::interrupt::print_line`]), not a panic.
+macro_rules! println {
+    ($($arg:tt)*) => {
+        crate::interrupt::print_line(format_args!($($arg)*))
+    };
+}
+
 /// Figures of a throughput run.
 #[derive(Debug, Clone)]
 pub struct ThroughputReport {

@@ -4,6 +4,8 @@
 pub mod batch;
 pub mod checkpoint;
 pub mod eval;
+pub mod kept;
+pub mod lock;
 pub mod log;
 pub mod model;
 pub mod run;
