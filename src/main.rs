@@ -1553,14 +1553,24 @@ fn default_warmup(model: ModelKind, sampling: Sampling, software_gpu: bool) -> u
     }
 }
 
+/// The benches' scene when none is given: lego_400 when present beside the
+/// checkout, else the demo scene.
+fn default_bench_scene() -> String {
+    zrak::bench::default_scene_path()
+        .map(|p| p.display().to_string())
+        .unwrap_or_else(|| "demo".into())
+}
+
 fn bench_gpu(args: GpuBenchArgs) -> anyhow::Result<()> {
     use zrak::bench::gpu::{CheckSize, all_passed, check_scene_name, describe_device, self_check};
     // As `--engine gpu` does: a software adapter where the machine has a
     // GPU is refused, naming both.
-    let context = choose_engine(Some(EngineKind::Gpu))?
+    let gpu_choice = choose_engine(Some(EngineKind::Gpu))?;
+    let context = gpu_choice
         .gpu
+        .as_ref()
         .context("the gpu engine's choice has a context")?;
-    for (name, value) in describe_device(&context) {
+    for (name, value) in describe_device(context) {
         say(&format!("{name:<22} {value}"));
     }
     let software = context.is_software();
@@ -1579,7 +1589,7 @@ fn bench_gpu(args: GpuBenchArgs) -> anyhow::Result<()> {
         if interrupt::requested() {
             break;
         }
-        for check in self_check(&context, model, size) {
+        for check in self_check(context, model, size) {
             say(&format!(
                 "  {:<11} {:<22} {}  {} ({})",
                 check.model.name(),
@@ -1599,27 +1609,15 @@ fn bench_gpu(args: GpuBenchArgs) -> anyhow::Result<()> {
     ));
 
     if args.steps > 0 && !interrupt::requested() {
-        let scene_name = match args.scene {
-            Some(name) => name,
-            None => zrak::bench::default_scene_path()
-                .map(|p| p.display().to_string())
-                .unwrap_or_else(|| "demo".into()),
-        };
+        let scene_name = args.scene.unwrap_or_else(default_bench_scene);
         let scene = Arc::new(load_scene(&scene_name, 1)?);
         for &model in &args.models {
             if interrupt::requested() {
                 break;
             }
             say(&format!("\n{} on {}:", model.name(), scene.name));
-            let choice = zrak::engine::EngineChoice {
-                kind: EngineKind::Gpu,
-                gpu: Some(zrak::engine::gpu::GpuContext::from_existing(
-                    &context.adapter,
-                    context.device.clone(),
-                    context.queue.clone(),
-                )?),
-                reason: format!("gpu engine on {}", context.describe()),
-            };
+            // A context of its own per model, so its counters are its own.
+            let choice = gpu_choice.share()?;
             let counters = choice.gpu.as_ref().map(|gpu| gpu.counters.clone());
             let engine_line = choice.reason.clone();
             let settings = ModelSettings {
@@ -1643,7 +1641,11 @@ fn bench_gpu(args: GpuBenchArgs) -> anyhow::Result<()> {
                 counters.as_deref(),
             );
             zrak::bench::print_report(&report, &scene, &engine_line);
-            if let Some(seconds) = texture_render_seconds(trainer.model.as_ref(), &context, &scene)
+            // A software rasteriser takes minutes for a 1280 × 720 level of an
+            // untrained field: timed on real GPUs only.
+            if !software
+                && let Some(seconds) =
+                    texture_render_seconds(trainer.model.as_ref(), context, &scene)
             {
                 say(&format!(
                     "texture render       {:.1} ms per 1280 × 720 level (median of 3, the viewer's \
@@ -1705,12 +1707,7 @@ fn bench_throughput(args: ThroughputArgs) -> anyhow::Result<()> {
         precision,
     } = args;
     let precision = precision.unwrap_or_else(Precision::best_available);
-    let scene_name = match scene {
-        Some(name) => name,
-        None => zrak::bench::default_scene_path()
-            .map(|p| p.display().to_string())
-            .unwrap_or_else(|| "demo".into()),
-    };
+    let scene_name = scene.unwrap_or_else(default_bench_scene);
     let scene = Arc::new(load_scene(&scene_name, downscale)?);
     let choice = choose_engine(engine)?;
     let engine_line = choice.reason.clone();

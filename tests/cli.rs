@@ -624,6 +624,12 @@ fn as_tested(command: &str, tmp: &Path, runs_made: &mut usize) -> Vec<String> {
         (Some("bench"), Some("dense")) => {
             words.extend(["--rows", "512", "--repeats", "1"].map(String::from))
         }
+        // Instant-NGP's self-check and one timed step (a software adapter
+        // runs NeRF's step in seconds, the self-check of all three in a
+        // minute).
+        (Some("bench"), Some("gpu")) => {
+            words.extend(["--models", "ngp", "--warmup", "0", "--steps", "1"].map(String::from))
+        }
         // Instant-NGP alone, scored on SCENE's one test view at 16×16.
         (Some("bench"), Some("quality")) => words.extend(
             [
