@@ -303,6 +303,7 @@ fn solid_frame(generation: u64, width: u32, height: u32, rgb: [f32; 3]) -> Rende
         generation,
         model: ModelKind::Ngp,
         step: 42,
+        train_seconds: 4.2,
         downscale: 1,
         width,
         height,
@@ -589,4 +590,65 @@ fn the_plot_and_table_export_from_the_window_with_the_sessions_numbers() {
             .notices()
             .any(|n| !n.is_error && n.text.starts_with("Exported 4 files"))
     );
+}
+
+#[test]
+fn the_stats_show_where_the_thread_time_goes_and_how_far_the_picture_lags() {
+    use zrak::app::protocol::{LevelTime, ScheduleTrace};
+    let (mut harness, link) = harness_with_scene();
+    assert!(harness.query_by_label("nothing yet").is_some());
+    // Two seconds of the thread's time, reported a second at a time.
+    let second = ScheduleTrace {
+        wall_seconds: 1.0,
+        training_seconds: 0.7,
+        grid_update_seconds: 0.1,
+        steps: 7,
+        rendering: vec![LevelTime {
+            downscale: 4,
+            seconds: 0.2,
+            finished: 1,
+        }],
+        evaluation_seconds: 0.05,
+        evaluations: 1,
+        idle_seconds: 0.0,
+    };
+    link.push(Event::Schedule(second.clone()));
+    link.push(Event::Schedule(second));
+    harness.run_steps(2);
+    let recent = harness.state().recent_schedule().expect("traces kept");
+    assert_eq!((recent.steps, recent.rendering[0].finished), (14, 2));
+    assert!((recent.training_seconds / recent.wall_seconds - 0.7).abs() < 1e-9);
+    for label in [
+        "Where the time goes",
+        "training (14 steps)",
+        "  of it grid updates",
+        "render 1/4 (×2)",
+        "evaluation (×2)",
+        "idle",
+        "other",
+    ] {
+        assert!(
+            harness.query_by_label(label).is_some(),
+            "no row labelled {label:?}"
+        );
+    }
+    // 70 % training; "other" is what no part claims: 2 − 1.4 − 0.4 − 0.1.
+    assert!(harness.query_by_label("70%").is_some());
+    assert!((harness.state().schedule_total().other_seconds() - 0.1).abs() < 1e-9);
+
+    // A frame of step 42 (4.2 s of training) while training has gone on to
+    // step 50 (5 s): 0.8 s of training behind.
+    let request = link.render_requests().pop().unwrap();
+    let k = request.camera.intrinsics;
+    link.push(Event::Frame(solid_frame(
+        request.generation,
+        k.width,
+        k.height,
+        [0.5; 3],
+    )));
+    link.push(Event::Stats(stats(50, 0.01)));
+    harness.run_steps(2);
+    let lag = harness.state().shown_lag_seconds().expect("both known");
+    assert!((lag - 0.8).abs() < 1e-9, "{lag}");
+    assert_eq!(harness.state().shown_log().len(), 1);
 }

@@ -298,7 +298,34 @@ impl ViewerApp {
     }
 
     fn write_frame_log(&self, path: &Path) -> anyhow::Result<()> {
-        let json = frame_log_json(&self.frames, self.started.elapsed().as_secs_f64());
+        let mut json = frame_log_json(&self.frames, self.started.elapsed().as_secs_f64());
+        json["schedule"] = schedule_json(self.ui.schedule_total());
+        json["shown"] = self
+            .ui
+            .shown_log()
+            .iter()
+            .map(|(at, shown)| {
+                serde_json::json!({
+                    "at_seconds": at,
+                    "model": shown.model.key(),
+                    "step": shown.step,
+                    "train_seconds": shown.train_seconds,
+                    "downscale": shown.downscale,
+                    "width": shown.width,
+                    "height": shown.height,
+                })
+            })
+            .collect();
+        json["trained"] =
+            self.ui
+                .latest_stats(self.ui.active_model())
+                .map_or(serde_json::Value::Null, |stats| {
+                    serde_json::json!({
+                        "model": stats.model.key(),
+                        "step": stats.step,
+                        "train_seconds": stats.train_seconds,
+                    })
+                });
         let text = serde_json::to_string_pretty(&json)?;
         std::fs::write(path, text)
             .with_context(|| format!("writing the frame log {}", path.display()))?;
@@ -392,6 +419,25 @@ fn summary(values: &[f64]) -> serde_json::Value {
         }),
         None => serde_json::json!({ "count": 0, "ms": [] }),
     }
+}
+
+/// The training thread's schedule over the session, in seconds.
+fn schedule_json(trace: &crate::app::protocol::ScheduleTrace) -> serde_json::Value {
+    serde_json::json!({
+        "wall_seconds": trace.wall_seconds,
+        "training_seconds": trace.training_seconds,
+        "grid_update_seconds": trace.grid_update_seconds,
+        "steps": trace.steps,
+        "rendering": trace.rendering.iter().map(|level| serde_json::json!({
+            "downscale": level.downscale,
+            "seconds": level.seconds,
+            "finished": level.finished,
+        })).collect::<Vec<_>>(),
+        "evaluation_seconds": trace.evaluation_seconds,
+        "evaluations": trace.evaluations,
+        "idle_seconds": trace.idle_seconds,
+        "other_seconds": trace.other_seconds(),
+    })
 }
 
 fn frame_log_json(frames: &[FrameTime], seconds: f64) -> serde_json::Value {

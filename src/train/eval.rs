@@ -69,21 +69,7 @@ pub fn mean_psnr_sampled(model: &dyn RadianceModel, frames: &[&Frame], rays: usi
         .iter()
         .map(|frame| {
             let k = frame.camera.intrinsics;
-            let pixels = (k.width as usize * k.height as usize).max(1);
-            let stride = ((pixels as f64 / per_view as f64).sqrt().ceil() as u32).max(1);
-            // Centred in each stride × stride cell, so the grid does not
-            // favour one image border.
-            let first = stride / 2;
-            let mut coordinates = Vec::new();
-            let mut y = first;
-            while y < k.height {
-                let mut x = first;
-                while x < k.width {
-                    coordinates.push((x, y));
-                    x += stride;
-                }
-                y += stride;
-            }
+            let coordinates = pixel_grid(k.width, k.height, per_view);
             let rays: Vec<_> = coordinates
                 .iter()
                 .map(|&(x, y)| frame.camera.pixel_ray(x, y))
@@ -104,6 +90,29 @@ pub fn mean_psnr_sampled(model: &dyn RadianceModel, frames: &[&Frame], rays: usi
         })
         .sum::<f64>()
         / frames.len() as f64
+}
+
+/// About `count` pixels (column, row) of a `width × height` view (at most
+/// all of them, at least one), on a regular grid: every s-th pixel in x
+/// and y, the same s for both axes, centred in each s × s cell so that the
+/// grid favours no image border.
+pub fn pixel_grid(width: u32, height: u32, count: usize) -> Vec<(u32, u32)> {
+    let pixels = (width as usize * height as usize).max(1);
+    let stride = ((pixels as f64 / count.max(1) as f64).sqrt().ceil() as u32).max(1);
+    // Within the image even when the stride is longer than a side.
+    let first_x = (stride / 2).min(width.saturating_sub(1));
+    let first_y = (stride / 2).min(height.saturating_sub(1));
+    let mut coordinates = Vec::new();
+    let mut y = first_y;
+    while y < height {
+        let mut x = first_x;
+        while x < width {
+            coordinates.push((x, y));
+            x += stride;
+        }
+        y += stride;
+    }
+    coordinates
 }
 
 /// Full evaluation of a split, with a callback per view for progress.

@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 
 use crate::app::camera::ViewCamera;
 use crate::app::protocol::{
-    Balance, Command, Event, InTurn, SceneInfo, SceneSource, TrainingStats,
+    Balance, Command, Event, InTurn, SceneInfo, SceneSource, ScheduleTrace, TrainingStats,
 };
 use crate::app::worker::TrainingWorker;
 use crate::engine::EngineKind;
@@ -26,7 +26,7 @@ use crate::render::RenderMode;
 
 pub use panels::ExportDialog;
 pub use plots::{History, HistoryPoint, PlotAxis, comparison_table, export_comparison};
-pub use viewport::{CompareMode, CompareWith, ViewportState};
+pub use viewport::{CompareMode, CompareWith, ShownFrame, ViewportState};
 
 /// The UI's end of the channel to the training thread.
 pub trait TrainingLink {
@@ -138,7 +138,18 @@ pub struct ViewerUi {
     log_progress: bool,
     /// How frames drawn on the GPU reach the screen, when they can.
     native_textures: Option<Box<dyn NativeTextures>>,
+    /// The training thread's recent schedule traces (wall seconds since
+    /// the window opened when each came), for "where the time goes".
+    schedule_recent: VecDeque<(f64, ScheduleTrace)>,
+    /// Every trace of the session added up.
+    schedule_total: ScheduleTrace,
+    /// Each frame shown: when (wall seconds since the window opened) and
+    /// what, for the frame log.
+    shown_log: Vec<(f64, ShownFrame)>,
 }
+
+/// How many seconds of schedule traces the stats panel adds up.
+pub const SCHEDULE_WINDOW_SECONDS: f64 = 10.0;
 
 impl ViewerUi {
     /// A window talking to `link`, whose thread trains `model` first.
@@ -174,6 +185,9 @@ impl ViewerUi {
             last_logged_step: None,
             log_progress: false,
             native_textures: None,
+            schedule_recent: VecDeque::new(),
+            schedule_total: ScheduleTrace::default(),
+            shown_log: Vec::new(),
         }
     }
 
@@ -245,6 +259,48 @@ impl ViewerUi {
 
     pub fn viewport(&self) -> &ViewportState {
         &self.viewport
+    }
+
+    /// The training thread's schedule over about the last
+    /// [`SCHEDULE_WINDOW_SECONDS`] of wall time, if it sent any.
+    pub fn recent_schedule(&self) -> Option<ScheduleTrace> {
+        let mut sum: Option<ScheduleTrace> = None;
+        for (_, trace) in &self.schedule_recent {
+            sum.get_or_insert_with(ScheduleTrace::default).merge(trace);
+        }
+        sum
+    }
+
+    /// Every schedule trace of the session added up.
+    pub fn schedule_total(&self) -> &ScheduleTrace {
+        &self.schedule_total
+    }
+
+    /// Each frame shown, with when it came (wall seconds since the window
+    /// opened).
+    pub fn shown_log(&self) -> &[(f64, ShownFrame)] {
+        &self.shown_log
+    }
+
+    /// Training seconds the shown frame is behind its model's training
+    /// (as of the model's latest stats), when both are known.
+    pub fn shown_lag_seconds(&self) -> Option<f64> {
+        let shown = self.viewport.shown()?;
+        let latest = self.latest_stats(shown.model)?;
+        Some((latest.train_seconds - shown.train_seconds).max(0.0))
+    }
+
+    fn record_schedule(&mut self, trace: ScheduleTrace) {
+        let now = self.started.elapsed().as_secs_f64();
+        self.schedule_total.merge(&trace);
+        self.schedule_recent.push_back((now, trace));
+        while self
+            .schedule_recent
+            .front()
+            .is_some_and(|(at, _)| now - at > SCHEDULE_WINDOW_SECONDS)
+        {
+            self.schedule_recent.pop_front();
+        }
     }
 
     /// True when a drag, a fly key, a scroll or the auto-orbit moved the
@@ -409,6 +465,7 @@ impl ViewerUi {
                 other => self.handle_event(other),
             }
         }
+        let shown_before = self.viewport.frames_shown;
         match (newest_frame, self.native_textures.as_deref_mut()) {
             (Some(NewFrame::Pixels(frame)), textures) => {
                 let released = self.viewport.show_frame(ctx, frame);
@@ -420,6 +477,12 @@ impl ViewerUi {
                 self.viewport.show_gpu_frame(frame, textures)
             }
             _ => {}
+        }
+        if self.viewport.frames_shown != shown_before
+            && let Some(shown) = self.viewport.shown()
+        {
+            self.shown_log
+                .push((self.started.elapsed().as_secs_f64(), shown));
         }
         count > 0
     }
@@ -465,6 +528,7 @@ impl ViewerUi {
             Event::InTurn(settings) => self.in_turn = settings,
             Event::Running(running) => self.running = running,
             Event::Stats(stats) => self.record_stats(stats),
+            Event::Schedule(trace) => self.record_schedule(trace),
             Event::Frame(_) | Event::GpuFrame(_) => {}
             Event::CheckpointSaved(path) => {
                 self.notice(format!("Saved checkpoint {}", path.display()), false);
@@ -574,8 +638,25 @@ impl ViewerUi {
         self.last_progress_log = Some(now);
         self.last_logged_step = Some((stats.model, stats.step));
         let psnr = |value: Option<f32>| value.map_or("-".to_string(), |v| format!("{v:.2}"));
+        let shown = match self.viewport.shown() {
+            Some(shown) => format!(
+                " shown step {} at 1/{} ({}x{}, {:.1}s of training behind)",
+                shown.step,
+                shown.downscale,
+                shown.width,
+                shown.height,
+                self.shown_lag_seconds().unwrap_or(0.0)
+            ),
+            None => String::new(),
+        };
+        let share = self
+            .recent_schedule()
+            .filter(|t| t.wall_seconds > 0.0)
+            .map_or(String::new(), |t| {
+                format!(" training share {:.2}", t.training_seconds / t.wall_seconds)
+            });
         eprintln!(
-            "zrak view: {} step {} loss {:.5} psnr {} val_psnr {} ms/step {:.1} wall {:.1}s",
+            "zrak view: {} step {} loss {:.5} psnr {} val_psnr {} ms/step {:.1} wall {:.1}s{shown}{share}",
             stats.model.name(),
             stats.step,
             stats.loss,

@@ -507,6 +507,11 @@ pub fn bottom_panel(state: &mut ViewerUi, ui: &mut egui::Ui) {
                 });
                 ui.separator();
                 ui.vertical(|ui| {
+                    ui.set_width(200.0);
+                    thread_time(state, ui);
+                });
+                ui.separator();
+                ui.vertical(|ui| {
                     // Wrapped so the export stays on screen in a narrow window.
                     ui.horizontal_wrapped(|ui| {
                         ui.label(RichText::new("Loss and PSNR").strong());
@@ -636,6 +641,63 @@ fn stage_times(state: &ViewerUi, ui: &mut egui::Ui) {
                     .small()
                     .strong(),
             );
+            ui.end_row();
+        });
+}
+
+/// Where the training thread's wall time went over the last seconds:
+/// training (and of it the occupancy-grid updates), drawing each level of
+/// the view, held-out evaluation, waiting, and the rest.
+fn thread_time(state: &ViewerUi, ui: &mut egui::Ui) {
+    ui.label(RichText::new("Where the time goes").strong())
+        .on_hover_text(format!(
+            "The training thread's wall time over the last {:.0} s. While the \
+             camera rests, training gets the training share of it; the view and \
+             the held-out evaluation the rest.",
+            super::SCHEDULE_WINDOW_SECONDS
+        ));
+    let Some(trace) = state.recent_schedule().filter(|t| t.wall_seconds > 0.0) else {
+        ui.weak("nothing yet");
+        return;
+    };
+    let wall = trace.wall_seconds;
+    let mut rows: Vec<(String, f64)> = vec![
+        (
+            format!("training ({} steps)", trace.steps),
+            trace.training_seconds,
+        ),
+        (
+            "  of it grid updates".to_string(),
+            trace.grid_update_seconds,
+        ),
+    ];
+    for level in &trace.rendering {
+        let name = if level.downscale > 1 {
+            format!("render 1/{} (×{})", level.downscale, level.finished)
+        } else {
+            format!("render full (×{})", level.finished)
+        };
+        rows.push((name, level.seconds));
+    }
+    rows.push((
+        format!("evaluation (×{})", trace.evaluations),
+        trace.evaluation_seconds,
+    ));
+    rows.push(("idle".to_string(), trace.idle_seconds));
+    rows.push(("other".to_string(), trace.other_seconds()));
+    egui::Grid::new("zrak thread time")
+        .num_columns(3)
+        .spacing([10.0, 1.0])
+        .striped(true)
+        .show(ui, |ui| {
+            for (name, seconds) in rows {
+                ui.label(RichText::new(name).small());
+                ui.label(RichText::new(format!("{seconds:.2} s")).small());
+                ui.label(RichText::new(format!("{:.0}%", 100.0 * seconds / wall)).small());
+                ui.end_row();
+            }
+            ui.label(RichText::new("wall").small().strong());
+            ui.label(RichText::new(format!("{wall:.1} s")).small().strong());
             ui.end_row();
         });
 }
