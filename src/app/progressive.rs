@@ -90,6 +90,11 @@ impl LevelRender {
         self.done == self.pixels.len()
     }
 
+    /// Pixels rendered so far.
+    pub fn rendered(&self) -> usize {
+        self.done
+    }
+
     /// Renders up to `max_rays` more pixels over `background`; returns how
     /// many it rendered.
     pub fn render_chunk(

@@ -49,9 +49,12 @@ pub const FIRST_LEVEL_PIXELS_UNMEASURED: usize = 256;
 /// `zrak train` ([`crate::train::run::Schedule::eval_share`]).
 pub const EVAL_SHARE: f64 = 0.05;
 
-/// An evaluation scores at least this many pixels (spread over its views),
-/// however slow the model: fewer would make the PSNR mostly noise.
-pub const MIN_EVAL_PIXELS: usize = 256;
+/// An evaluation scores at least this many pixels (32 in each of three
+/// views), however slow the model: fewer would make the PSNR mostly noise.
+/// `zrak train` scores at least 256 but every 30 s of training; the viewer
+/// every 5 s, where 256 pixels of a NeRF still marching a dense grid
+/// (~5 ms a pixel on two busy cores) took 28 % of the training time.
+pub const MIN_EVAL_PIXELS: usize = 96;
 
 /// Render seconds a refresh may take while training runs at `share`: the
 /// default share's [`REFRESH_SECONDS_AT_DEFAULT_SHARE`], scaled with the
@@ -166,6 +169,16 @@ pub struct RenderCost {
 impl RenderCost {
     pub fn seconds_per_pixel(&self) -> Option<f64> {
         self.seconds_per_pixel
+    }
+
+    /// Records that `pixels` took `seconds`, forgetting the estimate so
+    /// far (which a level just proved wrong).
+    pub fn replace(&mut self, pixels: usize, seconds: f64) {
+        let old = std::mem::take(&mut self.seconds_per_pixel);
+        self.record(pixels, seconds);
+        if self.seconds_per_pixel.is_none() {
+            self.seconds_per_pixel = old;
+        }
     }
 
     /// Records that `pixels` took `seconds`. Half-and-half smoothing: the
@@ -424,7 +437,10 @@ mod tests {
         assert_eq!(cost.seconds_per_pixel(), Some(1e-3));
         cost.record(1000, 0.0); // not a measurement
         cost.record(0, 1.0);
+        cost.replace(0, 1.0);
         assert_eq!(cost.seconds_per_pixel(), Some(1e-3));
+        cost.replace(100, 1.0);
+        assert_eq!(cost.seconds_per_pixel(), Some(1e-2));
         for _ in 0..10 {
             cost.record(1000, 0.1);
         }

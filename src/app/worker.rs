@@ -47,18 +47,24 @@ use super::schedule::{
     first_level, next_finer_level, refresh_budget,
 };
 
-/// Called after every event is queued, so the UI wakes up to read it (the
-/// viewer passes `egui::Context::request_repaint`).
 /// Training batch of the viewer on the cpu engine, in samples: a quarter
 /// of Instant-NGP's 2^18, so a step takes ~60 ms rather than ~250 ms on two
 /// cores. Commands and render chunks wait behind at most one step, and the
 /// view improves in more, smaller steps during the first minute.
 pub const CPU_BATCH_SAMPLES: usize = 1 << 16;
 
-/// NeRF's batch in the viewer on the cpu engine: a sample of its 8 × 256
-/// network costs ~50 of Instant-NGP's, so 2^12 samples keep a step near
-/// 0.1 s for the same reason.
-pub const NERF_CPU_BATCH_SAMPLES: usize = 1 << 12;
+/// NeRF's and Mip-NeRF's batch in the viewer with the paper's samplers, or
+/// on a software gpu adapter: the paper's 1024 rays × 256 samples of the
+/// 8 × 256 network are ~1 T FLOP a step, seconds on two cores (minutes on
+/// lavapipe), so 2^12 samples. With the occupancy sampler on the cpu
+/// engine they train on their recipe's batch (2^14 samples, ~0.15 s a
+/// step on two cores), as `zrak train` does: their occupancy grid is
+/// updated every 16 steps whatever the batch, at ~20 steps' cost (64³
+/// density queries of the 8 × 256 network), so a quarter of the batch
+/// spent half of the viewer's training time on grid updates (measured on
+/// lego_400: 21.6 of 42.2 s), twice `zrak train`'s share; and the same
+/// batch makes the viewer's steps comparable with `zrak train`'s.
+pub const NERF_SMALL_BATCH_SAMPLES: usize = 1 << 12;
 
 pub type RepaintCallback = Box<dyn Fn() + Send>;
 
@@ -511,6 +517,28 @@ impl LevelJob {
             LevelDraw::Pixels(render) => render.is_done(),
             LevelDraw::Texture(level) => level.next_row >= level.camera.intrinsics.height,
         }
+    }
+
+    /// Pixels drawn so far.
+    fn drawn(&self) -> usize {
+        match &self.draw {
+            LevelDraw::Pixels(render) => render.rendered(),
+            LevelDraw::Texture(level) => {
+                level.next_row as usize * level.camera.intrinsics.width as usize
+            }
+        }
+    }
+
+    /// True when the level, drawn at the rate of its first part, would take
+    /// more than twice `budget` render seconds and is not half done: the
+    /// cost was misjudged (the cost of a pixel rises early in training,
+    /// while the field clears empty space the grid still marches).
+    fn overruns(&self, budget: f64) -> bool {
+        let (drawn, pixels) = (self.drawn(), self.pixels());
+        if drawn == 0 || 2 * drawn >= pixels || self.seconds <= budget {
+            return false;
+        }
+        self.seconds * pixels as f64 / drawn as f64 > 2.0 * budget
     }
 }
 
@@ -1070,16 +1098,19 @@ impl Worker {
         let settings = ModelSettings {
             seed: self.options.seed,
             loss: self.options.loss.unwrap_or(kind.default_loss()),
-            batch_samples: self
-                .options
-                .batch_samples
-                .or(match (self.engine.kind, kind) {
-                    (EngineKind::Cpu, ModelKind::Ngp) => Some(CPU_BATCH_SAMPLES),
-                    (EngineKind::Cpu, ModelKind::Nerf | ModelKind::MipNerf) => {
-                        Some(NERF_CPU_BATCH_SAMPLES)
+            batch_samples: self.options.batch_samples.or_else(|| {
+                let software_gpu = self.engine.gpu.as_ref().is_some_and(|g| g.is_software());
+                match (self.engine.kind, kind, self.options.sampling) {
+                    (EngineKind::Cpu, ModelKind::Ngp, _) => Some(CPU_BATCH_SAMPLES),
+                    (EngineKind::Cpu, ModelKind::Nerf | ModelKind::MipNerf, Sampling::Paper) => {
+                        Some(NERF_SMALL_BATCH_SAMPLES)
                     }
-                    (EngineKind::Gpu, _) => None,
-                }),
+                    (EngineKind::Gpu, ModelKind::Nerf | ModelKind::MipNerf, _) if software_gpu => {
+                        Some(NERF_SMALL_BATCH_SAMPLES)
+                    }
+                    _ => None,
+                }
+            }),
             sampling: self.options.sampling,
             precision: self.options.precision,
         };
@@ -1429,7 +1460,22 @@ impl Worker {
             .and_then(|v| v.job.as_ref())
             .is_some_and(LevelJob::is_done);
         if finished {
-            self.finish_level()?;
+            return self.finish_level();
+        }
+        // A level far over its budget while training waits on it is given
+        // up for a coarser one, sized by what this one has cost so far;
+        // whole levels (a new camera's first) are small and always finish.
+        let budget = refresh_budget(self.training_share());
+        if !whole_level
+            && self.training_active()
+            && let (Some(view), Some(slot)) = (
+                self.view.as_mut(),
+                self.slots.iter_mut().find(|s| s.kind == self.active),
+            )
+            && view.job.as_ref().is_some_and(|job| job.overruns(budget))
+        {
+            let job = view.job.take().expect("checked");
+            slot.cost.replace(job.drawn(), job.seconds);
         }
         Ok(())
     }
