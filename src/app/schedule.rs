@@ -441,7 +441,7 @@ mod tests {
         assert_eq!(cost.seconds_per_pixel(), Some(1e-3));
         cost.replace(100, 1.0);
         assert_eq!(cost.seconds_per_pixel(), Some(1e-2));
-        for _ in 0..10 {
+        for _ in 0..20 {
             cost.record(1000, 0.1);
         }
         let now = cost.seconds_per_pixel().unwrap();
