@@ -8,8 +8,10 @@ use std::time::Duration;
 
 use glam::Vec3;
 
+use crate::engine::gpu::GpuContext;
+use crate::render::RenderMode;
 use crate::scene::{Camera, Intrinsics};
-use crate::train::model::{RadianceModel, RenderedPixel};
+use crate::train::model::{RadianceModel, RenderedPixel, TextureRender};
 
 /// `camera` seen at 1/`downscale` of its resolution, at least one pixel each
 /// way. The image plane keeps its extent, so the focal lengths and the
@@ -49,6 +51,57 @@ pub fn band_camera(camera: &Camera, first: u32, rows: u32) -> Camera {
         },
         camera.camera_to_world,
     )
+}
+
+/// Draws rows `first .. first + band.height()` of `camera`'s view into
+/// `target` (`camera`'s size) through `band` (a texture that many rows
+/// high, usable as a copy source): the band's camera
+/// ([`band_camera`]) drawn with the engine's ordinary texture render, then
+/// copied into place, so that a level slower than a unit of the training
+/// thread's work is drawn a band at a time.
+#[allow(clippy::too_many_arguments)]
+pub fn draw_band_to_texture(
+    gpu: &dyn TextureRender,
+    context: &GpuContext,
+    camera: &Camera,
+    first: u32,
+    mode: RenderMode,
+    background: [f32; 3],
+    band: &wgpu::Texture,
+    target: &wgpu::Texture,
+) -> Result<(), String> {
+    let rows = band.height();
+    let k = camera.intrinsics;
+    if band.width() != k.width || first.checked_add(rows).is_none_or(|end| end > k.height) {
+        return Err(format!(
+            "a band of {}×{rows} pixels at row {first} does not fit a {}×{} view",
+            band.width(),
+            k.width,
+            k.height
+        ));
+    }
+    gpu.render_to_texture(&band_camera(camera, first, rows), mode, background, band)?;
+    let mut encoder = context.device.create_command_encoder(&Default::default());
+    encoder.copy_texture_to_texture(
+        band.as_image_copy(),
+        wgpu::TexelCopyTextureInfo {
+            texture: target,
+            mip_level: 0,
+            origin: wgpu::Origin3d {
+                x: 0,
+                y: first,
+                z: 0,
+            },
+            aspect: wgpu::TextureAspect::All,
+        },
+        wgpu::Extent3d {
+            width: k.width,
+            height: rows,
+            depth_or_array_layers: 1,
+        },
+    );
+    context.queue.submit([encoder.finish()]);
+    Ok(())
 }
 
 /// One level of one camera being rendered, chunk by chunk, row-major from

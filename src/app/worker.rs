@@ -20,6 +20,7 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use crate::engine::cpu::dense::{Precision, backend_for};
+use crate::engine::cpu::fields::nerf::NerfShape;
 use crate::engine::gpu::GpuContext;
 use crate::engine::gpu::render::render_target;
 use crate::engine::{EngineChoice, EngineKind, choose_engine};
@@ -37,7 +38,7 @@ use crate::train::model::{RadianceModel, RenderedPixel, StageTimes, StepStats};
 use crate::train::trainer::Trainer;
 use crate::train::{ModelSettings, build_model};
 
-use super::progressive::{ChunkPacer, LevelRender, band_camera, level_camera};
+use super::progressive::{ChunkPacer, LevelRender, draw_band_to_texture, level_camera};
 use super::protocol::{
     Balance, Command, Event, GpuFrame, InTurn, RenderRequest, RenderedFrame, SceneInfo,
     SceneSource, TrainingStats,
@@ -111,6 +112,9 @@ pub struct WorkerOptions {
     pub batch_samples: Option<usize>,
     /// NeRF's sampler.
     pub sampling: Sampling,
+    /// The networks of NeRF and Mip-NeRF; `None` gives each its paper's.
+    /// Tests give small ones, so that a software gpu adapter runs them.
+    pub nerf_shape: Option<NerfShape>,
     /// How the cpu engine computes the networks' products (f32 unless
     /// asked: the viewer asks for the processor's best).
     pub precision: Precision,
@@ -161,6 +165,7 @@ impl Default for WorkerOptions {
             loss: None,
             batch_samples: None,
             sampling: Sampling::Occupancy,
+            nerf_shape: None,
             precision: Precision::F32,
             demo: DemoConfig::default(),
             val_every_train_seconds: 5.0,
@@ -1114,7 +1119,42 @@ impl Worker {
             sampling: self.options.sampling,
             precision: self.options.precision,
         };
-        let model = build_model(kind, self.engine.choice()?, &self.scene, &settings)?;
+        let engine = self.engine.choice()?;
+        let model: Box<dyn RadianceModel> =
+            match (&self.options.nerf_shape, kind, engine.gpu) {
+                (Some(shape), ModelKind::Nerf, None) => Box::new(
+                    crate::train::cpu_nerf_with_shape(&self.scene, &settings, shape),
+                ),
+                (Some(shape), ModelKind::MipNerf, None) => Box::new(
+                    crate::train::cpu_mipnerf_with_shape(&self.scene, &settings, shape),
+                ),
+                (Some(shape), ModelKind::Nerf, Some(gpu)) if engine.kind == EngineKind::Gpu => {
+                    Box::new(crate::train::gpu_nerf_with_shape(
+                        gpu,
+                        &self.scene,
+                        &settings,
+                        shape,
+                    )?)
+                }
+                (Some(shape), ModelKind::MipNerf, Some(gpu)) if engine.kind == EngineKind::Gpu => {
+                    Box::new(crate::train::gpu_mipnerf_with_shape(
+                        gpu,
+                        &self.scene,
+                        &settings,
+                        shape,
+                    )?)
+                }
+                (_, _, gpu) => build_model(
+                    kind,
+                    EngineChoice {
+                        kind: engine.kind,
+                        gpu,
+                        reason: engine.reason,
+                    },
+                    &self.scene,
+                    &settings,
+                )?,
+            };
         Ok(Trainer::new(model, self.scene.clone(), self.options.seed))
     }
 
@@ -2068,10 +2108,8 @@ impl TexturePool {
 }
 
 /// Draws up to `rows` more rows of `level` (at least one) and returns how
-/// many: a band of the level's camera into a texture of the band's size,
-/// copied into the level's texture at its row, so the engine draws it
-/// with its ordinary texture render; the whole level at once when one
-/// band covers it.
+/// many: the whole level at once when one band covers it, else through a
+/// texture of the band's size ([`draw_band_to_texture`]).
 fn draw_band(
     gpu: &dyn crate::train::model::TextureRender,
     context: &GpuContext,
@@ -2085,29 +2123,17 @@ fn draw_band(
     if level.next_row == 0 && rows == k.height {
         gpu.render_to_texture(&level.camera, mode, WHITE, &level.texture)?;
     } else {
-        let band = band_camera(&level.camera, level.next_row, rows);
-        let texture = textures.take(context, k.width, rows);
-        gpu.render_to_texture(&band, mode, WHITE, &texture)?;
-        let mut encoder = context.device.create_command_encoder(&Default::default());
-        encoder.copy_texture_to_texture(
-            texture.as_image_copy(),
-            wgpu::TexelCopyTextureInfo {
-                texture: &level.texture,
-                mip_level: 0,
-                origin: wgpu::Origin3d {
-                    x: 0,
-                    y: level.next_row,
-                    z: 0,
-                },
-                aspect: wgpu::TextureAspect::All,
-            },
-            wgpu::Extent3d {
-                width: k.width,
-                height: rows,
-                depth_or_array_layers: 1,
-            },
-        );
-        context.queue.submit([encoder.finish()]);
+        let band = textures.take(context, k.width, rows);
+        draw_band_to_texture(
+            gpu,
+            context,
+            &level.camera,
+            level.next_row,
+            mode,
+            WHITE,
+            &band,
+            &level.texture,
+        )?;
     }
     level.next_row += rows;
     Ok(rows)
