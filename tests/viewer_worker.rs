@@ -765,11 +765,11 @@ fn the_picture_keeps_up_while_training_keeps_its_share(
         share >= 0.6,
         "training had {share:.2} of the wall time ({trained:.1} of {wall:.1} s)"
     );
-    assert!(
-        share <= DEFAULT_TRAINING_SHARE + 0.15,
-        "the view had only {:.2} of the time",
-        1.0 - share
-    );
+    // No upper bound: the view takes its share only while it has work. A
+    // view this small is redrawn at full resolution in a fraction of a
+    // step, and once the picture shows the latest step there is nothing
+    // to draw until the next, so training goes on (measured: 0.91 for
+    // NeRF on a 16-pixel view). What the view gets is checked below.
 
     // The picture keeps up: after the first step, a picture of a later
     // step than any shown before comes at least every `lag_bound_seconds`
