@@ -168,6 +168,9 @@ fn panels_show_every_control() {
     harness.get_by_label("2.50 M");
     harness.get_by_label("64.0 MiB");
     harness.get_by_label("0.01230");
+    // The stages of a step, one click away from where the time goes.
+    harness.get_by_label("Time per stage").click();
+    harness.run_steps(2);
     harness.get_by_label("10.00 ms");
     harness.get_by_label("50.00 ms");
     harness.get_by_label("60.00 ms");
@@ -596,6 +599,18 @@ fn the_plot_and_table_export_from_the_window_with_the_sessions_numbers() {
 fn the_stats_show_where_the_thread_time_goes_and_how_far_the_picture_lags() {
     use zrak::app::protocol::{LevelTime, ScheduleTrace};
     let (mut harness, link) = harness_with_scene();
+    // The timing column shows where the thread's time goes, or on a click
+    // the stages of a step.
+    assert_eq!(
+        harness.state().timing_view(),
+        zrak::app::ui::TimingView::Thread
+    );
+    assert!(harness.query_by_label("nothing yet").is_some());
+    harness.get_by_label("Time per stage").click();
+    harness.run_steps(2);
+    assert!(harness.query_by_label("no step yet").is_some());
+    harness.get_by_label("Where the time goes").click();
+    harness.run_steps(2);
     assert!(harness.query_by_label("nothing yet").is_some());
     // Two seconds of the thread's time, reported a second at a time.
     let second = ScheduleTrace {
@@ -619,7 +634,6 @@ fn the_stats_show_where_the_thread_time_goes_and_how_far_the_picture_lags() {
     assert_eq!((recent.steps, recent.rendering[0].finished), (14, 2));
     assert!((recent.training_seconds / recent.wall_seconds - 0.7).abs() < 1e-9);
     for label in [
-        "Where the time goes",
         "training (14 steps)",
         "  of it grid updates",
         "render 1/4 (×2)",

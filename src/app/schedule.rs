@@ -185,7 +185,7 @@ impl RenderCost {
     /// cost falls many times over while the occupancy grid tightens, and
     /// the estimate should follow within a few levels.
     pub fn record(&mut self, pixels: usize, seconds: f64) {
-        if pixels == 0 || !(seconds > 0.0) || !seconds.is_finite() {
+        if pixels == 0 || !seconds.is_finite() || seconds <= 0.0 {
             return;
         }
         let now = seconds / pixels as f64;

@@ -123,6 +123,8 @@ pub struct ViewerUi {
     camera: Option<ViewCamera>,
     viewport: ViewportState,
     plot_axis: PlotAxis,
+    /// What the timing column shows.
+    timing: TimingView,
     export: ExportDialog,
     scene_path_text: String,
     checkpoint_path_text: String,
@@ -143,9 +145,24 @@ pub struct ViewerUi {
     schedule_recent: VecDeque<(f64, ScheduleTrace)>,
     /// Every trace of the session added up.
     schedule_total: ScheduleTrace,
+    /// See [`Self::schedule_log`].
+    schedule_log: Vec<(f64, f64, f64)>,
+    /// At most how often the window redraws while the camera rests
+    /// (`None`: whenever something changed); see [`Self::set_resting_redraw`].
+    resting_redraw: Option<Duration>,
     /// Each frame shown: when (wall seconds since the window opened) and
     /// what, for the frame log.
     shown_log: Vec<(f64, ShownFrame)>,
+}
+
+/// What the timing column beside the stats shows (one column, so the
+/// plots keep their width).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TimingView {
+    /// The stages of a training step.
+    Stages,
+    /// Where the training thread's wall time goes.
+    Thread,
 }
 
 /// How many seconds of schedule traces the stats panel adds up.
@@ -172,6 +189,7 @@ impl ViewerUi {
             camera: None,
             viewport: ViewportState::default(),
             plot_axis: PlotAxis::Step,
+            timing: TimingView::Thread,
             export: ExportDialog::default(),
             scene_path_text: String::new(),
             checkpoint_path_text: String::new(),
@@ -187,6 +205,8 @@ impl ViewerUi {
             native_textures: None,
             schedule_recent: VecDeque::new(),
             schedule_total: ScheduleTrace::default(),
+            schedule_log: Vec::new(),
+            resting_redraw: None,
             shown_log: Vec::new(),
         }
     }
@@ -206,6 +226,14 @@ impl ViewerUi {
     /// can be measured without a mouse.
     pub fn set_auto_orbit(&mut self, on: bool) {
         self.auto_orbit = on;
+    }
+
+    /// Redraws at most every `interval` while the camera rests (it redraws
+    /// at once while it moves): the viewer asks this on a software
+    /// rasteriser, where a frame of the window costs a good part of a core
+    /// and redrawing on every stats event took as much CPU as training.
+    pub fn set_resting_redraw(&mut self, interval: Option<Duration>) {
+        self.resting_redraw = interval;
     }
 
     /// Names the adapter egui draws with, for the stats panel.
@@ -261,6 +289,14 @@ impl ViewerUi {
         &self.viewport
     }
 
+    pub fn timing_view(&self) -> TimingView {
+        self.timing
+    }
+
+    pub fn set_timing_view(&mut self, view: TimingView) {
+        self.timing = view;
+    }
+
     /// The training thread's schedule over about the last
     /// [`SCHEDULE_WINDOW_SECONDS`] of wall time, if it sent any.
     pub fn recent_schedule(&self) -> Option<ScheduleTrace> {
@@ -290,8 +326,17 @@ impl ViewerUi {
         Some((latest.train_seconds - shown.train_seconds).max(0.0))
     }
 
+    /// When each schedule trace came (wall seconds since the window
+    /// opened), with the wall and training seconds it covered: the share
+    /// over any stretch of the session.
+    pub fn schedule_log(&self) -> &[(f64, f64, f64)] {
+        &self.schedule_log
+    }
+
     fn record_schedule(&mut self, trace: ScheduleTrace) {
         let now = self.started.elapsed().as_secs_f64();
+        self.schedule_log
+            .push((now, trace.wall_seconds, trace.training_seconds));
         self.schedule_total.merge(&trace);
         self.schedule_recent.push_back((now, trace));
         while self
@@ -432,8 +477,13 @@ impl ViewerUi {
         // Training or a moving camera keeps the picture changing; the worker
         // may also wake us through its repaint callback, but a steady tick
         // keeps plots and stats live even without one.
-        if got_events || self.running || self.viewport.moving || self.auto_orbit {
+        if self.viewport.moving || self.auto_orbit {
             ctx.request_repaint();
+        } else if got_events || self.running {
+            match self.resting_redraw {
+                Some(interval) => ctx.request_repaint_after(interval),
+                None => ctx.request_repaint(),
+            }
         } else {
             ctx.request_repaint_after(Duration::from_millis(250));
         }

@@ -503,12 +503,29 @@ pub fn bottom_panel(state: &mut ViewerUi, ui: &mut egui::Ui) {
                 ui.separator();
                 ui.vertical(|ui| {
                     ui.set_width(200.0);
-                    stage_times(state, ui);
-                });
-                ui.separator();
-                ui.vertical(|ui| {
-                    ui.set_width(200.0);
-                    thread_time(state, ui);
+                    ui.horizontal(|ui| {
+                        ui.selectable_value(
+                            &mut state.timing,
+                            super::TimingView::Stages,
+                            RichText::new("Time per stage").strong(),
+                        )
+                        .on_hover_text("The stages of a training step");
+                        ui.selectable_value(
+                            &mut state.timing,
+                            super::TimingView::Thread,
+                            RichText::new("Where the time goes").strong(),
+                        )
+                        .on_hover_text(format!(
+                            "The training thread's wall time over the last {:.0} s. While \
+                             the camera rests, training gets the training share of it; the \
+                             view and the held-out evaluation the rest.",
+                            super::SCHEDULE_WINDOW_SECONDS
+                        ));
+                    });
+                    match state.timing {
+                        super::TimingView::Stages => stage_times(state, ui),
+                        super::TimingView::Thread => thread_time(state, ui),
+                    }
                 });
                 ui.separator();
                 ui.vertical(|ui| {
@@ -613,7 +630,6 @@ fn stats(state: &ViewerUi, ui: &mut egui::Ui) {
 }
 
 fn stage_times(state: &ViewerUi, ui: &mut egui::Ui) {
-    ui.label(RichText::new("Time per stage").strong());
     let Some(stats) = state.latest_stats(state.active_model) else {
         ui.weak("no step yet");
         return;
@@ -649,13 +665,6 @@ fn stage_times(state: &ViewerUi, ui: &mut egui::Ui) {
 /// training (and of it the occupancy-grid updates), drawing each level of
 /// the view, held-out evaluation, waiting, and the rest.
 fn thread_time(state: &ViewerUi, ui: &mut egui::Ui) {
-    ui.label(RichText::new("Where the time goes").strong())
-        .on_hover_text(format!(
-            "The training thread's wall time over the last {:.0} s. While the \
-             camera rests, training gets the training share of it; the view and \
-             the held-out evaluation the rest.",
-            super::SCHEDULE_WINDOW_SECONDS
-        ));
     let Some(trace) = state.recent_schedule().filter(|t| t.wall_seconds > 0.0) else {
         ui.weak("nothing yet");
         return;
