@@ -618,11 +618,28 @@ fn the_stats_show_where_the_thread_time_goes_and_how_far_the_picture_lags() {
         training_seconds: 0.7,
         grid_update_seconds: 0.1,
         steps: 7,
-        rendering: vec![LevelTime {
-            downscale: 4,
-            seconds: 0.2,
-            finished: 1,
-        }],
+        rendering: vec![
+            LevelTime {
+                downscale: 8,
+                seconds: 0.01,
+                finished: 1,
+            },
+            LevelTime {
+                downscale: 5,
+                seconds: 0.02,
+                finished: 0,
+            },
+            LevelTime {
+                downscale: 4,
+                seconds: 0.13,
+                finished: 1,
+            },
+            LevelTime {
+                downscale: 2,
+                seconds: 0.04,
+                finished: 0,
+            },
+        ],
         evaluation_seconds: 0.05,
         evaluations: 1,
         idle_seconds: 0.0,
@@ -631,12 +648,15 @@ fn the_stats_show_where_the_thread_time_goes_and_how_far_the_picture_lags() {
     link.push(Event::Schedule(second));
     harness.run_steps(2);
     let recent = harness.state().recent_schedule().expect("traces kept");
-    assert_eq!((recent.steps, recent.rendering[0].finished), (14, 2));
+    assert_eq!((recent.steps, recent.rendering[2].finished), (14, 2));
     assert!((recent.training_seconds / recent.wall_seconds - 0.7).abs() < 1e-9);
     for label in [
         "training (14 steps)",
         "  of it grid updates",
         "render 1/4 (×2)",
+        "render 1/2 (×0)",
+        // The column keeps its height: the other levels in one row.
+        "render, 2 other sizes (×2)",
         "evaluation (×2)",
         "idle",
         "other",

@@ -49,12 +49,14 @@ pub const FIRST_LEVEL_PIXELS_UNMEASURED: usize = 256;
 /// `zrak train` ([`crate::train::run::Schedule::eval_share`]).
 pub const EVAL_SHARE: f64 = 0.05;
 
-/// An evaluation scores at least this many pixels (32 in each of three
-/// views), however slow the model: fewer would make the PSNR mostly noise.
-/// `zrak train` scores at least 256 but every 30 s of training; the viewer
-/// every 5 s, where 256 pixels of a NeRF still marching a dense grid
-/// (~5 ms a pixel on two busy cores) took 28 % of the training time.
-pub const MIN_EVAL_PIXELS: usize = 96;
+/// An evaluation scores at least this many pixels (16 in each of three
+/// views), however slow the model: fewer would make the PSNR mostly
+/// noise. `zrak train` scores at least 256 every 30 s of training, ~8.5 a
+/// training second; the viewer evaluates every 5 s, and 48 pixels keep
+/// about that rate. (256 pixels of a NeRF still marching a dense grid,
+/// ~5 ms a pixel on two busy cores, took 28 % of the training time; 96
+/// still 11 % of the wall time on the demo.)
+pub const MIN_EVAL_PIXELS: usize = 48;
 
 /// Render seconds a refresh may take while training runs at `share`: the
 /// default share's [`REFRESH_SECONDS_AT_DEFAULT_SHARE`], scaled with the

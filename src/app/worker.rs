@@ -441,6 +441,10 @@ struct ModelSlot {
     pacer: ChunkPacer,
     /// What a pixel of this model costs to render, over whole levels.
     cost: RenderCost,
+    /// What a pixel of the held-out evaluation costs: its views frame the
+    /// scene as the training views do, so more of their pixels cross it
+    /// than a viewport's.
+    eval_cost: RenderCost,
 }
 
 /// What the viewport asked for and how far it has been drawn.
@@ -1173,6 +1177,7 @@ impl Worker {
             saved_step,
             pacer: ChunkPacer::new(CHUNK_TARGET),
             cost: RenderCost::default(),
+            eval_cost: RenderCost::default(),
         }
     }
 
@@ -1721,10 +1726,11 @@ impl Worker {
                 .iter()
                 .map(|f| f.camera.intrinsics.width as usize * f.camera.intrinsics.height as usize)
                 .sum();
-            let pixels = slot
-                .cost
+            let cost = slot
+                .eval_cost
                 .seconds_per_pixel()
-                .map_or(MIN_EVAL_PIXELS, |cost| (EVAL_SHARE * every / cost) as usize);
+                .or(slot.cost.seconds_per_pixel());
+            let pixels = cost.map_or(MIN_EVAL_PIXELS, |cost| (EVAL_SHARE * every / cost) as usize);
             let pixels = pixels.clamp(MIN_EVAL_PIXELS.min(all), all.max(1));
             self.val_job = Some(ValJob::new(active, &self.val_frames, pixels));
         }
@@ -1849,7 +1855,7 @@ impl Worker {
             return Ok(());
         }
         self.trace.evaluations += 1;
-        slot.cost.record(job.pixels.len(), job.seconds);
+        slot.eval_cost.record(job.pixels.len(), job.seconds);
         slot.pending_val = Some(job.mean_psnr() as f32);
         let kind = job.model;
         self.val_job = None;

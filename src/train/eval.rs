@@ -202,3 +202,24 @@ pub fn spread_views(frames: &[Frame], count: usize) -> Vec<&Frame> {
         .map(|i| &frames[i * frames.len() / count])
         .collect()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::pixel_grid;
+
+    #[test]
+    fn the_pixel_grid_spreads_about_the_count_asked_over_the_whole_view() {
+        // 100 of 400 × 400: every 40th pixel each way, from the middle of
+        // the first 40 × 40 cell.
+        let grid = pixel_grid(400, 400, 100);
+        assert_eq!(grid.len(), 100);
+        assert_eq!(grid[0], (20, 20));
+        assert_eq!(*grid.last().unwrap(), (380, 380));
+        // More than the view holds: every pixel, once.
+        assert_eq!(pixel_grid(4, 3, 1000).len(), 12);
+        // A stride longer than a side still finds pixels inside the view.
+        let thin = pixel_grid(400, 10, 1);
+        assert!(!thin.is_empty() && thin.iter().all(|&(x, y)| x < 400 && y < 10));
+        assert_eq!(pixel_grid(1, 1, 0), vec![(0, 0)]);
+    }
+}

@@ -680,13 +680,30 @@ fn thread_time(state: &ViewerUi, ui: &mut egui::Ui) {
             trace.grid_update_seconds,
         ),
     ];
-    for level in &trace.rendering {
+    // The two levels that took the most time, coarse first, and the rest
+    // in one row: the column keeps its height (a taller one would grow
+    // the panel into the viewport), however many sizes the levels had.
+    let mut levels = trace.rendering.clone();
+    levels.sort_by(|a, b| b.seconds.total_cmp(&a.seconds));
+    let rest = levels.split_off(levels.len().min(2));
+    levels.sort_by(|a, b| b.downscale.cmp(&a.downscale));
+    for level in &levels {
         let name = if level.downscale > 1 {
             format!("render 1/{} (×{})", level.downscale, level.finished)
         } else {
             format!("render full (×{})", level.finished)
         };
         rows.push((name, level.seconds));
+    }
+    if !rest.is_empty() {
+        rows.push((
+            format!(
+                "render, {} other sizes (×{})",
+                rest.len(),
+                rest.iter().map(|l| l.finished).sum::<u32>()
+            ),
+            rest.iter().map(|l| l.seconds).sum(),
+        ));
     }
     rows.push((
         format!("evaluation (×{})", trace.evaluations),
