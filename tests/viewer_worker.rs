@@ -742,7 +742,7 @@ fn the_picture_keeps_up_while_training_keeps_its_share(
     // step by step, so over a run of a few steps (a step that updates the
     // occupancy grid takes seconds on two busy cores) the share measured
     // swings by up to 0.3 of a step over the run; and evaluation takes at
-    // least 96 pixels however slow the model.
+    // least 48 pixels however slow the model.
     assert!(
         !run.stats.is_empty(),
         "no step in {rest_seconds} s; frames {:?}",

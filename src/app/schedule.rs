@@ -40,10 +40,12 @@ pub const FIRST_LEVEL_SECONDS: f64 = 0.05;
 /// it, as the viewer always has.
 pub const MIN_FIRST_DOWNSCALE: u32 = 8;
 
-/// Pixels of the first level before the model's cost is known: small
-/// enough that even an untrained NeRF, marched end to end (~500 samples of
-/// ~1 M FLOP each per pixel), draws it in about a second on two cores.
-pub const FIRST_LEVEL_PIXELS_UNMEASURED: usize = 256;
+/// Pixels of the first level before the model's cost is known (it is
+/// drawn whole, ahead of training): small enough that an untrained NeRF,
+/// marched end to end (~500 samples of ~1 M FLOP each per pixel, 5-10 ms a
+/// pixel on two busy cores), draws it in well under a second; the next
+/// level is sized from what it cost.
+pub const FIRST_LEVEL_PIXELS_UNMEASURED: usize = 64;
 
 /// Held-out evaluation takes this share of the training time, as in
 /// `zrak train` ([`crate::train::run::Schedule::eval_share`]).
@@ -382,9 +384,9 @@ mod tests {
     fn first_levels_are_coarse_and_fit_their_budget() {
         // Cheap: the familiar 1/8.
         assert_eq!(first_level(930, 500, Some(1e-8)), 8);
-        // Unmeasured: at most 256 pixels.
+        // Unmeasured: at most 64 pixels.
         let d = first_level(930, 500, None);
-        assert!(level_pixels(930, 500, d) <= 256.0 && d >= 8, "1/{d}");
+        assert!(level_pixels(930, 500, d) <= 64.0 && d >= 8, "1/{d}");
         // An untrained NeRF (~2 ms a pixel): 25 pixels in 50 ms.
         let d = first_level(930, 500, Some(2e-3));
         assert!(level_pixels(930, 500, d) <= 25.0, "1/{d}");
