@@ -42,7 +42,20 @@ struct Layer {
 }
 
 const NO_BIAS: u32 = 0xffffffffu;
-const TILE: u32 = 16u;
+
+// Every kernel computes a BLOCK × BLOCK tile of its result with 256 threads,
+// each thread a 4 × 4 piece of it held in registers, and steps through the
+// reduction DEPTH at a time, staged through workgroup memory as vec4s so a
+// thread reads its four rows and its four columns with one load each: 16
+// multiply-adds per two loads, where one output per thread took two loads
+// per multiply-add.
+const BLOCK: u32 = 64u;
+const DEPTH: u32 = 16u;
+// vec4s per DEPTH row of a staged tile.
+const QUADS: u32 = 16u;
+
+// The partial sums of the weight gradients are taken over chunks of rows
+// that are a multiple of DEPTH (src/engine/gpu/dense.rs).
 
 // Row tiles may exceed the 65535 workgroups of one dimension: they are
 // spread over y and z.

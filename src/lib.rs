@@ -6,8 +6,10 @@
 
 pub mod app;
 pub mod bench;
+pub mod crc32c;
 pub mod engine;
 pub mod field;
+pub mod files;
 pub mod interrupt;
 pub mod metrics;
 pub mod render;

@@ -23,9 +23,22 @@ use zrak::render::{RenderMode, render_pixels, to_image};
 use zrak::scene::demo::{self, DemoConfig};
 use zrak::scene::{Camera, Frame, LoadOptions, Scene, Split};
 use zrak::train::eval::{SplitScores, evaluate_split_until};
+use zrak::train::log::MetricsLog;
 use zrak::train::run::{Limits, RunFolder, Schedule, load_checkpoint, run};
 use zrak::train::trainer::Trainer;
 use zrak::train::{ModelSettings, build_model};
+
+/// `println!` that never panics: a failed write to standard output (a full
+/// disk, `> /dev/full`) is kept and reported when the command ends, as an
+/// error with a non-zero status, instead of a panic.
+macro_rules! println {
+    () => {
+        zrak::interrupt::print_line(format_args!(""))
+    };
+    ($($arg:tt)*) => {
+        zrak::interrupt::print_line(format_args!($($arg)*))
+    };
+}
 
 mod cli;
 use cli::quality::bench_quality;
@@ -63,15 +76,23 @@ enum Command {
         /// objects, aabb_scale 8, written as an instant-ngp transforms.json.
         #[arg(long)]
         large: bool,
+        /// Write into a folder that is not empty, replacing the scene's
+        /// files there (others are left alone).
+        #[arg(long)]
+        force: bool,
     },
     /// Convert a COLMAP model (sparse/0 and images/) into an instant-ngp /
     /// nerfstudio transforms.json, centred and scaled as zrak loads it.
     Convert {
         /// A folder with sparse/0/cameras.bin and images.bin (or .txt) and images/.
         colmap: PathBuf,
-        /// The transforms.json to write.
+        /// The transforms.json to write (an existing file is kept unless
+        /// --force).
         #[arg(long)]
         out: PathBuf,
+        /// Replace an existing --out file (never one of the model's own).
+        #[arg(long)]
+        force: bool,
     },
     /// Train a model on a scene, writing checkpoints and metrics to a run folder.
     Train(TrainArgs),
@@ -133,6 +154,10 @@ struct ViewArgs {
     /// mixed where the processor has bf16 kernels, else f32.
     #[arg(long, value_enum)]
     precision: Option<Precision>,
+    /// How many of the runs kept on closing (File → Recent runs) stay on
+    /// disk: the newest; older ones are removed when another is kept.
+    #[arg(long, default_value_t = zrak::train::kept::DEFAULT_KEPT_RUNS)]
+    keep_runs: usize,
 }
 
 #[derive(Subcommand)]
@@ -149,6 +174,12 @@ enum BenchCommand {
     /// Training-step throughput per stage on a scene (default: lego_400 when
     /// present beside the checkout, else the demo scene).
     Throughput(ThroughputArgs),
+    /// The gpu engine on this machine's GPU: the adapter, its limits and
+    /// features; a self-check of each model against the cpu engine (one
+    /// training step and one render, with the parity tests' tolerances);
+    /// then each model's stage times for a training step. Exits with
+    /// status 1 if a check fails.
+    Gpu(GpuBenchArgs),
     /// The accuracy-versus-time experiment: trains each model on each scene
     /// for a budget of training time, scores PSNR and SSIM at marks along
     /// the way, and writes results.json, results.csv, report.md and plots
@@ -183,6 +214,29 @@ struct ThroughputArgs {
     /// mixed where the processor has bf16 kernels, else f32.
     #[arg(long, value_enum)]
     precision: Option<Precision>,
+}
+
+#[derive(Args)]
+struct GpuBenchArgs {
+    /// The scene the stage times are measured on (default: lego_400 when
+    /// present beside the checkout, else the demo scene).
+    #[arg(long)]
+    scene: Option<String>,
+    /// The models, comma-separated.
+    #[arg(
+        long,
+        value_enum,
+        value_delimiter = ',',
+        default_value = "ngp,nerf,mipnerf"
+    )]
+    models: Vec<ModelKind>,
+    /// Unmeasured steps before the timed ones (default: each model's
+    /// occupancy warm-up and a few more, as `bench throughput`).
+    #[arg(long)]
+    warmup: Option<usize>,
+    /// Timed steps per model (0: the self-check only).
+    #[arg(long, default_value_t = 16)]
+    steps: usize,
 }
 
 #[derive(Args)]
@@ -288,12 +342,22 @@ struct TrainArgs {
     loss: Option<LossArg>,
     #[arg(long, default_value_t = 0, conflicts_with = "resume")]
     seed: u64,
-    /// The run folder (created; must be writable).
+    /// The run folder (created; must be writable; one holding a run is
+    /// refused unless --force).
     #[arg(long, required_unless_present = "resume")]
     out: Option<PathBuf>,
     /// Continue the run in this folder from its checkpoint.
     #[arg(long, conflicts_with = "out")]
     resume: Option<PathBuf>,
+    /// Start a new run in an --out folder that holds one: the old run's
+    /// folder is moved aside to OUT.old (renamed; nothing is deleted).
+    #[arg(long, conflicts_with = "resume")]
+    force: bool,
+    /// Wall time between checkpoints: `30s`, `2m`. The first comes
+    /// sooner, after 10 s of training (or this interval, if shorter), so a
+    /// run killed early still keeps its start.
+    #[arg(long, value_parser = parse_duration, default_value = "2m")]
+    checkpoint_every: f64,
     /// Training seconds between held-out evaluations.
     #[arg(long, default_value_t = 30.0)]
     eval_every: f64,
@@ -337,11 +401,15 @@ struct RenderArgs {
     gif: bool,
     #[arg(long, value_enum, default_value_t = RenderMode::Rgb)]
     mode: RenderMode,
-    /// Output folder (created if missing).
+    /// Output folder (created if missing; images already there are kept
+    /// unless --force).
     #[arg(long)]
     out: PathBuf,
     #[arg(long, value_enum)]
     engine: Option<EngineKind>,
+    /// Replace images of the same names already in --out.
+    #[arg(long)]
+    force: bool,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -455,8 +523,9 @@ fn main() -> ExitCode {
             size,
             views,
             large,
-        }) => write_demo(&out, size, views, large),
-        Some(Command::Convert { colmap, out }) => convert(&colmap, &out),
+            force,
+        }) => write_demo(&out, size, views, large, force),
+        Some(Command::Convert { colmap, out, force }) => convert(&colmap, &out, force),
         Some(Command::Train(args)) => train(args),
         Some(Command::Eval {
             run,
@@ -466,6 +535,7 @@ fn main() -> ExitCode {
         }) => eval(&run, split.into(), engine, downscale),
         Some(Command::Render(args)) => render(args),
         Some(Command::Bench(BenchCommand::Throughput(args))) => bench_throughput(args),
+        Some(Command::Bench(BenchCommand::Gpu(args))) => bench_gpu(args),
         Some(Command::Bench(BenchCommand::Quality(args))) => bench_quality(args),
         Some(Command::Bench(BenchCommand::Dense { rows, repeats })) => {
             bench_dense(rows, repeats);
@@ -483,7 +553,14 @@ fn main() -> ExitCode {
             frame_log: None,
             auto_orbit: false,
             precision: None,
+            keep_runs: zrak::train::kept::DEFAULT_KEPT_RUNS,
         }),
+    };
+    // What the command printed did not all arrive: the work is done (and
+    // saved), but the output is incomplete, which the status must say.
+    let result = match (result, interrupt::stdout_error()) {
+        (Ok(()), Some(error)) => Err(anyhow::anyhow!(error)),
+        (result, _) => result,
     };
     match result {
         // The command has said what it kept; the status tells scripts it
@@ -499,9 +576,12 @@ fn main() -> ExitCode {
 
 fn parse_duration(text: &str) -> Result<f64, String> {
     let text = text.trim();
-    let (number, unit) = match text.find(|c: char| c.is_ascii_alphabetic()) {
-        Some(i) => text.split_at(i),
-        None => (text, "s"),
+    // The unit is the letters at the end, so that a number in exponent
+    // form (`1e3s`) keeps its `e`.
+    let number = text.trim_end_matches(|c: char| c.is_ascii_alphabetic());
+    let (number, unit) = match &text[number.len()..] {
+        "" => (number, "s"),
+        unit => (number, unit),
     };
     let value: f64 = number
         .trim()
@@ -523,6 +603,12 @@ fn load_scene(scene: &str, downscale: u32) -> anyhow::Result<Scene> {
     if scene == "demo" {
         anyhow::ensure!(downscale >= 1, "--downscale must be at least 1");
         let mut config = DemoConfig::default();
+        anyhow::ensure!(
+            downscale <= config.size,
+            "--downscale {downscale} leaves no pixels of the demo scene's {size}×{size} \
+             views: give at most {size}",
+            size = config.size
+        );
         config.size /= downscale;
         return Ok(demo::build(&config));
     }
@@ -537,7 +623,77 @@ fn info(path: &Path, downscale: u32) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn convert(colmap: &Path, out: &Path) -> anyhow::Result<()> {
+/// `path` as it will be once written: its canonical form when it exists
+/// (through any link), else its folder's canonical form and its name.
+fn canonical_destination(path: &Path) -> PathBuf {
+    if let Ok(canonical) = std::fs::canonicalize(path) {
+        return canonical;
+    }
+    let parent = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    match (std::fs::canonicalize(parent), path.file_name()) {
+        (Ok(folder), Some(name)) => folder.join(name),
+        _ => path.to_path_buf(),
+    }
+}
+
+/// Refuses an output file that is one of the COLMAP model's own files or
+/// photographs: `convert` must never destroy what it reads.
+fn check_not_colmap_input(colmap: &Path, out: &Path) -> anyhow::Result<()> {
+    let destination = canonical_destination(out);
+    if let Some(model) = zrak::scene::colmap::find_model_folder(colmap) {
+        let model = std::fs::canonicalize(&model).unwrap_or(model);
+        let is_model_file = destination.parent() == Some(model.as_path())
+            && destination.file_name().is_some_and(|name| {
+                ["cameras", "images", "points3D"].iter().any(|stem| {
+                    ["bin", "txt"]
+                        .iter()
+                        .any(|ext| name.to_string_lossy() == format!("{stem}.{ext}"))
+                })
+            });
+        if is_model_file {
+            bail!(
+                "{}: that is the COLMAP model's own {} (convert reads it); give --out \
+                 another path, e.g. {}",
+                out.display(),
+                destination
+                    .file_name()
+                    .unwrap_or_default()
+                    .to_string_lossy(),
+                colmap.join("transforms.json").display()
+            );
+        }
+    }
+    let images = std::fs::canonicalize(colmap.join("images")).ok();
+    if let Some(images) = images
+        && destination.starts_with(&images)
+    {
+        bail!(
+            "{}: that is inside the model's photographs folder {}; give --out another path",
+            out.display(),
+            images.display()
+        );
+    }
+    Ok(())
+}
+
+fn convert(colmap: &Path, out: &Path, force: bool) -> anyhow::Result<()> {
+    check_not_colmap_input(colmap, out)?;
+    if out.is_dir() {
+        bail!(
+            "{}: is a folder; give the path of the file to write, e.g. {}",
+            out.display(),
+            out.join("transforms.json").display()
+        );
+    }
+    if zrak::files::exists_at_all(out) && !force {
+        bail!(
+            "{} already exists; give --force to replace it, or another --out",
+            out.display()
+        );
+    }
     let converted = zrak::scene::colmap::convert(colmap)?;
     let out_folder = out
         .parent()
@@ -552,7 +708,8 @@ fn convert(colmap: &Path, out: &Path) -> anyhow::Result<()> {
     }
     let json = zrak::scene::colmap::transforms_json(&absolute_images, &absolute(out_folder));
     let text = serde_json::to_string_pretty(&json)?;
-    std::fs::write(out, text).with_context(|| format!("writing {}", out.display()))?;
+    zrak::files::write_bytes_atomically(out, text.as_bytes())
+        .with_context(|| format!("{}: cannot write", out.display()))?;
     println!(
         "wrote {} ({} frames, centre [{:.4}, {:.4}, {:.4}] and scale {:.5} applied, aabb_scale {})",
         out.display(),
@@ -566,10 +723,40 @@ fn convert(colmap: &Path, out: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The largest image side the commands that render accept: a frame is
+/// rendered whole in memory (16384² pixels take ~4 GB as they render).
+const MAX_IMAGE_SIDE: u32 = 16384;
+
+/// Bytes a view of `width` × `height` takes while it is rendered and
+/// written: the rendered pixels (colour, depth, opacity: 5 floats) and the
+/// 8-bit image, with the PNG encoder's copy.
+fn render_bytes_per_view(width: u32, height: u32) -> u64 {
+    width as u64 * height as u64 * (5 * 4 + 2 * 4)
+}
+
 fn demo_config(size: u32, views: usize) -> anyhow::Result<DemoConfig> {
-    anyhow::ensure!(size >= 8, "--size must be at least 8 pixels, got {size}");
-    anyhow::ensure!(views >= 1, "--views must be at least 1");
+    anyhow::ensure!(
+        (8..=MAX_IMAGE_SIDE).contains(&size),
+        "--size must be 8 to {MAX_IMAGE_SIDE} pixels, got {size}"
+    );
+    anyhow::ensure!(
+        (1..=100_000).contains(&views),
+        "--views must be 1 to 100000, got {views}"
+    );
     let held_out = (views / 10).max(1);
+    // Every view's photograph is held in memory (4 bytes a pixel) and
+    // rendered on every thread at once.
+    let pixels = size as u64 * size as u64;
+    let bytes = (views + 2 * held_out) as u64 * pixels * 4
+        + rayon::current_num_threads() as u64 * render_bytes_per_view(size, size);
+    zrak::files::check_memory(
+        &format!(
+            "the demo scene at --size {size} with {} views",
+            views + 2 * held_out
+        ),
+        bytes,
+    )
+    .map_err(anyhow::Error::msg)?;
     Ok(DemoConfig {
         size,
         train_views: views,
@@ -578,8 +765,28 @@ fn demo_config(size: u32, views: usize) -> anyhow::Result<DemoConfig> {
     })
 }
 
-fn write_demo(out: &Path, size: u32, views: usize, large: bool) -> anyhow::Result<()> {
+fn write_demo(out: &Path, size: u32, views: usize, large: bool, force: bool) -> anyhow::Result<()> {
     let config = demo_config(size, views)?;
+    if !force {
+        match std::fs::read_dir(out) {
+            Ok(mut entries) => {
+                if entries.next().is_some() {
+                    bail!(
+                        "{} is not empty; give another --out, or --force to write the demo \
+                         scene's files over those of the same names there",
+                        out.display()
+                    );
+                }
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+            Err(_) if zrak::files::exists_at_all(out) => bail!(
+                "{}: cannot write the demo scene there: {}",
+                out.display(),
+                zrak::files::describe_not_a_folder(out)
+            ),
+            Err(_) => {}
+        }
+    }
     let started = Instant::now();
     if large {
         demo::write_large(&config, out).context("writing the large demo scene")?;
@@ -624,6 +831,7 @@ fn view(args: ViewArgs) -> anyhow::Result<()> {
         frame_log: args.frame_log,
         auto_orbit: args.auto_orbit,
         precision: args.precision.unwrap_or_else(Precision::best_available),
+        kept_runs: args.keep_runs,
     })
 }
 
@@ -739,11 +947,67 @@ fn restore_checkpoint(folder: &RunFolder, trainer: &mut Trainer) -> anyhow::Resu
 }
 
 /// Writes a new run's `run.json` and clears any earlier log: a fresh run
-/// starts a fresh history.
+/// starts a fresh history. (A folder holding a checkpoint never gets here:
+/// [`RunFolder::create_new`] refuses it or moves it aside.)
 fn start_run_folder(folder: &RunFolder, config: &RunConfig) -> anyhow::Result<()> {
-    std::fs::write(folder.config_path(), serde_json::to_string_pretty(config)?)
-        .with_context(|| format!("{}: cannot write", folder.config_path().display()))?;
+    zrak::files::write_bytes_atomically(
+        &folder.config_path(),
+        serde_json::to_string_pretty(config)?.as_bytes(),
+    )
+    .with_context(|| format!("{}: cannot write", folder.config_path().display()))?;
     let _ = std::fs::remove_file(folder.metrics_path());
+    Ok(())
+}
+
+/// Refuses a resume whose limit the run has already reached: it would
+/// train nothing and say it had finished.
+fn check_resume_limits(args: &TrainArgs, trainer: &Trainer, dir: &Path) -> anyhow::Result<()> {
+    if let Some(steps) = args.steps
+        && steps <= trainer.step
+    {
+        bail!(
+            "the run in {} is already at step {}; --steps counts from the run's start, so \
+             --steps {steps} leaves nothing to train: give more than {}",
+            dir.display(),
+            trainer.step,
+            trainer.step
+        );
+    }
+    if let Some(seconds) = args.time
+        && seconds <= trainer.train_seconds
+    {
+        bail!(
+            "the run in {} has already trained {:.1} s; --time counts from the run's start, \
+             so --time {seconds}s leaves nothing to train: give more than {:.0}s",
+            dir.display(),
+            trainer.train_seconds,
+            trainer.train_seconds.ceil()
+        );
+    }
+    Ok(())
+}
+
+/// Refuses `--training-scales` asking for sizes the views are too small
+/// to have (each size halves the last; below one pixel there is none).
+fn check_training_scales(scene: &Scene, scales: u32) -> anyhow::Result<()> {
+    let smallest_side = scene
+        .photographed_training_views()
+        .iter()
+        .map(|f| f.camera.intrinsics.width.min(f.camera.intrinsics.height))
+        .min()
+        .unwrap_or(0);
+    if scales > 1 && smallest_side > 0 {
+        // Sizes full, ½, … while a side keeps at least one pixel.
+        let possible = u32::BITS - smallest_side.leading_zeros();
+        if scales > possible {
+            bail!(
+                "--training-scales {scales} needs views of at least {} pixels a side (the \
+                 smallest size is 1/{}); the smallest here is {smallest_side}: give at most {possible}",
+                1u64 << (scales - 1),
+                1u64 << (scales - 1)
+            );
+        }
+    }
     Ok(())
 }
 
@@ -779,21 +1043,41 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
         bail!("give --steps N or --time DURATION (e.g. --time 10m)");
     }
     let (folder, config, mut trainer) = if let Some(dir) = &args.resume {
-        let folder = RunFolder::create(dir).map_err(anyhow::Error::msg)?;
+        // The lock first: a run another zrak is training must not be read
+        // half-way or continued twice.
+        let folder = RunFolder::resume(dir).map_err(anyhow::Error::msg)?;
         if let Some(scene) = &args.scene {
             check_same_scene(scene, &read_run_config(&folder)?.scene, dir)?;
         }
         let (config, trainer) = restore_run(&folder, args.engine, args.precision)?;
+        check_resume_limits(&args, &trainer, dir)?;
         note(&format!(
             "resuming at step {} ({:.0} s trained)",
             trainer.step, trainer.train_seconds
         ));
+        // Log lines past the checkpoint (written after it, before the run
+        // stopped) describe steps that will be trained again.
+        let dropped = MetricsLog::truncate_after(&folder.metrics_path(), trainer.step)
+            .with_context(|| format!("{}: cannot trim the log", folder.metrics_path().display()))?;
+        if dropped > 0 {
+            note(&format!(
+                "{}: dropped {dropped} lines logged after the checkpoint's step {}",
+                folder.metrics_path().display(),
+                trainer.step
+            ));
+        }
         (folder, config, trainer)
     } else {
         let (Some(dir), Some(scene_arg)) = (&args.out, args.scene.as_deref()) else {
             bail!("give SCENE and --out RUN to start a run, or --resume RUN to continue one");
         };
-        let folder = RunFolder::create(dir).map_err(anyhow::Error::msg)?;
+        // A folder holding a run is refused before anything loads; the
+        // folder is made (or, with --force, the old run moved aside) only
+        // once the new run is known to start, so a refused command leaves
+        // nothing behind.
+        if !args.force {
+            RunFolder::refuse_if_holds_run(dir).map_err(anyhow::Error::msg)?;
+        }
         let config = RunConfig {
             scene: scene_key(scene_arg),
             model: args.model,
@@ -810,12 +1094,23 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
             precision: args.precision.unwrap_or_else(Precision::best_available),
             training_scales: args.training_scales,
         };
-        let scene = Arc::new(
-            load_scene(scene_arg, args.downscale)?.with_training_scales(args.training_scales),
-        );
+        let scene = load_scene(scene_arg, args.downscale)?;
+        check_training_scales(&scene, args.training_scales)?;
+        let scene = Arc::new(scene.with_training_scales(args.training_scales));
+        if let Some(problem) = scene.training_problem() {
+            bail!("{scene_arg}: nothing to train: {problem}");
+        }
         let choice = choose_engine(args.engine)?;
         note(&choice.reason);
         let trainer = build_trainer(&config, scene, choice)?;
+        let (folder, aside) = RunFolder::create_new(dir, args.force).map_err(anyhow::Error::msg)?;
+        if let Some(aside) = aside {
+            note(&format!(
+                "moved the run that was in {} aside to {}",
+                dir.display(),
+                aside.display()
+            ));
+        }
         start_run_folder(&folder, &config)?;
         (folder, config, trainer)
     };
@@ -846,6 +1141,7 @@ fn train(args: TrainArgs) -> anyhow::Result<()> {
     let started = Instant::now();
     let schedule = Schedule {
         eval_every_seconds: args.eval_every,
+        checkpoint_every_seconds: args.checkpoint_every,
         ..Schedule::default()
     };
     let psnr = run(
@@ -956,10 +1252,32 @@ fn eval(
         );
         return Ok(());
     }
+    if let Some(view) = scores.views.iter().find(|v| v.psnr.is_nan()) {
+        bail!(
+            "view {} of the {} split ({}) renders colours that are not numbers: the model in \
+             {} is broken (its training diverged); nothing written",
+            view.index,
+            split.name(),
+            view.image,
+            folder.dir.display()
+        );
+    }
     println!(
         "{:>5}  {:>8.3}  {:>7.4}",
         "mean", scores.mean_psnr, scores.mean_ssim
     );
+    let window = zrak::metrics::SSIM_WINDOW as u32;
+    let small = frames
+        .iter()
+        .filter(|f| f.camera.intrinsics.width < window || f.camera.intrinsics.height < window)
+        .count();
+    if small > 0 {
+        note(&format!(
+            "SSIM is NaN for {small} of the {} views: they are smaller than its {window}×{window} \
+             window (give a smaller --downscale, or read PSNR alone)",
+            frames.len()
+        ));
+    }
     let suffix = if downscale > 1 {
         format!("_d{downscale}")
     } else {
@@ -968,16 +1286,109 @@ fn eval(
     let path = folder
         .dir
         .join(format!("eval_{}{suffix}.json", split.name()));
-    std::fs::write(&path, serde_json::to_string_pretty(&scores)?)
+    zrak::files::write_bytes_atomically(&path, serde_json::to_string_pretty(&scores)?.as_bytes())
         .with_context(|| format!("{}: cannot write", path.display()))?;
     println!("step {}; written to {}", trainer.step, path.display());
     Ok(())
 }
 
+/// The largest turntable: 10⁵ frames (over an hour of video at 25 frames a
+/// second); the frames' cameras are placed up front.
+const MAX_TURNTABLE_FRAMES: usize = 100_000;
+
+/// Refuses render settings that could never finish or would abort on an
+/// allocation, before the run loads; then images of the same names in
+/// --out, unless --force.
+fn check_render_args(args: &RenderArgs) -> anyhow::Result<()> {
+    if let Some(frames) = args.turntable {
+        anyhow::ensure!(
+            (1..=MAX_TURNTABLE_FRAMES).contains(&frames),
+            "--turntable must be 1 to {MAX_TURNTABLE_FRAMES} frames, got {frames}"
+        );
+    }
+    if let Some(size) = args.size {
+        anyhow::ensure!(
+            (1..=MAX_IMAGE_SIDE).contains(&size),
+            "--size must be 1 to {MAX_IMAGE_SIDE} pixels, got {size}"
+        );
+        // One frame renders at a time; the GIF encoder keeps a copy of it.
+        let bytes = render_bytes_per_view(size, size)
+            + if args.gif {
+                size as u64 * size as u64 * 8
+            } else {
+                0
+            };
+        zrak::files::check_memory(&format!("a {size}×{size} frame"), bytes)
+            .map_err(anyhow::Error::msg)?;
+    }
+    anyhow::ensure!(
+        args.elevation.is_finite(),
+        "--elevation must be a number of degrees, got {}",
+        args.elevation
+    );
+    if let Some(radius) = args.radius {
+        anyhow::ensure!(
+            radius.is_finite() && radius > 0.0,
+            "--radius must be a positive distance, got {radius}"
+        );
+    }
+    if args.force {
+        return Ok(());
+    }
+    let outputs: Vec<PathBuf> = match (args.view, args.turntable) {
+        (Some(view), None) => vec![
+            args.out
+                .join(format!("{}_{view:03}.png", Split::from(args.split).name())),
+        ],
+        (None, Some(frames)) => {
+            let settings = ExportSettings {
+                turntable: Turntable {
+                    frames,
+                    ..Turntable::default()
+                },
+                mode: args.mode,
+                out_dir: args.out.clone(),
+                write_gif: args.gif,
+            };
+            let mut paths: Vec<PathBuf> = (0..frames).map(|i| settings.frame_path(i)).collect();
+            if args.gif {
+                paths.push(settings.gif_path());
+            }
+            paths
+        }
+        _ => Vec::new(),
+    };
+    let existing: Vec<&PathBuf> = outputs
+        .iter()
+        .filter(|p| zrak::files::exists_at_all(p))
+        .collect();
+    if let Some(first) = existing.first() {
+        bail!(
+            "{} already exists{}; give --force to replace this render's files, or another --out",
+            first.display(),
+            match existing.len() {
+                1 => String::new(),
+                n => format!(" (and {} more of the files this render writes)", n - 1),
+            }
+        );
+    }
+    Ok(())
+}
+
 fn render(args: RenderArgs) -> anyhow::Result<()> {
+    check_render_args(&args)?;
     let folder = RunFolder::open(&args.run).map_err(anyhow::Error::msg)?;
     let (_, trainer) = restore_run(&folder, args.engine, None)?;
     let scene = &trainer.scene;
+    if args.size.is_none()
+        && let Some((width, height)) = scene.resolution()
+    {
+        zrak::files::check_memory(
+            &format!("a {width}×{height} frame"),
+            render_bytes_per_view(width, height),
+        )
+        .map_err(anyhow::Error::msg)?;
+    }
     let cameras: Vec<(String, Camera)> = match (args.view, args.turntable) {
         (Some(view), None) => {
             anyhow::ensure!(!args.gif, "--gif goes with --turntable FRAMES, not --view");
@@ -1118,10 +1529,171 @@ fn bench_dense(rows: usize, repeats: usize) {
     );
 }
 
-/// Samples per NeRF or Mip-NeRF batch when the bench runs the gpu engine on
-/// a software adapter: 16 rays with the paper's sampler, ~14 G FLOP a step,
-/// seconds on lavapipe.
-const SOFTWARE_GPU_NERF_SAMPLES: usize = 1 << 12;
+/// Samples per batch when a bench runs the gpu engine on a software
+/// adapter: NeRF's 16 rays with the paper's sampler, ~14 G FLOP a step
+/// (its paper-size batch, ~1 T FLOP, would take many minutes a step at
+/// lavapipe's few GFLOP/s), Instant-NGP's 1/64 of its 2^18; seconds on
+/// lavapipe. There the bench is a correctness run.
+const SOFTWARE_GPU_SAMPLES: usize = 1 << 12;
+
+/// Unmeasured steps before a throughput measurement: past the occupancy
+/// grid's warm-up (its first 256 steps update every cell, twice the work of
+/// a later update) and a few more, so the figures are those of most of a
+/// run; 1 on a software adapter, where a gpu step takes minutes.
+fn default_warmup(model: ModelKind, sampling: Sampling, software_gpu: bool) -> usize {
+    match model {
+        _ if software_gpu => 1,
+        ModelKind::Ngp => OccupancyConfig::PAPER.warmup_steps as usize + 32,
+        // Past the grid's warm-up too, with the occupancy sampler; the
+        // paper's sampler has no grid, and a few steps settle its caches.
+        ModelKind::Nerf | ModelKind::MipNerf => match sampling {
+            Sampling::Occupancy => zrak::field::nerf::OCCUPANCY.warmup_steps as usize + 16,
+            Sampling::Paper => 2,
+        },
+    }
+}
+
+/// The benches' scene when none is given: lego_400 when present beside the
+/// checkout, else the demo scene.
+fn default_bench_scene() -> String {
+    zrak::bench::default_scene_path()
+        .map(|p| p.display().to_string())
+        .unwrap_or_else(|| "demo".into())
+}
+
+fn bench_gpu(args: GpuBenchArgs) -> anyhow::Result<()> {
+    use zrak::bench::gpu::{CheckSize, all_passed, check_scene_name, describe_device, self_check};
+    // As `--engine gpu` does: a software adapter where the machine has a
+    // GPU is refused, naming both.
+    let gpu_choice = choose_engine(Some(EngineKind::Gpu))?;
+    let context = gpu_choice
+        .gpu
+        .as_ref()
+        .context("the gpu engine's choice has a context")?;
+    for (name, value) in describe_device(context) {
+        say(&format!("{name:<22} {value}"));
+    }
+    let software = context.is_software();
+    let size = if software {
+        CheckSize::SOFTWARE
+    } else {
+        CheckSize::DEVICE
+    };
+    say(&format!(
+        "\nself-check: each model, one training step and one render from the same state on \
+         both engines, {}, held to the parity tests' tolerances",
+        check_scene_name(size)
+    ));
+    let mut checks = Vec::new();
+    for &model in &args.models {
+        if interrupt::requested() {
+            break;
+        }
+        for check in self_check(context, model, size) {
+            say(&format!(
+                "  {:<11} {:<22} {}  {} ({})",
+                check.model.name(),
+                check.what,
+                if check.passed { "pass" } else { "FAIL" },
+                check.measured,
+                check.limit
+            ));
+            checks.push(check);
+        }
+    }
+    let failed = checks.iter().filter(|c| !c.passed).count();
+    say(&format!(
+        "self-check: {} of {} checks passed",
+        checks.len() - failed,
+        checks.len()
+    ));
+
+    if args.steps > 0 && !interrupt::requested() {
+        let scene_name = args.scene.unwrap_or_else(default_bench_scene);
+        let scene = Arc::new(load_scene(&scene_name, 1)?);
+        for &model in &args.models {
+            if interrupt::requested() {
+                break;
+            }
+            say(&format!("\n{} on {}:", model.name(), scene.name));
+            // A context of its own per model, so its counters are its own.
+            let choice = gpu_choice.share()?;
+            let counters = choice.gpu.as_ref().map(|gpu| gpu.counters.clone());
+            let engine_line = choice.reason.clone();
+            let settings = ModelSettings {
+                seed: 0,
+                loss: model.default_loss(),
+                batch_samples: software.then_some(SOFTWARE_GPU_SAMPLES),
+                sampling: Sampling::Occupancy,
+                precision: Precision::F32,
+            };
+            let built =
+                build_model(model, choice, &scene, &settings).map_err(anyhow::Error::msg)?;
+            let mut trainer = Trainer::new(built, scene.clone(), 0);
+            let warmup = args
+                .warmup
+                .unwrap_or_else(|| default_warmup(model, Sampling::Occupancy, software));
+            let report = zrak::bench::throughput(
+                &mut trainer,
+                warmup,
+                args.steps,
+                interrupt::flag(),
+                counters.as_deref(),
+            );
+            zrak::bench::print_report(&report, &scene, &engine_line);
+            // A software rasteriser takes minutes for a 1280 × 720 level of an
+            // untrained field: timed on real GPUs only.
+            if !software
+                && let Some(seconds) =
+                    texture_render_seconds(trainer.model.as_ref(), context, &scene)
+            {
+                say(&format!(
+                    "texture render       {:.1} ms per 1280 × 720 level (median of 3, the viewer's \
+                     path: rendered on the device into the texture it draws)",
+                    seconds * 1e3
+                ));
+            }
+        }
+    }
+    if !all_passed(&checks) {
+        anyhow::bail!(
+            "the gpu engine's self-check failed: {failed} of {} checks",
+            checks.len()
+        );
+    }
+    Ok(())
+}
+
+/// Seconds for `model` to draw a 1280 × 720 view of `scene` into a
+/// texture on the device, the viewer's path (median of three), if it can.
+fn texture_render_seconds(
+    model: &dyn zrak::train::model::RadianceModel,
+    context: &zrak::engine::gpu::GpuContext,
+    scene: &Scene,
+) -> Option<f64> {
+    let renderer = model.texture_render()?;
+    let frame = scene.val.first().or(scene.train.first())?;
+    let (width, height) = (1280, 720);
+    let camera = Camera::new(
+        zrak::scene::camera::Intrinsics::from_fov_x(width, height, frame.camera.intrinsics.fov_x()),
+        frame.camera.camera_to_world,
+    );
+    let target = zrak::engine::gpu::render::render_target(&context.device, width, height);
+    let mut seconds = Vec::new();
+    for _ in 0..3 {
+        let clock = Instant::now();
+        renderer
+            .render_to_texture(&camera, RenderMode::Rgb, [1.0; 3], &target)
+            .ok()?;
+        context
+            .device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .ok()?;
+        seconds.push(clock.elapsed().as_secs_f64());
+    }
+    seconds.sort_by(f64::total_cmp);
+    Some(seconds[1])
+}
 
 fn bench_throughput(args: ThroughputArgs) -> anyhow::Result<()> {
     let ThroughputArgs {
@@ -1135,33 +1707,15 @@ fn bench_throughput(args: ThroughputArgs) -> anyhow::Result<()> {
         precision,
     } = args;
     let precision = precision.unwrap_or_else(Precision::best_available);
-    let scene_name = match scene {
-        Some(name) => name,
-        None => zrak::bench::default_scene_path()
-            .map(|p| p.display().to_string())
-            .unwrap_or_else(|| "demo".into()),
-    };
+    let scene_name = scene.unwrap_or_else(default_bench_scene);
     let scene = Arc::new(load_scene(&scene_name, downscale)?);
     let choice = choose_engine(engine)?;
     let engine_line = choice.reason.clone();
+    let counters = choice.gpu.as_ref().map(|gpu| gpu.counters.clone());
     let software_gpu =
         choice.kind == EngineKind::Gpu && choice.gpu.as_ref().is_some_and(|gpu| gpu.is_software());
-    let warmup = warmup.unwrap_or(match model {
-        _ if software_gpu => 1,
-        ModelKind::Ngp => OccupancyConfig::PAPER.warmup_steps as usize + 32,
-        // Past the grid's warm-up too, with the occupancy sampler; the
-        // paper's sampler has no grid, and a few steps settle its caches.
-        ModelKind::Nerf | ModelKind::MipNerf => match sampling {
-            Sampling::Occupancy => zrak::field::nerf::OCCUPANCY.warmup_steps as usize + 16,
-            Sampling::Paper => 2,
-        },
-    });
-    // On a software adapter NeRF's paper-size batch (1024 rays × 256
-    // samples of an 8 × 256 network, ~1 T FLOP a step) would take many
-    // minutes a step at lavapipe's few GFLOP/s: there the bench is a
-    // correctness run on a small batch.
-    let batch_samples = (software_gpu && matches!(model, ModelKind::Nerf | ModelKind::MipNerf))
-        .then_some(SOFTWARE_GPU_NERF_SAMPLES);
+    let warmup = warmup.unwrap_or_else(|| default_warmup(model, sampling, software_gpu));
+    let batch_samples = software_gpu.then_some(SOFTWARE_GPU_SAMPLES);
     let settings = ModelSettings {
         seed: 0,
         loss: model.default_loss(),
@@ -1172,10 +1726,16 @@ fn bench_throughput(args: ThroughputArgs) -> anyhow::Result<()> {
     let model = build_model(model, choice, &scene, &settings).map_err(anyhow::Error::msg)?;
     let mut trainer = Trainer::new(model, scene.clone(), 0);
     if let Some(samples) = batch_samples {
-        println!("software adapter: NeRF batches of ~{samples} samples (a correctness run)");
+        println!("software adapter: batches of ~{samples} samples (a correctness run)");
     }
     let peak = zrak::engine::cpu::dense::measure_peak_gflops();
-    let report = zrak::bench::throughput(&mut trainer, warmup, steps, interrupt::flag());
+    let report = zrak::bench::throughput(
+        &mut trainer,
+        warmup,
+        steps,
+        interrupt::flag(),
+        counters.as_deref(),
+    );
     if interrupt::requested() {
         if report.steps == 0 {
             note("interrupted before any measured step: nothing to report");

@@ -513,12 +513,16 @@ fn fuzz_checkpoint(cases: u32) -> Counts {
         let bytes = match &input {
             CheckpointInput::Bytes(edits) => damage(valid.clone(), edits),
             CheckpointInput::Header(edits, length_change) => {
+                // Format 2 follows the header with its checksum: the edited
+                // header gets its own, so the damage reaches the tensor
+                // table instead of stopping at the checksum.
                 let new_header = serde_json::to_vec(&mutate(header.clone(), edits)).unwrap();
                 let declared = (new_header.len() as i64 + length_change).max(0) as u64;
                 let mut bytes = valid[..12].to_vec();
                 bytes.extend_from_slice(&declared.to_le_bytes());
                 bytes.extend_from_slice(&new_header);
-                bytes.extend_from_slice(&valid[20 + header_length..]);
+                bytes.extend_from_slice(&zrak::crc32c::crc32c(&new_header).to_le_bytes());
+                bytes.extend_from_slice(&valid[20 + header_length + 4..]);
                 bytes
             }
             CheckpointInput::Random(bytes) => {

@@ -1,6 +1,8 @@
 //! The wgpu context runs WGSL on whatever adapter the machine has (lavapipe in
 //! CI) and returns what the cpu computes.
 
+mod common;
+
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::kernel::{Kernel, groups_for, read_buffer, storage_buffer, uniform_buffer};
 
@@ -116,4 +118,49 @@ fn an_existing_device_is_used_when_it_has_what_the_engine_needs() {
         message.contains("max_storage_buffers_per_shader_stage"),
         "{message}"
     );
+}
+
+/// `scripts/gpu-report` end to end on whatever adapter the machine has
+/// (lavapipe in CI), with tiny budgets and Instant-NGP alone: every
+/// section runs and succeeds, and the report holds the self-check's verdict,
+/// the device counts, the quality run's report and the evaluation.
+#[test]
+fn the_gpu_report_script_runs_end_to_end() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene");
+    let out = dir.path().join("report");
+    let demo = std::process::Command::new(common::zrak_bin())
+        .args(["demo", "--size", "64", "--views", "12", "--out"])
+        .arg(&scene)
+        .output()
+        .expect("zrak runs");
+    assert!(demo.status.success(), "{demo:?}");
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/scripts/gpu-report");
+    let run = std::process::Command::new("bash")
+        .arg(script)
+        .arg(&scene)
+        .arg(&out)
+        .env("ZRAK", common::zrak_bin())
+        .env("MODELS", "ngp")
+        .env("NGP_BUDGET", "2s")
+        .env("STEPS", "2")
+        .env("CPU_WARMUP", "1")
+        .output()
+        .expect("bash runs");
+    let report = std::fs::read_to_string(out.join("gpu-report.md")).expect("the report");
+    assert!(run.status.success(), "{run:?}\n{report}");
+    // Five commands (device and self-check, throughput on each engine, the
+    // quality run, the evaluation), each successful.
+    assert_eq!(report.matches("exit status ").count(), 5, "{report}");
+    assert_eq!(report.matches("exit status 0,").count(), 5, "{report}");
+    for part in [
+        "self-check: 5 of 5 checks passed",
+        "blocking readbacks per step",
+        "dispatches per step",
+        "## quality-ngp/report.md",
+        "## Evaluation, Instant-NGP after 2s, the whole val split",
+        "mean",
+    ] {
+        assert!(report.contains(part), "{part}:\n{report}");
+    }
 }

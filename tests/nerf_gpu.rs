@@ -133,8 +133,12 @@ impl Model {
         let shape = self.shape();
         let cpu =
             cpu_model_of_nerf_fields(identity.clone(), recipe.clone(), scene, settings, &shape);
-        let gpu = gpu_model_of_nerf_fields(context(), identity, recipe, scene, settings, &shape)
-            .expect("gpu model");
+        let mut gpu =
+            gpu_model_of_nerf_fields(context(), identity, recipe, scene, settings, &shape)
+                .expect("gpu model");
+        // Each step's own loss and the cpu's order of grid updates, to
+        // compare step by step.
+        gpu.set_read_back_late(false);
         (cpu, gpu)
     }
 }
@@ -538,5 +542,40 @@ fn texture_matches_the_cpu_render(model: Model, sampling: Sampling) {
             distinct.len()
         );
         assert!(worst <= 1, "{model:?} {mode:?}: {worst}");
+    }
+}
+
+/// A training step through the occupancy grid waits for the device once
+/// (for the march's counters, which size the rest of the step); its loss,
+/// stage times and grid update come back with the next step's wait. Steps
+/// 1 to 17 include step 16's grid update; step 0 has no earlier step and
+/// waits for its own loss.
+#[test]
+fn an_occupancy_step_waits_for_the_device_once() {
+    for model in [Model::Nerf, Model::MipNerf] {
+        let scene = small_scene();
+        let settings = ModelSettings {
+            batch_samples: Some(1 << 11),
+            ..settings(Sampling::Occupancy)
+        };
+        let (_, mut gpu) = model.engines(&scene, &settings, |recipe| {
+            recipe.occupancy.resolution = 16;
+        });
+        gpu.set_read_back_late(true);
+        let counters = gpu.context().counters.clone();
+        let counts: Vec<u64> = (0..18)
+            .map(|step| {
+                let rays = batch(&scene, gpu.rays_for_next_batch(), 100 + step as u64);
+                let before = counters.read();
+                gpu.step(&rays, step);
+                (counters.read() - before).blocking_readbacks
+            })
+            .collect();
+        println!("{model:?}: blocking read-backs per step {counts:?}");
+        assert_eq!(
+            counts[0], 2,
+            "{model:?}: the first step waits for its loss too"
+        );
+        assert!(counts[1..].iter().all(|&n| n == 1), "{model:?}: {counts:?}");
     }
 }

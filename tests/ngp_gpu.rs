@@ -28,8 +28,11 @@ fn small_scene() -> Arc<Scene> {
 fn models(scene: &Scene) -> (CpuNgp, GpuNgp) {
     let cpu = CpuNgp::with_batch_samples(scene, SEED, LossKind::Huber, BATCH_SAMPLES);
     let context = common::gpu_context();
-    let gpu = GpuNgp::with_batch_samples(context, scene, SEED, LossKind::Huber, BATCH_SAMPLES)
+    let mut gpu = GpuNgp::with_batch_samples(context, scene, SEED, LossKind::Huber, BATCH_SAMPLES)
         .expect("gpu model");
+    // Each step's own loss and the cpu's order of grid updates, to compare
+    // step by step.
+    gpu.set_read_back_late(false);
     (cpu, gpu)
 }
 
@@ -297,4 +300,21 @@ fn occupancy_update_matches_the_cpu_engine() {
     // threshold is their mean, so cells within f32 noise of it may land on
     // either side: allow 1% of the cells.
     assert!((flipped as usize) * 100 <= c.values().len(), "{flipped}");
+}
+
+/// A training step waits for the device once (for the march's counters,
+/// which size the rest of the step); its loss, stage times and grid update
+/// come back with the next step's wait. Steps 1 to 17 include step 16's
+/// grid update; step 0 has no earlier step and waits for its own loss.
+#[test]
+fn a_step_waits_for_the_device_once() {
+    let scene = small_scene();
+    let (mut cpu, mut gpu) = models(&scene);
+    share_ball_grid(&mut cpu, &mut gpu);
+    gpu.set_read_back_late(true);
+    let counters = gpu.context().counters.clone();
+    let counts = common::readbacks_per_step(&mut gpu, &counters, &scene, 0..18);
+    println!("blocking read-backs per step {counts:?}");
+    assert_eq!(counts[0], 2, "the first step waits for its loss too");
+    assert!(counts[1..].iter().all(|&n| n == 1), "{counts:?}");
 }

@@ -410,6 +410,7 @@ fn frustums_between_edges_match_cpu() {
             info: context.info.clone(),
             features: context.features,
             limits: context.limits.clone(),
+            counters: context.counters.clone(),
         };
         c.cap_storage_binding_size(64 * 4 * 3 * n as u64);
         c

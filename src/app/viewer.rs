@@ -40,6 +40,8 @@ pub struct ViewerOptions {
     pub auto_orbit: bool,
     /// How the cpu engine computes the networks' products.
     pub precision: Precision,
+    /// How many of the runs kept on closing stay on disk (the newest).
+    pub kept_runs: usize,
 }
 
 impl Default for ViewerOptions {
@@ -55,6 +57,7 @@ impl Default for ViewerOptions {
             frame_log: None,
             auto_orbit: false,
             precision: Precision::best_available(),
+            kept_runs: crate::train::kept::DEFAULT_KEPT_RUNS,
         }
     }
 }
@@ -223,6 +226,7 @@ impl ViewerApp {
                 sampling: options.sampling,
                 precision: options.precision,
                 autosave: super::worker::default_autosave_folder(),
+                kept_runs: options.kept_runs,
                 ..WorkerOptions::default()
             },
         );

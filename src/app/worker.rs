@@ -143,6 +143,9 @@ pub struct WorkerOptions {
     /// default, so tests never write into the user's data folder; the
     /// viewer gives [`default_autosave_folder`]).
     pub autosave: Option<PathBuf>,
+    /// How many kept runs stay under `autosave` (the newest); older ones
+    /// are removed after each close that keeps one.
+    pub kept_runs: usize,
 }
 
 /// `$XDG_DATA_HOME/zrak/runs`, else `~/.local/share/zrak/runs`.
@@ -174,6 +177,7 @@ impl Default for WorkerOptions {
             repaint: None,
             gpu_device: None,
             autosave: None,
+            kept_runs: crate::train::kept::DEFAULT_KEPT_RUNS,
         }
     }
 }
@@ -1952,7 +1956,7 @@ impl Worker {
                 .map_err(|e| format!("{}: cannot create the folder: {e}", folder.display()))
                 .and_then(|()| {
                     let path = folder.join(crate::train::run::CONFIG_FILE);
-                    std::fs::write(&path, format!("{run:#}"))
+                    crate::files::write_bytes_atomically(&path, format!("{run:#}").as_bytes())
                         .map_err(|e| format!("{}: cannot write: {e}", path.display()))
                 })
                 .and_then(|()| {
@@ -1976,6 +1980,14 @@ impl Worker {
                     slot.trainer.step
                 )),
             }
+        }
+        for removed in crate::train::kept::prune(&base, self.options.kept_runs) {
+            crate::interrupt::note(&format!(
+                "zrak view: removed the kept run {} (more than the newest {}; \
+                 `zrak view --keep-runs N` keeps more)",
+                removed.display(),
+                self.options.kept_runs
+            ));
         }
     }
 

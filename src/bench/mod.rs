@@ -2,6 +2,7 @@
 //! accuracy-versus-time experiment with its report. Nothing here asserts
 //! on time.
 
+pub mod gpu;
 pub mod plot;
 pub mod published;
 pub mod quality;
@@ -11,9 +12,18 @@ pub mod table;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
+use crate::engine::gpu::context::{CounterReading, GpuCounters};
 use crate::scene::Scene;
 use crate::train::model::{StageTimes, StepStats};
 use crate::train::trainer::Trainer;
+
+/// `println!` that never panics: a report printed to a full disk ends the
+/// command with an error ([`crate::interrupt::print_line`]), not a panic.
+macro_rules! println {
+    ($($arg:tt)*) => {
+        crate::interrupt::print_line(format_args!($($arg)*))
+    };
+}
 
 /// Figures of a throughput run.
 #[derive(Debug, Clone)]
@@ -34,6 +44,19 @@ pub struct ThroughputReport {
     /// The networks' achieved rate over their own (forward and backward)
     /// time, GFLOP/s, for models that count their FLOPs.
     pub network_gflops: Option<f64>,
+    /// On the gpu engine: what a measured step asked of the device.
+    pub device_work: Option<DeviceWork>,
+}
+
+/// Dispatches and blocking read-backs per measured training step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DeviceWork {
+    /// Mean over the measured steps.
+    pub dispatches_per_step: f64,
+    /// Mean over the measured steps (occupancy updates included).
+    pub readbacks_per_step: f64,
+    /// The most any one measured step made.
+    pub most_readbacks_in_a_step: u64,
 }
 
 fn median(values: &mut [f64]) -> f64 {
@@ -54,11 +77,15 @@ fn median(values: &mut [f64]) -> f64 {
 /// reports medians (these machines are shared: medians resist outliers).
 /// Once `stop` is set no further step starts: the report then covers the
 /// measured steps taken so far (`steps` says how many; 0 gives NaN figures).
+///
+/// `counters`: the gpu context's, to count what each measured step asks of
+/// the device.
 pub fn throughput(
     trainer: &mut Trainer,
     warmup: usize,
     steps: usize,
     stop: &AtomicBool,
+    counters: Option<&GpuCounters>,
 ) -> ThroughputReport {
     let stopped = || stop.load(Ordering::SeqCst);
     for _ in 0..warmup {
@@ -68,15 +95,32 @@ pub fn throughput(
         trainer.step();
     }
     let mut records: Vec<(f64, StepStats)> = Vec::with_capacity(steps);
+    let mut work: Vec<CounterReading> = Vec::with_capacity(steps);
     for _ in 0..steps {
         if stopped() {
             break;
         }
         let before = trainer.train_seconds;
+        let counted = counters.map(GpuCounters::read);
         let stats = trainer.step();
+        if let (Some(counters), Some(counted)) = (counters, counted) {
+            work.push(counters.read() - counted);
+        }
         records.push((trainer.train_seconds - before, stats));
     }
     let steps = records.len();
+    let device_work = (!work.is_empty()).then(|| {
+        let n = work.len() as f64;
+        DeviceWork {
+            dispatches_per_step: work.iter().map(|w| w.dispatches as f64).sum::<f64>() / n,
+            readbacks_per_step: work
+                .iter()
+                .map(|w| w.blocking_readbacks as f64)
+                .sum::<f64>()
+                / n,
+            most_readbacks_in_a_step: work.iter().map(|w| w.blocking_readbacks).max().unwrap_or(0),
+        }
+    });
     let mut step_seconds: Vec<f64> = records.iter().map(|r| r.0).collect();
     let total_seconds: f64 = step_seconds.iter().sum();
     let total_samples: usize = records.iter().map(|r| r.1.samples).sum();
@@ -122,6 +166,7 @@ pub fn throughput(
             .model
             .texture_render()
             .map(|model| model.stage_timing_note()),
+        device_work,
     }
 }
 
@@ -201,6 +246,13 @@ pub fn print_report(report: &ThroughputReport, scene: &Arc<Scene>, engine: &str)
     if let Some(gflops) = report.network_gflops {
         println!(
             "networks             {gflops:.1} GFLOP/s (forward and backward, over their time)"
+        );
+    }
+    if let Some(work) = report.device_work {
+        println!("dispatches per step  {:.1}", work.dispatches_per_step);
+        println!(
+            "blocking readbacks per step {:.2} (mean; at most {} in a step)",
+            work.readbacks_per_step, work.most_readbacks_in_a_step
         );
     }
     if let Some(bytes) = report.peak_memory_bytes {

@@ -442,10 +442,8 @@ impl CellRecord {
     /// the previous one whole.
     pub fn save(&self, folder: &Path) -> Result<(), String> {
         let path = Self::path(folder);
-        let temporary = folder.join(format!("{MARKS_FILE}.tmp"));
         let text = serde_json::to_string_pretty(self).map_err(|e| e.to_string())?;
-        std::fs::write(&temporary, text)
-            .and_then(|()| std::fs::rename(&temporary, &path))
+        crate::files::write_bytes_atomically(&path, text.as_bytes())
             .map_err(|e| format!("{}: cannot write: {e}", path.display()))
     }
 

@@ -556,7 +556,7 @@ pub fn report_markdown(results: &Results) -> String {
 pub fn write_outputs(dir: &Path, results: &Results) -> Result<Vec<PathBuf>, String> {
     let write = |name: &str, text: &str| -> Result<PathBuf, String> {
         let path = dir.join(name);
-        std::fs::write(&path, text)
+        crate::files::write_bytes_atomically(&path, text.as_bytes())
             .map_err(|e| format!("{}: cannot write: {e}", path.display()))?;
         Ok(path)
     };

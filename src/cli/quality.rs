@@ -61,9 +61,10 @@ fn create_output_folder(dir: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Records the protocol in a new folder; refuses a folder holding an
-/// experiment made with other settings (its scores would not compare).
-fn claim_folder(dir: &Path, protocol: &Protocol) -> anyhow::Result<()> {
+/// Refuses a folder holding an experiment made with other settings (its
+/// scores would not compare); says whether the folder holds this one's
+/// settings already.
+fn check_folder(dir: &Path, protocol: &Protocol) -> anyhow::Result<bool> {
     let path = dir.join(PROTOCOL_FILE);
     match std::fs::read_to_string(&path) {
         Ok(text) => {
@@ -79,14 +80,20 @@ fn claim_folder(dir: &Path, protocol: &Protocol) -> anyhow::Result<()> {
                     describe_protocol(&recorded)
                 );
             }
-            Ok(())
+            Ok(true)
         }
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            std::fs::write(&path, serde_json::to_string_pretty(protocol)?)
-                .with_context(|| format!("{}: cannot write", path.display()))
-        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(false),
         Err(e) => Err(e).with_context(|| format!("{}: cannot read", path.display())),
     }
+}
+
+/// Records the protocol in the experiment's folder, once every check has
+/// passed: a refused command must leave nothing that would block its
+/// corrected re-run.
+fn record_protocol(dir: &Path, protocol: &Protocol) -> anyhow::Result<()> {
+    let path = dir.join(PROTOCOL_FILE);
+    zrak::files::write_bytes_atomically(&path, serde_json::to_string_pretty(protocol)?.as_bytes())
+        .with_context(|| format!("{}: cannot write", path.display()))
 }
 
 fn describe_protocol(p: &Protocol) -> String {
@@ -167,7 +174,10 @@ pub fn bench_quality(args: QualityArgs) -> anyhow::Result<()> {
         bail!("--targets: {bad} is not a PSNR in dB (give positive numbers, e.g. 25,30,33)");
     }
     create_output_folder(&args.out)?;
-    claim_folder(&args.out, &protocol)?;
+    // One experiment command per folder at a time; each cell's run folder
+    // is locked too, against `zrak train --resume` of it meanwhile.
+    let _lock = zrak::train::lock::RunLock::acquire(&args.out).map_err(anyhow::Error::msg)?;
+    let protocol_recorded = check_folder(&args.out, &protocol)?;
 
     // Every scene loads (and has the split) before anything trains.
     let mut scenes: Vec<LoadedScene> = Vec::new();
@@ -182,6 +192,9 @@ pub fn bench_quality(args: QualityArgs) -> anyhow::Result<()> {
         }
         let scene = load_scene(argument, args.downscale)
             .with_context(|| format!("{argument}: cannot load the scene"))?;
+        if let Some(problem) = scene.training_problem() {
+            bail!("{argument}: nothing to train: {problem}");
+        }
         let frames = scene.split(split);
         if frames.is_empty() {
             bail!(
@@ -247,6 +260,9 @@ pub fn bench_quality(args: QualityArgs) -> anyhow::Result<()> {
                 .with_context(|| format!("{} on {}", cell.label(), cell.scene))?;
         }
         records.push(record);
+    }
+    if !protocol_recorded {
+        record_protocol(&args.out, &protocol)?;
     }
 
     let budget = protocol.budget_seconds;

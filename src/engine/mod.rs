@@ -64,6 +64,16 @@ pub fn choose_engine(requested: Option<EngineKind>) -> Result<EngineChoice, gpu:
         }),
         Some(EngineKind::Gpu) => {
             let context = GpuContext::new()?;
+            let allowed = std::env::var_os(ALLOW_SOFTWARE_GPU).is_some_and(|v| v == "1");
+            if context.is_software()
+                && !allowed
+                && let Some(hardware) = hardware_gpu()
+            {
+                return Err(gpu::GpuError::SoftwareInsteadOfHardware {
+                    software: context.describe(),
+                    hardware,
+                });
+            }
             let reason = format!("gpu engine on {} (requested)", context.describe());
             Ok(EngineChoice {
                 kind: EngineKind::Gpu,
@@ -80,8 +90,11 @@ pub fn choose_engine(requested: Option<EngineKind>) -> Result<EngineChoice, gpu:
             Ok(context) => EngineChoice {
                 kind: EngineKind::Cpu,
                 reason: format!(
-                    "cpu engine: the only adapter is {}, a software rasteriser",
-                    context.describe()
+                    "cpu engine: the only adapter is {}, a software rasteriser{}",
+                    context.describe(),
+                    hardware_gpu().map_or(String::new(), |hardware| format!(
+                        " (this machine has {hardware}, whose Vulkan driver was not found)"
+                    ))
                 ),
                 gpu: None,
             },
@@ -91,5 +104,87 @@ pub fn choose_engine(requested: Option<EngineKind>) -> Result<EngineChoice, gpu:
                 reason: "cpu engine: no graphics adapter found".into(),
             },
         }),
+    }
+}
+
+/// Set to 1, lets `--engine gpu` run on a software adapter although the
+/// machine has a GPU (to compare the two, or to test the engine there).
+pub const ALLOW_SOFTWARE_GPU: &str = "ZRAK_ALLOW_SOFTWARE_GPU";
+
+/// A GPU the operating system shows, in words, whatever graphics API can
+/// reach it: NVIDIA's device node, or a DRM device of a GPU vendor. Used
+/// to tell a missing driver apart from a machine without a GPU.
+pub fn hardware_gpu() -> Option<String> {
+    hardware_gpu_in(std::path::Path::new("/"))
+}
+
+/// PCI vendors of GPUs that have Vulkan drivers.
+const GPU_VENDORS: [(&str, &str); 3] =
+    [("0x10de", "NVIDIA"), ("0x1002", "AMD"), ("0x8086", "Intel")];
+
+/// [`hardware_gpu`] under `root` (a test's own tree).
+fn hardware_gpu_in(root: &std::path::Path) -> Option<String> {
+    let nvidia = root.join("dev/nvidia0");
+    if nvidia.exists() {
+        return Some("an NVIDIA GPU (/dev/nvidia0)".into());
+    }
+    let drm = root.join("sys/class/drm");
+    let mut cards: Vec<_> = std::fs::read_dir(&drm)
+        .ok()?
+        .flatten()
+        .map(|entry| entry.file_name().to_string_lossy().into_owned())
+        .filter(|name| name.starts_with("card") && !name.contains('-'))
+        .collect();
+    cards.sort();
+    cards.into_iter().find_map(|card| {
+        let vendor = std::fs::read_to_string(drm.join(&card).join("device/vendor")).ok()?;
+        let (_, name) = GPU_VENDORS.iter().find(|(id, _)| vendor.trim() == *id)?;
+        Some(format!("an {name} GPU (/sys/class/drm/{card})"))
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_gpu_is_found_by_its_device_node_or_its_drm_vendor() {
+        let root = tempfile::tempdir().unwrap();
+        assert_eq!(hardware_gpu_in(root.path()), None);
+        // A virtual display (QEMU's) is no GPU.
+        let card = root.path().join("sys/class/drm/card0/device");
+        std::fs::create_dir_all(&card).unwrap();
+        std::fs::write(card.join("vendor"), "0x1234\n").unwrap();
+        assert_eq!(hardware_gpu_in(root.path()), None);
+        let card = root.path().join("sys/class/drm/card1/device");
+        std::fs::create_dir_all(&card).unwrap();
+        std::fs::write(card.join("vendor"), "0x1002\n").unwrap();
+        assert_eq!(
+            hardware_gpu_in(root.path()).as_deref(),
+            Some("an AMD GPU (/sys/class/drm/card1)")
+        );
+        std::fs::create_dir_all(root.path().join("dev")).unwrap();
+        std::fs::write(root.path().join("dev/nvidia0"), "").unwrap();
+        assert_eq!(
+            hardware_gpu_in(root.path()).as_deref(),
+            Some("an NVIDIA GPU (/dev/nvidia0)")
+        );
+    }
+
+    #[test]
+    fn the_refusal_names_both_adapters_and_the_ways_on() {
+        let message = gpu::GpuError::SoftwareInsteadOfHardware {
+            software: "llvmpipe (Vulkan, Cpu, software)".into(),
+            hardware: "an NVIDIA GPU (/dev/nvidia0)".into(),
+        }
+        .to_string();
+        for part in [
+            "llvmpipe",
+            "/dev/nvidia0",
+            "--engine cpu",
+            ALLOW_SOFTWARE_GPU,
+        ] {
+            assert!(message.contains(part), "{part}: {message}");
+        }
     }
 }

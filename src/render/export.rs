@@ -278,14 +278,11 @@ fn check_writable(dir: &Path) -> Result<(), String> {
     result.map_err(|e| format!("{}: cannot write to the output folder: {e}", dir.display()))
 }
 
-/// `path` with a leading dot and a `.partial` suffix, in the same folder, so
-/// the rename into place stays on one file system.
+/// A temporary name beside `path`, unique to this process and call (two
+/// exports into one folder never share one), in the same folder so the
+/// rename into place stays on one file system.
 fn partial_path(path: &Path) -> PathBuf {
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    path.with_file_name(format!(".{name}.partial"))
+    crate::files::temporary_beside(path)
 }
 
 fn rename_into_place(partial: &Path, path: &Path) -> Result<(), String> {
@@ -308,18 +305,8 @@ fn write_png_replacing(image: &ImageRgba8, path: &Path) -> Result<(), String> {
             image::ExtendedColorType::Rgba8,
         )
         .map_err(|e| format!("{}: cannot encode PNG: {e}", path.display()))?;
-    let partial = partial_path(path);
-    let result = File::create(&partial)
-        .and_then(|mut file| {
-            file.write_all(&bytes)?;
-            file.sync_all()
-        })
-        .map_err(|e| format!("{}: cannot write file: {e}", partial.display()))
-        .and_then(|()| rename_into_place(&partial, path));
-    if result.is_err() {
-        let _ = std::fs::remove_file(&partial);
-    }
-    result
+    crate::files::write_bytes_atomically(path, &bytes)
+        .map_err(|e| format!("{}: cannot write file: {e}", path.display()))
 }
 
 #[cfg(test)]

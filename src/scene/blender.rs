@@ -38,7 +38,10 @@ struct SplitFile {
 pub fn load(folder: &Path, options: LoadOptions) -> SceneResult<Scene> {
     super::pose::check_downscale(folder, options.downscale)?;
     if !folder.is_dir() {
-        return Err(SceneError::new(folder, "folder not found"));
+        return Err(SceneError::new(
+            folder,
+            crate::files::describe_not_a_folder(folder),
+        ));
     }
     let mut files = Vec::new();
     for split in Split::ALL {

@@ -408,7 +408,7 @@ fn read_images_text(text: &str) -> Result<Vec<ColmapImage>, String> {
     let mut images = Vec::new();
     // Each image takes two lines; the second (its 2-D points) may be empty,
     // so blank lines are not skipped here.
-    let mut lines = data_lines(text);
+    let mut lines = data_lines(text).peekable();
     while let Some((line, content)) = lines.next() {
         if content.trim().is_empty() {
             continue;
@@ -436,8 +436,23 @@ fn read_images_text(text: &str) -> Result<Vec<ColmapImage>, String> {
         };
         check_image(&image).map_err(|p| format!("line {line}: {p}"))?;
         images.push(image);
-        // Skip the points line.
-        lines.next();
+        // Skip the points line: empty, or X Y POINT3D_ID triples. Some
+        // writers leave it out; the line after is then the next image's,
+        // which must not be skipped (that read half the images).
+        if let Some(&(next_line, next)) = lines.peek() {
+            let tokens: Vec<&str> = next.split_whitespace().collect();
+            let is_points =
+                tokens.len().is_multiple_of(3) && tokens.iter().all(|t| t.parse::<f64>().is_ok());
+            if is_points {
+                lines.next();
+            } else if tokens.len() < 10 {
+                return Err(format!(
+                    "line {next_line}: expected image {}'s 2-D points (X Y POINT3D_ID \
+                     triples, or an empty line) or the next image, found {next:?}",
+                    images.last().map_or(0, |i| i.id)
+                ));
+            }
+        }
     }
     Ok(images)
 }
@@ -755,6 +770,12 @@ pub struct Converted {
 
 /// Reads and converts the COLMAP model under `root` (see the module notes).
 pub fn convert(root: &Path) -> SceneResult<Converted> {
+    if !root.is_dir() {
+        return Err(SceneError::new(
+            root,
+            crate::files::describe_not_a_folder(root),
+        ));
+    }
     let folder = find_model_folder(root).ok_or_else(|| {
         SceneError::new(
             root,

@@ -142,7 +142,7 @@ pub fn write(config: &DemoConfig, dir: &Path) -> SceneResult<()> {
         let path = dir.join(format!("transforms_{}.json", split.name()));
         let text = serde_json::to_string_pretty(&file)
             .map_err(|e| SceneError::new(&path, format!("cannot encode JSON: {e}")))?;
-        std::fs::write(&path, text)
+        crate::files::write_bytes_atomically(&path, text.as_bytes())
             .map_err(|e| SceneError::new(&path, format!("cannot write file: {e}")))?;
     }
     Ok(())
@@ -185,7 +185,7 @@ pub fn write_large(config: &DemoConfig, dir: &Path) -> SceneResult<()> {
     let path = dir.join("transforms.json");
     let text = serde_json::to_string_pretty(&json)
         .map_err(|e| SceneError::new(&path, format!("cannot encode JSON: {e}")))?;
-    std::fs::write(&path, text)
+    crate::files::write_bytes_atomically(&path, text.as_bytes())
         .map_err(|e| SceneError::new(&path, format!("cannot write file: {e}")))
 }
 

@@ -105,16 +105,22 @@ impl ImageRgba8 {
         Self::new(w, h, data)
     }
 
-    /// Writes the image as an 8-bit RGBA PNG.
+    /// Writes the image as an 8-bit RGBA PNG, encoded in memory and
+    /// written through a temporary file (a failed write leaves any file
+    /// already at `path` whole).
     pub fn save_png(&self, path: &Path) -> SceneResult<()> {
-        image::save_buffer(
-            path,
-            &self.data,
-            self.width,
-            self.height,
-            image::ExtendedColorType::Rgba8,
-        )
-        .map_err(|e| SceneError::new(path, format!("cannot write PNG: {e}")))
+        use image::ImageEncoder;
+        let mut bytes = Vec::new();
+        image::codecs::png::PngEncoder::new(&mut bytes)
+            .write_image(
+                &self.data,
+                self.width,
+                self.height,
+                image::ExtendedColorType::Rgba8,
+            )
+            .map_err(|e| SceneError::new(path, format!("cannot encode PNG: {e}")))?;
+        crate::files::write_bytes_atomically(path, &bytes)
+            .map_err(|e| SceneError::new(path, format!("cannot write PNG: {e}")))
     }
 }
 
@@ -135,8 +141,15 @@ pub struct LoadedImage {
 /// 8-bit RGBA, turned upright by its EXIF orientation when it has one.
 /// 16-bit channels are rounded to 8 bits.
 pub fn load_image(path: &Path) -> SceneResult<LoadedImage> {
-    if !path.is_file() {
-        return Err(SceneError::new(path, "image file not found"));
+    if let Err(problem) = crate::files::check_regular_file(path) {
+        return Err(SceneError::new(
+            path,
+            if problem == "not found" {
+                "image file not found".to_string()
+            } else {
+                format!("the image file is {problem}")
+            },
+        ));
     }
     let reader = image::ImageReader::open(path)
         .map_err(|e| SceneError::new(path, format!("cannot open image: {e}")))?

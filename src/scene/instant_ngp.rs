@@ -474,12 +474,32 @@ fn unit_cube_mapping(json: &JsonObject) -> Result<UnitCubeMapping, String> {
             }
         }
     };
-    Ok(UnitCubeMapping {
+    let mapping = UnitCubeMapping {
         scale: positive("scale", defaults.scale)?,
         offset,
         aabb_scale: positive("aabb_scale", defaults.aabb_scale)?,
-    })
+    };
+    if mapping.aabb_scale > LARGEST_AABB_SCALE {
+        return Err(format!(
+            "`aabb_scale` = {} is more than {LARGEST_AABB_SCALE}, the largest box the \
+             occupancy grid has cascades for (16; instant-ngp itself stops at 128)",
+            mapping.aabb_scale
+        ));
+    }
+    let bounds = mapping.world_bounds();
+    if !(bounds.min.is_finite() && bounds.max.is_finite() && bounds.min.cmplt(bounds.max).all()) {
+        return Err(format!(
+            "`scale` = {} with `offset` {} and `aabb_scale` = {} puts the scene's box at \
+             [{}, {}], which is not a finite box",
+            mapping.scale, mapping.offset, mapping.aabb_scale, bounds.min, bounds.max
+        ));
+    }
+    Ok(mapping)
 }
+
+/// The largest `aabb_scale` zrak takes: 2^15, a box the occupancy grid's
+/// 16 cascades cover (each doubles the last).
+pub const LARGEST_AABB_SCALE: f32 = 32768.0;
 
 #[cfg(test)]
 mod tests {

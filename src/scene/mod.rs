@@ -257,6 +257,52 @@ impl Scene {
             .map(|f| (f.camera.intrinsics.width, f.camera.intrinsics.height))
     }
 
+    /// Why training on this scene would do nothing, or `None`: no
+    /// training views, a box that is not finite, or training cameras
+    /// none of whose rays (checked on a grid of 16 × 16 pixels per view)
+    /// crosses the box, so no sample would ever be taken.
+    pub fn training_problem(&self) -> Option<String> {
+        if self.train.is_empty() {
+            return Some(format!(
+                "the scene has no training views (val {}, test {})",
+                self.val.len(),
+                self.test.len()
+            ));
+        }
+        let b = self.bounds;
+        if !(b.min.is_finite() && b.max.is_finite() && b.min.cmplt(b.max).all()) {
+            return Some(format!(
+                "the scene's box [{}, {}] is not a finite box (check `scale`, `offset` and \
+                 `aabb_scale`)",
+                b.min, b.max
+            ));
+        }
+        const GRID: u32 = 16;
+        let crosses = self.photographed_training_views().iter().any(|frame| {
+            let k = frame.camera.intrinsics;
+            (0..GRID).any(|j| {
+                (0..GRID).any(|i| {
+                    let u = (i as f32 + 0.5) / GRID as f32 * k.width as f32;
+                    let v = (j as f32 + 0.5) / GRID as f32 * k.height as f32;
+                    let ray = frame.camera.ray_through(u, v);
+                    ray.origin.is_finite()
+                        && ray.direction.is_finite()
+                        && self
+                            .ray_near_far(&ray)
+                            .is_some_and(|(near, far)| far > near && far > 0.0)
+                })
+            })
+        });
+        if !crosses {
+            return Some(format!(
+                "no training camera's rays cross the scene's box [{:.4}, {:.4}] (check the \
+                 cameras' poses and field of view, and `scale`, `offset` and `aabb_scale`)",
+                b.min, b.max
+            ));
+        }
+        None
+    }
+
     /// Near and far distances (along the unit direction) for a ray: where it
     /// enters and leaves the scene box, or `None` when it misses the box.
     pub fn ray_near_far(&self, ray: &Ray) -> Option<(f32, f32)> {
@@ -273,6 +319,72 @@ impl Scene {
     /// with both prefers the split files, because they carry the dataset's
     /// own train/val/test division.
     pub fn load(path: &Path, options: LoadOptions) -> SceneResult<Scene> {
+        let scene = Self::load_unchecked(path, options)?;
+        scene.check_lenses(path)?;
+        Ok(scene)
+    }
+
+    /// Refuses lenses whose distortion folds over inside the image: there
+    /// some pixels have no direction (the inverse [`Lens::undistort`]
+    /// finds no root), so their rays would be guesses. Checked on a 9 × 9
+    /// grid of each distinct camera's image, corners included.
+    fn check_lenses(&self, path: &Path) -> SceneResult<()> {
+        let mut checked: Vec<Intrinsics> = Vec::new();
+        for frame in self.frames() {
+            let k = frame.camera.intrinsics;
+            if k.lens.is_pinhole() || checked.contains(&k) {
+                continue;
+            }
+            checked.push(k);
+            const STEPS: u32 = 8;
+            for j in 0..=STEPS {
+                for i in 0..=STEPS {
+                    let u = i as f64 / STEPS as f64 * k.width as f64;
+                    let v = j as f64 / STEPS as f64 * k.height as f64;
+                    let xd = (u - k.cx as f64) / k.fx as f64;
+                    let yd = (v - k.cy as f64) / k.fy as f64;
+                    if !k.lens.undistort(xd, yd).converged {
+                        return Err(SceneError::new(
+                            Self::lens_file(path),
+                            format!(
+                                "the lens of {} ({}) folds over inside its {}×{} image: \
+                                 pixel ({u:.0}, {v:.0}) has no direction these \
+                                 coefficients map to it, so its rays would be guesses; \
+                                 check the distortion coefficients",
+                                frame.image_path.display(),
+                                k.lens.describe(),
+                                k.width,
+                                k.height
+                            ),
+                        ));
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The file the lens coefficients of the scene at `path` are read
+    /// from, for messages: the transforms.json or COLMAP cameras file.
+    fn lens_file(path: &Path) -> PathBuf {
+        if path.is_file() {
+            return path.to_path_buf();
+        }
+        let transforms = path.join(instant_ngp::FILE_NAME);
+        if transforms.is_file() {
+            return transforms;
+        }
+        colmap::find_model_folder(path)
+            .and_then(|folder| {
+                ["cameras.bin", "cameras.txt"]
+                    .iter()
+                    .map(|name| folder.join(name))
+                    .find(|p| p.is_file())
+            })
+            .unwrap_or_else(|| path.to_path_buf())
+    }
+
+    fn load_unchecked(path: &Path, options: LoadOptions) -> SceneResult<Scene> {
         pose::check_downscale(path, options.downscale)?;
         if path.is_file() {
             let is_split_file = Split::ALL
@@ -286,7 +398,10 @@ impl Scene {
             };
         }
         if !path.is_dir() {
-            return Err(SceneError::new(path, "folder not found"));
+            return Err(SceneError::new(
+                path,
+                crate::files::describe_not_a_folder(path),
+            ));
         }
         if blender::is_blender_folder(path) {
             blender::load(path, options)

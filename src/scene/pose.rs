@@ -28,14 +28,54 @@ pub type JsonObject = Map<String, Value>;
 /// Reads and parses a JSON file. A missing file, an unreadable one and
 /// malformed JSON (reported with line and column) are errors naming the file.
 pub fn read_json(path: &Path) -> SceneResult<Value> {
-    let bytes = std::fs::read(path).map_err(|e| {
-        if e.kind() == std::io::ErrorKind::NotFound {
+    crate::files::check_regular_file(path).map_err(|problem| {
+        if problem == "not found" {
             SceneError::new(path, "file not found")
         } else {
-            SceneError::new(path, format!("cannot read file: {e}"))
+            SceneError::new(path, format!("cannot read it: it is {problem}"))
         }
     })?;
-    serde_json::from_slice(&bytes).map_err(|e| SceneError::new(path, malformed_json(&e, &bytes)))
+    let bytes =
+        std::fs::read(path).map_err(|e| SceneError::new(path, format!("cannot read file: {e}")))?;
+    let text = json_text(&bytes).map_err(|problem| SceneError::new(path, problem))?;
+    serde_json::from_slice(&text).map_err(|e| SceneError::new(path, malformed_json(&e, &text)))
+}
+
+/// The file's bytes as UTF-8 JSON text: a UTF-8 byte-order mark (which
+/// Windows editors write and JSON forbids) is dropped, and UTF-16 with its
+/// mark is converted, so such files load rather than fail at line 1.
+fn json_text(bytes: &[u8]) -> Result<std::borrow::Cow<'_, [u8]>, String> {
+    use std::borrow::Cow;
+    if let Some(rest) = bytes.strip_prefix(&[0xEF, 0xBB, 0xBF]) {
+        return Ok(Cow::Borrowed(rest));
+    }
+    let utf16 = |rest: &[u8], little_endian: bool| -> Result<Cow<'_, [u8]>, String> {
+        if !rest.len().is_multiple_of(2) {
+            return Err("UTF-16 text with an odd number of bytes (the file is cut off)".into());
+        }
+        let units: Vec<u16> = rest
+            .chunks_exact(2)
+            .map(|pair| {
+                if little_endian {
+                    u16::from_le_bytes([pair[0], pair[1]])
+                } else {
+                    u16::from_be_bytes([pair[0], pair[1]])
+                }
+            })
+            .collect();
+        String::from_utf16(&units)
+            .map(|text| Cow::Owned(text.into_bytes()))
+            .map_err(|_| "malformed UTF-16 text (save the file as UTF-8)".into())
+    };
+    match bytes {
+        [0xFF, 0xFE, rest @ ..] => utf16(rest, true),
+        [0xFE, 0xFF, rest @ ..] => utf16(rest, false),
+        // UTF-16 without a mark: JSON starts with an ASCII character, so
+        // one of its first two bytes is zero.
+        [first, 0, ..] if *first != 0 => utf16(bytes, true),
+        [0, second, ..] if *second != 0 => utf16(bytes, false),
+        _ => Ok(Cow::Borrowed(bytes)),
+    }
 }
 
 /// Reads a JSON file whose top level must be an object, as both formats'
@@ -253,6 +293,11 @@ pub fn resolve_image_path(folder: &Path, file_path: &str) -> Result<PathBuf, Str
     let as_written = folder.join(relative);
     if as_written.is_file() {
         return Ok(as_written);
+    }
+    if crate::files::exists_at_all(&as_written)
+        && let Err(problem) = crate::files::check_regular_file(&as_written)
+    {
+        return Err(format!("image file {} is {problem}", as_written.display()));
     }
     let has_image_extension = as_written
         .extension()

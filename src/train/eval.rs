@@ -29,13 +29,15 @@ pub struct SplitScores {
 }
 
 /// Renders `frame`'s camera over white and scores it against the image.
+/// A render that is not finite (a diverged model) scores NaN, which the
+/// callers report; it is not a reason to panic.
 pub fn score_view(model: &dyn RadianceModel, frame: &Frame, with_ssim: bool) -> ImageScores {
     let k = frame.camera.intrinsics;
     let rendered = render_pixels(model, &frame.camera, WHITE);
     let (w, h) = (k.width as usize, k.height as usize);
     let prediction = RgbImage::new(w, h, rgb_of(&rendered)).expect("one pixel per ray");
     let truth = RgbImage::from_rgba8_over(&frame.image, WHITE);
-    let psnr = metrics::psnr(&prediction, &truth).expect("same size");
+    let psnr = metrics::psnr(&prediction, &truth).unwrap_or(f64::NAN);
     let ssim = if with_ssim {
         metrics::ssim(&prediction, &truth).unwrap_or(f64::NAN)
     } else {
@@ -95,17 +97,17 @@ pub fn mean_psnr_sampled(model: &dyn RadianceModel, frames: &[&Frame], rays: usi
 /// About `count` pixels (column, row) of a `width × height` view (at most
 /// all of them, at least one), on a regular grid: every s-th pixel in x
 /// and y, the same s for both axes, centred in each s × s cell so that the
-/// grid favours no image border.
+/// grid favours no image border, and inside the view however thin it is
+/// (a view 1 pixel high must still give its pixels, not an empty grid and
+/// the 100 dB of no error).
 pub fn pixel_grid(width: u32, height: u32, count: usize) -> Vec<(u32, u32)> {
     let pixels = (width as usize * height as usize).max(1);
     let stride = ((pixels as f64 / count.max(1) as f64).sqrt().ceil() as u32).max(1);
-    // Within the image even when the stride is longer than a side.
-    let first_x = (stride / 2).min(width.saturating_sub(1));
-    let first_y = (stride / 2).min(height.saturating_sub(1));
+    let first = stride / 2;
     let mut coordinates = Vec::new();
-    let mut y = first_y;
+    let mut y = first.min(height.saturating_sub(1));
     while y < height {
-        let mut x = first_x;
+        let mut x = first.min(width.saturating_sub(1));
         while x < width {
             coordinates.push((x, y));
             x += stride;
@@ -205,7 +207,76 @@ pub fn spread_views(frames: &[Frame], count: usize) -> Vec<&Frame> {
 
 #[cfg(test)]
 mod tests {
-    use super::pixel_grid;
+    use glam::{Mat4, Vec3};
+
+    use super::*;
+    use crate::scene::{Camera, ImageRgba8, Intrinsics};
+    use crate::train::batch::RayBatch;
+    use crate::train::checkpoint::Checkpoint;
+    use crate::train::model::{RenderedPixel, StepStats};
+
+    /// Renders every pixel black.
+    struct Black;
+
+    impl RadianceModel for Black {
+        fn describe(&self) -> String {
+            "black".into()
+        }
+        fn rays_for_next_batch(&self) -> usize {
+            1
+        }
+        fn step(&mut self, _batch: &RayBatch, _step: u32) -> StepStats {
+            StepStats::default()
+        }
+        fn render(
+            &self,
+            _origins: &[Vec3],
+            _directions: &[Vec3],
+            _radii: &[f32],
+            _background: [f32; 3],
+            out: &mut [RenderedPixel],
+        ) {
+            for pixel in out {
+                pixel.rgb = [0.0; 3];
+                pixel.opacity = 1.0;
+            }
+        }
+        fn save(&self) -> Checkpoint {
+            Checkpoint {
+                header: serde_json::json!({}),
+                tensors: Vec::new(),
+            }
+        }
+        fn load(&mut self, _checkpoint: &Checkpoint) -> Result<(), String> {
+            Ok(())
+        }
+        fn memory_bytes(&self) -> usize {
+            0
+        }
+    }
+
+    /// A view of `width` × `height` white pixels.
+    fn white_view(width: u32, height: u32) -> Frame {
+        Frame {
+            camera: Camera::new(
+                Intrinsics::from_fov_x(width, height, 0.7),
+                Mat4::from_translation(Vec3::new(0.0, 0.0, 4.0)),
+            ),
+            image: ImageRgba8::new(width, height, vec![255; (width * height * 4) as usize]),
+            image_path: Default::default(),
+        }
+    }
+
+    /// Black on white is 0 dB however thin the view: a view one pixel high
+    /// once gave the sampled estimate no pixels at all, and so 100 dB.
+    #[test]
+    fn a_sampled_psnr_of_a_thin_view_scores_its_pixels() {
+        for (width, height) in [(64, 1), (1, 64), (400, 2), (64, 64)] {
+            let view = white_view(width, height);
+            let psnr = mean_psnr_sampled(&Black, &[&view], 16);
+            assert!(psnr.abs() < 1e-6, "{width}×{height}: {psnr} dB");
+        }
+    }
 
     #[test]
     fn the_pixel_grid_spreads_about_the_count_asked_over_the_whole_view() {

@@ -54,6 +54,39 @@ impl MetricsLog {
         &self.path
     }
 
+    /// Cuts the log at `path` back to the lines of steps up to `step` (a
+    /// checkpoint's), dropping those logged after it: a resumed run trains
+    /// those steps again and logs them anew. A last line cut off mid-write
+    /// goes too. The file is rewritten whole through a temporary file, and
+    /// only when something is dropped; returns the lines dropped. A missing
+    /// log is no error.
+    pub fn truncate_after(path: &Path, step: u32) -> std::io::Result<usize> {
+        let text = match std::fs::read_to_string(path) {
+            Ok(text) => text,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(0),
+            Err(e) => return Err(e),
+        };
+        let mut kept = String::with_capacity(text.len());
+        let mut dropped = 0;
+        for line in text.lines().filter(|l| !l.trim().is_empty()) {
+            #[derive(Deserialize)]
+            struct Step {
+                step: u32,
+            }
+            match serde_json::from_str::<Step>(line) {
+                Ok(logged) if logged.step <= step => {
+                    kept.push_str(line);
+                    kept.push('\n');
+                }
+                _ => dropped += 1,
+            }
+        }
+        if dropped > 0 {
+            crate::files::write_bytes_atomically(path, kept.as_bytes())?;
+        }
+        Ok(dropped)
+    }
+
     /// Reads every line of a log.
     pub fn read(path: &Path) -> std::io::Result<Vec<LogLine>> {
         let text = std::fs::read_to_string(path)?;
@@ -61,5 +94,51 @@ impl MetricsLog {
             .filter(|l| !l.trim().is_empty())
             .map(|l| serde_json::from_str(l).map_err(std::io::Error::other))
             .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn line(step: u32) -> LogLine {
+        LogLine {
+            step,
+            wall_seconds: step as f64,
+            train_seconds: step as f64,
+            loss: 0.5,
+            psnr: None,
+            samples_per_ray: 4.0,
+            composited_per_ray: None,
+            samples_per_second: 1e6,
+            rays_per_batch: 256,
+        }
+    }
+
+    #[test]
+    fn a_resumed_log_is_cut_back_to_the_checkpoints_step() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("metrics.jsonl");
+        let mut log = MetricsLog::open(&path).unwrap();
+        for step in [16, 32, 48, 64] {
+            log.write(&line(step)).unwrap();
+        }
+        drop(log);
+        // A line cut off by a crash mid-write.
+        let mut text = std::fs::read_to_string(&path).unwrap();
+        text.push_str("{\"step\":80,\"wall_");
+        std::fs::write(&path, text).unwrap();
+        assert_eq!(MetricsLog::truncate_after(&path, 40).unwrap(), 3);
+        let steps: Vec<u32> = MetricsLog::read(&path)
+            .unwrap()
+            .iter()
+            .map(|l| l.step)
+            .collect();
+        assert_eq!(steps, [16, 32]);
+        assert_eq!(MetricsLog::truncate_after(&path, 40).unwrap(), 0);
+        assert_eq!(
+            MetricsLog::truncate_after(&dir.path().join("none"), 1).unwrap(),
+            0
+        );
     }
 }

@@ -4,6 +4,8 @@
 pub mod batch;
 pub mod checkpoint;
 pub mod eval;
+pub mod kept;
+pub mod lock;
 pub mod log;
 pub mod model;
 pub mod run;
@@ -238,7 +240,13 @@ pub fn gpu_model_of_nerf_fields(
         .map(|_| Box::new(NerfField::new(shape.clone())) as Box<dyn Field>)
         .collect();
     let (params, ranges) = crate::engine::cpu::model::init_field_params(&cpu_fields, settings.seed);
-    let batch = batch_of(&recipe, settings);
+    let batch = batch_of(&recipe, settings).or_else(|| {
+        matches!(recipe.batch, crate::field::common::BatchSize::Samples(_)).then_some(
+            crate::field::common::BatchSize::Samples(
+                crate::field::nerf::GPU_OCCUPANCY_SAMPLES_PER_BATCH,
+            ),
+        )
+    });
     crate::engine::gpu::model::GpuModel::new(
         context,
         identity,

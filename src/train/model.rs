@@ -190,6 +190,14 @@ pub trait RadianceModel: Send {
 
     /// The dense kernels of a model on the cpu engine (`None` on the gpu
     /// engine).
+    /// On the gpu engine: read each step's loss, stage times and occupancy
+    /// update back at once (`false`: the step's own figures and the cpu
+    /// engine's order of updates, at two or three waits for the device a
+    /// step), or a step late (`true`, the default: one wait a step, each
+    /// step reporting the previous one's loss and times, a grid update used
+    /// from the step after). The cpu engine reads nothing back.
+    fn set_read_back_late(&mut self, _late: bool) {}
+
     fn cpu_kernels(&self) -> Option<crate::engine::cpu::dense::Backend> {
         None
     }

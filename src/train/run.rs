@@ -7,6 +7,7 @@ use std::time::Instant;
 
 use super::checkpoint::Checkpoint;
 use super::eval::{mean_psnr_sampled, spread_views};
+use super::lock::RunLock;
 use super::log::{LogLine, MetricsLog};
 use super::model::StepStats;
 use super::trainer::Trainer;
@@ -47,6 +48,10 @@ pub struct Schedule {
     pub eval_share: f64,
     /// Wall seconds between checkpoints.
     pub checkpoint_every_seconds: f64,
+    /// Wall seconds before the first checkpoint (at most
+    /// `checkpoint_every_seconds`): soon, so a run killed in its first
+    /// minutes (SIGKILL, a power cut) still keeps most of them.
+    pub first_checkpoint_seconds: f64,
 }
 
 impl Default for Schedule {
@@ -59,6 +64,7 @@ impl Default for Schedule {
             // Issue 14's bound: at most ~10 % of the wall time.
             eval_share: 0.05,
             checkpoint_every_seconds: 120.0,
+            first_checkpoint_seconds: 10.0,
         }
     }
 }
@@ -73,33 +79,125 @@ pub struct Progress<'a> {
     pub psnr: Option<f64>,
 }
 
-/// Where a run keeps its files.
+/// Where a run keeps its files. A folder opened for writing holds its
+/// [`RunLock`] for as long as this lives.
 pub struct RunFolder {
     pub dir: PathBuf,
+    // Held, never read: the lock lasts as long as this value.
+    _lock: Option<RunLock>,
 }
 
 impl RunFolder {
     /// Creates the folder (and checks it is writable) before any training,
-    /// so a bad `--out` fails at once instead of after the first checkpoint.
+    /// so a bad `--out` fails at once instead of after the first checkpoint,
+    /// and takes its lock. A run already there is kept (the caller resumes
+    /// it); see [`Self::create_new`] for a folder that must not hold one.
     pub fn create(dir: &Path) -> Result<Self, String> {
-        std::fs::create_dir_all(dir)
-            .map_err(|e| format!("{}: cannot create the run folder: {e}", dir.display()))?;
-        let probe = dir.join(".zrak-write-test");
+        std::fs::create_dir_all(dir).map_err(|e| {
+            format!(
+                "{}: cannot create the run folder: {}",
+                dir.display(),
+                if e.kind() == std::io::ErrorKind::AlreadyExists || dir.exists() {
+                    crate::files::describe_not_a_folder(dir)
+                } else {
+                    e.to_string()
+                }
+            )
+        })?;
+        let probe = crate::files::temporary_beside(&dir.join("write-test"));
         std::fs::write(&probe, b"")
             .map_err(|e| format!("{}: the run folder is not writable: {e}", dir.display()))?;
         let _ = std::fs::remove_file(probe);
+        let lock = RunLock::acquire(dir)?;
         Ok(Self {
             dir: dir.to_path_buf(),
+            _lock: Some(lock),
         })
     }
 
-    /// An existing run folder (for eval, render and resume).
+    /// A folder for a new run. One that already holds a run (a checkpoint)
+    /// is refused, naming the two ways on, unless `replace`: then the old
+    /// run's whole folder is renamed aside (never deleted) and its new name
+    /// returned beside the new folder.
+    pub fn create_new(dir: &Path, replace: bool) -> Result<(Self, Option<PathBuf>), String> {
+        if !Self::holds_run(dir) {
+            return Ok((Self::create(dir)?, None));
+        }
+        if !replace {
+            Self::refuse_if_holds_run(dir)?;
+        }
+        // A run another process is writing must not move under it.
+        let old_lock = RunLock::acquire(dir)?;
+        let aside = free_name_beside(dir)?;
+        std::fs::rename(dir, &aside).map_err(|e| {
+            format!(
+                "{}: cannot move the old run aside to {}: {e}",
+                dir.display(),
+                aside.display()
+            )
+        })?;
+        drop(old_lock);
+        Ok((Self::create(dir)?, Some(aside)))
+    }
+
+    /// The refusal of a new run in `dir` when it holds one, naming it and
+    /// the two ways on.
+    pub fn refuse_if_holds_run(dir: &Path) -> Result<(), String> {
+        if !Self::holds_run(dir) {
+            return Ok(());
+        }
+        Err(format!(
+            "{} already holds a run{}: give --resume {} to continue it, or --force to \
+             move it aside (renamed, nothing deleted) and start a new run there",
+            dir.display(),
+            describe_run(dir),
+            dir.display()
+        ))
+    }
+
+    /// A run folder to continue: it must hold a checkpoint, and no other
+    /// process may be writing it.
+    pub fn resume(dir: &Path) -> Result<Self, String> {
+        if !dir.is_dir() {
+            return Err(format!(
+                "{}: no such run folder ({})",
+                dir.display(),
+                crate::files::describe_not_a_folder(dir)
+            ));
+        }
+        // Checked before the lock, so a folder that is no run gets no
+        // lock file.
+        if !dir.join(CHECKPOINT_FILE).is_file() {
+            return Err(format!(
+                "{}: no checkpoint to resume from (no {CHECKPOINT_FILE} in the folder)",
+                dir.display()
+            ));
+        }
+        let lock = RunLock::acquire(dir)?;
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            _lock: Some(lock),
+        })
+    }
+
+    /// Whether `dir` holds a run: a checkpoint, which training would
+    /// replace.
+    pub fn holds_run(dir: &Path) -> bool {
+        crate::files::exists_at_all(&dir.join(CHECKPOINT_FILE))
+    }
+
+    /// An existing run folder, for reading (eval and render): no lock.
     pub fn open(dir: &Path) -> Result<Self, String> {
         if !dir.is_dir() {
-            return Err(format!("{}: no such run folder", dir.display()));
+            return Err(format!(
+                "{}: no such run folder ({})",
+                dir.display(),
+                crate::files::describe_not_a_folder(dir)
+            ));
         }
         Ok(Self {
             dir: dir.to_path_buf(),
+            _lock: None,
         })
     }
 
@@ -121,6 +219,11 @@ impl RunFolder {
 /// checkpointing on `schedule`, and always writing the checkpoint at the
 /// end. `run_config` is stored in every checkpoint's header. Returns the
 /// last held-out PSNR.
+///
+/// A step whose loss is not finite stops the run with an error and
+/// without a checkpoint: the model has diverged, and the last checkpoint
+/// written (if any) is the last good one. A checkpoint holding a
+/// non-finite parameter is refused the same way (see [`Checkpoint::save`]).
 pub fn run(
     trainer: &mut Trainer,
     limits: Limits,
@@ -143,7 +246,9 @@ pub fn run(
 
     let wall_start = Instant::now();
     let wall_offset = trainer.train_seconds;
-    let mut last_checkpoint = Instant::now();
+    let mut next_checkpoint = schedule
+        .first_checkpoint_seconds
+        .min(schedule.checkpoint_every_seconds);
     let mut next_eval = trainer.train_seconds + schedule.eval_every_seconds;
     let mut psnr = None;
     let mut eval_rays = schedule.eval_rays.max(1);
@@ -155,16 +260,43 @@ pub fn run(
     let mut window_seconds = 0f64;
     let mut samples_per_second = 0f64;
 
-    let save = |trainer: &Trainer| -> Result<(), String> {
-        trainer
-            .checkpoint(run_config.clone())
+    // The step of the checkpoint on disk, for a diverged run's message.
+    let mut saved_step = folder.checkpoint_path().is_file().then_some(trainer.step);
+    let kept = |saved_step: Option<u32>| match saved_step {
+        Some(step) => format!(
+            "the last good checkpoint ({}, step {step}) is kept",
+            folder.checkpoint_path().display()
+        ),
+        None => "no checkpoint had been written yet".to_string(),
+    };
+    let save = |trainer: &Trainer, saved_step: &mut Option<u32>| -> Result<(), String> {
+        let checkpoint = trainer.checkpoint(run_config.clone());
+        if let Some(problem) = checkpoint.non_finite() {
+            return Err(format!(
+                "training diverged by step {}: the model's {problem}; stopped without saving \
+                 it: {}",
+                trainer.step,
+                kept(*saved_step)
+            ));
+        }
+        checkpoint
             .save(&folder.checkpoint_path())
-            .map_err(|e| e.to_string())
+            .map_err(|e| e.to_string())?;
+        *saved_step = Some(trainer.step);
+        Ok(())
     };
 
     while !limits.reached(trainer) && !stop.load(Ordering::SeqCst) {
         let before = trainer.train_seconds;
         let stats = trainer.step();
+        if !stats.loss.is_finite() {
+            return Err(format!(
+                "training diverged at step {}: the loss is {}; stopped: {}",
+                trainer.step - 1,
+                stats.loss,
+                kept(saved_step)
+            ));
+        }
         window_samples += stats.samples;
         window_seconds += trainer.train_seconds - before;
         let evaluate_now = trainer.train_seconds >= next_eval || limits.reached(trainer);
@@ -211,16 +343,219 @@ pub fn run(
             samples_per_second,
             psnr,
         });
-        if last_checkpoint.elapsed().as_secs_f64() >= schedule.checkpoint_every_seconds {
-            save(trainer)?;
-            last_checkpoint = Instant::now();
+        let elapsed = wall_start.elapsed().as_secs_f64();
+        if elapsed >= next_checkpoint {
+            save(trainer, &mut saved_step)?;
+            next_checkpoint = elapsed + schedule.checkpoint_every_seconds;
         }
     }
-    save(trainer)?;
+    save(trainer, &mut saved_step)?;
     Ok(psnr)
 }
 
 /// Loads a run's checkpoint.
 pub fn load_checkpoint(folder: &RunFolder) -> Result<Checkpoint, String> {
     Checkpoint::load(&folder.checkpoint_path()).map_err(|e| e.to_string())
+}
+
+/// What the run in `dir` is, from its checkpoint's header, as " (step N,
+/// MODEL on SCENE)", or nothing when that cannot be read.
+fn describe_run(dir: &Path) -> String {
+    let Ok(checkpoint) = Checkpoint::load_header(&dir.join(CHECKPOINT_FILE)) else {
+        return String::new();
+    };
+    let step = checkpoint["trainer"]["step"].as_u64();
+    let model = checkpoint["run"]["model"].as_str();
+    let scene = checkpoint["trainer"]["scene"]["name"].as_str();
+    match (step, model, scene) {
+        (Some(step), Some(model), Some(scene)) => format!(" (step {step}, {model} on {scene})"),
+        (Some(step), _, _) => format!(" (step {step})"),
+        _ => String::new(),
+    }
+}
+
+/// `DIR.old`, else `DIR.old-2`, `DIR.old-3`, …: the first name beside
+/// `dir` that nothing has.
+fn free_name_beside(dir: &Path) -> Result<PathBuf, String> {
+    let name = dir
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .ok_or_else(|| {
+            format!(
+                "{}: give the run folder by name to move it aside",
+                dir.display()
+            )
+        })?;
+    (1..10_000)
+        .map(|n| {
+            dir.with_file_name(if n == 1 {
+                format!("{name}.old")
+            } else {
+                format!("{name}.old-{n}")
+            })
+        })
+        .find(|candidate| !crate::files::exists_at_all(candidate))
+        .ok_or_else(|| {
+            format!(
+                "{}: no free name to move the old run aside to",
+                dir.display()
+            )
+        })
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use super::*;
+    use crate::scene::demo::{DemoConfig, build};
+    use crate::train::batch::RayBatch;
+    use crate::train::model::{RadianceModel, RenderedPixel};
+
+    /// A model whose loss (or whose parameters) turns NaN from a given step.
+    struct Diverging {
+        params: Vec<f32>,
+        nan_loss_from: u32,
+        nan_params_from: u32,
+    }
+
+    impl RadianceModel for Diverging {
+        fn describe(&self) -> String {
+            "diverging".into()
+        }
+        fn rays_for_next_batch(&self) -> usize {
+            4
+        }
+        fn step(&mut self, batch: &RayBatch, step: u32) -> StepStats {
+            if step >= self.nan_params_from {
+                self.params[1] = f32::NAN;
+            }
+            StepStats {
+                loss: if step >= self.nan_loss_from {
+                    f32::NAN
+                } else {
+                    0.5
+                },
+                rays: batch.len(),
+                samples: batch.len(),
+                ..StepStats::default()
+            }
+        }
+        fn render(
+            &self,
+            _origins: &[glam::Vec3],
+            _directions: &[glam::Vec3],
+            _radii: &[f32],
+            background: [f32; 3],
+            out: &mut [RenderedPixel],
+        ) {
+            for pixel in out {
+                pixel.rgb = background;
+            }
+        }
+        fn save(&self) -> Checkpoint {
+            Checkpoint {
+                header: serde_json::json!({}),
+                tensors: vec![("params".into(), self.params.clone())],
+            }
+        }
+        fn load(&mut self, checkpoint: &Checkpoint) -> Result<(), String> {
+            self.params = checkpoint.tensor("params").ok_or("no params")?.to_vec();
+            Ok(())
+        }
+        fn memory_bytes(&self) -> usize {
+            0
+        }
+    }
+
+    fn trainer(nan_loss_from: u32, nan_params_from: u32) -> Trainer {
+        let scene = Arc::new(build(&DemoConfig {
+            size: 8,
+            train_views: 2,
+            val_views: 1,
+            test_views: 1,
+        }));
+        let model = Diverging {
+            params: vec![1.0, 2.0, 3.0],
+            nan_loss_from,
+            nan_params_from,
+        };
+        Trainer::new(Box::new(model), scene, 0)
+    }
+
+    fn train_to(trainer: &mut Trainer, steps: u32, folder: &RunFolder) -> Result<(), String> {
+        run(
+            trainer,
+            Limits {
+                steps: Some(steps),
+                seconds: None,
+            },
+            Schedule::default(),
+            folder,
+            &serde_json::json!({}),
+            &AtomicBool::new(false),
+            |_| {},
+        )
+        .map(|_| ())
+    }
+
+    #[test]
+    fn a_non_finite_loss_stops_training_and_keeps_the_last_good_checkpoint() {
+        let dir = tempfile::tempdir().unwrap();
+        let folder = RunFolder::create(dir.path()).unwrap();
+        let mut trainer = trainer(5, u32::MAX);
+        train_to(&mut trainer, 3, &folder).unwrap();
+        let error = train_to(&mut trainer, 10, &folder).unwrap_err();
+        assert!(
+            error.contains("diverged at step 5")
+                && error.contains("the loss is NaN")
+                && error.contains("last good checkpoint")
+                && error.contains("step 3"),
+            "{error}"
+        );
+        let kept = Checkpoint::load(&folder.checkpoint_path()).unwrap();
+        assert_eq!(kept.header["trainer"]["step"], 3);
+    }
+
+    #[test]
+    fn non_finite_parameters_are_never_saved() {
+        let dir = tempfile::tempdir().unwrap();
+        let folder = RunFolder::create(dir.path()).unwrap();
+        let mut trainer = trainer(u32::MAX, 4);
+        train_to(&mut trainer, 2, &folder).unwrap();
+        let error = train_to(&mut trainer, 6, &folder).unwrap_err();
+        assert!(
+            error.contains("diverged by step 6")
+                && error.contains("tensor `params` holds NaN at index 1")
+                && error.contains("step 2"),
+            "{error}"
+        );
+        let kept = Checkpoint::load(&folder.checkpoint_path()).unwrap();
+        assert_eq!(kept.header["trainer"]["step"], 2);
+    }
+
+    #[test]
+    fn a_folder_holding_a_run_is_refused_or_moved_aside_never_deleted() {
+        let dir = tempfile::tempdir().unwrap();
+        let run_dir = dir.path().join("run");
+        let folder = RunFolder::create(&run_dir).unwrap();
+        train_to(&mut trainer(u32::MAX, u32::MAX), 2, &folder).unwrap();
+        // Held by `folder` (this process): even --force must not move it.
+        let error = RunFolder::create_new(&run_dir, true).err().unwrap();
+        assert!(error.contains("is using this run folder"), "{error}");
+        drop(folder);
+        let error = RunFolder::create_new(&run_dir, false).err().unwrap();
+        assert!(
+            error.contains("already holds a run (step 2)")
+                && error.contains("--resume")
+                && error.contains("--force"),
+            "{error}"
+        );
+        let (_new, aside) = RunFolder::create_new(&run_dir, true).unwrap();
+        let aside = aside.unwrap();
+        assert_eq!(aside, dir.path().join("run.old"));
+        let kept = Checkpoint::load(&aside.join(CHECKPOINT_FILE)).unwrap();
+        assert_eq!(kept.header["trainer"]["step"], 2);
+        assert!(!RunFolder::holds_run(&run_dir));
+    }
 }

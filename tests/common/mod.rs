@@ -140,3 +140,22 @@ pub fn finish(mut child: Child, seconds: u64) -> Output {
     }
     child.wait_with_output().expect("collecting zrak's output")
 }
+
+/// Blocking read-backs of each training step `from..to` of `model` (on
+/// the gpu engine, whose context's `counters` count them), on batches of
+/// `rays` rays of `scene`.
+pub fn readbacks_per_step(
+    model: &mut dyn zrak::train::model::RadianceModel,
+    counters: &zrak::engine::gpu::context::GpuCounters,
+    scene: &Scene,
+    steps: std::ops::Range<u32>,
+) -> Vec<u64> {
+    let mut counts = Vec::new();
+    for step in steps {
+        let rays = batch(scene, model.rays_for_next_batch(), 100 + step as u64);
+        let before = counters.read();
+        model.step(&rays, step);
+        counts.push((counters.read() - before).blocking_readbacks);
+    }
+    counts
+}

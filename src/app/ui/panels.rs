@@ -112,6 +112,7 @@ pub fn menu_bar(state: &mut ViewerUi, ui: &mut egui::Ui) {
                 if ui.button("Load checkpoint…").clicked() {
                     load_checkpoint_dialog(state);
                 }
+                ui.menu_button("Recent runs", |ui| recent_runs_menu(state, ui));
                 ui.separator();
                 if ui.button("Export turntable…").clicked() {
                     state.export.open = true;
@@ -134,6 +135,53 @@ pub fn menu_bar(state: &mut ViewerUi, ui: &mut egui::Ui) {
             });
         });
     });
+}
+
+/// The runs kept when the viewer closed, newest first, each with its size:
+/// a click loads its checkpoint, "Remove" deletes its folder.
+fn recent_runs_menu(state: &mut ViewerUi, ui: &mut egui::Ui) {
+    use crate::train::kept;
+    let Some(base) = crate::app::worker::default_autosave_folder() else {
+        ui.label("No data folder ($XDG_DATA_HOME or $HOME is unset)");
+        return;
+    };
+    let runs = kept::list(&base);
+    if runs.is_empty() {
+        ui.label(format!("No kept runs in {}", base.display()));
+        return;
+    }
+    let total: u64 = runs.iter().map(|r| r.bytes).sum();
+    ui.label(format!(
+        "{} runs, {} in {}",
+        runs.len(),
+        crate::files::human_bytes(total),
+        base.display()
+    ));
+    ui.separator();
+    for run in runs {
+        ui.horizontal(|ui| {
+            if ui
+                .button(run.describe())
+                .on_hover_text("Load this run's checkpoint")
+                .clicked()
+            {
+                let path = run.folder.join(crate::train::run::CHECKPOINT_FILE);
+                state.checkpoint_path_text = path.display().to_string();
+                state.send(Command::LoadCheckpoint(path));
+                ui.close();
+            }
+            if ui
+                .small_button("Remove")
+                .on_hover_text("Delete this run's folder")
+                .clicked()
+            {
+                match kept::remove(&base, &run.folder) {
+                    Ok(()) => state.notice(format!("removed {}", run.folder.display()), false),
+                    Err(error) => state.notice(&error, true),
+                }
+            }
+        });
+    }
 }
 
 fn pick_scene_folder(state: &mut ViewerUi) {

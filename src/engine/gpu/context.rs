@@ -1,6 +1,9 @@
 //! The wgpu device every `gpu` stage runs on: the adapter chosen, the limits
 //! and optional features requested, and what kind of adapter it is.
 
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+
 use wgpu::{Adapter, AdapterInfo, Backends, Device, DeviceType, Features, Limits, Queue};
 
 /// Optional features the engine uses when the adapter has them:
@@ -23,6 +26,14 @@ pub enum GpuError {
          libvulkan1`, or use `--engine cpu`"
     )]
     NoAdapter { backends: Backends },
+    #[error(
+        "the gpu engine was asked for, but the only adapter found is {software}, a software \
+         rasteriser, while this machine has {hardware}: its Vulkan driver was not found (for \
+         NVIDIA, install the driver's Vulkan ICD or point VK_DRIVER_FILES at its \
+         nvidia_icd.json). Use --engine cpu, or set ZRAK_ALLOW_SOFTWARE_GPU=1 to run the gpu \
+         engine on the software adapter anyway"
+    )]
+    SoftwareInsteadOfHardware { software: String, hardware: String },
     #[error("WGSL kernel `{name}` failed to compile: {message}")]
     Shader { name: String, message: String },
     #[error(
@@ -58,6 +69,52 @@ pub struct GpuContext {
     /// The optional features (of [`WANTED_FEATURES`]) the device has.
     pub features: Features,
     pub limits: Limits,
+    /// Dispatches recorded and blocking read-backs made on this context.
+    pub counters: Arc<GpuCounters>,
+}
+
+/// What the engine asked of the device, counted as it goes: compute
+/// dispatches recorded, and read-backs that wait for the device (each one
+/// drains the queue, so inside a training step it is a bubble the GPU
+/// sits idle in while the host catches up).
+#[derive(Debug, Default)]
+pub struct GpuCounters {
+    dispatches: AtomicU64,
+    blocking_readbacks: AtomicU64,
+}
+
+/// A reading of [`GpuCounters`].
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct CounterReading {
+    pub dispatches: u64,
+    pub blocking_readbacks: u64,
+}
+
+impl std::ops::Sub for CounterReading {
+    type Output = CounterReading;
+    fn sub(self, earlier: CounterReading) -> CounterReading {
+        CounterReading {
+            dispatches: self.dispatches - earlier.dispatches,
+            blocking_readbacks: self.blocking_readbacks - earlier.blocking_readbacks,
+        }
+    }
+}
+
+impl GpuCounters {
+    pub fn count_dispatch(&self) {
+        self.dispatches.fetch_add(1, Ordering::Relaxed);
+    }
+
+    pub fn count_blocking_readback(&self) {
+        self.blocking_readbacks.fetch_add(1, Ordering::Relaxed);
+    }
+
+    pub fn read(&self) -> CounterReading {
+        CounterReading {
+            dispatches: self.dispatches.load(Ordering::Relaxed),
+            blocking_readbacks: self.blocking_readbacks.load(Ordering::Relaxed),
+        }
+    }
 }
 
 impl std::fmt::Debug for GpuContext {
@@ -171,6 +228,7 @@ impl GpuContext {
             device,
             queue,
             limits,
+            counters: Arc::default(),
         })
     }
 

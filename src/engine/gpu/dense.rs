@@ -1,10 +1,11 @@
 //! Dense layers on the GPU: the same MLPs, parameter layout and activations as
 //! [`crate::engine::cpu::dense`], one layer per dispatch.
 //!
-//! Per layer, forward is one kernel (`dense_forward.wgsl`: 16 × 16 tiles of
-//! rows × outputs, bias and activation fused). Backward is up to three:
-//! `dense_backward_weights.wgsl` sums Gᵀx over chunks of rows into partial
-//! sums (one workgroup per 16 × 16 tile of the weight matrix and chunk),
+//! Per layer, forward is one kernel (`dense_forward.wgsl`: 64 × 64 tiles of
+//! rows × outputs, 4 × 4 per thread, bias and activation fused). Backward
+//! is up to three: `dense_backward_weights.wgsl` sums Gᵀx over chunks of
+//! rows into partial sums (one workgroup per 64 × 64 tile of the weight
+//! matrix and chunk),
 //! `dense_reduce.wgsl` adds the partials in chunk order into the gradients
 //! (`+=`), and `dense_backward_input.wgsl` computes G W for the layer below.
 //! G = dy ⊙ act'(y) is formed on load by both. No atomics: the results are
@@ -36,7 +37,12 @@ use crate::engine::cpu::dense::{Activation, MlpLayout};
 use crate::field::ngp::DENSITY_EXP_CLAMP;
 
 const COMMON: &str = include_str!("../../../shaders/dense_common.wgsl");
-const TILE: usize = 16;
+/// Each workgroup computes a BLOCK × BLOCK tile of its result
+/// (dense_common.wgsl).
+const BLOCK: usize = 64;
+/// Rows the weight-gradient kernel steps through at a time: a chunk of rows
+/// is a multiple of it.
+const DEPTH: usize = 16;
 /// Rows per weight-gradient partial sum, at least: 16 tiles of rows per
 /// workgroup keeps the partials small (2^18 rows → 1024 partials of a
 /// 64 × 64 matrix, 16 MiB) while giving a GPU thousands of workgroups.
@@ -163,7 +169,7 @@ impl GpuMlpWorkspace {
         let per = rows
             .div_ceil(self.max_chunks)
             .max(MIN_ROWS_PER_CHUNK)
-            .next_multiple_of(TILE);
+            .next_multiple_of(DEPTH);
         (per, rows.div_ceil(per).max(1))
     }
 }
@@ -219,12 +225,12 @@ impl GpuDense {
         }
     }
 
-    /// Workgroups for `columns` 16-wide column tiles over `rows` rows, the
-    /// row tiles folded into y and z.
+    /// Workgroups for `columns` BLOCK-wide column tiles over `rows` rows,
+    /// the row tiles folded into y and z.
     fn row_groups(columns: usize, rows: usize) -> [u32; 3] {
-        let tiles = groups_for(rows, TILE as u32);
+        let tiles = groups_for(rows, BLOCK as u32);
         let z = tiles.div_ceil(MAX_GROUPS_PER_DIMENSION);
-        [groups_for(columns, TILE as u32), tiles.div_ceil(z), z]
+        [groups_for(columns, BLOCK as u32), tiles.div_ceil(z), z]
     }
 
     /// Records layer `layer` forward: `output` = act(`input` Wᵀ + b), the
@@ -399,9 +405,10 @@ impl GpuDense {
                         float_range(x, in_w * piece.start, in_w * piece.len()),
                         workspace.partials.as_entire_buffer_binding(),
                     ],
+                    // The bias column is summed by the first column tile.
                     [
-                        groups_for(columns, TILE as u32),
-                        groups_for(out_w, TILE as u32),
+                        groups_for(in_w, BLOCK as u32),
+                        groups_for(out_w, BLOCK as u32),
                         uniform.chunks,
                     ],
                 );

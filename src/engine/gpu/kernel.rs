@@ -113,6 +113,7 @@ impl Kernel {
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, &bind_group, &[]);
         pass.dispatch_workgroups(workgroups[0], workgroups[1], workgroups[2]);
+        context.counters.count_dispatch();
     }
 
     /// Records, submits and waits for one dispatch.
@@ -237,6 +238,7 @@ pub fn read_buffer<T: Pod>(context: &GpuContext, buffer: &wgpu::Buffer, count: u
     let mut encoder = context.device.create_command_encoder(&Default::default());
     encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, size);
     context.queue.submit([encoder.finish()]);
+    context.counters.count_blocking_readback();
     let slice = staging.slice(..);
     let (sender, receiver) = std::sync::mpsc::channel();
     slice.map_async(wgpu::MapMode::Read, move |result| {
@@ -261,6 +263,7 @@ pub fn read_mapped<T: bytemuck::Pod>(
     count: usize,
 ) -> Vec<T> {
     let size = (count * std::mem::size_of::<T>()) as u64;
+    context.counters.count_blocking_readback();
     let slice = staging.slice(..size);
     let (sender, receiver) = std::sync::mpsc::channel();
     slice.map_async(wgpu::MapMode::Read, move |result| {
@@ -280,4 +283,70 @@ pub fn read_mapped<T: bytemuck::Pod>(
     };
     staging.unmap();
     values
+}
+
+/// A read-back that does not wait: asked for right after the submission
+/// that fills a MAP_READ buffer, and taken once the device has finished it,
+/// which any later blocking read-back on the same queue guarantees (the
+/// queue runs submissions in order). How a training step reads its loss,
+/// stage times and occupancy densities with the next step's one blocking
+/// read-back instead of one wait each.
+pub struct MapRequest {
+    buffer: wgpu::Buffer,
+    bytes: u64,
+    done: std::sync::mpsc::Receiver<Result<(), wgpu::BufferAsyncError>>,
+}
+
+impl MapRequest {
+    /// Asks for the first `bytes` of `staging` (MAP_READ) to be mapped once
+    /// the work submitted so far is done.
+    pub fn new(staging: &wgpu::Buffer, bytes: u64) -> Self {
+        let (sender, done) = std::sync::mpsc::channel();
+        staging
+            .slice(..bytes)
+            .map_async(wgpu::MapMode::Read, move |result| {
+                let _ = sender.send(result);
+            });
+        Self {
+            buffer: staging.clone(),
+            bytes,
+            done,
+        }
+    }
+
+    /// The values, and the buffer unmapped for the next copy into it. If
+    /// the device has not finished yet, waits for it (a blocking read-back,
+    /// counted as one).
+    pub fn take<T: Pod>(self, context: &GpuContext) -> Vec<T> {
+        let _ = context.device.poll(wgpu::PollType::Poll);
+        let result = match self.done.try_recv() {
+            Ok(result) => result,
+            Err(_) => {
+                context.counters.count_blocking_readback();
+                context
+                    .device
+                    .poll(wgpu::PollType::wait_indefinitely())
+                    .expect("waiting for the GPU");
+                self.done.recv().expect("map callback ran")
+            }
+        };
+        result.expect("mapping the read-back buffer");
+        let slice = self.buffer.slice(..self.bytes);
+        let values = {
+            let view = slice.get_mapped_range().expect("mapped range");
+            bytemuck::cast_slice(&view).to_vec()
+        };
+        self.buffer.unmap();
+        values
+    }
+}
+
+/// A buffer the host maps to read what the device wrote into it.
+pub fn staging_buffer(context: &GpuContext, label: &str, bytes: u64) -> wgpu::Buffer {
+    context.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size: bytes.max(4),
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    })
 }

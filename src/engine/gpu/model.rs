@@ -55,12 +55,16 @@ use super::composite::{CompositeOutputBuffers, GpuComposite};
 use super::context::{GpuContext, GpuError};
 use super::fields::GpuField;
 use super::frustum::{FrustumRays, FrustumSamples, GpuFrustums, MarchedIntervals};
-use super::kernel::{read_buffer, read_mapped, storage_buffer, zeroed_storage_buffer};
+use super::kernel::{
+    MapRequest, read_buffer, read_mapped, staging_buffer, storage_buffer, zeroed_storage_buffer,
+};
 use super::loss::GpuLoss;
 use super::march::{GpuGrid, GpuMarch, GpuMarchBuffers, GpuRays};
 use super::render::check_target;
 use super::sampling::GpuSampling;
-use super::step::{CompositeAndLoss, RayBuffers, SampleBuffers, SampleGradientBuffers};
+use super::step::{
+    CompositeAndLoss, RayBuffers, SampleBuffers, SampleGradientBuffers, StepReadback, StepResults,
+};
 use super::timing::{Stage, StageClock, StageTiming};
 use crate::engine::cpu::march::{
     BatchSizer, GridSamples, MarchParams, mix_seed, render_through_grid,
@@ -169,6 +173,19 @@ struct Grid {
     /// asked for at each grid update position (one cell's,
     /// [`grid_cell_variance`], `samples` × 3).
     cell_variances: Option<wgpu::Buffer>,
+}
+
+impl Grid {
+    /// The EMA of an update's densities on the host, the bitfield rebuilt
+    /// and uploaded.
+    fn apply(&mut self, context: &GpuContext, sigma: &[f32]) {
+        self.grid.apply_update(sigma);
+        context.queue.write_buffer(
+            &self.bitfield,
+            0,
+            bytemuck::cast_slice(self.grid.bitfield()),
+        );
+    }
 }
 
 /// Per-sample and per-ray buffers of a marched step.
@@ -295,6 +312,8 @@ struct Work {
     fine_t: wgpu::Buffer,
     scratch: Vec<f32>,
     clock: StageClock,
+    /// The loss and stage times of each marched step.
+    readback: StepReadback,
     /// For a recipe that marches.
     marched: Option<MarchedBuffers>,
 }
@@ -330,6 +349,8 @@ pub struct GpuModel {
     rays_per_chunk: usize,
     /// For a recipe that marches through the occupancy grid.
     grid: Option<Grid>,
+    /// Densities of an occupancy update read a step late.
+    pending_grid: Option<MapRequest>,
     /// Near and far depth of depth images ([`Scene::depth_range`]).
     depth_range: (f32, f32),
 }
@@ -458,6 +479,7 @@ impl GpuModel {
             fine_t: f("importance samples", fine),
             scratch: Vec::new(),
             clock: StageClock::new(ctx, StageTiming::Timestamps),
+            readback: StepReadback::new(ctx),
             marched: None,
         };
         let stages = Stages {
@@ -524,6 +546,7 @@ impl GpuModel {
             seed,
             rays_per_chunk: RAYS_PER_CHUNK,
             grid,
+            pending_grid: None,
             depth_range: scene.depth_range(),
             identity,
             recipe,
@@ -574,6 +597,7 @@ impl GpuModel {
     /// gradient buffer ([`Self::gradients`]) without changing any
     /// parameter, as `CpuModel::forward_backward`.
     pub fn forward_backward(&mut self, batch: &RayBatch, step: u32) -> StepStats {
+        self.work().clock.reset();
         self.run(batch, step, false)
     }
 
@@ -876,7 +900,6 @@ impl GpuModel {
         let rays = batch.len();
         let mut guard = self.work.lock().unwrap_or_else(|e| e.into_inner());
         let work = &mut *guard;
-        work.clock.reset();
         let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
         let marched = work.marched.as_mut().expect("a marched recipe has buffers");
         if rays > marched.rays.capacity {
@@ -916,6 +939,7 @@ impl GpuModel {
             let counters: Vec<u32> = read_mapped(ctx, &grid.counters_staging, 2);
             (counters[0] as usize, counters[1] as usize)
         };
+        let previous = work.readback.take_previous(ctx);
 
         // Submission 2: field, compositing, loss, backward, Adam.
         let s = &self.stages;
@@ -1014,10 +1038,10 @@ impl GpuModel {
             );
         }
         work.clock.mark(ctx, &mut encoder, Stage::Optimiser);
-        work.clock.resolve(&mut encoder);
+        work.readback
+            .record(&mut encoder, &work.clock, &marched.rays.loss_total);
         ctx.queue.submit([encoder.finish()]);
-        let loss = read_buffer::<f32>(ctx, &marched.rays.loss_total, 1)[0];
-        let times = work.clock.read(ctx);
+        let StepResults { loss, times } = work.readback.finish(ctx, &work.clock, previous);
         drop(guard);
         self.batch_sizer.record(kept, samples);
         StepStats {
@@ -1035,7 +1059,9 @@ impl GpuModel {
     /// (the cpu engine's code and random choices), densities evaluated by
     /// the field on the device in chunks of the batch's samples (one
     /// submission) and read back, the EMA and bitfield on the host, the
-    /// bitfield uploaded.
+    /// bitfield uploaded. Read a step late, the densities come back with
+    /// the step's march read-back and the new bitfield is used from the
+    /// next step on.
     fn update_grid(&mut self, step: u32) {
         let ctx = &self.context;
         let Some(grid) = self.grid.as_mut() else {
@@ -1052,6 +1078,10 @@ impl GpuModel {
         let marched = work.marched.as_ref().expect("a marched recipe has buffers");
         let field = &mut work.fields[self.recipe.levels[0].field];
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        let late = work.readback.is_late();
+        if late {
+            work.clock.restart(ctx, &mut encoder);
+        }
         for start in (0..n).step_by(grid.samples) {
             let count = grid.samples.min(n - start);
             encoder.copy_buffer_to_buffer(
@@ -1078,14 +1108,26 @@ impl GpuModel {
                 4 * count as u64,
             );
         }
+        if late {
+            work.clock.mark(ctx, &mut encoder, Stage::GridUpdate);
+            let staging = staging_buffer(ctx, "grid update read-back", 4 * n as u64);
+            encoder.copy_buffer_to_buffer(&all_sigma, 0, &staging, 0, 4 * n as u64);
+            ctx.queue.submit([encoder.finish()]);
+            self.pending_grid = Some(MapRequest::new(&staging, 4 * n as u64));
+            return;
+        }
         ctx.queue.submit([encoder.finish()]);
         let sigma: Vec<f32> = read_buffer(ctx, &all_sigma, n);
-        grid.grid.apply_update(&sigma);
-        ctx.queue.write_buffer(
-            &grid.bitfield,
-            0,
-            bytemuck::cast_slice(grid.grid.bitfield()),
-        );
+        grid.apply(ctx, &sigma);
+    }
+
+    /// Applies densities read a step late by [`Self::update_grid`], once
+    /// the device is done with them.
+    fn apply_pending_grid_update(&mut self) {
+        if let (Some(request), Some(grid)) = (self.pending_grid.take(), self.grid.as_mut()) {
+            let sigma: Vec<f32> = request.take(&self.context);
+            grid.apply(&self.context, &sigma);
+        }
     }
 
     /// σ and colour of `samples` marched through the grid for rendering
@@ -1325,14 +1367,25 @@ impl RadianceModel for GpuModel {
     }
 
     fn step(&mut self, batch: &RayBatch, step: u32) -> StepStats {
+        self.work().clock.reset();
         let clock = Instant::now();
         if self.grid.as_ref().is_some_and(|g| g.grid.is_due(step)) {
             self.update_grid(step);
         }
         let grid_update = clock.elapsed().as_secs_f64();
         let mut stats = self.run(batch, step, true);
-        stats.times.grid_update = grid_update;
+        if self.work().readback.is_late() {
+            // The update's device time is among the stage times; the host
+            // applies its densities while the device runs the step.
+            self.apply_pending_grid_update();
+        } else {
+            stats.times.grid_update = grid_update;
+        }
         stats
+    }
+
+    fn set_read_back_late(&mut self, late: bool) {
+        self.work().readback.set_late(late);
     }
 
     fn render(

@@ -40,8 +40,8 @@ use super::context::{GpuContext, GpuError};
 use super::dense::{GpuDense, GpuMlpWorkspace};
 use super::hash_grid::GpuHashGrid;
 use super::kernel::{
-    Kernel, float_range, pieces, read_buffer, read_mapped, rows_per_piece, storage_buffer,
-    uniform_buffer, zeroed_storage_buffer,
+    Kernel, MapRequest, float_range, pieces, read_buffer, read_mapped, rows_per_piece,
+    staging_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer,
 };
 use super::loss::GpuLoss;
 use super::march::{GpuGrid, GpuMarch, GpuMarchBuffers, GpuRays, dispatch_grid};
@@ -50,7 +50,9 @@ use super::render::{
     RenderKernels, check_target,
 };
 use super::sh::GpuSh;
-use super::step::{self, CompositeAndLoss, RayBuffers, SampleGradientBuffers};
+use super::step::{
+    self, CompositeAndLoss, RayBuffers, SampleGradientBuffers, StepReadback, StepResults,
+};
 use super::timing::{Stage, StageClock, StageTiming};
 use crate::engine::cpu::composite_batch::Distortion;
 use crate::engine::cpu::hash_grid;
@@ -120,21 +122,19 @@ pub struct GpuNgp {
     params: wgpu::Buffer,
     /// Their gradient, same layout.
     gradients: wgpu::Buffer,
-    /// The two networks' parameters and gradients on their own, because a
-    /// dense kernel binds whole buffers and indexes from 0: copied out of
-    /// (and back into) the flat buffers inside each step's encoder.
-    density_params: wgpu::Buffer,
-    colour_params: wgpu::Buffer,
-    density_gradients: wgpu::Buffer,
-    colour_gradients: wgpu::Buffer,
     grid: OccupancyGrid,
     bitfield: wgpu::Buffer,
     march_out: GpuMarchBuffers,
     rays: RayBuffers,
     samples: SampleBuffers,
-    /// Mappable copies of the step's two read-backs.
+    /// Mappable copy of the march's counters.
     counters_staging: wgpu::Buffer,
-    loss_staging: wgpu::Buffer,
+    /// The loss and stage times of each step.
+    readback: StepReadback,
+    /// Densities of an occupancy update read a step late
+    /// ([`StepReadback`]): applied once the step's march read-back has
+    /// waited for them.
+    pending_grid: Option<MapRequest>,
     batch_sizer: BatchSizer,
     optimiser: OptimiserConfig,
     loss: LossKind,
@@ -269,17 +269,14 @@ impl GpuNgp {
             adam: GpuAdam::new(ctx, params.len())?,
             params: storage_buffer(ctx, "ngp params", &params),
             gradients: f("ngp gradients", params.len()),
-            density_params: f("ngp density params", shape.density.param_count()),
-            colour_params: f("ngp colour params", shape.colour.param_count()),
-            density_gradients: f("ngp density gradients", shape.density.param_count()),
-            colour_gradients: f("ngp colour gradients", shape.colour.param_count()),
             bitfield: storage_buffer(ctx, "ngp occupancy bitfield", grid.bitfield()),
             grid,
             march_out: GpuMarchBuffers::new(ctx, ray_capacity, capacity),
             rays: RayBuffers::new(ctx, ray_capacity),
             samples,
             counters_staging: staging("ngp counters read-back", 8),
-            loss_staging: staging("ngp loss read-back", 4),
+            readback: StepReadback::new(ctx),
+            pending_grid: None,
             batch_sizer,
             optimiser: OptimiserConfig::PAPER,
             loss,
@@ -349,24 +346,19 @@ impl GpuNgp {
     /// of the mean loss in the gradient buffer ([`Self::gradients`])
     /// without changing any parameter, as `CpuNgp::forward_backward`.
     pub fn forward_backward(&mut self, batch: &RayBatch, step: u32) -> StepStats {
+        if let Some(clock) = self.clock.as_mut() {
+            clock.reset();
+        }
         self.run(batch, step, false)
     }
 
-    /// Records copies of the two networks' parameters out of the flat
-    /// buffer, so the dense kernels see the current values.
-    fn record_network_params(&self, encoder: &mut wgpu::CommandEncoder) {
-        for (range, buffer) in [
-            (self.density_range(), &self.density_params),
-            (self.colour_range(), &self.colour_params),
-        ] {
-            encoder.copy_buffer_to_buffer(
-                &self.params,
-                4 * range.start as u64,
-                buffer,
-                0,
-                4 * range.len() as u64,
-            );
-        }
+    /// Reads each step's loss, stage times and occupancy update back at
+    /// once (`false`: two or three waits for the device per step, each
+    /// step's own figures, the cpu engine's order of updates) or a step
+    /// late (`true`, the default: one wait per step; see
+    /// [`StepReadback`]).
+    pub fn set_read_back_late(&mut self, late: bool) {
+        self.readback.set_late(late);
     }
 
     /// Records the density activation over `count` samples (forward, or
@@ -424,8 +416,8 @@ impl GpuNgp {
 
     /// Records the field at the `count` positions (and directions) in the
     /// march buffers: σ into `samples.sigma`, and with `colour` the colour
-    /// network's output into `samples.colour.output()`. The networks'
-    /// parameters must have been copied ([`Self::record_network_params`]).
+    /// network's output into `samples.colour.output()`. The networks read
+    /// their parameters where they lie in the flat buffer.
     fn record_field(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -450,10 +442,11 @@ impl GpuNgp {
             count,
         );
         mark(encoder, Stage::Encode);
-        s.dense.record_forward(
+        s.dense.record_forward_at(
             ctx,
             encoder,
-            &self.density_params,
+            &self.params,
+            self.density_range().start,
             &b.encoded,
             &b.density,
             count,
@@ -473,10 +466,11 @@ impl GpuNgp {
                 density_width,
             );
             mark(encoder, Stage::Encode);
-            s.dense.record_forward(
+            s.dense.record_forward_at(
                 ctx,
                 encoder,
-                &self.colour_params,
+                &self.params,
+                self.colour_range().start,
                 &b.colour_input,
                 &b.colour,
                 count,
@@ -504,7 +498,6 @@ impl GpuNgp {
             .clock
             .take()
             .unwrap_or_else(|| StageClock::new(&self.context, StageTiming::Timestamps));
-        clock.reset();
 
         // Submission 1: the march, and its counters read back.
         self.upload_rays(batch);
@@ -548,6 +541,7 @@ impl GpuNgp {
             let counters: Vec<u32> = read_mapped(&self.context, &self.counters_staging, 2);
             (counters[0] as usize, counters[1] as usize)
         };
+        let previous = self.readback.take_previous(&self.context);
         // The samples are those of the kept rays (the rest are past the
         // budget), so they are what a ray holds on average.
         self.batch_sizer.record(kept, samples);
@@ -557,9 +551,6 @@ impl GpuNgp {
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
         clock.restart(ctx, &mut encoder);
         encoder.clear_buffer(&self.gradients, 0, None);
-        encoder.clear_buffer(&self.density_gradients, 0, None);
-        encoder.clear_buffer(&self.colour_gradients, 0, None);
-        self.record_network_params(&mut encoder);
         self.record_field(&mut encoder, samples, true, Some(&mut clock));
         let s = &self.stages;
         let b = &self.samples;
@@ -595,26 +586,30 @@ impl GpuNgp {
             },
         );
         clock.mark(ctx, &mut encoder, Stage::Composite);
-        s.dense.record_backward(
+        // The networks' gradients land at their parameters' offsets of the
+        // flat gradient buffer.
+        s.dense.record_backward_at(
             ctx,
             &mut encoder,
-            &self.colour_params,
+            &self.params,
+            self.colour_range().start,
             &b.colour_input,
             &b.colour,
             &b.d_rgb,
-            &self.colour_gradients,
+            &self.gradients,
             Some(&b.d_colour_input),
             samples,
         );
         self.record_activation(&mut encoder, samples, true);
-        s.dense.record_backward(
+        s.dense.record_backward_at(
             ctx,
             &mut encoder,
-            &self.density_params,
+            &self.params,
+            self.density_range().start,
             &b.encoded,
             &b.density,
             &b.d_density_out,
-            &self.density_gradients,
+            &self.gradients,
             Some(&b.d_encoded),
             samples,
         );
@@ -630,18 +625,6 @@ impl GpuNgp {
             samples,
         );
         clock.mark(ctx, &mut encoder, Stage::EncodeBackward);
-        for (range, buffer) in [
-            (self.density_range(), &self.density_gradients),
-            (self.colour_range(), &self.colour_gradients),
-        ] {
-            encoder.copy_buffer_to_buffer(
-                buffer,
-                0,
-                &self.gradients,
-                4 * range.start as u64,
-                4 * range.len() as u64,
-            );
-        }
         if optimise {
             let weights = self.density_range().start..self.shape.param_count();
             self.adam.record_step(
@@ -654,16 +637,15 @@ impl GpuNgp {
             );
         }
         clock.mark(ctx, &mut encoder, Stage::Optimiser);
-        clock.resolve(&mut encoder);
-        encoder.copy_buffer_to_buffer(&self.rays.loss_total, 0, &self.loss_staging, 0, 4);
+        self.readback
+            .record(&mut encoder, &clock, &self.rays.loss_total);
         ctx.queue.submit([encoder.finish()]);
-        let loss: Vec<f32> = read_mapped(ctx, &self.loss_staging, 1);
-        let times = clock.read(ctx);
+        let StepResults { loss, times } = self.readback.finish(ctx, &clock, previous);
         self.clock = Some(clock);
 
         StepStats {
-            loss: loss[0],
-            level_losses: [loss[0], 0.0],
+            loss,
+            level_losses: [loss, 0.0],
             rays: if rays == 0 { 0 } else { kept },
             samples,
             samples_composited: None,
@@ -675,7 +657,9 @@ impl GpuNgp {
     /// The occupancy update of `step`: cells and points chosen on the cpu,
     /// densities evaluated on the gpu (in chunks of the sample budget, all
     /// in one submission) and read back, the EMA and bitfield on the cpu,
-    /// the bitfield uploaded.
+    /// the bitfield uploaded. Read a step late, the densities come back
+    /// with the step's march read-back and the new bitfield is used from
+    /// the next step on ([`Self::apply_pending_grid_update`]).
     fn update_grid(&mut self, step: u32) {
         let report = self.grid.plan_update(step, self.seed);
         let n = report.samples;
@@ -687,7 +671,10 @@ impl GpuNgp {
         );
         let all_sigma = zeroed_storage_buffer::<f32>(ctx, "ngp grid update sigma", n);
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
-        self.record_network_params(&mut encoder);
+        let late = self.readback.is_late();
+        if late && let Some(clock) = self.clock.as_mut() {
+            clock.restart(ctx, &mut encoder);
+        }
         let chunk = self.batch_samples.max(1);
         for start in (0..n).step_by(chunk) {
             let count = chunk.min(n - start);
@@ -707,10 +694,33 @@ impl GpuNgp {
                 4 * count as u64,
             );
         }
+        if late {
+            if let Some(clock) = self.clock.as_mut() {
+                clock.mark(ctx, &mut encoder, Stage::GridUpdate);
+            }
+            let staging = staging_buffer(ctx, "ngp grid update read-back", 4 * n as u64);
+            encoder.copy_buffer_to_buffer(&all_sigma, 0, &staging, 0, 4 * n as u64);
+            ctx.queue.submit([encoder.finish()]);
+            self.pending_grid = Some(MapRequest::new(&staging, 4 * n as u64));
+            return;
+        }
         ctx.queue.submit([encoder.finish()]);
         let sigma: Vec<f32> = read_buffer(ctx, &all_sigma, n);
-        self.grid.apply_update(&sigma);
-        ctx.queue.write_buffer(
+        self.apply_grid_update(&sigma);
+    }
+
+    /// Applies densities read a step late by [`Self::update_grid`], once
+    /// the device is done with them.
+    fn apply_pending_grid_update(&mut self) {
+        if let Some(request) = self.pending_grid.take() {
+            let sigma: Vec<f32> = request.take(&self.context);
+            self.apply_grid_update(&sigma);
+        }
+    }
+
+    fn apply_grid_update(&mut self, sigma: &[f32]) {
+        self.grid.apply_update(sigma);
+        self.context.queue.write_buffer(
             &self.bitfield,
             0,
             bytemuck::cast_slice(self.grid.bitfield()),
@@ -734,7 +744,6 @@ impl GpuNgp {
             ctx.queue
                 .write_buffer(&self.march_out.directions, 0, bytemuck::cast_slice(d));
             let mut encoder = ctx.device.create_command_encoder(&Default::default());
-            self.record_network_params(&mut encoder);
             self.record_field(&mut encoder, count, true, None);
             ctx.queue.submit([encoder.finish()]);
             sigma.copy_from_slice(&read_buffer::<f32>(ctx, &self.samples.sigma, count));
@@ -815,7 +824,6 @@ impl GpuNgp {
 
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
         encoder.clear_buffer(&buffers.states, 0, None);
-        self.record_network_params(&mut encoder);
         let march = MarchParams {
             config,
             ..MarchParams::rendering(self.shape.mapping)
@@ -969,14 +977,27 @@ impl RadianceModel for GpuNgp {
     }
 
     fn step(&mut self, batch: &RayBatch, step: u32) -> StepStats {
+        if let Some(clock) = self.clock.as_mut() {
+            clock.reset();
+        }
         let clock = Instant::now();
         if self.grid.is_due(step) {
             self.update_grid(step);
         }
         let grid_update = clock.elapsed().as_secs_f64();
         let mut stats = self.run(batch, step, true);
-        stats.times.grid_update = grid_update;
+        if self.readback.is_late() {
+            // The update's device time is among the stage times; the host
+            // applies its densities while the device runs the step.
+            self.apply_pending_grid_update();
+        } else {
+            stats.times.grid_update = grid_update;
+        }
         stats
+    }
+
+    fn set_read_back_late(&mut self, late: bool) {
+        GpuNgp::set_read_back_late(self, late);
     }
 
     fn render(

@@ -10,11 +10,13 @@ use super::composite::{
     CompositeGradientBuffers, CompositeOutputBuffers, GpuComposite, RayBatchBuffers,
 };
 use super::context::GpuContext;
-use super::kernel::zeroed_storage_buffer;
+use super::kernel::{MapRequest, staging_buffer, zeroed_storage_buffer};
 use super::loss::{GpuLoss, LossBuffers};
+use super::timing::{PendingTimes, StageClock};
 use crate::engine::cpu::composite_batch::Distortion;
 use crate::field::ngp::LossKind;
 use crate::train::batch::RayBatch;
+use crate::train::model::StageTimes;
 
 /// Buffers that hold one value (or colour) per ray of a batch.
 pub struct RayBuffers {
@@ -242,5 +244,106 @@ impl CompositeAndLoss<'_> {
                 background: &rays.d_background,
             },
         );
+    }
+}
+
+/// What a step computed on the device and the host reports: the mean loss
+/// and the time of each stage.
+#[derive(Debug, Clone, Copy)]
+pub struct StepResults {
+    pub loss: f32,
+    pub times: StageTimes,
+}
+
+/// How a driver reads a step's loss and stage times back.
+///
+/// At once, a step waits for the device twice: for the march's counters,
+/// which size everything after it, and for the loss at the end; the device
+/// idles while the host records between them. Read a step late (the
+/// default), the loss and times of step N are taken right after step N + 1's
+/// march read-back, which has waited for the device anyway: one blocking
+/// read-back per step, and each step reports the previous step's loss and
+/// times (the first step, having none before it, waits for its own, and
+/// the second reports the first's again).
+pub struct StepReadback {
+    loss_staging: wgpu::Buffer,
+    late: bool,
+    pending: Option<(MapRequest, PendingTimes)>,
+    /// Results read at once, to report again as the next step's previous.
+    repeat: Option<StepResults>,
+}
+
+impl StepReadback {
+    pub fn new(context: &GpuContext) -> Self {
+        Self {
+            loss_staging: staging_buffer(context, "step loss read-back", 4),
+            late: true,
+            pending: None,
+            repeat: None,
+        }
+    }
+
+    /// Read each step's results at once (tests that compare a step with
+    /// the cpu engine's), or a step late.
+    pub fn set_late(&mut self, late: bool) {
+        self.late = late;
+    }
+
+    pub fn is_late(&self) -> bool {
+        self.late
+    }
+
+    /// The previous step's results, if a late read is pending. Call after
+    /// this step's blocking read-back (so nothing waits) and before
+    /// submitting this step's [`Self::record`].
+    pub fn take_previous(&mut self, context: &GpuContext) -> Option<StepResults> {
+        let repeat = self.repeat.take();
+        self.pending
+            .take()
+            .map(|(loss, times)| StepResults {
+                loss: loss.take::<f32>(context)[0],
+                times: times.take(context),
+            })
+            .or(repeat)
+    }
+
+    /// Records the step's loss copy and the clock's resolve, last in the
+    /// step's final encoder.
+    pub fn record(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        clock: &StageClock,
+        loss_total: &wgpu::Buffer,
+    ) {
+        clock.resolve(encoder);
+        encoder.copy_buffer_to_buffer(loss_total, 0, &self.loss_staging, 0, 4);
+    }
+
+    /// After submitting the encoder holding [`Self::record`]: the results
+    /// to report for this step, this step's own when read at once, else
+    /// `previous` (from [`Self::take_previous`]) while this step's wait for
+    /// the next.
+    pub fn finish(
+        &mut self,
+        context: &GpuContext,
+        clock: &StageClock,
+        previous: Option<StepResults>,
+    ) -> StepResults {
+        let loss = MapRequest::new(&self.loss_staging, 4);
+        let times = clock.read_later();
+        match previous {
+            Some(previous) if self.late => {
+                self.pending = Some((loss, times));
+                previous
+            }
+            _ => {
+                let own = StepResults {
+                    loss: loss.take::<f32>(context)[0],
+                    times: times.take(context),
+                };
+                self.repeat = self.late.then_some(own);
+                own
+            }
+        }
     }
 }

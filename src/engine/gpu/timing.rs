@@ -21,6 +21,7 @@ use std::time::Instant;
 use wgpu::Features;
 
 use super::context::GpuContext;
+use super::kernel::MapRequest;
 use crate::train::model::StageTimes;
 
 /// A stage of the training step, as in [`StageTimes`].
@@ -230,24 +231,63 @@ impl StageClock {
 
     /// Seconds per stage of the step, once the submission holding
     /// [`Self::resolve`] has completed.
+    /// Waits only if that submission has not finished already.
     pub fn read(&self, context: &GpuContext) -> StageTimes {
-        let Some(queries) = &self.queries else {
-            return self.wall;
-        };
-        let mut times = StageTimes::default();
-        if self.marks < 2 {
-            return times;
-        }
-        let ticks: Vec<u64> =
-            super::kernel::read_mapped(context, &queries.staging, self.marks as usize);
-        for (i, stage) in self.intervals.iter().enumerate() {
-            if let Some(stage) = stage {
-                // Timestamps may wrap or (on some drivers) go backwards
-                // across submissions: such an interval counts as 0.
-                let delta = ticks[i + 1].saturating_sub(ticks[i]);
-                stage.add(&mut times, delta as f64 * queries.period_ns * 1e-9);
-            }
-        }
-        times
+        self.read_later().take(context)
     }
+
+    /// As [`Self::read`] without waiting: call right after submitting the
+    /// encoder holding [`Self::resolve`]; [`PendingTimes::take`] gives the
+    /// times once a later read-back has waited for the device. The clock
+    /// may be reset and used for the next step meanwhile, but that step's
+    /// `resolve` must be submitted only after the take.
+    pub fn read_later(&self) -> PendingTimes {
+        match &self.queries {
+            Some(queries) if self.marks >= 2 => PendingTimes::Ticks {
+                request: MapRequest::new(&queries.staging, 8 * self.marks as u64),
+                intervals: self.intervals.clone(),
+                period_ns: queries.period_ns,
+            },
+            Some(_) => PendingTimes::Ready(StageTimes::default()),
+            None => PendingTimes::Ready(self.wall),
+        }
+    }
+}
+
+/// A step's stage times on their way back from the device
+/// ([`StageClock::read_later`]).
+pub enum PendingTimes {
+    Ready(StageTimes),
+    Ticks {
+        request: MapRequest,
+        intervals: Vec<Option<Stage>>,
+        period_ns: f64,
+    },
+}
+
+impl PendingTimes {
+    pub fn take(self, context: &GpuContext) -> StageTimes {
+        match self {
+            PendingTimes::Ready(times) => times,
+            PendingTimes::Ticks {
+                request,
+                intervals,
+                period_ns,
+            } => stage_times(&intervals, &request.take::<u64>(context), period_ns),
+        }
+    }
+}
+
+/// Seconds per stage from the timestamps at the boundaries of `intervals`.
+fn stage_times(intervals: &[Option<Stage>], ticks: &[u64], period_ns: f64) -> StageTimes {
+    let mut times = StageTimes::default();
+    for (i, stage) in intervals.iter().enumerate() {
+        if let Some(stage) = stage {
+            // Timestamps may wrap or (on some drivers) go backwards
+            // across submissions: such an interval counts as 0.
+            let delta = ticks[i + 1].saturating_sub(ticks[i]);
+            stage.add(&mut times, delta as f64 * period_ns * 1e-9);
+        }
+    }
+    times
 }

@@ -1,0 +1,93 @@
+//! One writer per run folder: an advisory lock on the folder's
+//! `.zrak.lock` (the standard library's `File::try_lock`: `flock` on
+//! Linux, `LockFileEx` on Windows), held for as long as the [`RunLock`]
+//! lives and released by the system when the process ends however it
+//! ends, so a crashed run never leaves a stale lock behind. The file holds
+//! the holder's process id, so a refused writer can say who holds it.
+//! Readers (`eval`, `render`) take no lock: checkpoints are replaced whole
+//! by a rename, so a reader sees the old one or the new one.
+
+use std::fs::{File, OpenOptions, TryLockError};
+use std::io::{Read, Seek, Write};
+use std::path::{Path, PathBuf};
+
+/// The lock file inside a run folder.
+pub const LOCK_FILE: &str = ".zrak.lock";
+
+/// A held lock on a run folder; dropping it releases the lock.
+#[derive(Debug)]
+pub struct RunLock {
+    path: PathBuf,
+    // Kept open: the lock lives as long as this descriptor.
+    _file: File,
+}
+
+impl RunLock {
+    /// Takes the lock on `dir` (which must exist), or says which process
+    /// holds it.
+    pub fn acquire(dir: &Path) -> Result<Self, String> {
+        let path = dir.join(LOCK_FILE);
+        let mut file = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&path)
+            .map_err(|e| format!("{}: cannot open the run's lock file: {e}", path.display()))?;
+        match file.try_lock() {
+            Ok(()) => {}
+            Err(TryLockError::WouldBlock) => {
+                let mut text = String::new();
+                let _ = file.read_to_string(&mut text);
+                let holder = match text.trim().parse::<u32>() {
+                    Ok(pid) => format!("another zrak (process {pid})"),
+                    Err(_) => "another zrak".into(),
+                };
+                return Err(format!(
+                    "{}: {holder} is using this run folder; wait for it to finish or stop it \
+                     (two processes writing one run would corrupt it)",
+                    dir.display()
+                ));
+            }
+            Err(TryLockError::Error(error)) => {
+                return Err(format!(
+                    "{}: cannot lock the run folder: {error}",
+                    dir.display()
+                ));
+            }
+        }
+        // Ours now: record who holds it.
+        let record = (|| -> std::io::Result<()> {
+            file.set_len(0)?;
+            file.rewind()?;
+            writeln!(file, "{}", std::process::id())?;
+            file.flush()
+        })();
+        record.map_err(|e| format!("{}: cannot write the run's lock file: {e}", path.display()))?;
+        Ok(Self { path, _file: file })
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_second_lock_on_one_folder_is_refused_naming_the_holder() {
+        let dir = tempfile::tempdir().unwrap();
+        let first = RunLock::acquire(dir.path()).unwrap();
+        // The lock belongs to the open file, so a second open in the same
+        // process conflicts as another process would.
+        let error = RunLock::acquire(dir.path()).unwrap_err();
+        assert!(
+            error.contains(&format!("process {}", std::process::id())),
+            "{error}"
+        );
+        drop(first);
+        RunLock::acquire(dir.path()).expect("released with the first lock");
+    }
+}
