@@ -734,7 +734,7 @@ fn thread_time(state: &ViewerUi, ui: &mut egui::Ui) {
     let mut levels = trace.rendering.clone();
     levels.sort_by(|a, b| b.seconds.total_cmp(&a.seconds));
     let rest = levels.split_off(levels.len().min(2));
-    levels.sort_by(|a, b| b.downscale.cmp(&a.downscale));
+    levels.sort_by_key(|level| std::cmp::Reverse(level.downscale));
     for level in &levels {
         let name = if level.downscale > 1 {
             format!("render 1/{} (×{})", level.downscale, level.finished)
