@@ -382,6 +382,7 @@ fn turntable(out_dir: &Path, frames: usize) -> ExportSettings {
         mode: RenderMode::Rgb,
         out_dir: out_dir.to_path_buf(),
         write_gif: true,
+        replace_existing: false,
     }
 }
 

@@ -71,6 +71,9 @@ impl RenderArgs {
             mode: self.mode,
             out_dir: self.out.clone(),
             write_gif: self.gif,
+            // Existing files were refused before the run loaded, unless
+            // --force asked to replace them.
+            replace_existing: true,
         }
     }
 

@@ -23,6 +23,10 @@ pub struct ExportSettings {
     pub out_dir: PathBuf,
     /// Also write `turntable.gif` beside the PNG frames.
     pub write_gif: bool,
+    /// Write over frames and a GIF of the same names already in `out_dir`;
+    /// without it, an export into a folder holding an earlier one is refused
+    /// before anything is written.
+    pub replace_existing: bool,
 }
 
 impl ExportSettings {
@@ -83,6 +87,9 @@ impl TurntableExport {
         std::fs::create_dir_all(dir)
             .map_err(|e| format!("{}: cannot create the output folder: {e}", dir.display()))?;
         check_writable(dir)?;
+        if !settings.replace_existing {
+            refuse_existing(&settings)?;
+        }
         let cameras = turntable_cameras(scene, &settings.turntable);
         let gif = if settings.write_gif {
             let k = cameras[0].intrinsics;
@@ -271,6 +278,27 @@ pub fn export_turntable(
 }
 
 /// Fails, naming `dir`, unless a file can be created in it.
+/// Refuses an export whose frames or GIF would replace files already in
+/// the folder, naming the first and how many there are.
+fn refuse_existing(settings: &ExportSettings) -> Result<(), String> {
+    let gif = settings.write_gif.then(|| settings.gif_path());
+    let existing: Vec<PathBuf> = (0..settings.turntable.frames)
+        .map(|i| settings.frame_path(i))
+        .chain(gif)
+        .filter(|path| crate::files::exists_at_all(path))
+        .collect();
+    match existing.first() {
+        None => Ok(()),
+        Some(first) => Err(format!(
+            "{} already exists ({} file{} of this export would be replaced): choose another \
+             folder, or ask to replace existing files",
+            first.display(),
+            existing.len(),
+            if existing.len() == 1 { "" } else { "s" }
+        )),
+    }
+}
+
 fn check_writable(dir: &Path) -> Result<(), String> {
     let probe = dir.join(".zrak-write-check");
     let result = File::create(&probe).and_then(|mut f| f.write_all(b"zrak"));
@@ -392,6 +420,7 @@ mod tests {
             mode: RenderMode::Rgb,
             out_dir: out_dir.to_path_buf(),
             write_gif,
+            replace_existing: false,
         }
     }
 
@@ -490,7 +519,10 @@ mod tests {
         export_turntable(
             &DirectionColour,
             &scene(),
-            settings(dir.path(), 1, false),
+            ExportSettings {
+                replace_existing: true,
+                ..settings(dir.path(), 1, false)
+            },
             &AtomicBool::new(false),
             &mut |_, _| {},
         )
@@ -499,6 +531,22 @@ mod tests {
             image::open(&first).unwrap().to_rgba8().dimensions(),
             (WIDTH, HEIGHT)
         );
+    }
+
+    #[test]
+    fn an_earlier_export_is_kept_unless_replacing_is_asked_for() {
+        let dir = tempfile::tempdir().unwrap();
+        let gif = dir.path().join("turntable.gif");
+        std::fs::write(&gif, b"an earlier turntable").unwrap();
+        let error = TurntableExport::start(&scene(), settings(dir.path(), 3, true))
+            .err()
+            .expect("an export over an earlier one is refused");
+        assert!(
+            error.contains("turntable.gif") && error.contains("1 file of this export"),
+            "{error}"
+        );
+        assert_eq!(std::fs::read(&gif).unwrap(), b"an earlier turntable");
+        assert_eq!(files_in(dir.path()), vec!["turntable.gif"]);
     }
 
     #[test]

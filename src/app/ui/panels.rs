@@ -33,6 +33,8 @@ pub struct ExportDialog {
     pub radius: f32,
     pub folder: String,
     pub write_gif: bool,
+    /// Write over an earlier export's files in the folder.
+    pub replace_existing: bool,
     /// (frames done, frames in all) while an export runs.
     pub progress: Option<(usize, usize)>,
     pub result: Option<Notice>,
@@ -55,6 +57,7 @@ impl Default for ExportDialog {
                 .display()
                 .to_string(),
             write_gif: true,
+            replace_existing: false,
             progress: None,
             result: None,
         }
@@ -74,6 +77,7 @@ impl ExportDialog {
             mode,
             out_dir: PathBuf::from(self.folder.trim()),
             write_gif: self.write_gif,
+            replace_existing: self.replace_existing,
         }
     }
 }
@@ -833,6 +837,12 @@ pub fn export_window(state: &mut ViewerUi, ctx: &egui::Context) {
                         ui.end_row();
                         ui.label("GIF");
                         ui.checkbox(&mut dialog.write_gif, "also write turntable.gif");
+                        ui.end_row();
+                        ui.label("existing files");
+                        ui.checkbox(
+                            &mut dialog.replace_existing,
+                            "replace an earlier export's frames",
+                        );
                         ui.end_row();
                     });
             });
