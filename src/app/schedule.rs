@@ -73,14 +73,16 @@ pub fn refresh_budget(share: f64) -> f64 {
 /// Wall seconds the picture of a resting camera may lag behind training
 /// while it trains at `share`: a refresh takes its render budget at the
 /// rendering's share of the time, the evaluation's share aside, and what
-/// is on screen began at most two refreshes ago (the refresh shown, then
-/// the one being drawn); plus `step_seconds` for the step a refresh may
-/// wait behind. At the default share: 2 × 1 s / 0.265 + a step ≈ 7.6 s of
-/// wall time, ~5.3 s of training.
+/// is on screen began at most three refreshes ago (the refresh shown, one
+/// given up when it took its budget with a tenth still to draw, then one
+/// sized by what that one cost); plus `step_seconds` for the step a
+/// refresh may wait behind. At the default share: 3 × 1 s / 0.265 + a
+/// step ≈ 11.3 s of wall time, ~7.9 s of training; two refreshes (7.6 s,
+/// ~5.3 s of training) once the cost of a pixel has settled.
 pub fn lag_bound_seconds(share: f64, step_seconds: f64) -> f64 {
     let share = share.clamp(0.0, 1.0);
     let rendering = (1.0 - share - EVAL_SHARE * share).max(1e-3);
-    2.0 * refresh_budget(share) / rendering + step_seconds
+    3.0 * refresh_budget(share) / rendering + step_seconds
 }
 
 /// Wall seconds from a camera coming to rest until the finest level its
@@ -164,36 +166,63 @@ pub fn next_finer_level(width: u32, height: u32, shown: u32, target: u32) -> Opt
 
 /// A model's render cost per pixel, measured on whole levels and
 /// evaluations (a level's average over the viewport, not one chunk's: the
-/// chunks of the sky and of the object differ many times over).
+/// chunks of the sky and of the object differ many times over), and
+/// carried forward in proportion to the samples training marches per ray:
+/// a render marches the same occupancy grid, and early in NeRF's training
+/// that grid fills within a few steps (lego_400: 26 samples per ray at
+/// step 16, 336 at step 32), so a cost measured a few steps earlier would
+/// understate the next level many times over.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct RenderCost {
-    seconds_per_pixel: Option<f64>,
+    /// Seconds per pixel and per sample marched per training ray.
+    seconds_per_pixel_sample: Option<f64>,
+    /// Samples marched per training ray in the last step, once known.
+    march: Option<f64>,
 }
 
 impl RenderCost {
+    /// What a pixel is expected to cost now.
     pub fn seconds_per_pixel(&self) -> Option<f64> {
-        self.seconds_per_pixel
+        self.seconds_per_pixel_sample
+            .map(|per_sample| per_sample * self.march.unwrap_or(1.0))
+    }
+
+    /// Follows the samples training marched per ray in its last step.
+    pub fn follow_march(&mut self, samples_per_ray: f64) {
+        if !samples_per_ray.is_finite() {
+            return;
+        }
+        // A ray that marches nothing still costs its setup.
+        let samples_per_ray = samples_per_ray.max(1.0);
+        if self.march.is_none()
+            && let Some(per_sample) = self.seconds_per_pixel_sample.as_mut()
+        {
+            // Measured before the first step: that cost was this march's.
+            *per_sample /= samples_per_ray;
+        }
+        self.march = Some(samples_per_ray);
     }
 
     /// Records that `pixels` took `seconds`, forgetting the estimate so
     /// far (which a level just proved wrong).
     pub fn replace(&mut self, pixels: usize, seconds: f64) {
-        let old = std::mem::take(&mut self.seconds_per_pixel);
+        let old = std::mem::take(&mut self.seconds_per_pixel_sample);
         self.record(pixels, seconds);
-        if self.seconds_per_pixel.is_none() {
-            self.seconds_per_pixel = old;
+        if self.seconds_per_pixel_sample.is_none() {
+            self.seconds_per_pixel_sample = old;
         }
     }
 
-    /// Records that `pixels` took `seconds`. Half-and-half smoothing: the
-    /// cost falls many times over while the occupancy grid tightens, and
-    /// the estimate should follow within a few levels.
+    /// Records that `pixels` took `seconds` at the current march.
+    /// Half-and-half smoothing: the cost of a sample changes too (rays
+    /// end sooner as the field turns opaque), and the estimate should
+    /// follow within a few levels.
     pub fn record(&mut self, pixels: usize, seconds: f64) {
         if pixels == 0 || !seconds.is_finite() || seconds <= 0.0 {
             return;
         }
-        let now = seconds / pixels as f64;
-        self.seconds_per_pixel = Some(match self.seconds_per_pixel {
+        let now = seconds / pixels as f64 / self.march.unwrap_or(1.0);
+        self.seconds_per_pixel_sample = Some(match self.seconds_per_pixel_sample {
             None => now,
             Some(old) => 0.5 * old + 0.5 * now,
         });
@@ -349,10 +378,10 @@ mod tests {
         assert!((refresh_budget(0.85) - 0.5).abs() < 1e-12);
         assert!(refresh_budget(0.0) > 3.0);
         assert_eq!(refresh_budget(1.0), 0.0);
-        // At the default share: two refreshes of 1 s at 26.5 % of the
+        // At the default share: three refreshes of 1 s at 26.5 % of the
         // time, and a step.
         let bound = lag_bound_seconds(0.7, 0.1);
-        assert!((bound - (2.0 / 0.265 + 0.1)).abs() < 1e-9, "{bound}");
+        assert!((bound - (3.0 / 0.265 + 0.1)).abs() < 1e-9, "{bound}");
     }
 
     #[test]
@@ -450,6 +479,29 @@ mod tests {
         }
         let now = cost.seconds_per_pixel().unwrap();
         assert!((now - 1e-4).abs() < 1e-6, "{now}");
+    }
+
+    #[test]
+    fn the_cost_follows_the_samples_training_marches() {
+        let mut cost = RenderCost::default();
+        // Measured before any step: taken as the first step's march.
+        cost.record(1000, 1.0);
+        cost.follow_march(25.0);
+        assert_eq!(cost.seconds_per_pixel(), Some(1e-3));
+        // The grid fills: 13 times the samples, 13 times the cost, before
+        // any level has measured it.
+        cost.follow_march(325.0);
+        let filled = cost.seconds_per_pixel().unwrap();
+        assert!((filled - 13e-3).abs() < 1e-12, "{filled}");
+        // A level at that march that cost what was foreseen changes nothing.
+        cost.record(100, 1.3);
+        let after = cost.seconds_per_pixel().unwrap();
+        assert!((after - 13e-3).abs() < 1e-12, "{after}");
+        // Marching nothing still costs the setup of a ray; NaN is no news.
+        cost.follow_march(0.0);
+        cost.follow_march(f64::NAN);
+        let empty = cost.seconds_per_pixel().unwrap();
+        assert!((empty - 4e-5).abs() < 1e-12, "{empty}");
     }
 
     #[test]
