@@ -123,9 +123,33 @@ impl Command {
     }
 }
 
+/// Help, a version or a usage error, as clap prints them, except that
+/// help or a version that cannot be written (`zrak --help > /dev/full`)
+/// is an error rather than a success.
+fn report_parse_outcome(outcome: clap::Error) -> ExitCode {
+    use std::io::{IsTerminal, Write};
+    if outcome.use_stderr() || std::io::stdout().is_terminal() {
+        // Usage errors, and help for a terminal (in colour): clap's own.
+        outcome.exit();
+    }
+    let mut stdout = std::io::stdout().lock();
+    let written = write!(stdout, "{}", outcome.render()).and_then(|()| stdout.flush());
+    match written {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(error) => {
+            interrupt::note(&format!("error: cannot write to standard output: {error}"));
+            ExitCode::FAILURE
+        }
+    }
+}
+
 fn main() -> ExitCode {
     // `zrak` alone opens the viewer, as `zrak view` does.
-    let command = Cli::parse()
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(outcome) => return report_parse_outcome(outcome),
+    };
+    let command = cli
         .command
         .unwrap_or_else(|| Command::View(ViewArgs::default()));
     if !command.outlives_its_reader() {

@@ -1729,6 +1729,9 @@ fn a_full_standard_output_is_an_error_not_a_panic() {
         &[
             "train", "scene", "--steps", "1", "--engine", "cpu", "--out", "run2",
         ],
+        &["--help"],
+        &["train", "--help"],
+        &["--version"],
     ] {
         let output = with_full_stdout(d, args);
         let stderr = String::from_utf8_lossy(&output.stderr);
