@@ -14,11 +14,10 @@ use rayon::prelude::*;
 use super::adam::Adam;
 use super::composite_batch::{self, CompositeGradients, CompositeOutputs, Distortion};
 use super::dense::{
-    MlpLayout, MlpWorkspace, Precision, mlp_backward, mlp_backward_columns, mlp_forward,
-    mlp_inference, mlp_inference_leading,
+    MlpWorkspace, mlp_backward, mlp_backward_columns, mlp_forward, mlp_inference_leading,
 };
 use super::fields::{gather_rows, set_len};
-use super::hash_grid::{self, HashGridLayout};
+use super::hash_grid;
 use super::loss::loss_and_gradient;
 use super::march::{
     BatchSizer, MarchParams, MarchWorkspace, MarchedSamples, march, mix_seed, render_through_grid,
@@ -27,10 +26,9 @@ use super::occupancy::OccupancyGrid;
 use super::sh::sh_encode;
 use super::state::{ModelHeader, ModelState};
 use crate::field::ngp::{
-    HashGridConfig, LossKind, MarchConfig, NetworkConfig, OccupancyConfig, OptimiserConfig,
-    SAMPLES_PER_BATCH,
+    LossKind, MarchConfig, OccupancyConfig, OptimiserConfig, SAMPLES_PER_BATCH,
 };
-use crate::scene::{Scene, UnitCubeMapping};
+use crate::scene::Scene;
 use crate::train::batch::RayBatch;
 use crate::train::checkpoint::Checkpoint;
 use crate::train::model::{RadianceModel, RenderedPixel, StageTimes, StepStats};
@@ -38,145 +36,8 @@ use crate::train::model::{RadianceModel, RenderedPixel, StageTimes, StepStats};
 /// Samples per round of inference (rendering and grid updates).
 const INFERENCE_CHUNK: usize = 1 << 16;
 
-/// The parts of the model that do not change during training.
-#[derive(Debug, Clone)]
-pub struct NgpShape {
-    pub grid: HashGridLayout,
-    pub density: MlpLayout,
-    pub colour: MlpLayout,
-    pub network: NetworkConfig,
-    pub mapping: UnitCubeMapping,
-}
-
-impl NgpShape {
-    pub fn for_scene(scene: &Scene) -> Self {
-        let network = NetworkConfig::PAPER;
-        let grid_config = HashGridConfig::paper(scene.unit_cube.aabb_scale);
-        Self {
-            grid: HashGridLayout::new(&grid_config),
-            density: MlpLayout::ngp_density(&network, &grid_config),
-            colour: MlpLayout::ngp_colour(&network),
-            network,
-            mapping: scene.unit_cube,
-        }
-    }
-
-    /// The same model with its networks' products at `precision`.
-    pub fn with_precision(mut self, precision: Precision) -> Self {
-        self.density = self.density.with_precision(precision);
-        self.colour = self.colour.with_precision(precision);
-        self
-    }
-
-    fn grid_range(&self) -> Range<usize> {
-        0..self.grid.param_count()
-    }
-
-    fn density_range(&self) -> Range<usize> {
-        let start = self.grid.param_count();
-        start..start + self.density.param_count()
-    }
-
-    fn colour_range(&self) -> Range<usize> {
-        let start = self.density_range().end;
-        start..start + self.colour.param_count()
-    }
-
-    pub fn param_count(&self) -> usize {
-        self.colour_range().end
-    }
-
-    /// Inference of σ at unit-cube positions (n × 3), with the hash
-    /// features kept in `encoded` and `scratch` (grown as needed, reused
-    /// between calls). Only output 0 (log-density) of the density network
-    /// is computed (equal to that output of the full pass up to rounding).
-    fn density(
-        &self,
-        params: &[f32],
-        positions: &[f32],
-        sigma: &mut [f32],
-        encoded: &mut Vec<f32>,
-        scratch: &mut Vec<f32>,
-    ) {
-        let n = sigma.len();
-        set_len(encoded, n * self.grid.output_width());
-        hash_grid::encode_with_scratch(
-            &self.grid,
-            &params[self.grid_range()],
-            bytemuck::cast_slice(positions),
-            encoded,
-            scratch,
-        );
-        mlp_inference_leading(
-            &self.density,
-            &params[self.density_range()],
-            encoded,
-            n,
-            sigma,
-            1,
-        );
-        for s in sigma.iter_mut() {
-            *s = density_activation(*s);
-        }
-    }
-
-    /// Inference of σ and colour at unit-cube positions and directions.
-    fn radiance(
-        &self,
-        params: &[f32],
-        positions: &[f32],
-        directions: &[f32],
-        sigma: &mut [f32],
-        rgb: &mut [f32],
-    ) {
-        let n = sigma.len();
-        let mut encoded = vec![0f32; n * self.grid.output_width()];
-        let density_width = self.density.output_width();
-        let colour_width = self.colour.input_width();
-        let mut colour_input = vec![0f32; n * colour_width];
-        hash_grid::encode(
-            &self.grid,
-            &params[self.grid_range()],
-            bytemuck::cast_slice(positions),
-            &mut encoded,
-        );
-        let mut raw = vec![0f32; n * density_width];
-        mlp_inference(
-            &self.density,
-            &params[self.density_range()],
-            &encoded,
-            n,
-            &mut raw,
-        );
-        for ((s, row), input) in sigma
-            .iter_mut()
-            .zip(raw.chunks_exact(density_width))
-            .zip(colour_input.chunks_exact_mut(colour_width))
-        {
-            *s = density_activation(row[0]);
-            input[..density_width].copy_from_slice(row);
-        }
-        sh_encode(
-            self.network.sh_degree,
-            directions,
-            n,
-            &mut colour_input[density_width..],
-            colour_width,
-        );
-        mlp_inference(
-            &self.colour,
-            &params[self.colour_range()],
-            &colour_input,
-            n,
-            rgb,
-        );
-    }
-}
-
-/// σ = exp(x), clamped (field/ngp.rs, DENSITY_EXP_CLAMP).
-fn density_activation(x: f32) -> f32 {
-    x.min(crate::field::ngp::DENSITY_EXP_CLAMP).exp()
-}
+pub use super::fields::ngp::NgpShape;
+use super::fields::ngp::density_activation;
 
 /// Buffers of one training step, sized for the batch and reused.
 #[derive(Default)]
