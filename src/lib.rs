@@ -1,8 +1,8 @@
 //! zrak: train neural radiance fields while you watch.
 //!
 //! Data flows one way: [`scene`] makes rays and target colours, [`engine`]
-//! computes on them, [`metrics`] scores the results. See `DESIGN.md` in the
-//! shared folder for the whole picture.
+//! computes on them, [`metrics`] scores the results. See `docs/design.md` for
+//! the whole picture.
 
 pub mod app;
 pub mod bench;

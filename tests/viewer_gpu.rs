@@ -284,3 +284,114 @@ fn the_gpu_engine_draws_the_view_into_a_texture_on_the_shared_device() {
     worker.shutdown();
     let _ = std::fs::remove_dir_all(&folder);
 }
+
+/// A level drawn band by band (as the viewer draws a level slower than a
+/// unit of its work) is the level drawn whole: for Instant-NGP, whose
+/// texture render runs on the device, and for NeRF (a small one), whose
+/// pixels are composited on the host and uploaded.
+#[test]
+fn a_level_drawn_in_bands_is_the_level_drawn_whole() {
+    use zrak::app::progressive::draw_band_to_texture;
+    use zrak::engine::gpu::render::render_target;
+    let config = demo_config();
+    let scene = Arc::new(demo::build(&config));
+    let folder = std::env::temp_dir().join(format!("zrak-viewer-bands-{}", std::process::id()));
+    std::fs::create_dir_all(&folder).expect("temp folder");
+    let checkpoint = folder.join("pretrained.zrak");
+    pretrained_checkpoint(&scene, &checkpoint);
+    let context = GpuContext::new().expect("lavapipe or a GPU");
+    let gpu = |context: GpuContext| EngineChoice {
+        kind: EngineKind::Gpu,
+        gpu: Some(context),
+        reason: String::new(),
+    };
+    let ngp = {
+        let model = build_model(ModelKind::Ngp, gpu(share(&context)), &scene, &settings())
+            .expect("gpu model");
+        let mut trainer = Trainer::new(model, scene.clone(), SEED);
+        trainer
+            .restore(&Checkpoint::load(&checkpoint).expect("reads"))
+            .expect("restores");
+        trainer.model
+    };
+    // NeRF in miniature, a few steps in so that its picture is not flat.
+    let nerf = {
+        let shape = zrak::engine::cpu::fields::nerf::NerfShape::new(
+            zrak::engine::cpu::frequency::FrequencyEncoding {
+                frequencies: 3,
+                include_input: true,
+            },
+            zrak::engine::cpu::frequency::FrequencyEncoding {
+                frequencies: 2,
+                include_input: true,
+            },
+            16,
+            4,
+            2,
+            8,
+            zrak::engine::cpu::fields::nerf::DensityActivation::Relu,
+        );
+        let model = zrak::train::gpu_nerf_with_shape(share(&context), &scene, &settings(), &shape)
+            .expect("gpu nerf");
+        let mut trainer = Trainer::new(Box::new(model), scene.clone(), SEED);
+        for _ in 0..3 {
+            trainer.step();
+        }
+        trainer.model
+    };
+    let camera = scene.val[0].camera;
+    let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
+    for (name, model) in [("Instant-NGP", &ngp), ("NeRF", &nerf)] {
+        let gpu = model.texture_render().expect("draws into textures");
+        for mode in [RenderMode::Rgb, RenderMode::Depth] {
+            let whole = render_target(&context.device, width, height);
+            gpu.render_to_texture(&camera, mode, WHITE, &whole)
+                .expect("drawn whole");
+            // Bands of 5, 5 and 2 rows.
+            let banded = render_target(&context.device, width, height);
+            let mut first = 0;
+            while first < height {
+                let rows = 5.min(height - first);
+                let band = render_target(&context.device, width, rows);
+                draw_band_to_texture(gpu, &context, &camera, first, mode, WHITE, &band, &banded)
+                    .expect("a band fits");
+                first += rows;
+            }
+            let (a, b) = (
+                read_texture_rgba8(&context, &whole),
+                read_texture_rgba8(&context, &banded),
+            );
+            let worst = largest_difference(&a, &b);
+            let distinct: std::collections::BTreeSet<&[u8]> = a.chunks(4).collect();
+            println!(
+                "{name} {mode:?}: banded vs whole, largest difference {worst} level(s); {} colours",
+                distinct.len()
+            );
+            // The band's camera moves the principal point by whole rows:
+            // the same rays up to f32 rounding of cy − first.
+            assert!(
+                worst <= 1,
+                "{name} {mode:?}: bands differ by {worst} levels"
+            );
+            assert!(
+                distinct.len() > 4,
+                "{name} {mode:?}: a flat image proves little"
+            );
+        }
+        // A band that does not fit the view is refused, not drawn.
+        let band = render_target(&context.device, width, 5);
+        let error = draw_band_to_texture(
+            gpu,
+            &context,
+            &camera,
+            height - 2,
+            RenderMode::Rgb,
+            WHITE,
+            &band,
+            &render_target(&context.device, width, height),
+        )
+        .expect_err("rows past the bottom");
+        assert!(error.contains("does not fit"), "{error}");
+    }
+    let _ = std::fs::remove_dir_all(&folder);
+}

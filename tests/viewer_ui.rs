@@ -168,6 +168,9 @@ fn panels_show_every_control() {
     harness.get_by_label("2.50 M");
     harness.get_by_label("64.0 MiB");
     harness.get_by_label("0.01230");
+    // The stages of a step, one click away from where the time goes.
+    harness.get_by_label("Time per stage").click();
+    harness.run_steps(2);
     harness.get_by_label("10.00 ms");
     harness.get_by_label("50.00 ms");
     harness.get_by_label("60.00 ms");
@@ -303,6 +306,7 @@ fn solid_frame(generation: u64, width: u32, height: u32, rgb: [f32; 3]) -> Rende
         generation,
         model: ModelKind::Ngp,
         step: 42,
+        train_seconds: 4.2,
         downscale: 1,
         width,
         height,
@@ -589,4 +593,96 @@ fn the_plot_and_table_export_from_the_window_with_the_sessions_numbers() {
             .notices()
             .any(|n| !n.is_error && n.text.starts_with("Exported 4 files"))
     );
+}
+
+#[test]
+fn the_stats_show_where_the_thread_time_goes_and_how_far_the_picture_lags() {
+    use zrak::app::protocol::{LevelTime, ScheduleTrace};
+    let (mut harness, link) = harness_with_scene();
+    // The timing column shows where the thread's time goes, or on a click
+    // the stages of a step.
+    assert_eq!(
+        harness.state().timing_view(),
+        zrak::app::ui::TimingView::Thread
+    );
+    assert!(harness.query_by_label("nothing yet").is_some());
+    harness.get_by_label("Time per stage").click();
+    harness.run_steps(2);
+    assert!(harness.query_by_label("no step yet").is_some());
+    harness.get_by_label("Where the time goes").click();
+    harness.run_steps(2);
+    assert!(harness.query_by_label("nothing yet").is_some());
+    // Two seconds of the thread's time, reported a second at a time.
+    let second = ScheduleTrace {
+        wall_seconds: 1.0,
+        training_seconds: 0.7,
+        grid_update_seconds: 0.1,
+        steps: 7,
+        rendering: vec![
+            LevelTime {
+                downscale: 8,
+                seconds: 0.01,
+                finished: 1,
+            },
+            LevelTime {
+                downscale: 5,
+                seconds: 0.02,
+                finished: 0,
+            },
+            LevelTime {
+                downscale: 4,
+                seconds: 0.13,
+                finished: 1,
+            },
+            LevelTime {
+                downscale: 2,
+                seconds: 0.04,
+                finished: 0,
+            },
+        ],
+        evaluation_seconds: 0.05,
+        evaluations: 1,
+        idle_seconds: 0.0,
+    };
+    link.push(Event::Schedule(second.clone()));
+    link.push(Event::Schedule(second));
+    harness.run_steps(2);
+    let recent = harness.state().recent_schedule().expect("traces kept");
+    assert_eq!((recent.steps, recent.rendering[2].finished), (14, 2));
+    assert!((recent.training_seconds / recent.wall_seconds - 0.7).abs() < 1e-9);
+    for label in [
+        "training (14 steps)",
+        "  of it grid updates",
+        "render 1/4 (×2)",
+        "render 1/2 (×0)",
+        // The column keeps its height: the other levels in one row.
+        "render, 2 other sizes (×2)",
+        "evaluation (×2)",
+        "idle",
+        "other",
+    ] {
+        assert!(
+            harness.query_by_label(label).is_some(),
+            "no row labelled {label:?}"
+        );
+    }
+    // 70 % training; "other" is what no part claims: 2 − 1.4 − 0.4 − 0.1.
+    assert!(harness.query_by_label("70%").is_some());
+    assert!((harness.state().schedule_total().other_seconds() - 0.1).abs() < 1e-9);
+
+    // A frame of step 42 (4.2 s of training) while training has gone on to
+    // step 50 (5 s): 0.8 s of training behind.
+    let request = link.render_requests().pop().unwrap();
+    let k = request.camera.intrinsics;
+    link.push(Event::Frame(solid_frame(
+        request.generation,
+        k.width,
+        k.height,
+        [0.5; 3],
+    )));
+    link.push(Event::Stats(stats(50, 0.01)));
+    harness.run_steps(2);
+    let lag = harness.state().shown_lag_seconds().expect("both known");
+    assert!((lag - 0.8).abs() < 1e-9, "{lag}");
+    assert_eq!(harness.state().shown_log().len(), 1);
 }

@@ -1,6 +1,8 @@
 //! The viewer's training thread on the cpu engine and a small demo scene:
 //! what it answers to each command, checked by value.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
@@ -640,4 +642,289 @@ fn training_goes_on_while_the_camera_never_rests() {
         trained_seconds >= 0.1 * elapsed,
         "{trained_seconds:.2} s of training in {elapsed:.1} s of a moving camera, steps {steps:?}"
     );
+}
+
+/// A frame of the view as it arrived: when (seconds since the run began),
+/// the step and training seconds its level began at, and its downscale.
+#[derive(Debug, Clone, Copy)]
+struct Arrival {
+    at: f64,
+    step: u32,
+    train_seconds: f64,
+    downscale: u32,
+}
+
+/// What a run of the thread showed.
+#[derive(Debug, Default)]
+struct Watched {
+    frames: Vec<Arrival>,
+    /// (seconds since the run began, training seconds, step) of each
+    /// stats event.
+    stats: Vec<(f64, f64, u32)>,
+    /// The longest step reported (ms per step of a report: a grid update's
+    /// step is its report's whole time).
+    longest_step: f64,
+}
+
+/// Collects frames of `generation` (as pixels or textures) and stats for
+/// `seconds`, or until `stop` says so of a frame.
+fn watch(
+    worker: &TrainingWorker,
+    generation: u64,
+    began: Instant,
+    seconds: f64,
+    mut stop: impl FnMut(&Arrival) -> bool,
+    into: &mut Watched,
+) {
+    let deadline = began + Duration::from_secs_f64(seconds);
+    while let Some(left) = deadline.checked_duration_since(Instant::now()) {
+        let Some(event) = worker.recv_timeout(left) else {
+            break;
+        };
+        let at = began.elapsed().as_secs_f64();
+        let arrival = match &event {
+            Event::Frame(f) if f.generation == generation => Arrival {
+                at,
+                step: f.step,
+                train_seconds: f.train_seconds,
+                downscale: f.downscale,
+            },
+            Event::GpuFrame(f) if f.generation == generation => Arrival {
+                at,
+                step: f.step,
+                train_seconds: f.train_seconds,
+                downscale: f.downscale,
+            },
+            Event::Stats(s) => {
+                into.stats.push((at, s.train_seconds, s.step));
+                into.longest_step = into.longest_step.max(s.ms_per_step as f64 / 1e3);
+                continue;
+            }
+            Event::Error(error) => panic!("{error}"),
+            _ => continue,
+        };
+        into.frames.push(arrival);
+        if stop(&arrival) {
+            return;
+        }
+    }
+}
+
+/// NeRF or Mip-NeRF with the camera at rest: training gets its share, the
+/// picture keeps up, and a camera that comes to rest is drawn at full
+/// resolution within [`settle_bound_seconds`]. `view` is the viewport's
+/// side: small enough that its whole render fits the refresh budget once
+/// the occupancy grid has tightened a little.
+fn the_picture_keeps_up_while_training_keeps_its_share(
+    model: ModelKind,
+    engine: EngineKind,
+    options: WorkerOptions,
+    view: u32,
+    rest_seconds: f64,
+) {
+    use zrak::app::schedule::{DEFAULT_TRAINING_SHARE, lag_bound_seconds, settle_bound_seconds};
+    let worker = TrainingWorker::spawn_with(SceneSource::Demo, Some(engine), model, options);
+    wait_for(&worker, |event| match event {
+        Event::Engine { kind, .. } => {
+            assert_eq!(*kind, engine);
+            Some(())
+        }
+        _ => None,
+    });
+    let began = Instant::now();
+    render(&worker, 1, camera(view, 0.3));
+    worker.send(Command::Start);
+    let mut run = Watched::default();
+    watch(&worker, 1, began, rest_seconds, |_| false, &mut run);
+
+    // Training's share of the wall time, from the start to its last report.
+    // The share is 0.7; the issue asks for at least 0.6. The time is shared
+    // step by step, so over a run of a few steps (a step that updates the
+    // occupancy grid takes seconds on two busy cores) the share measured
+    // swings by up to 0.3 of a step over the run; and evaluation takes at
+    // least 48 pixels however slow the model.
+    assert!(
+        !run.stats.is_empty(),
+        "no step in {rest_seconds} s; frames {:?}",
+        run.frames
+    );
+    let (first, last) = (run.stats[0], *run.stats.last().expect("stats"));
+    let (wall, trained) = (last.0, last.1);
+    let share = trained / wall;
+    let steps = last.2;
+    println!(
+        "{model:?} on {engine:?}: {steps} steps, training {trained:.1} s of {wall:.1} s \
+         ({share:.2}); longest step {:.2} s; frames {:?}",
+        run.longest_step,
+        run.frames
+            .iter()
+            .map(|f| (format!("{:.1}", f.at), f.step, f.downscale))
+            .collect::<Vec<_>>()
+    );
+    assert!(
+        share >= 0.6,
+        "training had {share:.2} of the wall time ({trained:.1} of {wall:.1} s)"
+    );
+    // No upper bound: the view takes its share only while it has work. A
+    // view this small is redrawn at full resolution in a fraction of a
+    // step, and once the picture shows the latest step there is nothing
+    // to draw until the next, so training goes on (measured: 0.91 for
+    // NeRF on a 16-pixel view). What the view gets is checked below.
+
+    // The picture keeps up: after the first step, a picture of a later
+    // step than any shown before comes at least every `lag_bound_seconds`
+    // (two refreshes at rendering's share, and a step), so the one shown
+    // is never older than that.
+    let bound = lag_bound_seconds(DEFAULT_TRAINING_SHARE, run.longest_step);
+    let shown = &run.frames;
+    assert!(
+        shown.windows(2).all(|p| p[1].step >= p[0].step),
+        "a picture of an earlier step after a later one: {shown:?}"
+    );
+    let mut advances: Vec<&Arrival> = Vec::new();
+    for frame in shown.iter().filter(|f| f.at >= first.0) {
+        if advances.last().is_none_or(|a| frame.step > a.step) {
+            advances.push(frame);
+        }
+    }
+    assert!(
+        advances.len() >= 3,
+        "the shown step advanced {} times in {wall:.1} s: {shown:?}",
+        advances.len()
+    );
+    let mut since = first.0;
+    for frame in &advances {
+        assert!(
+            frame.at - since <= bound,
+            "the shown step stood still for {:.1} s (bound {bound:.1} s) before {frame:?}: \
+             {shown:?}",
+            frame.at - since
+        );
+        since = frame.at;
+    }
+    assert!(
+        last.0 - since <= bound,
+        "the shown step stood still for the last {:.1} s (bound {bound:.1} s)",
+        last.0 - since
+    );
+    let latest = shown.last().expect("frames");
+    assert!(
+        last.1 - latest.train_seconds <= bound,
+        "the last picture is {:.1} s of training behind (bound {bound:.1} s)",
+        last.1 - latest.train_seconds
+    );
+
+    // The camera moves for a second, then rests: its first full-resolution
+    // picture comes within the settle bound (first level and refinements
+    // within 4/3 of the refresh budget at rendering's share, and a step).
+    // Doubled, and a second more: the cost of a pixel is estimated from
+    // the levels before, and a misjudged level may be started again.
+    let moved = camera(view, 1.3);
+    for generation in 2..=6 {
+        worker.send(Command::Render(RenderRequest {
+            generation,
+            camera: moved,
+            mode: RenderMode::Rgb,
+            moving: true,
+            needs_pixels: false,
+        }));
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    let rested = Instant::now();
+    render(&worker, 7, moved);
+    let mut after = Watched::default();
+    let limit = 2.0 * settle_bound_seconds(DEFAULT_TRAINING_SHARE, run.longest_step) + 1.0;
+    watch(
+        &worker,
+        7,
+        rested,
+        limit + 30.0,
+        |f| f.downscale == 1,
+        &mut after,
+    );
+    let full = after
+        .frames
+        .iter()
+        .find(|f| f.downscale == 1)
+        .unwrap_or_else(|| panic!("no full-resolution frame: {:?}", after.frames));
+    println!(
+        "full resolution {:.1} s after the camera came to rest (bound {limit:.1} s): {:?}",
+        full.at, after.frames
+    );
+    assert!(
+        full.at <= limit,
+        "full resolution came {:.1} s after the camera rested (bound {limit:.1} s)",
+        full.at
+    );
+    worker.shutdown();
+}
+
+#[test]
+fn nerf_on_the_cpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    the_picture_keeps_up_while_training_keeps_its_share(
+        ModelKind::Nerf,
+        EngineKind::Cpu,
+        WorkerOptions {
+            demo: small_demo(),
+            ..WorkerOptions::default()
+        },
+        16,
+        25.0,
+    );
+}
+
+#[test]
+fn mipnerf_on_the_cpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    the_picture_keeps_up_while_training_keeps_its_share(
+        ModelKind::MipNerf,
+        EngineKind::Cpu,
+        WorkerOptions {
+            demo: small_demo(),
+            ..WorkerOptions::default()
+        },
+        16,
+        25.0,
+    );
+}
+
+/// The gpu engine (lavapipe here) on a device shared with a window, as
+/// `zrak view --engine gpu` runs it: the view comes as textures drawn band
+/// by band. lavapipe runs the papers' 8 × 256 networks at well under a
+/// G FLOP/s on two busy cores (`zrak bench throughput --engine gpu --model
+/// nerf`: 86 s a step of 2^12 samples), a pixel of them in about a second,
+/// so the models have the small networks the gpu parity tests use.
+fn on_the_gpu_engine(model: ModelKind, shape: common::NerfKind) {
+    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let context = match zrak::engine::gpu::GpuContext::new() {
+        Ok(context) => context,
+        Err(error) => {
+            println!("no gpu adapter ({error}): nothing to test");
+            return;
+        }
+    };
+    the_picture_keeps_up_while_training_keeps_its_share(
+        model,
+        EngineKind::Gpu,
+        WorkerOptions {
+            demo: small_demo(),
+            batch_samples: Some(1 << 12),
+            nerf_shape: Some(common::small_nerf_shape(shape)),
+            gpu_device: Some(context),
+            ..WorkerOptions::default()
+        },
+        8,
+        30.0,
+    );
+}
+
+#[test]
+fn nerf_on_the_gpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
+    on_the_gpu_engine(ModelKind::Nerf, common::NerfKind::Nerf);
+}
+
+#[test]
+fn mipnerf_on_the_gpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
+    on_the_gpu_engine(ModelKind::MipNerf, common::NerfKind::MipNerf);
 }

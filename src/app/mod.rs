@@ -4,6 +4,7 @@
 pub mod camera;
 pub mod progressive;
 pub mod protocol;
+pub mod schedule;
 pub mod ui;
 pub mod viewer;
 pub mod worker;

@@ -1,18 +1,17 @@
-//! Progressive rendering for the viewport: a camera is shown first at an
-//! eighth of its resolution, then refined level by level, each level drawn
-//! in chunks of rays so that the training thread can answer commands
-//! between chunks and drop a level the user has moved away from.
+//! Progressive rendering for the viewport: a camera is shown first at a
+//! coarse level, then refined level by level (the levels' sizes are
+//! [`super::schedule`]'s choice), each level drawn in chunks of rays so
+//! that the training thread can answer commands between chunks and drop a
+//! level the user has moved away from.
 
 use std::time::Duration;
 
 use glam::Vec3;
 
+use crate::engine::gpu::GpuContext;
+use crate::render::RenderMode;
 use crate::scene::{Camera, Intrinsics};
-use crate::train::model::{RadianceModel, RenderedPixel};
-
-/// Downscales of the refinement levels, coarse to fine: 1/8, 1/4, 1/2 and
-/// the full viewport in each direction.
-pub const DOWNSCALES: [u32; 4] = [8, 4, 2, 1];
+use crate::train::model::{RadianceModel, RenderedPixel, TextureRender};
 
 /// `camera` seen at 1/`downscale` of its resolution, at least one pixel each
 /// way. The image plane keeps its extent, so the focal lengths and the
@@ -38,20 +37,71 @@ pub fn level_camera(camera: &Camera, downscale: u32) -> Camera {
     )
 }
 
-/// The levels to show for a `width`×`height` viewport, coarse to fine; a
-/// level that would have the same size as the one before it (tiny
-/// viewports) is skipped.
-pub fn refinement_levels(width: u32, height: u32) -> Vec<u32> {
-    let mut levels = Vec::with_capacity(DOWNSCALES.len());
-    let mut previous = None;
-    for downscale in DOWNSCALES {
-        let size = ((width / downscale).max(1), (height / downscale).max(1));
-        if previous != Some(size) {
-            levels.push(downscale);
-            previous = Some(size);
-        }
+/// Rows `first .. first + rows` of `camera`'s image as a camera of their
+/// own (`rows` high, the principal point moved up by `first`): its pixel
+/// (i, j) looks along `camera`'s pixel (i, first + j), so a level can be
+/// drawn band by band.
+pub fn band_camera(camera: &Camera, first: u32, rows: u32) -> Camera {
+    let k = camera.intrinsics;
+    Camera::new(
+        Intrinsics {
+            height: rows.max(1),
+            cy: k.cy - first as f32,
+            ..k
+        },
+        camera.camera_to_world,
+    )
+}
+
+/// Draws rows `first .. first + band.height()` of `camera`'s view into
+/// `target` (`camera`'s size) through `band` (a texture that many rows
+/// high, usable as a copy source): the band's camera
+/// ([`band_camera`]) drawn with the engine's ordinary texture render, then
+/// copied into place, so that a level slower than a unit of the training
+/// thread's work is drawn a band at a time.
+#[allow(clippy::too_many_arguments)]
+pub fn draw_band_to_texture(
+    gpu: &dyn TextureRender,
+    context: &GpuContext,
+    camera: &Camera,
+    first: u32,
+    mode: RenderMode,
+    background: [f32; 3],
+    band: &wgpu::Texture,
+    target: &wgpu::Texture,
+) -> Result<(), String> {
+    let rows = band.height();
+    let k = camera.intrinsics;
+    if band.width() != k.width || first.checked_add(rows).is_none_or(|end| end > k.height) {
+        return Err(format!(
+            "a band of {}×{rows} pixels at row {first} does not fit a {}×{} view",
+            band.width(),
+            k.width,
+            k.height
+        ));
     }
-    levels
+    gpu.render_to_texture(&band_camera(camera, first, rows), mode, background, band)?;
+    let mut encoder = context.device.create_command_encoder(&Default::default());
+    encoder.copy_texture_to_texture(
+        band.as_image_copy(),
+        wgpu::TexelCopyTextureInfo {
+            texture: target,
+            mip_level: 0,
+            origin: wgpu::Origin3d {
+                x: 0,
+                y: first,
+                z: 0,
+            },
+            aspect: wgpu::TextureAspect::All,
+        },
+        wgpu::Extent3d {
+            width: k.width,
+            height: rows,
+            depth_or_array_layers: 1,
+        },
+    );
+    context.queue.submit([encoder.finish()]);
+    Ok(())
 }
 
 /// One level of one camera being rendered, chunk by chunk, row-major from
@@ -91,6 +141,11 @@ impl LevelRender {
 
     pub fn is_done(&self) -> bool {
         self.done == self.pixels.len()
+    }
+
+    /// Pixels rendered so far.
+    pub fn rendered(&self) -> usize {
+        self.done
     }
 
     /// Renders up to `max_rays` more pixels over `background`; returns how
@@ -166,6 +221,18 @@ impl ChunkPacer {
         }
     }
 
+    /// [`Self::chunk_rays`] without the upper bound (at least the lower):
+    /// for callers that draw a chunk in one call of any size, where the
+    /// bound would only add calls.
+    pub fn uncapped_chunk_rays(&self) -> usize {
+        match self.rays_per_second {
+            None => Self::FIRST_RAYS,
+            Some(rate) => {
+                ((rate * self.target.as_secs_f64()).min(1e12) as usize).max(Self::MIN_RAYS)
+            }
+        }
+    }
+
     /// Records that `rays` took `seconds`.
     pub fn record(&mut self, rays: usize, seconds: f64) {
         if rays == 0 || seconds <= 0.0 || !seconds.is_finite() {
@@ -210,13 +277,27 @@ mod tests {
     }
 
     #[test]
-    fn levels_go_coarse_to_fine_and_skip_repeated_sizes() {
-        assert_eq!(refinement_levels(64, 64), vec![8, 4, 2, 1]);
-        // 4 px wide: 1/8 and 1/4 are both one pixel, so 1/4 is skipped.
-        assert_eq!(refinement_levels(4, 4), vec![8, 2, 1]);
-        assert_eq!(refinement_levels(1, 1), vec![8]);
+    fn a_tiny_view_keeps_a_pixel_at_any_level() {
         let tiny = level_camera(&camera(5, 3), 8);
         assert_eq!((tiny.intrinsics.width, tiny.intrinsics.height), (1, 1));
+    }
+
+    #[test]
+    fn a_band_looks_along_the_rows_it_covers() {
+        let full = level_camera(&camera(64, 48), 2);
+        let band = band_camera(&full, 7, 5);
+        assert_eq!(
+            (band.intrinsics.width, band.intrinsics.height),
+            (full.intrinsics.width, 5)
+        );
+        for (i, j) in [(0, 0), (31, 4), (12, 2)] {
+            let expected = full.pixel_ray(i, 7 + j);
+            let got = band.pixel_ray(i, j);
+            assert_eq!(got.origin, expected.origin);
+            // The principal point moved by a whole number of rows: equal
+            // up to the rounding of cy − first.
+            assert!((got.direction - expected.direction).length() < 1e-6);
+        }
     }
 
     #[test]

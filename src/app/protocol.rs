@@ -12,6 +12,8 @@ use crate::render::export::ExportSettings;
 use crate::scene::{Camera, Scene};
 use crate::train::model::{RenderedPixel, StageTimes};
 
+pub use super::schedule::{LevelTime, ScheduleTrace};
+
 /// Where a scene comes from.
 #[derive(Debug, Clone, PartialEq)]
 pub enum SceneSource {
@@ -42,15 +44,16 @@ pub struct RenderRequest {
 /// How the training thread shares its time.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Balance {
-    /// Fraction of wall time given to training steps while the camera
-    /// rests, in [0, 1]; the rest refines the view.
+    /// Fraction of the thread's busy time given to training steps while
+    /// the camera rests, in [0, 1] (at most 0.95 is honoured, so the view
+    /// still refreshes); the rest draws the view and evaluates.
     pub training_share: f32,
 }
 
 impl Default for Balance {
     fn default() -> Self {
         Self {
-            training_share: 0.7,
+            training_share: super::schedule::DEFAULT_TRAINING_SHARE as f32,
         }
     }
 }
@@ -140,8 +143,12 @@ pub struct TrainingStats {
 pub struct RenderedFrame {
     pub generation: u64,
     pub model: ModelKind,
-    /// The model's step when it was rendered.
+    /// The model's step when the level began (chunks drawn while it
+    /// trained on are of later steps).
     pub step: u32,
+    /// The model's training seconds when the level began: how far behind
+    /// training the picture is.
+    pub train_seconds: f64,
     /// 1 = full resolution; 8 = an eighth of the viewport in each direction.
     pub downscale: u32,
     pub width: u32,
@@ -159,8 +166,10 @@ pub struct RenderedFrame {
 pub struct GpuFrame {
     pub generation: u64,
     pub model: ModelKind,
-    /// The model's step when it was rendered.
+    /// The model's step when the level began.
     pub step: u32,
+    /// The model's training seconds when the level began.
+    pub train_seconds: f64,
     /// 1 = full resolution; 8 = an eighth of the viewport in each direction.
     pub downscale: u32,
     pub width: u32,
@@ -193,6 +202,8 @@ pub enum Event {
     InTurn(Option<InTurn>),
     Running(bool),
     Stats(TrainingStats),
+    /// Where the thread's time went over the last second or so.
+    Schedule(ScheduleTrace),
     Frame(RenderedFrame),
     /// A frame on the GPU (only to a UI that shares its device with the
     /// thread, see [`crate::app::worker::WorkerOptions::gpu_device`]).

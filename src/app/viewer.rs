@@ -155,6 +155,14 @@ impl NativeTextures for EguiWgpuTextures {
     }
 }
 
+/// How often the window redraws while the camera rests, on a software
+/// rasteriser: twice a second is enough for stats, plots and a picture
+/// refreshed every few seconds, and frees most of the CPU the window took
+/// (measured on the demo under Xvfb on two cores: lavapipe's rasteriser
+/// threads took ~0.7 of a core at ~3 frames a second, as much as
+/// training).
+const SOFTWARE_RESTING_REDRAW: Duration = Duration::from_millis(500);
+
 /// One frame's timing.
 #[derive(Debug, Clone, Copy)]
 struct FrameTime {
@@ -223,8 +231,19 @@ impl ViewerApp {
             },
         );
         // Events wake the window; without this it would sleep until input.
+        // On a software rasteriser (lavapipe), no sooner than a resting
+        // frame's interval: each frame of the window costs CPU that the
+        // training thread shares.
+        let software_display = cc
+            .wgpu_render_state
+            .as_ref()
+            .is_some_and(|r| r.adapter.get_info().device_type == eframe::wgpu::DeviceType::Cpu);
+        let resting_redraw = software_display.then_some(SOFTWARE_RESTING_REDRAW);
         let wake = ctx.clone();
-        worker.set_repaint(Box::new(move || wake.request_repaint()));
+        worker.set_repaint(Box::new(move || match resting_redraw {
+            Some(interval) => wake.request_repaint_after(interval),
+            None => wake.request_repaint(),
+        }));
         // So does an interrupt (Ctrl-C in the terminal, SIGTERM), which the
         // next frame turns into closing the window.
         crate::interrupt::on_request(move || ctx.request_repaint());
@@ -234,6 +253,7 @@ impl ViewerApp {
         ui.set_opening(options.source.clone());
         ui.set_log_progress(true);
         ui.set_auto_orbit(options.auto_orbit);
+        ui.set_resting_redraw(resting_redraw);
         if let Some(render_state) = &cc.wgpu_render_state {
             let info = render_state.adapter.get_info();
             ui.set_display_adapter(format!("{} ({:?})", info.name, info.backend));
@@ -283,7 +303,12 @@ impl ViewerApp {
                     done.store(true, Ordering::SeqCst);
                 });
             }
-            if !self.screenshot_requested || !self.screenshot_done.load(Ordering::SeqCst) {
+            if !self.screenshot_requested {
+                // A frame when it is due; frames every 50 ms until then
+                // would take the CPU a software rasteriser's window costs
+                // from training, and measure another viewer than a user's.
+                ctx.request_repaint_after(due.saturating_sub(elapsed));
+            } else if !self.screenshot_done.load(Ordering::SeqCst) {
                 // Keep frames coming until the screenshot has been taken.
                 ctx.request_repaint_after(Duration::from_millis(50));
             }
@@ -295,14 +320,51 @@ impl ViewerApp {
                 && elapsed < due + SCREENSHOT_GRACE;
             if elapsed >= due && !screenshot_pending {
                 ctx.send_viewport_cmd(egui::ViewportCommand::Close);
-            } else {
+            } else if elapsed >= due {
                 ctx.request_repaint_after(Duration::from_millis(100));
+            } else {
+                ctx.request_repaint_after(due - elapsed);
             }
         }
     }
 
     fn write_frame_log(&self, path: &Path) -> anyhow::Result<()> {
-        let json = frame_log_json(&self.frames, self.started.elapsed().as_secs_f64());
+        let mut json = frame_log_json(&self.frames, self.started.elapsed().as_secs_f64());
+        json["schedule"] = schedule_json(self.ui.schedule_total());
+        json["schedule_seconds"] = self
+            .ui
+            .schedule_log()
+            .iter()
+            .map(|&(at, wall, training)| {
+                serde_json::json!({ "at_seconds": at, "wall": wall, "training": training })
+            })
+            .collect();
+        json["shown"] = self
+            .ui
+            .shown_log()
+            .iter()
+            .map(|(at, shown)| {
+                serde_json::json!({
+                    "at_seconds": at,
+                    "model": shown.model.key(),
+                    "step": shown.step,
+                    "train_seconds": shown.train_seconds,
+                    "downscale": shown.downscale,
+                    "width": shown.width,
+                    "height": shown.height,
+                })
+            })
+            .collect();
+        json["trained"] =
+            self.ui
+                .latest_stats(self.ui.active_model())
+                .map_or(serde_json::Value::Null, |stats| {
+                    serde_json::json!({
+                        "model": stats.model.key(),
+                        "step": stats.step,
+                        "train_seconds": stats.train_seconds,
+                    })
+                });
         let text = serde_json::to_string_pretty(&json)?;
         std::fs::write(path, text)
             .with_context(|| format!("writing the frame log {}", path.display()))?;
@@ -396,6 +458,25 @@ fn summary(values: &[f64]) -> serde_json::Value {
         }),
         None => serde_json::json!({ "count": 0, "ms": [] }),
     }
+}
+
+/// The training thread's schedule over the session, in seconds.
+fn schedule_json(trace: &crate::app::protocol::ScheduleTrace) -> serde_json::Value {
+    serde_json::json!({
+        "wall_seconds": trace.wall_seconds,
+        "training_seconds": trace.training_seconds,
+        "grid_update_seconds": trace.grid_update_seconds,
+        "steps": trace.steps,
+        "rendering": trace.rendering.iter().map(|level| serde_json::json!({
+            "downscale": level.downscale,
+            "seconds": level.seconds,
+            "finished": level.finished,
+        })).collect::<Vec<_>>(),
+        "evaluation_seconds": trace.evaluation_seconds,
+        "evaluations": trace.evaluations,
+        "idle_seconds": trace.idle_seconds,
+        "other_seconds": trace.other_seconds(),
+    })
 }
 
 fn frame_log_json(frames: &[FrameTime], seconds: f64) -> serde_json::Value {

@@ -3,13 +3,16 @@
 //! answers the UI's [`Command`]s with [`Event`]s over channels that never
 //! block the UI.
 //!
-//! The loop works in small units (one training step, one chunk of rays,
-//! one export frame) and reads every pending command between units, so a
-//! command waits at most one unit. Rendering the view comes first: the
-//! coarsest level of a new camera is drawn at once; the finer levels share
-//! wall time with training as [`Balance`] says.
+//! The loop works in small units (one training step, one chunk of rays or
+//! band of rows, one export frame, one chunk of a held-out evaluation) and
+//! reads every pending command between units, so a command waits at most
+//! one unit. How the units share the time is [`super::schedule`]'s: the
+//! first level of a new camera is drawn at once; while the camera rests,
+//! training gets its share of the time, the view is refreshed at the finest
+//! level whose render fits the budget, and the held-out evaluation takes a
+//! small share of its own. Where the time went is sent as
+//! [`Event::Schedule`] every second.
 
-use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
 use std::sync::mpsc::{self, Receiver, RecvTimeoutError, Sender, TryRecvError};
 use std::sync::{Arc, Mutex};
@@ -17,42 +20,52 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use crate::engine::cpu::dense::{Precision, backend_for};
+use crate::engine::cpu::fields::nerf::NerfShape;
 use crate::engine::gpu::GpuContext;
 use crate::engine::gpu::render::render_target;
 use crate::engine::{EngineChoice, EngineKind, choose_engine};
 use crate::field::ModelKind;
 use crate::field::nerf::Sampling;
 use crate::field::ngp::LossKind;
+use crate::metrics::WHITE;
 use crate::metrics::psnr::psnr_from_mse;
-use crate::metrics::{self, RgbImage, WHITE};
 use crate::render::export::{ExportSettings, TurntableExport};
-use crate::render::rgb_of;
 use crate::scene::demo::{self, DemoConfig};
 use crate::scene::{Camera, Frame, LoadOptions, Scene};
 use crate::train::checkpoint::Checkpoint;
-use crate::train::eval::spread_views;
-use crate::train::model::{RadianceModel, StageTimes, StepStats};
+use crate::train::eval::{pixel_grid, spread_views};
+use crate::train::model::{RadianceModel, RenderedPixel, StageTimes, StepStats};
 use crate::train::trainer::Trainer;
 use crate::train::{ModelSettings, build_model};
 
-use super::progressive::{ChunkPacer, LevelRender, level_camera, refinement_levels};
+use super::progressive::{ChunkPacer, LevelRender, draw_band_to_texture, level_camera};
 use super::protocol::{
     Balance, Command, Event, GpuFrame, InTurn, RenderRequest, RenderedFrame, SceneInfo,
     SceneSource, TrainingStats,
 };
+use super::schedule::{
+    EVAL_SHARE, Ledger, MIN_EVAL_PIXELS, RenderCost, ScheduleTrace, TRACE_INTERVAL, finest_within,
+    first_level, next_finer_level, refresh_budget,
+};
 
-/// Called after every event is queued, so the UI wakes up to read it (the
-/// viewer passes `egui::Context::request_repaint`).
 /// Training batch of the viewer on the cpu engine, in samples: a quarter
 /// of Instant-NGP's 2^18, so a step takes ~60 ms rather than ~250 ms on two
 /// cores. Commands and render chunks wait behind at most one step, and the
 /// view improves in more, smaller steps during the first minute.
 pub const CPU_BATCH_SAMPLES: usize = 1 << 16;
 
-/// NeRF's batch in the viewer on the cpu engine: a sample of its 8 × 256
-/// network costs ~50 of Instant-NGP's, so 2^12 samples keep a step near
-/// 0.1 s for the same reason.
-pub const NERF_CPU_BATCH_SAMPLES: usize = 1 << 12;
+/// NeRF's and Mip-NeRF's batch in the viewer with the paper's samplers, or
+/// on a software gpu adapter: the paper's 1024 rays × 256 samples of the
+/// 8 × 256 network are ~1 T FLOP a step, seconds on two cores (minutes on
+/// lavapipe), so 2^12 samples. With the occupancy sampler on the cpu
+/// engine they train on their recipe's batch (2^14 samples, ~0.15 s a
+/// step on two cores), as `zrak train` does: their occupancy grid is
+/// updated every 16 steps whatever the batch, at ~20 steps' cost (64³
+/// density queries of the 8 × 256 network), so a quarter of the batch
+/// spent half of the viewer's training time on grid updates (measured on
+/// lego_400: 21.6 of 42.2 s), twice `zrak train`'s share; and the same
+/// batch makes the viewer's steps comparable with `zrak train`'s.
+pub const NERF_SMALL_BATCH_SAMPLES: usize = 1 << 12;
 
 pub type RepaintCallback = Box<dyn Fn() + Send>;
 
@@ -80,6 +93,10 @@ const MOVING_IDLE_PER_STEP: f64 = 3.0;
 /// the viewport would never sharpen.
 const MAX_TRAINING_SHARE: f32 = 0.95;
 
+/// Textures the gpu engine's view is drawn into, kept for reuse (levels of
+/// several sizes, two of each size that is shown).
+const MAX_KEPT_TEXTURES: usize = 8;
+
 /// The largest viewport side accepted (8K); anything above is a bad
 /// request, refused before it allocates gigabytes of pixels.
 const MAX_VIEWPORT_SIDE: u32 = 8_192;
@@ -95,21 +112,22 @@ pub struct WorkerOptions {
     pub batch_samples: Option<usize>,
     /// NeRF's sampler.
     pub sampling: Sampling,
+    /// The networks of NeRF and Mip-NeRF; `None` gives each its paper's.
+    /// Tests give small ones, so that a software gpu adapter runs them.
+    pub nerf_shape: Option<NerfShape>,
     /// How the cpu engine computes the networks' products (f32 unless
     /// asked: the viewer asks for the processor's best).
     pub precision: Precision,
     /// The scene [`SceneSource::Demo`] builds.
     pub demo: DemoConfig,
-    /// Training seconds between held-out PSNR evaluations.
+    /// Training seconds between held-out PSNR evaluations, for every
+    /// model. Each evaluation scores a grid of pixels spread over the
+    /// held-out views, as many as fit in [`EVAL_SHARE`] of this time at
+    /// the model's measured render cost (at least [`MIN_EVAL_PIXELS`]), as
+    /// `zrak train` sizes its evaluations.
     pub val_every_train_seconds: f64,
     /// Held-out views per evaluation.
     pub val_views: usize,
-    /// Held-out views larger than this (in either direction) are evaluated
-    /// downscaled, so an evaluation stays short.
-    pub val_max_side: u32,
-    /// Wall seconds between full-resolution re-renders of a resting view
-    /// while training changes the field.
-    pub refresh_every_seconds: f64,
     pub repaint: Option<RepaintCallback>,
     /// A device made elsewhere (the viewer's, from eframe) for the gpu
     /// engine, instead of one of its own; the automatic choice still takes
@@ -150,12 +168,12 @@ impl Default for WorkerOptions {
             loss: None,
             batch_samples: None,
             sampling: Sampling::Occupancy,
+            nerf_shape: None,
             precision: Precision::F32,
             demo: DemoConfig::default(),
             val_every_train_seconds: 5.0,
-            val_views: 2,
-            val_max_side: 100,
-            refresh_every_seconds: 3.0,
+            // As `zrak train` (`Schedule::eval_views`).
+            val_views: 3,
             repaint: None,
             gpu_device: None,
             autosave: None,
@@ -422,39 +440,118 @@ struct ModelSlot {
     /// The step last saved or loaded (0 for a fresh model): a model past
     /// it has training that only memory holds.
     saved_step: u32,
+    /// Sizes the chunks of rays this model renders (its rays cost their
+    /// own: a NeRF ray ~50 of Instant-NGP's).
+    pacer: ChunkPacer,
+    /// What a pixel of this model costs to render, over whole levels.
+    cost: RenderCost,
+    /// What a pixel of the held-out evaluation costs: its views frame the
+    /// scene as the training views do, so more of their pixels cross it
+    /// than a viewport's.
+    eval_cost: RenderCost,
 }
 
 /// What the viewport asked for and how far it has been drawn.
 struct View {
     request: RenderRequest,
     received: Instant,
-    /// Levels still to draw, coarse to fine.
-    levels: VecDeque<u32>,
-    /// The level being drawn, with the model state it started from.
-    job: Option<(LevelRender, ModelKind, u32)>,
-    /// The last finished frame (re-sent when the same camera is requested
-    /// again) and the model revision it showed.
-    shown: Option<(Picture, u64, Instant)>,
-    /// Wall seconds spent rendering and training since the current
-    /// refinement began, for the balance.
-    render_seconds: f64,
-    train_seconds: f64,
+    /// The level being drawn.
+    job: Option<LevelJob>,
+    /// The last finished level of this camera and model (re-sent when the
+    /// same camera is requested again).
+    shown: Option<Shown>,
+}
+
+/// A finished level on screen.
+struct Shown {
+    picture: Picture,
+    /// The model revision the level began from.
+    revision: u64,
+    downscale: u32,
 }
 
 impl View {
-    fn has_work(&self) -> bool {
-        self.job.is_some() || !self.levels.is_empty()
-    }
-
     fn moving(&self) -> bool {
         self.request.moving && self.received.elapsed() < MOVING_GRACE
     }
 
-    /// Restarts the level in progress (the field it was drawing changed).
-    fn restart_level(&mut self) {
-        if let Some((job, _, _)) = self.job.take() {
-            self.levels.push_front(job.downscale);
+    /// Starts again from a first level: the model shown changed (another
+    /// model, a reset, a loaded checkpoint), so neither the level in
+    /// progress nor the refinement so far is of the model now shown. The
+    /// window keeps the old picture until the first level comes.
+    fn restart(&mut self) {
+        self.job = None;
+        self.shown = None;
+    }
+}
+
+/// A level of the view being drawn.
+struct LevelJob {
+    downscale: u32,
+    /// The model drawn, its step and training seconds when the level began.
+    model: ModelKind,
+    step: u32,
+    train_seconds: f64,
+    revision: u64,
+    /// Render seconds spent on it so far.
+    seconds: f64,
+    draw: LevelDraw,
+}
+
+enum LevelDraw {
+    /// Chunks of rays composited on the host, sent as pixels.
+    Pixels(LevelRender),
+    /// Bands of rows drawn by the gpu engine into a texture on the
+    /// window's device.
+    Texture(TextureLevel),
+}
+
+/// A level drawn into a texture band by band, so that a level slower
+/// than a unit of work (NeRF on lavapipe: seconds) never holds the thread.
+struct TextureLevel {
+    camera: Camera,
+    texture: wgpu::Texture,
+    /// Rows above this one are drawn.
+    next_row: u32,
+}
+
+impl LevelJob {
+    fn pixels(&self) -> usize {
+        match &self.draw {
+            LevelDraw::Pixels(render) => render.width() as usize * render.height() as usize,
+            LevelDraw::Texture(level) => {
+                level.camera.intrinsics.width as usize * level.camera.intrinsics.height as usize
+            }
         }
+    }
+
+    fn is_done(&self) -> bool {
+        match &self.draw {
+            LevelDraw::Pixels(render) => render.is_done(),
+            LevelDraw::Texture(level) => level.next_row >= level.camera.intrinsics.height,
+        }
+    }
+
+    /// Pixels drawn so far.
+    fn drawn(&self) -> usize {
+        match &self.draw {
+            LevelDraw::Pixels(render) => render.rendered(),
+            LevelDraw::Texture(level) => {
+                level.next_row as usize * level.camera.intrinsics.width as usize
+            }
+        }
+    }
+
+    /// True when the level, drawn at the rate of its first part, would take
+    /// more than twice `budget` render seconds and is not half done: the
+    /// cost was misjudged (the cost of a pixel rises early in training,
+    /// while the field clears empty space the grid still marches).
+    fn overruns(&self, budget: f64) -> bool {
+        let (drawn, pixels) = (self.drawn(), self.pixels());
+        if drawn == 0 || 2 * drawn >= pixels || self.seconds <= budget {
+            return false;
+        }
+        self.seconds * pixels as f64 / drawn as f64 > 2.0 * budget
     }
 }
 
@@ -493,17 +590,92 @@ impl Picture {
     }
 }
 
-/// A held-out evaluation in progress. It renders in chunks like the view
-/// (rather than through `train::eval::mean_psnr`, which renders each view
-/// in one call) so that commands are not held up for the seconds an
-/// untrained, still dense field takes on the cpu engine; training waits
-/// until it is done, so the PSNR belongs to one step.
+/// A held-out evaluation in progress: a grid of pixels spread over each
+/// held-out view, rendered in chunks like the view so that commands are
+/// not held up by a slow model, scored view by view (per-view PSNR, then
+/// the mean, as `train::eval::mean_psnr_sampled` scores for `zrak
+/// train`). Training waits until it is done, so the PSNR belongs to one
+/// step.
 struct ValJob {
     model: ModelKind,
-    /// The held-out view being rendered.
-    view: usize,
-    render: Option<LevelRender>,
-    psnr_sum: f64,
+    /// (held-out view, column, row) of every pixel to score, view by view.
+    pixels: Vec<(usize, u32, u32)>,
+    /// Pixels rendered so far.
+    done: usize,
+    /// Per view: Σ squared error over the three channels, and pixels.
+    squared: Vec<f64>,
+    counts: Vec<usize>,
+    /// Render seconds so far.
+    seconds: f64,
+}
+
+impl ValJob {
+    /// About `pixels` pixels spread evenly over `frames`.
+    fn new(model: ModelKind, frames: &[Frame], pixels: usize) -> Self {
+        let per_view = pixels.div_ceil(frames.len().max(1));
+        let mut chosen = Vec::new();
+        for (view, frame) in frames.iter().enumerate() {
+            let k = frame.camera.intrinsics;
+            chosen.extend(
+                pixel_grid(k.width, k.height, per_view)
+                    .into_iter()
+                    .map(|(x, y)| (view, x, y)),
+            );
+        }
+        Self {
+            model,
+            pixels: chosen,
+            done: 0,
+            squared: vec![0.0; frames.len()],
+            counts: vec![0; frames.len()],
+            seconds: 0.0,
+        }
+    }
+
+    fn is_done(&self) -> bool {
+        self.done >= self.pixels.len()
+    }
+
+    /// Renders and scores up to `max_rays` more pixels.
+    fn render_chunk(&mut self, model: &dyn RadianceModel, frames: &[Frame], max_rays: usize) {
+        let end = (self.done + max_rays.max(1)).min(self.pixels.len());
+        let chunk = &self.pixels[self.done..end];
+        let rays: Vec<_> = chunk
+            .iter()
+            .map(|&(view, x, y)| frames[view].camera.pixel_ray(x, y))
+            .collect();
+        let origins: Vec<_> = rays.iter().map(|r| r.origin).collect();
+        let directions: Vec<_> = rays.iter().map(|r| r.direction).collect();
+        let radii: Vec<_> = rays.iter().map(|r| r.radius()).collect();
+        let mut out = vec![RenderedPixel::default(); chunk.len()];
+        model.render(&origins, &directions, &radii, WHITE, &mut out);
+        for (&(view, x, y), pixel) in chunk.iter().zip(&out) {
+            let truth = frames[view].image.rgb_over(x, y, WHITE);
+            self.squared[view] += pixel
+                .rgb
+                .iter()
+                .zip(&truth)
+                .map(|(&p, &t)| ((p - t) as f64).powi(2))
+                .sum::<f64>();
+            self.counts[view] += 1;
+        }
+        self.done = end;
+    }
+
+    /// The mean over views of each view's PSNR.
+    fn mean_psnr(&self) -> f64 {
+        let scored: Vec<f64> = self
+            .squared
+            .iter()
+            .zip(&self.counts)
+            .filter(|&(_, &n)| n > 0)
+            .map(|(&squared, &n)| psnr_from_mse(squared / (3 * n) as f64))
+            .collect();
+        if scored.is_empty() {
+            return f64::NAN;
+        }
+        scored.iter().sum::<f64>() / scored.len() as f64
+    }
 }
 
 /// Models trained in turn at equal shares of training time.
@@ -605,18 +777,22 @@ struct Worker {
     view: Option<View>,
     export: Option<ExportJob>,
     val_job: Option<ValJob>,
-    pacer: ChunkPacer,
     /// When the last training step ended and how long it took, to keep
     /// training light while the camera moves.
     last_step: Option<(Instant, f64)>,
     next_revision: u64,
+    /// Training's part of the time while the camera rests.
+    ledger: Ledger,
+    /// Where the time went since `trace_started`, sent every
+    /// [`TRACE_INTERVAL`].
+    trace: ScheduleTrace,
+    trace_started: Instant,
     /// True when the engine trains on the window's own device
     /// ([`WorkerOptions::gpu_device`]): the view is then drawn into
     /// textures there.
     textures_shared: bool,
-    /// The textures the view is drawn into, one per level size, reused
-    /// from frame to frame.
-    level_textures: Vec<wgpu::Texture>,
+    /// Textures the view's levels and bands are drawn into.
+    textures: TexturePool,
     /// A scene being loaded on a thread of its own, so that reading and
     /// decoding a large one never stalls training or rendering.
     loading: Option<SceneLoad>,
@@ -684,7 +860,7 @@ impl Worker {
             }
         };
         let scene = Arc::new(scene);
-        let val_frames = held_out_views(&scene, options.val_views, options.val_max_side);
+        let val_frames = held_out_views(&scene, options.val_views);
         // `choose_engine_on` keeps the given device only for the gpu engine.
         let textures_shared =
             display_device && engine.kind == EngineKind::Gpu && engine.gpu.is_some();
@@ -704,11 +880,13 @@ impl Worker {
             view: None,
             export: None,
             val_job: None,
-            pacer: ChunkPacer::new(CHUNK_TARGET),
             last_step: None,
             next_revision: 0,
+            ledger: Ledger::default(),
+            trace: ScheduleTrace::default(),
+            trace_started: Instant::now(),
             textures_shared,
-            level_textures: Vec::new(),
+            textures: TexturePool::default(),
             loading: None,
         };
         worker.send(Event::SceneLoaded(SceneInfo {
@@ -747,9 +925,17 @@ impl Worker {
                     Err(TryRecvError::Disconnected) => return Ok(()),
                 }
             }
+            self.send_trace_if_due()?;
             let mut work = self.next_work();
             if let (Work::Wait(timeout), Some(_)) = (&mut work, &self.loading) {
                 *timeout = Some(timeout.map_or(SCENE_POLL, |t| t.min(SCENE_POLL)));
+            }
+            if let Work::Wait(timeout) = &mut work
+                && !self.trace.only_idle()
+            {
+                // Wake to send what was done before the wait.
+                let due = TRACE_INTERVAL.saturating_sub(self.trace_started.elapsed());
+                *timeout = Some(timeout.map_or(due, |t| t.min(due)));
             }
             match work {
                 Work::Render { whole_level } => self.render_unit(whole_level)?,
@@ -757,20 +943,40 @@ impl Worker {
                 Work::Evaluate => self.evaluate_unit()?,
                 Work::Train => self.train_unit()?,
                 Work::Wait(timeout) => {
-                    let command = match timeout {
-                        None => self.inbox.recv().map_err(|_| UiGone)?,
+                    let waited = Instant::now();
+                    let received = match timeout {
+                        None => Some(self.inbox.recv().map_err(|_| UiGone)?),
                         Some(timeout) => match self.inbox.recv_timeout(timeout) {
-                            Ok(command) => command,
-                            Err(RecvTimeoutError::Timeout) => continue,
+                            Ok(command) => Some(command),
+                            Err(RecvTimeoutError::Timeout) => None,
                             Err(RecvTimeoutError::Disconnected) => return Ok(()),
                         },
                     };
-                    if let Flow::Stop = self.handle(command)? {
+                    self.trace.idle_seconds += waited.elapsed().as_secs_f64();
+                    if let Some(command) = received
+                        && let Flow::Stop = self.handle(command)?
+                    {
                         return Ok(());
                     }
                 }
             }
         }
+    }
+
+    /// Sends where the time went, once a [`TRACE_INTERVAL`] has passed
+    /// (nothing when the thread only waited).
+    fn send_trace_if_due(&mut self) -> Result<(), UiGone> {
+        let elapsed = self.trace_started.elapsed();
+        if elapsed < TRACE_INTERVAL {
+            return Ok(());
+        }
+        let mut trace = std::mem::take(&mut self.trace);
+        trace.wall_seconds = elapsed.as_secs_f64();
+        self.trace_started = Instant::now();
+        if trace.only_idle() {
+            return Ok(());
+        }
+        self.send(Event::Schedule(trace))
     }
 
     fn training_share(&self) -> f64 {
@@ -786,11 +992,48 @@ impl Worker {
         self.turns.as_ref().map_or(self.active, Turns::current)
     }
 
+    /// The level the view should draw next (its downscale), if any: a
+    /// first level for a camera or model not yet shown; then, once the
+    /// camera rests, finer levels up to the target; then, whenever the
+    /// model has changed since the shown level began, the target again.
+    /// The target is the finest level whose render fits the refresh
+    /// budget while the thread has other work, full resolution otherwise.
+    fn next_level(&self) -> Option<u32> {
+        let view = self.view.as_ref()?;
+        let slot = self.slot(self.active)?;
+        let k = view.request.camera.intrinsics;
+        let cost = slot.cost.seconds_per_pixel();
+        let Some(shown) = &view.shown else {
+            return Some(first_level(k.width, k.height, cost));
+        };
+        if view.moving() {
+            // A moving camera gets one level per request.
+            return None;
+        }
+        let busy = self.training_active() || self.export.is_some();
+        let target = match (busy, cost) {
+            (false, _) => 1,
+            (true, Some(per_pixel)) => finest_within(
+                k.width,
+                k.height,
+                per_pixel,
+                refresh_budget(self.training_share()),
+            ),
+            // Only after a first level, which measures the cost.
+            (true, None) => shown.downscale,
+        };
+        if shown.downscale > target
+            && let Some(finer) = next_finer_level(k.width, k.height, shown.downscale, target)
+        {
+            return Some(finer);
+        }
+        (shown.revision != slot.revision).then_some(target)
+    }
+
     fn next_work(&mut self) -> Work {
         let training = self.training_active();
         let share = self.training_share();
         let mut wake_after: Option<Duration> = None;
-        let revision = self.slot(self.active).map(|s| s.revision);
         // While the camera moves, training still gets its share: a camera
         // that moves on every frame (a long drag, `--auto-orbit`) brings a
         // new coarse frame to render before the last one is done, and
@@ -799,37 +1042,25 @@ impl Worker {
             && self.last_step.is_none_or(|(ended, seconds)| {
                 ended.elapsed().as_secs_f64() >= seconds * MOVING_IDLE_PER_STEP
             });
-        if let Some(view) = self.view.as_mut() {
-            if !view.has_work()
-                && let (Some((_, shown_revision, shown_at)), Some(revision)) =
-                    (view.shown.as_ref(), revision)
-                && *shown_revision != revision
-                && (!training
-                    || shown_at.elapsed().as_secs_f64() >= self.options.refresh_every_seconds)
-            {
-                // The field changed since the view was drawn: redraw it at
-                // full resolution only (the camera has not moved).
-                view.levels.push_back(1);
-                view.render_seconds = 0.0;
-                view.train_seconds = 0.0;
+        let view_has_work =
+            self.view.as_ref().is_some_and(|v| v.job.is_some()) || self.next_level().is_some();
+        let mut refine = false;
+        if let Some(view) = self.view.as_ref()
+            && view_has_work
+        {
+            if view.shown.is_none() && !(view.moving() && step_due_while_moving) {
+                // A new camera (or model): its first level at once.
+                return Work::Render { whole_level: true };
             }
-            if view.has_work() {
-                if view.shown.is_none() && !(view.moving() && step_due_while_moving) {
-                    // A new camera: its coarsest level at once.
-                    return Work::Render { whole_level: true };
-                }
-                if view.moving() {
-                    // Refine only once the camera rests.
-                    wake_after = Some(MOVING_GRACE.saturating_sub(view.received.elapsed()));
-                } else if !training
-                    || view.render_seconds * share <= view.train_seconds * (1.0 - share)
-                {
-                    return Work::Render { whole_level: false };
-                }
+            if view.moving() {
+                // Refine only once the camera rests.
+                wake_after = Some(MOVING_GRACE.saturating_sub(view.received.elapsed()));
+            } else {
+                refine = true;
             }
         }
-        if self.export.is_some() {
-            return Work::Export;
+        if refine && !training && self.export.is_none() {
+            return Work::Render { whole_level: false };
         }
         if let Some(job) = &self.val_job {
             if self.slot(job.model).is_some() && job.model == self.trainee() {
@@ -837,6 +1068,15 @@ impl Worker {
             }
             // Its model no longer trains: evaluate again when due.
             self.val_job = None;
+        }
+        if refine && !self.ledger.training_due(share) {
+            return Work::Render { whole_level: false };
+        }
+        if self.export.is_some() {
+            if refine {
+                return Work::Render { whole_level: false };
+            }
+            return Work::Export;
         }
         if training {
             if self.view.as_ref().is_some_and(|v| v.moving()) {
@@ -871,20 +1111,58 @@ impl Worker {
         let settings = ModelSettings {
             seed: self.options.seed,
             loss: self.options.loss.unwrap_or(kind.default_loss()),
-            batch_samples: self
-                .options
-                .batch_samples
-                .or(match (self.engine.kind, kind) {
-                    (EngineKind::Cpu, ModelKind::Ngp) => Some(CPU_BATCH_SAMPLES),
-                    (EngineKind::Cpu, ModelKind::Nerf | ModelKind::MipNerf) => {
-                        Some(NERF_CPU_BATCH_SAMPLES)
+            batch_samples: self.options.batch_samples.or_else(|| {
+                let software_gpu = self.engine.gpu.as_ref().is_some_and(|g| g.is_software());
+                match (self.engine.kind, kind, self.options.sampling) {
+                    (EngineKind::Cpu, ModelKind::Ngp, _) => Some(CPU_BATCH_SAMPLES),
+                    (EngineKind::Cpu, ModelKind::Nerf | ModelKind::MipNerf, Sampling::Paper) => {
+                        Some(NERF_SMALL_BATCH_SAMPLES)
                     }
-                    (EngineKind::Gpu, _) => None,
-                }),
+                    (EngineKind::Gpu, ModelKind::Nerf | ModelKind::MipNerf, _) if software_gpu => {
+                        Some(NERF_SMALL_BATCH_SAMPLES)
+                    }
+                    _ => None,
+                }
+            }),
             sampling: self.options.sampling,
             precision: self.options.precision,
         };
-        let model = build_model(kind, self.engine.choice()?, &self.scene, &settings)?;
+        let engine = self.engine.choice()?;
+        let model: Box<dyn RadianceModel> =
+            match (&self.options.nerf_shape, kind, engine.gpu) {
+                (Some(shape), ModelKind::Nerf, None) => Box::new(
+                    crate::train::cpu_nerf_with_shape(&self.scene, &settings, shape),
+                ),
+                (Some(shape), ModelKind::MipNerf, None) => Box::new(
+                    crate::train::cpu_mipnerf_with_shape(&self.scene, &settings, shape),
+                ),
+                (Some(shape), ModelKind::Nerf, Some(gpu)) if engine.kind == EngineKind::Gpu => {
+                    Box::new(crate::train::gpu_nerf_with_shape(
+                        gpu,
+                        &self.scene,
+                        &settings,
+                        shape,
+                    )?)
+                }
+                (Some(shape), ModelKind::MipNerf, Some(gpu)) if engine.kind == EngineKind::Gpu => {
+                    Box::new(crate::train::gpu_mipnerf_with_shape(
+                        gpu,
+                        &self.scene,
+                        &settings,
+                        shape,
+                    )?)
+                }
+                (_, _, gpu) => build_model(
+                    kind,
+                    EngineChoice {
+                        kind: engine.kind,
+                        gpu,
+                        reason: engine.reason,
+                    },
+                    &self.scene,
+                    &settings,
+                )?,
+            };
         Ok(Trainer::new(model, self.scene.clone(), self.options.seed))
     }
 
@@ -901,6 +1179,9 @@ impl Worker {
             last_report: None,
             revision: self.revision(),
             saved_step,
+            pacer: ChunkPacer::new(CHUNK_TARGET),
+            cost: RenderCost::default(),
+            eval_cost: RenderCost::default(),
         }
     }
 
@@ -953,7 +1234,7 @@ impl Worker {
                 if self.slot(kind).is_some() {
                     self.active = kind;
                     if let Some(view) = self.view.as_mut() {
-                        view.restart_level();
+                        view.restart();
                     }
                 }
                 self.send(Event::ModelSelected(self.active))?;
@@ -1039,11 +1320,7 @@ impl Worker {
         }
         self.scene = Arc::new(scene);
         self.source = source;
-        self.val_frames = held_out_views(
-            &self.scene,
-            self.options.val_views,
-            self.options.val_max_side,
-        );
+        self.val_frames = held_out_views(&self.scene, self.options.val_views);
         self.slots.clear();
         self.val_job = None;
         if self.turns.take().is_some() {
@@ -1083,7 +1360,7 @@ impl Worker {
         self.val_job = None;
         self.rebase_turns();
         if let Some(view) = self.view.as_mut() {
-            view.restart_level();
+            view.restart();
         }
         Ok(())
     }
@@ -1167,105 +1444,244 @@ impl Worker {
             v.request.camera == request.camera
                 && v.shown
                     .as_ref()
-                    .is_none_or(|(picture, _, _)| picture.answers(&request, to_texture))
+                    .is_none_or(|shown| shown.picture.answers(&request, to_texture))
         });
         if same_picture {
             // The same picture (perhaps in another mode, which only changes
             // how pixels are shown): keep what was drawn and continue.
             let view = self.view.as_mut().expect("checked above");
+            if view.request.moving && !request.moving {
+                // The camera came to rest: the share starts from here, not
+                // from the quarter training had while it moved.
+                self.ledger = Ledger::default();
+            }
             view.request = request;
             view.received = now;
-            if let Some((picture, _, _)) = view.shown.as_mut() {
-                let event = picture.resend(&view.request);
+            if let Some(shown) = view.shown.as_mut() {
+                let event = shown.picture.resend(&view.request);
                 return self.send(event);
             }
             return Ok(());
         }
-        let k = request.camera.intrinsics;
-        let levels = refinement_levels(k.width, k.height);
-        // Textures of sizes the new view does not draw (another window
-        // size) are let go.
-        let sizes: Vec<(u32, u32)> = levels
-            .iter()
-            .map(|&d| {
-                let level = level_camera(&request.camera, d).intrinsics;
-                (level.width, level.height)
-            })
-            .collect();
-        self.level_textures
-            .retain(|t| sizes.contains(&(t.width(), t.height())));
+        // A new camera: the time shared since the last one says nothing
+        // about this one's refinement.
+        self.ledger = Ledger::default();
         self.view = Some(View {
-            levels: levels.into(),
             request,
             received: now,
             job: None,
             shown: None,
-            render_seconds: 0.0,
-            train_seconds: 0.0,
         });
         Ok(())
     }
 
-    /// Draws the view: one chunk of rays, or the whole current level.
+    /// Draws the view: one chunk of rays or band of rows, or the whole
+    /// level it is on.
     fn render_unit(&mut self, whole_level: bool) -> Result<(), UiGone> {
-        let active = self.active;
-        let Some(slot) = self.slots.iter().find(|s| s.kind == active) else {
+        if self.slot(self.active).is_none() {
             // No model to draw with (its build failed and was reported).
             self.view = None;
             return Ok(());
-        };
-        let Some(view) = self.view.as_mut() else {
-            return Ok(());
-        };
-        if view.job.is_none()
-            && self.textures_shared
-            && !view.request.needs_pixels
-            && slot.trainer.model.texture_render().is_some()
-        {
-            return self.render_level_to_texture();
         }
-        if view.job.is_none() {
-            let Some(downscale) = view.levels.pop_front() else {
+        if self.view.as_ref().is_some_and(|v| v.job.is_none()) {
+            let Some(downscale) = self.next_level() else {
                 return Ok(());
             };
-            view.job = Some((
-                LevelRender::new(&view.request.camera, downscale),
-                active,
-                slot.trainer.step,
-            ));
+            let job = self.start_level(downscale);
+            if let Some(view) = self.view.as_mut() {
+                view.job = Some(job);
+            }
         }
-        let (job, _, _) = view.job.as_mut().expect("set above");
         loop {
-            let started = Instant::now();
-            let rays =
-                job.render_chunk(slot.trainer.model.as_ref(), self.pacer.chunk_rays(), WHITE);
-            let seconds = started.elapsed().as_secs_f64();
-            self.pacer.record(rays, seconds);
-            view.render_seconds += seconds;
-            if job.is_done() || !whole_level {
+            let drawn = self.draw_part()?;
+            let done = self
+                .view
+                .as_ref()
+                .and_then(|v| v.job.as_ref())
+                .is_none_or(LevelJob::is_done);
+            if !drawn || done || !whole_level {
                 break;
             }
         }
-        if !job.is_done() {
-            return Ok(());
+        let finished = self
+            .view
+            .as_ref()
+            .and_then(|v| v.job.as_ref())
+            .is_some_and(LevelJob::is_done);
+        if finished {
+            return self.finish_level();
         }
-        let (job, model, step) = view.job.take().expect("checked above");
-        let frame = RenderedFrame {
-            generation: view.request.generation,
+        // A level far over its budget while training waits on it is given
+        // up for a coarser one, sized by what this one has cost so far;
+        // whole levels (a new camera's first) are small and always finish.
+        let budget = refresh_budget(self.training_share());
+        if !whole_level
+            && self.training_active()
+            && let (Some(view), Some(slot)) = (
+                self.view.as_mut(),
+                self.slots.iter_mut().find(|s| s.kind == self.active),
+            )
+            && view.job.as_ref().is_some_and(|job| job.overruns(budget))
+        {
+            let job = view.job.take().expect("checked");
+            slot.cost.replace(job.drawn(), job.seconds);
+        }
+        Ok(())
+    }
+
+    /// A level of the view at `downscale` of the active model's current
+    /// state: into a texture when the window shares the engine's device.
+    fn start_level(&mut self, downscale: u32) -> LevelJob {
+        let view = self.view.as_ref().expect("a view to draw");
+        let camera = level_camera(&view.request.camera, downscale);
+        let request_to_texture = self.draws_to_texture(&view.request);
+        let slot = self.slot(self.active).expect("checked by the caller");
+        let (model, step, train_seconds, revision) = (
+            slot.kind,
+            slot.trainer.step,
+            slot.trainer.train_seconds,
+            slot.revision,
+        );
+        let draw = if request_to_texture {
+            let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
+            LevelDraw::Texture(TextureLevel {
+                texture: self.texture(width, height),
+                camera,
+                next_row: 0,
+            })
+        } else {
+            LevelDraw::Pixels(LevelRender::new(&view.request.camera, downscale))
+        };
+        LevelJob {
+            downscale,
             model,
             step,
-            downscale: job.downscale,
-            width: job.width(),
-            height: job.height(),
-            mode: view.request.mode,
-            pixels: job.into_pixels(),
+            train_seconds,
+            revision,
+            seconds: 0.0,
+            draw,
+        }
+    }
+
+    /// Draws the next chunk or band of the level in progress; false when
+    /// there was nothing to draw.
+    fn draw_part(&mut self) -> Result<bool, UiGone> {
+        let active = self.active;
+        let (Some(slot), Some(view)) = (
+            self.slots.iter_mut().find(|s| s.kind == active),
+            self.view.as_mut(),
+        ) else {
+            return Ok(false);
         };
-        view.shown = Some((
-            Picture::Pixels(frame.clone()),
-            slot.revision,
-            Instant::now(),
-        ));
-        self.outbox.send(Event::Frame(frame))
+        let Some(job) = view.job.as_mut() else {
+            return Ok(false);
+        };
+        let started = Instant::now();
+        let (rays, failure) = match &mut job.draw {
+            LevelDraw::Pixels(render) => (
+                render.render_chunk(slot.trainer.model.as_ref(), slot.pacer.chunk_rays(), WHITE),
+                None,
+            ),
+            LevelDraw::Texture(level) => {
+                let context = self.engine.gpu.as_ref();
+                match (slot.trainer.model.texture_render(), context) {
+                    (Some(gpu), Some(context)) => {
+                        let width = level.camera.intrinsics.width.max(1);
+                        // Whole rows, as many as the chunk's rays; not
+                        // capped as chunks of pixels are (a real GPU draws
+                        // a whole level in one band).
+                        let rays = slot.pacer.uncapped_chunk_rays();
+                        let rows = u32::try_from(rays / width as usize).unwrap_or(u32::MAX);
+                        match draw_band(
+                            gpu,
+                            context,
+                            level,
+                            rows,
+                            view.request.mode,
+                            &mut self.textures,
+                        ) {
+                            Ok(drawn) => ((drawn * width) as usize, None),
+                            Err(error) => (0, Some(error)),
+                        }
+                    }
+                    _ => (0, Some("the model cannot draw into textures".to_string())),
+                }
+            }
+        };
+        let seconds = started.elapsed().as_secs_f64();
+        if let Some(error) = failure {
+            // Pixels still work: this level and every later one go through
+            // the CPU.
+            self.textures_shared = false;
+            job.draw = LevelDraw::Pixels(LevelRender::new(&view.request.camera, job.downscale));
+            self.send(Event::Error(format!(
+                "drawing the view on the gpu failed ({error}); the view now comes \
+                 through the CPU"
+            )))?;
+            return Ok(true);
+        }
+        slot.pacer.record(rays, seconds);
+        job.seconds += seconds;
+        let downscale = job.downscale;
+        if !view.moving() {
+            self.ledger.record_other(seconds);
+        }
+        self.trace.add_rendering(downscale, seconds, false);
+        Ok(true)
+    }
+
+    /// Sends the finished level and keeps it as what is shown.
+    fn finish_level(&mut self) -> Result<(), UiGone> {
+        let active = self.active;
+        let (Some(slot), Some(view)) = (
+            self.slots.iter_mut().find(|s| s.kind == active),
+            self.view.as_mut(),
+        ) else {
+            return Ok(());
+        };
+        let Some(job) = view.job.take() else {
+            return Ok(());
+        };
+        slot.cost.record(job.pixels(), job.seconds);
+        self.trace.add_rendering(job.downscale, 0.0, true);
+        let picture = match job.draw {
+            LevelDraw::Pixels(render) => Picture::Pixels(RenderedFrame {
+                generation: view.request.generation,
+                model: job.model,
+                step: job.step,
+                train_seconds: job.train_seconds,
+                downscale: job.downscale,
+                width: render.width(),
+                height: render.height(),
+                mode: view.request.mode,
+                pixels: render.into_pixels(),
+            }),
+            LevelDraw::Texture(level) => {
+                let texture = level.texture;
+                self.textures.sent(&texture);
+                Picture::Texture(GpuFrame {
+                    generation: view.request.generation,
+                    model: job.model,
+                    step: job.step,
+                    train_seconds: job.train_seconds,
+                    downscale: job.downscale,
+                    width: level.camera.intrinsics.width,
+                    height: level.camera.intrinsics.height,
+                    mode: view.request.mode,
+                    texture,
+                })
+            }
+        };
+        let event = match &picture {
+            Picture::Pixels(frame) => Event::Frame(frame.clone()),
+            Picture::Texture(frame) => Event::GpuFrame(frame.clone()),
+        };
+        view.shown = Some(Shown {
+            picture,
+            revision: job.revision,
+            downscale: job.downscale,
+        });
+        self.outbox.send(event)
     }
 
     /// Whether `request` is answered with a texture on the shared device.
@@ -1277,69 +1693,10 @@ impl Worker {
                 .is_some_and(|s| s.trainer.model.texture_render().is_some())
     }
 
-    /// The view's next level, drawn whole by the gpu engine into a texture
-    /// the window can show (Instant-NGP's pixels never leave the GPU; NeRF
-    /// and Mip-NeRF composite on the host and upload the level). A level
-    /// cannot be split into chunks here, but on a real GPU it takes
-    /// milliseconds (Instant-NGP) to a fraction of a second (NeRF).
-    fn render_level_to_texture(&mut self) -> Result<(), UiGone> {
-        let active = self.active;
-        let (Some(slot), Some(view), Some(context)) = (
-            self.slots.iter().find(|s| s.kind == active),
-            self.view.as_mut(),
-            self.engine.gpu.as_ref(),
-        ) else {
-            return Ok(());
-        };
-        let Some(gpu) = slot.trainer.model.texture_render() else {
-            return Ok(());
-        };
-        let Some(downscale) = view.levels.pop_front() else {
-            return Ok(());
-        };
-        let camera = level_camera(&view.request.camera, downscale);
-        let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
-        let texture = match self
-            .level_textures
-            .iter()
-            .find(|t| (t.width(), t.height()) == (width, height))
-        {
-            Some(texture) => texture.clone(),
-            None => {
-                let texture = render_target(&context.device, width, height);
-                self.level_textures.push(texture.clone());
-                texture
-            }
-        };
-        let started = Instant::now();
-        let drawn = gpu.render_to_texture(&camera, view.request.mode, WHITE, &texture);
-        view.render_seconds += started.elapsed().as_secs_f64();
-        if let Err(error) = drawn {
-            // Pixels still work: the rest of this view and every later one
-            // go through the CPU.
-            self.textures_shared = false;
-            view.levels.push_front(downscale);
-            return self.outbox.send(Event::Error(format!(
-                "drawing the view on the gpu failed ({error}); the view now comes \
-                 through the CPU"
-            )));
-        }
-        let frame = GpuFrame {
-            generation: view.request.generation,
-            model: active,
-            step: slot.trainer.step,
-            downscale,
-            width,
-            height,
-            mode: view.request.mode,
-            texture,
-        };
-        view.shown = Some((
-            Picture::Texture(frame.clone()),
-            slot.revision,
-            Instant::now(),
-        ));
-        self.outbox.send(Event::GpuFrame(frame))
+    /// A `width × height` texture to draw a level into.
+    fn texture(&mut self, width: u32, height: u32) -> wgpu::Texture {
+        let context = self.engine.gpu.as_ref().expect("textures need the device");
+        self.textures.take(context, width, height)
     }
 
     fn train_unit(&mut self) -> Result<(), UiGone> {
@@ -1366,18 +1723,29 @@ impl Worker {
             && self.val_job.is_none()
         {
             slot.next_val_at = slot.trainer.train_seconds + every;
-            self.val_job = Some(ValJob {
-                model: active,
-                view: 0,
-                render: None,
-                psnr_sum: 0.0,
-            });
+            // As many pixels as fit in the evaluation's share of the
+            // training time until the next one, at this model's cost.
+            let all: usize = self
+                .val_frames
+                .iter()
+                .map(|f| f.camera.intrinsics.width as usize * f.camera.intrinsics.height as usize)
+                .sum();
+            let cost = slot
+                .eval_cost
+                .seconds_per_pixel()
+                .or(slot.cost.seconds_per_pixel());
+            let pixels = cost.map_or(MIN_EVAL_PIXELS, |cost| (EVAL_SHARE * every / cost) as usize);
+            let pixels = pixels.clamp(MIN_EVAL_PIXELS.min(all), all.max(1));
+            self.val_job = Some(ValJob::new(active, &self.val_frames, pixels));
         }
         let seconds = started.elapsed().as_secs_f64();
         self.last_step = Some((Instant::now(), seconds));
-        if let Some(view) = self.view.as_mut() {
-            view.train_seconds += seconds;
+        if self.view.as_ref().is_none_or(|v| !v.moving()) {
+            self.ledger.record_training(seconds);
         }
+        self.trace.training_seconds += seconds;
+        self.trace.grid_update_seconds += stats.times.grid_update;
+        self.trace.steps += 1;
         let due = slot
             .last_stats
             .is_none_or(|sent| sent.elapsed() >= STATS_INTERVAL);
@@ -1463,7 +1831,7 @@ impl Worker {
     }
 
     /// Renders one chunk of the held-out evaluation; reports the mean PSNR
-    /// when the last view is done.
+    /// when the last pixel is scored.
     fn evaluate_unit(&mut self) -> Result<(), UiGone> {
         let Some(job) = self.val_job.as_mut() else {
             return Ok(());
@@ -1472,37 +1840,29 @@ impl Worker {
             self.val_job = None;
             return Ok(());
         };
-        let frame = &self.val_frames[job.view];
-        let render = job
-            .render
-            .get_or_insert_with(|| LevelRender::new(&frame.camera, 1));
         let started = Instant::now();
-        let rays = render.render_chunk(slot.trainer.model.as_ref(), self.pacer.chunk_rays(), WHITE);
+        let before = job.done;
+        job.render_chunk(
+            slot.trainer.model.as_ref(),
+            &self.val_frames,
+            slot.pacer.chunk_rays(),
+        );
         let seconds = started.elapsed().as_secs_f64();
-        self.pacer.record(rays, seconds);
-        if let Some(view) = self.view.as_mut() {
-            // Evaluation is training's overhead in the balance.
-            view.train_seconds += seconds;
+        slot.pacer.record(job.done - before, seconds);
+        job.seconds += seconds;
+        // Evaluation is the view's kind of work in the balance.
+        if self.view.as_ref().is_none_or(|v| !v.moving()) {
+            self.ledger.record_other(seconds);
         }
-        if !render.is_done() {
+        self.trace.evaluation_seconds += seconds;
+        if !job.is_done() {
             return Ok(());
         }
-        let render = job.render.take().expect("rendered above");
-        let (width, height) = (render.width() as usize, render.height() as usize);
-        let prediction =
-            RgbImage::new(width, height, rgb_of(&render.into_pixels())).expect("one pixel per ray");
-        let truth = RgbImage::from_rgba8_over(&frame.image, WHITE);
-        // Same-size by construction (the camera and image were downscaled
-        // together); a mismatch would be a bug, scored as NaN, not a panic.
-        job.psnr_sum += metrics::psnr(&prediction, &truth).unwrap_or(f64::NAN);
-        job.view += 1;
-        if job.view < self.val_frames.len() {
-            return Ok(());
-        }
-        let mean = job.psnr_sum / self.val_frames.len() as f64;
+        self.trace.evaluations += 1;
+        slot.eval_cost.record(job.pixels.len(), job.seconds);
+        slot.pending_val = Some(job.mean_psnr() as f32);
         let kind = job.model;
         self.val_job = None;
-        slot.pending_val = Some(mean as f32);
         self.flush_stats(kind)
     }
 
@@ -1639,7 +1999,7 @@ impl Worker {
                     self.send(Event::ModelSelected(kind))?;
                 }
                 if let Some(view) = self.view.as_mut() {
-                    view.restart_level();
+                    view.restart();
                 }
                 self.send(Event::CheckpointLoaded {
                     path: path.to_path_buf(),
@@ -1724,6 +2084,79 @@ impl Worker {
     }
 }
 
+/// Textures the view is drawn into, kept for reuse: level sizes change
+/// with the camera and the model's cost, and bands come in a few sizes.
+#[derive(Default)]
+struct TexturePool {
+    /// Least recently used first.
+    kept: Vec<wgpu::Texture>,
+    /// The textures of the last two frames sent: the window may still
+    /// show either, so neither is drawn into.
+    sent: [Option<wgpu::Texture>; 2],
+}
+
+impl TexturePool {
+    /// A `width × height` texture no frame the window may still show
+    /// holds: a kept one, else a new one.
+    fn take(&mut self, context: &GpuContext, width: u32, height: u32) -> wgpu::Texture {
+        let sent = &self.sent;
+        let free = self.kept.iter().position(|t| {
+            (t.width(), t.height()) == (width, height) && !sent.iter().flatten().any(|s| s == t)
+        });
+        let texture = match free {
+            Some(index) => self.kept.remove(index),
+            None => render_target(&context.device, width, height),
+        };
+        self.kept.push(texture.clone());
+        if self.kept.len() > MAX_KEPT_TEXTURES
+            && let Some(oldest) = self
+                .kept
+                .iter()
+                .position(|t| !self.sent.iter().flatten().any(|s| s == t))
+        {
+            self.kept.remove(oldest);
+        }
+        texture
+    }
+
+    /// `texture` went to the window in a frame.
+    fn sent(&mut self, texture: &wgpu::Texture) {
+        self.sent = [Some(texture.clone()), self.sent[0].take()];
+    }
+}
+
+/// Draws up to `rows` more rows of `level` (at least one) and returns how
+/// many: the whole level at once when one band covers it, else through a
+/// texture of the band's size ([`draw_band_to_texture`]).
+fn draw_band(
+    gpu: &dyn crate::train::model::TextureRender,
+    context: &GpuContext,
+    level: &mut TextureLevel,
+    rows: u32,
+    mode: crate::render::RenderMode,
+    textures: &mut TexturePool,
+) -> Result<u32, String> {
+    let k = level.camera.intrinsics;
+    let rows = rows.clamp(1, k.height.saturating_sub(level.next_row).max(1));
+    if level.next_row == 0 && rows == k.height {
+        gpu.render_to_texture(&level.camera, mode, WHITE, &level.texture)?;
+    } else {
+        let band = textures.take(context, k.width, rows);
+        draw_band_to_texture(
+            gpu,
+            context,
+            &level.camera,
+            level.next_row,
+            mode,
+            WHITE,
+            &band,
+            &level.texture,
+        )?;
+    }
+    level.next_row += rows;
+    Ok(rows)
+}
+
 /// The engine in one line for the stats panel: the choice's reason (which
 /// names the adapter), and for the cpu engine its thread count.
 fn describe_engine(choice: &EngineChoice, precision: Precision) -> String {
@@ -1759,32 +2192,14 @@ fn load_scene(source: &SceneSource, demo_config: &DemoConfig) -> Result<Scene, S
     Ok(scene)
 }
 
-/// Up to `count` held-out views (val, else test, else train), each
-/// downscaled so that neither side exceeds `max_side`.
-fn held_out_views(scene: &Scene, count: usize, max_side: u32) -> Vec<Frame> {
+/// Up to `count` held-out views (val, else test, else train), spread over
+/// the split as `zrak train` chooses them.
+fn held_out_views(scene: &Scene, count: usize) -> Vec<Frame> {
     let frames = [&scene.val, &scene.test, &scene.train]
         .into_iter()
         .find(|frames| !frames.is_empty())
         .map_or(&[][..], |frames| frames.as_slice());
-    spread_views(frames, count)
-        .into_iter()
-        .map(|frame| {
-            let k = frame.camera.intrinsics;
-            let factor = k
-                .width
-                .max(k.height)
-                .div_ceil(max_side.max(1))
-                .clamp(1, k.width.min(k.height).max(1));
-            if factor == 1 {
-                return frame.clone();
-            }
-            Frame {
-                camera: Camera::new(k.downscaled(factor), frame.camera.camera_to_world),
-                image: frame.image.downscaled(factor),
-                image_path: frame.image_path.clone(),
-            }
-        })
-        .collect()
+    spread_views(frames, count).into_iter().cloned().collect()
 }
 
 /// Why a camera cannot be rendered, if it cannot.

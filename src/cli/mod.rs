@@ -1,3 +1,206 @@
-//! Command bodies that have outgrown `main.rs`, one file per command.
+//! The commands' bodies, one module per command, each with its clap
+//! arguments; `main.rs` only parses and dispatches. What several commands
+//! share (loading a scene argument, durations, render memory, the kernels
+//! line) is here; what runs share (`run.json`, building and restoring a
+//! trainer) is in [`run_config`].
 
+/// `println!` that never panics: a failed write to standard output (a full
+/// disk, `> /dev/full`) is kept and reported when the command ends, as an
+/// error with a non-zero status, instead of a panic. Defined before the
+/// modules below so that it replaces the standard macro in all of them.
+macro_rules! println {
+    () => {
+        zrak::interrupt::print_line(format_args!(""))
+    };
+    ($($arg:tt)*) => {
+        zrak::interrupt::print_line(format_args!($($arg)*))
+    };
+}
+
+pub mod bench;
+pub mod convert;
+pub mod demo;
+pub mod eval;
+pub mod info;
 pub mod quality;
+pub mod render;
+pub mod run_config;
+pub mod train;
+pub mod view;
+
+use std::path::Path;
+
+use zrak::scene::demo::{self as demo_scene, DemoConfig};
+use zrak::scene::{LoadOptions, Scene};
+
+/// A scene argument as the commands take it: `demo` for the built-in demo
+/// scene (its views divided by `downscale`), else a folder.
+pub fn load_scene(scene: &str, downscale: u32) -> anyhow::Result<Scene> {
+    if scene == "demo" {
+        anyhow::ensure!(downscale >= 1, "--downscale must be at least 1");
+        let mut config = DemoConfig::default();
+        anyhow::ensure!(
+            downscale <= config.size,
+            "--downscale {downscale} leaves no pixels of the demo scene's {size}×{size} \
+             views: give at most {size}",
+            size = config.size
+        );
+        config.size /= downscale;
+        return Ok(demo_scene::build(&config));
+    }
+    Ok(Scene::load(Path::new(scene), LoadOptions { downscale })?)
+}
+
+/// A duration argument in seconds: `90s`, `10m`, `2min`, `1h`, or a bare
+/// number of seconds.
+pub fn parse_duration(text: &str) -> Result<f64, String> {
+    let text = text.trim();
+    // The unit is the letters at the end, so that a number in exponent
+    // form (`1e3s`) keeps its `e`.
+    let number = text.trim_end_matches(|c: char| c.is_ascii_alphabetic());
+    let (number, unit) = match &text[number.len()..] {
+        "" => (number, "s"),
+        unit => (number, unit),
+    };
+    let value: f64 = number
+        .trim()
+        .parse()
+        .map_err(|_| format!("`{text}` is not a duration like 90s, 10m or 1h"))?;
+    let scale = match unit {
+        "s" => 1.0,
+        "m" | "min" => 60.0,
+        "h" => 3600.0,
+        _ => return Err(format!("`{text}`: unknown unit `{unit}` (use s, m or h)")),
+    };
+    if !(value > 0.0 && value.is_finite()) {
+        return Err(format!("`{text}` must be a positive duration"));
+    }
+    Ok(value * scale)
+}
+
+/// The largest image side the commands that render accept: a frame is
+/// rendered whole in memory (16384² pixels take ~4 GB as they render).
+pub const MAX_IMAGE_SIDE: u32 = 16384;
+
+/// Bytes a view of `width` × `height` takes while it is rendered and
+/// written: the rendered pixels (colour, depth, opacity: 5 floats) and the
+/// 8-bit image, with the PNG encoder's copy.
+pub fn render_bytes_per_view(width: u32, height: u32) -> u64 {
+    width as u64 * height as u64 * (5 * 4 + 2 * 4)
+}
+
+/// The kernels and precision a cpu model computes with, as one line.
+pub struct KernelsLine(pub zrak::engine::cpu::dense::Backend);
+
+impl std::fmt::Display for KernelsLine {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "kernels              {:?}, {} threads; precision: {}",
+            self.0,
+            rayon::current_num_threads(),
+            self.0.precision().describe()
+        )
+    }
+}
+
+/// Parses `args` (the words after the command's name) as one command's
+/// arguments alone, the way `zrak COMMAND args…` would, for the modules'
+/// tests of argument handling.
+#[cfg(test)]
+pub fn parse_args<A: clap::Args>(args: &[&str]) -> Result<A, clap::Error> {
+    use clap::Parser;
+
+    #[derive(Parser)]
+    #[command(name = "zrak")]
+    struct Only<A: clap::Args> {
+        #[command(flatten)]
+        args: A,
+    }
+    Only::<A>::try_parse_from(std::iter::once("zrak").chain(args.iter().copied()))
+        .map(|only| only.args)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn durations_take_seconds_minutes_and_hours() {
+        assert_eq!(parse_duration("90s"), Ok(90.0));
+        assert_eq!(parse_duration("10m"), Ok(600.0));
+        assert_eq!(parse_duration("2min"), Ok(120.0));
+        assert_eq!(parse_duration("1h"), Ok(3600.0));
+        assert_eq!(parse_duration("1.5h"), Ok(5400.0));
+        // A bare number is seconds; spaces around it do not matter.
+        assert_eq!(parse_duration(" 45 "), Ok(45.0));
+        assert_eq!(parse_duration("30 s"), Ok(30.0));
+        // The exponent's `e` is part of the number, not of the unit.
+        assert_eq!(parse_duration("1e3s"), Ok(1000.0));
+        assert_eq!(parse_duration("1e3"), Ok(1000.0));
+    }
+
+    #[test]
+    fn durations_that_are_not_say_why() {
+        assert_eq!(
+            parse_duration("soon"),
+            Err("`soon` is not a duration like 90s, 10m or 1h".into())
+        );
+        assert_eq!(
+            parse_duration("10d"),
+            Err("`10d`: unknown unit `d` (use s, m or h)".into())
+        );
+        assert_eq!(
+            parse_duration(""),
+            Err("`` is not a duration like 90s, 10m or 1h".into())
+        );
+        for not_positive in ["0s", "-5m", "0"] {
+            assert_eq!(
+                parse_duration(not_positive),
+                Err(format!("`{not_positive}` must be a positive duration"))
+            );
+        }
+        // `inf` and `nan` parse as floats but are no durations; their
+        // letters read as a unit, which is refused first.
+        assert!(
+            parse_duration("inf")
+                .unwrap_err()
+                .contains("not a duration")
+        );
+        assert!(
+            parse_duration("1e400s")
+                .unwrap_err()
+                .contains("positive duration")
+        );
+    }
+
+    #[test]
+    fn the_demo_scene_divides_its_views_by_the_downscale() {
+        let full = DemoConfig::default().size;
+        let scene = load_scene("demo", 16).unwrap();
+        assert_eq!(scene.resolution(), Some((full / 16, full / 16)));
+        assert_eq!(
+            load_scene("demo", 0).unwrap_err().to_string(),
+            "--downscale must be at least 1"
+        );
+        assert_eq!(
+            load_scene("demo", full + 1).unwrap_err().to_string(),
+            format!(
+                "--downscale {} leaves no pixels of the demo scene's {full}×{full} views: \
+                 give at most {full}",
+                full + 1
+            )
+        );
+    }
+
+    #[test]
+    fn a_view_renders_in_28_bytes_a_pixel() {
+        assert_eq!(render_bytes_per_view(1, 1), 28);
+        assert_eq!(render_bytes_per_view(800, 800), 800 * 800 * 28);
+        // No overflow at the largest side the commands accept.
+        assert_eq!(
+            render_bytes_per_view(MAX_IMAGE_SIDE, MAX_IMAGE_SIDE),
+            28 * (MAX_IMAGE_SIDE as u64).pow(2)
+        );
+    }
+}

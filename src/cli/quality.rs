@@ -7,10 +7,11 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use anyhow::{Context, bail};
+use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use zrak::bench::quality::{
-    CellOutcome, CellProgress, CellRecord, CellSpec, PROTOCOL_FILE, Protocol, RUNS_FOLDER,
-    cells_for,
+    CellOutcome, CellProgress, CellRecord, CellSpec, DEFAULT_EVAL_DOWNSCALE, DEFAULT_EVERY,
+    EvalPixels, PROTOCOL_FILE, Protocol, RUNS_FOLDER, cells_for,
 };
 use zrak::bench::report::{
     CellResult, EngineInfo, REPORT_MD, Results, SceneEntry, Settings, machine, write_outputs,
@@ -18,15 +19,86 @@ use zrak::bench::report::{
 use zrak::bench::table::{Table, format_mark, format_seconds};
 use zrak::engine::cpu::dense::Precision;
 use zrak::engine::{EngineKind, choose_engine};
+use zrak::field::ModelKind;
+use zrak::field::nerf::Sampling;
 use zrak::interrupt::{self, note, say};
 use zrak::scene::{Scene, Split};
 use zrak::train::run::RunFolder;
 use zrak::train::trainer::Trainer;
 
-use crate::{
-    QualityArgs, RunConfig, build_trainer, load_scene, read_run_config, restore_checkpoint,
-    scene_key, start_run_folder,
+use super::run_config::{
+    RunConfig, build_trainer, read_run_config, restore_checkpoint, scene_key, start_run_folder,
 };
+use super::{load_scene, parse_duration};
+
+#[derive(Args, Debug)]
+pub struct QualityArgs {
+    /// Scene folders, or `demo` for the built-in demo scene.
+    #[arg(required = true)]
+    scenes: Vec<String>,
+    /// The models, comma-separated.
+    #[arg(
+        long,
+        value_enum,
+        value_delimiter = ',',
+        default_value = "ngp,nerf,mipnerf"
+    )]
+    models: Vec<ModelKind>,
+    /// NeRF's and Mip-NeRF's samplers, comma-separated: each of those models
+    /// runs once with each (Instant-NGP has only the occupancy grid).
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "occupancy")]
+    sampling: Vec<Sampling>,
+    /// Training time per model and scene, evaluation excluded: `90s`, `10m`.
+    #[arg(long, value_parser = parse_duration, default_value = "10m")]
+    budget: f64,
+    /// Training times to score at, comma-separated (default: 1/20, 1/10,
+    /// 1/5, 1/2 and all of the budget, i.e. 30s,1m,2m,5m,10m for 10m).
+    #[arg(long, value_parser = parse_duration, value_delimiter = ',')]
+    marks: Option<Vec<f64>>,
+    /// The split scored (the papers use test; the NeRF-synthetic folders in
+    /// ../shared have only train and val).
+    #[arg(long, value_enum, default_value_t = Split::Test)]
+    split: Split,
+    /// Score every N-th view of the split, from the first (1: all views).
+    #[arg(long, default_value_t = DEFAULT_EVERY,
+          value_parser = clap::value_parser!(usize))]
+    every: usize,
+    /// Score 1/N² of each view's pixels, chosen by --eval-pixels, so that
+    /// NeRF's slow renders stay affordable (1: every pixel).
+    #[arg(long, default_value_t = DEFAULT_EVAL_DOWNSCALE)]
+    eval_downscale: u32,
+    /// tiles: full-resolution tiles, one from each block of N×N (estimates
+    /// the full-resolution scores the papers report); downscaled: the whole
+    /// view at 1/N resolution against area-averaged photographs (Mip-NeRF's
+    /// multiscale protocol, which penalises aliasing).
+    #[arg(long, value_enum, default_value_t = EvalPixels::Tiles)]
+    eval_pixels: EvalPixels,
+    /// Integer image downscale for training.
+    #[arg(long, default_value_t = 1)]
+    downscale: u32,
+    /// Default: gpu on a real GPU, cpu otherwise.
+    #[arg(long, value_enum)]
+    engine: Option<EngineKind>,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Samples per training batch (default: each model's own, the papers'
+    /// batches). Smaller batches make shorter steps, e.g. for a quick look;
+    /// the figures then are not the papers' recipe.
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+    batch_samples: Option<u64>,
+    /// PSNR targets in dB for the time-to-quality columns, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "25,30,33")]
+    targets: Vec<f64>,
+    /// The experiment's folder (created; one holding an experiment with the
+    /// same settings is continued).
+    #[arg(long)]
+    out: PathBuf,
+    /// How the cpu engine computes the networks' products: f32, or mixed
+    /// (bf16 products, f32 sums, on processors with AVX512-BF16). Default:
+    /// mixed where the processor has bf16 kernels, else f32.
+    #[arg(long, value_enum)]
+    precision: Option<Precision>,
+}
 
 /// A scene of the experiment, loaded once for all its cells.
 struct LoadedScene {
@@ -156,7 +228,7 @@ fn precision(args: &QualityArgs) -> Precision {
 }
 
 pub fn bench_quality(args: QualityArgs) -> anyhow::Result<()> {
-    let split: Split = args.split.into();
+    let split = args.split;
     let marks = args.marks.clone();
     let protocol = Protocol::new(
         args.budget,
@@ -498,11 +570,122 @@ fn summary(cells: &[CellSpec], records: &[Option<CellRecord>], targets: &[f64]) 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::cli::parse_args;
 
     #[test]
     fn scene_names_come_from_folders() {
         assert_eq!(scene_name("demo"), "demo");
         assert_eq!(scene_name("/data/nerf_synthetic/lego_400"), "lego_400");
         assert_eq!(scene_name("/data/nerf_synthetic/lego_400/"), "lego_400");
+    }
+
+    #[test]
+    fn the_experiment_defaults_to_ten_minutes_of_each_model_scored_on_test() {
+        let args: QualityArgs = parse_args(&["demo", "--out", "DIR"]).unwrap();
+        assert_eq!(args.scenes, ["demo"]);
+        assert_eq!(args.out, PathBuf::from("DIR"));
+        assert_eq!(args.models, ModelKind::ALL);
+        assert_eq!(args.sampling, [Sampling::Occupancy]);
+        assert_eq!(args.budget, 600.0);
+        assert_eq!(args.marks, None);
+        assert_eq!(args.split, Split::Test);
+        assert_eq!(args.every, DEFAULT_EVERY);
+        assert_eq!(args.eval_downscale, DEFAULT_EVAL_DOWNSCALE);
+        assert_eq!(args.eval_pixels, EvalPixels::Tiles);
+        assert_eq!((args.downscale, args.seed), (1, 0));
+        assert_eq!((args.engine, args.batch_samples), (None, None));
+        assert_eq!(args.targets, [25.0, 30.0, 33.0]);
+        assert_eq!(precision(&args), Precision::best_available());
+    }
+
+    #[test]
+    fn lists_and_durations_are_comma_separated() {
+        let args: QualityArgs = parse_args(&[
+            "a",
+            "b",
+            "--out",
+            "DIR",
+            "--models",
+            "nerf,mipnerf",
+            "--sampling",
+            "occupancy,paper",
+            "--budget",
+            "90s",
+            "--marks",
+            "30s,1m,1.5m",
+            "--targets",
+            "20,27.5",
+            "--batch-samples",
+            "1024",
+            "--split",
+            "val",
+        ])
+        .unwrap();
+        assert_eq!(args.scenes, ["a", "b"]);
+        assert_eq!(args.models, [ModelKind::Nerf, ModelKind::MipNerf]);
+        assert_eq!(args.sampling, [Sampling::Occupancy, Sampling::Paper]);
+        assert_eq!(args.budget, 90.0);
+        assert_eq!(args.marks, Some(vec![30.0, 60.0, 90.0]));
+        assert_eq!(args.targets, [20.0, 27.5]);
+        assert_eq!(args.batch_samples, Some(1024));
+        assert_eq!(args.split, Split::Val);
+    }
+
+    #[test]
+    fn an_experiment_needs_scenes_a_folder_and_a_positive_batch() {
+        use clap::error::ErrorKind;
+        let error = parse_args::<QualityArgs>(&["--out", "DIR"]).unwrap_err();
+        assert_eq!(error.kind(), ErrorKind::MissingRequiredArgument);
+        assert!(error.to_string().contains("<SCENES>..."), "{error}");
+        let error = parse_args::<QualityArgs>(&["demo"]).unwrap_err();
+        assert_eq!(error.kind(), ErrorKind::MissingRequiredArgument);
+        assert!(error.to_string().contains("--out <OUT>"), "{error}");
+        let error =
+            parse_args::<QualityArgs>(&["demo", "--out", "D", "--batch-samples", "0"]).unwrap_err();
+        assert_eq!(error.kind(), ErrorKind::ValueValidation);
+        assert!(error.to_string().contains("1.."), "{error}");
+        let error =
+            parse_args::<QualityArgs>(&["demo", "--out", "D", "--marks", "1m,later"]).unwrap_err();
+        assert!(
+            error.to_string().contains("`later` is not a duration"),
+            "{error}"
+        );
+    }
+
+    #[test]
+    fn each_cell_runs_as_the_experiment_says() {
+        let args: QualityArgs = parse_args(&[
+            "demo",
+            "--out",
+            "D",
+            "--downscale",
+            "2",
+            "--seed",
+            "5",
+            "--engine",
+            "cpu",
+            "--batch-samples",
+            "4096",
+            "--precision",
+            "f32",
+        ])
+        .unwrap();
+        let cell = CellSpec {
+            scene: "demo".into(),
+            model: ModelKind::Nerf,
+            sampling: Sampling::Paper,
+        };
+        let config = run_config(&cell, "demo", &args);
+        assert_eq!(config.scene, "demo");
+        assert_eq!(
+            (config.model, config.sampling),
+            (ModelKind::Nerf, Sampling::Paper)
+        );
+        assert_eq!(config.loss, ModelKind::Nerf.default_loss());
+        assert_eq!((config.downscale, config.seed), (2, 5));
+        assert_eq!(config.engine, Some(EngineKind::Cpu));
+        assert_eq!(config.batch_samples, Some(4096));
+        assert_eq!(config.precision, Precision::F32);
+        assert_eq!(config.training_scales, 1);
     }
 }

@@ -53,7 +53,7 @@ impl EngineChoice {
 
 /// Chooses an engine: `requested` when given; otherwise `gpu` on a real GPU
 /// and `cpu` when the only adapter is a software one (lavapipe runs the
-/// engine's WGSL 40–150× slower than the `cpu` engine, DESIGN.md) or there
+/// engine's WGSL 40–150× slower than the `cpu` engine, docs/design.md) or there
 /// is none.
 pub fn choose_engine(requested: Option<EngineKind>) -> Result<EngineChoice, gpu::GpuError> {
     match requested {

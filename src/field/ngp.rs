@@ -219,8 +219,10 @@ pub fn distortion_weight(aabb_scale: f32) -> f32 {
     })
 }
 
-/// Loss on pixel colours.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+/// Loss on pixel colours (`--loss huber|l2` on the command line).
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
+)]
 pub enum LossKind {
     /// Huber with δ = 0.1: instant-ngp's default for NeRF (config "loss").
     Huber,

@@ -1,7 +1,7 @@
 //! Cameras and the rays through their pixels: a pinhole with an optional
 //! lens distortion ([`Lens`]).
 //!
-//! Convention (DESIGN.md): the pose is camera-to-world as in the
+//! Convention (docs/design.md): the pose is camera-to-world as in the
 //! `transform_matrix` of NeRF-synthetic and instant-ngp files, OpenGL axes
 //! (x right, y up, the camera looks down -z). Pixel (i, j) has its centre at
 //! (i + 0.5, j + 0.5), with j counting rows from the top of the image.

@@ -48,8 +48,8 @@ pub enum SceneFormat {
     Colmap,
 }
 
-/// The splits of a scene.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// The splits of a scene (`--split train|val|test` on the command line).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum Split {
     Train,
     Val,

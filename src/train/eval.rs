@@ -71,23 +71,7 @@ pub fn mean_psnr_sampled(model: &dyn RadianceModel, frames: &[&Frame], rays: usi
         .iter()
         .map(|frame| {
             let k = frame.camera.intrinsics;
-            let pixels = (k.width as usize * k.height as usize).max(1);
-            let stride = ((pixels as f64 / per_view as f64).sqrt().ceil() as u32).max(1);
-            // Centred in each stride × stride cell, so the grid does not
-            // favour one image border; inside the view however thin it is
-            // (a view 1 pixel high must still give its pixels, not an
-            // empty grid and the 100 dB of no error).
-            let first = stride / 2;
-            let mut coordinates = Vec::new();
-            let mut y = first.min(k.height.saturating_sub(1));
-            while y < k.height {
-                let mut x = first.min(k.width.saturating_sub(1));
-                while x < k.width {
-                    coordinates.push((x, y));
-                    x += stride;
-                }
-                y += stride;
-            }
+            let coordinates = pixel_grid(k.width, k.height, per_view);
             let rays: Vec<_> = coordinates
                 .iter()
                 .map(|&(x, y)| frame.camera.pixel_ray(x, y))
@@ -108,6 +92,29 @@ pub fn mean_psnr_sampled(model: &dyn RadianceModel, frames: &[&Frame], rays: usi
         })
         .sum::<f64>()
         / frames.len() as f64
+}
+
+/// About `count` pixels (column, row) of a `width × height` view (at most
+/// all of them, at least one), on a regular grid: every s-th pixel in x
+/// and y, the same s for both axes, centred in each s × s cell so that the
+/// grid favours no image border, and inside the view however thin it is
+/// (a view 1 pixel high must still give its pixels, not an empty grid and
+/// the 100 dB of no error).
+pub fn pixel_grid(width: u32, height: u32, count: usize) -> Vec<(u32, u32)> {
+    let pixels = (width as usize * height as usize).max(1);
+    let stride = ((pixels as f64 / count.max(1) as f64).sqrt().ceil() as u32).max(1);
+    let first = stride / 2;
+    let mut coordinates = Vec::new();
+    let mut y = first.min(height.saturating_sub(1));
+    while y < height {
+        let mut x = first.min(width.saturating_sub(1));
+        while x < width {
+            coordinates.push((x, y));
+            x += stride;
+        }
+        y += stride;
+    }
+    coordinates
 }
 
 /// Full evaluation of a split, with a callback per view for progress.
@@ -269,5 +276,21 @@ mod tests {
             let psnr = mean_psnr_sampled(&Black, &[&view], 16);
             assert!(psnr.abs() < 1e-6, "{width}×{height}: {psnr} dB");
         }
+    }
+
+    #[test]
+    fn the_pixel_grid_spreads_about_the_count_asked_over_the_whole_view() {
+        // 100 of 400 × 400: every 40th pixel each way, from the middle of
+        // the first 40 × 40 cell.
+        let grid = pixel_grid(400, 400, 100);
+        assert_eq!(grid.len(), 100);
+        assert_eq!(grid[0], (20, 20));
+        assert_eq!(*grid.last().unwrap(), (380, 380));
+        // More than the view holds: every pixel, once.
+        assert_eq!(pixel_grid(4, 3, 1000).len(), 12);
+        // A stride longer than a side still finds pixels inside the view.
+        let thin = pixel_grid(400, 10, 1);
+        assert!(!thin.is_empty() && thin.iter().all(|&(x, y)| x < 400 && y < 10));
+        assert_eq!(pixel_grid(1, 1, 0), vec![(0, 0)]);
     }
 }

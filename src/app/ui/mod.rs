@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 
 use crate::app::camera::ViewCamera;
 use crate::app::protocol::{
-    Balance, Command, Event, InTurn, SceneInfo, SceneSource, TrainingStats,
+    Balance, Command, Event, InTurn, SceneInfo, SceneSource, ScheduleTrace, TrainingStats,
 };
 use crate::app::worker::TrainingWorker;
 use crate::engine::EngineKind;
@@ -26,7 +26,7 @@ use crate::render::RenderMode;
 
 pub use panels::ExportDialog;
 pub use plots::{History, HistoryPoint, PlotAxis, comparison_table, export_comparison};
-pub use viewport::{CompareMode, CompareWith, ViewportState};
+pub use viewport::{CompareMode, CompareWith, ShownFrame, ViewportState};
 
 /// The UI's end of the channel to the training thread.
 pub trait TrainingLink {
@@ -123,6 +123,8 @@ pub struct ViewerUi {
     camera: Option<ViewCamera>,
     viewport: ViewportState,
     plot_axis: PlotAxis,
+    /// What the timing column shows.
+    timing: TimingView,
     export: ExportDialog,
     scene_path_text: String,
     checkpoint_path_text: String,
@@ -138,7 +140,33 @@ pub struct ViewerUi {
     log_progress: bool,
     /// How frames drawn on the GPU reach the screen, when they can.
     native_textures: Option<Box<dyn NativeTextures>>,
+    /// The training thread's recent schedule traces (wall seconds since
+    /// the window opened when each came), for "where the time goes".
+    schedule_recent: VecDeque<(f64, ScheduleTrace)>,
+    /// Every trace of the session added up.
+    schedule_total: ScheduleTrace,
+    /// See [`Self::schedule_log`].
+    schedule_log: Vec<(f64, f64, f64)>,
+    /// At most how often the window redraws while the camera rests
+    /// (`None`: whenever something changed); see [`Self::set_resting_redraw`].
+    resting_redraw: Option<Duration>,
+    /// Each frame shown: when (wall seconds since the window opened) and
+    /// what, for the frame log.
+    shown_log: Vec<(f64, ShownFrame)>,
 }
+
+/// What the timing column beside the stats shows (one column, so the
+/// plots keep their width).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TimingView {
+    /// The stages of a training step.
+    Stages,
+    /// Where the training thread's wall time goes.
+    Thread,
+}
+
+/// How many seconds of schedule traces the stats panel adds up.
+pub const SCHEDULE_WINDOW_SECONDS: f64 = 10.0;
 
 impl ViewerUi {
     /// A window talking to `link`, whose thread trains `model` first.
@@ -161,6 +189,7 @@ impl ViewerUi {
             camera: None,
             viewport: ViewportState::default(),
             plot_axis: PlotAxis::Step,
+            timing: TimingView::Thread,
             export: ExportDialog::default(),
             scene_path_text: String::new(),
             checkpoint_path_text: String::new(),
@@ -174,6 +203,11 @@ impl ViewerUi {
             last_logged_step: None,
             log_progress: false,
             native_textures: None,
+            schedule_recent: VecDeque::new(),
+            schedule_total: ScheduleTrace::default(),
+            schedule_log: Vec::new(),
+            resting_redraw: None,
+            shown_log: Vec::new(),
         }
     }
 
@@ -192,6 +226,14 @@ impl ViewerUi {
     /// can be measured without a mouse.
     pub fn set_auto_orbit(&mut self, on: bool) {
         self.auto_orbit = on;
+    }
+
+    /// Redraws at most every `interval` while the camera rests (it redraws
+    /// at once while it moves): the viewer asks this on a software
+    /// rasteriser, where a frame of the window costs a good part of a core
+    /// and redrawing on every stats event took as much CPU as training.
+    pub fn set_resting_redraw(&mut self, interval: Option<Duration>) {
+        self.resting_redraw = interval;
     }
 
     /// Names the adapter egui draws with, for the stats panel.
@@ -245,6 +287,65 @@ impl ViewerUi {
 
     pub fn viewport(&self) -> &ViewportState {
         &self.viewport
+    }
+
+    pub fn timing_view(&self) -> TimingView {
+        self.timing
+    }
+
+    pub fn set_timing_view(&mut self, view: TimingView) {
+        self.timing = view;
+    }
+
+    /// The training thread's schedule over about the last
+    /// [`SCHEDULE_WINDOW_SECONDS`] of wall time, if it sent any.
+    pub fn recent_schedule(&self) -> Option<ScheduleTrace> {
+        let mut sum: Option<ScheduleTrace> = None;
+        for (_, trace) in &self.schedule_recent {
+            sum.get_or_insert_with(ScheduleTrace::default).merge(trace);
+        }
+        sum
+    }
+
+    /// Every schedule trace of the session added up.
+    pub fn schedule_total(&self) -> &ScheduleTrace {
+        &self.schedule_total
+    }
+
+    /// Each frame shown, with when it came (wall seconds since the window
+    /// opened).
+    pub fn shown_log(&self) -> &[(f64, ShownFrame)] {
+        &self.shown_log
+    }
+
+    /// Training seconds the shown frame is behind its model's training
+    /// (as of the model's latest stats), when both are known.
+    pub fn shown_lag_seconds(&self) -> Option<f64> {
+        let shown = self.viewport.shown()?;
+        let latest = self.latest_stats(shown.model)?;
+        Some((latest.train_seconds - shown.train_seconds).max(0.0))
+    }
+
+    /// When each schedule trace came (wall seconds since the window
+    /// opened), with the wall and training seconds it covered: the share
+    /// over any stretch of the session.
+    pub fn schedule_log(&self) -> &[(f64, f64, f64)] {
+        &self.schedule_log
+    }
+
+    fn record_schedule(&mut self, trace: ScheduleTrace) {
+        let now = self.started.elapsed().as_secs_f64();
+        self.schedule_log
+            .push((now, trace.wall_seconds, trace.training_seconds));
+        self.schedule_total.merge(&trace);
+        self.schedule_recent.push_back((now, trace));
+        while self
+            .schedule_recent
+            .front()
+            .is_some_and(|(at, _)| now - at > SCHEDULE_WINDOW_SECONDS)
+        {
+            self.schedule_recent.pop_front();
+        }
     }
 
     /// True when a drag, a fly key, a scroll or the auto-orbit moved the
@@ -376,8 +477,13 @@ impl ViewerUi {
         // Training or a moving camera keeps the picture changing; the worker
         // may also wake us through its repaint callback, but a steady tick
         // keeps plots and stats live even without one.
-        if got_events || self.running || self.viewport.moving || self.auto_orbit {
+        if self.viewport.moving || self.auto_orbit {
             ctx.request_repaint();
+        } else if got_events || self.running {
+            match self.resting_redraw {
+                Some(interval) => ctx.request_repaint_after(interval),
+                None => ctx.request_repaint(),
+            }
         } else {
             ctx.request_repaint_after(Duration::from_millis(250));
         }
@@ -409,6 +515,7 @@ impl ViewerUi {
                 other => self.handle_event(other),
             }
         }
+        let shown_before = self.viewport.frames_shown;
         match (newest_frame, self.native_textures.as_deref_mut()) {
             (Some(NewFrame::Pixels(frame)), textures) => {
                 let released = self.viewport.show_frame(ctx, frame);
@@ -420,6 +527,12 @@ impl ViewerUi {
                 self.viewport.show_gpu_frame(frame, textures)
             }
             _ => {}
+        }
+        if self.viewport.frames_shown != shown_before
+            && let Some(shown) = self.viewport.shown()
+        {
+            self.shown_log
+                .push((self.started.elapsed().as_secs_f64(), shown));
         }
         count > 0
     }
@@ -465,6 +578,7 @@ impl ViewerUi {
             Event::InTurn(settings) => self.in_turn = settings,
             Event::Running(running) => self.running = running,
             Event::Stats(stats) => self.record_stats(stats),
+            Event::Schedule(trace) => self.record_schedule(trace),
             Event::Frame(_) | Event::GpuFrame(_) => {}
             Event::CheckpointSaved(path) => {
                 self.notice(format!("Saved checkpoint {}", path.display()), false);
@@ -574,8 +688,25 @@ impl ViewerUi {
         self.last_progress_log = Some(now);
         self.last_logged_step = Some((stats.model, stats.step));
         let psnr = |value: Option<f32>| value.map_or("-".to_string(), |v| format!("{v:.2}"));
+        let shown = match self.viewport.shown() {
+            Some(shown) => format!(
+                " shown step {} at 1/{} ({}x{}, {:.1}s of training behind)",
+                shown.step,
+                shown.downscale,
+                shown.width,
+                shown.height,
+                self.shown_lag_seconds().unwrap_or(0.0)
+            ),
+            None => String::new(),
+        };
+        let share = self
+            .recent_schedule()
+            .filter(|t| t.wall_seconds > 0.0)
+            .map_or(String::new(), |t| {
+                format!(" training share {:.2}", t.training_seconds / t.wall_seconds)
+            });
         eprintln!(
-            "zrak view: {} step {} loss {:.5} psnr {} val_psnr {} ms/step {:.1} wall {:.1}s",
+            "zrak view: {} step {} loss {:.5} psnr {} val_psnr {} ms/step {:.1} wall {:.1}s{shown}{share}",
             stats.model.name(),
             stats.step,
             stats.loss,

@@ -551,7 +551,29 @@ pub fn bottom_panel(state: &mut ViewerUi, ui: &mut egui::Ui) {
                 ui.separator();
                 ui.vertical(|ui| {
                     ui.set_width(200.0);
-                    stage_times(state, ui);
+                    ui.horizontal(|ui| {
+                        ui.selectable_value(
+                            &mut state.timing,
+                            super::TimingView::Stages,
+                            RichText::new("Time per stage").strong(),
+                        )
+                        .on_hover_text("The stages of a training step");
+                        ui.selectable_value(
+                            &mut state.timing,
+                            super::TimingView::Thread,
+                            RichText::new("Where the time goes").strong(),
+                        )
+                        .on_hover_text(format!(
+                            "The training thread's wall time over the last {:.0} s. While \
+                             the camera rests, training gets the training share of it; the \
+                             view and the held-out evaluation the rest.",
+                            super::SCHEDULE_WINDOW_SECONDS
+                        ));
+                    });
+                    match state.timing {
+                        super::TimingView::Stages => stage_times(state, ui),
+                        super::TimingView::Thread => thread_time(state, ui),
+                    }
                 });
                 ui.separator();
                 ui.vertical(|ui| {
@@ -656,7 +678,6 @@ fn stats(state: &ViewerUi, ui: &mut egui::Ui) {
 }
 
 fn stage_times(state: &ViewerUi, ui: &mut egui::Ui) {
-    ui.label(RichText::new("Time per stage").strong());
     let Some(stats) = state.latest_stats(state.active_model) else {
         ui.weak("no step yet");
         return;
@@ -684,6 +705,73 @@ fn stage_times(state: &ViewerUi, ui: &mut egui::Ui) {
                     .small()
                     .strong(),
             );
+            ui.end_row();
+        });
+}
+
+/// Where the training thread's wall time went over the last seconds:
+/// training (and of it the occupancy-grid updates), drawing each level of
+/// the view, held-out evaluation, waiting, and the rest.
+fn thread_time(state: &ViewerUi, ui: &mut egui::Ui) {
+    let Some(trace) = state.recent_schedule().filter(|t| t.wall_seconds > 0.0) else {
+        ui.weak("nothing yet");
+        return;
+    };
+    let wall = trace.wall_seconds;
+    let mut rows: Vec<(String, f64)> = vec![
+        (
+            format!("training ({} steps)", trace.steps),
+            trace.training_seconds,
+        ),
+        (
+            "  of it grid updates".to_string(),
+            trace.grid_update_seconds,
+        ),
+    ];
+    // The two levels that took the most time, coarse first, and the rest
+    // in one row: the column keeps its height (a taller one would grow
+    // the panel into the viewport), however many sizes the levels had.
+    let mut levels = trace.rendering.clone();
+    levels.sort_by(|a, b| b.seconds.total_cmp(&a.seconds));
+    let rest = levels.split_off(levels.len().min(2));
+    levels.sort_by_key(|level| std::cmp::Reverse(level.downscale));
+    for level in &levels {
+        let name = if level.downscale > 1 {
+            format!("render 1/{} (×{})", level.downscale, level.finished)
+        } else {
+            format!("render full (×{})", level.finished)
+        };
+        rows.push((name, level.seconds));
+    }
+    if !rest.is_empty() {
+        rows.push((
+            format!(
+                "render, {} other sizes (×{})",
+                rest.len(),
+                rest.iter().map(|l| l.finished).sum::<u32>()
+            ),
+            rest.iter().map(|l| l.seconds).sum(),
+        ));
+    }
+    rows.push((
+        format!("evaluation (×{})", trace.evaluations),
+        trace.evaluation_seconds,
+    ));
+    rows.push(("idle".to_string(), trace.idle_seconds));
+    rows.push(("other".to_string(), trace.other_seconds()));
+    egui::Grid::new("zrak thread time")
+        .num_columns(3)
+        .spacing([10.0, 1.0])
+        .striped(true)
+        .show(ui, |ui| {
+            for (name, seconds) in rows {
+                ui.label(RichText::new(name).small());
+                ui.label(RichText::new(format!("{seconds:.2} s")).small());
+                ui.label(RichText::new(format!("{:.0}%", 100.0 * seconds / wall)).small());
+                ui.end_row();
+            }
+            ui.label(RichText::new("wall").small().strong());
+            ui.label(RichText::new(format!("{wall:.1} s")).small().strong());
             ui.end_row();
         });
 }

@@ -127,6 +127,8 @@ pub struct ShownFrame {
     pub generation: u64,
     pub model: ModelKind,
     pub step: u32,
+    /// The model's training seconds when the frame's level began.
+    pub train_seconds: f64,
     pub downscale: u32,
     pub width: u32,
     pub height: u32,
@@ -226,6 +228,7 @@ impl ViewportState {
             generation: frame.generation,
             model: frame.model,
             step: frame.step,
+            train_seconds: frame.train_seconds,
             downscale: frame.downscale,
             width: frame.width,
             height: frame.height,
@@ -285,6 +288,7 @@ impl ViewportState {
             generation: frame.generation,
             model: frame.model,
             step: frame.step,
+            train_seconds: frame.train_seconds,
             downscale: frame.downscale,
             width: frame.width,
             height: frame.height,
@@ -649,7 +653,14 @@ pub fn show(ui_state: &mut ViewerUi, ui: &mut egui::Ui) {
 
     draw_images(ui_state, &painter, rect, comparing);
 
-    // What is on screen, in a corner.
+    // What is on screen, in a corner: the model, the step the picture
+    // shows and how far training has gone on since, and its resolution.
+    let lag = ui_state.shown_lag_seconds();
+    let trained_to = ui_state
+        .viewport
+        .shown
+        .and_then(|shown| ui_state.latest_stats(shown.model))
+        .map(|stats| stats.step);
     let state = &ui_state.viewport;
     let caption = match state.shown {
         Some(shown) => {
@@ -658,8 +669,14 @@ pub fn show(ui_state: &mut ViewerUi, ui: &mut egui::Ui) {
             } else {
                 "full resolution".to_string()
             };
+            let behind = match (trained_to, lag) {
+                (Some(step), Some(lag)) if step > shown.step => {
+                    format!(" (trained to {step}, {lag:.1} s of training on)")
+                }
+                _ => String::new(),
+            };
             format!(
-                "{} · step {} · {resolution} · {}×{}",
+                "{} · step {}{behind} · {resolution} · {}×{}",
                 shown.model.name(),
                 shown.step,
                 shown.width,

@@ -1,0 +1,183 @@
+//! `zrak demo`: the built-in demo scene written to a folder.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use clap::Args;
+use zrak::scene::demo::{self, DemoConfig};
+
+use super::{MAX_IMAGE_SIDE, render_bytes_per_view};
+
+#[derive(Args, Debug)]
+pub struct DemoArgs {
+    /// The folder to write (created if missing).
+    #[arg(long)]
+    out: PathBuf,
+    /// Width and height of every image, in pixels.
+    #[arg(long, default_value_t = DemoConfig::default().size)]
+    size: u32,
+    /// Number of training views (val and test get a tenth each, at least one).
+    #[arg(long, default_value_t = DemoConfig::default().train_views)]
+    views: usize,
+    /// The large-extent variant: an opaque backdrop sphere around the
+    /// objects, aabb_scale 8, written as an instant-ngp transforms.json.
+    #[arg(long)]
+    large: bool,
+    /// Write into a folder that is not empty, replacing the scene's
+    /// files there (others are left alone).
+    #[arg(long)]
+    force: bool,
+}
+
+/// The demo scene's settings for `--size` and `--views`, refused when out
+/// of range or when its photographs would not fit in memory.
+fn demo_config(size: u32, views: usize) -> anyhow::Result<DemoConfig> {
+    anyhow::ensure!(
+        (8..=MAX_IMAGE_SIDE).contains(&size),
+        "--size must be 8 to {MAX_IMAGE_SIDE} pixels, got {size}"
+    );
+    anyhow::ensure!(
+        (1..=100_000).contains(&views),
+        "--views must be 1 to 100000, got {views}"
+    );
+    let held_out = (views / 10).max(1);
+    // Every view's photograph is held in memory (4 bytes a pixel) and
+    // rendered on every thread at once.
+    let pixels = size as u64 * size as u64;
+    let bytes = (views + 2 * held_out) as u64 * pixels * 4
+        + rayon::current_num_threads() as u64 * render_bytes_per_view(size, size);
+    zrak::files::check_memory(
+        &format!(
+            "the demo scene at --size {size} with {} views",
+            views + 2 * held_out
+        ),
+        bytes,
+    )
+    .map_err(anyhow::Error::msg)?;
+    Ok(DemoConfig {
+        size,
+        train_views: views,
+        val_views: held_out,
+        test_views: held_out,
+    })
+}
+
+pub fn write_demo(args: DemoArgs) -> anyhow::Result<()> {
+    let DemoArgs {
+        out,
+        size,
+        views,
+        large,
+        force,
+    } = args;
+    let config = demo_config(size, views)?;
+    if !force {
+        refuse_a_folder_in_use(&out)?;
+    }
+    let started = Instant::now();
+    if large {
+        demo::write_large(&config, &out).context("writing the large demo scene")?;
+    } else {
+        demo::write(&config, &out).context("writing the demo scene")?;
+    }
+    println!(
+        "wrote the demo scene to {} ({} / {} / {} views at {size}×{size}) in {:.2} s",
+        out.display(),
+        config.train_views,
+        config.val_views,
+        config.test_views,
+        started.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+/// Refuses an `--out` that holds files, or that is something other than a
+/// folder; one that is missing is made when the scene is written.
+fn refuse_a_folder_in_use(out: &Path) -> anyhow::Result<()> {
+    match std::fs::read_dir(out) {
+        Ok(mut entries) => {
+            if entries.next().is_some() {
+                bail!(
+                    "{} is not empty; give another --out, or --force to write the demo \
+                     scene's files over those of the same names there",
+                    out.display()
+                );
+            }
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+        Err(_) if zrak::files::exists_at_all(out) => bail!(
+            "{}: cannot write the demo scene there: {}",
+            out.display(),
+            zrak::files::describe_not_a_folder(out)
+        ),
+        Err(_) => {}
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cli::parse_args;
+
+    #[test]
+    fn the_demo_defaults_are_the_built_in_scenes() {
+        let args: DemoArgs = parse_args(&["--out", "scene"]).unwrap();
+        assert_eq!(args.out, PathBuf::from("scene"));
+        assert_eq!(args.size, DemoConfig::default().size);
+        assert_eq!(args.views, DemoConfig::default().train_views);
+        assert!(!args.large && !args.force);
+        let error = parse_args::<DemoArgs>(&["--size", "64"]).unwrap_err();
+        assert_eq!(
+            error.kind(),
+            clap::error::ErrorKind::MissingRequiredArgument
+        );
+        assert!(error.to_string().contains("--out <OUT>"), "{error}");
+    }
+
+    #[test]
+    fn held_out_splits_get_a_tenth_of_the_views_and_at_least_one() {
+        let config = demo_config(32, 30).unwrap();
+        assert_eq!(
+            (config.train_views, config.val_views, config.test_views),
+            (30, 3, 3)
+        );
+        let config = demo_config(32, 5).unwrap();
+        assert_eq!((config.val_views, config.test_views), (1, 1));
+    }
+
+    #[test]
+    fn demo_sizes_and_view_counts_out_of_range_are_refused() {
+        assert_eq!(
+            demo_config(7, 10).unwrap_err().to_string(),
+            "--size must be 8 to 16384 pixels, got 7"
+        );
+        assert_eq!(
+            demo_config(16385, 10).unwrap_err().to_string(),
+            "--size must be 8 to 16384 pixels, got 16385"
+        );
+        assert_eq!(
+            demo_config(32, 0).unwrap_err().to_string(),
+            "--views must be 1 to 100000, got 0"
+        );
+        assert!(demo_config(8, 100_000).is_ok());
+    }
+
+    #[test]
+    fn only_an_empty_or_missing_folder_takes_the_demo_without_force() {
+        let dir = tempfile::tempdir().unwrap();
+        assert!(refuse_a_folder_in_use(&dir.path().join("new")).is_ok());
+        assert!(refuse_a_folder_in_use(dir.path()).is_ok());
+        std::fs::write(dir.path().join("notes.txt"), "mine").unwrap();
+        let error = refuse_a_folder_in_use(dir.path()).unwrap_err().to_string();
+        assert!(error.ends_with("is not empty; give another --out, or --force to write the demo scene's files over those of the same names there"), "{error}");
+        let error = refuse_a_folder_in_use(&dir.path().join("notes.txt"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("cannot write the demo scene there"),
+            "{error}"
+        );
+    }
+}

@@ -1,0 +1,353 @@
+//! `zrak render`: a trained run's views, or a turntable around its scene,
+//! written as PNG files (and a GIF).
+
+use std::path::PathBuf;
+
+use anyhow::{Context, bail};
+use clap::Args;
+use indicatif::ProgressBar;
+use zrak::engine::EngineKind;
+use zrak::interrupt::{self, note};
+use zrak::render::export::{ExportSettings, export_turntable};
+use zrak::render::path::Turntable;
+use zrak::render::{RenderMode, render_pixels, to_image};
+use zrak::scene::{Camera, Split};
+use zrak::train::run::RunFolder;
+
+use super::run_config::restore_run;
+use super::{MAX_IMAGE_SIDE, render_bytes_per_view};
+
+#[derive(Args, Debug)]
+pub struct RenderArgs {
+    /// The run folder written by `zrak train`.
+    run: PathBuf,
+    /// Render the camera of this view of `--split`.
+    #[arg(long, conflicts_with = "turntable")]
+    view: Option<usize>,
+    #[arg(long, value_enum, default_value_t = Split::Val)]
+    split: Split,
+    /// Render a turntable of this many frames.
+    #[arg(long)]
+    turntable: Option<usize>,
+    /// Turntable elevation in degrees.
+    #[arg(long, default_value_t = 30.0)]
+    elevation: f32,
+    /// Turntable radius (default: the training cameras' mean distance).
+    #[arg(long)]
+    radius: Option<f32>,
+    /// Turntable image size in pixels (default: the training images').
+    #[arg(long)]
+    size: Option<u32>,
+    /// Also write the turntable as an animated GIF (`turntable.gif`).
+    #[arg(long)]
+    gif: bool,
+    #[arg(long, value_enum, default_value_t = RenderMode::Rgb)]
+    mode: RenderMode,
+    /// Output folder (created if missing; images already there are kept
+    /// unless --force).
+    #[arg(long)]
+    out: PathBuf,
+    #[arg(long, value_enum)]
+    engine: Option<EngineKind>,
+    /// Replace images of the same names already in --out.
+    #[arg(long)]
+    force: bool,
+}
+
+/// The largest turntable: 10⁵ frames (over an hour of video at 25 frames a
+/// second); the frames' cameras are placed up front.
+const MAX_TURNTABLE_FRAMES: usize = 100_000;
+
+impl RenderArgs {
+    /// The turntable these arguments ask for, if any.
+    fn turntable_settings(&self, frames: usize) -> ExportSettings {
+        ExportSettings {
+            turntable: Turntable {
+                frames,
+                elevation_degrees: self.elevation,
+                radius: self.radius,
+                size: self.size.map(|s| (s, s)),
+            },
+            mode: self.mode,
+            out_dir: self.out.clone(),
+            write_gif: self.gif,
+        }
+    }
+
+    /// The files this render writes, as far as they are known before the
+    /// run loads.
+    fn outputs(&self) -> Vec<PathBuf> {
+        match (self.view, self.turntable) {
+            (Some(view), None) => vec![
+                self.out
+                    .join(format!("{}_{view:03}.png", self.split.name())),
+            ],
+            (None, Some(frames)) => {
+                let settings = self.turntable_settings(frames);
+                let mut paths: Vec<PathBuf> = (0..frames).map(|i| settings.frame_path(i)).collect();
+                if self.gif {
+                    paths.push(settings.gif_path());
+                }
+                paths
+            }
+            _ => Vec::new(),
+        }
+    }
+}
+
+/// Refuses render settings that could never finish or would abort on an
+/// allocation, before the run loads; then images of the same names in
+/// --out, unless --force.
+fn check_render_args(args: &RenderArgs) -> anyhow::Result<()> {
+    if let Some(frames) = args.turntable {
+        anyhow::ensure!(
+            (1..=MAX_TURNTABLE_FRAMES).contains(&frames),
+            "--turntable must be 1 to {MAX_TURNTABLE_FRAMES} frames, got {frames}"
+        );
+    }
+    if let Some(size) = args.size {
+        anyhow::ensure!(
+            (1..=MAX_IMAGE_SIDE).contains(&size),
+            "--size must be 1 to {MAX_IMAGE_SIDE} pixels, got {size}"
+        );
+        // One frame renders at a time; the GIF encoder keeps a copy of it.
+        let bytes = render_bytes_per_view(size, size)
+            + if args.gif {
+                size as u64 * size as u64 * 8
+            } else {
+                0
+            };
+        zrak::files::check_memory(&format!("a {size}×{size} frame"), bytes)
+            .map_err(anyhow::Error::msg)?;
+    }
+    anyhow::ensure!(
+        args.elevation.is_finite(),
+        "--elevation must be a number of degrees, got {}",
+        args.elevation
+    );
+    if let Some(radius) = args.radius {
+        anyhow::ensure!(
+            radius.is_finite() && radius > 0.0,
+            "--radius must be a positive distance, got {radius}"
+        );
+    }
+    if args.force {
+        return Ok(());
+    }
+    let outputs = args.outputs();
+    let existing: Vec<&PathBuf> = outputs
+        .iter()
+        .filter(|p| zrak::files::exists_at_all(p))
+        .collect();
+    if let Some(first) = existing.first() {
+        bail!(
+            "{} already exists{}; give --force to replace this render's files, or another --out",
+            first.display(),
+            match existing.len() {
+                1 => String::new(),
+                n => format!(" (and {} more of the files this render writes)", n - 1),
+            }
+        );
+    }
+    Ok(())
+}
+
+pub fn render(args: RenderArgs) -> anyhow::Result<()> {
+    check_render_args(&args)?;
+    let folder = RunFolder::open(&args.run).map_err(anyhow::Error::msg)?;
+    let (_, trainer) = restore_run(&folder, args.engine, None)?;
+    let scene = &trainer.scene;
+    if args.size.is_none()
+        && let Some((width, height)) = scene.resolution()
+    {
+        zrak::files::check_memory(
+            &format!("a {width}×{height} frame"),
+            render_bytes_per_view(width, height),
+        )
+        .map_err(anyhow::Error::msg)?;
+    }
+    let cameras: Vec<(String, Camera)> = match (args.view, args.turntable) {
+        (Some(view), None) => {
+            anyhow::ensure!(!args.gif, "--gif goes with --turntable FRAMES, not --view");
+            let frames = scene.split(args.split);
+            let frame = frames.get(view).with_context(|| {
+                format!(
+                    "the {} split has {} views; there is no view {view}",
+                    args.split.name(),
+                    frames.len()
+                )
+            })?;
+            vec![(format!("{}_{view:03}", args.split.name()), frame.camera)]
+        }
+        (None, Some(frames)) => {
+            anyhow::ensure!(frames >= 1, "--turntable needs at least one frame");
+            let bar = ProgressBar::new(frames as u64);
+            let mut frames_done = 0;
+            let exported = export_turntable(
+                trainer.model.as_ref(),
+                scene,
+                args.turntable_settings(frames),
+                interrupt::flag(),
+                &mut |done, _| {
+                    frames_done = done;
+                    bar.set_position(done as u64);
+                },
+            );
+            if interrupt::requested() {
+                bar.abandon();
+                note(&format!(
+                    "interrupted after {frames_done} of {frames} frames; those are in {} \
+                     (no GIF)",
+                    args.out.display()
+                ));
+                return Ok(());
+            }
+            let written = exported.map_err(anyhow::Error::msg)?;
+            bar.finish();
+            println!("wrote {} files to {}", written.len(), args.out.display());
+            return Ok(());
+        }
+        _ => bail!("give --view N or --turntable FRAMES"),
+    };
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("{}: cannot create the output folder", args.out.display()))?;
+    let depth_range = scene.depth_range();
+    let bar = ProgressBar::new(cameras.len() as u64);
+    for (name, camera) in &cameras {
+        let pixels = render_pixels(trainer.model.as_ref(), camera, [1.0; 3]);
+        let k = camera.intrinsics;
+        let image = to_image(&pixels, k.width, k.height, args.mode, depth_range);
+        let path = args.out.join(format!("{name}.png"));
+        image.save_png(&path)?;
+        bar.inc(1);
+    }
+    bar.finish();
+    println!("wrote {} images to {}", cameras.len(), args.out.display());
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cli::parse_args;
+    use clap::error::ErrorKind;
+
+    fn render_args(args: &[&str]) -> RenderArgs {
+        parse_args(args).unwrap_or_else(|e| panic!("{args:?}: {e}"))
+    }
+
+    #[test]
+    fn render_defaults() {
+        let args = render_args(&["RUN", "--view", "0", "--out", "frames"]);
+        assert_eq!(args.run, PathBuf::from("RUN"));
+        assert_eq!(args.view, Some(0));
+        assert_eq!(args.split, Split::Val);
+        assert_eq!(args.turntable, None);
+        assert_eq!(args.elevation, 30.0);
+        assert_eq!((args.radius, args.size), (None, None));
+        assert_eq!(args.mode, RenderMode::Rgb);
+        assert!(!args.gif && !args.force);
+    }
+
+    #[test]
+    fn a_view_and_a_turntable_cannot_both_be_asked_for() {
+        let error = parse_args::<RenderArgs>(&[
+            "RUN",
+            "--view",
+            "0",
+            "--turntable",
+            "8",
+            "--out",
+            "frames",
+        ])
+        .unwrap_err();
+        assert_eq!(error.kind(), ErrorKind::ArgumentConflict);
+        let message = error.to_string();
+        assert!(
+            message.contains("--view <VIEW>") && message.contains("--turntable <TURNTABLE>"),
+            "{message}"
+        );
+    }
+
+    #[test]
+    fn settings_that_could_never_finish_are_refused_before_the_run_loads() {
+        let refusal = |args: &[&str]| {
+            check_render_args(&render_args(args))
+                .unwrap_err()
+                .to_string()
+        };
+        assert_eq!(
+            refusal(&["RUN", "--turntable", "0", "--out", "f"]),
+            "--turntable must be 1 to 100000 frames, got 0"
+        );
+        assert_eq!(
+            refusal(&["RUN", "--turntable", "100001", "--out", "f"]),
+            "--turntable must be 1 to 100000 frames, got 100001"
+        );
+        assert_eq!(
+            refusal(&["RUN", "--turntable", "4", "--size", "0", "--out", "f"]),
+            "--size must be 1 to 16384 pixels, got 0"
+        );
+        assert_eq!(
+            refusal(&[
+                "RUN",
+                "--turntable",
+                "4",
+                "--elevation",
+                "NaN",
+                "--out",
+                "f"
+            ]),
+            "--elevation must be a number of degrees, got NaN"
+        );
+        assert_eq!(
+            refusal(&["RUN", "--turntable", "4", "--radius=-1", "--out", "f"]),
+            "--radius must be a positive distance, got -1"
+        );
+        assert!(
+            check_render_args(&render_args(&["RUN", "--turntable", "4", "--out", "f"])).is_ok()
+        );
+    }
+
+    #[test]
+    fn images_already_in_out_are_kept_unless_force() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().display().to_string();
+        let view = ["RUN", "--view", "2", "--split", "test", "--out", &out];
+        assert_eq!(
+            render_args(&view).outputs(),
+            vec![dir.path().join("test_002.png")]
+        );
+        assert!(check_render_args(&render_args(&view)).is_ok());
+        std::fs::write(dir.path().join("test_002.png"), "").unwrap();
+        let error = check_render_args(&render_args(&view))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.ends_with(
+                "test_002.png already exists; give --force to replace this render's files, \
+                 or another --out"
+            ),
+            "{error}"
+        );
+        let mut forced = view.to_vec();
+        forced.push("--force");
+        assert!(check_render_args(&render_args(&forced)).is_ok());
+
+        // A turntable writes its frames and, with --gif, the GIF.
+        let turntable = ["RUN", "--turntable", "3", "--gif", "--out", &out];
+        let outputs = render_args(&turntable).outputs();
+        assert_eq!(outputs.len(), 4);
+        assert_eq!(outputs[3], dir.path().join("turntable.gif"));
+        for path in &outputs[..2] {
+            std::fs::write(path, "").unwrap();
+        }
+        let error = check_render_args(&render_args(&turntable))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("already exists (and 1 more of the files this render writes)"),
+            "{error}"
+        );
+    }
+}
