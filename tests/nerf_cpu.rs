@@ -338,7 +338,13 @@ fn checkpoint_of_the_other_sampler_or_model_is_refused() {
         error.contains("parameters") || error.contains("sampling"),
         "{error}"
     );
-    let ngp = zrak::engine::cpu::ngp::CpuNgp::with_batch_samples(&scene, 1, LossKind::L2, 1 << 12);
+    let ngp = zrak::train::cpu_ngp_with_shape(
+        &scene,
+        zrak::engine::cpu::fields::ngp::NgpShape::for_scene(&scene),
+        1,
+        LossKind::L2,
+        Some(1 << 12),
+    );
     let error = model(&scene, Sampling::Occupancy)
         .load(&ngp.save())
         .unwrap_err();

@@ -43,19 +43,7 @@ pub fn build_model(
     settings: &ModelSettings,
 ) -> Result<Box<dyn RadianceModel>, String> {
     match (kind, engine.kind) {
-        (ModelKind::Ngp, EngineKind::Cpu) => {
-            let samples = settings
-                .batch_samples
-                .unwrap_or(crate::field::ngp::SAMPLES_PER_BATCH);
-            let shape = crate::engine::cpu::ngp::NgpShape::for_scene(scene)
-                .with_precision(settings.precision);
-            Ok(Box::new(crate::engine::cpu::ngp::CpuNgp::with_shape(
-                shape,
-                settings.seed,
-                settings.loss,
-                samples,
-            )))
-        }
+        (ModelKind::Ngp, EngineKind::Cpu) => Ok(Box::new(cpu_ngp(scene, settings))),
         (ModelKind::Ngp, EngineKind::Gpu) => {
             let context = engine
                 .gpu
