@@ -6,7 +6,7 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use zrak::engine::cpu::ngp::CpuNgp;
+use zrak::engine::cpu::model::CpuModel;
 use zrak::field::ngp::LossKind;
 use zrak::scene::demo::{self, DemoConfig};
 use zrak::scene::{Lens, Scene};
@@ -36,7 +36,13 @@ fn train_and_score(scene: Scene, held_out: &Scene) -> f64 {
     let steps = env_or("ZRAK_CAPTURES_STEPS", 120u32);
     let batch = env_or("ZRAK_CAPTURES_BATCH", 1usize << 14);
     let scene = Arc::new(scene);
-    let model = CpuNgp::with_batch_samples(&scene, 0, LossKind::Huber, batch);
+    let model = zrak::train::cpu_ngp_with_shape(
+        &scene,
+        zrak::engine::cpu::fields::ngp::NgpShape::for_scene(&scene),
+        0,
+        LossKind::Huber,
+        Some(batch),
+    );
     let mut trainer = Trainer::new(Box::new(model), scene.clone(), 0);
     let started = Instant::now();
     while trainer.step < steps {
@@ -315,7 +321,13 @@ fn large_demo_figures() {
         val_views: 5,
         test_views: 1,
     }));
-    let model = CpuNgp::with_batch_samples(&scene, 0, LossKind::Huber, 1 << 18);
+    let model = zrak::train::cpu_ngp_with_shape(
+        &scene,
+        zrak::engine::cpu::fields::ngp::NgpShape::for_scene(&scene),
+        0,
+        LossKind::Huber,
+        Some(1 << 18),
+    );
     let mut trainer = Trainer::new(Box::new(model), scene.clone(), 0);
     let mut window = (0usize, 0usize, 0u32, 0f64);
     let mut next_report = 15.0;
@@ -352,14 +364,20 @@ fn large_demo_figures() {
 
 /// The Instant-NGP model of the run in `ZRAK_GRID_RUN` (a run of `zrak
 /// train` on the scene `zrak demo --large` writes), loaded for `scene`.
-fn model_of_run(scene: &Scene) -> CpuNgp {
+fn model_of_run(scene: &Scene) -> CpuModel {
     use zrak::train::checkpoint::Checkpoint;
     use zrak::train::model::RadianceModel;
     let run = std::path::PathBuf::from(std::env::var("ZRAK_GRID_RUN").expect("ZRAK_GRID_RUN"));
     let mut checkpoint = Checkpoint::load(&run.join("checkpoint.zrak")).expect("checkpoint");
     // A run's checkpoint holds the trainer's state beside the model's.
     checkpoint.header = checkpoint.header["model"].clone();
-    let mut model = CpuNgp::with_batch_samples(scene, 0, LossKind::Huber, 1 << 18);
+    let mut model = zrak::train::cpu_ngp_with_shape(
+        scene,
+        zrak::engine::cpu::fields::ngp::NgpShape::for_scene(scene),
+        0,
+        LossKind::Huber,
+        Some(1 << 18),
+    );
     model
         .load(&checkpoint)
         .expect("an Instant-NGP checkpoint of this scene");
@@ -377,7 +395,7 @@ fn large_demo_grid_by_cascade() {
     use zrak::field::ngp::MarchConfig;
     let scene = demo::build_large(&DemoConfig::default());
     let model = model_of_run(&scene);
-    let grid = model.occupancy();
+    let grid = model.occupancy().expect("Instant-NGP has a grid");
     let geometry = grid.geometry();
     let per = geometry.cells_per_cascade();
     for cascade in 0..geometry.cascades as usize {
@@ -426,7 +444,7 @@ fn large_demo_occupied_cells_now() {
         test_views: 1,
     });
     let model = model_of_run(&scene);
-    let grid = model.occupancy();
+    let grid = model.occupancy().expect("Instant-NGP has a grid");
     let geometry = grid.geometry();
     let per = geometry.cells_per_cascade();
     let backdrop = demo::BACKDROP_RADIUS * scene.unit_cube.scale;
@@ -548,7 +566,7 @@ fn large_demo_weight_by_distance() {
     use zrak::field::ngp::MarchConfig;
     let scene = demo::build_large(&DemoConfig::default());
     let model = model_of_run(&scene);
-    let marched = march_training_rays(&scene, model.occupancy(), MarchConfig::PAPER, 4000);
+    let marched = march_training_rays(&scene, model.occupancy().unwrap(), MarchConfig::PAPER, 4000);
     let (out, stats) = (&marched.samples, marched.stats);
     let sigma = model.densities(&out.positions);
     let edges = [

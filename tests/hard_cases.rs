@@ -30,9 +30,9 @@ use glam::Vec3;
 use zrak::engine::EngineKind;
 use zrak::engine::cpu::dense::Precision;
 use zrak::engine::cpu::fields::nerf::NerfShape;
+use zrak::engine::cpu::fields::ngp::NgpShape;
 use zrak::engine::cpu::hash_grid::HashGridLayout;
 use zrak::engine::cpu::model::CpuModel;
-use zrak::engine::cpu::ngp::{CpuNgp, NgpShape};
 use zrak::engine::cpu::occupancy::GridGeometry;
 use zrak::engine::gpu::model::GpuModel;
 use zrak::engine::gpu::ngp::GpuNgp;
@@ -63,12 +63,6 @@ const BALL_RADIUS: f32 = 0.15;
 /// step wrote.
 trait Probe: RadianceModel {
     fn gradient(&self) -> Vec<f32>;
-}
-
-impl Probe for CpuNgp {
-    fn gradient(&self) -> Vec<f32> {
-        self.gradients().to_vec()
-    }
 }
 
 impl Probe for CpuModel {
@@ -277,11 +271,12 @@ fn rows() -> Vec<Row> {
             name: "Instant-NGP (cpu)",
             engine: Cpu,
             build: |scene| {
-                Box::new(CpuNgp::with_shape(
+                Box::new(zrak::train::cpu_ngp_with_shape(
+                    scene,
                     small_ngp_shape(scene),
                     SEED,
                     LossKind::Huber,
-                    BATCH_SAMPLES,
+                    Some(BATCH_SAMPLES),
                 ))
             },
             layout: ngp_layout,
@@ -344,11 +339,12 @@ fn rows() -> Vec<Row> {
             name: "Instant-NGP, mixed precision (cpu)",
             engine: Cpu,
             build: |scene| {
-                Box::new(CpuNgp::with_shape(
+                Box::new(zrak::train::cpu_ngp_with_shape(
+                    scene,
                     small_ngp_shape(scene).with_precision(Precision::Mixed),
                     SEED,
                     LossKind::Huber,
-                    BATCH_SAMPLES,
+                    Some(BATCH_SAMPLES),
                 ))
             },
             layout: ngp_layout,

@@ -9,8 +9,8 @@ use std::sync::Arc;
 
 use common::{NerfKind, batch, small_nerf_shape};
 use glam::Vec3;
-use zrak::engine::cpu::fields::Field;
 use zrak::engine::cpu::fields::nerf::NerfField;
+use zrak::engine::cpu::fields::{Field, Gradient};
 use zrak::engine::cpu::model::CpuModel;
 use zrak::field::nerf::Sampling;
 use zrak::field::ngp::LossKind;
@@ -114,7 +114,7 @@ fn check_field_gradient(kind: NerfKind) {
     };
     let _ = loss(&mut field, &params);
     let mut gradient = vec![0f32; params.len()];
-    field.backward(&params, &a, &b, &mut gradient);
+    field.backward(&params, &a, &b, &mut gradient, Gradient::Add);
 
     // The forward pass agrees with inference and with the σ-only pass.
     let (mut sigma, mut rgb) = (vec![0f32; n], vec![0f32; 3 * n]);
@@ -338,7 +338,13 @@ fn checkpoint_of_the_other_sampler_or_model_is_refused() {
         error.contains("parameters") || error.contains("sampling"),
         "{error}"
     );
-    let ngp = zrak::engine::cpu::ngp::CpuNgp::with_batch_samples(&scene, 1, LossKind::L2, 1 << 12);
+    let ngp = zrak::train::cpu_ngp_with_shape(
+        &scene,
+        zrak::engine::cpu::fields::ngp::NgpShape::for_scene(&scene),
+        1,
+        LossKind::L2,
+        Some(1 << 12),
+    );
     let error = model(&scene, Sampling::Occupancy)
         .load(&ngp.save())
         .unwrap_err();

@@ -46,8 +46,8 @@
 //! colour layer, and σ_raw under the ReLU density) are redrawn.
 
 use zrak::engine::cpu::dense::{Activation, MlpLayout};
-use zrak::engine::cpu::fields::Field;
 use zrak::engine::cpu::fields::nerf::{DensityActivation, NerfField, NerfShape};
+use zrak::engine::cpu::fields::{Field, Gradient};
 use zrak::engine::cpu::frequency::{FrequencyEncoding, encode};
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::fields::nerf::GpuNerfField;
@@ -506,7 +506,7 @@ fn check_parity(shape: &NerfShape, rows: usize, seed: u64) {
     let (mut sigma, mut rgb) = (vec![0.0; rows], vec![0.0; 3 * rows]);
     cpu.forward(&params, &positions, None, &directions, &mut sigma, &mut rgb);
     let mut grad = vec![0.0; params.len()];
-    cpu.backward(&params, &d_sigma, &d_rgb, &mut grad);
+    cpu.backward(&params, &d_sigma, &d_rgb, &mut grad, Gradient::Add);
     let mut cpu_density = vec![0.0; rows];
     cpu.density(&params, &positions, None, &mut cpu_density);
 

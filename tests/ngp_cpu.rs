@@ -8,7 +8,7 @@ mod common;
 use std::sync::Arc;
 
 use common::batch;
-use zrak::engine::cpu::ngp::CpuNgp;
+use zrak::engine::cpu::model::CpuModel;
 use zrak::field::ngp::LossKind;
 use zrak::scene::Scene;
 use zrak::scene::demo::{self, DemoConfig};
@@ -20,8 +20,14 @@ fn small_scene() -> Arc<Scene> {
     common::small_scene(32)
 }
 
-fn model(scene: &Scene) -> CpuNgp {
-    CpuNgp::with_batch_samples(scene, 3, LossKind::Huber, 1 << 13)
+fn model(scene: &Scene) -> CpuModel {
+    zrak::train::cpu_ngp_with_shape(
+        scene,
+        zrak::engine::cpu::fields::ngp::NgpShape::for_scene(scene),
+        3,
+        LossKind::Huber,
+        Some(1 << 13),
+    )
 }
 
 #[test]
@@ -42,9 +48,11 @@ fn chained_gradient_matches_finite_differences() {
     let stats = ngp.forward_backward(&rays, step);
     assert!(stats.samples > 1000, "{stats:?}");
     let gradient = ngp.gradients().to_vec();
-    let loss_at = |ngp: &mut CpuNgp| ngp.forward_backward(&rays, step).loss as f64;
+    let loss_at = |ngp: &mut CpuModel| ngp.forward_backward(&rays, step).loss as f64;
 
-    for (name, range) in ngp.parameter_ranges() {
+    let parts = ngp.layout().parts().to_vec();
+    for part in parts {
+        let (name, range) = (part.name, part.range);
         // The parameters with the largest gradients in this part: there the
         // signal stands far above f32 rounding noise in the loss.
         let mut order: Vec<usize> = range.clone().collect();
@@ -140,9 +148,9 @@ fn training_recovers_from_an_emptied_occupancy_grid() {
     // A bad step that left every cell empty: values 0 everywhere.
     let mut ngp = model(&scene);
     ngp.load(&trainer.model.save()).unwrap();
-    ngp.occupancy_mut().values_mut().fill(0.0);
-    ngp.occupancy_mut().build_bitfield();
-    assert_eq!(ngp.occupancy().occupied_count(), 0);
+    ngp.occupancy_mut().unwrap().values_mut().fill(0.0);
+    ngp.occupancy_mut().unwrap().build_bitfield();
+    assert_eq!(ngp.occupancy().unwrap().occupied_count(), 0);
     let mut trainer = Trainer::new(Box::new(ngp), scene.clone(), 9);
     trainer.step = 41;
     let stats = trainer.step();

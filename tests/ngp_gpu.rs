@@ -10,7 +10,7 @@ use std::time::Instant;
 
 use common::{batch, relative, relative_norm};
 use glam::Vec3;
-use zrak::engine::cpu::ngp::CpuNgp;
+use zrak::engine::cpu::model::CpuModel;
 use zrak::engine::gpu::ngp::GpuNgp;
 use zrak::engine::gpu::timing::StageTiming;
 use zrak::field::ngp::LossKind;
@@ -25,8 +25,14 @@ fn small_scene() -> Arc<Scene> {
     common::small_scene(32)
 }
 
-fn models(scene: &Scene) -> (CpuNgp, GpuNgp) {
-    let cpu = CpuNgp::with_batch_samples(scene, SEED, LossKind::Huber, BATCH_SAMPLES);
+fn models(scene: &Scene) -> (CpuModel, GpuNgp) {
+    let cpu = zrak::train::cpu_ngp_with_shape(
+        scene,
+        zrak::engine::cpu::fields::ngp::NgpShape::for_scene(scene),
+        SEED,
+        LossKind::Huber,
+        Some(BATCH_SAMPLES),
+    );
     let context = common::gpu_context();
     let mut gpu = GpuNgp::with_batch_samples(context, scene, SEED, LossKind::Huber, BATCH_SAMPLES)
         .expect("gpu model");
@@ -40,9 +46,9 @@ fn models(scene: &Scene) -> (CpuNgp, GpuNgp) {
 /// cpu model, which also checks that one loads into the other): occupied
 /// inside a ball around the centre, so rays get ~20 samples and ~170 fit
 /// the budget, instead of the untrained grid's ~1000 samples for 4 rays.
-fn share_ball_grid(cpu: &mut CpuNgp, gpu: &mut GpuNgp) {
+fn share_ball_grid(cpu: &mut CpuModel, gpu: &mut GpuNgp) {
     {
-        let grid = cpu.occupancy_mut();
+        let grid = cpu.occupancy_mut().expect("Instant-NGP has a grid");
         let geometry = grid.geometry();
         for (i, v) in grid.values_mut().iter_mut().enumerate() {
             let cell = geometry.cell_at(i);
@@ -56,7 +62,10 @@ fn share_ball_grid(cpu: &mut CpuNgp, gpu: &mut GpuNgp) {
         grid.build_bitfield();
     }
     gpu.load(&cpu.save()).unwrap();
-    assert_eq!(gpu.occupancy().bitfield(), cpu.occupancy().bitfield());
+    assert_eq!(
+        gpu.occupancy().bitfield(),
+        cpu.occupancy().unwrap().bitfield()
+    );
 }
 
 #[test]
@@ -86,7 +95,12 @@ fn one_training_step_matches_the_cpu_engine() {
     assert!(cpu_stats.rays >= 20, "{cpu_stats:?}");
     let cpu_gradient = cpu.gradients().to_vec();
     let gpu_gradient = gpu.gradients();
-    let ranges: Vec<(&str, Range<usize>)> = cpu.parameter_ranges().into_iter().collect();
+    let ranges: Vec<(String, Range<usize>)> = cpu
+        .layout()
+        .parts()
+        .iter()
+        .map(|part| (part.name.clone(), part.range.clone()))
+        .collect();
     for (name, range) in &ranges {
         let error = relative_norm(&gpu_gradient[range.clone()], &cpu_gradient[range.clone()]);
         println!("gradient of the {name}: relative error {error:.2e}");
@@ -239,7 +253,7 @@ fn a_gpu_checkpoint_renders_the_same_pixels_on_the_cpu_engine() {
     let checkpoint = gpu.save();
     cpu.load(&checkpoint).unwrap();
     assert!(cpu.params() == gpu.params().as_slice());
-    assert_eq!(cpu.occupancy().values(), gpu.occupancy().values());
+    assert_eq!(cpu.occupancy().unwrap().values(), gpu.occupancy().values());
     let from_cpu = render_view(&cpu, &scene);
     let from_gpu = render_view(&gpu, &scene);
     let mut worst = 0f32;
@@ -278,7 +292,7 @@ fn occupancy_update_matches_the_cpu_engine() {
         "gpu step 0 with the full grid update: {:.0} ms",
         clock.elapsed().as_secs_f64() * 1e3
     );
-    let (c, g) = (cpu.occupancy(), gpu.occupancy());
+    let (c, g) = (cpu.occupancy().unwrap(), gpu.occupancy());
     let error = relative_norm(g.values(), c.values());
     let flipped: u32 = g
         .bitfield()

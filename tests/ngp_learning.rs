@@ -6,7 +6,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use zrak::engine::cpu::dense::Precision;
-use zrak::engine::cpu::ngp::{CpuNgp, NgpShape};
+use zrak::engine::cpu::fields::ngp::NgpShape;
 use zrak::field::ngp::LossKind;
 use zrak::scene::Scene;
 use zrak::scene::demo::{self, DemoConfig};
@@ -49,7 +49,7 @@ fn train_and_score(
     loss: LossKind,
 ) -> f64 {
     let shape = NgpShape::for_scene(scene).with_precision(precision);
-    let model = CpuNgp::with_shape(shape, seed, loss, batch);
+    let model = zrak::train::cpu_ngp_with_shape(scene, shape, seed, loss, Some(batch));
     let mut trainer = Trainer::new(Box::new(model), scene.clone(), seed);
     let started = Instant::now();
     let mut last_loss = 0.0;

@@ -5,7 +5,6 @@
 
 use std::sync::Arc;
 
-use zrak::engine::cpu::ngp::CpuNgp;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::ngp::GpuNgp;
 use zrak::engine::gpu::render::{read_texture_rgba8, render_target};
@@ -32,7 +31,13 @@ fn scene() -> Arc<Scene> {
 /// engine is the fast one here). Its batches of 1024 samples make a render
 /// of 24 × 24 rays take several rounds, the first of three groups of rays.
 fn trained_gpu_model(scene: &Scene, batch_samples: usize) -> GpuNgp {
-    let mut cpu = CpuNgp::with_batch_samples(scene, SEED, LossKind::Huber, 1 << 12);
+    let mut cpu = zrak::train::cpu_ngp_with_shape(
+        scene,
+        zrak::engine::cpu::fields::ngp::NgpShape::for_scene(scene),
+        SEED,
+        LossKind::Huber,
+        Some(1 << 12),
+    );
     let mut rng = Pcg32::new(SEED, 1);
     let mut batch = RayBatch::default();
     for step in 0..60 {
@@ -158,6 +163,12 @@ fn a_wrong_target_is_refused_with_what_is_wrong() {
         .unwrap_err()
         .to_string();
     assert!(message.contains("8×8"), "{message}");
-    let cpu: &dyn RadianceModel = &CpuNgp::with_batch_samples(&scene, 1, LossKind::Huber, 1024);
+    let cpu: &dyn RadianceModel = &zrak::train::cpu_ngp_with_shape(
+        &scene,
+        zrak::engine::cpu::fields::ngp::NgpShape::for_scene(&scene),
+        1,
+        LossKind::Huber,
+        Some(1024),
+    );
     assert!(cpu.texture_render().is_none());
 }

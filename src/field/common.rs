@@ -212,6 +212,11 @@ pub struct Recipe {
     pub optimiser: OptimiserConfig,
     pub march: MarchConfig,
     pub occupancy: OccupancyConfig,
+    /// λ of the distortion loss on a level marched through the occupancy
+    /// grid (Mip-NeRF 360, Barron et al. 2022, eq. 15; see
+    /// `engine::cpu::composite_batch::Distortion`), per ray of the batch;
+    /// 0 for none.
+    pub distortion: f32,
     /// (steps, fraction): rays come from the central `fraction` of each
     /// image during the first `steps` steps.
     pub centre_crop: Option<(u32, f32)>,

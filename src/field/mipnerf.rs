@@ -123,6 +123,8 @@ pub fn recipe(sampling: Sampling, blender_scene: bool) -> Recipe {
         march: nerf::MARCH,
         occupancy: nerf::OCCUPANCY,
         // The reference has no centre crop (no `precrop_iters`).
+        // No distortion loss in the paper.
+        distortion: 0.0,
         centre_crop: None,
     }
 }

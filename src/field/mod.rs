@@ -5,6 +5,7 @@ pub mod common;
 pub mod mipnerf;
 pub mod nerf;
 pub mod ngp;
+pub mod params;
 
 /// The models zrak trains.
 #[derive(

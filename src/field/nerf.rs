@@ -206,6 +206,8 @@ pub fn recipe(sampling: Sampling, blender_scene: bool) -> Recipe {
         optimiser: OPTIMISER,
         march: MARCH,
         occupancy: OCCUPANCY,
+        // No distortion loss in the paper.
+        distortion: 0.0,
         centre_crop: Some((CENTRE_CROP_STEPS, CENTRE_CROP_FRACTION)),
     }
 }

@@ -254,6 +254,34 @@ impl OptimiserConfig {
 /// Samples per training batch (paper, section 5.4: 2^18).
 pub const SAMPLES_PER_BATCH: usize = 1 << 18;
 
+/// Instant-NGP as a recipe: one level marching through the occupancy grid
+/// (paper, appendix E) with one field (hash grid, density and colour
+/// networks), 2^18 samples per batch, Adam with the stepwise decay, and the
+/// distortion loss on large scenes ([`distortion_weight`]) for a scene of
+/// this aabb_scale.
+pub fn recipe(aabb_scale: f32) -> super::common::Recipe {
+    use super::common::{BatchSize, Level, RayBounds, Recipe, SampleShape, SamplerKind};
+    Recipe {
+        levels: vec![Level {
+            sampler: SamplerKind::Occupancy,
+            field: 0,
+            loss_weight: 1.0,
+        }],
+        fields: 1,
+        samples: SampleShape::Points,
+        batch: BatchSize::Samples(SAMPLES_PER_BATCH),
+        // Marching finds each ray's span through the grid's cascades; the
+        // bounds serve fixed-count levels only.
+        bounds: RayBounds::SceneBox,
+        optimiser: OptimiserConfig::PAPER,
+        march: MarchConfig::paper_or_environment(),
+        occupancy: OccupancyConfig::PAPER,
+        distortion: distortion_weight(aabb_scale),
+        // instant-ngp samples rays from whole images from the start.
+        centre_crop: None,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -43,19 +43,7 @@ pub fn build_model(
     settings: &ModelSettings,
 ) -> Result<Box<dyn RadianceModel>, String> {
     match (kind, engine.kind) {
-        (ModelKind::Ngp, EngineKind::Cpu) => {
-            let samples = settings
-                .batch_samples
-                .unwrap_or(crate::field::ngp::SAMPLES_PER_BATCH);
-            let shape = crate::engine::cpu::ngp::NgpShape::for_scene(scene)
-                .with_precision(settings.precision);
-            Ok(Box::new(crate::engine::cpu::ngp::CpuNgp::with_shape(
-                shape,
-                settings.seed,
-                settings.loss,
-                samples,
-            )))
-        }
+        (ModelKind::Ngp, EngineKind::Cpu) => Ok(Box::new(cpu_ngp(scene, settings))),
         (ModelKind::Ngp, EngineKind::Gpu) => {
             let context = engine
                 .gpu
@@ -100,6 +88,55 @@ pub fn build_model(
             .map(|model| Box::new(model) as Box<dyn RadianceModel>)
             .map_err(|e| format!("building Mip-NeRF on the gpu engine: {e}"))
         }
+    }
+}
+
+/// Instant-NGP on the `cpu` engine: its field ([`NgpShape`], the networks'
+/// products at the settings' precision) on the generic driver with its
+/// recipe. `batch_samples` replaces the paper's 2^18 samples per batch.
+///
+/// [`NgpShape`]: crate::engine::cpu::fields::ngp::NgpShape
+pub fn cpu_ngp(scene: &Scene, settings: &ModelSettings) -> crate::engine::cpu::model::CpuModel {
+    let shape = crate::engine::cpu::fields::ngp::NgpShape::for_scene(scene)
+        .with_precision(settings.precision);
+    cpu_ngp_with_shape(
+        scene,
+        shape,
+        settings.seed,
+        settings.loss,
+        settings.batch_samples,
+    )
+}
+
+/// [`cpu_ngp`] with parts of another size than the paper's (tests use a
+/// small hash table, as they use small NeRF networks).
+pub fn cpu_ngp_with_shape(
+    scene: &Scene,
+    shape: crate::engine::cpu::fields::ngp::NgpShape,
+    seed: u64,
+    loss: LossKind,
+    batch_samples: Option<usize>,
+) -> crate::engine::cpu::model::CpuModel {
+    use crate::engine::cpu::fields::Field;
+    use crate::engine::cpu::fields::ngp::NgpField;
+    let fields: Vec<Box<dyn Field>> = vec![Box::new(NgpField::new(shape))];
+    crate::engine::cpu::model::CpuModel::new(
+        ngp_identity(),
+        crate::field::ngp::recipe(scene.unit_cube.aabb_scale),
+        fields,
+        scene,
+        seed,
+        loss,
+        batch_samples.map(crate::field::common::BatchSize::Samples),
+    )
+}
+
+/// What Instant-NGP's models are called, in the viewer and in checkpoints.
+pub fn ngp_identity() -> crate::engine::cpu::model::ModelIdentity {
+    crate::engine::cpu::model::ModelIdentity {
+        name: "Instant-NGP",
+        key: "ngp",
+        sampling: None,
     }
 }
 
@@ -284,7 +321,7 @@ pub fn mipnerf_identity(settings: &ModelSettings) -> crate::engine::cpu::model::
     crate::engine::cpu::model::ModelIdentity {
         name: "Mip-NeRF",
         key: "mipnerf",
-        sampling: settings.sampling.name(),
+        sampling: Some(settings.sampling.name()),
     }
 }
 
@@ -293,7 +330,7 @@ pub fn nerf_identity(settings: &ModelSettings) -> crate::engine::cpu::model::Mod
     crate::engine::cpu::model::ModelIdentity {
         name: "NeRF",
         key: "nerf",
-        sampling: settings.sampling.name(),
+        sampling: Some(settings.sampling.name()),
     }
 }
 

@@ -38,6 +38,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::field::ngp::OptimiserConfig;
+use crate::field::params::{ParamLayout, Update};
 
 /// Parameters per rayon task: big enough that the scheduling cost vanishes
 /// against a memory-bound loop of ~16k elements, small enough to balance.
@@ -154,15 +155,38 @@ impl Adam {
         gradients: &[f32],
     ) {
         let n = self.len();
+        assert!(network_weights.start <= network_weights.end && network_weights.end <= n);
+        let layout = ParamLayout::new()
+            .with("entries before", network_weights.start, Update::Sparse)
+            .with(
+                "network weights",
+                network_weights.len(),
+                Update::Dense { l2: true },
+            )
+            .with("entries after", n - network_weights.end, Update::Sparse);
+        self.step_layout(config, &layout, params, gradients);
+    }
+
+    /// One update of `params` from `gradients`, each part of `layout` as
+    /// its [`Update`] says: dense parts every step (with the config's L2
+    /// where the part asks for it), sparse parts only where the gradient is
+    /// non-zero.
+    pub fn step_layout(
+        &mut self,
+        config: &OptimiserConfig,
+        layout: &ParamLayout,
+        params: &mut [f32],
+        gradients: &[f32],
+    ) {
+        let n = self.len();
         assert!(
-            params.len() == n && gradients.len() == n,
+            params.len() == n && gradients.len() == n && layout.len() == n,
             "Adam holds {n} parameters"
         );
         assert!(
             self.v.len() == n && self.m_norm.len() == n && self.v_norm.len() == n,
             "inconsistent optimiser state"
         );
-        assert!(network_weights.start <= network_weights.end && network_weights.end <= n);
         let hyper = Hyper {
             learning_rate: config.learning_rate_at(self.step),
             beta1: config.beta1,
@@ -172,7 +196,9 @@ impl Adam {
             epsilon: config.epsilon,
             l2: config.l2_weights,
         };
+        let no_decay = Hyper { l2: 0.0, ..hyper };
         self.step += 1;
+        let parts = layout.parts();
 
         params
             .par_chunks_mut(CHUNK)
@@ -185,11 +211,7 @@ impl Adam {
             .for_each(|(chunk, (((((p, g), m), v), m_norm), v_norm))| {
                 let start = chunk * CHUNK;
                 let end = start + p.len();
-                // The chunk's part inside the network range, as local
-                // indices; the parts before and after are hash entries.
-                let lo = network_weights.start.clamp(start, end) - start;
-                let hi = network_weights.end.clamp(start, end) - start;
-                let all = Slices {
+                let mut rest = Slices {
                     p,
                     g,
                     m,
@@ -197,11 +219,21 @@ impl Adam {
                     m_norm,
                     v_norm,
                 };
-                let (before, rest) = all.split_at(lo);
-                let (network, after) = rest.split_at(hi - lo);
-                update::<false>(&hyper, before);
-                update::<true>(&hyper, network);
-                update::<false>(&hyper, after);
+                // The chunk's piece of each part it overlaps, in order.
+                for part in parts {
+                    let lo = part.range.start.clamp(start, end);
+                    let hi = part.range.end.clamp(start, end);
+                    if lo == hi {
+                        continue;
+                    }
+                    let (piece, after) = rest.split_at(hi - lo);
+                    rest = after;
+                    match part.update {
+                        Update::Dense { l2: true } => update::<true>(&hyper, piece),
+                        Update::Dense { l2: false } => update::<true>(&no_decay, piece),
+                        Update::Sparse => update::<false>(&hyper, piece),
+                    }
+                }
             });
     }
 }
@@ -535,6 +567,64 @@ mod tests {
             .sum();
         assert!(worst < 2.0 * PAPER.learning_rate, "worst distance {worst}");
         assert!(loss < 1e-4 * initial, "{loss} of {initial}");
+    }
+
+    /// A layout of several parts, crossing rayon chunks, updates each part
+    /// as a one-part step of its kind would: sparse parts skip zero
+    /// gradients, dense parts decay only where they ask for L2.
+    #[test]
+    fn each_part_of_a_layout_is_updated_by_its_own_rule() {
+        let n = 2 * CHUNK + 100;
+        let r = sequence(5, 2 * n);
+        let initial: Vec<f32> = (0..n).map(|i| (r[i] - 0.5) as f32).collect();
+        // Every third gradient zero, so sparse parts show their skipping.
+        let gradients: Vec<f32> = (0..n)
+            .map(|i| {
+                if i % 3 == 0 {
+                    0.0
+                } else {
+                    (r[n + i] - 0.5) as f32
+                }
+            })
+            .collect();
+        let cuts = [CHUNK - 7, CHUNK + 9, 2 * CHUNK + 50];
+        let layout = ParamLayout::new()
+            .with("grid", cuts[0], Update::Sparse)
+            .with("decayed", cuts[1] - cuts[0], Update::Dense { l2: true })
+            .with("plain", cuts[2] - cuts[1], Update::Dense { l2: false })
+            .with("grid 2", n - cuts[2], Update::Sparse);
+        let config = OptimiserConfig {
+            l2_weights: 0.25,
+            ..PAPER
+        };
+        let mut params = initial.clone();
+        let mut adam = Adam::new(n);
+        adam.step_layout(&config, &layout, &mut params, &gradients);
+        // Each part alone, through the range-based step: dense with the
+        // config's decay, or without it (λ = 0), or sparse.
+        for part in layout.parts() {
+            let range = part.range.clone();
+            let mut alone = initial[range.clone()].to_vec();
+            let mut adam_alone = Adam::new(range.len());
+            let (config, dense) = match part.update {
+                Update::Dense { l2: true } => (config, 0..range.len()),
+                Update::Dense { l2: false } => (
+                    OptimiserConfig {
+                        l2_weights: 0.0,
+                        ..config
+                    },
+                    0..range.len(),
+                ),
+                Update::Sparse => (config, 0..0),
+            };
+            adam_alone.step(&config, dense, &mut alone, &gradients[range.clone()]);
+            let same = alone
+                .iter()
+                .zip(&params[range.clone()])
+                .all(|(a, b)| a.to_bits() == b.to_bits());
+            assert!(same, "part {} differs", part.name);
+            assert_eq!(adam_alone.m_norm, adam.m_norm[range]);
+        }
     }
 
     #[test]

@@ -12,7 +12,6 @@ pub mod hash_grid;
 pub mod loss;
 pub mod march;
 pub mod model;
-pub mod ngp;
 pub mod occupancy;
 pub mod sampling;
 pub mod sh;

@@ -29,8 +29,9 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use super::adam::Adam;
+use super::composite_batch::Distortion;
 use super::composite_batch::{self, CompositeGradients, CompositeOutputs};
-use super::fields::{Field, gather_rows, set_len};
+use super::fields::{Coordinates, Field, Gradient, gather_rows, set_len};
 use super::frustum::{frustum_gaussian, frustum_gaussians};
 use super::loss::loss_and_gradient;
 use super::march::{
@@ -42,6 +43,7 @@ use super::sampling;
 use super::state::{ModelHeader, ModelState};
 use crate::field::common::{BatchSize, RayBounds, Recipe, SampleShape, SamplerKind};
 use crate::field::ngp::LossKind;
+use crate::field::params::ParamLayout;
 use crate::scene::{Aabb, Scene, UnitCubeMapping};
 use crate::train::batch::RayBatch;
 use crate::train::checkpoint::Checkpoint;
@@ -50,9 +52,6 @@ use crate::train::model::{RadianceModel, RenderedPixel, StageTimes, StepStats};
 /// Rays per chunk of the paper's sampler: 256 rays × 192 fine samples is
 /// 49k rows of activations (~0.5 GB for NeRF's networks).
 pub const RAYS_PER_CHUNK: usize = 256;
-
-/// Samples per round of inference when rendering through the grid.
-const INFERENCE_CHUNK: usize = 1 << 15;
 
 /// Rows per rayon task in the element-wise passes.
 const ROWS_PER_TASK: usize = 4096;
@@ -64,8 +63,9 @@ pub struct ModelIdentity {
     pub name: &'static str,
     /// Stored in checkpoints, e.g. "nerf".
     pub key: &'static str,
-    /// The sampler's name, stored in checkpoints ("paper", "occupancy").
-    pub sampling: &'static str,
+    /// The sampler's name, stored in checkpoints ("paper", "occupancy"),
+    /// for models with a choice of samplers.
+    pub sampling: Option<&'static str>,
 }
 
 /// Buffers of one level of a step, reused between steps.
@@ -126,6 +126,8 @@ pub struct CpuModel {
     recipe: Recipe,
     fields: Vec<Box<dyn Field>>,
     ranges: Vec<Range<usize>>,
+    /// Every field's parts, one after the other: what Adam updates how.
+    layout: ParamLayout,
     params: Vec<f32>,
     adam: Adam,
     /// The occupancy grid, for recipes that march through one.
@@ -179,6 +181,14 @@ impl CpuModel {
             "importance sampling adds points; resampling draws frustums"
         );
         let (params, ranges) = init_field_params(&fields, seed);
+        let layout = model_layout(&fields);
+        assert!(
+            fields.iter().all(|f| f.coordinates() == Coordinates::World)
+                || (recipe.samples == SampleShape::Points
+                    && recipe.levels[0].sampler == SamplerKind::Occupancy),
+            "a field of unit-cube positions takes marched points (fixed-count levels and \
+             frustums are placed in world units)"
+        );
         let marches = recipe.levels[0].sampler == SamplerKind::Occupancy;
         let mapping = scene.unit_cube;
         let grid = marches.then(|| {
@@ -206,6 +216,7 @@ impl CpuModel {
             adam: Adam::new(params.len()),
             params,
             ranges,
+            layout,
             fields,
             grid,
             batch_sizer,
@@ -276,6 +287,42 @@ impl CpuModel {
         &self.ranges
     }
 
+    /// Every part of the parameters by name, with how Adam updates it.
+    pub fn layout(&self) -> &ParamLayout {
+        &self.layout
+    }
+
+    /// σ at unit-cube positions (n × 3) from the first level's field, as
+    /// the occupancy grid's updates see it: for probes of where the field
+    /// holds density.
+    pub fn densities(&self, positions: &[f32]) -> Vec<f32> {
+        let field = &self.fields[self.recipe.levels[0].field];
+        let params = &self.params[self.ranges[self.recipe.levels[0].field].clone()];
+        let mut world = Vec::new();
+        let positions = match field.coordinates() {
+            Coordinates::UnitCube => positions,
+            Coordinates::World => {
+                to_world(&self.mapping, positions, &mut world);
+                &world[..]
+            }
+        };
+        let mut sigma = vec![0f32; positions.len() / 3];
+        field.density(params, positions, None, &mut sigma);
+        sigma
+    }
+
+    /// Whether the share of samples used orders the next marched step's
+    /// passes (see [`Self::marched_step`]).
+    fn chooses_pass_order(&self) -> bool {
+        self.grid.is_some() && self.fields[self.recipe.levels[0].field].may_find_cut_in_forward()
+    }
+
+    /// The side of the box the first field's encoding spans, where its
+    /// checkpoint must match it.
+    fn grid_extent(&self) -> Option<f32> {
+        self.fields[self.recipe.levels[0].field].grid_extent()
+    }
+
     /// Multiply-adds per sample of each level's field, forward.
     pub fn macs_per_sample(&self) -> Vec<usize> {
         self.recipe
@@ -325,7 +372,6 @@ impl CpuModel {
             b.backgrounds.extend_from_slice(&batch.backgrounds[r]);
         }
         set_len(&mut b.gradients, self.params.len());
-        b.gradients.fill(0.0);
         if self.recipe.levels[0].sampler == SamplerKind::Occupancy {
             self.marched_step(step)
         } else {
@@ -364,7 +410,11 @@ impl CpuModel {
         self.batch_sizer.record(marched.rays_kept, marched.samples);
         let kept = marched.rays_kept;
         let s = marched.samples;
-        to_world(&self.mapping, &b.marched.positions, &mut b.world);
+        let field = &self.fields[level.field];
+        let unit_cube = field.coordinates() == Coordinates::UnitCube;
+        if !unit_cube {
+            to_world(&self.mapping, &b.marched.positions, &mut b.world);
+        }
         let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
         if frustums {
             // Each marched sample stands for the frustum of its step,
@@ -412,19 +462,24 @@ impl CpuModel {
         // Both passes are counted as the networks' forward time (the
         // encodings are part of the field here).
         let clock = Instant::now();
-        let field = &self.fields[level.field];
         let (forward_macs, density_macs) =
             (field.macs_per_sample(), field.density_macs_per_sample());
-        let forward_first =
-            self.used_fraction > 1.0 - density_macs as f64 / (3 * forward_macs) as f64;
+        let forward_first = field.may_find_cut_in_forward()
+            && self.used_fraction > 1.0 - density_macs as f64 / (3 * forward_macs) as f64;
         let field_params = &self.params[field_range.clone()];
+        // The field's positions: unit-cube ones as marched, or world ones.
+        let positions = if unit_cube {
+            &b.marched.positions
+        } else {
+            &b.world
+        };
         let min_transmittance = self.recipe.march.min_transmittance;
         if forward_first {
             set_len(&mut b.sigma_forward, s);
             set_len(&mut b.rgb_marched, 3 * s);
             self.fields[level.field].forward(
                 field_params,
-                &b.world,
+                positions,
                 frustums.then_some(&b.variances_marched[..]),
                 &b.marched.directions,
                 &mut b.sigma_forward,
@@ -440,9 +495,9 @@ impl CpuModel {
             );
         } else {
             set_len(&mut b.sigma_marched, s);
-            self.fields[level.field].density(
+            self.fields[level.field].density_for_cut(
                 field_params,
-                &b.world,
+                positions,
                 frustums.then_some(&b.variances_marched[..]),
                 &mut b.sigma_marched,
             );
@@ -474,7 +529,7 @@ impl CpuModel {
             gather_rows(&b.sigma_forward, 1, &b.source, &mut lb.sigma);
             gather_rows(&b.rgb_marched, 3, &b.source, &mut lb.rgb);
         } else {
-            gather_rows(&b.world, 3, &b.source, &mut lb.positions);
+            gather_rows(positions, 3, &b.source, &mut lb.positions);
             gather_rows(&b.marched.directions, 3, &b.source, &mut lb.directions);
             if frustums {
                 gather_rows(&b.variances_marched, 3, &b.source, &mut lb.variances);
@@ -484,8 +539,9 @@ impl CpuModel {
             // the σ-only inference in the last bits).
             set_len(&mut b.sigma_forward, u);
             set_len(&mut lb.rgb, 3 * u);
-            self.fields[level.field].forward(
+            self.fields[level.field].forward_before_cut(
                 field_params,
+                &b.source,
                 &lb.positions,
                 frustums.then_some(&lb.variances[..]),
                 &lb.directions,
@@ -497,6 +553,10 @@ impl CpuModel {
         times.networks_forward = clock.elapsed().as_secs_f64();
 
         let clock = Instant::now();
+        let distortion = (self.recipe.distortion > 0.0 && kept > 0).then(|| Distortion {
+            weight_per_ray: self.recipe.distortion / kept as f32,
+            distance_scale: self.mapping.diagonal_scale(),
+        });
         let loss = composite_and_loss(
             lb,
             &b.targets[..3 * kept],
@@ -504,11 +564,19 @@ impl CpuModel {
             min_transmittance,
             self.loss,
             level.loss_weight,
+            distortion,
             &mut b.rays,
         );
         times.composite = clock.elapsed().as_secs_f64();
 
         let clock = Instant::now();
+        // The one field's backward pass writes its gradient; any other
+        // field's is zero.
+        for (i, range) in self.ranges.iter().enumerate() {
+            if i != level.field {
+                b.gradients[range.clone()].fill(0.0);
+            }
+        }
         if forward_first {
             // The used samples' gradients back in their marched rows.
             set_len(&mut b.d_sigma_marched, s);
@@ -525,6 +593,7 @@ impl CpuModel {
                 &b.d_sigma_marched,
                 &b.d_rgb_marched,
                 &mut b.gradients[field_range],
+                Gradient::Overwrite,
             );
         } else {
             self.fields[level.field].backward(
@@ -532,6 +601,7 @@ impl CpuModel {
                 &lb.d_sigma,
                 &lb.d_rgb,
                 &mut b.gradients[field_range],
+                Gradient::Overwrite,
             );
         }
         times.networks_backward = clock.elapsed().as_secs_f64();
@@ -562,6 +632,8 @@ impl CpuModel {
     fn fixed_step(&mut self, step: u32) -> StepStats {
         let mut times = StageTimes::default();
         let rays = self.buffers.origins.len() / 3;
+        // Chunks and levels add to the gradient.
+        self.buffers.gradients.fill(0.0);
         let mut loss = 0.0f64;
         let mut level_losses = [0f32; 2];
         let mut samples = 0usize;
@@ -621,6 +693,7 @@ impl CpuModel {
                     0.0,
                     self.loss,
                     level.loss_weight * share,
+                    None,
                     &mut b.rays,
                 );
                 loss += level_loss * (level.loss_weight * share) as f64;
@@ -635,6 +708,7 @@ impl CpuModel {
                     &lb.d_sigma,
                     &lb.d_rgb,
                     &mut b.gradients[field_range],
+                    Gradient::Add,
                 );
                 times.networks_backward += clock.elapsed().as_secs_f64();
             }
@@ -713,7 +787,12 @@ impl CpuModel {
         let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
         let cell_variance = grid_cell_variance(grid, &mapping);
         let mut variances = Vec::new();
+        let unit_cube = field.coordinates() == Coordinates::UnitCube;
         grid.update(step, self.seed, |positions, sigma| {
+            if unit_cube {
+                field.density(params, positions, None, sigma);
+                return;
+            }
             to_world(&mapping, positions, &mut world);
             if frustums {
                 set_len(&mut variances, world.len());
@@ -1006,8 +1085,8 @@ fn composite_level(
 }
 
 /// The parameters of `fields` laid out one after the other, each from its
-/// own seed, and where each sits. Both engines start a model from these,
-/// so a model starts identical on either.
+/// own seed ([`Field::init_seed`]), and where each sits. Both engines start
+/// a model from these, so a model starts identical on either.
 pub fn init_field_params<F: AsRef<dyn Field>>(
     fields: &[F],
     seed: u64,
@@ -1015,15 +1094,54 @@ pub fn init_field_params<F: AsRef<dyn Field>>(
     let mut params = Vec::new();
     let mut ranges = Vec::new();
     for (i, field) in fields.iter().enumerate() {
+        let field = field.as_ref();
         let start = params.len();
-        params.extend(
-            field
-                .as_ref()
-                .init_params(seed ^ (0x6669_656c_6400 + i as u64)),
-        );
+        params.extend(field.init_params(field.init_seed(seed, i)));
+        assert_eq!(params.len() - start, field.param_count(), "field {i}");
         ranges.push(start..params.len());
     }
     (params, ranges)
+}
+
+/// The parts of `fields`' parameters one after the other (named "field
+/// i: …" where there are several fields).
+pub fn model_layout<F: AsRef<dyn Field>>(fields: &[F]) -> ParamLayout {
+    let mut layout = ParamLayout::new();
+    for (i, field) in fields.iter().enumerate() {
+        let prefix = if fields.len() > 1 {
+            format!("field {i}: ")
+        } else {
+            String::new()
+        };
+        layout.append(&field.as_ref().layout(), &prefix);
+    }
+    layout
+}
+
+/// What a model says it is: "NeRF (occupancy sampling, cpu)",
+/// "Instant-NGP (gpu)".
+pub fn describe(identity: &ModelIdentity, engine: &str) -> String {
+    match identity.sampling {
+        Some(sampling) => format!("{} ({sampling} sampling, {engine})", identity.name),
+        None => format!("{} ({engine})", identity.name),
+    }
+}
+
+/// Refuses a checkpoint trained with another sampler than `identity`'s.
+pub(crate) fn check_sampling(
+    header: &super::state::ModelHeader,
+    identity: &ModelIdentity,
+) -> Result<(), String> {
+    let saved = header.sampling.as_deref();
+    if saved == identity.sampling {
+        return Ok(());
+    }
+    let name = |s: Option<&str>| s.map_or("its model's only".to_string(), str::to_string);
+    Err(format!(
+        "the checkpoint was trained with {} sampling, this model uses {}",
+        name(saved),
+        name(identity.sampling)
+    ))
 }
 
 /// Near and far bounds of each ray (R × 3 origins and directions) under
@@ -1090,6 +1208,7 @@ fn composite_and_loss(
     min_transmittance: f32,
     loss_kind: LossKind,
     scale: f32,
+    distortion: Option<Distortion<f32>>,
     scratch: &mut RayScratch,
 ) -> f64 {
     composite_level(lb, backgrounds, min_transmittance, scratch);
@@ -1116,7 +1235,7 @@ fn composite_and_loss(
         &batch,
         min_transmittance,
         &scratch.d_rgb,
-        None,
+        distortion,
         CompositeGradients {
             density: &mut lb.d_sigma,
             rgb: &mut lb.d_rgb,
@@ -1257,10 +1376,7 @@ impl RadianceModel for CpuModel {
     }
 
     fn describe(&self) -> String {
-        format!(
-            "{} ({} sampling, cpu)",
-            self.identity.name, self.identity.sampling
-        )
+        describe(&self.identity, "cpu")
     }
 
     fn rays_for_next_batch(&self) -> usize {
@@ -1285,10 +1401,9 @@ impl RadianceModel for CpuModel {
         let mut stats = self.forward_backward(batch, step);
         stats.times.grid_update = grid_update;
         let clock = Instant::now();
-        let all = 0..self.params.len();
-        self.adam.step(
+        self.adam.step_layout(
             &self.recipe.optimiser,
-            all,
+            &self.layout,
             &mut self.params,
             &self.buffers.gradients,
         );
@@ -1312,6 +1427,7 @@ impl RadianceModel for CpuModel {
                 let params = &self.params[self.ranges[level.field].clone()];
                 let mapping = self.mapping;
                 let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+                let unit_cube = field.coordinates() == Coordinates::UnitCube;
                 let (mut world, mut variances) = (Vec::new(), Vec::new());
                 render_through_grid(
                     grid,
@@ -1320,8 +1436,19 @@ impl RadianceModel for CpuModel {
                     directions,
                     background,
                     &self.recipe.march,
-                    INFERENCE_CHUNK,
+                    field.inference_rows(),
                     |samples: &GridSamples, sigma, rgb| {
+                        if unit_cube {
+                            field.radiance(
+                                params,
+                                samples.positions,
+                                None,
+                                samples.directions,
+                                sigma,
+                                rgb,
+                            );
+                            return;
+                        }
                         if frustums {
                             grid_sample_gaussians(
                                 samples,
@@ -1359,9 +1486,10 @@ impl RadianceModel for CpuModel {
                 adam_step: self.adam.step,
                 samples_per_ray: self.batch_sizer.samples_per_ray(),
                 param_count: self.params.len(),
-                sampling: Some(self.identity.sampling.into()),
-                used_fraction: Some(self.used_fraction),
-                grid_extent: None,
+                sampling: self.identity.sampling.map(Into::into),
+                // Only where it chooses the next step's order.
+                used_fraction: self.chooses_pass_order().then_some(self.used_fraction),
+                grid_extent: self.grid_extent(),
             },
             params: self.params.clone(),
             adam: self.adam.clone(),
@@ -1377,12 +1505,9 @@ impl RadianceModel for CpuModel {
             self.params.len(),
             self.grid.as_ref().map(|g| g.values().len()),
         )?;
-        let sampling = state.header.sampling.as_deref().unwrap_or("");
-        if sampling != self.identity.sampling {
-            return Err(format!(
-                "the checkpoint was trained with {sampling} sampling, this model uses {}",
-                self.identity.sampling
-            ));
+        check_sampling(&state.header, &self.identity)?;
+        if let Some(extent) = self.grid_extent() {
+            state.header.check_grid_extent(extent)?;
         }
         self.params = state.params;
         self.adam = state.adam;

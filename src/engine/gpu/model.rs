@@ -70,8 +70,8 @@ use crate::engine::cpu::march::{
     BatchSizer, GridSamples, MarchParams, mix_seed, render_through_grid,
 };
 use crate::engine::cpu::model::{
-    ModelIdentity, RAYS_PER_CHUNK, chunk_jitter_seed, grid_cell_variance, grid_sample_gaussians,
-    ray_bounds, to_world,
+    ModelIdentity, RAYS_PER_CHUNK, check_sampling, chunk_jitter_seed, describe, grid_cell_variance,
+    grid_sample_gaussians, ray_bounds, to_world,
 };
 use crate::engine::cpu::occupancy::OccupancyGrid;
 use crate::engine::cpu::state::{ModelHeader, ModelState};
@@ -1347,10 +1347,7 @@ impl RadianceModel for GpuModel {
     }
 
     fn describe(&self) -> String {
-        format!(
-            "{} ({} sampling, gpu)",
-            self.identity.name, self.identity.sampling
-        )
+        describe(&self.identity, "gpu")
     }
 
     fn rays_for_next_batch(&self) -> usize {
@@ -1472,7 +1469,7 @@ impl RadianceModel for GpuModel {
                 adam_step: adam.step,
                 samples_per_ray: self.batch_sizer.samples_per_ray(),
                 param_count: self.param_count,
-                sampling: Some(self.identity.sampling.into()),
+                sampling: self.identity.sampling.map(Into::into),
                 used_fraction: None,
                 grid_extent: None,
             },
@@ -1490,13 +1487,7 @@ impl RadianceModel for GpuModel {
             self.param_count,
             self.grid.as_ref().map(|g| g.grid.values().len()),
         )?;
-        let sampling = state.header.sampling.as_deref().unwrap_or("");
-        if sampling != self.identity.sampling {
-            return Err(format!(
-                "the checkpoint was trained with {sampling} sampling, this model uses {}",
-                self.identity.sampling
-            ));
-        }
+        check_sampling(&state.header, &self.identity)?;
         let queue = &self.context.queue;
         for (values, buffer) in [
             (&state.adam.m, &self.adam.m),

@@ -1,6 +1,7 @@
 //! Instant-NGP on the `gpu` engine: the gpu stages chained into a training
 //! step, with the parameter layout, initial values, checkpoint format and
-//! random choices of [`crate::engine::cpu::ngp::CpuNgp`], so a model moves
+//! random choices of Instant-NGP on the `cpu` engine (its field,
+//! [`crate::engine::cpu::fields::ngp::NgpField`], on `CpuModel`), so a model moves
 //! between engines through a checkpoint.
 //!
 //! A training step is two submissions. The first uploads the rays and
@@ -55,10 +56,9 @@ use super::step::{
 };
 use super::timing::{Stage, StageClock, StageTiming};
 use crate::engine::cpu::composite_batch::Distortion;
-use crate::engine::cpu::hash_grid;
+use crate::engine::cpu::fields::ngp::NgpShape;
 use crate::engine::cpu::march::{BatchSizer, MarchParams, Marcher};
 use crate::engine::cpu::march::{mix_seed, render_through_grid};
-use crate::engine::cpu::ngp::NgpShape;
 use crate::engine::cpu::occupancy::OccupancyGrid;
 use crate::engine::cpu::state::{ModelHeader, ModelState};
 use crate::field::ngp::{
@@ -182,7 +182,7 @@ impl GpuNgp {
     }
 
     /// [`Self::with_batch_samples`] with parts of another size than the
-    /// paper's (see `CpuNgp::with_shape`); `depth_range` is the scene's
+    /// paper's (as `train::cpu_ngp_with_shape`); `depth_range` is the scene's
     /// ([`Scene::depth_range`]), for depth images.
     pub fn with_shape(
         context: GpuContext,
@@ -206,11 +206,9 @@ impl GpuNgp {
                 limit,
             });
         }
-        // As `CpuNgp::with_batch_samples`: the same seeds per part (a test
-        // checks that both engines start identical).
-        let mut params = hash_grid::init_params(&shape.grid, seed);
-        params.extend(shape.density.init_params(seed ^ 0x64656e73));
-        params.extend(shape.colour.init_params(seed ^ 0x636f6c6f));
+        // The cpu engine's initial values (a test checks that both engines
+        // start identical).
+        let params = shape.init_params(seed);
         let grid = OccupancyGrid::new(
             OccupancyConfig::PAPER,
             OccupancyConfig::cascades(shape.mapping.aabb_scale),
@@ -344,7 +342,7 @@ impl GpuNgp {
 
     /// Marches, evaluates and composites `batch` and leaves the gradient
     /// of the mean loss in the gradient buffer ([`Self::gradients`])
-    /// without changing any parameter, as `CpuNgp::forward_backward`.
+    /// without changing any parameter, as `CpuModel::forward_backward`.
     pub fn forward_backward(&mut self, batch: &RayBatch, step: u32) -> StepStats {
         if let Some(clock) = self.clock.as_mut() {
             clock.reset();

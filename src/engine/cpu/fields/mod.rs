@@ -4,6 +4,36 @@
 //! the optimiser; the fields are the part that differs between models.
 
 pub mod nerf;
+pub mod ngp;
+
+use crate::field::params::ParamLayout;
+
+/// Where the positions a field is given live.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Coordinates {
+    /// World units (NeRF, Mip-NeRF: their encodings' frequencies are per
+    /// world unit).
+    World,
+    /// The scene's unit cube, where the occupancy grid marches (Instant-NGP:
+    /// its hash grid spans a box around the unit cube, and marched samples
+    /// reach it without a round trip through world units).
+    UnitCube,
+}
+
+/// How a backward pass leaves the field's gradient.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Gradient {
+    /// Replaces whatever the gradient held (the field's first contribution
+    /// in a step: no separate clearing pass over its parameters).
+    Overwrite,
+    /// Adds to it (later chunks and levels of the same step).
+    Add,
+}
+
+/// The seed of field `index`'s initial parameters from the model's seed.
+pub fn field_seed(model_seed: u64, index: usize) -> u64 {
+    model_seed ^ (0x6669_656c_6400 + index as u64)
+}
 
 /// Density and colour at samples, with gradients.
 ///
@@ -12,7 +42,12 @@ pub mod nerf;
 /// driver's flat vector and are passed in, so one optimiser and one
 /// checkpoint serve every field.
 pub trait Field: Send + Sync {
-    fn param_count(&self) -> usize;
+    /// Its parameters, part by part, and how the optimiser updates each.
+    fn layout(&self) -> ParamLayout;
+
+    fn param_count(&self) -> usize {
+        self.layout().len()
+    }
 
     /// The dense kernels its networks run on.
     fn kernels(&self) -> crate::engine::cpu::dense::Backend;
@@ -20,7 +55,31 @@ pub trait Field: Send + Sync {
     /// Initial parameters, reproducible from `seed`.
     fn init_params(&self, seed: u64) -> Vec<f32>;
 
-    /// σ at world positions (n × 3), without keeping activations: for the
+    /// The seed of the initial parameters of the model's field `index`:
+    /// [`field_seed`] (one per field, so NeRF's coarse and fine networks
+    /// start apart) unless the field says otherwise.
+    fn init_seed(&self, model_seed: u64, index: usize) -> u64 {
+        field_seed(model_seed, index)
+    }
+
+    /// Where the positions it is given live.
+    fn coordinates(&self) -> Coordinates {
+        Coordinates::World
+    }
+
+    /// The side of the box its encoding spans, where a checkpoint must
+    /// match it (Instant-NGP's hash grid); `None` for fields without one.
+    fn grid_extent(&self) -> Option<f32> {
+        None
+    }
+
+    /// Samples per round when rendering (each round's activations are
+    /// held at once).
+    fn inference_rows(&self) -> usize {
+        1 << 15
+    }
+
+    /// σ at positions (n × 3), without keeping activations: for the
     /// occupancy grid and for finding where rays become opaque.
     /// `variances` (n × 3), where given, make each sample a Gaussian with
     /// that diagonal covariance around its position (Mip-NeRF's frustums);
@@ -33,7 +92,50 @@ pub trait Field: Send + Sync {
         sigma: &mut [f32],
     );
 
-    /// σ (n) and colour (n × 3) at world positions (with `variances` as in
+    /// σ of every marched sample, to find each ray's cut, before
+    /// [`Field::forward_before_cut`] on the samples before it. A field may
+    /// keep what the σ pass computed that the forward pass needs again
+    /// (Instant-NGP keeps the hash features, and σ itself); by default,
+    /// [`Field::density`].
+    fn density_for_cut(
+        &mut self,
+        params: &[f32],
+        positions: &[f32],
+        variances: Option<&[f32]>,
+        sigma: &mut [f32],
+    ) {
+        self.density(params, positions, variances, sigma);
+    }
+
+    /// [`Field::forward`] on the samples before each ray's cut: `rows` are
+    /// their indices among the samples of the last
+    /// [`Field::density_for_cut`], and `positions`, `variances` and
+    /// `directions` those rows gathered. By default the forward pass on the
+    /// gathered rows.
+    #[allow(clippy::too_many_arguments)]
+    fn forward_before_cut(
+        &mut self,
+        params: &[f32],
+        rows: &[u32],
+        positions: &[f32],
+        variances: Option<&[f32]>,
+        directions: &[f32],
+        sigma: &mut [f32],
+        rgb: &mut [f32],
+    ) {
+        let _ = rows;
+        self.forward(params, positions, variances, directions, sigma, rgb);
+    }
+
+    /// Whether a marched step may find the cut in a forward pass over every
+    /// marched sample instead of a σ pass first, where that is cheaper
+    /// (see `CpuModel::marched_step`). A field whose σ pass does work the
+    /// forward pass reuses says no.
+    fn may_find_cut_in_forward(&self) -> bool {
+        true
+    }
+
+    /// σ (n) and colour (n × 3) at positions (with `variances` as in
     /// [`Field::density`]) and unit directions (n × 3 each), keeping what
     /// [`Field::backward`] needs.
     fn forward(
@@ -46,11 +148,18 @@ pub trait Field: Send + Sync {
         rgb: &mut [f32],
     );
 
-    /// Adds (+=) to `gradients` (this field's parameters) the gradient of
-    /// the loss given its gradients with respect to the last forward pass's
-    /// σ and colour. Positions and directions get no gradient: no model
-    /// here learns its sample positions.
-    fn backward(&mut self, params: &[f32], d_sigma: &[f32], d_rgb: &[f32], gradients: &mut [f32]);
+    /// Writes or adds (`mode`) to `gradients` (this field's parameters) the
+    /// gradient of the loss given its gradients with respect to the last
+    /// forward pass's σ and colour. Positions and directions get no
+    /// gradient: no model here learns its sample positions.
+    fn backward(
+        &mut self,
+        params: &[f32],
+        d_sigma: &[f32],
+        d_rgb: &[f32],
+        gradients: &mut [f32],
+        mode: Gradient,
+    );
 
     /// σ and colour without keeping activations (rendering).
     fn radiance(

@@ -22,13 +22,14 @@
 
 use rayon::prelude::*;
 
-use super::{Field, set_len};
+use super::{Field, Gradient, set_len};
 use crate::engine::cpu::dense::{
     Activation, MlpLayout, MlpWorkspace, Precision, mlp_backward, mlp_backward_columns,
     mlp_forward, mlp_inference, mlp_inference_leading,
 };
 use crate::engine::cpu::frequency::{self, FrequencyEncoding};
 use crate::field::nerf as paper;
+use crate::field::params::{ParamLayout, Update};
 
 /// Rows per rayon task in the copies between the networks.
 const ROWS_PER_TASK: usize = 1024;
@@ -348,8 +349,15 @@ fn take_columns(src: &[f32], width: usize, columns: std::ops::Range<usize>, dst:
 }
 
 impl Field for NerfField {
-    fn param_count(&self) -> usize {
-        self.shape.ranges()[2].end
+    fn layout(&self) -> ParamLayout {
+        // Network weights: updated every step, with the optimiser's weight
+        // decay (none in NeRF's and Mip-NeRF's optimisers).
+        let [a, b, c] = self.shape.ranges();
+        let dense = Update::Dense { l2: true };
+        ParamLayout::new()
+            .with("trunk A", a.len(), dense)
+            .with("trunk B", b.len(), dense)
+            .with("colour network", c.len(), dense)
     }
 
     fn kernels(&self) -> crate::engine::cpu::dense::Backend {
@@ -465,7 +473,18 @@ impl Field for NerfField {
         s.pad_colours(rgb);
     }
 
-    fn backward(&mut self, params: &[f32], d_sigma: &[f32], d_rgb: &[f32], gradients: &mut [f32]) {
+    fn backward(
+        &mut self,
+        params: &[f32],
+        d_sigma: &[f32],
+        d_rgb: &[f32],
+        gradients: &mut [f32],
+        mode: Gradient,
+    ) {
+        // The networks' backward passes add to their gradients.
+        if mode == Gradient::Overwrite {
+            gradients.fill(0.0);
+        }
         let s = &self.shape;
         let [ra, rb, rc] = s.ranges();
         let k = &mut self.kept;

@@ -1,0 +1,557 @@
+//! Instant-NGP's field on the `cpu` engine (Müller et al. 2022, section 4
+//! and 5.4): the multiresolution hash encoding of a unit-cube position, a
+//! density network whose first output is log-density and whose 16 outputs
+//! join the spherical-harmonics encoding of the direction in a colour
+//! network:
+//!
+//! ```text
+//! position ─ hash grid ─► features ─ density MLP ─► [x | 15 more] ─┬─ σ = exp(x)
+//! direction ─ SH (degree 4) ─► 16 ──────────────────────────────────┴ colour MLP ─► RGB
+//! ```
+//!
+//! Its parameters are `[hash grid | density network | colour network]`:
+//! the grid's entries are updated sparsely (only where a sample touched
+//! them) without weight decay, the networks densely with L2 (tiny-cuda-nn's
+//! Adam for instant-ngp). The model around it is `CpuModel` with the recipe
+//! of [`crate::field::ngp::recipe`].
+//!
+//! In a marched step, the σ pass over every marched sample
+//! ([`Field::density_for_cut`]) keeps the hash features and σ; the forward
+//! pass on the samples before each ray's cut gathers them instead of
+//! encoding again, and composites with the σ the cut was found with.
+
+use std::ops::Range;
+use std::sync::Mutex;
+
+use rayon::prelude::*;
+
+use super::{Coordinates, Field, Gradient, gather_rows, set_len};
+use crate::engine::cpu::dense::{
+    Backend, MlpLayout, MlpWorkspace, Precision, mlp_backward, mlp_backward_columns, mlp_forward,
+    mlp_inference, mlp_inference_leading,
+};
+use crate::engine::cpu::hash_grid::{self, HashGridLayout};
+use crate::engine::cpu::sh::sh_encode;
+use crate::field::ngp::{DENSITY_EXP_CLAMP, HashGridConfig, NetworkConfig};
+use crate::field::params::{ParamLayout, Update};
+use crate::scene::{Scene, UnitCubeMapping};
+
+/// Rows per rayon task in the element-wise passes.
+const ROWS_PER_TASK: usize = 4096;
+
+/// Samples per round of inference when rendering: the field's activations
+/// are ~80 floats a sample, so 2^16 rows hold ~20 MB.
+const INFERENCE_ROWS: usize = 1 << 16;
+
+/// The parts of the model that do not change during training.
+#[derive(Debug, Clone)]
+pub struct NgpShape {
+    pub grid: HashGridLayout,
+    pub density: MlpLayout,
+    pub colour: MlpLayout,
+    pub network: NetworkConfig,
+    pub mapping: UnitCubeMapping,
+}
+
+impl NgpShape {
+    pub fn for_scene(scene: &Scene) -> Self {
+        let network = NetworkConfig::PAPER;
+        let grid_config = HashGridConfig::paper(scene.unit_cube.aabb_scale);
+        Self {
+            grid: HashGridLayout::new(&grid_config),
+            density: MlpLayout::ngp_density(&network, &grid_config),
+            colour: MlpLayout::ngp_colour(&network),
+            network,
+            mapping: scene.unit_cube,
+        }
+    }
+
+    /// The same model with its networks' products at `precision`.
+    pub fn with_precision(mut self, precision: Precision) -> Self {
+        self.density = self.density.with_precision(precision);
+        self.colour = self.colour.with_precision(precision);
+        self
+    }
+
+    pub fn grid_range(&self) -> Range<usize> {
+        0..self.grid.param_count()
+    }
+
+    pub fn density_range(&self) -> Range<usize> {
+        let start = self.grid.param_count();
+        start..start + self.density.param_count()
+    }
+
+    pub fn colour_range(&self) -> Range<usize> {
+        let start = self.density_range().end;
+        start..start + self.colour.param_count()
+    }
+
+    pub fn param_count(&self) -> usize {
+        self.colour_range().end
+    }
+
+    /// The parameters part by part: the grid sparse, the networks dense
+    /// with weight decay.
+    pub fn layout(&self) -> ParamLayout {
+        let dense = Update::Dense { l2: true };
+        ParamLayout::new()
+            .with("hash grid", self.grid.param_count(), Update::Sparse)
+            .with("density network", self.density.param_count(), dense)
+            .with("colour network", self.colour.param_count(), dense)
+    }
+
+    /// Initial parameters: the grid's entries uniform in ±1e-4 (paper,
+    /// section 4), each network from its own seed.
+    pub fn init_params(&self, seed: u64) -> Vec<f32> {
+        let mut params = hash_grid::init_params(&self.grid, seed);
+        params.extend(self.density.init_params(seed ^ 0x64656e73));
+        params.extend(self.colour.init_params(seed ^ 0x636f6c6f));
+        assert_eq!(params.len(), self.param_count());
+        params
+    }
+
+    /// Inference of σ at unit-cube positions (n × 3), with the hash
+    /// features kept in `encoded` and `scratch` (grown as needed, reused
+    /// between calls). Only output 0 (log-density) of the density network
+    /// is computed (equal to that output of the full pass up to rounding).
+    pub fn density(
+        &self,
+        params: &[f32],
+        positions: &[f32],
+        sigma: &mut [f32],
+        encoded: &mut Vec<f32>,
+        scratch: &mut Vec<f32>,
+    ) {
+        let n = sigma.len();
+        set_len(encoded, n * self.grid.output_width());
+        hash_grid::encode_with_scratch(
+            &self.grid,
+            &params[self.grid_range()],
+            bytemuck::cast_slice(positions),
+            encoded,
+            scratch,
+        );
+        mlp_inference_leading(
+            &self.density,
+            &params[self.density_range()],
+            encoded,
+            n,
+            sigma,
+            1,
+        );
+        sigma.par_chunks_mut(ROWS_PER_TASK).for_each(|chunk| {
+            for s in chunk {
+                *s = density_activation(*s);
+            }
+        });
+    }
+
+    /// Inference of σ and colour at unit-cube positions and directions.
+    pub fn radiance(
+        &self,
+        params: &[f32],
+        positions: &[f32],
+        directions: &[f32],
+        sigma: &mut [f32],
+        rgb: &mut [f32],
+    ) {
+        let n = sigma.len();
+        let mut encoded = vec![0f32; n * self.grid.output_width()];
+        let density_width = self.density.output_width();
+        let colour_width = self.colour.input_width();
+        let mut colour_input = vec![0f32; n * colour_width];
+        hash_grid::encode(
+            &self.grid,
+            &params[self.grid_range()],
+            bytemuck::cast_slice(positions),
+            &mut encoded,
+        );
+        let mut raw = vec![0f32; n * density_width];
+        mlp_inference(
+            &self.density,
+            &params[self.density_range()],
+            &encoded,
+            n,
+            &mut raw,
+        );
+        for ((s, row), input) in sigma
+            .iter_mut()
+            .zip(raw.chunks_exact(density_width))
+            .zip(colour_input.chunks_exact_mut(colour_width))
+        {
+            *s = density_activation(row[0]);
+            input[..density_width].copy_from_slice(row);
+        }
+        sh_encode(
+            self.network.sh_degree,
+            directions,
+            n,
+            &mut colour_input[density_width..],
+            colour_width,
+        );
+        mlp_inference(
+            &self.colour,
+            &params[self.colour_range()],
+            &colour_input,
+            n,
+            rgb,
+        );
+    }
+}
+
+/// σ = exp(x), clamped (field/ngp.rs, DENSITY_EXP_CLAMP).
+pub fn density_activation(x: f32) -> f32 {
+    x.min(DENSITY_EXP_CLAMP).exp()
+}
+
+/// Instant-NGP's field on the `cpu` engine.
+pub struct NgpField {
+    shape: NgpShape,
+    density_workspace: MlpWorkspace,
+    colour_workspace: MlpWorkspace,
+    /// Hash features (S × L·F) and σ (S) of every sample of the last
+    /// [`Field::density_for_cut`].
+    marched_encoded: Vec<f32>,
+    marched_sigma: Vec<f32>,
+    encode_scratch: Vec<f32>,
+    /// What the last forward pass keeps for the backward pass, per row:
+    /// hash features, unit-cube positions, σ (the cut's, where the rows
+    /// came from one), the density network's outputs, the colour
+    /// network's input.
+    encoded: Vec<f32>,
+    positions: Vec<f32>,
+    sigma: Vec<f32>,
+    density_out: Vec<f32>,
+    colour_input: Vec<f32>,
+    d_density_out: Vec<f32>,
+    d_encoded: Vec<f32>,
+    /// Hash features and scratch of σ inference through `&self` (the
+    /// occupancy grid's updates).
+    inference: Mutex<(Vec<f32>, Vec<f32>)>,
+}
+
+impl NgpField {
+    pub fn new(shape: NgpShape) -> Self {
+        Self {
+            density_workspace: MlpWorkspace::new(&shape.density, 0),
+            colour_workspace: MlpWorkspace::new(&shape.colour, 0),
+            shape,
+            marched_encoded: Vec::new(),
+            marched_sigma: Vec::new(),
+            encode_scratch: Vec::new(),
+            encoded: Vec::new(),
+            positions: Vec::new(),
+            sigma: Vec::new(),
+            density_out: Vec::new(),
+            colour_input: Vec::new(),
+            d_density_out: Vec::new(),
+            d_encoded: Vec::new(),
+            inference: Mutex::new((Vec::new(), Vec::new())),
+        }
+    }
+
+    pub fn shape(&self) -> &NgpShape {
+        &self.shape
+    }
+
+    /// The networks' forward pass on the rows whose hash features are in
+    /// `self.encoded` and σ in `self.sigma`: the colour of each into `rgb`.
+    fn networks_forward(&mut self, params: &[f32], directions: &[f32], rgb: &mut [f32]) {
+        let shape = &self.shape;
+        let u = self.sigma.len();
+        let density_width = shape.density.output_width();
+        let colour_width = shape.colour.input_width();
+        set_len(&mut self.density_out, u * density_width);
+        self.density_workspace.reserve(u);
+        mlp_forward(
+            &shape.density,
+            &params[shape.density_range()],
+            &self.encoded,
+            u,
+            &mut self.density_workspace,
+            &mut self.density_out,
+        );
+        set_len(&mut self.colour_input, u * colour_width);
+        self.colour_input
+            .par_chunks_mut(ROWS_PER_TASK * colour_width)
+            .zip(self.density_out.par_chunks(ROWS_PER_TASK * density_width))
+            .for_each(|(inputs, rows)| {
+                for (input, row) in inputs
+                    .chunks_exact_mut(colour_width)
+                    .zip(rows.chunks_exact(density_width))
+                {
+                    input[..density_width].copy_from_slice(row);
+                }
+            });
+        sh_encode(
+            shape.network.sh_degree,
+            directions,
+            u,
+            // Empty when the batch has no samples (an empty grid).
+            self.colour_input
+                .get_mut(density_width..)
+                .unwrap_or_default(),
+            colour_width,
+        );
+        self.colour_workspace.reserve(u);
+        mlp_forward(
+            &shape.colour,
+            &params[shape.colour_range()],
+            &self.colour_input,
+            u,
+            &mut self.colour_workspace,
+            rgb,
+        );
+    }
+}
+
+impl Field for NgpField {
+    fn layout(&self) -> ParamLayout {
+        self.shape.layout()
+    }
+
+    fn kernels(&self) -> Backend {
+        self.shape.density.kernels()
+    }
+
+    fn init_params(&self, seed: u64) -> Vec<f32> {
+        self.shape.init_params(seed)
+    }
+
+    /// The model's own seed: Instant-NGP is one field, seeded part by part
+    /// as its earlier driver did, so a seed starts the same run as before.
+    fn init_seed(&self, model_seed: u64, _index: usize) -> u64 {
+        model_seed
+    }
+
+    fn coordinates(&self) -> Coordinates {
+        Coordinates::UnitCube
+    }
+
+    fn grid_extent(&self) -> Option<f32> {
+        Some(self.shape.grid.config().extent)
+    }
+
+    fn inference_rows(&self) -> usize {
+        INFERENCE_ROWS
+    }
+
+    fn density(
+        &self,
+        params: &[f32],
+        positions: &[f32],
+        _variances: Option<&[f32]>,
+        sigma: &mut [f32],
+    ) {
+        let mut guard = self.inference.lock().unwrap_or_else(|e| e.into_inner());
+        let (encoded, scratch) = &mut *guard;
+        self.shape
+            .density(params, positions, sigma, encoded, scratch);
+    }
+
+    fn density_for_cut(
+        &mut self,
+        params: &[f32],
+        positions: &[f32],
+        _variances: Option<&[f32]>,
+        sigma: &mut [f32],
+    ) {
+        self.shape.density(
+            params,
+            positions,
+            sigma,
+            &mut self.marched_encoded,
+            &mut self.encode_scratch,
+        );
+        self.marched_sigma.clear();
+        self.marched_sigma.extend_from_slice(sigma);
+    }
+
+    fn forward_before_cut(
+        &mut self,
+        params: &[f32],
+        rows: &[u32],
+        positions: &[f32],
+        _variances: Option<&[f32]>,
+        directions: &[f32],
+        sigma: &mut [f32],
+        rgb: &mut [f32],
+    ) {
+        let width = self.shape.grid.output_width();
+        gather_rows(&self.marched_encoded, width, rows, &mut self.encoded);
+        // σ is the one the cut was found with (the σ-only inference sums in
+        // another order than the full pass, so the two can differ in the
+        // last bits): compositing then stops exactly where the cut said,
+        // and the backward pass differentiates what was composited.
+        gather_rows(&self.marched_sigma, 1, rows, &mut self.sigma);
+        self.positions.clear();
+        self.positions.extend_from_slice(positions);
+        self.networks_forward(params, directions, rgb);
+        sigma.copy_from_slice(&self.sigma);
+    }
+
+    fn may_find_cut_in_forward(&self) -> bool {
+        // The σ pass's hash features serve the forward pass, so σ first
+        // costs little more than the forward pass on the used samples.
+        false
+    }
+
+    fn forward(
+        &mut self,
+        params: &[f32],
+        positions: &[f32],
+        _variances: Option<&[f32]>,
+        directions: &[f32],
+        sigma: &mut [f32],
+        rgb: &mut [f32],
+    ) {
+        let n = sigma.len();
+        let shape = &self.shape;
+        set_len(&mut self.encoded, n * shape.grid.output_width());
+        hash_grid::encode_with_scratch(
+            &shape.grid,
+            &params[shape.grid_range()],
+            bytemuck::cast_slice(positions),
+            &mut self.encoded,
+            &mut self.encode_scratch,
+        );
+        self.positions.clear();
+        self.positions.extend_from_slice(positions);
+        // σ from the density network's output 0 once the pass has run.
+        set_len(&mut self.sigma, n);
+        self.networks_forward(params, directions, rgb);
+        let density_width = self.shape.density.output_width();
+        for (s, row) in self
+            .sigma
+            .iter_mut()
+            .zip(self.density_out.chunks_exact(density_width))
+        {
+            *s = density_activation(row[0]);
+        }
+        sigma.copy_from_slice(&self.sigma);
+    }
+
+    fn backward(
+        &mut self,
+        params: &[f32],
+        d_sigma: &[f32],
+        d_rgb: &[f32],
+        gradients: &mut [f32],
+        mode: Gradient,
+    ) {
+        let shape = &self.shape;
+        let u = self.sigma.len();
+        assert!(
+            d_sigma.len() == u && d_rgb.len() == 3 * u,
+            "gradients of {u} samples"
+        );
+        let density_width = shape.density.output_width();
+        let grid_width = shape.grid.output_width();
+        let (grid_grad, network_grad) = gradients.split_at_mut(shape.grid.param_count());
+        // The networks' backward passes add to their gradients; the hash
+        // grid's writes its own (most of the vector) in parallel.
+        if mode == Gradient::Overwrite {
+            network_grad.fill(0.0);
+        }
+        let (density_grad, colour_grad) = network_grad.split_at_mut(shape.density.param_count());
+        // The colour network's input gradient is wanted for its density
+        // features only (the first columns), not for the direction encoding.
+        set_len(&mut self.d_density_out, u * density_width);
+        mlp_backward_columns(
+            &shape.colour,
+            &params[shape.colour_range()],
+            &self.colour_input,
+            u,
+            &mut self.colour_workspace,
+            d_rgb,
+            colour_grad,
+            &mut self.d_density_out,
+            0..density_width,
+        );
+        for ((d_out, &d_sigma), &sigma) in self
+            .d_density_out
+            .chunks_exact_mut(density_width)
+            .zip(d_sigma)
+            .zip(&self.sigma)
+        {
+            // dσ/dx = σ below the clamp, 0 above it.
+            let clamped = sigma >= DENSITY_EXP_CLAMP.exp();
+            if !clamped {
+                d_out[0] += d_sigma * sigma;
+            }
+        }
+        set_len(&mut self.d_encoded, u * grid_width);
+        mlp_backward(
+            &shape.density,
+            &params[shape.density_range()],
+            &self.encoded,
+            u,
+            &mut self.density_workspace,
+            &self.d_density_out,
+            density_grad,
+            Some(&mut self.d_encoded),
+        );
+        let positions = bytemuck::cast_slice(&self.positions);
+        match mode {
+            Gradient::Overwrite => hash_grid::encode_gradient_with_scratch(
+                &shape.grid,
+                positions,
+                &self.d_encoded,
+                grid_grad,
+                &mut self.encode_scratch,
+            ),
+            Gradient::Add => hash_grid::encode_backward_with_scratch(
+                &shape.grid,
+                positions,
+                &self.d_encoded,
+                grid_grad,
+                &mut self.encode_scratch,
+            ),
+        }
+    }
+
+    fn radiance(
+        &self,
+        params: &[f32],
+        positions: &[f32],
+        _variances: Option<&[f32]>,
+        directions: &[f32],
+        sigma: &mut [f32],
+        rgb: &mut [f32],
+    ) {
+        self.shape
+            .radiance(params, positions, directions, sigma, rgb);
+    }
+
+    fn macs_per_sample(&self) -> usize {
+        self.shape.density.macs_per_row() + self.shape.colour.macs_per_row()
+    }
+
+    fn density_macs_per_sample(&self) -> usize {
+        // The hidden layers and the σ output of the density network.
+        let widths = &self.shape.density.widths;
+        widths.windows(2).map(|w| w[0] * w[1]).sum::<usize>()
+            - widths[widths.len() - 2] * (widths[widths.len() - 1] - 1)
+    }
+
+    fn workspace_bytes(&self) -> usize {
+        4 * [
+            &self.marched_encoded,
+            &self.marched_sigma,
+            &self.encode_scratch,
+            &self.encoded,
+            &self.positions,
+            &self.sigma,
+            &self.density_out,
+            &self.colour_input,
+            &self.d_density_out,
+            &self.d_encoded,
+        ]
+        .iter()
+        .map(|v| v.capacity())
+        .sum::<usize>()
+            + self.density_workspace.bytes()
+            + self.colour_workspace.bytes()
+    }
+}
