@@ -29,7 +29,7 @@ const LAYERS: &[&[&str]] = &[
 const KNOWN_UPWARD: &[(&str, &str, usize)] = &[
     // The model trait, ray batch, stage timings and checkpoints live in
     // train/ until issue 28's model/ layer takes them below the engines.
-    ("engine", "train", 17),
+    ("engine", "train", 14),
     ("engine", "render", 2),
     ("scene", "train", 2),
     ("train", "render", 1),
