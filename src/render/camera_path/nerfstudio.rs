@@ -1,0 +1,1 @@
+//! nerfstudio camera_path.json
