@@ -71,6 +71,20 @@ impl Keyframe {
     }
 }
 
+/// The camera-to-world of a camera at `eye` looking at `target`, its
+/// image's up towards `up` (OpenGL axes: x right, y up, looking down −z).
+pub fn look_at(eye: DVec3, target: DVec3, up: DVec3) -> DMat4 {
+    let forward = (target - eye).normalize();
+    let right = forward.cross(up).normalize();
+    let up = right.cross(forward);
+    DMat4::from_cols(
+        right.extend(0.0),
+        up.extend(0.0),
+        (-forward).extend(0.0),
+        eye.extend(1.0),
+    )
+}
+
 /// A pose and field of view on the path.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PathSample {
@@ -441,16 +455,7 @@ mod tests {
 
     /// A camera at `eye` looking at `target` with +z up.
     fn look(eye: DVec3, target: DVec3, fov: f64) -> Keyframe {
-        let forward = (target - eye).normalize();
-        let right = forward.cross(DVec3::Z).normalize();
-        let up = right.cross(forward);
-        let m = DMat4::from_cols(
-            right.extend(0.0),
-            up.extend(0.0),
-            (-forward).extend(0.0),
-            eye.extend(1.0),
-        );
-        Keyframe::new(m, fov)
+        Keyframe::new(look_at(eye, target, DVec3::Z), fov)
     }
 
     /// Four keyframes round a scene at uneven heights, distances, fields
