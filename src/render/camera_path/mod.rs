@@ -25,7 +25,9 @@
 //! and treats the keyframes as a ring: its end is its start, velocity
 //! included.
 
+pub mod frames;
 pub mod nerfstudio;
+pub mod video;
 
 use glam::{DMat3, DMat4, DQuat, DVec3, DVec4};
 
@@ -133,6 +135,21 @@ impl CameraPath {
             is_cycle: false,
             tension: 0.0,
         }
+    }
+
+    /// A path through `cameras` in order, every `every`-th of them (at
+    /// least one; the last camera always ends the path), each keyframe
+    /// with its camera's pose and vertical field of view: a path from a
+    /// scene's training cameras.
+    pub fn through_cameras(cameras: &[Camera], every: usize) -> Self {
+        let every = every.max(1);
+        let mut chosen: Vec<&Camera> = cameras.iter().step_by(every).collect();
+        if let Some(last) = cameras.last()
+            && (cameras.len() - 1) % every != 0
+        {
+            chosen.push(last);
+        }
+        Self::new(chosen.into_iter().map(Keyframe::from_camera).collect())
     }
 
     /// Why this path cannot be sampled, or `None`.
@@ -744,6 +761,30 @@ mod tests {
         assert!((camera.intrinsics.fov_y().to_degrees() - 50.0).abs() < 1e-4);
         assert_eq!((camera.intrinsics.cx, camera.intrinsics.cy), (160.0, 90.0));
         assert_eq!(camera.intrinsics.fx, camera.intrinsics.fy);
+    }
+
+    #[test]
+    fn a_path_through_cameras_keeps_their_order_and_ends_on_the_last() {
+        let cameras: Vec<Camera> = (0..7)
+            .map(|i| {
+                let eye = DVec3::new(4.0, i as f64, 1.0);
+                PathSample {
+                    camera_to_world: look_at(eye, DVec3::ZERO, DVec3::Z),
+                    fov_degrees: 30.0 + i as f64,
+                }
+                .camera(40, 30)
+            })
+            .collect();
+        let path = CameraPath::through_cameras(&cameras, 3);
+        let ys: Vec<f64> = path.keyframes.iter().map(|k| k.position().y).collect();
+        assert_eq!(ys, vec![0.0, 3.0, 6.0]);
+        let path = CameraPath::through_cameras(&cameras, 4);
+        let ys: Vec<f64> = path.keyframes.iter().map(|k| k.position().y).collect();
+        assert_eq!(ys, vec![0.0, 4.0, 6.0]);
+        // Each keyframe has its camera's field of view (f32 intrinsics).
+        assert!((path.keyframes[1].fov_degrees - 34.0).abs() < 1e-3);
+        assert_eq!(CameraPath::through_cameras(&cameras, 1).keyframes.len(), 7);
+        assert!(CameraPath::through_cameras(&[], 2).keyframes.is_empty());
     }
 
     #[test]
