@@ -299,13 +299,13 @@ fn mean_absolute_error(a: &image::RgbImage, b: &image::RgbImage) -> f64 {
 }
 
 /// Bound on the mean absolute error per channel between a decoded video
-/// frame and its PNG, in levels of 255: H.264 at quantiser 10 to 36 with
-/// 4:2:0 chroma (colour at half resolution, which blurs the colour edges of
-/// a 64 × 48 frame) and BT.601 studio swing (8-bit RGB through 220 luma
-/// levels rounds by up to 0.6 of a level). Measured: see the assertion
-/// message; a frame of another frame or a colour-matrix mix-up is tens of
-/// levels off.
-const VIDEO_MAE_BOUND: f64 = 4.0;
+/// frame and its PNG, in levels of 255 (2.4 %): H.264 at the encoder's
+/// rate for a 64 × 48 frame (quantiser up to 36), 4:2:0 chroma (colour at
+/// half resolution, which blurs the colour edges of so small a frame) and
+/// BT.601 studio swing (8-bit RGB through 220 luma levels, truncated by the
+/// encoder's conversion). Measured 3.4 to 4.3 on these frames; a frame of
+/// another frame is further off (checked below).
+const VIDEO_MAE_BOUND: f64 = 6.0;
 
 #[test]
 fn a_video_decodes_with_ffmpeg_to_the_frames_it_was_made_of() {
@@ -471,7 +471,7 @@ fn bad_path_files_are_refused_by_name() {
         (
             "nan.json",
             text.replacen("\"fov\": 40.0", "\"fov\": NaN", 1),
-            "nan.json: `keyframes[0].fov` is NaN",
+            "nan.json: `camera_path[0].fov` is NaN",
         ),
         (
             "type.json",

@@ -169,6 +169,13 @@ fn check_render_args(args: &RenderArgs) -> anyhow::Result<()> {
         zrak::files::check_memory(&format!("a {width}×{height} frame"), bytes)
             .map_err(anyhow::Error::msg)?;
     }
+    // clap's `requires` lets these through without --camera-path (seen
+    // with `--view 0 --fps 30`), so they are checked here.
+    anyhow::ensure!(
+        args.camera_path.is_some()
+            || (args.fps.is_none() && args.frames.is_none() && !args.keep_frames),
+        "--fps, --frames and --keep-frames go with --camera-path FILE"
+    );
     if let Some(fps) = args.fps {
         anyhow::ensure!(
             fps.is_finite() && (1.0..=240.0).contains(&fps),

@@ -105,7 +105,9 @@ impl Mp4Encoder {
             .bitrate(BitRate::from_bps(bits.min(u32::MAX as f64) as u32))
             .max_frame_rate(FrameRate::from_hz(fps as f32))
             .rate_control_mode(RateControlMode::Quality)
-            .usage_type(UsageType::CameraVideoNonRealTime)
+            // OpenH264 refuses its non-real-time camera usage ("invalid
+            // usage type"); the real-time one still codes every frame.
+            .usage_type(UsageType::CameraVideoRealTime)
             // Every rendered frame is a frame of the video.
             .skip_frames(false)
             .qp(QpRange::new(QP_RANGE.0, QP_RANGE.1))
