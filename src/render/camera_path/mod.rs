@@ -145,7 +145,7 @@ impl CameraPath {
         let every = every.max(1);
         let mut chosen: Vec<&Camera> = cameras.iter().step_by(every).collect();
         if let Some(last) = cameras.last()
-            && (cameras.len() - 1) % every != 0
+            && !(cameras.len() - 1).is_multiple_of(every)
         {
             chosen.push(last);
         }

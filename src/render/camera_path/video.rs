@@ -62,7 +62,7 @@ pub struct VideoInfo {
 /// Why frames of `width` × `height` cannot be an H.264 video here, or
 /// `None`.
 pub fn size_problem(width: u32, height: u32) -> Option<String> {
-    if width % 2 != 0 || height % 2 != 0 {
+    if !width.is_multiple_of(2) || !height.is_multiple_of(2) {
         return Some(format!(
             "an H.264 video needs an even width and height (its colour is stored at half \
              resolution); got {width}×{height}"
