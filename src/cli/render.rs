@@ -1,5 +1,8 @@
-//! `zrak render`: a trained run's views, or a turntable around its scene,
-//! written as PNG files (and a GIF).
+//! `zrak render`: a trained run's views, a turntable around its scene
+//! (PNG files and a GIF), or a camera path (PNG files or an MP4 video, see
+//! [`path`]).
+
+mod path;
 
 use std::path::PathBuf;
 
@@ -22,24 +25,39 @@ pub struct RenderArgs {
     /// The run folder written by `zrak train`.
     run: PathBuf,
     /// Render the camera of this view of `--split`.
-    #[arg(long, conflicts_with = "turntable")]
+    #[arg(long, conflicts_with_all = ["turntable", "camera_path"])]
     view: Option<usize>,
     #[arg(long, value_enum, default_value_t = Split::Val)]
     split: Split,
     /// Render a turntable of this many frames.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "camera_path")]
     turntable: Option<usize>,
+    /// Render along this camera path (nerfstudio's camera_path.json); --out
+    /// is a folder for PNG frames, or a file ending in .mp4 for a video.
+    #[arg(long)]
+    camera_path: Option<PathBuf>,
+    /// Camera path: frames a second (default: the file's; another rate
+    /// bakes the file's keyframes again).
+    #[arg(long, requires = "camera_path")]
+    fps: Option<f64>,
+    /// Camera path: render only frames A..B (B excluded), A.. or one frame.
+    #[arg(long, requires = "camera_path", value_parser = path::parse_frame_range)]
+    frames: Option<path::FrameRange>,
+    /// Camera path: keep a video's PNG frames (in NAME.frames/ beside it).
+    #[arg(long, requires = "camera_path")]
+    keep_frames: bool,
     /// Turntable elevation in degrees.
     #[arg(long, default_value_t = 30.0)]
     elevation: f32,
     /// Turntable radius (default: the training cameras' mean distance).
     #[arg(long)]
     radius: Option<f32>,
-    /// Turntable image size in pixels (default: the training images').
-    #[arg(long)]
-    size: Option<u32>,
+    /// Image size in pixels, N (square) or WxH (default: the training
+    /// images', or the camera path file's).
+    #[arg(long, value_parser = parse_size)]
+    size: Option<ImageSize>,
     /// Also write the turntable as an animated GIF (`turntable.gif`).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "camera_path")]
     gif: bool,
     #[arg(long, value_enum, default_value_t = RenderMode::Rgb)]
     mode: RenderMode,
@@ -54,6 +72,35 @@ pub struct RenderArgs {
     force: bool,
 }
 
+/// An image size on the command line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ImageSize {
+    pub width: u32,
+    pub height: u32,
+}
+
+/// `N` (square) or `WxH`.
+fn parse_size(text: &str) -> Result<ImageSize, String> {
+    let number = |s: &str| {
+        s.trim()
+            .parse::<u32>()
+            .map_err(|_| format!("`{text}` is not a size like 512 or 1280x720"))
+    };
+    match text.split_once(['x', 'X', '×']) {
+        Some((w, h)) => Ok(ImageSize {
+            width: number(w)?,
+            height: number(h)?,
+        }),
+        None => {
+            let side = number(text)?;
+            Ok(ImageSize {
+                width: side,
+                height: side,
+            })
+        }
+    }
+}
+
 /// The largest turntable: 10⁵ frames (over an hour of video at 25 frames a
 /// second); the frames' cameras are placed up front.
 const MAX_TURNTABLE_FRAMES: usize = 100_000;
@@ -66,7 +113,7 @@ impl RenderArgs {
                 frames,
                 elevation_degrees: self.elevation,
                 radius: self.radius,
-                size: self.size.map(|s| (s, s)),
+                size: self.size.map(|s| (s.width, s.height)),
             },
             mode: self.mode,
             out_dir: self.out.clone(),
@@ -108,20 +155,35 @@ fn check_render_args(args: &RenderArgs) -> anyhow::Result<()> {
             "--turntable must be 1 to {MAX_TURNTABLE_FRAMES} frames, got {frames}"
         );
     }
-    if let Some(size) = args.size {
-        anyhow::ensure!(
-            (1..=MAX_IMAGE_SIDE).contains(&size),
-            "--size must be 1 to {MAX_IMAGE_SIDE} pixels, got {size}"
-        );
+    if let Some(ImageSize { width, height }) = args.size {
+        for side in [width, height] {
+            anyhow::ensure!(
+                (1..=MAX_IMAGE_SIDE).contains(&side),
+                "--size must be 1 to {MAX_IMAGE_SIDE} pixels, got {side}"
+            );
+        }
         // One frame renders at a time; the GIF encoder keeps a copy of it.
-        let bytes = render_bytes_per_view(size, size)
+        let bytes = render_bytes_per_view(width, height)
             + if args.gif {
-                size as u64 * size as u64 * 8
+                width as u64 * height as u64 * 8
             } else {
                 0
             };
-        zrak::files::check_memory(&format!("a {size}×{size} frame"), bytes)
+        zrak::files::check_memory(&format!("a {width}×{height} frame"), bytes)
             .map_err(anyhow::Error::msg)?;
+    }
+    // clap's `requires` lets these through without --camera-path (seen
+    // with `--view 0 --fps 30`), so they are checked here.
+    anyhow::ensure!(
+        args.camera_path.is_some()
+            || (args.fps.is_none() && args.frames.is_none() && !args.keep_frames),
+        "--fps, --frames and --keep-frames go with --camera-path FILE"
+    );
+    if let Some(fps) = args.fps {
+        anyhow::ensure!(
+            fps.is_finite() && (1.0..=240.0).contains(&fps),
+            "--fps must be 1 to 240 frames a second, got {fps}"
+        );
     }
     anyhow::ensure!(
         args.elevation.is_finite(),
@@ -160,6 +222,9 @@ pub fn render(args: RenderArgs) -> anyhow::Result<()> {
     let folder = RunFolder::open(&args.run).map_err(anyhow::Error::msg)?;
     let (_, trainer) = restore_run(&folder, args.engine, None)?;
     let scene = &trainer.scene;
+    if let Some(file) = &args.camera_path {
+        return path::render_camera_path(&args, file, trainer.model.as_ref(), scene);
+    }
     if args.size.is_none()
         && let Some((width, height)) = scene.resolution()
     {
@@ -210,7 +275,7 @@ pub fn render(args: RenderArgs) -> anyhow::Result<()> {
             println!("wrote {} files to {}", written.len(), args.out.display());
             return Ok(());
         }
-        _ => bail!("give --view N or --turntable FRAMES"),
+        _ => bail!("give --view N, --turntable FRAMES or --camera-path FILE"),
     };
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("{}: cannot create the output folder", args.out.display()))?;

@@ -1,5 +1,6 @@
 //! Novel views from a trained model: whole images in tiles, render modes.
 
+pub mod camera_path;
 pub mod export;
 pub mod path;
 

@@ -1,0 +1,251 @@
+//! `zrak render RUN --camera-path FILE --out DIR|VIDEO.mp4`: a camera path
+//! (nerfstudio's `camera_path.json`) rendered frame by frame into PNG
+//! files, and for an `.mp4` output encoded into an H.264 video.
+//!
+//! Frames are written as they finish; running the same command again after
+//! an interrupt renders only the frames not yet on disk (see
+//! [`zrak::render::camera_path::frames`]). A video's frames go to a folder
+//! beside it (`NAME.frames/`) and the video is encoded from them once all
+//! are there; the folder is removed afterwards unless `--keep-frames`.
+
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::Context;
+use indicatif::{ProgressBar, ProgressStyle};
+use zrak::interrupt::{self, note};
+use zrak::render::camera_path::frames::{FrameJob, MANIFEST};
+use zrak::render::camera_path::nerfstudio::{CameraPathFile, scene_to_original};
+use zrak::render::camera_path::video::{Mp4Encoder, size_problem};
+use zrak::scene::{ImageRgba8, Scene};
+use zrak::train::model::RadianceModel;
+
+use super::RenderArgs;
+use crate::cli::render_bytes_per_view;
+
+/// A range of frames on the command line: `A..B` (B excluded), `A..` (to
+/// the end), `..B`, or `A` (that frame alone).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FrameRange {
+    pub start: usize,
+    pub end: Option<usize>,
+}
+
+impl FrameRange {
+    /// The frames of a path of `total` frames this range covers.
+    pub fn resolve(&self, total: usize) -> anyhow::Result<Range<usize>> {
+        let end = self.end.unwrap_or(total);
+        anyhow::ensure!(
+            self.start < end && end <= total,
+            "--frames {}..{end} is not within the path's {total} frames (0..{total})",
+            self.start
+        );
+        Ok(self.start..end)
+    }
+}
+
+pub fn parse_frame_range(text: &str) -> Result<FrameRange, String> {
+    let number = |s: &str| {
+        s.trim()
+            .parse::<usize>()
+            .map_err(|_| format!("`{text}` is not a frame range like 10..20, 10.. or 7"))
+    };
+    match text.split_once("..") {
+        Some((a, b)) => {
+            let start = if a.trim().is_empty() { 0 } else { number(a)? };
+            let end = if b.trim().is_empty() {
+                None
+            } else {
+                Some(number(b)?)
+            };
+            if end.is_some_and(|end| end <= start) {
+                return Err(format!("`{text}` is empty: the end is not after the start"));
+            }
+            Ok(FrameRange { start, end })
+        }
+        None => {
+            let frame = number(text)?;
+            Ok(FrameRange {
+                start: frame,
+                end: Some(frame + 1),
+            })
+        }
+    }
+}
+
+/// Whether `out` names a video file rather than a folder of frames.
+pub fn is_video(out: &Path) -> bool {
+    out.extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("mp4"))
+}
+
+/// Where a video's frames are rendered: `NAME.frames/` beside it.
+pub fn frames_folder(video: &Path) -> PathBuf {
+    video.with_extension("frames")
+}
+
+pub fn render_camera_path(
+    args: &RenderArgs,
+    file_path: &Path,
+    model: &dyn RadianceModel,
+    scene: &Scene,
+) -> anyhow::Result<()> {
+    let file = CameraPathFile::load(file_path).map_err(anyhow::Error::msg)?;
+    let file = file.moved_into(scene_to_original(scene).map_err(anyhow::Error::msg)?);
+    let samples = match args.fps {
+        Some(fps) => file.frames_at(fps),
+        None => file.frames(),
+    }
+    .map_err(|e| anyhow::anyhow!("{}: {e}", file_path.display()))?;
+    let fps = args.fps.unwrap_or(file.fps);
+    let (width, height) = args
+        .size
+        .map_or((file.render_width, file.render_height), |s| {
+            (s.width, s.height)
+        });
+    zrak::files::check_memory(
+        &format!("a {width}×{height} frame"),
+        render_bytes_per_view(width, height),
+    )
+    .map_err(anyhow::Error::msg)?;
+    let range = match args.frames {
+        Some(frames) => frames.resolve(samples.len())?,
+        None => 0..samples.len(),
+    };
+    let video = is_video(&args.out);
+    if video {
+        if let Some(problem) = size_problem(width, height) {
+            anyhow::bail!("{}: {problem} (give --size WxH)", args.out.display());
+        }
+        if !args.force && zrak::files::exists_at_all(&args.out) {
+            anyhow::bail!(
+                "{} already exists; give --force to replace it, or another --out",
+                args.out.display()
+            );
+        }
+    }
+    let frames_dir = if video {
+        frames_folder(&args.out)
+    } else {
+        args.out.clone()
+    };
+    let job = FrameJob {
+        samples,
+        range: range.clone(),
+        width,
+        height,
+        mode: args.mode,
+        out_dir: frames_dir.clone(),
+    };
+    let todo = job.prepare(args.force).map_err(anyhow::Error::msg)?;
+    let already = range.len() - todo.len();
+    let bar = ProgressBar::new(range.len() as u64).with_style(
+        ProgressStyle::with_template(
+            "{bar:30} {pos}/{len} frames, {elapsed} so far, about {eta} to go",
+        )
+        .expect("a valid template"),
+    );
+    bar.set_position(already as u64);
+    // The frames found on disk took no time now: the estimate counts only
+    // those rendered from here on.
+    bar.reset_eta();
+    let depth_range = scene.depth_range();
+    let started = Instant::now();
+    let mut rendered = 0;
+    for &index in &todo {
+        if interrupt::requested() {
+            bar.abandon();
+            note(&format!(
+                "interrupted after {} of {} frames; they are in {}: run the same command again \
+                 to render the other {}",
+                already + rendered,
+                range.len(),
+                frames_dir.display(),
+                todo.len() - rendered
+            ));
+            return Ok(());
+        }
+        job.render_frame(model, index, depth_range)
+            .map_err(anyhow::Error::msg)?;
+        rendered += 1;
+        bar.inc(1);
+    }
+    bar.finish();
+    let seconds = started.elapsed().as_secs_f64();
+    if !video {
+        println!(
+            "wrote {} frames to {} ({rendered} rendered in {seconds:.1} s, {already} already there)",
+            range.len(),
+            frames_dir.display()
+        );
+        return Ok(());
+    }
+    let mut encoder =
+        Mp4Encoder::create(&args.out, width, height, fps).map_err(anyhow::Error::msg)?;
+    for index in range.clone() {
+        let path = job.frame_path(index);
+        let image = image::open(&path)
+            .with_context(|| format!("{}: cannot read the frame back", path.display()))?
+            .to_rgba8();
+        let (w, h) = image.dimensions();
+        encoder
+            .add_frame(&ImageRgba8::new(w, h, image.into_raw()))
+            .map_err(anyhow::Error::msg)?;
+    }
+    let info = encoder.finish().map_err(anyhow::Error::msg)?;
+    if !args.keep_frames {
+        for index in range {
+            let _ = std::fs::remove_file(job.frame_path(index));
+        }
+        let _ = std::fs::remove_file(frames_dir.join(MANIFEST));
+        // Only when empty: frames of other ranges stay.
+        let _ = std::fs::remove_dir(&frames_dir);
+    }
+    println!(
+        "wrote {}: {} frames, {}×{}, {} frames a second, {} bytes ({rendered} frames rendered in \
+         {seconds:.1} s, {already} already there)",
+        info.path.display(),
+        info.frames,
+        info.width,
+        info.height,
+        info.fps,
+        info.bytes
+    );
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frame_ranges() {
+        let r = |t| parse_frame_range(t).unwrap();
+        assert_eq!(r("3..7").resolve(10).unwrap(), 3..7);
+        assert_eq!(r("3..").resolve(10).unwrap(), 3..10);
+        assert_eq!(r("..4").resolve(10).unwrap(), 0..4);
+        assert_eq!(r("9").resolve(10).unwrap(), 9..10);
+        assert_eq!(
+            r("3..12").resolve(10).unwrap_err().to_string(),
+            "--frames 3..12 is not within the path's 10 frames (0..10)"
+        );
+        assert!(r("10..").resolve(10).is_err());
+        assert!(parse_frame_range("5..5").unwrap_err().contains("is empty"));
+        assert!(
+            parse_frame_range("a..b")
+                .unwrap_err()
+                .contains("not a frame range")
+        );
+    }
+
+    #[test]
+    fn videos_are_told_from_folders_by_their_extension() {
+        assert!(is_video(Path::new("out/path.MP4")));
+        assert!(!is_video(Path::new("out/frames")));
+        assert_eq!(
+            frames_folder(Path::new("out/path.mp4")),
+            PathBuf::from("out/path.frames")
+        );
+    }
+}
