@@ -11,6 +11,7 @@ use super::kernel::{
 };
 use crate::engine::cpu::adam::Adam;
 use crate::field::ngp::OptimiserConfig;
+use crate::field::params::{ParamLayout, Update};
 
 /// Threads per workgroup in adam.wgsl.
 const WORKGROUP: u32 = 256;
@@ -106,10 +107,78 @@ impl GpuAdam {
         assert!(network_weights.start <= network_weights.end && network_weights.end <= self.count);
         let learning_rate = config.learning_rate_at(self.step);
         self.step += 1;
+        self.record_span(
+            context,
+            encoder,
+            (config, learning_rate, config.l2_weights),
+            0..self.count,
+            network_weights,
+            (params, gradients),
+        );
+    }
+
+    /// Records one update of `params` from `gradients`, each part of
+    /// `layout` as its [`Update`] says (as the cpu's `Adam::step_layout`):
+    /// one pass over every parameter where the dense parts are contiguous
+    /// and agree on weight decay (every model's layout), else one per part.
+    pub fn record_step_layout(
+        &mut self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        config: &OptimiserConfig,
+        layout: &ParamLayout,
+        params: &wgpu::Buffer,
+        gradients: &wgpu::Buffer,
+    ) {
+        assert_eq!(layout.len(), self.count, "the layout's parameters");
+        let learning_rate = config.learning_rate_at(self.step);
+        self.step += 1;
+        let decay = |l2: bool| if l2 { config.l2_weights } else { 0.0 };
+        if let Some((dense, l2)) = layout.single_dense_span() {
+            self.record_span(
+                context,
+                encoder,
+                (config, learning_rate, decay(l2)),
+                0..self.count,
+                dense,
+                (params, gradients),
+            );
+            return;
+        }
+        for part in layout.parts() {
+            let (dense, l2) = match part.update {
+                Update::Dense { l2 } => (part.range.clone(), l2),
+                Update::Sparse => (part.range.start..part.range.start, false),
+            };
+            self.record_span(
+                context,
+                encoder,
+                (config, learning_rate, decay(l2)),
+                part.range.clone(),
+                dense,
+                (params, gradients),
+            );
+        }
+    }
+
+    /// Records the update of parameters `span` (`dense` among them updated
+    /// densely with weight decay `l2`, the rest sparsely) at
+    /// `learning_rate`.
+    fn record_span(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        (config, learning_rate, l2): (&OptimiserConfig, f32, f32),
+        span: Range<usize>,
+        network_weights: Range<usize>,
+        (params, gradients): (&wgpu::Buffer, &wgpu::Buffer),
+    ) {
         // Every array is bound a piece at a time when it exceeds the
-        // storage-binding limit; each element's update is independent.
+        // storage-binding limit (or the span starts inside the buffer);
+        // each element's update is independent.
         let per = rows_per_piece(context, 1, 1);
-        for piece in pieces(self.count, per) {
+        for piece in pieces(span.len(), per) {
+            let piece = span.start + piece.start..span.start + piece.end;
             let (groups, row_stride) = grid(piece.len(), WORKGROUP);
             let relative = |i: usize| i.clamp(piece.start, piece.end) - piece.start;
             let uniform = Params {
@@ -123,7 +192,7 @@ impl GpuAdam {
                 one_minus_beta1: 1.0 - config.beta1,
                 one_minus_beta2: 1.0 - config.beta2,
                 epsilon: config.epsilon,
-                l2: config.l2_weights,
+                l2,
                 _pad: 0,
             };
             let uniform = uniform_buffer(context, "adam params", &uniform);

@@ -202,15 +202,16 @@ impl GpuHashGrid {
 
     /// Records `kernel` over `count` samples: one dispatch per piece of
     /// samples and group of levels, binding the uniform, the levels, the
-    /// table range of the group (`table`) and the piece's rows of
-    /// positions and of the per-sample matrix (`rows`, count × L·F).
+    /// table range of the group (`table`, from f32 `table_offset`) and the
+    /// piece's rows of positions and of the per-sample matrix (`rows`,
+    /// count × L·F).
     #[allow(clippy::too_many_arguments)]
     fn record_pieces(
         &self,
         context: &GpuContext,
         encoder: &mut wgpu::CommandEncoder,
         kernel: &Kernel,
-        table: &wgpu::Buffer,
+        (table, table_offset): (&wgpu::Buffer, usize),
         positions: &wgpu::Buffer,
         rows: &wgpu::Buffer,
         count: usize,
@@ -244,7 +245,10 @@ impl GpuHashGrid {
                     float_range(positions, 3 * piece.start, 3 * piece.len()),
                     float_range(rows, width * piece.start, width * piece.len()),
                 ];
-                bindings.insert(table_binding, float_range(table, group.base, group.len));
+                bindings.insert(
+                    table_binding,
+                    float_range(table, table_offset + group.base, group.len),
+                );
                 kernel.record_bindings(
                     context,
                     encoder,
@@ -266,16 +270,36 @@ impl GpuHashGrid {
         encoded: &wgpu::Buffer,
         count: usize,
     ) {
+        self.record_encode_at(context, encoder, (params, 0), positions, encoded, count);
+    }
+
+    /// As [`Self::record_encode`], the table starting at f32 `offset` of
+    /// `params` (a multiple of [`Self::offset_alignment`]).
+    pub fn record_encode_at(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        (params, offset): (&wgpu::Buffer, usize),
+        positions: &wgpu::Buffer,
+        encoded: &wgpu::Buffer,
+        count: usize,
+    ) {
         self.record_pieces(
             context,
             encoder,
             &self.encode,
-            params,
+            (params, offset),
             positions,
             encoded,
             count,
             2,
         );
+    }
+
+    /// The f32s a table's offset in its buffer must be a multiple of: the
+    /// device's storage-binding offset alignment.
+    pub fn offset_alignment(context: &GpuContext) -> usize {
+        (context.limits.min_storage_buffer_offset_alignment as usize / 4).max(1)
     }
 
     /// Records the backward pass: adds (+=) ∂loss/∂params into `d_params`
@@ -290,11 +314,25 @@ impl GpuHashGrid {
         d_params: &wgpu::Buffer,
         count: usize,
     ) {
+        self.record_backward_at(context, encoder, positions, d_encoded, (d_params, 0), count);
+    }
+
+    /// As [`Self::record_backward`], the table's gradient starting at f32
+    /// `offset` of `d_params` (a multiple of [`Self::offset_alignment`]).
+    pub fn record_backward_at(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        positions: &wgpu::Buffer,
+        d_encoded: &wgpu::Buffer,
+        (d_params, offset): (&wgpu::Buffer, usize),
+        count: usize,
+    ) {
         self.record_pieces(
             context,
             encoder,
             &self.backward,
-            d_params,
+            (d_params, offset),
             positions,
             d_encoded,
             count,

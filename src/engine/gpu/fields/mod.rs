@@ -5,8 +5,10 @@
 //! are.
 
 pub mod nerf;
+pub mod ngp;
 
 use super::context::GpuContext;
+use crate::engine::cpu::fields::Coordinates;
 
 /// A field on the `gpu` engine, as a model driver records it: a forward
 /// pass that keeps its activations, the backward pass of that forward
@@ -23,6 +25,12 @@ pub trait GpuField: Send {
 
     /// Samples one pass can hold.
     fn capacity(&self) -> usize;
+
+    /// Where the positions it is given live (as the cpu twin's
+    /// [`crate::engine::cpu::fields::Field::coordinates`]).
+    fn coordinates(&self) -> Coordinates {
+        Coordinates::World
+    }
 
     /// Records σ (`rows`) and colour (`rows` × 3) at `rows` samples.
     /// `variances` (rows × 3), where given, make each sample a Gaussian with

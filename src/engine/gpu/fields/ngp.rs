@@ -1,0 +1,362 @@
+//! Instant-NGP's field on the `gpu` engine: the math and parameter layout
+//! of [`crate::engine::cpu::fields::ngp::NgpField`] as gpu stages recorded
+//! into one command encoder:
+//!
+//! ```text
+//! position ─ hash grid ─► features ─ density MLP ─► raw ─ ngp_density ─► σ
+//!                                                     └───────────────► [raw | SH(d)] ─ colour MLP ─► RGB
+//! ```
+//!
+//! The parameters are one flat buffer `[hash grid | density | colour]`; the
+//! hash kernels and the dense kernels read each part at its offset of the
+//! model's buffer and accumulate its gradient at the same offset of the
+//! gradient buffer, so nothing is copied in or out. Positions are the unit
+//! cube's, as marched.
+
+use crate::engine::cpu::fields::Coordinates;
+use crate::engine::cpu::fields::ngp::NgpShape;
+use crate::engine::gpu::context::{GpuContext, GpuError};
+use crate::engine::gpu::dense::{GpuDense, GpuMlpWorkspace};
+use crate::engine::gpu::fields::GpuField;
+use crate::engine::gpu::hash_grid::GpuHashGrid;
+use crate::engine::gpu::kernel::{
+    Kernel, float_range, pieces, rows_per_piece, uniform_buffer, zeroed_storage_buffer,
+};
+use crate::engine::gpu::march::dispatch_grid;
+use crate::engine::gpu::sh::GpuSh;
+use crate::field::ngp::DENSITY_EXP_CLAMP;
+
+/// Threads per workgroup of the activation kernels.
+const WORKGROUP: u32 = 64;
+
+/// `Params` in shaders/ngp_density*.wgsl.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct ActivationUniforms {
+    count: u32,
+    row_stride: u32,
+    density_width: u32,
+    colour_width: u32,
+    exp_clamp: f32,
+    _pad: [u32; 3],
+}
+
+/// Instant-NGP's field on the `gpu` engine, with buffers for up to
+/// `capacity` rows (samples). It keeps what the last forward pass computed
+/// for the backward pass, and reads the positions and σ of that pass from
+/// the buffers it was given then (a driver leaves them as they were until
+/// the backward pass, as it does within a step).
+pub struct GpuNgpField {
+    shape: NgpShape,
+    capacity: usize,
+    hash: GpuHashGrid,
+    dense: GpuDense,
+    sh: GpuSh,
+    activate: Kernel,
+    activate_backward: Kernel,
+    encoded: wgpu::Buffer,
+    colour_input: wgpu::Buffer,
+    density: GpuMlpWorkspace,
+    colour: GpuMlpWorkspace,
+    d_colour_input: wgpu::Buffer,
+    d_density_out: wgpu::Buffer,
+    d_encoded: wgpu::Buffer,
+    /// The positions and σ of the last forward pass (handles to the
+    /// driver's buffers).
+    forward_inputs: Option<(wgpu::Buffer, wgpu::Buffer)>,
+    /// Where the field's parameters start in the model's buffers, in f32s.
+    param_offset: usize,
+}
+
+impl GpuNgpField {
+    /// A field of `shape` for passes of up to `capacity_rows` samples
+    /// (compiles its kernels).
+    pub fn new(
+        context: &GpuContext,
+        shape: &NgpShape,
+        capacity_rows: usize,
+    ) -> Result<Self, GpuError> {
+        let capacity = capacity_rows.max(1);
+        let f = |label: &str, n: usize| zeroed_storage_buffer::<f32>(context, label, n);
+        let density_width = shape.density.output_width();
+        let colour_width = shape.colour.input_width();
+        let grid_width = shape.grid.output_width();
+        Ok(Self {
+            hash: GpuHashGrid::new(context, &shape.grid, true)?,
+            dense: GpuDense::new(context)?,
+            sh: GpuSh::new(context)?,
+            activate: Kernel::new(
+                context,
+                "ngp_density",
+                include_str!("../../../../shaders/ngp_density.wgsl"),
+                "forward",
+            )?,
+            activate_backward: Kernel::new(
+                context,
+                "ngp_density_backward",
+                include_str!("../../../../shaders/ngp_density_backward.wgsl"),
+                "backward",
+            )?,
+            encoded: f("ngp encoded", capacity * grid_width),
+            colour_input: f("ngp colour input", capacity * colour_width),
+            density: GpuMlpWorkspace::new(context, &shape.density, capacity),
+            colour: GpuMlpWorkspace::new(context, &shape.colour, capacity),
+            d_colour_input: f("ngp d colour input", capacity * colour_width),
+            d_density_out: f("ngp d density out", capacity * density_width),
+            d_encoded: f("ngp d encoded", capacity * grid_width),
+            forward_inputs: None,
+            param_offset: 0,
+            shape: shape.clone(),
+            capacity,
+        })
+    }
+
+    pub fn shape(&self) -> &NgpShape {
+        &self.shape
+    }
+
+    fn density_offset(&self) -> usize {
+        self.param_offset + self.shape.density_range().start
+    }
+
+    fn colour_offset(&self) -> usize {
+        self.param_offset + self.shape.colour_range().start
+    }
+
+    /// Records the density activation over `count` samples (forward: σ
+    /// into `sigma` and the raw outputs into the colour input; backward:
+    /// the raw outputs' gradient from σ's and the colour input's), a piece
+    /// of samples at a time when the per-sample matrices exceed one storage
+    /// binding.
+    fn record_activation(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        count: usize,
+        sigma: &wgpu::Buffer,
+        d_sigma: Option<&wgpu::Buffer>,
+    ) {
+        let density_width = self.shape.density.output_width();
+        let colour_width = self.shape.colour.input_width();
+        let per = rows_per_piece(context, density_width.max(colour_width), 1);
+        for piece in pieces(count, per) {
+            let (groups, row_stride) = dispatch_grid(piece.len(), WORKGROUP);
+            let uniforms = ActivationUniforms {
+                count: piece.len() as u32,
+                row_stride,
+                density_width: density_width as u32,
+                colour_width: colour_width as u32,
+                exp_clamp: DENSITY_EXP_CLAMP,
+                _pad: [0; 3],
+            };
+            let uniform = uniform_buffer(context, "ngp activation", &uniforms);
+            let rows = |buffer, width: usize| {
+                float_range(buffer, width * piece.start, width * piece.len())
+            };
+            match d_sigma {
+                Some(d_sigma) => self.activate_backward.record_bindings(
+                    context,
+                    encoder,
+                    &[
+                        uniform.as_entire_buffer_binding(),
+                        rows(self.density.output(), density_width),
+                        rows(sigma, 1),
+                        rows(d_sigma, 1),
+                        rows(&self.d_colour_input, colour_width),
+                        rows(&self.d_density_out, density_width),
+                    ],
+                    groups,
+                ),
+                None => self.activate.record_bindings(
+                    context,
+                    encoder,
+                    &[
+                        uniform.as_entire_buffer_binding(),
+                        rows(self.density.output(), density_width),
+                        rows(sigma, 1),
+                        rows(&self.colour_input, colour_width),
+                    ],
+                    groups,
+                ),
+            }
+        }
+    }
+
+    /// Records the encoding and the density network at `rows` positions:
+    /// σ into `sigma_out`, the raw outputs into the colour input.
+    fn record_density_network(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        params: &wgpu::Buffer,
+        positions: &wgpu::Buffer,
+        rows: usize,
+        sigma_out: &wgpu::Buffer,
+    ) {
+        assert!(rows <= self.capacity, "{rows} rows of {}", self.capacity);
+        self.hash.record_encode_at(
+            context,
+            encoder,
+            (params, self.param_offset),
+            positions,
+            &self.encoded,
+            rows,
+        );
+        self.dense.record_forward_at(
+            context,
+            encoder,
+            params,
+            self.density_offset(),
+            &self.encoded,
+            &self.density,
+            rows,
+        );
+        self.record_activation(context, encoder, rows, sigma_out, None);
+    }
+}
+
+impl GpuField for GpuNgpField {
+    fn param_count(&self) -> usize {
+        self.shape.param_count()
+    }
+
+    fn set_param_offset(&mut self, offset: usize) {
+        // The hash table is bound from its offset, which binding offsets
+        // must allow (256 bytes on every WebGPU device at most).
+        assert_eq!(
+            offset % 64,
+            0,
+            "Instant-NGP's parameters start at a multiple of 64 f32s"
+        );
+        self.param_offset = offset;
+    }
+
+    fn capacity(&self) -> usize {
+        self.capacity
+    }
+
+    fn coordinates(&self) -> Coordinates {
+        Coordinates::UnitCube
+    }
+
+    fn record_forward(
+        &mut self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        params: &wgpu::Buffer,
+        positions: &wgpu::Buffer,
+        _variances: Option<&wgpu::Buffer>,
+        directions: &wgpu::Buffer,
+        rows: usize,
+        sigma_out: &wgpu::Buffer,
+        rgb_out: &wgpu::Buffer,
+    ) {
+        self.record_density_network(context, encoder, params, positions, rows, sigma_out);
+        let density_width = self.shape.density.output_width();
+        self.sh.record_encode(
+            context,
+            encoder,
+            self.shape.network.sh_degree,
+            directions,
+            &self.colour_input,
+            rows,
+            self.shape.colour.input_width(),
+            density_width,
+        );
+        self.dense.record_forward_at(
+            context,
+            encoder,
+            params,
+            self.colour_offset(),
+            &self.colour_input,
+            &self.colour,
+            rows,
+        );
+        // The colours where the driver reads them (a copy, not a dispatch).
+        if rows > 0 {
+            encoder.copy_buffer_to_buffer(self.colour.output(), 0, rgb_out, 0, 12 * rows as u64);
+        }
+        self.forward_inputs = Some((positions.clone(), sigma_out.clone()));
+    }
+
+    fn record_backward(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        params: &wgpu::Buffer,
+        d_sigma: &wgpu::Buffer,
+        d_rgb: &wgpu::Buffer,
+        rows: usize,
+        gradients: &wgpu::Buffer,
+    ) {
+        let (positions, sigma) = self
+            .forward_inputs
+            .as_ref()
+            .expect("a forward pass before the backward pass");
+        // The networks' gradients land at their parameters' offsets of the
+        // flat gradient buffer.
+        self.dense.record_backward_at(
+            context,
+            encoder,
+            params,
+            self.colour_offset(),
+            &self.colour_input,
+            &self.colour,
+            d_rgb,
+            gradients,
+            Some(&self.d_colour_input),
+            rows,
+        );
+        self.record_activation(context, encoder, rows, sigma, Some(d_sigma));
+        self.dense.record_backward_at(
+            context,
+            encoder,
+            params,
+            self.density_offset(),
+            &self.encoded,
+            &self.density,
+            &self.d_density_out,
+            gradients,
+            Some(&self.d_encoded),
+            rows,
+        );
+        self.hash.record_backward_at(
+            context,
+            encoder,
+            positions,
+            &self.d_encoded,
+            (gradients, self.param_offset),
+            rows,
+        );
+    }
+
+    fn record_density(
+        &mut self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        params: &wgpu::Buffer,
+        positions: &wgpu::Buffer,
+        _variances: Option<&wgpu::Buffer>,
+        rows: usize,
+        sigma_out: &wgpu::Buffer,
+    ) {
+        self.record_density_network(context, encoder, params, positions, rows, sigma_out);
+        // The activations now hold this pass, not a forward pass.
+        self.forward_inputs = None;
+    }
+
+    fn workspace_bytes(&self) -> usize {
+        [
+            &self.encoded,
+            &self.colour_input,
+            &self.d_colour_input,
+            &self.d_density_out,
+            &self.d_encoded,
+        ]
+        .iter()
+        .map(|b| b.size() as usize)
+        .sum::<usize>()
+            + self.density.bytes()
+            + self.colour.bytes()
+    }
+}
