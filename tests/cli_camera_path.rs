@@ -280,8 +280,7 @@ fn frames_ranges_and_continuing_where_a_render_stopped() {
     );
     let out = succeed(d, &[&args[..], &[long_out.to_str().unwrap()]].concat());
     assert!(
-        out.contains(&format!("wrote 150 frames"))
-            && out.contains(&format!("{done} already there")),
+        out.contains("wrote 150 frames") && out.contains(&format!("{done} already there")),
         "{out}"
     );
 }
