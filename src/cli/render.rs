@@ -52,6 +52,8 @@ pub struct RenderArgs {
     /// Replace images of the same names already in --out.
     #[arg(long)]
     force: bool,
+    #[command(flatten)]
+    crop: super::export::CropArgs,
 }
 
 /// The largest turntable: 10⁵ frames (over an hour of video at 25 frames a
@@ -155,7 +157,9 @@ fn check_render_args(args: &RenderArgs) -> anyhow::Result<()> {
 pub fn render(args: RenderArgs) -> anyhow::Result<()> {
     check_render_args(&args)?;
     let folder = RunFolder::open(&args.run).map_err(anyhow::Error::msg)?;
-    let (_, trainer) = restore_run(&folder, args.engine, None)?;
+    let (_, mut trainer) = restore_run(&folder, args.engine, None)?;
+    let crop = args.crop.resolve(&args.run)?;
+    trainer.model.set_crop(crop).map_err(anyhow::Error::msg)?;
     let scene = &trainer.scene;
     if args.size.is_none()
         && let Some((width, height)) = scene.resolution()

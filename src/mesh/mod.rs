@@ -2,7 +2,9 @@
 //! ([`marching`]), their topology and clean-up, and the files they are
 //! written as (binary PLY, OBJ).
 
+pub mod extract;
 pub mod marching;
+pub mod points;
 
 use std::collections::HashMap;
 use std::io::Write;

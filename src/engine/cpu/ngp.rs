@@ -231,6 +231,25 @@ struct CompactSamples {
     t: Vec<f32>,
 }
 
+/// Sets σ to zero at the samples (unit-cube positions, n × 3) outside
+/// `crop`: they then add nothing to their rays, and the background shows
+/// where the crop box leaves nothing.
+pub fn crop_densities(
+    crop: &crate::scene::crop::CropBox,
+    mapping: &UnitCubeMapping,
+    unit_positions: &[f32],
+    sigma: &mut [f32],
+) {
+    sigma
+        .par_iter_mut()
+        .zip(unit_positions.par_chunks_exact(3))
+        .for_each(|(s, p)| {
+            if !crop.contains(mapping.to_world(Vec3::from_slice(p))) {
+                *s = 0.0;
+            }
+        });
+}
+
 /// Rows per rayon task in the element-wise passes of the step.
 const ROWS_PER_TASK: usize = 4096;
 
@@ -249,6 +268,8 @@ pub struct CpuNgp {
     buffers: StepBuffers,
     /// Samples per batch (the paper's 2^18 unless a test asks for fewer).
     batch_samples: usize,
+    /// What rendering keeps ([`RadianceModel::set_crop`]).
+    crop: Option<crate::scene::crop::CropBox>,
 }
 
 impl CpuNgp {
@@ -299,6 +320,7 @@ impl CpuNgp {
             colour_workspace,
             buffers: StepBuffers::default(),
             batch_samples,
+            crop: None,
         }
     }
 
@@ -694,10 +716,63 @@ impl RadianceModel for CpuNgp {
             &MarchConfig::paper_or_environment(),
             INFERENCE_CHUNK,
             |samples, sigma, rgb| {
-                shape.radiance(params, samples.positions, samples.directions, sigma, rgb)
+                shape.radiance(params, samples.positions, samples.directions, sigma, rgb);
+                if let Some(crop) = &self.crop {
+                    crop_densities(crop, &shape.mapping, samples.positions, sigma);
+                }
             },
             out,
         );
+    }
+
+    fn density_at(
+        &self,
+        positions: &[Vec3],
+        _footprint: f32,
+        sigma: &mut [f32],
+    ) -> Result<(), String> {
+        let mapping = self.shape.mapping;
+        let (mut unit, mut encoded, mut scratch) = (Vec::new(), Vec::new(), Vec::new());
+        for (points, sigma) in positions
+            .chunks(INFERENCE_CHUNK)
+            .zip(sigma.chunks_mut(INFERENCE_CHUNK))
+        {
+            unit.clear();
+            unit.extend(points.iter().flat_map(|&p| mapping.to_unit(p).to_array()));
+            self.shape
+                .density(&self.params, &unit, sigma, &mut encoded, &mut scratch);
+        }
+        Ok(())
+    }
+
+    fn colour_at(
+        &self,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        _footprint: f32,
+        rgb: &mut [f32],
+    ) -> Result<(), String> {
+        let mapping = self.shape.mapping;
+        let (mut unit, mut flat_directions, mut sigma) = (Vec::new(), Vec::new(), Vec::new());
+        for ((points, directions), rgb) in positions
+            .chunks(INFERENCE_CHUNK)
+            .zip(directions.chunks(INFERENCE_CHUNK))
+            .zip(rgb.chunks_mut(3 * INFERENCE_CHUNK))
+        {
+            unit.clear();
+            unit.extend(points.iter().flat_map(|&p| mapping.to_unit(p).to_array()));
+            flat_directions.clear();
+            flat_directions.extend(directions.iter().flat_map(|d| d.to_array()));
+            set_len(&mut sigma, points.len());
+            self.shape
+                .radiance(&self.params, &unit, &flat_directions, &mut sigma, rgb);
+        }
+        Ok(())
+    }
+
+    fn set_crop(&mut self, crop: Option<crate::scene::crop::CropBox>) -> Result<(), String> {
+        self.crop = crop;
+        Ok(())
     }
 
     fn save(&self) -> Checkpoint {
