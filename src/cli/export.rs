@@ -81,8 +81,8 @@ pub struct MeshArgs {
     /// Grid nodes along the longest side of the box meshed.
     #[arg(long, default_value_t = 256)]
     resolution: u32,
-    /// The density (per world unit) the surface is drawn at (default:
-    /// Instant-NGP's 2.5 per unit-cube length, in world units).
+    /// The density (per world unit) the surface is drawn at (default: 30
+    /// per unit-cube length, 9.9 on NeRF-synthetic's scale).
     #[arg(long)]
     threshold: Option<f32>,
     /// The file to write: .ply (binary) or .obj.

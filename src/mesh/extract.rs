@@ -18,19 +18,27 @@ pub const MAX_RESOLUTION: u32 = 2048;
 const NODES_PER_BATCH: usize = 1 << 16;
 
 /// The density (per world unit) a mesh's surface is drawn at unless told
-/// otherwise, for each model.
+/// otherwise, for each model: 30 per unit-cube length, i.e. 30 · `scale`
+/// world⁻¹ (9.9 on NeRF-synthetic's scale of 0.33).
 ///
 /// Instant-NGP's testbed meshes at σ = 2.5 in its own units, per unit-cube
-/// length (instant-ngp `src/testbed.cu`, `m_mesh.thresh`); zrak's
-/// densities are per world unit, and a world unit is `scale` unit-cube
-/// lengths (0.33 on NeRF-synthetic), so the same density is 2.5 · scale
-/// here. On the demo scene, where the true surfaces are known, vertices
-/// lie nearest them at thresholds from about 1 to 20 world⁻¹ (see
-/// `tests/mesh_export.rs`); 2.5 · scale ≈ 0.8 is in that range for
-/// Instant-NGP. NeRF's and Mip-NeRF's densities (a ReLU, a softplus) ramp
-/// up through the same range at surfaces and take the same default.
+/// length (instant-ngp `include/neural-graphics-primitives/testbed.h`,
+/// `compute_and_save_marching_cubes_mesh`'s default `thresh`); zrak's
+/// densities are per world unit, a world unit being `scale` unit-cube
+/// lengths, so that is 2.5 · `scale` here. On the demo scene after 300
+/// steps, where the true surfaces are known (`tests/mesh_export.rs`, cells
+/// of 0.024 world units), vertices lie a median 2.9 cells from them at
+/// 2.5 world⁻¹ (NGP's 2.5 per unit length is 0.83 world⁻¹: 3.1 cells) and
+/// 1.1 cells at 10 and at 25 world⁻¹, while at 100 most of the surface is
+/// gone (a twelfth of the vertices): a briefly trained field's density
+/// ramps up over a few cells in front of each surface and leaves faint
+/// haze in the air, which the low threshold meshes. 30 per unit-cube
+/// length is in the good range, and a cell of a 128-node grid over the
+/// unit cube is then about 20 % opaque (1 − exp(−30/128)). NeRF's and
+/// Mip-NeRF's densities (ReLU, softplus) are per world unit too and take
+/// the same default, not measured on them yet.
 pub fn default_threshold(_model: ModelKind, unit_cube_scale: f32) -> f32 {
-    2.5 * unit_cube_scale
+    30.0 * unit_cube_scale
 }
 
 /// How to mesh a model.

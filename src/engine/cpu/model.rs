@@ -1397,6 +1397,15 @@ impl RadianceModel for CpuModel {
                 variances.resize(world.len(), variance);
             }
             field.density(params, &world, frustums.then_some(&variances[..]), sigma);
+            // Nothing in cells the occupancy grid marks empty, as the
+            // renderer sees it (see the Instant-NGP model's `density_at`).
+            if let Some(grid) = &self.grid {
+                for (s, p) in sigma.iter_mut().zip(points) {
+                    if !grid.occupied_at(self.mapping.to_unit(*p)) {
+                        *s = 0.0;
+                    }
+                }
+            }
         }
         Ok(())
     }

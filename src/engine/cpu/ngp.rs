@@ -741,6 +741,15 @@ impl RadianceModel for CpuNgp {
             unit.extend(points.iter().flat_map(|&p| mapping.to_unit(p).to_array()));
             self.shape
                 .density(&self.params, &unit, sigma, &mut encoded, &mut scratch);
+            // What the renderer sees: nothing in cells the occupancy grid
+            // marks empty, which rays skip. The network's density there is
+            // never trained down (no sample lands there), so without the
+            // mask it leaves floaters in meshes that no render shows.
+            for (s, p) in sigma.iter_mut().zip(unit.chunks_exact(3)) {
+                if !self.grid.occupied_at(Vec3::from_slice(p)) {
+                    *s = 0.0;
+                }
+            }
         }
         Ok(())
     }
