@@ -11,6 +11,7 @@ use cli::bench::{DenseArgs, GpuBenchArgs, ThroughputArgs};
 use cli::convert::ConvertArgs;
 use cli::demo::DemoArgs;
 use cli::eval::EvalArgs;
+use cli::export::ExportCommand;
 use cli::info::InfoArgs;
 use cli::quality::QualityArgs;
 use cli::render::RenderArgs;
@@ -40,6 +41,9 @@ enum Command {
     Eval(EvalArgs),
     /// Render views of a trained run to PNG files.
     Render(RenderArgs),
+    /// Export a trained run's surface as a mesh or a point cloud.
+    #[command(subcommand)]
+    Export(ExportCommand),
     /// Benchmarks that print figures (throughput per stage, peak memory).
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -102,6 +106,7 @@ impl Command {
             Command::Info(_)
             | Command::Demo(_)
             | Command::Convert(_)
+            | Command::Export(_)
             | Command::Bench(BenchCommand::Dense(_) | BenchCommand::Gpu(_)) => None,
         }
     }
@@ -114,6 +119,7 @@ impl Command {
             Command::Train(args) => cli::train::train(args),
             Command::Eval(args) => cli::eval::eval(args),
             Command::Render(args) => cli::render::render(args),
+            Command::Export(command) => cli::export::export(command),
             Command::Bench(BenchCommand::Dense(args)) => cli::bench::bench_dense(args),
             Command::Bench(BenchCommand::Throughput(args)) => cli::bench::bench_throughput(args),
             Command::Bench(BenchCommand::Gpu(args)) => cli::bench::bench_gpu(args),

@@ -588,10 +588,14 @@ fn as_tested(command: &str, tmp: &Path, runs_made: &mut usize) -> Vec<String> {
         // `a|b` offers choices: take the first.
         let token = token.split('|').next().unwrap_or(token);
         words.push(token.replace("/tmp/", &tmp));
-        if matches!(token, "--time" | "--turntable" | "--budget") {
+        if matches!(
+            token,
+            "--time" | "--turntable" | "--budget" | "--resolution"
+        ) {
             let value = tokens.next().expect("a value after the flag");
             let budget = match token {
                 "--turntable" => "2",
+                "--resolution" => "24",
                 "--budget" => "1s",
                 _ => "2s",
             };

@@ -18,7 +18,7 @@ const LAYERS: &[&[&str]] = &[
     &["field"],
     &["engine"],
     &["train"],
-    &["render"],
+    &["render", "mesh"],
     &["bench"],
     &["app"],
     &["cli"],

@@ -21,6 +21,7 @@ pub mod bench;
 pub mod convert;
 pub mod demo;
 pub mod eval;
+pub mod export;
 pub mod info;
 pub mod quality;
 pub mod render;

@@ -70,6 +70,8 @@ pub struct RenderArgs {
     /// Replace images of the same names already in --out.
     #[arg(long)]
     force: bool,
+    #[command(flatten)]
+    crop: super::export::CropArgs,
 }
 
 /// An image size on the command line.
@@ -220,7 +222,9 @@ fn check_render_args(args: &RenderArgs) -> anyhow::Result<()> {
 pub fn render(args: RenderArgs) -> anyhow::Result<()> {
     check_render_args(&args)?;
     let folder = RunFolder::open(&args.run).map_err(anyhow::Error::msg)?;
-    let (_, trainer) = restore_run(&folder, args.engine, None)?;
+    let (_, mut trainer) = restore_run(&folder, args.engine, None)?;
+    let crop = args.crop.resolve(&args.run)?;
+    trainer.model.set_crop(crop).map_err(anyhow::Error::msg)?;
     let scene = &trainer.scene;
     if let Some(file) = &args.camera_path {
         return path::render_camera_path(&args, file, trainer.model.as_ref(), scene);

@@ -476,9 +476,9 @@ const SHININESS: f32 = 60.0;
 const FRESNEL_BASE: f32 = 0.06;
 
 // Where the objects are; the tests look at them too.
-const RED_CENTRE: Vec3 = Vec3::new(0.3, -0.25, GROUND_Z + 0.42);
-const RED_RADIUS: f32 = 0.42;
-const GREEN_CENTRE: Vec3 = Vec3::new(-0.58, -0.38, GROUND_Z + 0.24);
+pub const RED_CENTRE: Vec3 = Vec3::new(0.3, -0.25, GROUND_Z + 0.42);
+pub const RED_RADIUS: f32 = 0.42;
+pub const GREEN_CENTRE: Vec3 = Vec3::new(-0.58, -0.38, GROUND_Z + 0.24);
 const GREEN_HALF: f32 = 0.24;
 const GREEN_TURN_DEG: f32 = 25.0;
 const BLUE_BOTTOM: Vec3 = Vec3::new(-0.3, 0.55, GROUND_Z);
@@ -683,6 +683,54 @@ fn hits_sphere(origin: Vec3, direction: Vec3, centre: Vec3, radius: f32) -> bool
     let c = oc.length_squared() - radius * radius;
     // Outside and moving away, or passing wide of it.
     !(c > 0.0 && b > 0.0) && b * b - c >= 0.0
+}
+
+/// Distance from `point` to the nearest surface of the demo's objects (the
+/// stand and the four primitives), in world units: exact outside the
+/// objects, and a lower bound inside them where they overlap. The tests of
+/// meshes and point clouds measure against it.
+pub fn surface_distance(point: Vec3) -> f32 {
+    World::new()
+        .objects
+        .iter()
+        .map(|o| signed_distance(&o.shape, point))
+        .fold(f32::INFINITY, f32::min)
+        .abs()
+}
+
+/// The signed distance from `point` to `shape` (negative inside).
+fn signed_distance(shape: &Shape, point: Vec3) -> f32 {
+    // A box of half sides `half` centred at the origin.
+    let box_distance = |p: Vec3, half: Vec3| {
+        let q = p.abs() - half;
+        q.max(Vec3::ZERO).length() + q.max_element().min(0.0)
+    };
+    match *shape {
+        Shape::Sphere { centre, radius } => (point - centre).length() - radius,
+        Shape::Block {
+            centre,
+            half,
+            cos,
+            sin,
+        } => {
+            let v = point - centre;
+            box_distance(
+                Vec3::new(cos * v.x + sin * v.y, -sin * v.x + cos * v.y, v.z),
+                half,
+            )
+        }
+        Shape::Cylinder {
+            bottom,
+            radius,
+            height,
+        } => {
+            let v = point - bottom;
+            let radial = (v.x * v.x + v.y * v.y).sqrt() - radius;
+            let axial = (v.z - 0.5 * height).abs() - 0.5 * height;
+            let q = glam::Vec2::new(radial, axial);
+            q.max(glam::Vec2::ZERO).length() + q.max_element().min(0.0)
+        }
+    }
 }
 
 /// The nearest entry of a ray into a shape with `0 < t < limit`, and the
@@ -944,6 +992,28 @@ mod tests {
                     .all(|v| (v.position() - camera.position()).length() > 0.3)
             );
         }
+    }
+
+    #[test]
+    fn surface_distance_is_zero_on_each_object_and_grows_away() {
+        // On the red ball's top, the green block's top face, the blue
+        // cylinder's cap and the stand's rim; then above them.
+        let on = [
+            RED_CENTRE + Vec3::Z * RED_RADIUS,
+            GREEN_CENTRE + Vec3::Z * GREEN_HALF,
+            BLUE_BOTTOM + Vec3::Z * BLUE_HEIGHT,
+            Vec3::new(GROUND_RADIUS, 0.0, GROUND_Z - 0.5 * GROUND_THICKNESS),
+            YELLOW_CENTRE - Vec3::Y * YELLOW_RADIUS,
+        ];
+        for p in on {
+            assert!(surface_distance(p) < 1e-5, "{p}: {}", surface_distance(p));
+        }
+        assert!((surface_distance(RED_CENTRE + Vec3::Z * (RED_RADIUS + 0.1)) - 0.1).abs() < 1e-5);
+        // Inside the ball, the distance to its surface.
+        assert!((surface_distance(RED_CENTRE + Vec3::Z * 0.2) - 0.22).abs() < 1e-5);
+        // Far above everything: the distance to the blue cylinder's cap.
+        let top = BLUE_BOTTOM + Vec3::Z * (BLUE_HEIGHT + 1.0);
+        assert!((surface_distance(top) - 1.0).abs() < 1e-5);
     }
 
     #[test]

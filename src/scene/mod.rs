@@ -5,6 +5,7 @@ pub mod blender;
 pub mod bounds;
 pub mod camera;
 pub mod colmap;
+pub mod crop;
 pub mod demo;
 pub mod error;
 pub mod image;

@@ -201,4 +201,49 @@ pub trait RadianceModel: Send {
     fn cpu_kernels(&self) -> Option<crate::engine::cpu::dense::Backend> {
         None
     }
+
+    /// σ (per world unit) at world `positions`, each sample standing for a
+    /// cube of side `footprint` (world units), which models of cones
+    /// (Mip-NeRF) integrate over and the others ignore: for meshes. Models
+    /// of levels answer with their finest field.
+    fn density_at(
+        &self,
+        _positions: &[Vec3],
+        _footprint: f32,
+        _sigma: &mut [f32],
+    ) -> Result<(), String> {
+        Err(format!(
+            "{} cannot be asked for its density at points; give --engine cpu",
+            self.describe()
+        ))
+    }
+
+    /// Colour (linear 0 to 1, n × 3) at world `positions` seen along unit
+    /// `directions`, with `footprint` as in [`Self::density_at`]: for the
+    /// colours of a mesh's vertices.
+    fn colour_at(
+        &self,
+        _positions: &[Vec3],
+        _directions: &[Vec3],
+        _footprint: f32,
+        _rgb: &mut [f32],
+    ) -> Result<(), String> {
+        Err(format!(
+            "{} cannot be asked for its colour at points; give --engine cpu",
+            self.describe()
+        ))
+    }
+
+    /// Limits what [`Self::render`] shows to a crop box (`None`: the whole
+    /// scene): samples outside it have no density, so the background shows
+    /// through.
+    fn set_crop(&mut self, crop: Option<crate::scene::crop::CropBox>) -> Result<(), String> {
+        match crop {
+            None => Ok(()),
+            Some(_) => Err(format!(
+                "{} does not render with a crop box; give --engine cpu",
+                self.describe()
+            )),
+        }
+    }
 }

@@ -152,6 +152,8 @@ pub struct CpuModel {
     /// (see [`Self::marched_step`]). Kept in checkpoints, so a resumed run
     /// chooses as the uninterrupted one did.
     used_fraction: f64,
+    /// What rendering keeps ([`RadianceModel::set_crop`]).
+    crop: Option<crate::scene::crop::CropBox>,
 }
 
 impl CpuModel {
@@ -231,6 +233,7 @@ impl CpuModel {
             held_samples: None,
             // Early training has no ray opaque before its last sample.
             used_fraction: 1.0,
+            crop: None,
         }
     }
 
@@ -814,6 +817,22 @@ impl CpuModel {
         let rays = origins.len() / 3;
         let (mut near, mut far) = (Vec::new(), Vec::new());
         self.ray_bounds(origins, directions, &mut near, &mut far);
+        if let Some(crop) = &self.crop {
+            // The slab test: each ray's interval cut to the crop box, so
+            // every sample lands inside it; a ray that misses the box gets
+            // an empty interval and shows the background.
+            for r in 0..rays {
+                let (n, f) = crop
+                    .intersect(
+                        Vec3::from_slice(&origins[3 * r..]),
+                        Vec3::from_slice(&directions[3 * r..]),
+                        near[r],
+                    )
+                    .map_or((near[r], near[r]), |(t0, t1)| (t0, t1.min(far[r])));
+                near[r] = n;
+                far[r] = f.max(n);
+            }
+        }
         let mut scratch = SamplingScratch::default();
         let mut levels = [LevelBuffers::default(), LevelBuffers::default()];
         let mut pixels = RayScratch::default();
@@ -1447,6 +1466,9 @@ impl RadianceModel for CpuModel {
                                 sigma,
                                 rgb,
                             );
+                            if let Some(crop) = &self.crop {
+                                crop_densities(crop, &mapping, samples.positions, sigma);
+                            }
                             return;
                         }
                         if frustums {
@@ -1469,12 +1491,106 @@ impl RadianceModel for CpuModel {
                             sigma,
                             rgb,
                         );
+                        if let Some(crop) = &self.crop {
+                            crop_densities(crop, &mapping, samples.positions, sigma);
+                        }
                     },
                     out,
                 );
             }
             None => self.render_fixed(&flat(origins), &flat(directions), radii, background, out),
         }
+    }
+
+    fn density_at(
+        &self,
+        positions: &[Vec3],
+        footprint: f32,
+        sigma: &mut [f32],
+    ) -> Result<(), String> {
+        let level = *self.recipe.levels.last().expect("a recipe has levels");
+        let field = &self.fields[level.field];
+        let params = &self.params[self.ranges[level.field].clone()];
+        // A cube of side s as a Gaussian of the same variance per axis,
+        // s²/12 (that of a uniform distribution over the side).
+        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+        let variance = footprint * footprint / 12.0;
+        let (mut world, mut variances) = (Vec::new(), Vec::new());
+        for (points, sigma) in positions
+            .chunks(field.inference_rows())
+            .zip(sigma.chunks_mut(field.inference_rows()))
+        {
+            world.clear();
+            world.extend(
+                points
+                    .iter()
+                    .flat_map(|&p| field_position(field.as_ref(), &self.mapping, p)),
+            );
+            if frustums {
+                variances.clear();
+                variances.resize(world.len(), variance);
+            }
+            field.density(params, &world, frustums.then_some(&variances[..]), sigma);
+            // Nothing in cells the occupancy grid marks empty, as the
+            // renderer sees it (see the Instant-NGP model's `density_at`).
+            if let Some(grid) = &self.grid {
+                for (s, p) in sigma.iter_mut().zip(points) {
+                    if !grid.occupied_at(self.mapping.to_unit(*p)) {
+                        *s = 0.0;
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn colour_at(
+        &self,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        footprint: f32,
+        rgb: &mut [f32],
+    ) -> Result<(), String> {
+        let level = *self.recipe.levels.last().expect("a recipe has levels");
+        let field = &self.fields[level.field];
+        let params = &self.params[self.ranges[level.field].clone()];
+        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+        let variance = footprint * footprint / 12.0;
+        let (mut world, mut flat_directions, mut variances, mut sigma) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        for ((points, directions), rgb) in positions
+            .chunks(field.inference_rows())
+            .zip(directions.chunks(field.inference_rows()))
+            .zip(rgb.chunks_mut(3 * field.inference_rows()))
+        {
+            world.clear();
+            world.extend(
+                points
+                    .iter()
+                    .flat_map(|&p| field_position(field.as_ref(), &self.mapping, p)),
+            );
+            flat_directions.clear();
+            flat_directions.extend(directions.iter().flat_map(|d| d.to_array()));
+            if frustums {
+                variances.clear();
+                variances.resize(world.len(), variance);
+            }
+            set_len(&mut sigma, points.len());
+            field.radiance(
+                params,
+                &world,
+                frustums.then_some(&variances[..]),
+                &flat_directions,
+                &mut sigma,
+                rgb,
+            );
+        }
+        Ok(())
+    }
+
+    fn set_crop(&mut self, crop: Option<crate::scene::crop::CropBox>) -> Result<(), String> {
+        self.crop = crop;
+        Ok(())
     }
 
     fn save(&self) -> Checkpoint {
@@ -1564,4 +1680,32 @@ impl RadianceModel for CpuModel {
                 .map(|f| f.workspace_bytes())
                 .sum::<usize>()
     }
+}
+
+/// A world position as `field` takes it: in the world, or in the unit cube
+/// (Instant-NGP's hash grid).
+fn field_position(field: &dyn Field, mapping: &UnitCubeMapping, world: Vec3) -> [f32; 3] {
+    match field.coordinates() {
+        Coordinates::World => world.to_array(),
+        Coordinates::UnitCube => mapping.to_unit(world).to_array(),
+    }
+}
+
+/// Sets σ to zero at the samples (unit-cube positions, n × 3) outside
+/// `crop`: they then add nothing to their rays, and the background shows
+/// where the crop box leaves nothing.
+fn crop_densities(
+    crop: &crate::scene::crop::CropBox,
+    mapping: &UnitCubeMapping,
+    unit_positions: &[f32],
+    sigma: &mut [f32],
+) {
+    sigma
+        .par_iter_mut()
+        .zip(unit_positions.par_chunks_exact(3))
+        .for_each(|(s, p)| {
+            if !crop.contains(mapping.to_world(Vec3::from_slice(p))) {
+                *s = 0.0;
+            }
+        });
 }
