@@ -39,7 +39,7 @@ pub struct CropArgs {
     /// optionally `,rx,ry,rz` (turned by degrees about x, y, z), saved in
     /// the run folder (crop.json) for later renders and exports; `none`
     /// removes it. Default: the run's saved box, else the whole scene.
-    #[arg(long, value_name = "BOX")]
+    #[arg(long, value_name = "BOX", allow_hyphen_values = true)]
     pub crop: Option<CropArg>,
 }
 
@@ -321,6 +321,12 @@ mod tests {
             "0,0,0,1,1,1",
         ]);
         assert_eq!(args.min_component, Some(MinComponent::Fraction(0.02)));
+        assert!(matches!(args.crop.crop, Some(CropArg::Box(_))));
+    }
+
+    #[test]
+    fn a_crop_box_may_start_with_a_negative_centre() {
+        let args = mesh_args(&["RUN", "--out", "m.ply", "--crop", "-0.5,0,0,1,2,2"]);
         assert!(matches!(args.crop.crop, Some(CropArg::Box(_))));
     }
 
