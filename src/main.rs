@@ -138,6 +138,8 @@ fn report_parse_outcome(outcome: clap::Error) -> ExitCode {
         // Usage errors, and help for a terminal (in colour): clap's own.
         outcome.exit();
     }
+    // Help piped into `head` ends quietly, as every other command's output.
+    interrupt::end_quietly_on_closed_pipe();
     let mut stdout = std::io::stdout().lock();
     let written = write!(stdout, "{}", outcome.render()).and_then(|()| stdout.flush());
     match written {
