@@ -2,7 +2,9 @@
 // samples (slots i·per_ray.., written by render_walk.wgsl) front to back,
 // stopping where its optical depth passes −ln(min transmittance), as the
 // cpu's `march_and_composite` does, and is marked done when it left the
-// box, reached the sample cap or became opaque.
+// box, reached the sample cap or became opaque. With a crop box
+// (`use_crop` 1), samples outside it have no density, as
+// `engine::crop::crop_densities` sets them on the cpu.
 
 struct RayState {
     k: u32,
@@ -21,9 +23,18 @@ struct Params {
     per_ray: u32,
     max_samples: u32,
     stop_depth: f32,
+    use_crop: u32,
     _pad0: u32,
     _pad1: u32,
-    _pad2: u32,
+    // The unit cube's offset (xyz) and scale (w): world = (unit − offset) / scale.
+    mapping: vec4<f32>,
+    // The crop box's centre and half size (world), and the rows of the
+    // rotation from world axes to the box's own.
+    crop_centre: vec4<f32>,
+    crop_half: vec4<f32>,
+    to_box_x: vec4<f32>,
+    to_box_y: vec4<f32>,
+    to_box_z: vec4<f32>,
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -35,8 +46,23 @@ struct Params {
 @group(0) @binding(6) var<storage, read> t: array<f32>;
 // Each sample's step in world units (they grow with distance on large scenes).
 @group(0) @binding(7) var<storage, read> dt: array<f32>;
+// Each sample's unit-cube position (read with a crop box).
+@group(0) @binding(8) var<storage, read> positions: array<f32>;
 
 const LEFT_THE_BOX: u32 = 0x80000000u;
+
+// `scene::crop::CropBox::contains` of the sample's world position.
+fn inside_crop(s: u32) -> bool {
+    let unit = vec3<f32>(positions[3u * s], positions[3u * s + 1u], positions[3u * s + 2u]);
+    let world = (unit - params.mapping.xyz) / params.mapping.w;
+    let d = world - params.crop_centre.xyz;
+    let local = vec3<f32>(
+        dot(params.to_box_x.xyz, d),
+        dot(params.to_box_y.xyz, d),
+        dot(params.to_box_z.xyz, d),
+    );
+    return all(abs(local) <= params.crop_half.xyz);
+}
 
 // 1 − e^{−τ}, as in composite_forward.wgsl (which explains the series).
 fn one_minus_exp_neg(tau: f32) -> f32 {
@@ -63,7 +89,10 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         }
         let s = base + j;
         // Negative densities are empty space, as on the cpu.
-        let tau = max(sigma[s] * dt[s], 0.0);
+        var tau = max(sigma[s] * dt[s], 0.0);
+        if (params.use_crop != 0u && !inside_crop(s)) {
+            tau = 0.0;
+        }
         let weight = exp(-state.optical_depth) * one_minus_exp_neg(tau);
         state.r += weight * rgb[3u * s];
         state.g += weight * rgb[3u * s + 1u];

@@ -32,7 +32,7 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use glam::Vec3;
+use glam::{Quat, Vec3};
 use zrak::engine::cpu::fields::nerf::{DensityActivation, NerfShape};
 use zrak::engine::cpu::frequency::FrequencyEncoding;
 use zrak::engine::cpu::model::CpuModel;
@@ -46,6 +46,7 @@ use zrak::field::ngp::LossKind;
 use zrak::render::{RenderMode, render_pixels, to_image};
 use zrak::rng::Pcg32;
 use zrak::scene::Scene;
+use zrak::scene::crop::CropBox;
 use zrak::scene::demo::{self, DemoConfig};
 use zrak::train::batch::{RayBatch, TrainingBackground, sample_rays};
 use zrak::train::model::{RadianceModel, RenderedPixel};
@@ -503,45 +504,81 @@ fn mipnerf_draws_its_view_into_a_texture_as_the_cpu_engine_renders_it() {
 /// The viewer's texture path for the models that composite on the host:
 /// the texture read back holds the cpu engine's image of the same
 /// parameters (`to_image` of its rendered pixels, the scene's depth range)
-/// in every mode. One model per sampler, so both of the gpu driver's
-/// render paths (fixed samples, and marching through the grid) are drawn.
+/// in every mode, without and with a crop box (turned, so the rotation is
+/// used). One model per sampler, so both of the gpu driver's render paths
+/// (fixed samples, cut to the box, and marching through the grid, σ zeroed
+/// outside it) are drawn.
 fn texture_matches_the_cpu_render(model: Model, sampling: Sampling) {
     let scene = small_scene();
     // Both engines start from the same parameters (one seed, one layout),
     // so no training is needed for the pixels to mean something.
-    let (cpu, gpu) = model.engines(&scene, &settings(sampling), |_| {});
+    let (mut cpu, mut gpu) = model.engines(&scene, &settings(sampling), |_| {});
     assert!(cpu.params() == gpu.params().as_slice());
     // 12 × 12 pixels: the val camera at half size.
     let frame = scene.val[0].downscaled(2);
     let camera = frame.camera;
     let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
-    let drawer = gpu
-        .texture_render()
-        .expect("a model on the gpu engine draws into textures");
-    let expected_pixels = render_pixels(&cpu, &camera, [1.0; 3]);
-    for mode in [RenderMode::Rgb, RenderMode::Depth, RenderMode::Opacity] {
-        let texture = render_target(&gpu.context().device, width, height);
-        drawer
-            .render_to_texture(&camera, mode, [1.0; 3], &texture)
-            .expect("draws");
-        let drawn = read_texture_rgba8(gpu.context(), &texture);
-        let expected = to_image(&expected_pixels, width, height, mode, scene.depth_range());
-        assert_eq!(drawn.len(), expected.data.len());
-        // The engines' pixels agree to ~1e-5 (the render test above);
-        // the conversion to 8 bits may round such a difference either way
-        // at a half level, so one level is allowed, no more.
-        let worst = drawn
-            .iter()
-            .zip(&expected.data)
-            .map(|(a, b)| a.abs_diff(*b))
-            .max()
-            .unwrap_or(0);
-        let distinct: std::collections::HashSet<&[u8]> = expected.data.chunks(4).collect();
-        println!(
-            "{model:?} {mode:?}: worst byte difference {worst}, {} distinct pixels",
-            distinct.len()
-        );
-        assert!(worst <= 1, "{model:?} {mode:?}: {worst}");
+    // Around the demo's green block, turned 0.5 rad about y.
+    let crop = CropBox {
+        centre: Vec3::new(-0.85, 0.0, 0.2),
+        size: Vec3::new(1.0, 1.2, 1.0),
+        rotation: Quat::from_rotation_y(0.5),
+    };
+    let mut uncropped = Vec::new();
+    for crop in [None, Some(crop)] {
+        cpu.set_crop(crop).unwrap();
+        gpu.set_crop(crop).expect("the gpu engine crops");
+        let drawer = gpu
+            .texture_render()
+            .expect("a model on the gpu engine draws into textures");
+        let expected_pixels = render_pixels(&cpu, &camera, [1.0; 3]);
+        for mode in [RenderMode::Rgb, RenderMode::Depth, RenderMode::Opacity] {
+            let texture = render_target(&gpu.context().device, width, height);
+            drawer
+                .render_to_texture(&camera, mode, [1.0; 3], &texture)
+                .expect("draws");
+            let drawn = read_texture_rgba8(gpu.context(), &texture);
+            let expected = to_image(&expected_pixels, width, height, mode, scene.depth_range());
+            assert_eq!(drawn.len(), expected.data.len());
+            // The engines' pixels agree to ~1e-5 (the render test above);
+            // the conversion to 8 bits may round such a difference either
+            // way at a half level, so one level is allowed, no more.
+            let worst = drawn
+                .iter()
+                .zip(&expected.data)
+                .map(|(a, b)| a.abs_diff(*b))
+                .max()
+                .unwrap_or(0);
+            let distinct: std::collections::HashSet<&[u8]> = expected.data.chunks(4).collect();
+            println!(
+                "{model:?} {mode:?} crop {}: worst byte difference {worst}, {} distinct pixels",
+                crop.is_some(),
+                distinct.len()
+            );
+            assert!(worst <= 1, "{model:?} {mode:?}: {worst}");
+        }
+        // Rays that miss the box show nothing but the background.
+        if let Some(crop) = crop {
+            let mut missed = 0;
+            for (i, pixel) in expected_pixels.iter().enumerate() {
+                let ray = camera.pixel_ray(i as u32 % width, i as u32 / width);
+                if crop.intersect(ray.origin, ray.direction, 0.0).is_none() {
+                    assert_eq!(pixel.opacity, 0.0, "pixel {i}");
+                    missed += 1;
+                }
+            }
+            let changed = uncropped
+                .iter()
+                .zip(&expected_pixels)
+                .filter(|(a, b): &(&RenderedPixel, &RenderedPixel)| {
+                    (a.opacity - b.opacity).abs() > 1e-3
+                })
+                .count();
+            println!("{missed} rays miss the box; {changed} pixels changed by cropping");
+            assert!(missed > 0 && changed > 0, "the box cuts nothing away");
+        } else {
+            uncropped = expected_pixels;
+        }
     }
 }
 

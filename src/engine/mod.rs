@@ -2,6 +2,7 @@
 //! reference for tests, and the `gpu` engine (wgpu).
 
 pub mod cpu;
+pub mod crop;
 pub mod gpu;
 
 use gpu::GpuContext;

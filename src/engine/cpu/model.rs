@@ -41,6 +41,7 @@ use super::march::{
 use super::occupancy::OccupancyGrid;
 use super::sampling;
 use super::state::{ModelHeader, ModelState};
+use crate::engine::crop::{crop_densities, crop_ray_bounds};
 use crate::field::common::{BatchSize, RayBounds, Recipe, SampleShape, SamplerKind};
 use crate::field::ngp::LossKind;
 use crate::field::params::ParamLayout;
@@ -818,20 +819,7 @@ impl CpuModel {
         let (mut near, mut far) = (Vec::new(), Vec::new());
         self.ray_bounds(origins, directions, &mut near, &mut far);
         if let Some(crop) = &self.crop {
-            // The slab test: each ray's interval cut to the crop box, so
-            // every sample lands inside it; a ray that misses the box gets
-            // an empty interval and shows the background.
-            for r in 0..rays {
-                let (n, f) = crop
-                    .intersect(
-                        Vec3::from_slice(&origins[3 * r..]),
-                        Vec3::from_slice(&directions[3 * r..]),
-                        near[r],
-                    )
-                    .map_or((near[r], near[r]), |(t0, t1)| (t0, t1.min(far[r])));
-                near[r] = n;
-                far[r] = f.max(n);
-            }
+            crop_ray_bounds(crop, origins, directions, &mut near, &mut far);
         }
         let mut scratch = SamplingScratch::default();
         let mut levels = [LevelBuffers::default(), LevelBuffers::default()];
@@ -1689,23 +1677,4 @@ fn field_position(field: &dyn Field, mapping: &UnitCubeMapping, world: Vec3) -> 
         Coordinates::World => world.to_array(),
         Coordinates::UnitCube => mapping.to_unit(world).to_array(),
     }
-}
-
-/// Sets σ to zero at the samples (unit-cube positions, n × 3) outside
-/// `crop`: they then add nothing to their rays, and the background shows
-/// where the crop box leaves nothing.
-fn crop_densities(
-    crop: &crate::scene::crop::CropBox,
-    mapping: &UnitCubeMapping,
-    unit_positions: &[f32],
-    sigma: &mut [f32],
-) {
-    sigma
-        .par_iter_mut()
-        .zip(unit_positions.par_chunks_exact(3))
-        .for_each(|(s, p)| {
-            if !crop.contains(mapping.to_world(Vec3::from_slice(p))) {
-                *s = 0.0;
-            }
-        });
 }

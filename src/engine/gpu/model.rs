@@ -75,10 +75,12 @@ use crate::engine::cpu::model::{
 };
 use crate::engine::cpu::occupancy::OccupancyGrid;
 use crate::engine::cpu::state::{ModelHeader, ModelState};
+use crate::engine::crop::{crop_densities, crop_ray_bounds};
 use crate::field::common::{BatchSize, Recipe, SampleShape, SamplerKind};
 use crate::field::ngp::LossKind;
 use crate::render::{render_pixels, to_image};
 use crate::scene::Camera;
+use crate::scene::crop::CropBox;
 use crate::scene::{Aabb, Scene, UnitCubeMapping};
 use crate::train::batch::RayBatch;
 use crate::train::checkpoint::Checkpoint;
@@ -353,6 +355,8 @@ pub struct GpuModel {
     pending_grid: Option<MapRequest>,
     /// Near and far depth of depth images ([`Scene::depth_range`]).
     depth_range: (f32, f32),
+    /// What rendering keeps ([`RadianceModel::set_crop`]).
+    crop: Option<CropBox>,
 }
 
 impl GpuModel {
@@ -548,6 +552,7 @@ impl GpuModel {
             grid,
             pending_grid: None,
             depth_range: scene.depth_range(),
+            crop: None,
             identity,
             recipe,
             context,
@@ -609,7 +614,15 @@ impl GpuModel {
 
     /// Near and far bounds of `count` rays (flattened origins and
     /// directions), written to the chunk buffers.
-    fn upload_bounds(&self, work: &mut Work, origins: &[f32], directions: &[f32]) {
+    /// Uploads each ray's `[near, far]`, cut to `crop` when rendering with
+    /// one (training never crops).
+    fn upload_bounds(
+        &self,
+        work: &mut Work,
+        origins: &[f32],
+        directions: &[f32],
+        crop: Option<&CropBox>,
+    ) {
         let (mut near, mut far) = (Vec::new(), Vec::new());
         ray_bounds(
             self.recipe.bounds,
@@ -619,6 +632,9 @@ impl GpuModel {
             &mut near,
             &mut far,
         );
+        if let Some(crop) = crop {
+            crop_ray_bounds(crop, origins, directions, &mut near, &mut far);
+        }
         let queue = &self.context.queue;
         if !near.is_empty() {
             queue.write_buffer(&work.near, 0, bytemuck::cast_slice(&near));
@@ -1238,6 +1254,7 @@ impl GpuModel {
                 work,
                 &origins[3 * start..3 * end],
                 &directions[3 * start..3 * end],
+                None,
             );
             work.clock.restart(ctx, &mut encoder);
             self.record_levels(
@@ -1403,7 +1420,10 @@ impl RadianceModel for GpuModel {
                 &self.recipe.march,
                 grid.samples,
                 |samples, sigma, rgb| {
-                    self.radiance(samples, origins, directions, radii, sigma, rgb)
+                    self.radiance(samples, origins, directions, radii, sigma, rgb);
+                    if let Some(crop) = &self.crop {
+                        crop_densities(crop, &grid.mapping, samples.positions, sigma);
+                    }
                 },
                 out,
             );
@@ -1435,7 +1455,7 @@ impl RadianceModel for GpuModel {
                 .write_buffer(&work.rays.directions, 0, bytemuck::cast_slice(d));
             work.rays
                 .upload_radii(ctx, radii.get(start..end).unwrap_or(&[]), count);
-            self.upload_bounds(work, o, d);
+            self.upload_bounds(work, o, d, self.crop.as_ref());
             let mut encoder = ctx.device.create_command_encoder(&Default::default());
             self.record_levels(
                 work,
@@ -1457,6 +1477,11 @@ impl RadianceModel for GpuModel {
                 };
             }
         }
+    }
+
+    fn set_crop(&mut self, crop: Option<CropBox>) -> Result<(), String> {
+        self.crop = crop;
+        Ok(())
     }
 
     fn save(&self) -> Checkpoint {

@@ -61,10 +61,12 @@ use crate::engine::cpu::march::{BatchSizer, MarchParams, Marcher};
 use crate::engine::cpu::march::{mix_seed, render_through_grid};
 use crate::engine::cpu::occupancy::OccupancyGrid;
 use crate::engine::cpu::state::{ModelHeader, ModelState};
+use crate::engine::crop::crop_densities;
 use crate::field::ngp::{
     DENSITY_EXP_CLAMP, LossKind, MarchConfig, OccupancyConfig, OptimiserConfig, SAMPLES_PER_BATCH,
 };
 use crate::render::RenderMode;
+use crate::scene::crop::CropBox;
 use crate::scene::{Camera, Scene};
 use crate::train::batch::RayBatch;
 use crate::train::checkpoint::Checkpoint;
@@ -150,6 +152,8 @@ pub struct GpuNgp {
     render_buffers: Mutex<Option<RenderBuffers>>,
     /// Near and far depth of depth images ([`Scene::depth_range`]).
     depth_range: (f32, f32),
+    /// What rendering keeps ([`RadianceModel::set_crop`]).
+    crop: Option<CropBox>,
 }
 
 impl GpuNgp {
@@ -284,6 +288,7 @@ impl GpuNgp {
             clock: Some(StageClock::new(ctx, StageTiming::Timestamps)),
             render_buffers: Mutex::new(None),
             depth_range,
+            crop: None,
             stages,
             shape,
             context,
@@ -799,7 +804,11 @@ impl GpuNgp {
         for (i, ray) in rays.iter().enumerate() {
             origins.extend(ray.origin.to_array());
             directions.extend(ray.direction.to_array());
-            if marcher.prepare(ray.origin, ray.direction, 0.0).is_some() {
+            // A ray that misses the crop box shows only the background.
+            let in_crop = self
+                .crop
+                .is_none_or(|c| c.intersect(ray.origin, ray.direction, 0.0).is_some());
+            if in_crop && marcher.prepare(ray.origin, ray.direction, 0.0).is_some() {
                 active.push(i as u32);
             }
         }
@@ -880,8 +889,9 @@ impl GpuNgp {
                     per_ray: per_ray as u32,
                     max_samples: config.max_steps,
                     stop_depth: -config.min_transmittance.ln(),
-                    _pad: [0; 3],
-                };
+                    ..bytemuck::Zeroable::zeroed()
+                }
+                .with_crop(self.crop.as_ref(), &self.shape.mapping);
                 let composite = uniform_buffer(ctx, "render composite", &composite);
                 self.stages.render.composite.record_bindings(
                     ctx,
@@ -895,6 +905,7 @@ impl GpuNgp {
                         self.samples.colour.output().as_entire_buffer_binding(),
                         self.march_out.t.as_entire_buffer_binding(),
                         self.march_out.dt.as_entire_buffer_binding(),
+                        self.march_out.positions.as_entire_buffer_binding(),
                     ],
                     groups,
                 );
@@ -1014,9 +1025,62 @@ impl RadianceModel for GpuNgp {
             background,
             &MarchConfig::paper_or_environment(),
             self.batch_samples.max(1),
-            |samples, sigma, rgb| self.radiance(samples.positions, samples.directions, sigma, rgb),
+            |samples, sigma, rgb| {
+                self.radiance(samples.positions, samples.directions, sigma, rgb);
+                if let Some(crop) = &self.crop {
+                    crop_densities(crop, &self.shape.mapping, samples.positions, sigma);
+                }
+            },
             out,
         );
+    }
+
+    fn set_crop(&mut self, crop: Option<CropBox>) -> Result<(), String> {
+        self.crop = crop;
+        Ok(())
+    }
+
+    /// As the cpu engine answers it: the field's σ, zero in cells the
+    /// occupancy grid marks empty (where rendering never looks).
+    fn density_at(
+        &self,
+        positions: &[Vec3],
+        _footprint: f32,
+        sigma: &mut [f32],
+    ) -> Result<(), String> {
+        let mapping = &self.shape.mapping;
+        let unit: Vec<f32> = positions
+            .iter()
+            .flat_map(|&p| mapping.to_unit(p).to_array())
+            .collect();
+        // σ does not depend on the direction; any unit vector will do.
+        let directions = [0.0, 0.0, 1.0].repeat(positions.len());
+        let mut rgb = vec![0.0; 3 * positions.len()];
+        self.radiance(&unit, &directions, sigma, &mut rgb);
+        for (s, p) in sigma.iter_mut().zip(positions) {
+            if !self.grid.occupied_at(mapping.to_unit(*p)) {
+                *s = 0.0;
+            }
+        }
+        Ok(())
+    }
+
+    fn colour_at(
+        &self,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        _footprint: f32,
+        rgb: &mut [f32],
+    ) -> Result<(), String> {
+        let mapping = &self.shape.mapping;
+        let unit: Vec<f32> = positions
+            .iter()
+            .flat_map(|&p| mapping.to_unit(p).to_array())
+            .collect();
+        let directions: Vec<f32> = directions.iter().flat_map(|d| d.to_array()).collect();
+        let mut sigma = vec![0.0; positions.len()];
+        self.radiance(&unit, &directions, &mut sigma, rgb);
+        Ok(())
     }
 
     fn save(&self) -> Checkpoint {

@@ -16,6 +16,8 @@
 use super::context::{GpuContext, GpuError};
 use super::kernel::{Kernel, zeroed_storage_buffer};
 use super::march::source;
+use crate::scene::UnitCubeMapping;
+use crate::scene::crop::CropBox;
 
 const MARCH_PARAMS: &str = include_str!("../../../shaders/march_params.wgsl");
 const MARCH_COMMON: &str = include_str!("../../../shaders/march_common.wgsl");
@@ -35,7 +37,44 @@ pub(crate) struct CompositeUniforms {
     pub per_ray: u32,
     pub max_samples: u32,
     pub stop_depth: f32,
-    pub _pad: [u32; 3],
+    /// 1 with a crop box: samples outside it have no density.
+    pub use_crop: u32,
+    pub _pad: [u32; 2],
+    /// The unit cube's offset and (fourth) scale.
+    pub mapping: [f32; 4],
+    pub crop_centre: [f32; 4],
+    pub crop_half: [f32; 4],
+    /// Rows of the rotation from world axes to the crop box's.
+    pub to_box: [[f32; 4]; 3],
+}
+
+impl CompositeUniforms {
+    /// The uniforms' crop fields for `crop` (none: `use_crop` 0) over the
+    /// unit cube of `mapping`; the other fields as given.
+    pub fn with_crop(self, crop: Option<&CropBox>, mapping: &UnitCubeMapping) -> Self {
+        let Some(crop) = crop else {
+            return Self {
+                use_crop: 0,
+                ..self
+            };
+        };
+        let to_box = glam::Mat3::from_quat(crop.rotation.inverse()).transpose();
+        let row = |v: glam::Vec3| [v.x, v.y, v.z, 0.0];
+        let half = 0.5 * crop.size;
+        Self {
+            use_crop: 1,
+            mapping: [
+                mapping.offset.x,
+                mapping.offset.y,
+                mapping.offset.z,
+                mapping.scale,
+            ],
+            crop_centre: row(crop.centre),
+            crop_half: row(half),
+            to_box: [row(to_box.x_axis), row(to_box.y_axis), row(to_box.z_axis)],
+            ..self
+        }
+    }
 }
 
 /// `Params` in render_compact.wgsl.
