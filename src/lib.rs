@@ -13,6 +13,7 @@ pub mod files;
 pub mod interrupt;
 pub mod mesh;
 pub mod metrics;
+pub mod model;
 pub mod render;
 pub mod rng;
 pub mod scene;

@@ -18,12 +18,12 @@ use crate::engine::gpu::render::{read_texture_rgba8, render_target};
 use crate::engine::{EngineChoice, EngineKind};
 use crate::field::ModelKind;
 use crate::field::nerf::Sampling;
+use crate::model::RadianceModel;
+use crate::model::batch::{RayBatch, TrainingBackground, sample_rays};
+use crate::model::checkpoint::Checkpoint;
 use crate::render::{RenderMode, render_pixels, to_image};
 use crate::rng::Pcg32;
 use crate::scene::demo::{self, DemoConfig};
-use crate::train::batch::{RayBatch, TrainingBackground, sample_rays};
-use crate::train::checkpoint::Checkpoint;
-use crate::train::model::RadianceModel;
 use crate::train::{ModelSettings, build_model};
 
 /// The features the engine uses or could use, with what each is for.

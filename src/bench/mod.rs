@@ -13,8 +13,8 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use crate::engine::gpu::context::{CounterReading, GpuCounters};
+use crate::model::{StageTimes, StepStats};
 use crate::scene::Scene;
-use crate::train::model::{StageTimes, StepStats};
 use crate::train::trainer::Trainer;
 
 /// `println!` that never panics: a report printed to a full disk ends the

@@ -16,9 +16,9 @@ use serde::{Deserialize, Serialize};
 use crate::field::ModelKind;
 use crate::field::nerf::Sampling;
 use crate::metrics::psnr_from_mse;
+use crate::model::RadianceModel;
 use crate::scene::Frame;
 use crate::train::eval::{ViewScores, score_view};
-use crate::train::model::RadianceModel;
 use crate::train::run::{Limits, RunFolder, Schedule, run};
 use crate::train::trainer::Trainer;
 
@@ -777,11 +777,7 @@ mod tests {
             0
         }
 
-        fn step(
-            &mut self,
-            _: &crate::train::batch::RayBatch,
-            _: u32,
-        ) -> crate::train::model::StepStats {
+        fn step(&mut self, _: &crate::model::batch::RayBatch, _: u32) -> crate::model::StepStats {
             Default::default()
         }
 
@@ -791,10 +787,10 @@ mod tests {
             _: &[glam::Vec3],
             _: &[f32],
             _: [f32; 3],
-            out: &mut [crate::train::model::RenderedPixel],
+            out: &mut [crate::model::RenderedPixel],
         ) {
             for pixel in out {
-                *pixel = crate::train::model::RenderedPixel {
+                *pixel = crate::model::RenderedPixel {
                     rgb: [1.0; 3],
                     opacity: 1.0,
                     depth: 1.0,
@@ -802,14 +798,14 @@ mod tests {
             }
         }
 
-        fn save(&self) -> crate::train::checkpoint::Checkpoint {
-            crate::train::checkpoint::Checkpoint {
+        fn save(&self) -> crate::model::checkpoint::Checkpoint {
+            crate::model::checkpoint::Checkpoint {
                 header: serde_json::Value::Null,
                 tensors: Vec::new(),
             }
         }
 
-        fn load(&mut self, _: &crate::train::checkpoint::Checkpoint) -> Result<(), String> {
+        fn load(&mut self, _: &crate::model::checkpoint::Checkpoint) -> Result<(), String> {
             Ok(())
         }
 

@@ -1,6 +1,6 @@
 //! The crop box at the samples, as both engines apply it: a sample outside
 //! the box has no density, so it adds nothing to its ray and the background
-//! shows where the box leaves nothing ([`crate::train::model::RadianceModel::set_crop`]).
+//! shows where the box leaves nothing ([`crate::model::RadianceModel::set_crop`]).
 //! Zeroing σ rather than dropping the sample keeps the march itself (and so
 //! each ray's sample cap) the same with and without a box.
 

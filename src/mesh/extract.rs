@@ -6,9 +6,9 @@ use glam::Vec3;
 use super::marching::{ScalarGrid, marching_cubes};
 use super::{Mesh, MinComponent};
 use crate::field::ModelKind;
+use crate::model::RadianceModel;
 use crate::scene::crop::CropBox;
 use crate::scene::image::to_u8;
-use crate::train::model::RadianceModel;
 
 /// The largest grid side: 2048³ nodes take 32 GiB of densities.
 pub const MAX_RESOLUTION: u32 = 2048;

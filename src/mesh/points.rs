@@ -3,10 +3,10 @@
 
 use glam::Vec3;
 
+use crate::model::RadianceModel;
 use crate::scene::crop::CropBox;
 use crate::scene::image::to_u8;
 use crate::scene::{Frame, Ray};
-use crate::train::model::RadianceModel;
 
 /// How to make a point cloud.
 #[derive(Debug, Clone, PartialEq)]

@@ -12,8 +12,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use super::path::{Turntable, turntable_cameras};
 use super::{RenderMode, render_pixels, to_image};
+use crate::model::RadianceModel;
 use crate::scene::{Camera, ImageRgba8, Scene};
-use crate::train::model::RadianceModel;
 
 /// What a turntable export writes.
 #[derive(Debug, Clone, PartialEq)]
@@ -342,10 +342,10 @@ mod tests {
     use glam::Vec3;
 
     use super::*;
+    use crate::model::batch::RayBatch;
+    use crate::model::checkpoint::Checkpoint;
+    use crate::model::{RenderedPixel, StepStats};
     use crate::scene::demo::{DemoConfig, build};
-    use crate::train::batch::RayBatch;
-    use crate::train::checkpoint::Checkpoint;
-    use crate::train::model::{RenderedPixel, StepStats};
 
     /// A model-free stand-in: every ray's colour is its direction, so
     /// frames from different cameras differ without any training.

@@ -925,8 +925,8 @@ mod tests {
         // loads in the viewer, which trains at one size.
         assert_eq!(scaled.photographed_training_views().len(), views);
         assert_eq!(
-            crate::train::checkpoint::SceneIdentity::of(&scaled),
-            crate::train::checkpoint::SceneIdentity::of(&scene)
+            crate::scene::identity::SceneIdentity::of(&scaled),
+            crate::scene::identity::SceneIdentity::of(&scene)
         );
     }
 

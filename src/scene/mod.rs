@@ -8,6 +8,7 @@ pub mod colmap;
 pub mod crop;
 pub mod demo;
 pub mod error;
+pub mod identity;
 pub mod image;
 pub mod instant_ngp;
 pub mod lens;

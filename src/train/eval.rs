@@ -4,10 +4,10 @@
 use serde::{Deserialize, Serialize};
 
 use crate::metrics::{self, ImageScores, RgbImage, WHITE};
-use crate::render::{render_pixels, rgb_of};
+use crate::model::pixels::{render_pixels, rgb_of};
 use crate::scene::Frame;
 
-use super::model::RadianceModel;
+use crate::model::RadianceModel;
 
 /// Scores of one view.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -210,10 +210,10 @@ mod tests {
     use glam::{Mat4, Vec3};
 
     use super::*;
+    use crate::model::batch::RayBatch;
+    use crate::model::checkpoint::Checkpoint;
+    use crate::model::{RenderedPixel, StepStats};
     use crate::scene::{Camera, ImageRgba8, Intrinsics};
-    use crate::train::batch::RayBatch;
-    use crate::train::checkpoint::Checkpoint;
-    use crate::train::model::{RenderedPixel, StepStats};
 
     /// Renders every pixel black.
     struct Black;

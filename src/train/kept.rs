@@ -7,8 +7,8 @@
 use std::path::{Path, PathBuf};
 use std::time::SystemTime;
 
-use super::checkpoint::Checkpoint;
 use super::run::{CHECKPOINT_FILE, RunFolder};
+use crate::model::checkpoint::Checkpoint;
 
 /// How many kept runs the viewer leaves in place by default: the newest
 /// ten; older ones are removed when it keeps a new one.

@@ -1,23 +1,24 @@
 //! The training loop: batches, schedules, the optimiser, the occupancy grid,
 //! evaluation, checkpoints and events.
 
-pub mod batch;
-pub mod checkpoint;
 pub mod eval;
 pub mod kept;
 pub mod lock;
 pub mod log;
-pub mod model;
 pub mod run;
 pub mod trainer;
+
+// The model layer's modules, under their former paths (the app, the
+// command line and the tests still name them so).
+pub use crate::model::{self, batch, checkpoint};
 
 use crate::engine::cpu::dense::Precision;
 use crate::engine::{EngineChoice, EngineKind};
 use crate::field::ModelKind;
 use crate::field::nerf::Sampling;
 use crate::field::ngp::LossKind;
+use crate::model::RadianceModel;
 use crate::scene::Scene;
-use model::RadianceModel;
 
 /// Settings every model takes.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -5,12 +5,12 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
-use super::checkpoint::Checkpoint;
 use super::eval::{mean_psnr_sampled, spread_views};
 use super::lock::RunLock;
 use super::log::{LogLine, MetricsLog};
-use super::model::StepStats;
 use super::trainer::Trainer;
+use crate::model::StepStats;
+use crate::model::checkpoint::Checkpoint;
 
 /// File names inside a run folder.
 pub const CHECKPOINT_FILE: &str = "checkpoint.zrak";
@@ -408,9 +408,9 @@ mod tests {
     use std::sync::Arc;
 
     use super::*;
+    use crate::model::batch::RayBatch;
+    use crate::model::{RadianceModel, RenderedPixel};
     use crate::scene::demo::{DemoConfig, build};
-    use crate::train::batch::RayBatch;
-    use crate::train::model::{RadianceModel, RenderedPixel};
 
     /// A model whose loss (or whose parameters) turns NaN from a given step.
     struct Diverging {

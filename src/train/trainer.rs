@@ -9,9 +9,9 @@ use serde::{Deserialize, Serialize};
 use crate::rng::Pcg32;
 use crate::scene::Scene;
 
-use super::batch::{RayBatch, TrainingBackground, sample_rays_cropped, training_background};
-use super::checkpoint::{Checkpoint, SceneIdentity};
-use super::model::{RadianceModel, StepStats};
+use crate::model::batch::{RayBatch, TrainingBackground, sample_rays_cropped, training_background};
+use crate::model::checkpoint::{Checkpoint, SceneIdentity};
+use crate::model::{RadianceModel, StepStats};
 
 /// Random streams of a step, so each purpose draws independently.
 const BATCH_STREAM: u64 = 1;

@@ -35,8 +35,8 @@ use rayon::prelude::*;
 
 use super::occupancy::{Cell, GridGeometry, OccupancyGrid, bit_is_set};
 use crate::field::ngp::{MarchConfig, SAMPLES_PER_BATCH};
+use crate::model::RenderedPixel;
 use crate::scene::{Aabb, UnitCubeMapping};
-use crate::train::model::RenderedPixel;
 
 /// What a batch march needs besides the grid and the rays.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -45,10 +45,10 @@ use crate::engine::crop::{crop_densities, crop_ray_bounds};
 use crate::field::common::{BatchSize, RayBounds, Recipe, SampleShape, SamplerKind};
 use crate::field::ngp::LossKind;
 use crate::field::params::ParamLayout;
+use crate::model::batch::RayBatch;
+use crate::model::checkpoint::Checkpoint;
+use crate::model::{RadianceModel, RenderedPixel, StageTimes, StepStats};
 use crate::scene::{Aabb, Scene, UnitCubeMapping};
-use crate::train::batch::RayBatch;
-use crate::train::checkpoint::Checkpoint;
-use crate::train::model::{RadianceModel, RenderedPixel, StageTimes, StepStats};
 
 /// Rays per chunk of the paper's sampler: 256 rays × 192 fine samples is
 /// 49k rows of activations (~0.5 GB for NeRF's networks).

@@ -6,7 +6,7 @@ use serde::{Deserialize, Serialize};
 
 use super::adam::Adam;
 use crate::field::ngp::LossKind;
-use crate::train::checkpoint::Checkpoint;
+use crate::model::checkpoint::Checkpoint;
 
 /// The checkpoint header of a model.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]

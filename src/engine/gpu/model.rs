@@ -78,13 +78,13 @@ use crate::engine::cpu::state::{ModelHeader, ModelState};
 use crate::engine::crop::{crop_densities, crop_ray_bounds};
 use crate::field::common::{BatchSize, Recipe, SampleShape, SamplerKind};
 use crate::field::ngp::LossKind;
-use crate::render::{render_pixels, to_image};
+use crate::model::batch::RayBatch;
+use crate::model::checkpoint::Checkpoint;
+use crate::model::pixels::{render_pixels, to_image};
+use crate::model::{RadianceModel, RenderMode, RenderedPixel, StepStats, TextureRender};
 use crate::scene::Camera;
 use crate::scene::crop::CropBox;
 use crate::scene::{Aabb, Scene, UnitCubeMapping};
-use crate::train::batch::RayBatch;
-use crate::train::checkpoint::Checkpoint;
-use crate::train::model::{RadianceModel, RenderMode, RenderedPixel, StepStats, TextureRender};
 
 /// How a recipe's samples are placed.
 enum Plan {

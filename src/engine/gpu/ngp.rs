@@ -65,12 +65,12 @@ use crate::engine::crop::crop_densities;
 use crate::field::ngp::{
     DENSITY_EXP_CLAMP, LossKind, MarchConfig, OccupancyConfig, OptimiserConfig, SAMPLES_PER_BATCH,
 };
-use crate::render::RenderMode;
+use crate::model::RenderMode;
+use crate::model::batch::RayBatch;
+use crate::model::checkpoint::Checkpoint;
+use crate::model::{RadianceModel, RenderedPixel, StepStats, TextureRender};
 use crate::scene::crop::CropBox;
 use crate::scene::{Camera, Scene};
-use crate::train::batch::RayBatch;
-use crate::train::checkpoint::Checkpoint;
-use crate::train::model::{RadianceModel, RenderedPixel, StepStats, TextureRender};
 
 /// Threads per workgroup of the activation kernels.
 const WORKGROUP: u32 = 64;

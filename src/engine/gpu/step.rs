@@ -15,8 +15,8 @@ use super::loss::{GpuLoss, LossBuffers};
 use super::timing::{PendingTimes, StageClock};
 use crate::engine::cpu::composite_batch::Distortion;
 use crate::field::ngp::LossKind;
-use crate::train::batch::RayBatch;
-use crate::train::model::StageTimes;
+use crate::model::StageTimes;
+use crate::model::batch::RayBatch;
 
 /// Buffers that hold one value (or colour) per ray of a batch.
 pub struct RayBuffers {

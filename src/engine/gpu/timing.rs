@@ -22,7 +22,7 @@ use wgpu::Features;
 
 use super::context::GpuContext;
 use super::kernel::MapRequest;
-use crate::train::model::StageTimes;
+use crate::model::StageTimes;
 
 /// A stage of the training step, as in [`StageTimes`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -16,9 +16,9 @@ use serde_json::json;
 
 use super::PathSample;
 use crate::crc32c::Crc32c;
+use crate::model::RadianceModel;
 use crate::render::{RenderMode, render_pixels, to_image};
 use crate::scene::ImageRgba8;
-use crate::train::model::RadianceModel;
 
 /// The manifest's file name in the frames folder.
 pub const MANIFEST: &str = "camera_path_render.json";

@@ -6,8 +6,12 @@ use glam::Vec3;
 
 use crate::scene::Camera;
 
-use super::batch::RayBatch;
-use super::checkpoint::Checkpoint;
+pub mod batch;
+pub mod checkpoint;
+pub mod pixels;
+
+use batch::RayBatch;
+use checkpoint::Checkpoint;
 
 /// Seconds spent in each stage of one training step.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
