@@ -27,11 +27,7 @@ const LAYERS: &[&[&str]] = &[
 
 /// Upward imports that remain, as (from, to, how many paths at most).
 /// Lower a count when a change removes some; remove the row at zero.
-const KNOWN_UPWARD: &[(&str, &str, usize)] = &[
-    // The model trait names the cpu engine's kernel choice
-    // (`RadianceModel::cpu_kernels`).
-    ("model", "engine", 1),
-];
+const KNOWN_UPWARD: &[(&str, &str, usize)] = &[];
 
 fn layer_of(module: &str) -> Option<usize> {
     LAYERS.iter().position(|layer| layer.contains(&module))

@@ -91,16 +91,16 @@ pub fn render_bytes_per_view(width: u32, height: u32) -> u64 {
 }
 
 /// The kernels and precision a cpu model computes with, as one line.
-pub struct KernelsLine(pub zrak::engine::cpu::dense::Backend);
+pub struct KernelsLine(pub zrak::model::CpuKernels);
 
 impl std::fmt::Display for KernelsLine {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
-            "kernels              {:?}, {} threads; precision: {}",
-            self.0,
+            "kernels              {}, {} threads; precision: {}",
+            self.0.name,
             rayon::current_num_threads(),
-            self.0.precision().describe()
+            self.0.precision
         )
     }
 }

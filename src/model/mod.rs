@@ -145,6 +145,15 @@ pub trait TextureRender {
     fn stage_timing_note(&self) -> String;
 }
 
+/// Which vector kernels a model on the cpu engine runs, in words.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct CpuKernels {
+    /// `Avx512Bf16`, `Avx512`, `Avx2` or `Portable`.
+    pub name: String,
+    /// How the networks' products are computed.
+    pub precision: &'static str,
+}
+
 /// A model being trained on one engine.
 pub trait RadianceModel: Send {
     /// e.g. "Instant-NGP (cpu)".
@@ -202,7 +211,9 @@ pub trait RadianceModel: Send {
     /// from the step after). The cpu engine reads nothing back.
     fn set_read_back_late(&mut self, _late: bool) {}
 
-    fn cpu_kernels(&self) -> Option<crate::engine::cpu::dense::Backend> {
+    /// The vector kernels of a model on the cpu engine (`None` on the gpu
+    /// engine), for the log.
+    fn cpu_kernels(&self) -> Option<CpuKernels> {
         None
     }
 

@@ -1378,8 +1378,14 @@ pub fn to_world(mapping: &UnitCubeMapping, unit: &[f32], world: &mut Vec<f32>) {
 }
 
 impl RadianceModel for CpuModel {
-    fn cpu_kernels(&self) -> Option<crate::engine::cpu::dense::Backend> {
-        self.fields.first().map(|field| field.kernels())
+    fn cpu_kernels(&self) -> Option<crate::model::CpuKernels> {
+        self.fields
+            .first()
+            .map(|field| field.kernels())
+            .map(|kernels| crate::model::CpuKernels {
+                name: format!("{kernels:?}"),
+                precision: kernels.precision().describe(),
+            })
     }
 
     fn describe(&self) -> String {
