@@ -1,0 +1,700 @@
+//! A model on the `cpu` engine as a composition of stages: per level a
+//! sampler (occupancy-grid marching, stratified, or importance sampling of
+//! the previous level's weights), a field, compositing and the loss; then
+//! one Adam step over every field's parameters. NeRF is this driver with
+//! its field ([`super::fields::nerf`]) and recipe ([`crate::field::nerf`]).
+//!
+//! Two ways through a step, chosen by the first level's sampler:
+//!
+//! - **Grid marching** (one level): the rays march through the occupancy
+//!   grid; σ of every marched sample finds where each ray becomes opaque
+//!   (transmittance below the march's threshold), and only the samples
+//!   before that point go through the field's forward and backward passes
+//!   (the compaction of instant-ngp). The grid is refreshed from the
+//!   field's density on its own schedule.
+//! - **Stratified then importance** (the paper's): every ray gets the same
+//!   number of samples per level, so rays are processed in chunks of
+//!   [`RAYS_PER_CHUNK`], each chunk's levels forward and backward in turn,
+//!   gradients accumulating: the activations of a 1024-ray batch of 256
+//!   samples each would not fit in memory at once.
+//!
+//! Parameters live in one flat vector, field after field, updated by one
+//! Adam with every parameter dense (no sparse entries, no weight decay
+//! unless the recipe's optimiser has it).
+
+use std::ops::Range;
+use std::time::Instant;
+
+use glam::Vec3;
+use rayon::prelude::*;
+
+use super::adam::Adam;
+use super::composite_batch::Distortion;
+use super::composite_batch::{self, CompositeGradients, CompositeOutputs};
+use super::fields::{Coordinates, Field, Gradient, gather_rows, set_len};
+use super::frustum::{frustum_gaussian, frustum_gaussians};
+use super::loss::loss_and_gradient;
+use super::march::{
+    BatchSizer, GridSamples, MarchParams, MarchWorkspace, MarchedSamples, march, mix_seed, mix32,
+    render_through_grid,
+};
+use super::occupancy::OccupancyGrid;
+use super::sampling;
+use super::state::{ModelHeader, ModelState};
+use crate::engine::crop::{crop_densities, crop_ray_bounds};
+use crate::field::common::{BatchSize, RayBounds, Recipe, SampleShape, SamplerKind};
+use crate::field::ngp::LossKind;
+use crate::field::params::ParamLayout;
+use crate::model::batch::RayBatch;
+use crate::model::checkpoint::Checkpoint;
+use crate::model::{RadianceModel, RenderedPixel, StageTimes, StepStats};
+use crate::scene::{Aabb, Scene, UnitCubeMapping};
+
+mod fixed;
+mod marched;
+mod shared;
+
+use fixed::*;
+pub use shared::*;
+
+/// Rays per chunk of the paper's sampler: 256 rays × 192 fine samples is
+/// 49k rows of activations (~0.5 GB for NeRF's networks).
+pub const RAYS_PER_CHUNK: usize = 256;
+
+/// Rows per rayon task in the element-wise passes.
+const ROWS_PER_TASK: usize = 4096;
+
+/// Names and settings that identify a model built on this driver.
+#[derive(Debug, Clone)]
+pub struct ModelIdentity {
+    /// Shown to the user, e.g. "NeRF".
+    pub name: &'static str,
+    /// Stored in checkpoints, e.g. "nerf".
+    pub key: &'static str,
+    /// The sampler's name, stored in checkpoints ("paper", "occupancy"),
+    /// for models with a choice of samplers.
+    pub sampling: Option<&'static str>,
+}
+
+/// Buffers of one level of a step, reused between steps.
+#[derive(Default)]
+struct LevelBuffers {
+    /// Per ray (fixed-count levels): sample distances and intervals.
+    t: Vec<f32>,
+    dt: Vec<f32>,
+    /// Frustum levels: each ray's interval edges (one more than samples).
+    edges: Vec<f32>,
+    positions: Vec<f32>,
+    /// Frustum levels: each sample's covariance diagonal.
+    variances: Vec<f32>,
+    directions: Vec<f32>,
+    ray_offsets: Vec<u32>,
+    sigma: Vec<f32>,
+    rgb: Vec<f32>,
+    weights: Vec<f32>,
+    d_sigma: Vec<f32>,
+    d_rgb: Vec<f32>,
+}
+
+/// Buffers of a step.
+#[derive(Default)]
+struct StepBuffers {
+    origins: Vec<f32>,
+    directions: Vec<f32>,
+    marched: MarchedSamples,
+    march: MarchWorkspace,
+    world: Vec<f32>,
+    sigma_marched: Vec<f32>,
+    /// σ from the field's forward pass on the used samples (compositing
+    /// uses the cut pass's), or on every marched sample when the forward
+    /// pass finds the cut.
+    sigma_forward: Vec<f32>,
+    /// Colours of every marched sample, and the gradients of every marched
+    /// sample's σ and colour (zero past the cut), when the forward pass
+    /// finds the cut.
+    rgb_marched: Vec<f32>,
+    d_sigma_marched: Vec<f32>,
+    d_rgb_marched: Vec<f32>,
+    /// Cone radius at unit distance of each ray.
+    radii: Vec<f32>,
+    /// Frustum recipes: covariance diagonals of the marched samples.
+    variances_marched: Vec<f32>,
+    source: Vec<u32>,
+    levels: Vec<LevelBuffers>,
+    sampling: SamplingScratch,
+    targets: Vec<f32>,
+    backgrounds: Vec<f32>,
+    rays: RayScratch,
+    gradients: Vec<f32>,
+}
+
+/// A model on the `cpu` engine built from a recipe and its fields.
+pub struct CpuModel {
+    identity: ModelIdentity,
+    recipe: Recipe,
+    fields: Vec<Box<dyn Field>>,
+    ranges: Vec<Range<usize>>,
+    /// Every field's parts, one after the other: what Adam updates how.
+    layout: ParamLayout,
+    params: Vec<f32>,
+    adam: Adam,
+    /// The occupancy grid, for recipes that march through one.
+    grid: Option<OccupancyGrid>,
+    batch_sizer: BatchSizer,
+    mapping: UnitCubeMapping,
+    bounds: Aabb,
+    loss: LossKind,
+    seed: u64,
+    buffers: StepBuffers,
+    /// Rays per batch for fixed-size batches, or samples per batch for
+    /// marched ones.
+    batch_size: BatchSize,
+    /// Sample distances kept per (chunk, level) while samples are held
+    /// (see [`Self::hold_samples`]).
+    held_samples: Option<std::collections::HashMap<(usize, usize), Vec<f32>>>,
+    /// Rays per chunk of fixed-count levels ([`RAYS_PER_CHUNK`] unless a
+    /// test asks for fewer).
+    rays_per_chunk: usize,
+    /// The share of the marched samples that lay before their ray's cut in
+    /// the last marched step: it chooses how the next step finds the cut
+    /// (see [`Self::marched_step`]). Kept in checkpoints, so a resumed run
+    /// chooses as the uninterrupted one did.
+    used_fraction: f64,
+    /// What rendering keeps ([`RadianceModel::set_crop`]).
+    crop: Option<crate::scene::crop::CropBox>,
+}
+
+impl CpuModel {
+    /// A fresh model: `fields[i]` is the field levels name by index `i`.
+    /// `batch_size` replaces the recipe's batch (tests and the viewer ask
+    /// for smaller ones).
+    pub fn new(
+        identity: ModelIdentity,
+        recipe: Recipe,
+        fields: Vec<Box<dyn Field>>,
+        scene: &Scene,
+        seed: u64,
+        loss: LossKind,
+        batch_size: Option<BatchSize>,
+    ) -> Self {
+        assert_eq!(fields.len(), recipe.fields, "the recipe's field count");
+        assert!(
+            recipe.levels.iter().all(|l| l.field < fields.len()),
+            "a level names a missing field"
+        );
+        assert!(
+            recipe.levels.iter().all(|l| match l.sampler {
+                SamplerKind::Importance { .. } => recipe.samples == SampleShape::Points,
+                SamplerKind::Resample { .. } => recipe.samples == SampleShape::ConicalFrustums,
+                _ => true,
+            }),
+            "importance sampling adds points; resampling draws frustums"
+        );
+        let (params, ranges) = init_field_params(&fields, seed);
+        let layout = model_layout(&fields);
+        assert!(
+            fields.iter().all(|f| f.coordinates() == Coordinates::World)
+                || (recipe.samples == SampleShape::Points
+                    && recipe.levels[0].sampler == SamplerKind::Occupancy),
+            "a field of unit-cube positions takes marched points (fixed-count levels and \
+             frustums are placed in world units)"
+        );
+        let marches = recipe.levels[0].sampler == SamplerKind::Occupancy;
+        let mapping = scene.unit_cube;
+        let grid = marches.then(|| {
+            let mut grid = OccupancyGrid::new(
+                recipe.occupancy,
+                crate::field::ngp::OccupancyConfig::cascades(mapping.aabb_scale),
+                // The grid stores σ · step with σ per world unit, the step
+                // being Instant-NGP's smallest (√3/1024 of the unit cube)
+                // whatever this recipe marches with: the occupancy threshold
+                // (0.01) then means the same density for every model.
+                crate::field::ngp::MarchConfig::PAPER.step / mapping.scale,
+            );
+            if let BatchSize::Samples(samples) = batch_size.unwrap_or(recipe.batch) {
+                grid.chunk = samples;
+            }
+            grid
+        });
+        let batch_size = batch_size.unwrap_or(recipe.batch);
+        let batch_sizer = BatchSizer::new(match batch_size {
+            BatchSize::Samples(samples) => samples,
+            BatchSize::Rays(rays) => rays,
+        });
+        Self {
+            identity,
+            adam: Adam::new(params.len()),
+            params,
+            ranges,
+            layout,
+            fields,
+            grid,
+            batch_sizer,
+            mapping,
+            bounds: scene.bounds,
+            loss,
+            seed,
+            buffers: StepBuffers::default(),
+            batch_size,
+            rays_per_chunk: RAYS_PER_CHUNK,
+            recipe,
+            held_samples: None,
+            // Early training has no ray opaque before its last sample.
+            used_fraction: 1.0,
+            crop: None,
+        }
+    }
+
+    /// Sets the share of marched samples the last step used, which orders
+    /// the next marched step's passes (σ first below 1 − D/3F, forward
+    /// first above: see [`Self::marched_step`]); tests take either order
+    /// with it. Each marched step sets it again.
+    pub fn assume_used_fraction(&mut self, fraction: f64) {
+        self.used_fraction = fraction;
+    }
+
+    /// While held, each fixed-count level reuses the sample distances it
+    /// drew first, whatever the parameters are since. No gradient flows
+    /// through where the importance and resampled levels put their samples
+    /// (NeRF, section 5.2; Mip-NeRF's `stop_level_grad`), so a finite
+    /// difference of the loss matches the step's gradient only with the
+    /// samples held still.
+    pub fn hold_samples(&mut self, hold: bool) {
+        self.held_samples = hold.then(Default::default);
+    }
+
+    /// Processes fixed-count levels in chunks of `rays` (at least 1)
+    /// instead of [`RAYS_PER_CHUNK`]: the chunk index seeds the jitter, so
+    /// tests of a gpu model with smaller chunks set the same here.
+    pub fn set_rays_per_chunk(&mut self, rays: usize) {
+        self.rays_per_chunk = rays.max(1);
+    }
+
+    pub fn params(&self) -> &[f32] {
+        &self.params
+    }
+
+    /// Parameters, writable (for gradient checks).
+    pub fn params_mut(&mut self) -> &mut [f32] {
+        &mut self.params
+    }
+
+    /// The gradient written by the last [`Self::forward_backward`].
+    pub fn gradients(&self) -> &[f32] {
+        &self.buffers.gradients
+    }
+
+    pub fn occupancy(&self) -> Option<&OccupancyGrid> {
+        self.grid.as_ref()
+    }
+
+    /// The occupancy grid, writable (tests of empty grids).
+    pub fn occupancy_mut(&mut self) -> Option<&mut OccupancyGrid> {
+        self.grid.as_mut()
+    }
+
+    /// Where each field sits in the parameter vector.
+    pub fn parameter_ranges(&self) -> &[Range<usize>] {
+        &self.ranges
+    }
+
+    /// Every part of the parameters by name, with how Adam updates it.
+    pub fn layout(&self) -> &ParamLayout {
+        &self.layout
+    }
+
+    /// σ at unit-cube positions (n × 3) from the first level's field, as
+    /// the occupancy grid's updates see it: for probes of where the field
+    /// holds density.
+    pub fn densities(&self, positions: &[f32]) -> Vec<f32> {
+        let field = &self.fields[self.recipe.levels[0].field];
+        let params = &self.params[self.ranges[self.recipe.levels[0].field].clone()];
+        let mut world = Vec::new();
+        let positions = match field.coordinates() {
+            Coordinates::UnitCube => positions,
+            Coordinates::World => {
+                to_world(&self.mapping, positions, &mut world);
+                &world[..]
+            }
+        };
+        let mut sigma = vec![0f32; positions.len() / 3];
+        field.density(params, positions, None, &mut sigma);
+        sigma
+    }
+
+    /// Whether the share of samples used orders the next marched step's
+    /// passes (see [`Self::marched_step`]).
+    fn chooses_pass_order(&self) -> bool {
+        self.grid.is_some() && self.fields[self.recipe.levels[0].field].may_find_cut_in_forward()
+    }
+
+    /// The side of the box the first field's encoding spans, where its
+    /// checkpoint must match it.
+    fn grid_extent(&self) -> Option<f32> {
+        self.fields[self.recipe.levels[0].field].grid_extent()
+    }
+
+    /// Multiply-adds per sample of each level's field, forward.
+    pub fn macs_per_sample(&self) -> Vec<usize> {
+        self.recipe
+            .levels
+            .iter()
+            .map(|l| self.fields[l.field].macs_per_sample())
+            .collect()
+    }
+
+    /// Near and far bounds of each ray (R × 3 origins and directions).
+    fn ray_bounds(
+        &self,
+        origins: &[f32],
+        directions: &[f32],
+        near: &mut Vec<f32>,
+        far: &mut Vec<f32>,
+    ) {
+        ray_bounds(
+            self.recipe.bounds,
+            &self.bounds,
+            origins,
+            directions,
+            near,
+            far,
+        );
+    }
+
+    /// Evaluates `batch` and writes the gradient of the loss with respect
+    /// to every parameter (see [`Self::gradients`]), without changing any
+    /// parameter. Optimiser and grid times are zero in the result.
+    pub fn forward_backward(&mut self, batch: &RayBatch, step: u32) -> StepStats {
+        let b = &mut self.buffers;
+        b.origins.clear();
+        b.directions.clear();
+        b.targets.clear();
+        b.backgrounds.clear();
+        b.radii.clear();
+        if self.recipe.samples == SampleShape::ConicalFrustums {
+            assert_eq!(batch.radii.len(), batch.len(), "a cone radius per ray");
+            b.radii.extend_from_slice(&batch.radii);
+        }
+        for r in 0..batch.len() {
+            b.origins.extend_from_slice(&batch.origins[r].to_array());
+            b.directions
+                .extend_from_slice(&batch.directions[r].to_array());
+            b.targets.extend_from_slice(&batch.targets[r]);
+            b.backgrounds.extend_from_slice(&batch.backgrounds[r]);
+        }
+        set_len(&mut b.gradients, self.params.len());
+        if self.recipe.levels[0].sampler == SamplerKind::Occupancy {
+            self.marched_step(step)
+        } else {
+            self.fixed_step(step)
+        }
+    }
+}
+
+impl RadianceModel for CpuModel {
+    fn cpu_kernels(&self) -> Option<crate::model::CpuKernels> {
+        self.fields
+            .first()
+            .map(|field| field.kernels())
+            .map(|kernels| crate::model::CpuKernels {
+                name: format!("{kernels:?}"),
+                precision: kernels.precision().describe(),
+            })
+    }
+
+    fn describe(&self) -> String {
+        describe(&self.identity, "cpu")
+    }
+
+    fn rays_for_next_batch(&self) -> usize {
+        match self.batch_size {
+            BatchSize::Rays(rays) => rays,
+            BatchSize::Samples(_) => self.batch_sizer.rays(),
+        }
+    }
+
+    fn centre_crop(&self, step: u32) -> Option<f32> {
+        self.recipe
+            .centre_crop
+            .and_then(|(steps, fraction)| (step < steps).then_some(fraction))
+    }
+
+    fn step(&mut self, batch: &RayBatch, step: u32) -> StepStats {
+        let clock = Instant::now();
+        if self.grid.as_ref().is_some_and(|g| g.is_due(step)) {
+            self.update_grid(step);
+        }
+        let grid_update = clock.elapsed().as_secs_f64();
+        let mut stats = self.forward_backward(batch, step);
+        stats.times.grid_update = grid_update;
+        let clock = Instant::now();
+        self.adam.step_layout(
+            &self.recipe.optimiser,
+            &self.layout,
+            &mut self.params,
+            &self.buffers.gradients,
+        );
+        stats.times.optimiser = clock.elapsed().as_secs_f64();
+        stats
+    }
+
+    fn render(
+        &self,
+        origins: &[Vec3],
+        directions: &[Vec3],
+        radii: &[f32],
+        background: [f32; 3],
+        out: &mut [RenderedPixel],
+    ) {
+        let flat = |v: &[Vec3]| v.iter().flat_map(|x| x.to_array()).collect::<Vec<f32>>();
+        match &self.grid {
+            Some(grid) => {
+                let level = self.recipe.levels[0];
+                let field = &self.fields[level.field];
+                let params = &self.params[self.ranges[level.field].clone()];
+                let mapping = self.mapping;
+                let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+                let unit_cube = field.coordinates() == Coordinates::UnitCube;
+                let (mut world, mut variances) = (Vec::new(), Vec::new());
+                render_through_grid(
+                    grid,
+                    &self.mapping,
+                    origins,
+                    directions,
+                    background,
+                    &self.recipe.march,
+                    field.inference_rows(),
+                    |samples: &GridSamples, sigma, rgb| {
+                        if unit_cube {
+                            field.radiance(
+                                params,
+                                samples.positions,
+                                None,
+                                samples.directions,
+                                sigma,
+                                rgb,
+                            );
+                            if let Some(crop) = &self.crop {
+                                crop_densities(crop, &mapping, samples.positions, sigma);
+                            }
+                            return;
+                        }
+                        if frustums {
+                            grid_sample_gaussians(
+                                samples,
+                                origins,
+                                directions,
+                                radii,
+                                &mut world,
+                                &mut variances,
+                            );
+                        } else {
+                            to_world(&mapping, samples.positions, &mut world);
+                        }
+                        field.radiance(
+                            params,
+                            &world,
+                            frustums.then_some(&variances[..]),
+                            samples.directions,
+                            sigma,
+                            rgb,
+                        );
+                        if let Some(crop) = &self.crop {
+                            crop_densities(crop, &mapping, samples.positions, sigma);
+                        }
+                    },
+                    out,
+                );
+            }
+            None => self.render_fixed(&flat(origins), &flat(directions), radii, background, out),
+        }
+    }
+
+    fn density_at(
+        &self,
+        positions: &[Vec3],
+        footprint: f32,
+        sigma: &mut [f32],
+    ) -> Result<(), String> {
+        let level = *self.recipe.levels.last().expect("a recipe has levels");
+        let field = &self.fields[level.field];
+        let params = &self.params[self.ranges[level.field].clone()];
+        // A cube of side s as a Gaussian of the same variance per axis,
+        // s²/12 (that of a uniform distribution over the side).
+        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+        let variance = footprint * footprint / 12.0;
+        let (mut world, mut variances) = (Vec::new(), Vec::new());
+        for (points, sigma) in positions
+            .chunks(field.inference_rows())
+            .zip(sigma.chunks_mut(field.inference_rows()))
+        {
+            world.clear();
+            world.extend(
+                points
+                    .iter()
+                    .flat_map(|&p| field_position(field.as_ref(), &self.mapping, p)),
+            );
+            if frustums {
+                variances.clear();
+                variances.resize(world.len(), variance);
+            }
+            field.density(params, &world, frustums.then_some(&variances[..]), sigma);
+            // Nothing in cells the occupancy grid marks empty, as the
+            // renderer sees it (see the Instant-NGP model's `density_at`).
+            if let Some(grid) = &self.grid {
+                for (s, p) in sigma.iter_mut().zip(points) {
+                    if !grid.occupied_at(self.mapping.to_unit(*p)) {
+                        *s = 0.0;
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn colour_at(
+        &self,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        footprint: f32,
+        rgb: &mut [f32],
+    ) -> Result<(), String> {
+        let level = *self.recipe.levels.last().expect("a recipe has levels");
+        let field = &self.fields[level.field];
+        let params = &self.params[self.ranges[level.field].clone()];
+        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+        let variance = footprint * footprint / 12.0;
+        let (mut world, mut flat_directions, mut variances, mut sigma) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        for ((points, directions), rgb) in positions
+            .chunks(field.inference_rows())
+            .zip(directions.chunks(field.inference_rows()))
+            .zip(rgb.chunks_mut(3 * field.inference_rows()))
+        {
+            world.clear();
+            world.extend(
+                points
+                    .iter()
+                    .flat_map(|&p| field_position(field.as_ref(), &self.mapping, p)),
+            );
+            flat_directions.clear();
+            flat_directions.extend(directions.iter().flat_map(|d| d.to_array()));
+            if frustums {
+                variances.clear();
+                variances.resize(world.len(), variance);
+            }
+            set_len(&mut sigma, points.len());
+            field.radiance(
+                params,
+                &world,
+                frustums.then_some(&variances[..]),
+                &flat_directions,
+                &mut sigma,
+                rgb,
+            );
+        }
+        Ok(())
+    }
+
+    fn set_crop(&mut self, crop: Option<crate::scene::crop::CropBox>) -> Result<(), String> {
+        self.crop = crop;
+        Ok(())
+    }
+
+    fn save(&self) -> Checkpoint {
+        ModelState {
+            header: ModelHeader {
+                model: self.identity.key.into(),
+                loss: self.loss,
+                seed: self.seed,
+                adam_step: self.adam.step,
+                samples_per_ray: self.batch_sizer.samples_per_ray(),
+                param_count: self.params.len(),
+                sampling: self.identity.sampling.map(Into::into),
+                // Only where it chooses the next step's order.
+                used_fraction: self.chooses_pass_order().then_some(self.used_fraction),
+                grid_extent: self.grid_extent(),
+            },
+            params: self.params.clone(),
+            adam: self.adam.clone(),
+            occupancy: self.grid.as_ref().map(|g| g.values().to_vec()),
+        }
+        .into_checkpoint()
+    }
+
+    fn load(&mut self, checkpoint: &Checkpoint) -> Result<(), String> {
+        let state = ModelState::from_checkpoint(
+            checkpoint,
+            self.identity.key,
+            self.params.len(),
+            self.grid.as_ref().map(|g| g.values().len()),
+        )?;
+        check_sampling(&state.header, &self.identity)?;
+        if let Some(extent) = self.grid_extent() {
+            state.header.check_grid_extent(extent)?;
+        }
+        self.params = state.params;
+        self.adam = state.adam;
+        if let (Some(grid), Some(values)) = (self.grid.as_mut(), &state.occupancy) {
+            grid.values_mut().copy_from_slice(values);
+            grid.build_bitfield();
+        }
+        self.batch_sizer
+            .set_samples_per_ray(state.header.samples_per_ray);
+        self.used_fraction = state.header.used_fraction.unwrap_or(1.0);
+        self.loss = state.header.loss;
+        self.seed = state.header.seed;
+        Ok(())
+    }
+
+    fn memory_bytes(&self) -> usize {
+        let b = &self.buffers;
+        let mut floats = self.params.len() * 5
+            + self.grid.as_ref().map_or(0, |g| g.values().len())
+            + [
+                &b.origins,
+                &b.directions,
+                &b.world,
+                &b.sigma_marched,
+                &b.gradients,
+                &b.marched.positions,
+                &b.marched.directions,
+                &b.marched.dt,
+                &b.marched.t,
+            ]
+            .iter()
+            .map(|v| v.capacity())
+            .sum::<usize>();
+        for lb in &b.levels {
+            floats += [
+                &lb.t,
+                &lb.dt,
+                &lb.positions,
+                &lb.directions,
+                &lb.sigma,
+                &lb.rgb,
+                &lb.weights,
+                &lb.d_sigma,
+                &lb.d_rgb,
+            ]
+            .iter()
+            .map(|v| v.capacity())
+            .sum::<usize>();
+        }
+        floats * 4
+            + self
+                .fields
+                .iter()
+                .map(|f| f.workspace_bytes())
+                .sum::<usize>()
+    }
+}
+
+/// A world position as `field` takes it: in the world, or in the unit cube
+/// (Instant-NGP's hash grid).
+fn field_position(field: &dyn Field, mapping: &UnitCubeMapping, world: Vec3) -> [f32; 3] {
+    match field.coordinates() {
+        Coordinates::World => world.to_array(),
+        Coordinates::UnitCube => mapping.to_unit(world).to_array(),
+    }
+}
