@@ -1,0 +1,353 @@
+//! Recording a chunk's levels on the device (sampling, the fields'
+//! forward and backward passes, compositing and the loss) and a training
+//! step with the paper samplers' fixed samples per ray.
+
+use super::*;
+
+impl GpuModel {
+    /// Records every level of a chunk of `count` rays (already on the
+    /// device): sampling, the field's forward pass, and compositing; for
+    /// training also the loss and the backward pass. `jitter(level)` seeds
+    /// a level's random sample positions (`None`: the deterministic
+    /// positions). Marks stage boundaries on `clock` when given.
+    pub(super) fn record_levels(
+        &self,
+        work: &mut Work,
+        encoder: &mut wgpu::CommandEncoder,
+        count: usize,
+        jitter: impl Fn(usize) -> Option<u32>,
+        purpose: &Purpose,
+        timed: bool,
+    ) {
+        let ctx = &self.context;
+        let s = &self.stages;
+        let Work {
+            fields,
+            rays,
+            near,
+            far,
+            levels,
+            edges,
+            bin_weights,
+            fine_t,
+            clock,
+            ..
+        } = work;
+        let mut mark = |encoder: &mut wgpu::CommandEncoder, stage| {
+            if timed {
+                clock.mark(ctx, encoder, stage);
+            }
+        };
+        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+        for (li, level) in self.recipe.levels.iter().enumerate() {
+            let (before, rest) = levels.split_at_mut(li);
+            let lb = &mut rest[0];
+            let per_ray = lb.per_ray;
+            let rows = count * per_ray;
+            match level.sampler {
+                // Frustums: n + 1 edges make n intervals.
+                SamplerKind::Stratified { count: n } => s.sampling.record_stratified(
+                    ctx,
+                    encoder,
+                    near,
+                    far,
+                    count,
+                    n + frustums as usize,
+                    jitter(li),
+                    if frustums { &lb.edges } else { &lb.t },
+                ),
+                SamplerKind::Resample { count: n, padding } => {
+                    // Mip-NeRF: new edges from the previous level's edges
+                    // and blurred weights (the cpu's `sample_distances`).
+                    let previous = before.last().expect("checked by samples_per_ray");
+                    let m = previous.per_ray;
+                    s.sampling.record_blur_weights(
+                        ctx,
+                        encoder,
+                        &previous.weights,
+                        count,
+                        m,
+                        bin_weights,
+                    );
+                    s.sampling.record_sample_pdf(
+                        ctx,
+                        encoder,
+                        &previous.edges,
+                        bin_weights,
+                        count,
+                        m,
+                        padding,
+                        n + 1,
+                        jitter(li),
+                        &lb.edges,
+                    );
+                }
+                SamplerKind::Importance { count: n, padding } => {
+                    let previous = before.last().expect("checked by samples_per_ray");
+                    let m = previous.per_ray;
+                    s.sampling.record_importance_bins(
+                        ctx,
+                        encoder,
+                        &previous.t,
+                        &previous.weights,
+                        count,
+                        m,
+                        edges,
+                        bin_weights,
+                    );
+                    s.sampling.record_sample_pdf(
+                        ctx,
+                        encoder,
+                        edges,
+                        bin_weights,
+                        count,
+                        m - 2,
+                        padding,
+                        n,
+                        jitter(li),
+                        fine_t,
+                    );
+                    s.sampling.record_merge_sorted(
+                        ctx,
+                        encoder,
+                        &previous.t,
+                        m,
+                        fine_t,
+                        n,
+                        count,
+                        &lb.t,
+                    );
+                }
+                SamplerKind::Occupancy => unreachable!("refused by samples_per_ray"),
+            }
+            if frustums {
+                s.frustums.record_edges(
+                    ctx,
+                    encoder,
+                    FrustumRays {
+                        origins: &rays.origins,
+                        directions: &rays.directions,
+                        radii: &rays.radii,
+                    },
+                    &lb.edges,
+                    count,
+                    per_ray,
+                    FrustumSamples {
+                        t: &lb.t,
+                        dt: &lb.dt,
+                        means: &lb.positions,
+                        variances: &lb.variances,
+                        directions: &lb.directions,
+                    },
+                );
+            } else {
+                s.sampling
+                    .record_intervals_to_far(ctx, encoder, &lb.t, far, count, per_ray, &lb.dt);
+                s.sampling.record_points(
+                    ctx,
+                    encoder,
+                    &rays.origins,
+                    &rays.directions,
+                    &lb.t,
+                    count,
+                    per_ray,
+                    &lb.positions,
+                    &lb.directions,
+                );
+            }
+            mark(encoder, Stage::March);
+
+            let field = &mut fields[level.field];
+            field.record_forward(
+                ctx,
+                encoder,
+                &self.params,
+                &lb.positions,
+                frustums.then_some(&lb.variances),
+                &lb.directions,
+                rows,
+                &lb.sigma,
+                &lb.rgb,
+            );
+            mark(encoder, Stage::NetworksForward);
+
+            let samples = SampleBuffers {
+                sigma: &lb.sigma,
+                rgb: &lb.rgb,
+                dt: &lb.dt,
+                t: &lb.t,
+                ray_offsets: &lb.ray_offsets,
+            };
+            // The paper's levels composite every sample (no transmittance
+            // cut), as the cpu's fixed-count levels.
+            let min_transmittance = 0.0;
+            if li + 1 < self.recipe.levels.len() {
+                s.composite.record_weights(
+                    ctx,
+                    encoder,
+                    &rays.batch(samples, count),
+                    min_transmittance,
+                    &lb.weights,
+                );
+            }
+            match purpose {
+                Purpose::Training {
+                    share,
+                    losses,
+                    first_slot,
+                } => {
+                    CompositeAndLoss {
+                        composite: &s.composite,
+                        loss: &s.loss,
+                    }
+                    .record(
+                        ctx,
+                        encoder,
+                        rays,
+                        samples,
+                        count,
+                        min_transmittance,
+                        self.loss,
+                        level.loss_weight * share,
+                        None,
+                        SampleGradientBuffers {
+                            sigma: &lb.d_sigma,
+                            rgb: &lb.d_rgb,
+                        },
+                    );
+                    encoder.copy_buffer_to_buffer(
+                        &rays.loss_total,
+                        0,
+                        losses,
+                        4 * (first_slot + li) as u64,
+                        4,
+                    );
+                    mark(encoder, Stage::Composite);
+                    field.record_backward(
+                        ctx,
+                        encoder,
+                        &self.params,
+                        &lb.d_sigma,
+                        &lb.d_rgb,
+                        rows,
+                        &self.gradients,
+                    );
+                    mark(encoder, Stage::NetworksBackward);
+                }
+                Purpose::Inference => {
+                    s.composite.record_forward(
+                        ctx,
+                        encoder,
+                        &rays.batch(samples, count),
+                        min_transmittance,
+                        &CompositeOutputBuffers {
+                            rgb: &rays.rgb,
+                            opacity: &rays.opacity,
+                            depth: &rays.depth,
+                            samples_used: &rays.samples_used,
+                        },
+                    );
+                }
+            }
+        }
+    }
+
+    /// A step of fixed-count levels, in chunks of rays.
+    pub(super) fn run_fixed(&mut self, batch: &RayBatch, step: u32, optimise: bool) -> StepStats {
+        let ctx = &self.context;
+        let rays = batch.len();
+        let levels = self.recipe.levels.len();
+        let per_chunk = self.rays_per_chunk;
+        let chunks = rays.div_ceil(per_chunk);
+        let losses = zeroed_storage_buffer::<f32>(ctx, "chunk losses", chunks * levels);
+        let step_seed = mix_seed(self.seed, step);
+        let flat = |v: &[Vec3]| v.iter().flat_map(|x| x.to_array()).collect::<Vec<f32>>();
+        let (origins, directions) = (flat(&batch.origins), flat(&batch.directions));
+        // The lock of the field alone (not `self.work()`), so Adam's state
+        // stays writable below.
+        let mut guard = self.work.lock().unwrap_or_else(|e| e.into_inner());
+        let work = &mut *guard;
+        work.clock.reset();
+        let mut samples = 0usize;
+        let mut shares = Vec::with_capacity(chunks);
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        encoder.clear_buffer(&self.gradients, 0, None);
+        for chunk in 0..chunks {
+            let start = chunk * per_chunk;
+            let end = (start + per_chunk).min(rays);
+            let count = end - start;
+            let share = count as f32 / rays as f32;
+            shares.push(share);
+            let mut scratch = std::mem::take(&mut work.scratch);
+            work.rays.upload(ctx, batch, start..end, &mut scratch);
+            work.scratch = scratch;
+            self.upload_bounds(
+                work,
+                &origins[3 * start..3 * end],
+                &directions[3 * start..3 * end],
+                None,
+            );
+            work.clock.restart(ctx, &mut encoder);
+            self.record_levels(
+                work,
+                &mut encoder,
+                count,
+                |level| Some(chunk_jitter_seed(step_seed, chunk, level)),
+                &Purpose::Training {
+                    share,
+                    losses: &losses,
+                    first_slot: chunk * levels,
+                },
+                true,
+            );
+            samples += work.levels.iter().map(|l| count * l.per_ray).sum::<usize>();
+            // One submission per chunk: the next chunk's rays are written
+            // into the same buffers before the following submission.
+            let recorded = std::mem::replace(
+                &mut encoder,
+                ctx.device.create_command_encoder(&Default::default()),
+            );
+            ctx.queue.submit([recorded.finish()]);
+        }
+        work.clock.restart(ctx, &mut encoder);
+        if optimise {
+            self.adam.record_step(
+                ctx,
+                &mut encoder,
+                &self.recipe.optimiser,
+                0..self.param_count,
+                &self.params,
+                &self.gradients,
+            );
+        }
+        work.clock.mark(ctx, &mut encoder, Stage::Optimiser);
+        work.clock.resolve(&mut encoder);
+        ctx.queue.submit([encoder.finish()]);
+        let values: Vec<f32> = read_buffer(ctx, &losses, chunks * levels);
+        let times = work.clock.read(ctx);
+        drop(guard);
+
+        // The cpu's sums: the loss weighted per level and chunk, the level
+        // losses per chunk's share.
+        let mut loss = 0f64;
+        let mut level_losses = [0f32; 2];
+        for (chunk, &share) in shares.iter().enumerate() {
+            for (li, level) in self.recipe.levels.iter().enumerate() {
+                let value = values[chunk * levels + li] as f64;
+                loss += value * (level.loss_weight * share) as f64;
+                if let Some(l) = level_losses.get_mut(li) {
+                    *l += (value * share as f64) as f32;
+                }
+            }
+        }
+        StepStats {
+            loss: loss as f32,
+            level_losses,
+            rays,
+            samples,
+            samples_composited: None,
+            times,
+            network_flops: 0.0,
+        }
+    }
+}
