@@ -32,9 +32,7 @@ struct Params {
     // rotation from world axes to the box's own.
     crop_centre: vec4<f32>,
     crop_half: vec4<f32>,
-    to_box_x: vec4<f32>,
-    to_box_y: vec4<f32>,
-    to_box_z: vec4<f32>,
+    to_box: array<vec4<f32>, 3>,
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -57,9 +55,9 @@ fn inside_crop(s: u32) -> bool {
     let world = (unit - params.mapping.xyz) / params.mapping.w;
     let d = world - params.crop_centre.xyz;
     let local = vec3<f32>(
-        dot(params.to_box_x.xyz, d),
-        dot(params.to_box_y.xyz, d),
-        dot(params.to_box_z.xyz, d),
+        dot(params.to_box[0].xyz, d),
+        dot(params.to_box[1].xyz, d),
+        dot(params.to_box[2].xyz, d),
     );
     return all(abs(local) <= params.crop_half.xyz);
 }

@@ -214,3 +214,32 @@ impl GpuAdam {
         }
     }
 }
+
+/// The uniforms as the shaders declare them (`engine::gpu::mirror`).
+#[cfg(test)]
+mod uniform_mirrors {
+    use super::*;
+    use crate::engine::gpu::mirror::assert_mirrors;
+
+    #[test]
+    fn params_of_adam_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../shaders/adam.wgsl"),
+            "Params",
+            Params,
+            [
+                count,
+                row_stride,
+                network_start,
+                network_end,
+                learning_rate,
+                beta1,
+                beta2,
+                one_minus_beta1,
+                one_minus_beta2,
+                epsilon,
+                l2
+            ]
+        );
+    }
+}

@@ -421,3 +421,59 @@ mod tests {
         }
     }
 }
+
+/// The uniforms as the shaders declare them (`engine::gpu::mirror`).
+#[cfg(test)]
+mod uniform_mirrors {
+    use super::*;
+    use crate::engine::gpu::mirror::assert_mirrors;
+
+    // The forward pass and the weights read the leading fields only.
+    #[test]
+    fn params_of_composite_forward_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../shaders/composite_forward.wgsl"),
+            "Params",
+            Params,
+            [
+                ray_count,
+                row_stride,
+                min_transmittance,
+                distortion_weight,
+                distance_scale
+            ],
+            prefix
+        );
+    }
+    #[test]
+    fn params_of_composite_backward_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../shaders/composite_backward.wgsl"),
+            "Params",
+            Params,
+            [
+                ray_count,
+                row_stride,
+                min_transmittance,
+                distortion_weight,
+                distance_scale
+            ]
+        );
+    }
+    #[test]
+    fn params_of_composite_weights_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../shaders/composite_weights.wgsl"),
+            "Params",
+            Params,
+            [
+                ray_count,
+                row_stride,
+                min_transmittance,
+                distortion_weight,
+                distance_scale
+            ],
+            prefix
+        );
+    }
+}

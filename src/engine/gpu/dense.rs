@@ -543,3 +543,31 @@ impl GpuDense {
         )
     }
 }
+
+/// The uniforms as the shaders declare them (`engine::gpu::mirror`).
+#[cfg(test)]
+mod uniform_mirrors {
+    use super::*;
+    use crate::engine::gpu::mirror::assert_mirrors;
+
+    #[test]
+    fn layeruniform_of_dense_common_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../shaders/dense_common.wgsl"),
+            "Layer",
+            LayerUniform,
+            [
+                rows,
+                in_width,
+                out_width,
+                activation,
+                weight_offset,
+                bias_offset,
+                rows_per_chunk,
+                chunks,
+                exp_clamp,
+                first_chunk
+            ]
+        );
+    }
+}

@@ -128,3 +128,20 @@ impl GpuFrequency {
         read_buffer(context, &out, rows * width)
     }
 }
+
+/// The uniforms as the shaders declare them (`engine::gpu::mirror`).
+#[cfg(test)]
+mod uniform_mirrors {
+    use super::*;
+    use crate::engine::gpu::mirror::assert_mirrors;
+
+    #[test]
+    fn params_of_frequency_encode_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../shaders/frequency_encode.wgsl"),
+            "Params",
+            Params,
+            [rows, frequencies, include_input, width]
+        );
+    }
+}

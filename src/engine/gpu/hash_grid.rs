@@ -392,3 +392,38 @@ impl GpuHashGrid {
         read_buffer(context, &d_params, self.param_count)
     }
 }
+
+/// The uniforms as the shaders declare them (`engine::gpu::mirror`).
+#[cfg(test)]
+mod uniform_mirrors {
+    use super::*;
+    use crate::engine::gpu::mirror::assert_mirrors;
+
+    #[test]
+    fn params_of_hash_common_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../shaders/hash_common.wgsl"),
+            "Params",
+            Params,
+            [
+                count,
+                features,
+                width,
+                groups_x,
+                first_level,
+                table_base,
+                box_min,
+                inverse_extent
+            ]
+        );
+    }
+    #[test]
+    fn level_of_hash_common_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../shaders/hash_common.wgsl"),
+            "Level",
+            Level,
+            [resolution, offset, dense, mask]
+        );
+    }
+}

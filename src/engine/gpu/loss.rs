@@ -172,3 +172,36 @@ impl GpuLoss {
         )
     }
 }
+
+/// The uniforms as the shaders declare them (`engine::gpu::mirror`).
+#[cfg(test)]
+mod uniform_mirrors {
+    use super::*;
+    use crate::engine::gpu::mirror::assert_mirrors;
+
+    #[test]
+    fn gradientparams_of_loss_gradient_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../shaders/loss_gradient.wgsl"),
+            "Params",
+            GradientParams,
+            [
+                ray_count,
+                row_stride,
+                kind,
+                huber_delta,
+                scale,
+                gradient_weight
+            ]
+        );
+    }
+    #[test]
+    fn sumparams_of_loss_sum_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../shaders/loss_sum.wgsl"),
+            "Params",
+            SumParams,
+            [count]
+        );
+    }
+}

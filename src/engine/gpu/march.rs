@@ -339,3 +339,46 @@ impl GpuMarch {
         (marched, stats)
     }
 }
+
+/// The uniforms as the shaders declare them (`engine::gpu::mirror`).
+#[cfg(test)]
+mod uniform_mirrors {
+    use super::*;
+    use crate::engine::gpu::mirror::assert_mirrors;
+
+    #[test]
+    fn marchuniforms_of_march_params_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../shaders/march_params.wgsl"),
+            "MarchParams",
+            MarchUniforms,
+            [
+                offset,
+                scale,
+                box_min,
+                box_max,
+                dt,
+                inverse_dt,
+                margin,
+                ray_count,
+                row_stride,
+                resolution,
+                cascades,
+                max_samples,
+                jitter_seed,
+                use_jitter,
+                zero,
+                budget,
+                element_count,
+                block_count,
+                world_dt,
+                inverse_scale,
+                use_cone,
+                points_per_octave,
+                octave_start,
+                inverse_octave_start,
+                last_octave
+            ]
+        );
+    }
+}

@@ -13,6 +13,8 @@ pub mod frequency;
 pub mod frustum;
 pub mod loss;
 pub mod march;
+#[cfg(test)]
+pub(crate) mod mirror;
 pub mod model;
 pub mod ngp;
 pub mod occupancy;

@@ -276,3 +276,30 @@ impl GpuOccupancy {
         )
     }
 }
+
+/// The uniforms as the shaders declare them (`engine::gpu::mirror`).
+#[cfg(test)]
+mod uniform_mirrors {
+    use super::*;
+    use crate::engine::gpu::mirror::assert_mirrors;
+
+    #[test]
+    fn occupancyuniforms_of_occupancy_params_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../shaders/occupancy_params.wgsl"),
+            "OccupancyParams",
+            OccupancyUniforms,
+            [
+                cell_count,
+                cells_per_cascade,
+                word_count,
+                partial_count,
+                min_optical_thickness,
+                row_stride,
+                decay,
+                min_step,
+                sample_count
+            ]
+        );
+    }
+}

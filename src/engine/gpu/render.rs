@@ -281,3 +281,49 @@ pub fn read_texture_rgba8(context: &GpuContext, texture: &wgpu::Texture) -> Vec<
         .flat_map(|r| r[..4 * width as usize].to_vec())
         .collect()
 }
+
+/// The uniforms as the shaders declare them (`engine::gpu::mirror`).
+#[cfg(test)]
+mod uniform_mirrors {
+    use super::*;
+    use crate::engine::gpu::mirror::assert_mirrors;
+
+    #[test]
+    fn compositeuniforms_of_render_composite_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../shaders/render_composite.wgsl"),
+            "Params",
+            CompositeUniforms,
+            [
+                count,
+                row_stride,
+                per_ray,
+                max_samples,
+                stop_depth,
+                use_crop,
+                mapping,
+                crop_centre,
+                crop_half,
+                to_box
+            ]
+        );
+    }
+    #[test]
+    fn compactuniforms_of_render_compact_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../shaders/render_compact.wgsl"),
+            "Params",
+            CompactUniforms,
+            [count, row_stride]
+        );
+    }
+    #[test]
+    fn imageuniforms_of_render_image_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../shaders/render_image.wgsl"),
+            "Params",
+            ImageUniforms,
+            [width, height, mode, background, near, far]
+        );
+    }
+}

@@ -415,3 +415,41 @@ impl GpuSampling {
         }
     }
 }
+
+/// The uniforms as the shaders declare them (`engine::gpu::mirror`).
+#[cfg(test)]
+mod uniform_mirrors {
+    use super::*;
+    use crate::engine::gpu::mirror::assert_mirrors;
+
+    #[test]
+    fn sampleuniforms_of_sample_common_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../shaders/sample_common.wgsl"),
+            "SampleParams",
+            SampleUniforms,
+            [
+                rays,
+                ray_base,
+                row_stride,
+                samples,
+                bins,
+                seed,
+                use_jitter,
+                zero,
+                step,
+                inverse_count,
+                padding
+            ]
+        );
+    }
+    #[test]
+    fn toworlduniforms_of_sample_to_world_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../shaders/sample_to_world.wgsl"),
+            "Params",
+            ToWorldUniforms,
+            [count, row_stride, scale, offset]
+        );
+    }
+}

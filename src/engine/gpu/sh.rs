@@ -104,3 +104,20 @@ impl GpuSh {
         read_buffer(context, &output, rows * n)
     }
 }
+
+/// The uniforms as the shaders declare them (`engine::gpu::mirror`).
+#[cfg(test)]
+mod uniform_mirrors {
+    use super::*;
+    use crate::engine::gpu::mirror::assert_mirrors;
+
+    #[test]
+    fn params_of_sh_encode_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../shaders/sh_encode.wgsl"),
+            "Params",
+            Params,
+            [rows, degree, stride, offset]
+        );
+    }
+}

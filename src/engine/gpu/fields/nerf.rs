@@ -887,3 +887,55 @@ struct OnceBuffers {
     sigma: wgpu::Buffer,
     rgb: wgpu::Buffer,
 }
+
+/// The uniforms as the shaders declare them (`engine::gpu::mirror`).
+#[cfg(test)]
+mod uniform_mirrors {
+    use super::*;
+    use crate::engine::gpu::mirror::assert_mirrors;
+
+    #[test]
+    fn concatuniform_of_nerf_concat_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../../shaders/nerf_concat.wgsl"),
+            "Params",
+            ConcatUniform,
+            [
+                rows,
+                row_stride,
+                left_stride,
+                left_start,
+                left_width,
+                right_stride,
+                right_start,
+                right_width
+            ]
+        );
+    }
+    #[test]
+    fn paddinguniform_of_nerf_colour_padding_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../../shaders/nerf_colour_padding.wgsl"),
+            "Params",
+            PaddingUniform,
+            [count, row_stride, scale, offset, zero]
+        );
+    }
+    #[test]
+    fn densityuniform_of_nerf_density_common_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../../shaders/nerf_density_common.wgsl"),
+            "Params",
+            DensityUniform,
+            [
+                rows,
+                row_stride,
+                raw_stride,
+                feature_width,
+                colour_stride,
+                activation,
+                shift
+            ]
+        );
+    }
+}

@@ -360,3 +360,29 @@ impl GpuField for GpuNgpField {
             + self.colour.bytes()
     }
 }
+
+/// The uniforms as the shaders declare them (`engine::gpu::mirror`).
+#[cfg(test)]
+mod uniform_mirrors {
+    use super::*;
+    use crate::engine::gpu::mirror::assert_mirrors;
+
+    #[test]
+    fn activationuniforms_of_ngp_density_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../../shaders/ngp_density.wgsl"),
+            "Params",
+            ActivationUniforms,
+            [count, row_stride, density_width, colour_width, exp_clamp]
+        );
+    }
+    #[test]
+    fn activationuniforms_of_ngp_density_backward_mirror_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../../shaders/ngp_density_backward.wgsl"),
+            "Params",
+            ActivationUniforms,
+            [count, row_stride, density_width, colour_width, exp_clamp]
+        );
+    }
+}
