@@ -1,5 +1,6 @@
-// Ray marching through the occupancy grid, shared by `march_count.wgsl` and
-// `march_write.wgsl` (prepended to each). The same arithmetic, in the same
+// Ray marching through the occupancy grid, shared by `march_count.wgsl`,
+// `march_write.wgsl` and `render_walk.wgsl` (prepended to each; each
+// defines `emit_sample`, which `walk` calls for every sample). The same arithmetic, in the same
 // order, as the cpu engine's `engine::cpu::march` and
 // `engine::cpu::occupancy::GridGeometry`, so both engines find the same
 // samples at the same positions. `march_params.wgsl` comes first; the entry
@@ -271,4 +272,65 @@ fn exit_index(m: RayMarch, c: Cell) -> u32 {
     );
     let v = lattice_x(m, s_cell) - m.jitter;
     return u32(clamp(ceil(v), 0.0, 4294967040.0));
+}
+
+// How a walk ended: the samples it emitted, and whether the ray left the
+// box (false: it stopped at the limit, and can go on from where it stopped).
+struct Walked {
+    emitted: u32,
+    left: bool,
+}
+
+// The walk along a ray's lattice, written once for the three walking
+// kernels, as the cpu's `Marcher::walk`: from lattice index `*k`, one cell
+// at a time (its exit index found once; every lattice point before it lies
+// in the cell), each lattice point of an occupied cell goes to the entry
+// file's `emit_sample(m, n, k, s)` (n: samples emitted so far by this
+// walk), until `limit` samples or the ray leaves the box. `*k` is left at
+// the next lattice point to look at. A distance that is not ≤ the exit,
+// NaN included, ends the ray.
+fn walk(m: RayMarch, k: ptr<function, u32>, limit: u32) -> Walked {
+    var index = *k;
+    var emitted = 0u;
+    var left = false;
+    loop {
+        let s = lattice_s(m, index);
+        if (!(s <= m.s_exit)) {
+            left = true;
+            break;
+        }
+        if (emitted == limit) {
+            break;
+        }
+        let c = cell_of(lattice_position(m, s));
+        let next = max(exit_index(m, c), index + 1u);
+        if (!is_occupied(c)) {
+            index = next;
+            continue;
+        }
+        var stop = false;
+        loop {
+            if (index >= next) {
+                break;
+            }
+            let sk = lattice_s(m, index);
+            if (!(sk <= m.s_exit)) {
+                left = true;
+                stop = true;
+                break;
+            }
+            if (emitted == limit) {
+                stop = true;
+                break;
+            }
+            emit_sample(m, emitted, index, sk);
+            emitted += 1u;
+            index += 1u;
+        }
+        if (stop) {
+            break;
+        }
+    }
+    *k = index;
+    return Walked(emitted, left);
 }

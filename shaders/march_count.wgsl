@@ -6,6 +6,9 @@
 @group(0) @binding(3) var<storage, read> directions: array<f32>;
 @group(0) @binding(4) var<storage, read_write> counts: array<u32>;
 
+// Counting writes nothing.
+fn emit_sample(m: RayMarch, n: u32, k: u32, s: f32) {}
+
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let ray = id.x + id.y * params.row_stride;
@@ -16,26 +19,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     var emitted = 0u;
     if (m.hit) {
         var k = 0u;
-        loop {
-            let s = lattice_s(m, k);
-            if (!(s <= m.s_exit) || emitted == params.max_samples) {
-                break;
-            }
-            let c = cell_of(lattice_position(m, s));
-            let next = max(exit_index(m, c), k + 1u);
-            if (is_occupied(c)) {
-                // Lattice points k..next all lie in this cell: count those
-                // inside the box, up to the limit.
-                loop {
-                    if (k >= next || !(lattice_s(m, k) <= m.s_exit) || emitted == params.max_samples) {
-                        break;
-                    }
-                    emitted += 1u;
-                    k += 1u;
-                }
-            }
-            k = max(k, next);
-        }
+        emitted = walk(m, &k, params.max_samples).emitted;
     }
     counts[ray] = emitted;
 }

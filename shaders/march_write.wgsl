@@ -12,7 +12,11 @@
 @group(0) @binding(7) var<storage, read_write> out_dt: array<f32>;
 @group(0) @binding(8) var<storage, read_write> out_t: array<f32>;
 
-fn write_sample(m: RayMarch, index: u32, k: u32, s: f32) {
+// The ray's first sample goes to `base`, set by `main` before its walk.
+var<private> base: u32;
+
+fn emit_sample(m: RayMarch, n: u32, k: u32, s: f32) {
+    let index = base + n;
     let p = lattice_position(m, s);
     out_positions[3u * index] = p.x;
     out_positions[3u * index + 1u] = p.y;
@@ -30,7 +34,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     if (ray >= params.ray_count) {
         return;
     }
-    let base = ray_offsets[ray];
+    base = ray_offsets[ray];
     let limit = ray_offsets[ray + 1u] - base;
     if (limit == 0u) {
         return;
@@ -39,29 +43,6 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     if (!m.hit) {
         return;
     }
-    var emitted = 0u;
     var k = 0u;
-    loop {
-        let s = lattice_s(m, k);
-        if (!(s <= m.s_exit) || emitted == limit) {
-            break;
-        }
-        let c = cell_of(lattice_position(m, s));
-        let next = max(exit_index(m, c), k + 1u);
-        if (is_occupied(c)) {
-            loop {
-                if (k >= next || emitted == limit) {
-                    break;
-                }
-                let sk = lattice_s(m, k);
-                if (!(sk <= m.s_exit)) {
-                    break;
-                }
-                write_sample(m, base + emitted, k, sk);
-                emitted += 1u;
-                k += 1u;
-            }
-        }
-        k = max(k, next);
-    }
+    walk(m, &k, limit);
 }

@@ -35,7 +35,12 @@ struct RayState {
 
 const LEFT_THE_BOX: u32 = 0x80000000u;
 
-fn emit(m: RayMarch, slot: u32, k: u32, s: f32) {
+// Ray i of the round writes from slot i·budget, set by `main` before its
+// walk.
+var<private> base: u32;
+
+fn emit_sample(m: RayMarch, n: u32, k: u32, s: f32) {
+    let slot = base + n;
     let p = lattice_position(m, s);
     out_positions[3u * slot] = p.x;
     out_positions[3u * slot + 1u] = p.y;
@@ -60,49 +65,9 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         return;
     }
     let limit = min(params.budget, params.max_samples - states[ray].emitted);
-    let base = i * params.budget;
-    var index = states[ray].k;
-    var emitted = 0u;
-    var left = false;
-    // `Marcher::walk`: returns (left = true) past the exit, or (false)
-    // with `limit` samples written; `index` is where the next round starts.
-    loop {
-        let s = lattice_s(m, index);
-        if (s > m.s_exit) {
-            left = true;
-            break;
-        }
-        if (emitted == limit) {
-            break;
-        }
-        let c = cell_of(lattice_position(m, s));
-        let next = max(exit_index(m, c), index + 1u);
-        if (is_occupied(c)) {
-            var stop = false;
-            loop {
-                if (index >= next) {
-                    break;
-                }
-                let sk = lattice_s(m, index);
-                if (sk > m.s_exit) {
-                    left = true;
-                    stop = true;
-                    break;
-                }
-                if (emitted == limit) {
-                    stop = true;
-                    break;
-                }
-                emit(m, base + emitted, index, sk);
-                emitted += 1u;
-                index += 1u;
-            }
-            if (stop) {
-                break;
-            }
-        }
-        index = next;
-    }
-    states[ray].k = index;
-    counts[i] = emitted | select(0u, LEFT_THE_BOX, left);
+    base = i * params.budget;
+    var k = states[ray].k;
+    let walked = walk(m, &k, limit);
+    states[ray].k = k;
+    counts[i] = walked.emitted | select(0u, LEFT_THE_BOX, walked.left);
 }

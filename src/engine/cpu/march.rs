@@ -506,12 +506,15 @@ impl<'a> Marcher<'a> {
     /// coarse field, an empty cell in an empty block jumps to the block's
     /// exit index instead.
     #[inline]
+    #[allow(clippy::neg_cmp_op_on_partial_ord)]
     pub fn walk(&self, ray: &RayMarch, k: &mut u32, limit: u32, mut emit: impl FnMut(u32)) -> bool {
         let mut index = *k;
         let mut emitted = 0;
         loop {
             let s = ray.s(index);
-            if s > ray.s_exit {
+            // Not `s > exit`: a NaN distance ends the ray too, as in the
+            // gpu engine's `walk` (march_common.wgsl).
+            if !(s <= ray.s_exit) {
                 *k = index;
                 return true;
             }
@@ -531,7 +534,7 @@ impl<'a> Marcher<'a> {
             }
             let next = self.exit_index(ray, cell).max(index.saturating_add(1));
             while index < next {
-                if ray.s(index) > ray.s_exit {
+                if !(ray.s(index) <= ray.s_exit) {
                     *k = index;
                     return true;
                 }
