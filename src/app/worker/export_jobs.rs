@@ -213,3 +213,7 @@ impl Worker {
         })
     }
 }
+
+#[cfg(test)]
+#[path = "export_tests.rs"]
+mod tests;
