@@ -423,3 +423,52 @@ fn a_runs_crop_box_is_saved_beside_its_checkpoint_and_comes_back_with_it() {
     assert_eq!(crop_answer(&worker), (Some(crop), None));
     worker.shutdown();
 }
+
+/// The figure in the notes: the viewer's mesh export of the demo scene
+/// (128 × 128 views, 100 of them) at resolution 128 after 300 steps of
+/// Instant-NGP on the cpu engine. Run with `cargo test --release --lib --
+/// --ignored viewer_mesh_export_of_the_demo`.
+#[test]
+#[ignore = "a measurement, minutes long"]
+fn viewer_mesh_export_of_the_demo() {
+    let _serial = one_at_a_time();
+    let dir = tempfile::tempdir().unwrap();
+    let worker = spawn(WorkerOptions {
+        demo: DemoConfig::default(),
+        ..WorkerOptions::default()
+    });
+    let started = Instant::now();
+    for _ in 0..300 {
+        step_once(&worker);
+    }
+    eprintln!("300 steps in {:.1} s", started.elapsed().as_secs_f64());
+    let out = dir.path().join("demo.ply");
+    let started = Instant::now();
+    worker.send(Command::ExportMesh(MeshExport {
+        out: out.clone(),
+        resolution: 128,
+        threshold: None,
+        min_component: None,
+        replace_existing: false,
+    }));
+    let (progress, result) = export_result(&worker);
+    let seconds = started.elapsed().as_secs_f64();
+    assert_eq!(result, Ok(vec![out.clone()]));
+    let bytes = std::fs::read(&out).unwrap();
+    let header = String::from_utf8_lossy(&bytes[..300]).to_string();
+    let count = |element: &str| {
+        header
+            .lines()
+            .find_map(|l| l.strip_prefix(&format!("element {element} ")))
+            .unwrap()
+            .to_string()
+    };
+    eprintln!(
+        "viewer mesh export at resolution 128: {seconds:.1} s, {} units, {} vertices, {} faces, {} bytes",
+        progress.last().unwrap().1,
+        count("vertex"),
+        count("face"),
+        bytes.len()
+    );
+    worker.shutdown();
+}
