@@ -78,6 +78,17 @@ impl PathCrop {
     }
 }
 
+impl super::nerfstudio::CameraPathFile {
+    /// Sets the crop box the file carries (`None`: `"crop": null`), in the
+    /// frame of its poses; a background colour it had is kept.
+    pub fn set_crop(&mut self, crop: Option<CropBox>) {
+        self.crop = crop.map(|crop| PathCrop {
+            crop,
+            background: self.crop.map_or(DEFAULT_BACKGROUND, |c| c.background),
+        });
+    }
+}
+
 /// The `crop` field of a camera path: `null` when absent or null.
 pub fn crop_to_json(crop: Option<&PathCrop>) -> Value {
     crop.map_or(Value::Null, PathCrop::to_json)
@@ -297,6 +308,36 @@ mod tests {
         );
         let error = CameraPathFile::parse(&file).unwrap_err();
         assert!(error.contains("`crop.crop_center[1]` is NaN"), "{error}");
+    }
+
+    #[test]
+    fn a_path_file_writes_its_crop_box_back_and_moves_it_with_the_poses() {
+        use crate::render::camera_path::{CameraPath, Keyframe, look_at};
+        let path = CameraPath::new(vec![
+            Keyframe::new(
+                look_at(DVec3::new(4.0, 0.0, 1.0), DVec3::ZERO, DVec3::Z),
+                40.0,
+            ),
+            Keyframe::new(
+                look_at(DVec3::new(0.0, 4.0, 1.0), DVec3::ZERO, DVec3::Z),
+                40.0,
+            ),
+        ]);
+        // Written for a scene whose original frame is zrak's scaled by 2.
+        let to_original = DMat4::from_scale(DVec3::splat(2.0));
+        let mut file = CameraPathFile::new(path, 32, 24, 4.0, to_original);
+        let crop = CropBox::axis_aligned(Vec3::new(0.5, 0.0, 0.0), Vec3::splat(1.0));
+        file.set_crop(Some(crop));
+        let read = CameraPathFile::parse(&file.to_text()).unwrap();
+        assert_eq!(read.crop, Some(PathCrop::new(crop)));
+        assert!(file.to_text().contains("\"crop_center\""));
+        // Read for a scene whose zrak world is the original frame: the box
+        // doubles, as the camera positions do.
+        let moved = read.moved_into(DMat4::IDENTITY).crop.unwrap().crop;
+        assert!(close(moved.centre, Vec3::new(1.0, 0.0, 0.0), 1e-6));
+        assert!(close(moved.size, Vec3::splat(2.0), 1e-6));
+        file.set_crop(None);
+        assert_eq!(CameraPathFile::parse(&file.to_text()).unwrap().crop, None);
     }
 
     #[test]
