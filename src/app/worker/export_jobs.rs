@@ -190,20 +190,17 @@ impl Worker {
                 });
             }
         };
-        let mut refused = None;
-        for slot in &mut self.slots {
-            if let Err(problem) = slot.trainer.model.set_crop(crop) {
-                // Back to the whole scene, so the models agree.
-                let _ = slot.trainer.model.set_crop(None);
-                refused.get_or_insert(problem);
-            }
-        }
-        self.crop = if refused.is_some() { None } else { crop };
+        let refused = self
+            .slots
+            .iter_mut()
+            .find_map(|slot| slot.trainer.model.set_crop(crop).err());
         if refused.is_some() {
+            // Every model back to the whole scene, so that they agree.
             for slot in &mut self.slots {
                 let _ = slot.trainer.model.set_crop(None);
             }
         }
+        self.crop = if refused.is_some() { None } else { crop };
         if let Some(view) = self.view.as_mut() {
             view.restart();
         }
