@@ -9,13 +9,16 @@ use std::time::{Duration, Instant};
 use glam::{DMat4, DVec3, Vec3};
 
 use crate::app::protocol::{
-    CameraPathExport, Command, Event, MeshExport, RenderRequest, RenderedFrame, SceneSource,
+    CameraPathExport, Command, Event, MeshExport, PointsExport, RenderRequest, RenderedFrame,
+    SceneSource,
 };
 use crate::app::worker::{TrainingWorker, WorkerOptions};
 use crate::engine::EngineKind;
 use crate::engine::cpu::dense::Precision;
 use crate::field::ModelKind;
 use crate::mesh::extract::{MeshSettings, extract_mesh, sample_density};
+use crate::mesh::points::{PointSettings, extract_points, stride_for};
+use crate::mesh::points_to_ply;
 use crate::render::RenderMode;
 use crate::render::camera_path::nerfstudio::CameraPathFile;
 use crate::render::camera_path::{CameraPath, Keyframe, look_at};
@@ -195,7 +198,7 @@ fn a_crop_box_that_holds_nothing_renders_only_background() {
 }
 
 #[test]
-fn the_viewers_mesh_is_the_commands_mesh_and_an_existing_file_stays() {
+fn the_viewers_mesh_and_points_are_the_commands_and_an_existing_file_stays() {
     let _serial = one_at_a_time();
     let dir = tempfile::tempdir().unwrap();
     let options = WorkerOptions {
@@ -302,6 +305,33 @@ fn the_viewers_mesh_is_the_commands_mesh_and_an_existing_file_stays() {
         ..order
     }));
     assert_eq!(export_result(&worker).1, Ok(vec![out]));
+
+    // The point cloud too: the command's function on the same model with
+    // the same crop box gives the same file.
+    let points = dir.path().join("points.ply");
+    worker.send(Command::ExportPoints(PointsExport {
+        out: points.clone(),
+        max_rays: 3000,
+        min_opacity: 0.2,
+        replace_existing: false,
+    }));
+    let (progress, result) = export_result(&worker);
+    assert_eq!(result, Ok(vec![points.clone()]));
+    let views = scene.photographed_training_views();
+    assert_eq!(progress.last(), Some(&(views.len(), views.len())));
+    trainer.model.set_crop(Some(crop)).unwrap();
+    let (positions, colours) = extract_points(
+        trainer.model.as_ref(),
+        views,
+        &PointSettings {
+            stride: stride_for(views, 3000),
+            min_opacity: 0.2,
+            crop: Some(crop),
+        },
+        &mut |_| {},
+    );
+    assert!(!positions.is_empty());
+    assert!(std::fs::read(&points).unwrap() == points_to_ply(&positions, &colours));
     worker.shutdown();
 }
 
