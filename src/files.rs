@@ -189,6 +189,34 @@ pub fn check_memory(what: &str, bytes: u64) -> Result<(), String> {
     Ok(())
 }
 
+/// Refuses an output file that could not be written, before any work: an
+/// existing one unless `replace`, a missing or read-only folder (probed by
+/// creating, then removing, a file beside it as an atomic write would).
+pub fn check_new_file(out: &Path, replace: bool) -> Result<(), String> {
+    if !replace && exists_at_all(out) {
+        return Err(format!(
+            "{} already exists and replacing it was not asked for",
+            out.display()
+        ));
+    }
+    let folder = match out.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p,
+        _ => Path::new("."),
+    };
+    if !folder.is_dir() {
+        return Err(format!(
+            "{}: cannot write there ({})",
+            out.display(),
+            describe_not_a_folder(folder)
+        ));
+    }
+    let probe = temporary_beside(out);
+    std::fs::File::create_new(&probe)
+        .map_err(|e| format!("{}: cannot write there: {e}", out.display()))?;
+    let _ = std::fs::remove_file(&probe);
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

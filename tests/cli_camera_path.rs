@@ -1,6 +1,6 @@
 //! `zrak render RUN --camera-path FILE` as a user runs it, on a run of the
 //! tiny demo scene: PNG frames, a range of them, continuing an interrupted
-//! render, the MP4 video checked with an independent decoder (FFmpeg's
+//! render, the file's crop block, the MP4 video checked with an independent decoder (FFmpeg's
 //! `ffprobe` and `ffmpeg`, from Debian's `ffmpeg` package, which `.ci/run`
 //! installs), and bad path files refused by name.
 
@@ -11,8 +11,10 @@ use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 use glam::DVec3;
+use zrak::render::camera_path::crop_block::PathCrop;
 use zrak::render::camera_path::nerfstudio::CameraPathFile;
 use zrak::render::camera_path::{CameraPath, Keyframe, look_at};
+use zrak::scene::crop::CropBox;
 
 fn run_in(dir: &Path, program: &Path, args: &[&str]) -> Output {
     Command::new(program)
@@ -283,6 +285,38 @@ fn frames_ranges_and_continuing_where_a_render_stopped() {
         out.contains("wrote 150 frames") && out.contains(&format!("{done} already there")),
         "{out}"
     );
+
+    // The file's crop block is honoured: a box far from the objects leaves
+    // only the white background; an explicit --crop wins over it.
+    let mut cropped = write_path_file(d);
+    cropped.crop = Some(PathCrop::new(CropBox::axis_aligned(
+        glam::Vec3::splat(30.0),
+        glam::Vec3::splat(0.5),
+    )));
+    cropped.save(&d.join("cropped.json")).unwrap();
+    let render_to = |out: &str, extra: &[&str]| {
+        let args = [
+            &[
+                "render",
+                "run",
+                "--camera-path",
+                "cropped.json",
+                "--frames",
+                "0..2",
+                "--out",
+                out,
+            ][..],
+            extra,
+        ]
+        .concat();
+        succeed(d, &args);
+        rgb(&frame(&d.join(out), 0))
+    };
+    let empty = render_to("cropped", &[]);
+    assert!(empty.pixels().all(|p| p.0 == [255; 3]), "only background");
+    let whole = render_to("uncropped", &["--crop", "none"]);
+    let shown = whole.pixels().filter(|p| p.0 != [255; 3]).count();
+    assert!(shown > 32 * 24 / 10, "{shown} pixels show the objects");
 }
 
 /// Mean absolute difference per channel, in levels of 255.

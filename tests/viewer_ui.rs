@@ -13,13 +13,14 @@ use eframe::egui;
 use egui_kittest::Harness;
 use egui_kittest::kittest::Queryable;
 use zrak::app::protocol::{
-    Command, Event, InTurn, RenderedFrame, SceneInfo, SceneSource, TrainingStats,
+    Command, Event, InTurn, MeshExport, RenderedFrame, SceneInfo, SceneSource, TrainingStats,
 };
-use zrak::app::ui::{PlotAxis, TrainingLink, ViewerUi};
+use zrak::app::ui::{ExportKind, PlotAxis, TrainingLink, ViewerUi};
 use zrak::app::worker::TrainingWorker;
 use zrak::engine::EngineKind;
 use zrak::field::ModelKind;
 use zrak::render::RenderMode;
+use zrak::scene::crop::CropBox;
 use zrak::scene::demo::{self, DemoConfig};
 use zrak::train::model::{RenderedPixel, StageTimes};
 
@@ -145,7 +146,8 @@ fn panels_show_every_control() {
         "< Prev view",
         "Next view >",
         "Reset view",
-        "Export turntable…",
+        "Export…",
+        "Crop box…",
         "Save…",
         "Load…",
         "Loss and PSNR",
@@ -685,4 +687,78 @@ fn the_stats_show_where_the_thread_time_goes_and_how_far_the_picture_lags() {
     let lag = harness.state().shown_lag_seconds().expect("both known");
     assert!((lag - 0.8).abs() < 1e-9, "{lag}");
     assert_eq!(harness.state().shown_log().len(), 1);
+}
+
+#[test]
+fn the_crop_box_window_sends_the_box_and_shows_a_refusal() {
+    let (mut harness, link) = harness_with_scene();
+    button(&harness, "Crop box…").click();
+    harness.run_steps(2);
+    link.clear();
+    harness.get_by_label("crop the scene to the box").click();
+    harness.run_steps(2);
+    // Ticked: the box that fills the scene's.
+    let bounds = small_demo().scene.bounds;
+    let sent: Vec<Option<CropBox>> = link
+        .sent()
+        .into_iter()
+        .filter_map(|c| match c {
+            Command::SetCrop(crop) => Some(crop),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(sent, vec![Some(CropBox::of_aabb(&bounds))]);
+    assert_eq!(harness.state().crop_panel().drawn(), sent[0]);
+    // The gpu engine refuses: the window says why and draws no box.
+    link.push(Event::CropSet {
+        crop: None,
+        refused: Some("the gpu engine does not render with a crop box".into()),
+    });
+    harness.run_steps(2);
+    harness.get_by_label("the gpu engine does not render with a crop box");
+    assert_eq!(harness.state().crop_panel().drawn(), None);
+    // Unticked: no box.
+    link.clear();
+    harness.get_by_label("crop the scene to the box").click();
+    harness.run_steps(2);
+    assert!(matches!(link.sent().as_slice(), [Command::SetCrop(None)]));
+}
+
+#[test]
+fn the_export_window_sends_a_mesh_export_and_shows_its_progress() {
+    let (mut harness, link) = harness_with_scene();
+    harness.state_mut().open_export(ExportKind::Mesh);
+    harness.run_steps(2);
+    // The model's default threshold for this scene, shown.
+    let scale = small_demo().scene.unit_cube.scale;
+    harness.get_by_label(&format!(
+        "the model's default, σ = {:.3}",
+        zrak::mesh::extract::default_threshold(ModelKind::Ngp, scale)
+    ));
+    link.clear();
+    button(&harness, "Export").click();
+    harness.run_steps(2);
+    let orders: Vec<MeshExport> = link
+        .sent()
+        .into_iter()
+        .filter_map(|c| match c {
+            Command::ExportMesh(order) => Some(order),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(orders.len(), 1, "{:?}", link.sent());
+    assert_eq!(orders[0].resolution, 256);
+    assert_eq!(orders[0].threshold, None);
+    assert!(!orders[0].replace_existing);
+    link.push(Event::ExportProgress { done: 3, total: 10 });
+    harness.run_steps(2);
+    harness.get_by_label("Cancel");
+    link.push(Event::ExportFinished(Ok(vec![orders[0].out.clone()])));
+    harness.run_steps(2);
+    assert!(
+        harness
+            .state()
+            .notices()
+            .any(|n| n.text == format!("Exported {}", orders[0].out.display()))
+    );
 }

@@ -7,8 +7,11 @@ use std::sync::Arc;
 
 use crate::engine::EngineKind;
 use crate::field::ModelKind;
+use crate::mesh::MinComponent;
 use crate::render::RenderMode;
+use crate::render::camera_path::nerfstudio::CameraPathFile;
 use crate::render::export::ExportSettings;
+use crate::scene::crop::CropBox;
 use crate::scene::{Camera, Scene};
 use crate::train::model::{RenderedPixel, StageTimes};
 
@@ -80,6 +83,9 @@ impl InTurn {
     }
 }
 
+// A camera path export carries its whole path; commands are sent a few
+// times a second at most, so their size does not matter.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone)]
 pub enum Command {
     /// Load a scene; every model's state of the previous scene is dropped
@@ -103,8 +109,65 @@ pub enum Command {
     SaveCheckpoint(PathBuf),
     LoadCheckpoint(PathBuf),
     ExportTurntable(ExportSettings),
+    /// Render a camera path into PNG frames or an MP4 video.
+    ExportCameraPath(CameraPathExport),
+    /// Mesh the active model's density field inside the crop box (the
+    /// scene's box when there is none).
+    ExportMesh(MeshExport),
+    /// A point cloud of the active model's depths from the training views.
+    ExportPoints(PointsExport),
     CancelExport,
+    /// Show and export only what is inside this box (`None`: everything),
+    /// on every model; the thread answers with [`Event::CropSet`].
+    SetCrop(Option<CropBox>),
     Shutdown,
+}
+
+/// A camera path to render, as the Export window and the path editor send
+/// it.
+#[derive(Debug, Clone)]
+pub struct CameraPathExport {
+    /// The path, in zrak's world of the scene or with the transform to its
+    /// original frame recorded (the thread moves it into the scene's world).
+    pub file: CameraPathFile,
+    /// A folder of PNG frames, or a file ending in `.mp4`.
+    pub out: PathBuf,
+    /// Width × height (`None`: the file's `render_width` × `render_height`).
+    pub size: Option<(u32, u32)>,
+    /// Frames a second (`None`: the file's; another rate bakes its
+    /// keyframes again).
+    pub fps: Option<f64>,
+    pub mode: RenderMode,
+    /// Replace an existing video, or frames of another render in the
+    /// folder; without it they are refused.
+    pub replace_existing: bool,
+}
+
+/// A mesh to extract, as `zrak export mesh` does.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MeshExport {
+    /// A `.ply` (binary) or `.obj` file.
+    pub out: PathBuf,
+    /// Grid nodes along the longest side of the box meshed.
+    pub resolution: u32,
+    /// The density the surface is drawn at (`None`: the model's default,
+    /// [`crate::mesh::extract::default_threshold`]).
+    pub threshold: Option<f32>,
+    pub min_component: Option<MinComponent>,
+    /// Replace an existing file; without it, it is refused.
+    pub replace_existing: bool,
+}
+
+/// A point cloud to extract, as `zrak export points` does.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PointsExport {
+    /// A `.ply` file.
+    pub out: PathBuf,
+    /// About this many rays over all training views.
+    pub max_rays: usize,
+    /// Rays less opaque than this give no point.
+    pub min_opacity: f32,
+    pub replace_existing: bool,
 }
 
 /// A summary of a loaded scene for the UI.
@@ -220,6 +283,12 @@ pub enum Event {
     },
     /// Files written, or why the export stopped.
     ExportFinished(Result<Vec<PathBuf>, String>),
+    /// The crop box the models now render with, and why a model refused
+    /// the one asked for (the gpu engine may not crop).
+    CropSet {
+        crop: Option<CropBox>,
+        refused: Option<String>,
+    },
     /// Anything else that went wrong, said in full.
     Error(String),
 }

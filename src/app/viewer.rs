@@ -42,6 +42,10 @@ pub struct ViewerOptions {
     pub precision: Precision,
     /// How many of the runs kept on closing stay on disk (the newest).
     pub kept_runs: usize,
+    /// The crop box to start with (its window opens).
+    pub crop: Option<crate::scene::crop::CropBox>,
+    /// Open the Export window on this kind at the start.
+    pub open_export: Option<super::ui::ExportKind>,
 }
 
 impl Default for ViewerOptions {
@@ -58,6 +62,8 @@ impl Default for ViewerOptions {
             auto_orbit: false,
             precision: Precision::best_available(),
             kept_runs: crate::train::kept::DEFAULT_KEPT_RUNS,
+            crop: None,
+            open_export: None,
         }
     }
 }
@@ -253,6 +259,12 @@ impl ViewerApp {
         ui.set_opening(options.source.clone());
         ui.set_log_progress(true);
         ui.set_auto_orbit(options.auto_orbit);
+        if options.crop.is_some() {
+            ui.set_crop(options.crop);
+        }
+        if let Some(kind) = options.open_export {
+            ui.open_export(kind);
+        }
         ui.set_resting_redraw(resting_redraw);
         if let Some(render_state) = &cc.wgpu_render_state {
             let info = render_state.adapter.get_info();

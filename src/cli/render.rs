@@ -34,6 +34,8 @@ pub struct RenderArgs {
     turntable: Option<usize>,
     /// Render along this camera path (nerfstudio's camera_path.json); --out
     /// is a folder for PNG frames, or a file ending in .mp4 for a video.
+    /// The file's crop box (its `crop` block) is used unless --crop is
+    /// given: an explicit --crop wins.
     #[arg(long)]
     camera_path: Option<PathBuf>,
     /// Camera path: frames a second (default: the file's; another rate
@@ -223,12 +225,26 @@ pub fn render(args: RenderArgs) -> anyhow::Result<()> {
     check_render_args(&args)?;
     let folder = RunFolder::open(&args.run).map_err(anyhow::Error::msg)?;
     let (_, mut trainer) = restore_run(&folder, args.engine, None)?;
+    if let Some(file_path) = &args.camera_path {
+        let file = path::load_path_file(file_path, &trainer.scene)?;
+        // The path file's own crop box, unless --crop says otherwise.
+        let crop = match (&args.crop.crop, &file.crop) {
+            (None, Some(block)) => {
+                note(&format!(
+                    "using the crop box of {} (--crop overrides it)",
+                    file_path.display()
+                ));
+                Some(block.crop)
+            }
+            _ => args.crop.resolve(&args.run)?,
+        };
+        trainer.model.set_crop(crop).map_err(anyhow::Error::msg)?;
+        let scene = &trainer.scene;
+        return path::render_camera_path(&args, &file, file_path, trainer.model.as_ref(), scene);
+    }
     let crop = args.crop.resolve(&args.run)?;
     trainer.model.set_crop(crop).map_err(anyhow::Error::msg)?;
     let scene = &trainer.scene;
-    if let Some(file) = &args.camera_path {
-        return path::render_camera_path(&args, file, trainer.model.as_ref(), scene);
-    }
     if args.size.is_none()
         && let Some((width, height)) = scene.resolution()
     {

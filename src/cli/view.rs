@@ -5,11 +5,13 @@ use std::path::PathBuf;
 
 use clap::{Args, FromArgMatches};
 use zrak::app::protocol::SceneSource;
+use zrak::app::ui::ExportKind;
 use zrak::app::viewer::ViewerOptions;
 use zrak::engine::EngineKind;
 use zrak::engine::cpu::dense::Precision;
 use zrak::field::ModelKind;
 use zrak::field::nerf::Sampling;
+use zrak::scene::crop::CropArg;
 
 #[derive(Args, Debug)]
 pub struct ViewArgs {
@@ -49,6 +51,13 @@ pub struct ViewArgs {
     /// disk: the newest; older ones are removed when another is kept.
     #[arg(long, default_value_t = zrak::train::kept::DEFAULT_KEPT_RUNS)]
     keep_runs: usize,
+    /// Start with this crop box, as `zrak render --crop`: `cx,cy,cz,sx,sy,sz`
+    /// (centre and size), optionally `,rx,ry,rz` (degrees); its window opens.
+    #[arg(long, value_name = "BOX", allow_hyphen_values = true)]
+    crop: Option<CropArg>,
+    /// Open the Export window on this kind (e.g. for a screenshot).
+    #[arg(long, value_enum, value_name = "KIND")]
+    open_export: Option<ExportKind>,
 }
 
 impl Default for ViewArgs {
@@ -81,6 +90,11 @@ pub fn view(args: ViewArgs) -> anyhow::Result<()> {
         auto_orbit: args.auto_orbit,
         precision: args.precision.unwrap_or_else(Precision::best_available),
         kept_runs: args.keep_runs,
+        crop: match args.crop {
+            Some(CropArg::Box(crop)) => Some(crop),
+            Some(CropArg::None) | None => None,
+        },
+        open_export: args.open_export,
     })
 }
 
@@ -120,6 +134,17 @@ mod tests {
         assert!(!args.auto_orbit);
         assert_eq!(args.precision, None);
         assert_eq!(args.keep_runs, zrak::train::kept::DEFAULT_KEPT_RUNS);
+        assert_eq!(args.crop, None);
+        assert_eq!(args.open_export, None);
+    }
+
+    #[test]
+    fn the_viewer_takes_a_crop_box_and_an_export_kind() {
+        let args: ViewArgs =
+            parse_args(&["--crop", "-0.5,0,0,1,2,2", "--open-export", "camera-path"]).unwrap();
+        assert!(matches!(args.crop, Some(CropArg::Box(b)) if b.centre.x == -0.5));
+        assert_eq!(args.open_export, Some(ExportKind::CameraPath));
+        assert!(parse_args::<ViewArgs>(&["--crop", "1,2"]).is_err());
     }
 
     #[test]

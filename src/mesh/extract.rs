@@ -88,6 +88,122 @@ pub fn mesh_bytes(dims: [usize; 3]) -> u64 {
     nodes * 4 + slice * 16 * 64
 }
 
+/// The model's density on a grid over a box, sampled a slab of z layers
+/// at a time so that a caller can report progress and stop between slabs
+/// (the viewer's mesh export, which gets one slab per unit of its thread's
+/// time). [`extract_mesh`] runs the same slabs back to back, so both make
+/// the same grid.
+pub struct DensitySampler {
+    settings: MeshSettings,
+    grid: ScalarGrid,
+    /// z layers sampled so far.
+    layers_done: usize,
+    /// z layers per slab: about [`NODES_PER_BATCH`] nodes, at least one.
+    layers_per_slab: usize,
+}
+
+impl DensitySampler {
+    /// Checks `settings` and sets up the grid; samples nothing yet.
+    pub fn new(settings: &MeshSettings) -> Result<Self, String> {
+        if settings.resolution < 2 || settings.resolution > MAX_RESOLUTION {
+            return Err(format!(
+                "the resolution must be 2 to {MAX_RESOLUTION} grid nodes a side, got {}",
+                settings.resolution
+            ));
+        }
+        if !(settings.threshold.is_finite() && settings.threshold > 0.0) {
+            return Err(format!(
+                "the threshold must be a positive density, got {}",
+                settings.threshold
+            ));
+        }
+        settings.region.check()?;
+        let aabb = settings.region.bounding_aabb();
+        let (dims, spacing) = grid_dims(aabb.size(), settings.resolution);
+        let layer = dims[0] * dims[1];
+        Ok(Self {
+            settings: settings.clone(),
+            grid: ScalarGrid {
+                dims,
+                origin: aabb.min,
+                spacing,
+                values: vec![0.0; dims.iter().product()],
+            },
+            layers_done: 0,
+            layers_per_slab: (NODES_PER_BATCH / layer).max(1),
+        })
+    }
+
+    /// (z layers sampled, z layers in all).
+    pub fn progress(&self) -> (usize, usize) {
+        (self.layers_done, self.grid.dims[2])
+    }
+
+    /// Slabs in all.
+    pub fn slabs(&self) -> usize {
+        self.grid.dims[2].div_ceil(self.layers_per_slab)
+    }
+
+    /// Slabs sampled so far.
+    pub fn slabs_done(&self) -> usize {
+        self.layers_done.div_ceil(self.layers_per_slab)
+    }
+
+    pub fn is_done(&self) -> bool {
+        self.layers_done == self.grid.dims[2]
+    }
+
+    /// Samples the next slab of z layers; false once all are done.
+    pub fn sample_slab(&mut self, model: &dyn RadianceModel) -> Result<bool, String> {
+        if self.is_done() {
+            return Ok(false);
+        }
+        let dims = self.grid.dims;
+        let layer = dims[0] * dims[1];
+        let first = self.layers_done;
+        let last = (first + self.layers_per_slab).min(dims[2]);
+        let region = &self.settings.region;
+        let turned = region.rotation != glam::Quat::IDENTITY;
+        let footprint = self.grid.spacing.max_element();
+        let total = last * layer;
+        let mut positions = Vec::with_capacity(NODES_PER_BATCH.min(total - first * layer));
+        for start in (first * layer..total).step_by(NODES_PER_BATCH) {
+            let end = (start + NODES_PER_BATCH).min(total);
+            positions.clear();
+            positions.extend((start..end).map(|index| {
+                let i = index % dims[0];
+                let j = index / dims[0] % dims[1];
+                let k = index / layer;
+                self.grid.position(i, j, k)
+            }));
+            model.density_at(&positions, footprint, &mut self.grid.values[start..end])?;
+            if turned {
+                // The grid covers the turned box's bounding box: nodes
+                // outside the box itself are empty.
+                for (value, p) in self.grid.values[start..end].iter_mut().zip(&positions) {
+                    if !region.contains(*p) {
+                        *value = 0.0;
+                    }
+                }
+            }
+        }
+        self.layers_done = last;
+        Ok(!self.is_done())
+    }
+
+    /// The sampled grid (whole once [`Self::is_done`]).
+    pub fn grid(&self) -> &ScalarGrid {
+        &self.grid
+    }
+
+    /// The surface of the sampled grid with vertex colours: see
+    /// [`extract_mesh`]. Samples whatever slabs are left first.
+    pub fn finish(mut self, model: &dyn RadianceModel) -> Result<(Mesh, MeshReport), String> {
+        while self.sample_slab(model)? {}
+        surface_of(&self.grid, &self.settings, model)
+    }
+}
+
 /// Samples the model's density on a grid over `settings.region`.
 /// `progress` gets the share done (0 to 1).
 pub fn sample_density(
@@ -95,41 +211,13 @@ pub fn sample_density(
     settings: &MeshSettings,
     progress: &mut dyn FnMut(f32),
 ) -> Result<ScalarGrid, String> {
-    let region = &settings.region;
-    let turned = region.rotation != glam::Quat::IDENTITY;
-    let aabb = region.bounding_aabb();
-    let (dims, spacing) = grid_dims(aabb.size(), settings.resolution);
-    let mut grid = ScalarGrid {
-        dims,
-        origin: aabb.min,
-        spacing,
-        values: vec![0.0; dims.iter().product()],
-    };
-    let footprint = spacing.max_element();
-    let mut positions = Vec::with_capacity(NODES_PER_BATCH);
-    let total = grid.values.len();
-    for start in (0..total).step_by(NODES_PER_BATCH) {
-        let end = (start + NODES_PER_BATCH).min(total);
-        positions.clear();
-        positions.extend((start..end).map(|index| {
-            let i = index % dims[0];
-            let j = index / dims[0] % dims[1];
-            let k = index / (dims[0] * dims[1]);
-            grid.position(i, j, k)
-        }));
-        model.density_at(&positions, footprint, &mut grid.values[start..end])?;
-        if turned {
-            // The grid covers the turned box's bounding box: nodes outside
-            // the box itself are empty.
-            for (value, p) in grid.values[start..end].iter_mut().zip(&positions) {
-                if !region.contains(*p) {
-                    *value = 0.0;
-                }
-            }
-        }
-        progress(end as f32 / total as f32);
+    let mut sampler = DensitySampler::new(settings)?;
+    while sampler.sample_slab(model)? {
+        let (done, total) = sampler.progress();
+        progress(done as f32 / total as f32);
     }
-    Ok(grid)
+    progress(1.0);
+    Ok(sampler.grid)
 }
 
 /// The model's surface at `settings.threshold` over `settings.region`,
@@ -142,28 +230,27 @@ pub fn extract_mesh(
     settings: &MeshSettings,
     progress: &mut dyn FnMut(f32),
 ) -> Result<(Mesh, MeshReport), String> {
-    if settings.resolution < 2 || settings.resolution > MAX_RESOLUTION {
-        return Err(format!(
-            "the resolution must be 2 to {MAX_RESOLUTION} grid nodes a side, got {}",
-            settings.resolution
-        ));
-    }
-    if !(settings.threshold.is_finite() && settings.threshold > 0.0) {
-        return Err(format!(
-            "the threshold must be a positive density, got {}",
-            settings.threshold
-        ));
-    }
-    settings.region.check()?;
     let grid = sample_density(model, settings, &mut |share| progress(0.9 * share))?;
-    let mut mesh = marching_cubes(&grid, settings.threshold, true);
+    let result = surface_of(&grid, settings, model)?;
+    progress(1.0);
+    Ok(result)
+}
+
+/// Marching cubes on a sampled grid, small pieces dropped as asked, and
+/// the vertices' colours.
+fn surface_of(
+    grid: &ScalarGrid,
+    settings: &MeshSettings,
+    model: &dyn RadianceModel,
+) -> Result<(Mesh, MeshReport), String> {
+    let mut mesh = marching_cubes(grid, settings.threshold, true);
     let components_dropped = settings
         .min_component
         .map_or(0, |min| mesh.remove_small_components(min));
     let normals: Vec<Vec3> = mesh
         .positions
         .iter()
-        .map(|&p| -interpolated_gradient(&grid, p).normalize_or_zero())
+        .map(|&p| -interpolated_gradient(grid, p).normalize_or_zero())
         .collect();
     let directions: Vec<Vec3> = normals
         .iter()
@@ -180,7 +267,6 @@ pub fn extract_mesh(
         .chunks_exact(3)
         .map(|c| [to_u8(c[0]), to_u8(c[1]), to_u8(c[2])])
         .collect();
-    progress(1.0);
     Ok((
         mesh,
         MeshReport {

@@ -43,35 +43,47 @@ pub fn extract_points(
     settings: &PointSettings,
     progress: &mut dyn FnMut(usize),
 ) -> (Vec<Vec3>, Vec<[u8; 3]>) {
-    let stride = settings.stride.max(1);
     let (mut positions, mut colours) = (Vec::new(), Vec::new());
-    let mut pixels = Vec::new();
     for (index, view) in views.iter().enumerate() {
-        let k = view.camera.intrinsics;
-        let rays: Vec<Ray> = (0..k.height)
-            .step_by(stride as usize)
-            .flat_map(|j| (0..k.width).step_by(stride as usize).map(move |i| (i, j)))
-            .map(|(i, j)| view.camera.pixel_ray(i, j))
-            .collect();
-        for chunk in rays.chunks(RAYS_PER_CALL) {
-            let origins: Vec<Vec3> = chunk.iter().map(|r| r.origin).collect();
-            let directions: Vec<Vec3> = chunk.iter().map(|r| r.direction).collect();
-            let radii: Vec<f32> = chunk.iter().map(|r| r.radius()).collect();
-            pixels.resize(chunk.len(), Default::default());
-            model.render(&origins, &directions, &radii, [0.0; 3], &mut pixels);
-            for ((o, d), p) in origins.iter().zip(&directions).zip(&pixels) {
-                if !(p.opacity >= settings.min_opacity && p.opacity > 0.0) {
-                    continue;
-                }
-                let point = *o + *d * (p.depth / p.opacity);
-                if !point.is_finite() || settings.crop.is_some_and(|c| !c.contains(point)) {
-                    continue;
-                }
-                positions.push(point);
-                colours.push(p.rgb.map(|c| to_u8(c / p.opacity)));
-            }
-        }
+        points_of_view(model, view, settings, &mut positions, &mut colours);
         progress(index + 1);
     }
     (positions, colours)
+}
+
+/// The points one view adds to a cloud (see [`extract_points`]), for a
+/// caller that does a view at a time.
+pub fn points_of_view(
+    model: &dyn RadianceModel,
+    view: &Frame,
+    settings: &PointSettings,
+    positions: &mut Vec<Vec3>,
+    colours: &mut Vec<[u8; 3]>,
+) {
+    let stride = settings.stride.max(1);
+    let mut pixels = Vec::new();
+    let k = view.camera.intrinsics;
+    let rays: Vec<Ray> = (0..k.height)
+        .step_by(stride as usize)
+        .flat_map(|j| (0..k.width).step_by(stride as usize).map(move |i| (i, j)))
+        .map(|(i, j)| view.camera.pixel_ray(i, j))
+        .collect();
+    for chunk in rays.chunks(RAYS_PER_CALL) {
+        let origins: Vec<Vec3> = chunk.iter().map(|r| r.origin).collect();
+        let directions: Vec<Vec3> = chunk.iter().map(|r| r.direction).collect();
+        let radii: Vec<f32> = chunk.iter().map(|r| r.radius()).collect();
+        pixels.resize(chunk.len(), Default::default());
+        model.render(&origins, &directions, &radii, [0.0; 3], &mut pixels);
+        for ((o, d), p) in origins.iter().zip(&directions).zip(&pixels) {
+            if !(p.opacity >= settings.min_opacity && p.opacity > 0.0) {
+                continue;
+            }
+            let point = *o + *d * (p.depth / p.opacity);
+            if !point.is_finite() || settings.crop.is_some_and(|c| !c.contains(point)) {
+                continue;
+            }
+            positions.push(point);
+            colours.push(p.rgb.map(|c| to_u8(c / p.opacity)));
+        }
+    }
 }

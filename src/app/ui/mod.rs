@@ -7,6 +7,9 @@
 //! `egui_kittest` and a link they can inspect.
 
 use eframe::egui;
+mod crop;
+mod export;
+pub mod overlay;
 mod panels;
 mod plots;
 mod viewport;
@@ -24,7 +27,8 @@ use crate::engine::EngineKind;
 use crate::field::ModelKind;
 use crate::render::RenderMode;
 
-pub use panels::ExportDialog;
+pub use crop::CropPanel;
+pub use export::{ExportDialog, ExportKind};
 pub use plots::{History, HistoryPoint, PlotAxis, comparison_table, export_comparison};
 pub use viewport::{CompareMode, CompareWith, ShownFrame, ViewportState};
 
@@ -126,6 +130,7 @@ pub struct ViewerUi {
     /// What the timing column shows.
     timing: TimingView,
     export: ExportDialog,
+    crop: CropPanel,
     scene_path_text: String,
     checkpoint_path_text: String,
     /// Where the plot and table are exported.
@@ -191,6 +196,7 @@ impl ViewerUi {
             plot_axis: PlotAxis::Step,
             timing: TimingView::Thread,
             export: ExportDialog::default(),
+            crop: CropPanel::default(),
             scene_path_text: String::new(),
             checkpoint_path_text: String::new(),
             comparison_folder: std::env::temp_dir()
@@ -244,6 +250,24 @@ impl ViewerUi {
     /// Says whether native file dialogs work here (tests turn them off).
     pub fn set_dialogs_available(&mut self, available: bool) {
         self.dialogs_available = available;
+    }
+
+    /// Sets the crop box (`zrak view --crop`) and opens its window.
+    pub fn set_crop(&mut self, crop: Option<crate::scene::crop::CropBox>) {
+        self.crop.show_box(crop);
+        self.crop.open = true;
+        self.send(Command::SetCrop(crop));
+    }
+
+    /// Opens the Export window on `kind` (`zrak view --open-export`).
+    pub fn open_export(&mut self, kind: ExportKind) {
+        self.export.kind = kind;
+        self.export.open = true;
+    }
+
+    /// The crop box window's state.
+    pub fn crop_panel(&self) -> &CropPanel {
+        &self.crop
     }
 
     /// Marks the scene being opened (e.g. the one the thread was spawned
@@ -472,7 +496,8 @@ impl ViewerUi {
         egui::CentralPanel::default().show(ui, |ui| {
             viewport::show(self, ui);
         });
-        panels::export_window(self, &ctx);
+        export::export_window(self, &ctx);
+        crop::crop_window(self, &ctx);
 
         // Training or a moving camera keeps the picture changing; the worker
         // may also wake us through its repaint callback, but a steady tick
@@ -556,7 +581,10 @@ impl ViewerUi {
                     Some(camera) => camera.reset(&info.scene),
                     None => self.camera = Some(ViewCamera::for_scene(&info.scene)),
                 }
-                // Every model's state of the previous scene is gone.
+                // Every model's state of the previous scene is gone, and
+                // with it the crop box (the first scene keeps `--crop`'s).
+                self.crop
+                    .scene_changed(info.scene.bounds, self.scene.is_none());
                 self.histories.clear();
                 self.viewport.scene_changed();
                 self.scene = Some(info);
@@ -611,7 +639,10 @@ impl ViewerUi {
                             .and_then(|f| f.parent())
                             .map(|p| p.display().to_string())
                             .unwrap_or_default();
-                        let text = format!("Exported {} files to {folder}", files.len());
+                        let text = match &files[..] {
+                            [one] => format!("Exported {}", one.display()),
+                            _ => format!("Exported {} files to {folder}", files.len()),
+                        };
                         self.export.result = Some(Notice {
                             text: text.clone(),
                             is_error: false,
@@ -627,6 +658,12 @@ impl ViewerUi {
                         self.notice(text, true);
                     }
                 }
+            }
+            Event::CropSet { crop, refused } => {
+                if let Some(problem) = &refused {
+                    self.notice(format!("Crop box refused: {problem}"), true);
+                }
+                self.crop.answered(crop, refused);
             }
             Event::Error(error) => self.notice(error, true),
         }

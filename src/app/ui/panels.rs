@@ -1,5 +1,5 @@
 //! The menu bar, the control panel on the left, the stats and plots at the
-//! bottom, and the turntable export window.
+//! bottom.
 
 use eframe::egui;
 use std::path::PathBuf;
@@ -7,80 +7,14 @@ use std::path::PathBuf;
 use egui::{Color32, RichText};
 
 use super::viewport::{self, CompareMode, CompareWith};
-use super::{Notice, PlotAxis, ViewerUi, describe_source, plots};
+use super::{PlotAxis, ViewerUi, describe_source, plots};
 use crate::app::camera::Navigation;
 use crate::app::protocol::{Balance, Command, SceneSource};
 use crate::field::ModelKind;
 use crate::render::RenderMode;
-use crate::render::export::ExportSettings;
-use crate::render::path::Turntable;
 
 /// The colour of error text.
-const ERROR_COLOUR: Color32 = Color32::from_rgb(0xff, 0x70, 0x60);
-
-/// What the turntable export window holds.
-#[derive(Debug, Clone)]
-pub struct ExportDialog {
-    pub open: bool,
-    pub frames: usize,
-    /// Use the training images' size instead of `width` × `height`.
-    pub training_size: bool,
-    pub width: u32,
-    pub height: u32,
-    pub elevation_degrees: f32,
-    /// Use the training cameras' mean distance instead of `radius`.
-    pub mean_radius: bool,
-    pub radius: f32,
-    pub folder: String,
-    pub write_gif: bool,
-    /// Write over an earlier export's files in the folder.
-    pub replace_existing: bool,
-    /// (frames done, frames in all) while an export runs.
-    pub progress: Option<(usize, usize)>,
-    pub result: Option<Notice>,
-}
-
-impl Default for ExportDialog {
-    fn default() -> Self {
-        let turntable = Turntable::default();
-        Self {
-            open: false,
-            frames: turntable.frames,
-            training_size: true,
-            width: 400,
-            height: 400,
-            elevation_degrees: turntable.elevation_degrees,
-            mean_radius: true,
-            radius: 4.0,
-            folder: std::env::temp_dir()
-                .join("zrak-turntable")
-                .display()
-                .to_string(),
-            write_gif: true,
-            replace_existing: false,
-            progress: None,
-            result: None,
-        }
-    }
-}
-
-impl ExportDialog {
-    /// The settings the export command carries.
-    pub fn settings(&self, mode: RenderMode) -> ExportSettings {
-        ExportSettings {
-            turntable: Turntable {
-                frames: self.frames.max(1),
-                elevation_degrees: self.elevation_degrees,
-                radius: (!self.mean_radius).then_some(self.radius),
-                size: (!self.training_size).then_some((self.width.max(8), self.height.max(8))),
-            },
-            mode,
-            out_dir: PathBuf::from(self.folder.trim()),
-            write_gif: self.write_gif,
-            replace_existing: self.replace_existing,
-        }
-    }
-}
+pub(super) const ERROR_COLOUR: Color32 = Color32::from_rgb(0xff, 0x70, 0x60);
 
 /// Whether a native file dialog can open: rfd asks the XDG desktop portal
 /// over D-Bus and falls back to zenity; with neither it silently returns
@@ -118,8 +52,11 @@ pub fn menu_bar(state: &mut ViewerUi, ui: &mut egui::Ui) {
                 }
                 ui.menu_button("Recent runs", |ui| recent_runs_menu(state, ui));
                 ui.separator();
-                if ui.button("Export turntable…").clicked() {
+                if ui.button("Export…").clicked() {
                     state.export.open = true;
+                }
+                if ui.button("Crop box…").clicked() {
+                    state.crop.open = true;
                 }
                 ui.separator();
                 if ui.button("Quit").clicked() {
@@ -260,9 +197,14 @@ pub fn controls_panel(state: &mut ViewerUi, ui: &mut egui::Ui) {
                 ui.separator();
                 checkpoint_section(state, ui);
                 ui.separator();
-                if ui.button("Export turntable…").clicked() {
-                    state.export.open = true;
-                }
+                ui.horizontal(|ui| {
+                    if ui.button("Export…").clicked() {
+                        state.export.open = true;
+                    }
+                    if ui.button("Crop box…").clicked() {
+                        state.crop.open = true;
+                    }
+                });
                 if !state.notices.is_empty() {
                     ui.separator();
                     for notice in state.notices.iter().rev() {
@@ -778,111 +720,4 @@ fn thread_time(state: &ViewerUi, ui: &mut egui::Ui) {
             ui.label(RichText::new(format!("{wall:.1} s")).small().strong());
             ui.end_row();
         });
-}
-
-pub fn export_window(state: &mut ViewerUi, ctx: &egui::Context) {
-    if !state.export.open {
-        return;
-    }
-    let mut open = true;
-    let mode = state.mode;
-    let mut command = None;
-    egui::Window::new("Export turntable")
-        .open(&mut open)
-        .resizable(false)
-        .collapsible(false)
-        .show(ctx, |ui| {
-            let dialog = &mut state.export;
-            let running = dialog.progress.is_some();
-            ui.add_enabled_ui(!running, |ui| {
-                egui::Grid::new("zrak export")
-                    .num_columns(2)
-                    .show(ui, |ui| {
-                        ui.label("frames");
-                        ui.add(egui::DragValue::new(&mut dialog.frames).range(1..=3600));
-                        ui.end_row();
-                        ui.label("resolution");
-                        ui.horizontal(|ui| {
-                            ui.checkbox(&mut dialog.training_size, "as training");
-                            ui.add_enabled_ui(!dialog.training_size, |ui| {
-                                ui.add(egui::DragValue::new(&mut dialog.width).range(8..=4096));
-                                ui.label("×");
-                                ui.add(egui::DragValue::new(&mut dialog.height).range(8..=4096));
-                            });
-                        });
-                        ui.end_row();
-                        ui.label("elevation");
-                        ui.add(
-                            egui::Slider::new(&mut dialog.elevation_degrees, -89.0..=89.0)
-                                .suffix("°"),
-                        );
-                        ui.end_row();
-                        ui.label("radius");
-                        ui.horizontal(|ui| {
-                            ui.checkbox(&mut dialog.mean_radius, "training cameras' mean");
-                            ui.add_enabled(
-                                !dialog.mean_radius,
-                                egui::DragValue::new(&mut dialog.radius)
-                                    .range(0.01..=1000.0)
-                                    .speed(0.05),
-                            );
-                        });
-                        ui.end_row();
-                        ui.label("folder");
-                        ui.horizontal(|ui| {
-                            ui.add(
-                                egui::TextEdit::singleline(&mut dialog.folder).desired_width(220.0),
-                            );
-                        });
-                        ui.end_row();
-                        ui.label("GIF");
-                        ui.checkbox(&mut dialog.write_gif, "also write turntable.gif");
-                        ui.end_row();
-                        ui.label("existing files");
-                        ui.checkbox(
-                            &mut dialog.replace_existing,
-                            "replace an earlier export's frames",
-                        );
-                        ui.end_row();
-                    });
-            });
-            ui.label(RichText::new(format!("mode: {mode:?} (the viewport's)")).small());
-            ui.horizontal(|ui| {
-                if running {
-                    if ui.button("Cancel").clicked() {
-                        command = Some(Command::CancelExport);
-                    }
-                } else if ui
-                    .add_enabled(
-                        !dialog.folder.trim().is_empty(),
-                        egui::Button::new("Export"),
-                    )
-                    .clicked()
-                {
-                    dialog.result = None;
-                    dialog.progress = Some((0, dialog.frames.max(1)));
-                    command = Some(Command::ExportTurntable(dialog.settings(mode)));
-                }
-            });
-            if let Some((done, total)) = dialog.progress {
-                let fraction = done as f32 / total.max(1) as f32;
-                ui.add(
-                    egui::ProgressBar::new(fraction)
-                        .text(format!("{done} / {total} frames"))
-                        .show_percentage(),
-                );
-            }
-            if let Some(result) = &dialog.result {
-                let text = RichText::new(&result.text);
-                ui.label(if result.is_error {
-                    text.color(ERROR_COLOUR)
-                } else {
-                    text
-                });
-            }
-        });
-    if let Some(command) = command {
-        state.send(command);
-    }
-    state.export.open = open;
 }

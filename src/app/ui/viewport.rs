@@ -652,6 +652,13 @@ pub fn show(ui_state: &mut ViewerUi, ui: &mut egui::Ui) {
     }
 
     draw_images(ui_state, &painter, rect, comparing);
+    // The crop box over the picture (not over a side-by-side comparison,
+    // whose two pictures are placed differently).
+    if let (Some(camera), Some(crop), false) = (camera, ui_state.crop.drawn(), comparing) {
+        let k = camera.intrinsics;
+        let image = fit(rect, k.width as f32, k.height as f32);
+        super::overlay::draw_crop_box(&painter, &camera, image, &crop);
+    }
 
     // What is on screen, in a corner: the model, the step the picture
     // shows and how far training has gone on since, and its resolution.

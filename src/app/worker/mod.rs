@@ -48,11 +48,14 @@ use super::schedule::{
     first_level, next_finer_level, refresh_budget,
 };
 
+mod export_jobs;
+mod export_mesh;
 mod saving;
 mod training;
 mod view;
 
-use saving::ExportJob;
+use crate::scene::crop::CropBox;
+use export_jobs::{ExportJob, ExportOrder};
 pub use training::Turns;
 use view::TexturePool;
 
@@ -562,6 +565,8 @@ struct Worker {
     balance: Balance,
     view: Option<View>,
     export: Option<ExportJob>,
+    /// What every model renders and exports (`None`: the whole scene).
+    crop: Option<CropBox>,
     val_job: Option<ValJob>,
     /// When the last training step ended and how long it took, to keep
     /// training light while the camera moves.
@@ -665,6 +670,7 @@ impl Worker {
             balance: Balance::default(),
             view: None,
             export: None,
+            crop: None,
             val_job: None,
             last_step: None,
             next_revision: 0,
@@ -876,7 +882,7 @@ impl Worker {
             precision: self.options.precision,
         };
         let engine = self.engine.choice()?;
-        let model: Box<dyn RadianceModel> =
+        let mut model: Box<dyn RadianceModel> =
             match (&self.options.nerf_shape, kind, engine.gpu) {
                 (Some(shape), ModelKind::Nerf, None) => Box::new(
                     crate::train::cpu_nerf_with_shape(&self.scene, &settings, shape),
@@ -911,6 +917,8 @@ impl Worker {
                     &settings,
                 )?,
             };
+        // The crop box was checked with the models of this engine already.
+        let _ = model.set_crop(self.crop);
         Ok(Trainer::new(model, self.scene.clone(), self.options.seed))
     }
 
@@ -1000,7 +1008,15 @@ impl Worker {
             Command::Render(request) => self.set_view(request)?,
             Command::SaveCheckpoint(path) => self.save_checkpoint(&path)?,
             Command::LoadCheckpoint(path) => self.load_checkpoint(&path)?,
-            Command::ExportTurntable(settings) => self.start_export(settings)?,
+            Command::ExportTurntable(settings) => {
+                self.start_export(ExportOrder::Turntable(settings))?
+            }
+            Command::ExportCameraPath(order) => {
+                self.start_export(ExportOrder::CameraPath(order))?
+            }
+            Command::ExportMesh(order) => self.start_export(ExportOrder::Mesh(order))?,
+            Command::ExportPoints(order) => self.start_export(ExportOrder::Points(order))?,
+            Command::SetCrop(crop) => self.set_crop(crop)?,
             Command::CancelExport => {
                 if self.export.take().is_some() {
                     self.send(Event::ExportFinished(
@@ -1067,6 +1083,7 @@ impl Worker {
             )))?;
         }
         self.scene = Arc::new(scene);
+        self.crop = None; // the old scene's box; the window clears its own
         self.source = source;
         self.val_frames = held_out_views(&self.scene, self.options.val_views);
         self.slots.clear();
@@ -1157,35 +1174,6 @@ fn held_out_views(scene: &Scene, count: usize) -> Vec<Frame> {
         .find(|frames| !frames.is_empty())
         .map_or(&[][..], |frames| frames.as_slice());
     spread_views(frames, count).into_iter().cloned().collect()
-}
-
-/// Why a camera cannot be rendered, if it cannot.
-fn check_camera(camera: &Camera) -> Result<(), String> {
-    let k = camera.intrinsics;
-    if k.width == 0 || k.height == 0 || k.width > MAX_VIEWPORT_SIDE || k.height > MAX_VIEWPORT_SIDE
-    {
-        return Err(format!(
-            "the viewport is {}×{} pixels (each side must be 1 to {MAX_VIEWPORT_SIDE})",
-            k.width, k.height
-        ));
-    }
-    let focal_ok = [k.fx, k.fy].iter().all(|f| f.is_finite() && *f > 0.0);
-    let centre_ok = k.cx.is_finite() && k.cy.is_finite();
-    if !focal_ok || !centre_ok {
-        return Err(format!(
-            "the intrinsics are not usable (fx {}, fy {}, cx {}, cy {})",
-            k.fx, k.fy, k.cx, k.cy
-        ));
-    }
-    if !camera
-        .camera_to_world
-        .to_cols_array()
-        .iter()
-        .all(|v| v.is_finite())
-    {
-        return Err("the camera pose holds a non-finite number".into());
-    }
-    Ok(())
 }
 
 #[cfg(test)]

@@ -1,38 +1,7 @@
 //! What the worker writes: checkpoints (saved, loaded, and kept on close)
-//! and turntable exports, frame by frame.
+//! and the crop box beside them.
 
 use super::*;
-
-/// A turntable export in progress, with the model it renders.
-pub(super) struct ExportJob {
-    model: ModelKind,
-    export: TurntableExport,
-}
-
-impl ExportJob {
-    pub(super) fn start(
-        scene: &Scene,
-        settings: ExportSettings,
-        model: ModelKind,
-    ) -> Result<ExportJob, String> {
-        Ok(ExportJob {
-            model,
-            export: TurntableExport::start(scene, settings)?,
-        })
-    }
-
-    pub(super) fn progress(&self) -> (usize, usize) {
-        (self.export.done(), self.export.total())
-    }
-
-    pub(super) fn render_next(&mut self, model: &dyn RadianceModel) -> Result<bool, String> {
-        self.export.render_next(model)
-    }
-
-    pub(super) fn finish(self) -> Result<Vec<PathBuf>, String> {
-        self.export.finish()
-    }
-}
 
 impl Worker {
     pub(super) fn save_checkpoint(&mut self, path: &Path) -> Result<(), UiGone> {
@@ -59,6 +28,11 @@ impl Worker {
             Ok(()) => {
                 if let Some(slot) = self.slot_mut(self.active) {
                     slot.saved_step = step;
+                }
+                if let Some(run) = run_folder_of(path)
+                    && let Err(e) = CropBox::save_to_run(self.crop.as_ref(), run)
+                {
+                    self.send(Event::Error(e))?;
                 }
                 self.send(Event::CheckpointSaved(path.to_path_buf()))
             }
@@ -133,7 +107,8 @@ impl Worker {
                         .checkpoint(run.clone())
                         .save(&folder.join(crate::train::run::CHECKPOINT_FILE))
                         .map_err(|e| e.to_string())
-                });
+                })
+                .and_then(|()| CropBox::save_to_run(self.crop.as_ref(), &folder));
             match saved {
                 Ok(()) => crate::interrupt::note(&format!(
                     "zrak view: kept {} at step {} in {}; continue it with \
@@ -166,6 +141,12 @@ impl Worker {
                 if kind != self.active {
                     self.active = kind;
                     self.send(Event::ModelSelected(kind))?;
+                }
+                // A run's crop box comes back with it.
+                match run_folder_of(path).map(CropBox::load_from_run) {
+                    Some(Ok(Some(crop))) => self.set_crop(Some(crop))?,
+                    Some(Err(e)) => self.send(Event::Error(e))?,
+                    _ => {}
                 }
                 if let Some(view) = self.view.as_mut() {
                     view.restart();
@@ -209,46 +190,19 @@ impl Worker {
         self.rebase_turns();
         Ok((kind, step))
     }
+}
 
-    pub(super) fn start_export(&mut self, settings: ExportSettings) -> Result<(), UiGone> {
-        if self.export.is_some() {
-            return self.send(Event::Error(
-                "an export is already running; cancel it first".into(),
-            ));
-        }
-        match ExportJob::start(&self.scene, settings, self.active) {
-            Ok(job) => {
-                let (done, total) = job.progress();
-                self.export = Some(job);
-                self.send(Event::ExportProgress { done, total })
-            }
-            Err(e) => self.send(Event::ExportFinished(Err(e))),
-        }
-    }
-
-    /// Renders one export frame; training waits while an export runs.
-    pub(super) fn export_unit(&mut self) -> Result<(), UiGone> {
-        let Some(mut job) = self.export.take() else {
-            return Ok(());
-        };
-        let Some(slot) = self.slot(job.model) else {
-            return self.send(Event::ExportFinished(Err(format!(
-                "the export stopped: the {} model is gone",
-                job.model.name()
-            ))));
-        };
-        match job.render_next(slot.trainer.model.as_ref()) {
-            Ok(more) => {
-                let (done, total) = job.progress();
-                self.send(Event::ExportProgress { done, total })?;
-                if more {
-                    self.export = Some(job);
-                    Ok(())
-                } else {
-                    self.send(Event::ExportFinished(job.finish()))
-                }
-            }
-            Err(e) => self.send(Event::ExportFinished(Err(e))),
-        }
-    }
+/// The run folder a checkpoint lies in, whose crop box (`crop.json`) goes
+/// with it: the folder of a `checkpoint.zrak`, or of any checkpoint beside
+/// a `run.json` (what `zrak train` and the viewer's kept runs write). A
+/// checkpoint saved anywhere else leaves its folder alone.
+fn run_folder_of(checkpoint: &Path) -> Option<&Path> {
+    let folder = checkpoint.parent()?;
+    let folder = if folder.as_os_str().is_empty() {
+        Path::new(".")
+    } else {
+        folder
+    };
+    let named = checkpoint.file_name()? == crate::train::run::CHECKPOINT_FILE;
+    (named || folder.join(crate::train::run::CONFIG_FILE).is_file()).then_some(folder)
 }

@@ -470,3 +470,32 @@ impl Worker {
         self.textures.take(context, width, height)
     }
 }
+
+/// Why a camera cannot be rendered, if it cannot.
+fn check_camera(camera: &Camera) -> Result<(), String> {
+    let k = camera.intrinsics;
+    if k.width == 0 || k.height == 0 || k.width > MAX_VIEWPORT_SIDE || k.height > MAX_VIEWPORT_SIDE
+    {
+        return Err(format!(
+            "the viewport is {}×{} pixels (each side must be 1 to {MAX_VIEWPORT_SIDE})",
+            k.width, k.height
+        ));
+    }
+    let focal_ok = [k.fx, k.fy].iter().all(|f| f.is_finite() && *f > 0.0);
+    let centre_ok = k.cx.is_finite() && k.cy.is_finite();
+    if !focal_ok || !centre_ok {
+        return Err(format!(
+            "the intrinsics are not usable (fx {}, fy {}, cx {}, cy {})",
+            k.fx, k.fy, k.cx, k.cy
+        ));
+    }
+    if !camera
+        .camera_to_world
+        .to_cols_array()
+        .iter()
+        .all(|v| v.is_finite())
+    {
+        return Err("the camera pose holds a non-finite number".into());
+    }
+    Ok(())
+}

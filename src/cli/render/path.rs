@@ -9,16 +9,15 @@
 //! are there; the folder is removed afterwards unless `--keep-frames`.
 
 use std::ops::Range;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Instant;
 
-use anyhow::Context;
 use indicatif::{ProgressBar, ProgressStyle};
 use zrak::interrupt::{self, note};
-use zrak::render::camera_path::frames::{FrameJob, MANIFEST};
+use zrak::render::camera_path::export::{PathRender, PathRenderSettings};
 use zrak::render::camera_path::nerfstudio::{CameraPathFile, scene_to_original};
-use zrak::render::camera_path::video::{Mp4Encoder, size_problem};
-use zrak::scene::{ImageRgba8, Scene};
+use zrak::render::camera_path::video::size_problem;
+use zrak::scene::Scene;
 use zrak::train::model::RadianceModel;
 
 use super::RenderArgs;
@@ -74,25 +73,21 @@ pub fn parse_frame_range(text: &str) -> Result<FrameRange, String> {
     }
 }
 
-/// Whether `out` names a video file rather than a folder of frames.
-pub fn is_video(out: &Path) -> bool {
-    out.extension()
-        .is_some_and(|e| e.eq_ignore_ascii_case("mp4"))
-}
+use zrak::render::camera_path::export::is_video;
 
-/// Where a video's frames are rendered: `NAME.frames/` beside it.
-pub fn frames_folder(video: &Path) -> PathBuf {
-    video.with_extension("frames")
+/// The camera path file `file_path`, read and moved into `scene`'s world.
+pub fn load_path_file(file_path: &Path, scene: &Scene) -> anyhow::Result<CameraPathFile> {
+    let file = CameraPathFile::load(file_path).map_err(anyhow::Error::msg)?;
+    Ok(file.moved_into(scene_to_original(scene).map_err(anyhow::Error::msg)?))
 }
 
 pub fn render_camera_path(
     args: &RenderArgs,
+    file: &CameraPathFile,
     file_path: &Path,
     model: &dyn RadianceModel,
     scene: &Scene,
 ) -> anyhow::Result<()> {
-    let file = CameraPathFile::load(file_path).map_err(anyhow::Error::msg)?;
-    let file = file.moved_into(scene_to_original(scene).map_err(anyhow::Error::msg)?);
     let samples = match args.fps {
         Some(fps) => file.frames_at(fps),
         None => file.frames(),
@@ -113,8 +108,7 @@ pub fn render_camera_path(
         Some(frames) => frames.resolve(samples.len())?,
         None => 0..samples.len(),
     };
-    let video = is_video(&args.out);
-    if video {
+    if is_video(&args.out) {
         if let Some(problem) = size_problem(width, height) {
             anyhow::bail!("{}: {problem} (give --size WxH)", args.out.display());
         }
@@ -125,21 +119,21 @@ pub fn render_camera_path(
             );
         }
     }
-    let frames_dir = if video {
-        frames_folder(&args.out)
-    } else {
-        args.out.clone()
-    };
-    let job = FrameJob {
+    let mut render = PathRender::start(PathRenderSettings {
         samples,
         range: range.clone(),
         width,
         height,
+        fps,
         mode: args.mode,
-        out_dir: frames_dir.clone(),
-    };
-    let todo = job.prepare(args.force).map_err(anyhow::Error::msg)?;
-    let already = range.len() - todo.len();
+        out: args.out.clone(),
+        replace_existing: args.force,
+        keep_frames: args.keep_frames,
+        depth_range: scene.depth_range(),
+    })
+    .map_err(anyhow::Error::msg)?;
+    let already = render.already();
+    let frames_dir = render.frames_dir().to_path_buf();
     let bar = ProgressBar::new(range.len() as u64).with_style(
         ProgressStyle::with_template(
             "{bar:30} {pos}/{len} frames, {elapsed} so far, about {eta} to go",
@@ -150,74 +144,53 @@ pub fn render_camera_path(
     // The frames found on disk took no time now: the estimate counts only
     // those rendered from here on.
     bar.reset_eta();
-    let depth_range = scene.depth_range();
     let started = Instant::now();
-    let mut rendered = 0;
-    for &index in &todo {
+    let todo = range.len() - already;
+    while render.rendered() < todo {
         if interrupt::requested() {
             bar.abandon();
             note(&format!(
                 "interrupted after {} of {} frames; they are in {}: run the same command again \
                  to render the other {}",
-                already + rendered,
+                already + render.rendered(),
                 range.len(),
                 frames_dir.display(),
-                todo.len() - rendered
+                todo - render.rendered()
             ));
             return Ok(());
         }
-        job.render_frame(model, index, depth_range)
-            .map_err(anyhow::Error::msg)?;
-        rendered += 1;
+        render.step(model).map_err(anyhow::Error::msg)?;
         bar.inc(1);
     }
     bar.finish();
     let seconds = started.elapsed().as_secs_f64();
-    if !video {
-        println!(
+    let output = render.finish(model).map_err(anyhow::Error::msg)?;
+    let rendered = output.rendered;
+    match output.video {
+        None => println!(
             "wrote {} frames to {} ({rendered} rendered in {seconds:.1} s, {already} already there)",
             range.len(),
             frames_dir.display()
-        );
-        return Ok(());
+        ),
+        Some(info) => println!(
+            "wrote {}: {} frames, {}×{}, {} frames a second, {} bytes ({rendered} frames rendered \
+             in {seconds:.1} s, {already} already there)",
+            info.path.display(),
+            info.frames,
+            info.width,
+            info.height,
+            info.fps,
+            info.bytes
+        ),
     }
-    let mut encoder =
-        Mp4Encoder::create(&args.out, width, height, fps).map_err(anyhow::Error::msg)?;
-    for index in range.clone() {
-        let path = job.frame_path(index);
-        let image = image::open(&path)
-            .with_context(|| format!("{}: cannot read the frame back", path.display()))?
-            .to_rgba8();
-        let (w, h) = image.dimensions();
-        encoder
-            .add_frame(&ImageRgba8::new(w, h, image.into_raw()))
-            .map_err(anyhow::Error::msg)?;
-    }
-    let info = encoder.finish().map_err(anyhow::Error::msg)?;
-    if !args.keep_frames {
-        for index in range {
-            let _ = std::fs::remove_file(job.frame_path(index));
-        }
-        let _ = std::fs::remove_file(frames_dir.join(MANIFEST));
-        // Only when empty: frames of other ranges stay.
-        let _ = std::fs::remove_dir(&frames_dir);
-    }
-    println!(
-        "wrote {}: {} frames, {}×{}, {} frames a second, {} bytes ({rendered} frames rendered in \
-         {seconds:.1} s, {already} already there)",
-        info.path.display(),
-        info.frames,
-        info.width,
-        info.height,
-        info.fps,
-        info.bytes
-    );
     Ok(())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::path::PathBuf;
+    use zrak::render::camera_path::export::frames_folder;
 
     #[test]
     fn frame_ranges() {

@@ -25,6 +25,8 @@
 //! and treats the keyframes as a ring: its end is its start, velocity
 //! included.
 
+pub mod crop_block;
+pub mod export;
 pub mod frames;
 pub mod nerfstudio;
 pub mod video;

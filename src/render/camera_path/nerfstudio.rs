@@ -40,6 +40,7 @@ use std::path::Path;
 use glam::{DMat3, DMat4};
 use serde_json::{Map, Value, json};
 
+use super::crop_block::{PathCrop, crop_to_json, parse_crop};
 use super::{CameraPath, FOV_RANGE_DEGREES, Keyframe, PathSample};
 use crate::scene::pose::{check_rigid, describe};
 use crate::scene::{Scene, SceneFormat};
@@ -102,8 +103,9 @@ pub struct CameraPathFile {
     pub seconds: f64,
     pub is_cycle: bool,
     pub baked: Vec<BakedFrame>,
-    /// nerfstudio's `crop` block, kept as written.
-    pub crop: Value,
+    /// nerfstudio's `crop` block (`None`: null or absent), in the frame
+    /// of the poses.
+    pub crop: Option<PathCrop>,
     /// zrak world to the scene's original frame; `None` when the file does
     /// not say (it is then taken to be in zrak's world).
     pub to_original: Option<DMat4>,
@@ -128,7 +130,7 @@ impl CameraPathFile {
             fps,
             seconds,
             baked,
-            crop: Value::Null,
+            crop: None,
             to_original: Some(to_original),
         }
     }
@@ -205,6 +207,7 @@ impl CameraPathFile {
                 frame.aspect,
             );
         }
+        moved.crop = self.crop.map(|crop| crop.moved(change));
         moved.to_original = Some(scene_to_original);
         moved
     }
@@ -255,7 +258,7 @@ impl CameraPathFile {
             "is_cycle": self.is_cycle,
             "default_fov": self.default_fov_degrees,
             "default_transition_sec": default_transition,
-            "crop": self.crop,
+            "crop": crop_to_json(self.crop.as_ref()),
         });
         if let Some(m) = &self.to_original {
             object[TO_ORIGINAL_FIELD] = json!(row_major(m));
@@ -353,7 +356,7 @@ fn quote_non_finite(text: &str) -> String {
 }
 
 /// A finite number at `field`.
-fn finite(value: &Value, field: &str) -> Result<f64, String> {
+pub(super) fn finite(value: &Value, field: &str) -> Result<f64, String> {
     match value {
         Value::Number(n) => n
             .as_f64()
@@ -647,7 +650,7 @@ fn from_object(top: &Map<String, Value>) -> Result<CameraPathFile, String> {
         seconds,
         is_cycle,
         baked,
-        crop: top.get("crop").cloned().unwrap_or(Value::Null),
+        crop: parse_crop(top.get("crop"))?,
         to_original,
     })
 }

@@ -1,0 +1,216 @@
+//! The viewer's exports: a turntable, a camera path (PNG frames or an MP4
+//! video), a mesh or a point cloud, each done one unit per turn of the
+//! training thread (a frame, a slab of the density grid, a view), so the
+//! window shows progress and a cancel stops the job between two units.
+//! Training waits while an export runs. Each kind calls the same functions
+//! as its command (`zrak render --turntable|--camera-path`, `zrak export
+//! mesh|points`), so both make the same files.
+
+use super::export_mesh::{MeshJob, PointsJob};
+use super::*;
+use crate::app::protocol::{CameraPathExport, MeshExport, PointsExport};
+use crate::render::camera_path::export::{PathRender, PathRenderSettings};
+use crate::render::camera_path::nerfstudio::scene_to_original;
+
+/// What the window asked to export (one at a time: its size does not
+/// matter).
+#[allow(clippy::large_enum_variant)]
+pub(super) enum ExportOrder {
+    Turntable(ExportSettings),
+    CameraPath(CameraPathExport),
+    Mesh(MeshExport),
+    Points(PointsExport),
+}
+
+/// An export in progress, with the model it exports.
+pub(super) struct ExportJob {
+    model: ModelKind,
+    work: JobWork,
+}
+
+enum JobWork {
+    Turntable(TurntableExport),
+    CameraPath(Box<PathRender>),
+    Mesh(MeshJob),
+    Points(PointsJob),
+}
+
+impl ExportJob {
+    /// Checks the order and its output before any work.
+    pub(super) fn start(
+        scene: &Arc<Scene>,
+        order: ExportOrder,
+        model: ModelKind,
+        crop: Option<CropBox>,
+    ) -> Result<ExportJob, String> {
+        let work = match order {
+            ExportOrder::Turntable(settings) => {
+                JobWork::Turntable(TurntableExport::start(scene, settings)?)
+            }
+            ExportOrder::CameraPath(order) => {
+                JobWork::CameraPath(Box::new(PathRender::start(path_settings(scene, order)?)?))
+            }
+            ExportOrder::Mesh(order) => JobWork::Mesh(MeshJob::start(scene, order, model, crop)?),
+            ExportOrder::Points(order) => {
+                JobWork::Points(PointsJob::start(scene.clone(), order, crop)?)
+            }
+        };
+        Ok(ExportJob { model, work })
+    }
+
+    /// (units done, units in all).
+    pub(super) fn progress(&self) -> (usize, usize) {
+        match &self.work {
+            JobWork::Turntable(export) => (export.done(), export.total()),
+            JobWork::CameraPath(render) => render.progress(),
+            JobWork::Mesh(job) => job.progress(),
+            JobWork::Points(job) => job.progress(),
+        }
+    }
+
+    /// Does the next unit; false when the job is ready to finish.
+    pub(super) fn step(&mut self, model: &dyn RadianceModel) -> Result<bool, String> {
+        match &mut self.work {
+            JobWork::Turntable(export) => export.render_next(model),
+            JobWork::CameraPath(render) => render.step(model),
+            JobWork::Mesh(job) => job.step(model),
+            JobWork::Points(job) => job.step(model),
+        }
+    }
+
+    /// The files written.
+    pub(super) fn finish(self, model: &dyn RadianceModel) -> Result<Vec<PathBuf>, String> {
+        match self.work {
+            JobWork::Turntable(export) => export.finish(),
+            JobWork::CameraPath(render) => {
+                let output = render.finish(model)?;
+                Ok(match output.video {
+                    Some(video) => vec![video.path],
+                    None => output.frame_files,
+                })
+            }
+            JobWork::Mesh(job) => job.finish(model),
+            JobWork::Points(job) => job.finish(),
+        }
+    }
+}
+
+/// The render settings of a camera path order: the path moved into the
+/// scene's world, baked at the order's rate, at its size.
+fn path_settings(scene: &Scene, order: CameraPathExport) -> Result<PathRenderSettings, String> {
+    let file = order.file.moved_into(scene_to_original(scene)?);
+    let samples = match order.fps {
+        Some(fps) => file.frames_at(fps),
+        None => file.frames(),
+    }?;
+    let (width, height) = order
+        .size
+        .unwrap_or((file.render_width, file.render_height));
+    // The command line's bounds (`MAX_IMAGE_SIDE`, `render_bytes_per_view`:
+    // 5 floats a pixel as it renders and the 8-bit image with the PNG
+    // encoder's copy).
+    if !(1..=16384).contains(&width) || !(1..=16384).contains(&height) {
+        return Err(format!(
+            "a frame of {width}×{height} pixels: each side must be 1 to 16384"
+        ));
+    }
+    crate::files::check_memory(
+        &format!("a {width}×{height} frame"),
+        width as u64 * height as u64 * (5 * 4 + 2 * 4),
+    )?;
+    Ok(PathRenderSettings {
+        range: 0..samples.len(),
+        samples,
+        width,
+        height,
+        fps: order.fps.unwrap_or(file.fps),
+        mode: order.mode,
+        out: order.out,
+        replace_existing: order.replace_existing,
+        keep_frames: false,
+        depth_range: scene.depth_range(),
+    })
+}
+
+impl Worker {
+    pub(super) fn start_export(&mut self, order: ExportOrder) -> Result<(), UiGone> {
+        if self.export.is_some() {
+            return self.send(Event::Error(
+                "an export is already running; cancel it first".into(),
+            ));
+        }
+        match ExportJob::start(&self.scene, order, self.active, self.crop) {
+            Ok(job) => {
+                let (done, total) = job.progress();
+                self.export = Some(job);
+                self.send(Event::ExportProgress { done, total })
+            }
+            Err(e) => self.send(Event::ExportFinished(Err(e))),
+        }
+    }
+
+    /// Does one unit of the export; training waits while an export runs.
+    pub(super) fn export_unit(&mut self) -> Result<(), UiGone> {
+        let Some(mut job) = self.export.take() else {
+            return Ok(());
+        };
+        let Some(slot) = self.slot(job.model) else {
+            return self.send(Event::ExportFinished(Err(format!(
+                "the export stopped: the {} model is gone",
+                job.model.name()
+            ))));
+        };
+        let model = slot.trainer.model.as_ref();
+        match job.step(model) {
+            Ok(more) => {
+                let (done, total) = job.progress();
+                self.send(Event::ExportProgress { done, total })?;
+                if more {
+                    self.export = Some(job);
+                    Ok(())
+                } else {
+                    let finished = job.finish(model);
+                    self.send(Event::ExportFinished(finished))
+                }
+            }
+            Err(e) => self.send(Event::ExportFinished(Err(e))),
+        }
+    }
+
+    /// Sets the crop box on every model (and on those built later); a
+    /// model that refuses it (the gpu engine may) keeps rendering the whole
+    /// scene, and the refusal goes to the window.
+    pub(super) fn set_crop(&mut self, crop: Option<CropBox>) -> Result<(), UiGone> {
+        let crop = match crop.map(|c| c.check().map(|()| c)).transpose() {
+            Ok(crop) => crop,
+            Err(problem) => {
+                return self.send(Event::CropSet {
+                    crop: self.crop,
+                    refused: Some(problem),
+                });
+            }
+        };
+        let refused = self
+            .slots
+            .iter_mut()
+            .find_map(|slot| slot.trainer.model.set_crop(crop).err());
+        if refused.is_some() {
+            // Every model back to the whole scene, so that they agree.
+            for slot in &mut self.slots {
+                let _ = slot.trainer.model.set_crop(None);
+            }
+        }
+        self.crop = if refused.is_some() { None } else { crop };
+        if let Some(view) = self.view.as_mut() {
+            view.restart();
+        }
+        self.send(Event::CropSet {
+            crop: self.crop,
+            refused,
+        })
+    }
+}
+
+#[cfg(test)]
+#[path = "export_tests.rs"]
+mod tests;
