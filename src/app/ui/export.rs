@@ -263,10 +263,11 @@ pub fn export_window(state: &mut ViewerUi, ctx: &egui::Context) {
             let note = match dialog.kind {
                 ExportKind::Turntable => format!("mode: {mode:?} (the viewport's)"),
                 ExportKind::CameraPath => "frames go to NAME.frames/ beside a video".into(),
-                ExportKind::Mesh | ExportKind::Points => format!(
-                    "the {} model, on the cpu engine only",
-                    state.active_model.name()
-                ),
+                // The gpu engine answers σ and colour at points for
+                // Instant-NGP only; the others say so when asked.
+                ExportKind::Mesh | ExportKind::Points => {
+                    format!("the {} model", state.active_model.name())
+                }
             };
             ui.label(RichText::new(note).small());
             if crop_on && dialog.kind != ExportKind::Turntable {
