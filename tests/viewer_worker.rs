@@ -470,6 +470,18 @@ fn closing_keeps_each_model_trained_since_its_last_save() {
     save(&worker, &dir.path().join("saved.zrak"));
     worker.shutdown();
     assert!(kept_in(&runs).is_empty(), "{:?}", kept_in(&runs));
+
+    // `--keep-runs 0`: nothing of this session kept, and the run kept by
+    // the first session above is not removed to make room.
+    let runs = dir.path().join("runs");
+    let worker = spawn(WorkerOptions {
+        autosave: Some(runs.clone()),
+        kept_runs: 0,
+        ..options()
+    });
+    assert_eq!(step_once(&worker), 1);
+    worker.shutdown();
+    assert_eq!(kept_in(&runs), kept);
 }
 
 #[test]

@@ -48,7 +48,8 @@ pub struct ViewArgs {
     #[arg(long, value_enum)]
     precision: Option<Precision>,
     /// How many of the runs kept on closing (File → Recent runs) stay on
-    /// disk: the newest; older ones are removed when another is kept.
+    /// disk: the newest; older ones are removed when another is kept. 0
+    /// keeps nothing of this session and removes nothing kept before.
     #[arg(long, default_value_t = zrak::train::kept::DEFAULT_KEPT_RUNS)]
     keep_runs: usize,
     /// Start with this crop box, as `zrak render --crop`: `cx,cy,cz,sx,sy,sz`

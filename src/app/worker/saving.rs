@@ -53,6 +53,12 @@ impl Worker {
         let Some(base) = self.options.autosave.clone() else {
             return;
         };
+        // `--keep-runs 0` keeps nothing of this session, and removes
+        // nothing kept by earlier ones: older runs go only to make room for
+        // a newer one.
+        if self.options.kept_runs == 0 {
+            return;
+        }
         let scene_key = match &self.source {
             SceneSource::Demo => "demo".to_string(),
             SceneSource::Folder(folder) => std::fs::canonicalize(folder)
