@@ -42,6 +42,10 @@ pub struct ViewerOptions {
     pub precision: Precision,
     /// How many of the runs kept on closing stay on disk (the newest).
     pub kept_runs: usize,
+    /// A `camera_path.json` to open in the path editor, and the time of the
+    /// path to put the camera at.
+    pub camera_path: Option<PathBuf>,
+    pub path_time: Option<f64>,
 }
 
 impl Default for ViewerOptions {
@@ -58,6 +62,8 @@ impl Default for ViewerOptions {
             auto_orbit: false,
             precision: Precision::best_available(),
             kept_runs: crate::train::kept::DEFAULT_KEPT_RUNS,
+            camera_path: None,
+            path_time: None,
         }
     }
 }
@@ -254,6 +260,9 @@ impl ViewerApp {
         ui.set_log_progress(true);
         ui.set_auto_orbit(options.auto_orbit);
         ui.set_resting_redraw(resting_redraw);
+        if let Some(path) = &options.camera_path {
+            ui.open_camera_path(path.clone(), options.path_time);
+        }
         if let Some(render_state) = &cc.wgpu_render_state {
             let info = render_state.adapter.get_info();
             ui.set_display_adapter(format!("{} ({:?})", info.name, info.backend));

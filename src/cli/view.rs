@@ -49,6 +49,13 @@ pub struct ViewArgs {
     /// disk: the newest; older ones are removed when another is kept.
     #[arg(long, default_value_t = zrak::train::kept::DEFAULT_KEPT_RUNS)]
     keep_runs: usize,
+    /// Open this camera path (nerfstudio's camera_path.json) in the path
+    /// editor once the scene has loaded.
+    #[arg(long)]
+    camera_path: Option<PathBuf>,
+    /// Put the camera at this time of the path, in seconds (for screenshots).
+    #[arg(long, requires = "camera_path")]
+    path_time: Option<f64>,
 }
 
 impl Default for ViewArgs {
@@ -81,6 +88,8 @@ pub fn view(args: ViewArgs) -> anyhow::Result<()> {
         auto_orbit: args.auto_orbit,
         precision: args.precision.unwrap_or_else(Precision::best_available),
         kept_runs: args.keep_runs,
+        camera_path: args.camera_path,
+        path_time: args.path_time,
     })
 }
 
@@ -89,6 +98,7 @@ fn check_seconds(args: &ViewArgs) -> anyhow::Result<()> {
     for (flag, value) in [
         ("--screenshot-after", Some(args.screenshot_after)),
         ("--quit-after", args.quit_after),
+        ("--path-time", args.path_time),
     ] {
         if let Some(value) = value {
             anyhow::ensure!(
@@ -120,6 +130,32 @@ mod tests {
         assert!(!args.auto_orbit);
         assert_eq!(args.precision, None);
         assert_eq!(args.keep_runs, zrak::train::kept::DEFAULT_KEPT_RUNS);
+        assert_eq!(args.camera_path, None);
+        assert_eq!(args.path_time, None);
+    }
+
+    #[test]
+    fn a_camera_path_opens_in_the_editor_at_a_time() {
+        let args: ViewArgs = parse_args(&[
+            "scene",
+            "--camera-path",
+            "paths/orbit.json",
+            "--path-time",
+            "1.5",
+        ])
+        .unwrap();
+        assert_eq!(args.camera_path, Some(PathBuf::from("paths/orbit.json")));
+        assert_eq!(args.path_time, Some(1.5));
+        assert!(check_seconds(&args).is_ok());
+        // A time needs a path to be a time of.
+        let error = parse_args::<ViewArgs>(&["--path-time", "2"]).unwrap_err();
+        assert_eq!(error.kind(), ErrorKind::MissingRequiredArgument);
+        assert!(error.to_string().contains("--camera-path"), "{error}");
+        let args: ViewArgs = parse_args(&["--camera-path", "p.json", "--path-time=-0.5"]).unwrap();
+        assert_eq!(
+            check_seconds(&args).unwrap_err().to_string(),
+            "--path-time must be a number of seconds ≥ 0, got -0.5"
+        );
     }
 
     #[test]

@@ -121,6 +121,9 @@ pub fn menu_bar(state: &mut ViewerUi, ui: &mut egui::Ui) {
                 if ui.button("Export turntable…").clicked() {
                     state.export.open = true;
                 }
+                if ui.button("Camera path…").clicked() {
+                    state.path_editor.open = true;
+                }
                 ui.separator();
                 if ui.button("Quit").clicked() {
                     ui.ctx().send_viewport_cmd(egui::ViewportCommand::Close);
@@ -262,6 +265,9 @@ pub fn controls_panel(state: &mut ViewerUi, ui: &mut egui::Ui) {
                 ui.separator();
                 if ui.button("Export turntable…").clicked() {
                     state.export.open = true;
+                }
+                if ui.button("Camera path…").clicked() {
+                    state.path_editor.open = true;
                 }
                 if !state.notices.is_empty() {
                     ui.separator();

@@ -584,7 +584,7 @@ pub fn show(ui_state: &mut ViewerUi, ui: &mut egui::Ui) {
     let moving = match &mut ui_state.camera {
         Some(camera) => handle_input(camera, &response, &ctx, auto_orbit),
         None => false,
-    };
+    } || ui_state.path_editor.driving;
     ui_state.viewport.moving = moving;
     if let Some(camera) = &ui_state.camera {
         if ui_state
@@ -652,6 +652,9 @@ pub fn show(ui_state: &mut ViewerUi, ui: &mut egui::Ui) {
     }
 
     draw_images(ui_state, &painter, rect, comparing);
+    if !comparing {
+        super::path_overlay::draw(ui_state, &painter, rect);
+    }
 
     // What is on screen, in a corner: the model, the step the picture
     // shows and how far training has gone on since, and its resolution.

@@ -1,0 +1,735 @@
+//! The camera-path editor window: keyframes from the viewport camera or
+//! the training cameras, their list and per-keyframe settings, the path's
+//! settings, a timeline to scrub and play along, and nerfstudio's
+//! `camera_path.json` saved and loaded. The state and its edits live in
+//! [`crate::app::path_state`]; this file draws them and moves the
+//! viewport camera along the path.
+
+use eframe::egui;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use egui::{Color32, RichText, Sense, Stroke};
+
+use super::ViewerUi;
+use crate::app::path_state::{PathEditor, keyframes_from_baked};
+use crate::render::camera_path::nerfstudio::{CameraPathFile, scene_to_original};
+use crate::render::camera_path::{CameraPath, FOV_RANGE_DEGREES, Keyframe};
+
+/// The colour of error text (as the side panel's).
+const ERROR_COLOUR: Color32 = Color32::from_rgb(0xff, 0x70, 0x60);
+
+/// How near (in screen points) a click on the timeline must fall to a
+/// keyframe's tick to jump exactly to it.
+const SNAP_POINTS: f32 = 8.0;
+
+/// The longest frame step the play clock takes: after a stall (a window
+/// drag, a long render on a software rasteriser) the camera moves on by at
+/// most this, rather than jumping along the path.
+const MAX_PLAY_STEP_SECONDS: f64 = 0.25;
+
+/// Field of view a keyframe may be given here: what the viewport camera
+/// can show (its own limits), within what a path may hold.
+const KEYFRAME_FOV_DEGREES: (f64, f64) = (1.0, 170.0);
+
+/// Hands a camera path over to the export window for a video. For now it
+/// keeps the file until the export window takes it; the export is started
+/// from there.
+pub fn request_path_export(state: &mut ViewerUi, file: CameraPathFile) {
+    let frames = file.baked.len();
+    state.path_editor.pending_path_export = Some(file);
+    state.path_editor.message = Some((format!("Saved for export ({frames} frames)"), false));
+}
+
+impl ViewerUi {
+    /// Loads a `camera_path.json` into the editor and opens it, once a
+    /// scene is open (the file's poses are placed in the scene's frame);
+    /// with `time`, puts the viewport camera at that time of the path.
+    pub fn open_camera_path(&mut self, path: PathBuf, time: Option<f64>) {
+        self.path_editor.open = true;
+        self.path_editor.file_text = path.display().to_string();
+        self.path_editor.pending_load = Some((path, time));
+    }
+
+    pub fn path_editor(&self) -> &PathEditor {
+        &self.path_editor
+    }
+
+    pub fn path_editor_mut(&mut self) -> &mut PathEditor {
+        &mut self.path_editor
+    }
+}
+
+/// The time at horizontal position `x` of a timeline from `left`,
+/// `width` wide, over a path of `duration` seconds (clamped to the path).
+pub fn time_at(x: f32, left: f32, width: f32, duration: f64) -> f64 {
+    if !(width > 0.0 && duration > 0.0) {
+        return 0.0;
+    }
+    (((x - left) / width) as f64 * duration).clamp(0.0, duration)
+}
+
+/// `time`, or the keyframe time nearest it when one lies within
+/// `tolerance` seconds.
+pub fn snap_to_knot(time: f64, knots: &[f64], tolerance: f64) -> f64 {
+    knots
+        .iter()
+        .copied()
+        .filter(|k| (k - time).abs() <= tolerance)
+        .min_by(|a, b| (a - time).abs().total_cmp(&(b - time).abs()))
+        .unwrap_or(time)
+}
+
+/// A keyframe at the viewport camera's pose and field of view.
+fn current_keyframe(state: &ViewerUi) -> Option<Keyframe> {
+    let editor = &state.path_editor;
+    let camera = state.camera.as_ref()?;
+    Some(Keyframe::from_camera(
+        &camera.camera(editor.width.max(1), editor.height.max(1)),
+    ))
+}
+
+/// Puts the viewport camera at the path's current time.
+fn apply_camera(state: &mut ViewerUi) {
+    if !state.path_editor.can_sample() {
+        return;
+    }
+    let sample = state.path_editor.path.sample(state.path_editor.time);
+    if let Some(camera) = &mut state.camera {
+        camera.set_pose(sample.camera_to_world.as_mat4(), sample.fov_degrees as f32);
+    }
+}
+
+/// Jumps the timeline (and the camera) to keyframe `index`.
+fn go_to_keyframe(state: &mut ViewerUi, index: usize) {
+    state.path_editor.select(index);
+    if let Some(time) = state.path_editor.knot_time(index) {
+        state.path_editor.time = time;
+        state.path_editor.playing = false;
+        apply_camera(state);
+    }
+}
+
+/// The transform from zrak's world to the open scene's original frame.
+fn scene_transform(state: &ViewerUi) -> Result<glam::DMat4, String> {
+    let info = state
+        .scene
+        .as_ref()
+        .ok_or("open a scene first: a camera path is placed in its scene's frame")?;
+    scene_to_original(&info.scene)
+}
+
+/// The path as nerfstudio's file, baked at the editor's fps and size.
+fn path_file(state: &ViewerUi) -> Result<CameraPathFile, String> {
+    let editor = &state.path_editor;
+    if let Some(problem) = editor.path.problem() {
+        return Err(problem);
+    }
+    if !(editor.fps.is_finite() && editor.fps > 0.0) {
+        return Err(format!(
+            "the frame rate must be positive, got {}",
+            editor.fps
+        ));
+    }
+    Ok(CameraPathFile::new(
+        editor.path.clone(),
+        editor.width.max(1),
+        editor.height.max(1),
+        editor.fps,
+        scene_transform(state)?,
+    ))
+}
+
+/// Writes the path to `file`; what to tell the user.
+pub fn save_path(state: &ViewerUi, file: &Path) -> Result<String, String> {
+    let path_file = path_file(state)?;
+    path_file.save(file)?;
+    Ok(format!(
+        "Saved {} keyframes ({} frames) to {}",
+        state.path_editor.keyframes().len(),
+        path_file.baked.len(),
+        file.display()
+    ))
+}
+
+/// Reads `file` into the editor (its keyframes, or keyframes made from
+/// its baked frames when it has none); what to tell the user.
+pub fn load_path(state: &mut ViewerUi, file: &Path) -> Result<String, String> {
+    let to_original = scene_transform(state)?;
+    let loaded = CameraPathFile::load(file)?.moved_into(to_original);
+    let editor = &mut state.path_editor;
+    let text = match &loaded.path {
+        Some(path) => {
+            editor.path = path.clone();
+            editor.replace_keyframes(path.keyframes.clone());
+            format!(
+                "Loaded {} keyframes from {}",
+                path.keyframes.len(),
+                file.display()
+            )
+        }
+        None => {
+            let (keyframes, every) = keyframes_from_baked(&loaded);
+            if keyframes.is_empty() {
+                return Err(format!(
+                    "{}: the file has neither keyframes nor baked frames",
+                    file.display()
+                ));
+            }
+            let count = keyframes.len();
+            editor.path = CameraPath {
+                is_cycle: false,
+                ..CameraPath::new(Vec::new())
+            };
+            editor.replace_keyframes(keyframes);
+            let thinned = if every > 1 {
+                format!(", every {every}th")
+            } else {
+                String::new()
+            };
+            format!(
+                "{} has no keyframes: made {count} from its {} baked frames{thinned}",
+                file.display(),
+                loaded.baked.len()
+            )
+        }
+    };
+    editor.fps = loaded.fps;
+    editor.width = loaded.render_width;
+    editor.height = loaded.render_height;
+    if let Some(problem) = editor.path.problem() {
+        return Err(format!("{}: {problem}", file.display()));
+    }
+    Ok(text)
+}
+
+fn report(state: &mut ViewerUi, result: Result<String, String>) {
+    let is_error = result.is_err();
+    let text = result.unwrap_or_else(|e| e);
+    if is_error {
+        state.notice(text.clone(), true);
+    }
+    state.path_editor.message = Some((text, is_error));
+}
+
+fn save_dialog(state: &mut ViewerUi) {
+    if let Some(file) = rfd::FileDialog::new()
+        .set_title("Save camera path")
+        .add_filter("camera path", &["json"])
+        .set_file_name("camera_path.json")
+        .save_file()
+    {
+        state.path_editor.file_text = file.display().to_string();
+        let result = save_path(state, &file);
+        report(state, result);
+    }
+}
+
+fn load_dialog(state: &mut ViewerUi) {
+    if let Some(file) = rfd::FileDialog::new()
+        .set_title("Load camera path")
+        .add_filter("camera path", &["json"])
+        .pick_file()
+    {
+        state.path_editor.file_text = file.display().to_string();
+        let result = load_path(state, &file);
+        report(state, result);
+        apply_camera(state);
+    }
+}
+
+/// Runs the editor for one frame: a path waiting to load, the play clock,
+/// the window. Call before the viewport, so that the camera it moves is
+/// the one this frame renders.
+pub fn window(state: &mut ViewerUi, ctx: &egui::Context) {
+    state.path_editor.driving = false;
+    if state.scene.is_some()
+        && state.camera.is_some()
+        && let Some((file, time)) = state.path_editor.pending_load.take()
+    {
+        let result = load_path(state, &file);
+        let loaded = result.is_ok();
+        report(state, result);
+        if loaded {
+            if let Some(time) = time {
+                state.path_editor.time = time.clamp(0.0, state.path_editor.path.duration());
+            }
+            apply_camera(state);
+        }
+    }
+    if state.path_editor.playing {
+        let now = Instant::now();
+        let dt = state
+            .path_editor
+            .play_clock
+            .map_or(0.0, |last| now.duration_since(last).as_secs_f64())
+            .min(MAX_PLAY_STEP_SECONDS);
+        state.path_editor.play_clock = Some(now);
+        state.path_editor.tick(dt);
+        state.path_editor.driving = state.path_editor.playing;
+        apply_camera(state);
+    } else {
+        state.path_editor.play_clock = None;
+    }
+    if !state.path_editor.open {
+        return;
+    }
+    let mut open = true;
+    egui::Window::new("Camera path")
+        .open(&mut open)
+        .default_pos(ctx.content_rect().right_top() + egui::vec2(-340.0, 40.0))
+        .default_width(310.0)
+        .resizable(false)
+        .show(ctx, |ui| contents(state, ui));
+    if !open {
+        state.path_editor.open = false;
+        state.path_editor.playing = false;
+    }
+}
+
+fn contents(state: &mut ViewerUi, ui: &mut egui::Ui) {
+    keyframe_buttons(state, ui);
+    ui.separator();
+    keyframe_list(state, ui);
+    selected_keyframe(state, ui);
+    ui.separator();
+    path_settings(state, ui);
+    ui.separator();
+    timeline(state, ui);
+    ui.separator();
+    files(state, ui);
+    if let Some((text, is_error)) = &state.path_editor.message {
+        let text = RichText::new(text).small();
+        ui.label(if *is_error {
+            text.color(ERROR_COLOUR)
+        } else {
+            text.weak()
+        });
+    }
+}
+
+fn keyframe_buttons(state: &mut ViewerUi, ui: &mut egui::Ui) {
+    let cameras = state
+        .scene
+        .as_ref()
+        .map(|s| s.scene.train.iter().map(|f| f.camera).collect::<Vec<_>>())
+        .unwrap_or_default();
+    ui.horizontal(|ui| {
+        if ui
+            .add_enabled(state.camera.is_some(), egui::Button::new("Add keyframe"))
+            .on_hover_text("a keyframe at the viewport camera, after the selected one")
+            .clicked()
+            && let Some(keyframe) = current_keyframe(state)
+        {
+            state.path_editor.add(keyframe);
+        }
+        if ui
+            .add_enabled(
+                !state.path_editor.keyframes().is_empty(),
+                egui::Button::new("Clear"),
+            )
+            .clicked()
+        {
+            state.path_editor.clear();
+        }
+    });
+    ui.horizontal(|ui| {
+        let every = state.path_editor.every.max(1);
+        let label = if every == 1 {
+            format!("From all {} training cameras", cameras.len())
+        } else {
+            format!("From every {every}th training camera")
+        };
+        if ui
+            .add_enabled(!cameras.is_empty(), egui::Button::new(label))
+            .on_hover_text("replaces the keyframes with the training cameras, in order")
+            .clicked()
+        {
+            let path = CameraPath::through_cameras(&cameras, every);
+            let count = path.keyframes.len();
+            state.path_editor.replace_keyframes(path.keyframes);
+            state.path_editor.message = Some((
+                format!("{count} keyframes from the training cameras"),
+                false,
+            ));
+            apply_camera(state);
+        }
+        ui.label("every");
+        ui.add(
+            egui::DragValue::new(&mut state.path_editor.every)
+                .range(1..=cameras.len().max(1))
+                .speed(0.1),
+        );
+    });
+}
+
+fn keyframe_list(state: &mut ViewerUi, ui: &mut egui::Ui) {
+    let editor = &state.path_editor;
+    if editor.keyframes().is_empty() {
+        ui.weak("No keyframes: move the view and press Add keyframe");
+        return;
+    }
+    let times = editor.path.knot_times();
+    let mut clicked = None;
+    egui::ScrollArea::vertical()
+        .max_height(150.0)
+        .auto_shrink([false, true])
+        .show(ui, |ui| {
+            for (i, k) in editor.keyframes().iter().enumerate() {
+                let own = if k.transition_seconds.is_some() {
+                    "*"
+                } else {
+                    ""
+                };
+                let text = format!(
+                    "{:>2}   {:>6.2} s   fov {:.1}°{own}",
+                    i + 1,
+                    times[i],
+                    k.fov_degrees
+                );
+                if ui
+                    .selectable_label(editor.selected == Some(i), RichText::new(text).monospace())
+                    .clicked()
+                {
+                    clicked = Some(i);
+                }
+            }
+        });
+    if let Some(i) = clicked {
+        go_to_keyframe(state, i);
+    }
+}
+
+fn selected_keyframe(state: &mut ViewerUi, ui: &mut egui::Ui) {
+    let Some(index) = state.path_editor.selected else {
+        return;
+    };
+    let count = state.path_editor.keyframes().len();
+    ui.label(RichText::new(format!("Keyframe {} of {count}", index + 1)).strong());
+    ui.horizontal(|ui| {
+        if ui
+            .button("Set to current camera")
+            .on_hover_text("moves this keyframe to the viewport camera")
+            .clicked()
+            && let Some(keyframe) = current_keyframe(state)
+        {
+            state.path_editor.set_selected_pose(&keyframe);
+        }
+        if ui.button("Duplicate").clicked() {
+            state.path_editor.duplicate_selected();
+        }
+        if ui.button("Delete").clicked() {
+            state.path_editor.delete_selected();
+        }
+    });
+    ui.horizontal(|ui| {
+        if ui
+            .add_enabled(index > 0, egui::Button::new("Move up"))
+            .clicked()
+        {
+            state.path_editor.move_selected(true);
+        }
+        if ui
+            .add_enabled(index + 1 < count, egui::Button::new("Move down"))
+            .clicked()
+        {
+            state.path_editor.move_selected(false);
+        }
+    });
+    let has_next = index + 1 < count || state.path_editor.path.is_cycle;
+    let default = state.path_editor.path.default_transition_seconds;
+    let mut fov_changed = false;
+    if let Some(k) = state.path_editor.selected_mut() {
+        egui::Grid::new("zrak keyframe")
+            .num_columns(2)
+            .show(ui, |ui| {
+                ui.label("field of view");
+                let (low, high) = KEYFRAME_FOV_DEGREES;
+                let (low, high) = (low.max(FOV_RANGE_DEGREES.0), high.min(FOV_RANGE_DEGREES.1));
+                fov_changed = ui
+                    .add(
+                        egui::DragValue::new(&mut k.fov_degrees)
+                            .range(low..=high)
+                            .speed(0.2)
+                            .suffix("°"),
+                    )
+                    .changed();
+                ui.end_row();
+                ui.label("to the next");
+                ui.add_enabled_ui(has_next, |ui| {
+                    ui.horizontal(|ui| {
+                        let mut own = k.transition_seconds.is_some();
+                        if ui
+                            .checkbox(&mut own, "own time")
+                            .on_hover_text("off: the path's default transition")
+                            .changed()
+                        {
+                            k.transition_seconds = own.then_some(default);
+                        }
+                        let mut seconds = k.transition_seconds.unwrap_or(default);
+                        if ui
+                            .add_enabled(
+                                own,
+                                egui::DragValue::new(&mut seconds)
+                                    .range(0.05..=600.0)
+                                    .speed(0.02)
+                                    .suffix(" s"),
+                            )
+                            .changed()
+                        {
+                            k.transition_seconds = Some(seconds);
+                        }
+                    });
+                });
+                ui.end_row();
+            });
+    }
+    if fov_changed {
+        // Show what the new field of view frames.
+        go_to_keyframe(state, index);
+    }
+}
+
+fn path_settings(state: &mut ViewerUi, ui: &mut egui::Ui) {
+    let editor = &mut state.path_editor;
+    let training_size = state.scene.as_ref().and_then(|s| s.scene.resolution());
+    egui::Grid::new("zrak path settings")
+        .num_columns(2)
+        .show(ui, |ui| {
+            ui.label("duration");
+            ui.horizontal(|ui| {
+                let mut duration = editor.path.duration();
+                let has_segments = duration > 0.0;
+                if ui
+                    .add_enabled(
+                        has_segments,
+                        egui::DragValue::new(&mut duration)
+                            .range(0.1..=3600.0)
+                            .speed(0.05)
+                            .suffix(" s"),
+                    )
+                    .on_hover_text("scales every transition")
+                    .changed()
+                {
+                    editor.path.set_duration(duration);
+                    editor.time = editor.time.clamp(0.0, editor.path.duration());
+                }
+                ui.label("default step");
+                ui.add(
+                    egui::DragValue::new(&mut editor.path.default_transition_seconds)
+                        .range(0.05..=600.0)
+                        .speed(0.02)
+                        .suffix(" s"),
+                )
+                .on_hover_text("the time to the next keyframe of keyframes without their own");
+            });
+            ui.end_row();
+            ui.label("loop");
+            ui.checkbox(&mut editor.path.is_cycle, "back to the first keyframe");
+            ui.end_row();
+            ui.label("tension");
+            ui.add(egui::Slider::new(&mut editor.path.tension, 0.0..=1.0).fixed_decimals(2))
+                .on_hover_text(
+                    "the spline's smoothness: 0 is Catmull-Rom (the camera sweeps through \
+                     keyframes), 1 stops it at every keyframe",
+                );
+            ui.end_row();
+            ui.label("video");
+            ui.horizontal(|ui| {
+                ui.add(
+                    egui::DragValue::new(&mut editor.fps)
+                        .range(1.0..=240.0)
+                        .speed(0.2)
+                        .suffix(" fps"),
+                );
+                ui.add(egui::DragValue::new(&mut editor.width).range(16..=8192));
+                ui.label("×");
+                ui.add(egui::DragValue::new(&mut editor.height).range(16..=8192));
+                if let Some((w, h)) = training_size
+                    && ui
+                        .small_button("as training")
+                        .on_hover_text(format!("{w}×{h}"))
+                        .clicked()
+                {
+                    editor.width = w;
+                    editor.height = h;
+                }
+            });
+            ui.end_row();
+        });
+    ui.checkbox(&mut editor.show_overlay, "Draw the path in the viewport");
+}
+
+fn timeline(state: &mut ViewerUi, ui: &mut egui::Ui) {
+    let duration = state.path_editor.path.duration();
+    let can_play = state.path_editor.can_sample() && duration > 0.0;
+    ui.horizontal(|ui| {
+        let label = if state.path_editor.playing {
+            "Pause"
+        } else {
+            "Play"
+        };
+        if ui.add_enabled(can_play, egui::Button::new(label)).clicked() {
+            if state.path_editor.playing {
+                state.path_editor.playing = false;
+            } else {
+                state.path_editor.play();
+                apply_camera(state);
+            }
+        }
+        if ui
+            .add_enabled(can_play, egui::Button::new("To start"))
+            .clicked()
+        {
+            state.path_editor.time = 0.0;
+            apply_camera(state);
+        }
+        ui.label(
+            RichText::new(format!("{:.2} / {:.2} s", state.path_editor.time, duration)).monospace(),
+        );
+    });
+    let width = ui.available_width().max(100.0);
+    let (rect, response) = ui.allocate_exact_size(egui::vec2(width, 26.0), Sense::click_and_drag());
+    let painter = ui.painter_at(rect);
+    let track = rect.shrink2(egui::vec2(6.0, 0.0));
+    let y = rect.center().y;
+    let visuals = ui.visuals();
+    painter.line_segment(
+        [egui::pos2(track.left(), y), egui::pos2(track.right(), y)],
+        Stroke::new(3.0, visuals.widgets.inactive.bg_fill),
+    );
+    let x_of = |t: f64| {
+        if duration > 0.0 {
+            track.left() + (t / duration) as f32 * track.width()
+        } else {
+            track.left()
+        }
+    };
+    let knots = state.path_editor.path.knot_times();
+    for (i, &t) in knots.iter().enumerate() {
+        let selected = state.path_editor.selected == Some(i % knots.len().max(1))
+            && i < state.path_editor.keyframes().len();
+        let colour = if selected {
+            Color32::from_rgb(255, 225, 0)
+        } else {
+            Color32::from_rgb(80, 170, 255)
+        };
+        let x = x_of(t);
+        painter.line_segment(
+            [
+                egui::pos2(x, rect.top() + 3.0),
+                egui::pos2(x, rect.bottom() - 3.0),
+            ],
+            Stroke::new(2.0, colour),
+        );
+    }
+    if can_play {
+        let x = x_of(state.path_editor.time);
+        painter.circle(
+            egui::pos2(x, y),
+            6.0,
+            Color32::from_rgb(240, 40, 60),
+            Stroke::new(1.5, Color32::WHITE),
+        );
+    }
+    if can_play && let Some(pointer) = response.interact_pointer_pos() {
+        let t = time_at(pointer.x, track.left(), track.width(), duration);
+        let editor = &mut state.path_editor;
+        if response.dragged() {
+            editor.time = t;
+            editor.playing = false;
+            editor.driving = true;
+            apply_camera(state);
+        } else if response.clicked() {
+            let tolerance = SNAP_POINTS as f64 / track.width() as f64 * duration;
+            let snapped = snap_to_knot(t, &knots, tolerance);
+            editor.time = snapped;
+            editor.playing = false;
+            // A click on a keyframe's tick selects it too.
+            if let Some(i) = knots.iter().position(|&k| k == snapped) {
+                editor.select(i % editor.keyframes().len());
+            }
+            apply_camera(state);
+        }
+    }
+    ui.label(
+        RichText::new("drag to scrub · click a tick to jump to its keyframe")
+            .small()
+            .weak(),
+    );
+}
+
+fn files(state: &mut ViewerUi, ui: &mut egui::Ui) {
+    ui.horizontal(|ui| {
+        let name = ui.label("File");
+        ui.add(
+            egui::TextEdit::singleline(&mut state.path_editor.file_text)
+                .hint_text("camera_path.json")
+                .desired_width(200.0),
+        )
+        .labelled_by(name.id);
+    });
+    let file = PathBuf::from(state.path_editor.file_text.trim());
+    let named = !state.path_editor.file_text.trim().is_empty();
+    ui.horizontal(|ui| {
+        if ui.add_enabled(named, egui::Button::new("Save")).clicked() {
+            let result = save_path(state, &file);
+            report(state, result);
+        }
+        if ui.add_enabled(named, egui::Button::new("Load")).clicked() {
+            let result = load_path(state, &file);
+            report(state, result);
+            apply_camera(state);
+        }
+        if state.dialogs_available {
+            if ui.button("Save path…").clicked() {
+                save_dialog(state);
+            }
+            if ui.button("Load path…").clicked() {
+                load_dialog(state);
+            }
+        }
+    });
+    if ui
+        .add_enabled(
+            state.path_editor.can_sample(),
+            egui::Button::new("Render video…"),
+        )
+        .on_hover_text("hands the path to the export window")
+        .clicked()
+    {
+        match path_file(state) {
+            Ok(file) => request_path_export(state, file),
+            Err(error) => report(state, Err(error)),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_timeline_maps_its_width_onto_the_path() {
+        assert_eq!(time_at(10.0, 10.0, 200.0, 4.0), 0.0);
+        assert_eq!(time_at(110.0, 10.0, 200.0, 4.0), 2.0);
+        assert_eq!(time_at(210.0, 10.0, 200.0, 4.0), 4.0);
+        // Beyond either end: clamped; no path or no width: the start.
+        assert_eq!(time_at(500.0, 10.0, 200.0, 4.0), 4.0);
+        assert_eq!(time_at(-5.0, 10.0, 200.0, 4.0), 0.0);
+        assert_eq!(time_at(50.0, 10.0, 0.0, 4.0), 0.0);
+        assert_eq!(time_at(50.0, 10.0, 200.0, 0.0), 0.0);
+    }
+
+    #[test]
+    fn a_click_near_a_keyframe_snaps_to_it() {
+        let knots = [0.0, 1.0, 2.5, 4.0];
+        assert_eq!(snap_to_knot(0.97, &knots, 0.05), 1.0);
+        assert_eq!(snap_to_knot(2.52, &knots, 0.05), 2.5);
+        // Far from any: the time clicked.
+        assert_eq!(snap_to_knot(1.7, &knots, 0.05), 1.7);
+        // Two in reach: the nearer.
+        assert_eq!(snap_to_knot(1.8, &[1.5, 2.0], 0.5), 2.0);
+        assert_eq!(snap_to_knot(3.0, &[], 1.0), 3.0);
+    }
+}
