@@ -22,6 +22,16 @@ pub const DEFAULT_RENDER_SIZE: (u32, u32) = (1280, 720);
 /// list stays usable (a 10-second video at 30 fps bakes 300 frames).
 pub const MAX_KEYFRAMES_FROM_BAKED: usize = 60;
 
+/// A path file the editor loads as soon as a scene is open.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PendingLoad {
+    pub file: PathBuf,
+    /// Where on the path to put the camera (seconds); the start if `None`.
+    pub time: Option<f64>,
+    /// Start playing once loaded.
+    pub play: bool,
+}
+
 /// The editor's state.
 #[derive(Debug, Clone)]
 pub struct PathEditor {
@@ -53,8 +63,8 @@ pub struct PathEditor {
     /// The last thing the editor has to say (saved, loaded, why not).
     pub message: Option<(String, bool)>,
     /// A path file to load once a scene is there (`zrak view
-    /// --camera-path`), and the time to put the camera at.
-    pub pending_load: Option<(PathBuf, Option<f64>)>,
+    /// --camera-path`).
+    pub pending_load: Option<PendingLoad>,
     /// The file "Render video…" handed over, waiting for the export window.
     pub pending_path_export: Option<CameraPathFile>,
 }

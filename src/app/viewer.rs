@@ -46,6 +46,8 @@ pub struct ViewerOptions {
     /// path to put the camera at.
     pub camera_path: Option<PathBuf>,
     pub path_time: Option<f64>,
+    /// Play the camera path from the start (or `path_time`).
+    pub path_play: bool,
 }
 
 impl Default for ViewerOptions {
@@ -64,6 +66,7 @@ impl Default for ViewerOptions {
             kept_runs: crate::train::kept::DEFAULT_KEPT_RUNS,
             camera_path: None,
             path_time: None,
+            path_play: false,
         }
     }
 }
@@ -260,8 +263,12 @@ impl ViewerApp {
         ui.set_log_progress(true);
         ui.set_auto_orbit(options.auto_orbit);
         ui.set_resting_redraw(resting_redraw);
-        if let Some(path) = &options.camera_path {
-            ui.open_camera_path(path.clone(), options.path_time);
+        if let Some(file) = &options.camera_path {
+            ui.open_camera_path(crate::app::path_state::PendingLoad {
+                file: file.clone(),
+                time: options.path_time,
+                play: options.path_play,
+            });
         }
         if let Some(render_state) = &cc.wgpu_render_state {
             let info = render_state.adapter.get_info();

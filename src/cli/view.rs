@@ -56,6 +56,10 @@ pub struct ViewArgs {
     /// Put the camera at this time of the path, in seconds (for screenshots).
     #[arg(long, requires = "camera_path")]
     path_time: Option<f64>,
+    /// Play the camera path once it has loaded (from --path-time, or the
+    /// start).
+    #[arg(long, requires = "camera_path")]
+    path_play: bool,
 }
 
 impl Default for ViewArgs {
@@ -90,6 +94,7 @@ pub fn view(args: ViewArgs) -> anyhow::Result<()> {
         kept_runs: args.keep_runs,
         camera_path: args.camera_path,
         path_time: args.path_time,
+        path_play: args.path_play,
     })
 }
 
@@ -132,6 +137,7 @@ mod tests {
         assert_eq!(args.keep_runs, zrak::train::kept::DEFAULT_KEPT_RUNS);
         assert_eq!(args.camera_path, None);
         assert_eq!(args.path_time, None);
+        assert!(!args.path_play);
     }
 
     #[test]
@@ -146,11 +152,17 @@ mod tests {
         .unwrap();
         assert_eq!(args.camera_path, Some(PathBuf::from("paths/orbit.json")));
         assert_eq!(args.path_time, Some(1.5));
+        assert!(!args.path_play);
         assert!(check_seconds(&args).is_ok());
-        // A time needs a path to be a time of.
-        let error = parse_args::<ViewArgs>(&["--path-time", "2"]).unwrap_err();
-        assert_eq!(error.kind(), ErrorKind::MissingRequiredArgument);
-        assert!(error.to_string().contains("--camera-path"), "{error}");
+        let args: ViewArgs = parse_args(&["--camera-path", "p.json", "--path-play"]).unwrap();
+        assert!(args.path_play);
+        assert_eq!(args.path_time, None);
+        // A time needs a path to be a time of, and so does playing.
+        for args in [&["--path-time", "2"][..], &["--path-play"][..]] {
+            let error = parse_args::<ViewArgs>(args).unwrap_err();
+            assert_eq!(error.kind(), ErrorKind::MissingRequiredArgument);
+            assert!(error.to_string().contains("--camera-path"), "{error}");
+        }
         let args: ViewArgs = parse_args(&["--camera-path", "p.json", "--path-time=-0.5"]).unwrap();
         assert_eq!(
             check_seconds(&args).unwrap_err().to_string(),

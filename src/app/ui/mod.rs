@@ -478,7 +478,7 @@ impl ViewerUi {
         panels::bottom_panel(self, ui);
         // Before the viewport: the camera the path moves is the one this
         // frame renders.
-        path_editor::window(self, &ctx);
+        path_editor::panel(self, ui);
         egui::CentralPanel::default().show(ui, |ui| {
             viewport::show(self, ui);
         });

@@ -12,7 +12,7 @@ use std::time::Instant;
 use egui::{Color32, RichText, Sense, Stroke};
 
 use super::ViewerUi;
-use crate::app::path_state::{PathEditor, keyframes_from_baked};
+use crate::app::path_state::{PathEditor, PendingLoad, keyframes_from_baked};
 use crate::render::camera_path::nerfstudio::{CameraPathFile, scene_to_original};
 use crate::render::camera_path::{CameraPath, FOV_RANGE_DEGREES, Keyframe};
 
@@ -44,11 +44,12 @@ pub fn request_path_export(state: &mut ViewerUi, file: CameraPathFile) {
 impl ViewerUi {
     /// Loads a `camera_path.json` into the editor and opens it, once a
     /// scene is open (the file's poses are placed in the scene's frame);
-    /// with `time`, puts the viewport camera at that time of the path.
-    pub fn open_camera_path(&mut self, path: PathBuf, time: Option<f64>) {
+    /// puts the viewport camera at `load.time` of the path, and plays it
+    /// if asked.
+    pub fn open_camera_path(&mut self, load: PendingLoad) {
         self.path_editor.open = true;
-        self.path_editor.file_text = path.display().to_string();
-        self.path_editor.pending_load = Some((path, time));
+        self.path_editor.file_text = load.file.display().to_string();
+        self.path_editor.pending_load = Some(load);
     }
 
     pub fn path_editor(&self) -> &PathEditor {
@@ -234,27 +235,37 @@ fn load_dialog(state: &mut ViewerUi) {
         state.path_editor.file_text = file.display().to_string();
         let result = load_path(state, &file);
         report(state, result);
-        apply_camera(state);
     }
 }
 
 /// Runs the editor for one frame: a path waiting to load, the play clock,
-/// the window. Call before the viewport, so that the camera it moves is
-/// the one this frame renders.
-pub fn window(state: &mut ViewerUi, ctx: &egui::Context) {
+/// the panel (on the right of the viewport, which it narrows rather than
+/// covers, so the path drawn over the view stays in sight). Call before
+/// the viewport, so that the camera it moves is the one this frame
+/// renders.
+pub fn panel(state: &mut ViewerUi, ui: &mut egui::Ui) {
     state.path_editor.driving = false;
     if state.scene.is_some()
         && state.camera.is_some()
-        && let Some((file, time)) = state.path_editor.pending_load.take()
+        && let Some(load) = state.path_editor.pending_load.take()
     {
-        let result = load_path(state, &file);
+        let result = load_path(state, &load.file);
         let loaded = result.is_ok();
         report(state, result);
         if loaded {
-            if let Some(time) = time {
+            if let Some(time) = load.time {
                 state.path_editor.time = time.clamp(0.0, state.path_editor.path.duration());
             }
-            apply_camera(state);
+            if load.play {
+                // From the time asked for, not from the start.
+                let time = state.path_editor.time;
+                state.path_editor.play();
+                state.path_editor.time = time;
+            }
+            // Without a time the camera stays, so the whole path is seen.
+            if load.time.is_some() || load.play {
+                apply_camera(state);
+            }
         }
     }
     if state.path_editor.playing {
@@ -275,12 +286,20 @@ pub fn window(state: &mut ViewerUi, ctx: &egui::Context) {
         return;
     }
     let mut open = true;
-    egui::Window::new("Camera path")
-        .open(&mut open)
-        .default_pos(ctx.content_rect().right_top() + egui::vec2(-340.0, 40.0))
-        .default_width(310.0)
-        .resizable(false)
-        .show(ctx, |ui| contents(state, ui));
+    egui::Panel::right("zrak camera path")
+        .resizable(true)
+        .default_size(310.0)
+        .show(ui, |ui| {
+            ui.horizontal(|ui| {
+                ui.label(RichText::new("Camera path").strong());
+                ui.with_layout(egui::Layout::right_to_left(egui::Align::Center), |ui| {
+                    if ui.small_button("Close").clicked() {
+                        open = false;
+                    }
+                });
+            });
+            egui::ScrollArea::vertical().show(ui, |ui| contents(state, ui));
+        });
     if !open {
         state.path_editor.open = false;
         state.path_editor.playing = false;
@@ -293,9 +312,9 @@ fn contents(state: &mut ViewerUi, ui: &mut egui::Ui) {
     keyframe_list(state, ui);
     selected_keyframe(state, ui);
     ui.separator();
-    path_settings(state, ui);
-    ui.separator();
     timeline(state, ui);
+    ui.separator();
+    path_settings(state, ui);
     ui.separator();
     files(state, ui);
     if let Some((text, is_error)) = &state.path_editor.message {
@@ -352,7 +371,6 @@ fn keyframe_buttons(state: &mut ViewerUi, ui: &mut egui::Ui) {
                 format!("{count} keyframes from the training cameras"),
                 false,
             ));
-            apply_camera(state);
         }
         ui.label("every");
         ui.add(
@@ -372,7 +390,7 @@ fn keyframe_list(state: &mut ViewerUi, ui: &mut egui::Ui) {
     let times = editor.path.knot_times();
     let mut clicked = None;
     egui::ScrollArea::vertical()
-        .max_height(150.0)
+        .max_height(96.0)
         .auto_shrink([false, true])
         .show(ui, |ui| {
             for (i, k) in editor.keyframes().iter().enumerate() {
@@ -405,7 +423,23 @@ fn selected_keyframe(state: &mut ViewerUi, ui: &mut egui::Ui) {
         return;
     };
     let count = state.path_editor.keyframes().len();
-    ui.label(RichText::new(format!("Keyframe {} of {count}", index + 1)).strong());
+    ui.horizontal(|ui| {
+        ui.label(RichText::new(format!("Keyframe {} of {count}", index + 1)).strong());
+        if ui
+            .add_enabled(index > 0, egui::Button::new("Up"))
+            .on_hover_text("earlier in the path")
+            .clicked()
+        {
+            state.path_editor.move_selected(true);
+        }
+        if ui
+            .add_enabled(index + 1 < count, egui::Button::new("Down"))
+            .on_hover_text("later in the path")
+            .clicked()
+        {
+            state.path_editor.move_selected(false);
+        }
+    });
     ui.horizontal(|ui| {
         if ui
             .button("Set to current camera")
@@ -420,20 +454,6 @@ fn selected_keyframe(state: &mut ViewerUi, ui: &mut egui::Ui) {
         }
         if ui.button("Delete").clicked() {
             state.path_editor.delete_selected();
-        }
-    });
-    ui.horizontal(|ui| {
-        if ui
-            .add_enabled(index > 0, egui::Button::new("Move up"))
-            .clicked()
-        {
-            state.path_editor.move_selected(true);
-        }
-        if ui
-            .add_enabled(index + 1 < count, egui::Button::new("Move down"))
-            .clicked()
-        {
-            state.path_editor.move_selected(false);
         }
     });
     let has_next = index + 1 < count || state.path_editor.path.is_cycle;
@@ -589,7 +609,7 @@ fn timeline(state: &mut ViewerUi, ui: &mut egui::Ui) {
         );
     });
     let width = ui.available_width().max(100.0);
-    let (rect, response) = ui.allocate_exact_size(egui::vec2(width, 26.0), Sense::click_and_drag());
+    let (rect, response) = ui.allocate_exact_size(egui::vec2(width, 22.0), Sense::click_and_drag());
     let painter = ui.painter_at(rect);
     let track = rect.shrink2(egui::vec2(6.0, 0.0));
     let y = rect.center().y;
@@ -652,11 +672,7 @@ fn timeline(state: &mut ViewerUi, ui: &mut egui::Ui) {
             apply_camera(state);
         }
     }
-    ui.label(
-        RichText::new("drag to scrub · click a tick to jump to its keyframe")
-            .small()
-            .weak(),
-    );
+    response.on_hover_text("drag to scrub; click a keyframe's tick to jump to it");
 }
 
 fn files(state: &mut ViewerUi, ui: &mut egui::Ui) {
@@ -665,13 +681,12 @@ fn files(state: &mut ViewerUi, ui: &mut egui::Ui) {
         ui.add(
             egui::TextEdit::singleline(&mut state.path_editor.file_text)
                 .hint_text("camera_path.json")
-                .desired_width(200.0),
+                .desired_width(150.0),
         )
-        .labelled_by(name.id);
-    });
-    let file = PathBuf::from(state.path_editor.file_text.trim());
-    let named = !state.path_editor.file_text.trim().is_empty();
-    ui.horizontal(|ui| {
+        .labelled_by(name.id)
+        .on_hover_text("nerfstudio's camera_path.json");
+        let file = PathBuf::from(state.path_editor.file_text.trim());
+        let named = !state.path_editor.file_text.trim().is_empty();
         if ui.add_enabled(named, egui::Button::new("Save")).clicked() {
             let result = save_path(state, &file);
             report(state, result);
@@ -679,8 +694,9 @@ fn files(state: &mut ViewerUi, ui: &mut egui::Ui) {
         if ui.add_enabled(named, egui::Button::new("Load")).clicked() {
             let result = load_path(state, &file);
             report(state, result);
-            apply_camera(state);
         }
+    });
+    ui.horizontal(|ui| {
         if state.dialogs_available {
             if ui.button("Save path…").clicked() {
                 save_dialog(state);
@@ -689,20 +705,20 @@ fn files(state: &mut ViewerUi, ui: &mut egui::Ui) {
                 load_dialog(state);
             }
         }
-    });
-    if ui
-        .add_enabled(
-            state.path_editor.can_sample(),
-            egui::Button::new("Render video…"),
-        )
-        .on_hover_text("hands the path to the export window")
-        .clicked()
-    {
-        match path_file(state) {
-            Ok(file) => request_path_export(state, file),
-            Err(error) => report(state, Err(error)),
+        if ui
+            .add_enabled(
+                state.path_editor.can_sample(),
+                egui::Button::new("Render video…"),
+            )
+            .on_hover_text("hands the path to the export window")
+            .clicked()
+        {
+            match path_file(state) {
+                Ok(file) => request_path_export(state, file),
+                Err(error) => report(state, Err(error)),
+            }
         }
-    }
+    });
 }
 
 #[cfg(test)]

@@ -196,6 +196,11 @@ pub fn draw(state: &ViewerUi, painter: &egui::Painter, rect: Rect) {
             (KEYFRAME_COLOUR, 1.5)
         };
         let [eye, a, b, c, d, up] = frustum(&editor.keyframes()[i], aspect, depth);
+        // A keyframe at (or behind) the viewport camera would frame the
+        // whole view: only the keyframes seen from outside are drawn.
+        let Some(at) = projection.project(eye) else {
+            continue;
+        };
         for (p, q) in [
             (eye, a),
             (eye, b),
@@ -212,15 +217,12 @@ pub fn draw(state: &ViewerUi, painter: &egui::Painter, rect: Rect) {
                 outlined(painter, segment, width, colour);
             }
         }
-        if let Some(at) = projection.project(eye) {
-            let text = format!("{}", i + 1);
-            let galley =
-                painter.layout_no_wrap(text, egui::FontId::proportional(12.0), Color32::WHITE);
-            let label =
-                egui::Align2::RIGHT_BOTTOM.anchor_size(at - egui::vec2(4.0, 4.0), galley.size());
-            painter.rect_filled(label.expand(2.0), 3, colour.gamma_multiply(0.85));
-            painter.galley(label.min, galley, Color32::BLACK);
-        }
+        let text = format!("{}", i + 1);
+        let galley = painter.layout_no_wrap(text, egui::FontId::proportional(12.0), Color32::WHITE);
+        let label =
+            egui::Align2::RIGHT_BOTTOM.anchor_size(at - egui::vec2(4.0, 4.0), galley.size());
+        painter.rect_filled(label.expand(2.0), 3, colour.gamma_multiply(0.85));
+        painter.galley(label.min, galley, Color32::BLACK);
     }
 
     // Where the timeline stands, unless the camera is there itself.
