@@ -245,6 +245,16 @@ fn load_dialog(state: &mut ViewerUi) {
 /// renders.
 pub fn panel(state: &mut ViewerUi, ui: &mut egui::Ui) {
     state.path_editor.driving = false;
+    load_pending(state);
+    play_step(state, Instant::now());
+    if !state.path_editor.open {
+        return;
+    }
+    show_panel(state, ui);
+}
+
+/// Loads the file `zrak view --camera-path` named, once the scene is open.
+fn load_pending(state: &mut ViewerUi) {
     if state.scene.is_some()
         && state.camera.is_some()
         && let Some(load) = state.path_editor.pending_load.take()
@@ -268,8 +278,12 @@ pub fn panel(state: &mut ViewerUi, ui: &mut egui::Ui) {
             }
         }
     }
+}
+
+/// One frame of playing at wall-clock `now`: the clock moves on by the
+/// time since the last frame and the camera follows.
+fn play_step(state: &mut ViewerUi, now: Instant) {
     if state.path_editor.playing {
-        let now = Instant::now();
         let dt = state
             .path_editor
             .play_clock
@@ -282,9 +296,9 @@ pub fn panel(state: &mut ViewerUi, ui: &mut egui::Ui) {
     } else {
         state.path_editor.play_clock = None;
     }
-    if !state.path_editor.open {
-        return;
-    }
+}
+
+fn show_panel(state: &mut ViewerUi, ui: &mut egui::Ui) {
     let mut open = true;
     egui::Panel::right("zrak camera path")
         .resizable(true)
@@ -724,6 +738,193 @@ fn files(state: &mut ViewerUi, ui: &mut egui::Ui) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::app::protocol::{Event, SceneInfo, SceneSource};
+    use crate::field::ModelKind;
+    use crate::scene::demo::{DemoConfig, build};
+    use std::sync::Arc;
+    use std::time::Duration;
+
+    /// A window's state with the small demo scene open (no thread behind
+    /// it: commands go nowhere).
+    fn viewer() -> ViewerUi {
+        let mut state = ViewerUi::new(Box::new(super::super::ClosedLink), ModelKind::Ngp);
+        let scene = build(&DemoConfig {
+            size: 16,
+            train_views: 6,
+            val_views: 1,
+            test_views: 1,
+        });
+        state.handle_event(Event::SceneLoaded(SceneInfo {
+            scene: Arc::new(scene),
+            source: SceneSource::Demo,
+        }));
+        state
+    }
+
+    /// Largest difference between two poses' entries.
+    fn pose_error(a: glam::DMat4, b: glam::DMat4) -> f64 {
+        (a - b)
+            .to_cols_array()
+            .iter()
+            .fold(0f64, |m, x| m.max(x.abs()))
+    }
+
+    /// Three keyframes added from three orbited views.
+    fn with_three_keyframes() -> ViewerUi {
+        let mut state = viewer();
+        for _ in 0..3 {
+            state.camera.as_mut().unwrap().orbit(120.0, 10.0);
+            let keyframe = current_keyframe(&state).unwrap();
+            state.path_editor.add(keyframe);
+        }
+        state
+    }
+
+    #[test]
+    fn a_keyframe_is_the_viewport_camera() {
+        let state = with_three_keyframes();
+        let view = state.camera.as_ref().unwrap().camera(64, 64);
+        let last = state.path_editor.keyframes()[2];
+        assert!(pose_error(last.camera_to_world, view.camera_to_world.as_dmat4()) < 1e-6);
+        assert!((last.fov_degrees - view.intrinsics.fov_y().to_degrees() as f64).abs() < 1e-4);
+    }
+
+    #[test]
+    fn saving_and_loading_give_back_the_keyframes() {
+        let mut state = with_three_keyframes();
+        state.path_editor.path.is_cycle = true;
+        state.path_editor.path.tension = 0.25;
+        state.path_editor.path.keyframes[1].transition_seconds = Some(2.5);
+        let before = state.path_editor.path.clone();
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("camera_path.json");
+        let said = save_path(&state, &file).unwrap();
+        assert!(said.contains("Saved 3 keyframes"), "{said}");
+        // The file says the demo's world is its original frame.
+        let written = CameraPathFile::load(&file).unwrap();
+        assert_eq!(written.to_original, Some(glam::DMat4::IDENTITY));
+        assert_eq!(written.baked.len(), before.frame_count(30.0));
+        state.path_editor.clear();
+        let said = load_path(&mut state, &file).unwrap();
+        assert!(said.contains("Loaded 3 keyframes"), "{said}");
+        let after = &state.path_editor.path;
+        assert_eq!((after.is_cycle, after.tension), (true, 0.25));
+        assert_eq!(after.keyframes.len(), 3);
+        for (a, b) in after.keyframes.iter().zip(&before.keyframes) {
+            // JSON keeps f64 exactly, but loading rescales each rotation
+            // axis to unit length, and these came from an f32 camera whose
+            // axes are unit to a few f32 ulps (~1e-7).
+            let error = pose_error(a.camera_to_world, b.camera_to_world);
+            assert!(error < 1e-6, "{error}");
+            assert_eq!(a.fov_degrees, b.fov_degrees);
+            assert_eq!(a.transition_seconds, b.transition_seconds);
+        }
+        assert_eq!(state.path_editor.selected, Some(0));
+    }
+
+    #[test]
+    fn a_file_with_only_baked_frames_gives_keyframes() {
+        let mut state = with_three_keyframes();
+        let mut file = path_file(&state).unwrap();
+        file.path = None;
+        file.baked.truncate(5);
+        let first = file.baked[0];
+        let dir = tempfile::tempdir().unwrap();
+        let name = dir.path().join("baked.json");
+        file.save(&name).unwrap();
+        state.path_editor.clear();
+        let said = load_path(&mut state, &name).unwrap();
+        assert!(said.contains("has no keyframes: made 5"), "{said}");
+        let k = state.path_editor.keyframes()[0];
+        // As above: axes rescaled to unit length on loading.
+        assert!(pose_error(k.camera_to_world, first.sample().camera_to_world) < 1e-6);
+    }
+
+    #[test]
+    fn bad_files_and_no_scene_are_errors_not_panics() {
+        let mut state = viewer();
+        let dir = tempfile::tempdir().unwrap();
+        let missing = dir.path().join("none.json");
+        let error = load_path(&mut state, &missing).unwrap_err();
+        assert!(error.contains("none.json"), "{error}");
+        let broken = dir.path().join("broken.json");
+        std::fs::write(&broken, "{\"keyframes\": [{\"matrix\": [1, 2]}]}").unwrap();
+        let error = load_path(&mut state, &broken).unwrap_err();
+        assert!(
+            error.contains("broken.json") && error.contains("missing field `render_width`"),
+            "{error}"
+        );
+        // Saving an empty path says why.
+        let error = save_path(&state, &dir.path().join("empty.json")).unwrap_err();
+        assert!(error.contains("at least one keyframe"), "{error}");
+        // Without a scene there is no frame to place the path in.
+        let mut bare = ViewerUi::new(Box::new(super::super::ClosedLink), ModelKind::Ngp);
+        let error = load_path(&mut bare, &broken).unwrap_err();
+        assert!(error.contains("open a scene first"), "{error}");
+    }
+
+    #[test]
+    fn a_pending_file_loads_and_puts_the_camera_at_its_time() {
+        let source = with_three_keyframes();
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("camera_path.json");
+        save_path(&source, &file).unwrap();
+        let mut state = viewer();
+        state.open_camera_path(PendingLoad {
+            file,
+            time: Some(1.5),
+            play: false,
+        });
+        assert!(state.path_editor.open);
+        load_pending(&mut state);
+        assert!(state.path_editor.pending_load.is_none());
+        assert_eq!(state.path_editor.time, 1.5);
+        let expected = source.path_editor.path.sample(1.5);
+        let camera = state.camera.as_ref().unwrap().camera(64, 64);
+        // f32 camera against the f64 path.
+        assert!(pose_error(camera.camera_to_world.as_dmat4(), expected.camera_to_world) < 1e-5);
+        assert!(
+            (camera.intrinsics.fov_y().to_degrees() as f64 - expected.fov_degrees).abs() < 1e-3
+        );
+    }
+
+    #[test]
+    fn playing_moves_the_camera_along_the_path_in_real_time() {
+        let mut state = with_three_keyframes();
+        state.path_editor.play();
+        let start = Instant::now();
+        // The first frame starts the clock; the next moves it by the time
+        // between them.
+        play_step(&mut state, start);
+        assert_eq!(state.path_editor.time, 0.0);
+        play_step(&mut state, start + Duration::from_millis(200));
+        assert!((state.path_editor.time - 0.2).abs() < 1e-9);
+        assert!(state.path_editor.driving);
+        let expected = state.path_editor.path.sample(0.2);
+        let camera = state.camera.as_ref().unwrap().camera(64, 64);
+        assert!(pose_error(camera.camera_to_world.as_dmat4(), expected.camera_to_world) < 1e-5);
+        // A stalled frame moves it by at most MAX_PLAY_STEP_SECONDS.
+        play_step(&mut state, start + Duration::from_secs(5));
+        assert!((state.path_editor.time - 0.2 - MAX_PLAY_STEP_SECONDS).abs() < 1e-9);
+        // Paused: nothing moves.
+        state.path_editor.playing = false;
+        play_step(&mut state, start + Duration::from_secs(6));
+        assert!((state.path_editor.time - 0.2 - MAX_PLAY_STEP_SECONDS).abs() < 1e-9);
+        assert_eq!(state.path_editor.play_clock, None);
+    }
+
+    #[test]
+    fn render_video_keeps_the_file_for_the_export_window() {
+        let mut state = with_three_keyframes();
+        let file = path_file(&state).unwrap();
+        let frames = file.baked.len();
+        request_path_export(&mut state, file.clone());
+        assert_eq!(state.path_editor.pending_path_export, Some(file));
+        assert_eq!(
+            state.path_editor.message,
+            Some((format!("Saved for export ({frames} frames)"), false))
+        );
+    }
 
     #[test]
     fn the_timeline_maps_its_width_onto_the_path() {

@@ -24,7 +24,7 @@ const MAX_SAMPLES: usize = 4000;
 /// Frustum depth in scene sizes (the diagonal of the scene's box): big
 /// enough to see which way a keyframe looks, small enough not to cover
 /// the object.
-const FRUSTUM_SCENE_SIZES: f32 = 0.06;
+const FRUSTUM_SCENE_SIZES: f32 = 0.08;
 
 /// Near plane in scene sizes: points closer than this to the eye (the
 /// eye itself, when the camera stands on the path) are not drawn.
@@ -73,8 +73,7 @@ impl Projection {
     pub fn project(&self, point: Vec3) -> Option<Pos2> {
         let p = self.world_to_camera.transform_point3(point);
         let depth = -p.z;
-        // Also refuses NaN.
-        if !(depth >= self.near) {
+        if depth.is_nan() || depth < self.near {
             return None;
         }
         Some(Pos2::new(
