@@ -608,6 +608,9 @@ fn timeline(state: &mut ViewerUi, ui: &mut egui::Ui) {
                 state.path_editor.playing = false;
             } else {
                 state.path_editor.play();
+                // A moving camera from this frame on (the clock ran
+                // earlier in the frame).
+                state.path_editor.driving = state.path_editor.playing;
                 apply_camera(state);
             }
         }
