@@ -81,6 +81,17 @@ pub fn snap_to_knot(time: f64, knots: &[f64], tolerance: f64) -> f64 {
         .unwrap_or(time)
 }
 
+/// How many of `count` cameras a path through every `every`-th of them
+/// has: as [`CameraPath::through_cameras`] chooses them (the last camera
+/// always ends the path).
+pub fn cameras_chosen(count: usize, every: usize) -> usize {
+    if count == 0 {
+        return 0;
+    }
+    let every = every.max(1);
+    (count - 1) / every + 1 + usize::from(!(count - 1).is_multiple_of(every))
+}
+
 /// A keyframe at the viewport camera's pose and field of view.
 fn current_keyframe(state: &ViewerUi) -> Option<Keyframe> {
     let editor = &state.path_editor;
@@ -184,7 +195,7 @@ pub fn load_path(state: &mut ViewerUi, file: &Path) -> Result<String, String> {
             };
             editor.replace_keyframes(keyframes);
             let thinned = if every > 1 {
-                format!(", every {every}th")
+                format!(", one in {every}")
             } else {
                 String::new()
             };
@@ -371,7 +382,11 @@ fn keyframe_buttons(state: &mut ViewerUi, ui: &mut egui::Ui) {
         let label = if every == 1 {
             format!("From all {} training cameras", cameras.len())
         } else {
-            format!("From every {every}th training camera")
+            format!(
+                "From {} of {} training cameras",
+                cameras_chosen(cameras.len(), every),
+                cameras.len()
+            )
         };
         if ui
             .add_enabled(!cameras.is_empty(), egui::Button::new(label))
@@ -939,6 +954,32 @@ mod tests {
         assert_eq!(time_at(-5.0, 10.0, 200.0, 4.0), 0.0);
         assert_eq!(time_at(50.0, 10.0, 0.0, 4.0), 0.0);
         assert_eq!(time_at(50.0, 10.0, 200.0, 0.0), 0.0);
+    }
+
+    #[test]
+    fn the_training_camera_count_matches_the_path_made() {
+        let cameras: Vec<crate::scene::Camera> = (0..10)
+            .map(|i| {
+                crate::render::camera_path::PathSample {
+                    camera_to_world: glam::DMat4::from_translation(glam::DVec3::X * i as f64),
+                    fov_degrees: 40.0,
+                }
+                .camera(8, 8)
+            })
+            .collect();
+        for count in [0, 1, 2, 7, 10] {
+            for every in [1, 2, 3, 4, 9, 10, 20] {
+                assert_eq!(
+                    cameras_chosen(count, every),
+                    CameraPath::through_cameras(&cameras[..count], every)
+                        .keyframes
+                        .len(),
+                    "{count} cameras, every {every}"
+                );
+            }
+        }
+        assert_eq!(cameras_chosen(10, 3), 4);
+        assert_eq!(cameras_chosen(10, 4), 4);
     }
 
     #[test]
