@@ -7,6 +7,7 @@
 
 use std::path::PathBuf;
 
+use crate::app::camera::ViewCamera;
 use crate::render::camera_path::nerfstudio::CameraPathFile;
 use crate::render::camera_path::{CameraPath, Keyframe};
 
@@ -48,6 +49,9 @@ pub struct PathEditor {
     pub playing: bool,
     /// When the play clock last moved, to advance it by real time.
     pub play_clock: Option<std::time::Instant>,
+    /// The viewport camera as the path last put it, to tell when the user
+    /// has moved it since.
+    pub placed_camera: Option<ViewCamera>,
     /// True in a frame where the path moved the viewport camera (playing,
     /// scrubbing, jumping to a keyframe): the viewport treats it as a
     /// camera move.
@@ -79,6 +83,7 @@ impl Default for PathEditor {
             time: 0.0,
             playing: false,
             play_clock: None,
+            placed_camera: None,
             driving: false,
             fps: DEFAULT_FPS,
             width: DEFAULT_RENDER_SIZE.0,

@@ -109,6 +109,7 @@ fn apply_camera(state: &mut ViewerUi) {
     let sample = state.path_editor.path.sample(state.path_editor.time);
     if let Some(camera) = &mut state.camera {
         camera.set_pose(sample.camera_to_world.as_mat4(), sample.fov_degrees as f32);
+        state.path_editor.placed_camera = Some(camera.clone());
     }
 }
 
@@ -294,6 +295,15 @@ fn load_pending(state: &mut ViewerUi) {
 /// One frame of playing at wall-clock `now`: the clock moves on by the
 /// time since the last frame and the camera follows.
 fn play_step(state: &mut ViewerUi, now: Instant) {
+    // A drag, scroll or key that moved the camera since the path put it
+    // somewhere takes it back: playing pauses rather than fight the user.
+    if state.path_editor.playing
+        && state.path_editor.placed_camera.is_some()
+        && state.path_editor.placed_camera != state.camera
+    {
+        state.path_editor.playing = false;
+        state.path_editor.message = Some(("Paused: the camera was moved".into(), false));
+    }
     if state.path_editor.playing {
         let dt = state
             .path_editor
@@ -923,6 +933,11 @@ mod tests {
         assert!(pose_error(camera.camera_to_world.as_dmat4(), expected.camera_to_world) < 1e-5);
         // A stalled frame moves it by at most MAX_PLAY_STEP_SECONDS.
         play_step(&mut state, start + Duration::from_secs(5));
+        assert!((state.path_editor.time - 0.2 - MAX_PLAY_STEP_SECONDS).abs() < 1e-9);
+        // Moving the camera by hand pauses it.
+        state.camera.as_mut().unwrap().orbit(30.0, 0.0);
+        play_step(&mut state, start + Duration::from_millis(5100));
+        assert!(!state.path_editor.playing);
         assert!((state.path_editor.time - 0.2 - MAX_PLAY_STEP_SECONDS).abs() < 1e-9);
         // Paused: nothing moves.
         state.path_editor.playing = false;
