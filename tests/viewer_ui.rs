@@ -762,3 +762,48 @@ fn the_export_window_sends_a_mesh_export_and_shows_its_progress() {
             .any(|n| n.text == format!("Exported {}", orders[0].out.display()))
     );
 }
+
+#[test]
+fn the_path_editor_adds_keyframes_and_plays_them_in_the_viewport() {
+    let (mut harness, link) = harness_with_scene();
+    harness.get_by_label("Camera path…").click();
+    harness.run_steps(2);
+    assert!(harness.state().path_editor().open);
+    // Two keyframes: at the first training view and at the second.
+    let scene = small_demo().scene;
+    for _ in 0..2 {
+        harness.get_by_label("Next view >").click();
+        harness.run_steps(2);
+        harness.get_by_label("Add keyframe").click();
+        harness.run_steps(2);
+    }
+    let editor = harness.state().path_editor();
+    assert_eq!(editor.keyframes().len(), 2);
+    assert_eq!(editor.selected, Some(1));
+    let second = scene.train[1].camera.camera_to_world.as_dmat4();
+    let error = (editor.keyframes()[1].camera_to_world - second)
+        .to_cols_array()
+        .iter()
+        .fold(0f64, |m, x| m.max(x.abs()));
+    // The viewport camera's f32 pose, through a quaternion.
+    assert!(error < 1e-5, "{error}");
+    harness.get_by_label("Keyframe 2 of 2");
+    harness.get_by_label_contains("1.00 s   fov");
+    // Play: the viewport camera moves along the path, rendered as a
+    // moving camera.
+    link.clear();
+    harness.get_by_label("Play").click();
+    harness.run_steps(3);
+    assert!(harness.state().path_editor().playing);
+    assert!(harness.state().camera_moving());
+    let requests = link.render_requests();
+    assert!(!requests.is_empty() && requests.iter().all(|r| r.moving));
+    harness.get_by_label("Pause").click();
+    harness.run_steps(2);
+    assert!(!harness.state().path_editor().playing);
+    // Delete the selected keyframe: one is left, selected.
+    harness.get_by_label("Delete").click();
+    harness.run_steps(2);
+    assert_eq!(harness.state().path_editor().keyframes().len(), 1);
+    assert_eq!(harness.state().path_editor().selected, Some(0));
+}

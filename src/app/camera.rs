@@ -281,6 +281,45 @@ impl ViewCamera {
         self.target = eye + self.forward() * self.distance;
     }
 
+    /// Puts the camera at a pose given as a camera-to-world matrix (OpenGL
+    /// axes; any scale in it is taken out) with vertical field of view
+    /// `fov_y_degrees`: what a camera path's keyframe or sample holds. The
+    /// view becomes a plain pinhole (square pixels, principal point at the
+    /// centre), as a path is rendered; the target goes on the optical axis
+    /// at the depth of the scene's centre, as [`Self::snap_to`] puts it. A
+    /// pose that is not finite is ignored.
+    pub fn set_pose(&mut self, camera_to_world: Mat4, fov_y_degrees: f32) {
+        let axes = glam::Mat3::from_mat4(camera_to_world);
+        let unit = glam::Mat3::from_cols(
+            axes.x_axis.normalize_or_zero(),
+            axes.y_axis.normalize_or_zero(),
+            axes.z_axis.normalize_or_zero(),
+        );
+        let rotation = Quat::from_mat3(&unit).normalize();
+        let eye = camera_to_world.w_axis.truncate();
+        if !(rotation.is_finite() && eye.is_finite()) {
+            return;
+        }
+        self.rotation = rotation;
+        if fov_y_degrees.is_finite() && fov_y_degrees > 0.0 {
+            self.fov_y_degrees = fov_y_degrees.clamp(MIN_FOV_Y_DEGREES, MAX_FOV_Y_DEGREES);
+        }
+        self.pixel_aspect = 1.0;
+        self.principal_point = (0.5, 0.5);
+        self.lens = Lens::Pinhole;
+        let centre_depth = (self.scene_centre - eye).dot(self.forward());
+        if centre_depth > MIN_DISTANCE_SCENE_SIZES * self.scene_size {
+            self.distance = self.clamp_distance(centre_depth);
+        }
+        self.target = eye + self.forward() * self.distance;
+    }
+
+    /// The scene's size (its box's diagonal), which the camera's speeds and
+    /// distances follow.
+    pub fn scene_size(&self) -> f32 {
+        self.scene_size
+    }
+
     /// The camera to render a `width` × `height` view with (OpenGL axes, as
     /// every [`Camera`]).
     pub fn camera(&self, width: u32, height: u32) -> Camera {
@@ -694,6 +733,51 @@ mod tests {
         view.snap_to(&fisheye);
         assert_eq!(view.camera(40, 30).intrinsics.lens, fisheye.intrinsics.lens);
         assert_same_camera(&view.camera(40, 30), &fisheye, 1e-5);
+    }
+
+    /// A camera → a path keyframe (what the editor stores) → back: the
+    /// same pose and field of view, whatever the view was snapped to.
+    #[test]
+    fn set_pose_round_trips_through_a_keyframe() {
+        use crate::render::camera_path::Keyframe;
+        let scene = scene();
+        let mut view = ViewCamera::for_scene(&scene);
+        view.orbit(140.0, -35.0);
+        view.pan(9.0, 4.0, HEIGHT as f32);
+        view.fov_y_degrees = 57.5;
+        let before = view.camera(WIDTH, HEIGHT);
+        let keyframe = Keyframe::from_camera(&before);
+        assert!((keyframe.fov_degrees - 57.5).abs() < 1e-4);
+        let mut other = ViewCamera::for_scene(&scene);
+        // Snapped to a view with odd intrinsics first: set_pose undoes them.
+        let odd = Camera::new(
+            Intrinsics {
+                width: 40,
+                height: 30,
+                fx: 50.0,
+                fy: 45.0,
+                cx: 21.5,
+                cy: 14.0,
+                lens: Lens::Pinhole,
+            },
+            Mat4::IDENTITY,
+        );
+        other.snap_to(&odd);
+        other.set_pose(
+            keyframe.camera_to_world.as_mat4(),
+            keyframe.fov_degrees as f32,
+        );
+        // f32 poses of size ~4, through an f64 keyframe and a quaternion.
+        assert_same_camera(&other.camera(WIDTH, HEIGHT), &before, 1e-5);
+        // The target sits on the new optical axis, in front of the eye.
+        let (u, v) = target_pixel(&other);
+        assert!((u - 32.0).abs() < 1e-2 && (v - 24.0).abs() < 1e-2);
+        // Scale in the matrix is taken out; a pose with NaN is ignored.
+        let scaled = Mat4::from_scale(Vec3::splat(2.0));
+        other.set_pose(before.camera_to_world * scaled, 57.5);
+        assert_same_camera(&other.camera(WIDTH, HEIGHT), &before, 1e-5);
+        other.set_pose(Mat4::from_translation(Vec3::NAN), 30.0);
+        assert_same_camera(&other.camera(WIDTH, HEIGHT), &before, 1e-5);
     }
 
     #[test]

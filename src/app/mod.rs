@@ -2,6 +2,7 @@
 //! training thread it talks to.
 
 pub mod camera;
+pub mod path_state;
 pub mod progressive;
 pub mod protocol;
 pub mod schedule;

@@ -46,6 +46,12 @@ pub struct ViewerOptions {
     pub crop: Option<crate::scene::crop::CropBox>,
     /// Open the Export window on this kind at the start.
     pub open_export: Option<super::ui::ExportKind>,
+    /// A `camera_path.json` to open in the path editor, and the time of the
+    /// path to put the camera at.
+    pub camera_path: Option<PathBuf>,
+    pub path_time: Option<f64>,
+    /// Play the camera path from the start (or `path_time`).
+    pub path_play: bool,
 }
 
 impl Default for ViewerOptions {
@@ -64,6 +70,9 @@ impl Default for ViewerOptions {
             kept_runs: crate::train::kept::DEFAULT_KEPT_RUNS,
             crop: None,
             open_export: None,
+            camera_path: None,
+            path_time: None,
+            path_play: false,
         }
     }
 }
@@ -266,6 +275,13 @@ impl ViewerApp {
             ui.open_export(kind);
         }
         ui.set_resting_redraw(resting_redraw);
+        if let Some(file) = &options.camera_path {
+            ui.open_camera_path(crate::app::path_state::PendingLoad {
+                file: file.clone(),
+                time: options.path_time,
+                play: options.path_play,
+            });
+        }
         if let Some(render_state) = &cc.wgpu_render_state {
             let info = render_state.adapter.get_info();
             ui.set_display_adapter(format!("{} ({:?})", info.name, info.backend));

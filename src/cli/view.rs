@@ -59,6 +59,17 @@ pub struct ViewArgs {
     /// Open the Export window on this kind (e.g. for a screenshot).
     #[arg(long, value_enum, value_name = "KIND")]
     open_export: Option<ExportKind>,
+    /// Open this camera path (nerfstudio's camera_path.json) in the path
+    /// editor once the scene has loaded.
+    #[arg(long)]
+    camera_path: Option<PathBuf>,
+    /// Put the camera at this time of the path, in seconds (for screenshots).
+    #[arg(long, requires = "camera_path")]
+    path_time: Option<f64>,
+    /// Play the camera path once it has loaded (from --path-time, or the
+    /// start).
+    #[arg(long, requires = "camera_path")]
+    path_play: bool,
 }
 
 impl Default for ViewArgs {
@@ -96,6 +107,9 @@ pub fn view(args: ViewArgs) -> anyhow::Result<()> {
             Some(CropArg::None) | None => None,
         },
         open_export: args.open_export,
+        camera_path: args.camera_path,
+        path_time: args.path_time,
+        path_play: args.path_play,
     })
 }
 
@@ -104,6 +118,7 @@ fn check_seconds(args: &ViewArgs) -> anyhow::Result<()> {
     for (flag, value) in [
         ("--screenshot-after", Some(args.screenshot_after)),
         ("--quit-after", args.quit_after),
+        ("--path-time", args.path_time),
     ] {
         if let Some(value) = value {
             anyhow::ensure!(
@@ -137,6 +152,9 @@ mod tests {
         assert_eq!(args.keep_runs, zrak::train::kept::DEFAULT_KEPT_RUNS);
         assert_eq!(args.crop, None);
         assert_eq!(args.open_export, None);
+        assert_eq!(args.camera_path, None);
+        assert_eq!(args.path_time, None);
+        assert!(!args.path_play);
     }
 
     #[test]
@@ -146,6 +164,36 @@ mod tests {
         assert!(matches!(args.crop, Some(CropArg::Box(b)) if b.centre.x == -0.5));
         assert_eq!(args.open_export, Some(ExportKind::CameraPath));
         assert!(parse_args::<ViewArgs>(&["--crop", "1,2"]).is_err());
+    }
+
+    #[test]
+    fn a_camera_path_opens_in_the_editor_at_a_time() {
+        let args: ViewArgs = parse_args(&[
+            "scene",
+            "--camera-path",
+            "paths/orbit.json",
+            "--path-time",
+            "1.5",
+        ])
+        .unwrap();
+        assert_eq!(args.camera_path, Some(PathBuf::from("paths/orbit.json")));
+        assert_eq!(args.path_time, Some(1.5));
+        assert!(!args.path_play);
+        assert!(check_seconds(&args).is_ok());
+        let args: ViewArgs = parse_args(&["--camera-path", "p.json", "--path-play"]).unwrap();
+        assert!(args.path_play);
+        assert_eq!(args.path_time, None);
+        // A time needs a path to be a time of, and so does playing.
+        for args in [&["--path-time", "2"][..], &["--path-play"][..]] {
+            let error = parse_args::<ViewArgs>(args).unwrap_err();
+            assert_eq!(error.kind(), ErrorKind::MissingRequiredArgument);
+            assert!(error.to_string().contains("--camera-path"), "{error}");
+        }
+        let args: ViewArgs = parse_args(&["--camera-path", "p.json", "--path-time=-0.5"]).unwrap();
+        assert_eq!(
+            check_seconds(&args).unwrap_err().to_string(),
+            "--path-time must be a number of seconds ≥ 0, got -0.5"
+        );
     }
 
     #[test]

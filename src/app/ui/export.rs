@@ -203,6 +203,17 @@ impl ExportDialog {
         }
     }
 
+    /// Takes a path that is no file (the path editor's), named `label` in
+    /// the file field.
+    pub fn take_camera_path(&mut self, label: &str, file: CameraPathFile) {
+        self.path_file = label.to_string();
+        self.path_width = file.render_width;
+        self.path_height = file.render_height;
+        self.path_fps = file.fps;
+        self.path_loaded = Some((label.to_string(), file));
+        self.path_error = None;
+    }
+
     /// Reads the camera path file named in the field.
     fn load_path_file(&mut self) {
         let text = self.path_file.trim().to_string();

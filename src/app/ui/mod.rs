@@ -11,6 +11,8 @@ mod crop;
 mod export;
 pub mod overlay;
 mod panels;
+mod path_editor;
+mod path_overlay;
 mod plots;
 mod viewport;
 
@@ -19,6 +21,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use crate::app::camera::ViewCamera;
+use crate::app::path_state::PathEditor;
 use crate::app::protocol::{
     Balance, Command, Event, InTurn, SceneInfo, SceneSource, ScheduleTrace, TrainingStats,
 };
@@ -29,6 +32,7 @@ use crate::render::RenderMode;
 
 pub use crop::CropPanel;
 pub use export::{ExportDialog, ExportKind};
+pub use path_editor::request_path_export;
 pub use plots::{History, HistoryPoint, PlotAxis, comparison_table, export_comparison};
 pub use viewport::{CompareMode, CompareWith, ShownFrame, ViewportState};
 
@@ -158,6 +162,8 @@ pub struct ViewerUi {
     /// Each frame shown: when (wall seconds since the window opened) and
     /// what, for the frame log.
     shown_log: Vec<(f64, ShownFrame)>,
+    /// The camera-path editor (`path_editor.rs`).
+    path_editor: PathEditor,
 }
 
 /// What the timing column beside the stats shows (one column, so the
@@ -214,6 +220,7 @@ impl ViewerUi {
             schedule_log: Vec::new(),
             resting_redraw: None,
             shown_log: Vec::new(),
+            path_editor: PathEditor::default(),
         }
     }
 
@@ -493,6 +500,9 @@ impl ViewerUi {
         panels::menu_bar(self, ui);
         panels::controls_panel(self, ui);
         panels::bottom_panel(self, ui);
+        // Before the viewport: the camera the path moves is the one this
+        // frame renders.
+        path_editor::panel(self, ui);
         egui::CentralPanel::default().show(ui, |ui| {
             viewport::show(self, ui);
         });

@@ -58,6 +58,9 @@ pub fn menu_bar(state: &mut ViewerUi, ui: &mut egui::Ui) {
                 if ui.button("Crop box…").clicked() {
                     state.crop.open = true;
                 }
+                if ui.button("Camera path…").clicked() {
+                    state.path_editor.open = true;
+                }
                 ui.separator();
                 if ui.button("Quit").clicked() {
                     ui.ctx().send_viewport_cmd(egui::ViewportCommand::Close);
@@ -203,6 +206,9 @@ pub fn controls_panel(state: &mut ViewerUi, ui: &mut egui::Ui) {
                     }
                     if ui.button("Crop box…").clicked() {
                         state.crop.open = true;
+                    }
+                    if ui.button("Camera path…").clicked() {
+                        state.path_editor.open = true;
                     }
                 });
                 if !state.notices.is_empty() {

@@ -584,7 +584,7 @@ pub fn show(ui_state: &mut ViewerUi, ui: &mut egui::Ui) {
     let moving = match &mut ui_state.camera {
         Some(camera) => handle_input(camera, &response, &ctx, auto_orbit),
         None => false,
-    };
+    } || ui_state.path_editor.driving;
     ui_state.viewport.moving = moving;
     if let Some(camera) = &ui_state.camera {
         if ui_state
@@ -658,6 +658,9 @@ pub fn show(ui_state: &mut ViewerUi, ui: &mut egui::Ui) {
         let k = camera.intrinsics;
         let image = fit(rect, k.width as f32, k.height as f32);
         super::overlay::draw_crop_box(&painter, &camera, image, &crop);
+    }
+    if !comparing {
+        super::path_overlay::draw(ui_state, &painter, rect);
     }
 
     // What is on screen, in a corner: the model, the step the picture
