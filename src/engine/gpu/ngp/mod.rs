@@ -732,6 +732,14 @@ impl GpuNgp {
         );
     }
 
+    /// World positions in the unit cube, flat (n × 3).
+    fn unit_positions(&self, positions: &[Vec3]) -> Vec<f32> {
+        positions
+            .iter()
+            .flat_map(|&p| self.shape.mapping.to_unit(p).to_array())
+            .collect()
+    }
+
     /// σ and colour at `positions` / `directions` (n × 3), evaluated on
     /// the gpu in chunks of the sample budget.
     fn radiance(&self, positions: &[f32], directions: &[f32], sigma: &mut [f32], rgb: &mut [f32]) {
@@ -847,17 +855,13 @@ impl RadianceModel for GpuNgp {
         _footprint: f32,
         sigma: &mut [f32],
     ) -> Result<(), String> {
-        let mapping = &self.shape.mapping;
-        let unit: Vec<f32> = positions
-            .iter()
-            .flat_map(|&p| mapping.to_unit(p).to_array())
-            .collect();
+        let unit = self.unit_positions(positions);
         // σ does not depend on the direction; any unit vector will do.
         let directions = [0.0, 0.0, 1.0].repeat(positions.len());
         let mut rgb = vec![0.0; 3 * positions.len()];
         self.radiance(&unit, &directions, sigma, &mut rgb);
-        for (s, p) in sigma.iter_mut().zip(positions) {
-            if !self.grid.occupied_at(mapping.to_unit(*p)) {
+        for (s, p) in sigma.iter_mut().zip(unit.chunks_exact(3)) {
+            if !self.grid.occupied_at(Vec3::from_slice(p)) {
                 *s = 0.0;
             }
         }
@@ -871,11 +875,7 @@ impl RadianceModel for GpuNgp {
         _footprint: f32,
         rgb: &mut [f32],
     ) -> Result<(), String> {
-        let mapping = &self.shape.mapping;
-        let unit: Vec<f32> = positions
-            .iter()
-            .flat_map(|&p| mapping.to_unit(p).to_array())
-            .collect();
+        let unit = self.unit_positions(positions);
         let directions: Vec<f32> = directions.iter().flat_map(|d| d.to_array()).collect();
         let mut sigma = vec![0.0; positions.len()];
         self.radiance(&unit, &directions, &mut sigma, rgb);
