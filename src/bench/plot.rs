@@ -46,11 +46,8 @@ impl SeriesStyle {
     /// A model's colour (the viewer's, so the export matches the window),
     /// dashed for the paper's sampler.
     pub fn of(model: ModelKind, paper_sampler: bool) -> Self {
-        let colour = match model {
-            ModelKind::Ngp => (0x2b, 0x7b, 0xd0),
-            ModelKind::Nerf => (0xe0, 0x7a, 0x1f),
-            ModelKind::MipNerf => (0x3a, 0xa8, 0x4a),
-        };
+        let [r, g, b] = model.spec().colour;
+        let colour = (r, g, b);
         Self {
             colour,
             dashed: paper_sampler,
@@ -507,7 +504,7 @@ mod tests {
         let png = image::open(&written[0]).unwrap().to_rgb8();
         assert_eq!((png.width(), png.height()), SIZE);
         // The curve's colour is on the canvas (not only white and greys).
-        let blue = image::Rgb([0x2b, 0x7b, 0xd0]);
+        let blue = image::Rgb(ModelKind::Ngp.spec().colour);
         assert!(png.pixels().filter(|p| **p == blue).count() > 50);
         let svg = std::fs::read_to_string(&written[1]).unwrap();
         assert!(

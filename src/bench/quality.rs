@@ -319,7 +319,7 @@ impl CellSpec {
     /// True for NeRF and Mip-NeRF with the paper's sampler (Instant-NGP
     /// has only the occupancy grid).
     pub fn paper_sampler(&self) -> bool {
-        self.model != ModelKind::Ngp && self.sampling == Sampling::Paper
+        self.model.has_paper_sampler() && self.sampling == Sampling::Paper
     }
 
     /// `NeRF`, `NeRF (paper sampler)`, `Instant-NGP`.
@@ -362,10 +362,10 @@ pub fn cells_for(scenes: &[String], models: &[ModelKind], samplings: &[Sampling]
     let mut cells = Vec::new();
     for scene in scenes {
         for &model in models {
-            let own: &[Sampling] = if model == ModelKind::Ngp {
-                &[Sampling::Occupancy]
-            } else {
+            let own: &[Sampling] = if model.has_paper_sampler() {
                 samplings
+            } else {
+                model.spec().samplings
             };
             for &sampling in own {
                 let cell = CellSpec {

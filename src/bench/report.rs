@@ -170,7 +170,7 @@ impl CellResult {
     fn style(&self) -> SeriesStyle {
         SeriesStyle::of(
             self.model,
-            self.model != ModelKind::Ngp && self.sampling == Sampling::Paper,
+            self.model.has_paper_sampler() && self.sampling == Sampling::Paper,
         )
     }
 }

@@ -188,16 +188,11 @@ pub fn export_comparison(histories: &[History], dir: &Path) -> Result<Vec<PathBu
     Ok(written)
 }
 
-/// A colour per model, stable across frames and plots.
+/// A colour per model, stable across frames and plots, and the same in the
+/// exported plots ([`crate::field::ModelSpec::colour`]).
 fn model_colour(model: ModelKind) -> egui::Color32 {
-    let index = ModelKind::ALL.iter().position(|&m| m == model).unwrap_or(0);
-    const PALETTE: [egui::Color32; 4] = [
-        egui::Color32::from_rgb(0x4c, 0x9b, 0xe8),
-        egui::Color32::from_rgb(0xe8, 0x8a, 0x3c),
-        egui::Color32::from_rgb(0x5c, 0xc0, 0x6a),
-        egui::Color32::from_rgb(0xc8, 0x5c, 0xc0),
-    ];
-    PALETTE[index % PALETTE.len()]
+    let [r, g, b] = model.spec().colour;
+    egui::Color32::from_rgb(r, g, b)
 }
 
 /// The loss and PSNR plots side by side, sharing the x axis.
