@@ -1,9 +1,10 @@
 //! Lines drawn over the viewport's image: scene-space shapes (the crop
-//! box) projected with the viewport camera.
+//! box; the camera path in `path_overlay`) projected with the viewport
+//! camera, by one pinhole projection.
 
 use eframe::egui;
 use egui::{Color32, Pos2, Rect, Stroke};
-use glam::Vec3;
+use glam::{Mat4, Vec3};
 
 use crate::scene::Camera;
 use crate::scene::crop::CropBox;
@@ -17,53 +18,103 @@ const NEAR: f32 = 1e-3;
 /// usual greys and whites.
 pub const CROP_COLOUR: Color32 = Color32::from_rgb(0xff, 0xc0, 0x30);
 
-/// `point` in the camera's frame (x right, y up, looking down −z).
-fn to_camera(camera: &Camera, point: Vec3) -> Vec3 {
-    camera.camera_to_world.inverse().transform_point3(point)
+/// A pinhole projection of world points into a screen rect: the viewport
+/// camera's pose and intrinsics, its image stretched over `rect`.
+#[derive(Debug, Clone, Copy)]
+pub struct Projection {
+    world_to_camera: Mat4,
+    /// Focal lengths and principal point in screen points, the latter
+    /// relative to the rect's top-left corner.
+    fx: f32,
+    fy: f32,
+    cx: f32,
+    cy: f32,
+    rect: Rect,
+    /// Points nearer than this depth are not drawn.
+    near: f32,
 }
 
-/// A camera-frame point in front of the camera, projected by the pinhole
-/// and placed in `image`, the rect the camera's picture fills on screen.
-fn place(camera: &Camera, in_camera: Vec3, image: Rect) -> Pos2 {
-    let k = &camera.intrinsics;
-    let depth = -in_camera.z;
-    let u = k.cx + k.fx * in_camera.x / depth;
-    let v = k.cy - k.fy * in_camera.y / depth;
-    Pos2::new(
-        image.min.x + u / k.width as f32 * image.width(),
-        image.min.y + v / k.height as f32 * image.height(),
-    )
+impl Projection {
+    /// `camera` at any pixel size, shown over `rect`.
+    pub fn new(camera: &Camera, rect: Rect, near: f32) -> Self {
+        let k = camera.intrinsics;
+        let sx = rect.width() / k.width.max(1) as f32;
+        let sy = rect.height() / k.height.max(1) as f32;
+        Self {
+            world_to_camera: camera.camera_to_world.inverse(),
+            fx: k.fx * sx,
+            fy: k.fy * sy,
+            cx: k.cx * sx,
+            cy: k.cy * sy,
+            rect,
+            near,
+        }
+    }
+
+    /// Where `point` appears on screen, or `None` when it is nearer than
+    /// the near plane or behind the camera.
+    pub fn project(&self, point: Vec3) -> Option<Pos2> {
+        let p = self.world_to_camera.transform_point3(point);
+        let depth = -p.z;
+        if depth.is_nan() || depth < self.near {
+            return None;
+        }
+        Some(self.place(p))
+    }
+
+    /// Both ends of a segment on screen, or `None` when either lies
+    /// behind the near plane.
+    pub fn segment(&self, a: Vec3, b: Vec3) -> Option<[Pos2; 2]> {
+        Some([self.project(a)?, self.project(b)?])
+    }
+
+    /// The on-screen part of the segment `a`–`b`: cut where it passes the
+    /// near plane, `None` when all of it is nearer.
+    pub fn clipped_segment(&self, a: Vec3, b: Vec3) -> Option<[Pos2; 2]> {
+        let (mut a, mut b) = (
+            self.world_to_camera.transform_point3(a),
+            self.world_to_camera.transform_point3(b),
+        );
+        let in_front = |p: Vec3| -p.z >= self.near;
+        match (in_front(a), in_front(b)) {
+            (false, false) => return None,
+            (true, true) => {}
+            (front_a, _) => {
+                // The point where the segment crosses z = −near.
+                let t = (-self.near - a.z) / (b.z - a.z);
+                let cut = a + (b - a) * t;
+                if front_a {
+                    b = cut;
+                } else {
+                    a = cut;
+                }
+            }
+        }
+        Some([self.place(a), self.place(b)])
+    }
+
+    /// A camera-frame point in front of the camera, on screen.
+    fn place(&self, p: Vec3) -> Pos2 {
+        let depth = -p.z;
+        Pos2::new(
+            self.rect.min.x + self.cx + self.fx * p.x / depth,
+            self.rect.min.y + self.cy - self.fy * p.y / depth,
+        )
+    }
 }
 
 /// Where world `point` appears on screen when the camera's picture fills
 /// `image`, or `None` when it is behind the camera (or on its plane). The
 /// pinhole model: the viewport camera has no lens distortion.
 pub fn project_to_viewport(camera: &Camera, point: Vec3, image: Rect) -> Option<Pos2> {
-    let in_camera = to_camera(camera, point);
-    (in_camera.z < -NEAR).then(|| place(camera, in_camera, image))
+    Projection::new(camera, image, NEAR).project(point)
 }
 
 /// The on-screen segment of the world segment `a`–`b`: cut where it passes
 /// behind the camera (at [`NEAR`] in front), `None` when all of it is
 /// behind.
 pub fn project_segment(camera: &Camera, a: Vec3, b: Vec3, image: Rect) -> Option<[Pos2; 2]> {
-    let (mut a, mut b) = (to_camera(camera, a), to_camera(camera, b));
-    let in_front = |p: Vec3| p.z < -NEAR;
-    match (in_front(a), in_front(b)) {
-        (false, false) => return None,
-        (true, true) => {}
-        (front_a, _) => {
-            // The point where the segment crosses z = −NEAR.
-            let t = (-NEAR - a.z) / (b.z - a.z);
-            let cut = a + (b - a) * t;
-            if front_a {
-                b = cut;
-            } else {
-                a = cut;
-            }
-        }
-    }
-    Some([place(camera, a, image), place(camera, b, image)])
+    Projection::new(camera, image, NEAR).clipped_segment(a, b)
 }
 
 /// The 12 edges of a box as pairs of [`CropBox::corners`] indices: the
@@ -87,8 +138,9 @@ pub fn box_edges() -> [(usize, usize); 12] {
 pub fn draw_crop_box(painter: &egui::Painter, camera: &Camera, image: Rect, crop: &CropBox) {
     let corners = crop.corners();
     let stroke = Stroke::new(1.5, CROP_COLOUR);
+    let projection = Projection::new(camera, image, NEAR);
     for (a, b) in box_edges() {
-        if let Some(segment) = project_segment(camera, corners[a], corners[b], image) {
+        if let Some(segment) = projection.clipped_segment(corners[a], corners[b]) {
             painter.line_segment(segment, stroke);
         }
     }

@@ -8,11 +8,11 @@
 
 use eframe::egui;
 use egui::{Color32, Pos2, Rect, Stroke};
-use glam::{Mat4, Vec3};
+use glam::Vec3;
 
 use super::ViewerUi;
+use super::overlay::Projection;
 use crate::render::camera_path::{CameraPath, Keyframe};
-use crate::scene::Camera;
 
 /// Samples of the spline per keyframe-to-keyframe segment: enough that
 /// the polyline looks curved at any zoom a user draws paths at.
@@ -34,60 +34,6 @@ const CURVE_COLOUR: Color32 = Color32::from_rgb(255, 150, 30);
 const KEYFRAME_COLOUR: Color32 = Color32::from_rgb(80, 170, 255);
 const SELECTED_COLOUR: Color32 = Color32::from_rgb(255, 225, 0);
 const NOW_COLOUR: Color32 = Color32::from_rgb(240, 40, 60);
-
-/// A pinhole projection of world points into a screen rect: the viewport
-/// camera's pose and intrinsics, its image stretched over `rect`.
-#[derive(Debug, Clone, Copy)]
-pub struct Projection {
-    world_to_camera: Mat4,
-    /// Focal lengths and principal point in screen points, the latter
-    /// relative to the rect's top-left corner.
-    fx: f32,
-    fy: f32,
-    cx: f32,
-    cy: f32,
-    rect: Rect,
-    /// Points nearer than this depth are not drawn.
-    near: f32,
-}
-
-impl Projection {
-    /// `camera` at any pixel size, shown over `rect`.
-    pub fn new(camera: &Camera, rect: Rect, near: f32) -> Self {
-        let k = camera.intrinsics;
-        let sx = rect.width() / k.width.max(1) as f32;
-        let sy = rect.height() / k.height.max(1) as f32;
-        Self {
-            world_to_camera: camera.camera_to_world.inverse(),
-            fx: k.fx * sx,
-            fy: k.fy * sy,
-            cx: k.cx * sx,
-            cy: k.cy * sy,
-            rect,
-            near,
-        }
-    }
-
-    /// Where `point` appears on screen, or `None` when it is nearer than
-    /// the near plane or behind the camera.
-    pub fn project(&self, point: Vec3) -> Option<Pos2> {
-        let p = self.world_to_camera.transform_point3(point);
-        let depth = -p.z;
-        if depth.is_nan() || depth < self.near {
-            return None;
-        }
-        Some(Pos2::new(
-            self.rect.min.x + self.cx + self.fx * p.x / depth,
-            self.rect.min.y + self.cy - self.fy * p.y / depth,
-        ))
-    }
-
-    /// Both ends of a segment on screen, or `None` when either lies
-    /// behind the near plane.
-    pub fn segment(&self, a: Vec3, b: Vec3) -> Option<[Pos2; 2]> {
-        Some([self.project(a)?, self.project(b)?])
-    }
-}
 
 /// Points along the path, evenly spaced in time.
 pub fn curve_points(path: &CameraPath) -> Vec<Vec3> {
@@ -238,8 +184,8 @@ pub fn draw(state: &ViewerUi, painter: &egui::Painter, rect: Rect) {
 mod tests {
     use super::*;
     use crate::render::camera_path::look_at;
-    use crate::scene::Intrinsics;
-    use glam::DVec3;
+    use crate::scene::{Camera, Intrinsics};
+    use glam::{DVec3, Mat4};
 
     /// A camera at the origin looking down −z with a 60° vertical field of
     /// view, 200 × 100 pixels, shown over a 400 × 200 rect at (10, 20).
