@@ -132,6 +132,42 @@ pub fn cpu_ngp_with_shape(
     )
 }
 
+/// Instant-NGP on the `gpu` engine: its field
+/// ([`crate::engine::gpu::fields::ngp::GpuNgpField`]) on the generic driver
+/// with its recipe, the gpu twin of [`cpu_ngp_with_shape`] (the same
+/// initial parameters, layout and checkpoints).
+pub fn gpu_ngp_with_shape(
+    context: crate::engine::gpu::GpuContext,
+    scene: &Scene,
+    shape: crate::engine::cpu::fields::ngp::NgpShape,
+    seed: u64,
+    loss: LossKind,
+    batch_samples: Option<usize>,
+) -> Result<crate::engine::gpu::model::GpuModel, String> {
+    use crate::engine::cpu::fields::Field;
+    use crate::engine::cpu::fields::ngp::NgpField;
+    use crate::engine::gpu::fields::GpuField;
+    use crate::engine::gpu::fields::ngp::GpuNgpField;
+    let cpu_fields: Vec<Box<dyn Field>> = vec![Box::new(NgpField::new(shape.clone()))];
+    let (params, ranges) = crate::engine::cpu::model::init_field_params(&cpu_fields, seed);
+    let layout = crate::engine::cpu::model::model_layout(&cpu_fields);
+    crate::engine::gpu::model::GpuModel::new(
+        context,
+        ngp_identity(),
+        crate::field::ngp::recipe(scene.unit_cube.aabb_scale),
+        params,
+        ranges,
+        layout,
+        |context, _, capacity| {
+            GpuNgpField::new(context, &shape, capacity).map(|f| Box::new(f) as Box<dyn GpuField>)
+        },
+        scene,
+        seed,
+        loss,
+        batch_samples.map(crate::field::common::BatchSize::Samples),
+    )
+}
+
 /// What Instant-NGP's models are called, in the viewer and in checkpoints.
 pub fn ngp_identity() -> crate::engine::cpu::model::ModelIdentity {
     crate::engine::cpu::model::ModelIdentity {
@@ -278,6 +314,7 @@ pub fn gpu_model_of_nerf_fields(
         .map(|_| Box::new(NerfField::new(shape.clone())) as Box<dyn Field>)
         .collect();
     let (params, ranges) = crate::engine::cpu::model::init_field_params(&cpu_fields, settings.seed);
+    let layout = crate::engine::cpu::model::model_layout(&cpu_fields);
     let batch = batch_of(&recipe, settings).or_else(|| {
         matches!(recipe.batch, crate::field::common::BatchSize::Samples(_)).then_some(
             crate::field::common::BatchSize::Samples(
@@ -291,6 +328,7 @@ pub fn gpu_model_of_nerf_fields(
         recipe,
         params,
         ranges,
+        layout,
         |context, _, capacity| {
             GpuNerfField::new(context, shape, capacity).map(|f| Box::new(f) as Box<dyn GpuField>)
         },

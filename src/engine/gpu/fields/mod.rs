@@ -32,6 +32,13 @@ pub trait GpuField: Send {
         Coordinates::World
     }
 
+    /// The side of the box its encoding spans, where a checkpoint must
+    /// match it (as the cpu twin's
+    /// [`crate::engine::cpu::fields::Field::grid_extent`]).
+    fn grid_extent(&self) -> Option<f32> {
+        None
+    }
+
     /// Records σ (`rows`) and colour (`rows` × 3) at `rows` samples.
     /// `variances` (rows × 3), where given, make each sample a Gaussian with
     /// that diagonal covariance around its position (Mip-NeRF's frustums),

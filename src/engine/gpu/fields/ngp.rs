@@ -239,6 +239,10 @@ impl GpuField for GpuNgpField {
         Coordinates::UnitCube
     }
 
+    fn grid_extent(&self) -> Option<f32> {
+        Some(self.shape.grid.config().extent)
+    }
+
     fn record_forward(
         &mut self,
         context: &GpuContext,

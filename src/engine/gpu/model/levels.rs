@@ -311,11 +311,11 @@ impl GpuModel {
         }
         work.clock.restart(ctx, &mut encoder);
         if optimise {
-            self.adam.record_step(
+            self.adam.record_step_layout(
                 ctx,
                 &mut encoder,
                 &self.recipe.optimiser,
-                0..self.param_count,
+                &self.layout,
                 &self.params,
                 &self.gradients,
             );

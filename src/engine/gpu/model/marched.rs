@@ -3,6 +3,7 @@
 //! marched samples for rendering.
 
 use super::*;
+use crate::engine::cpu::composite_batch::Distortion;
 
 impl GpuModel {
     /// A step through the occupancy grid, in two submissions as Instant-NGP's
@@ -24,6 +25,7 @@ impl GpuModel {
         let mut guard = self.work.lock().unwrap_or_else(|e| e.into_inner());
         let work = &mut *guard;
         let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+        let unit_cube = work.fields[level.field].coordinates() == Coordinates::UnitCube;
         let marched = work.marched.as_mut().expect("a marched recipe has buffers");
         if rays > marched.rays.capacity {
             *marched = MarchedBuffers::new(ctx, rays, grid.samples, frustums);
@@ -90,7 +92,7 @@ impl GpuModel {
                 &marched.world,
                 &marched.variances,
             );
-        } else {
+        } else if !unit_cube {
             s.sampling.record_to_world(
                 ctx,
                 &mut encoder,
@@ -101,12 +103,17 @@ impl GpuModel {
             );
         }
         work.clock.mark(ctx, &mut encoder, Stage::March);
+        let positions = if unit_cube {
+            &marched.out.positions
+        } else {
+            &marched.world
+        };
         let field = &mut work.fields[level.field];
         field.record_forward(
             ctx,
             &mut encoder,
             &self.params,
-            &marched.world,
+            positions,
             frustums.then_some(&marched.variances),
             &marched.out.directions,
             samples,
@@ -114,6 +121,12 @@ impl GpuModel {
             &marched.rgb,
         );
         work.clock.mark(ctx, &mut encoder, Stage::NetworksForward);
+        // As the cpu model: the recipe's λ spread over the batch's rays,
+        // distances in the unit cube's units.
+        let distortion = (self.recipe.distortion > 0.0 && kept > 0).then(|| Distortion {
+            weight_per_ray: self.recipe.distortion / kept as f32,
+            distance_scale: grid.mapping.diagonal_scale(),
+        });
         CompositeAndLoss {
             composite: &s.composite,
             loss: &s.loss,
@@ -133,7 +146,7 @@ impl GpuModel {
             self.recipe.march.min_transmittance,
             self.loss,
             level.loss_weight,
-            None,
+            distortion,
             SampleGradientBuffers {
                 sigma: &marched.d_sigma,
                 rgb: &marched.d_rgb,
@@ -151,11 +164,11 @@ impl GpuModel {
         );
         work.clock.mark(ctx, &mut encoder, Stage::NetworksBackward);
         if optimise {
-            self.adam.record_step(
+            self.adam.record_step_layout(
                 ctx,
                 &mut encoder,
                 &self.recipe.optimiser,
-                0..self.param_count,
+                &self.layout,
                 &self.params,
                 &self.gradients,
             );
@@ -192,14 +205,18 @@ impl GpuModel {
         };
         let report = grid.grid.plan_update(step, self.seed);
         let n = report.samples;
-        let mut world = Vec::new();
-        to_world(&grid.mapping, grid.grid.update_positions(), &mut world);
-        let positions = storage_buffer(ctx, "grid update positions", &world);
-        let all_sigma = zeroed_storage_buffer::<f32>(ctx, "grid update sigma", n);
         let mut guard = self.work.lock().unwrap_or_else(|e| e.into_inner());
         let work = &mut *guard;
-        let marched = work.marched.as_ref().expect("a marched recipe has buffers");
         let field = &mut work.fields[self.recipe.levels[0].field];
+        let positions = if field.coordinates() == Coordinates::UnitCube {
+            storage_buffer(ctx, "grid update positions", grid.grid.update_positions())
+        } else {
+            let mut world = Vec::new();
+            to_world(&grid.mapping, grid.grid.update_positions(), &mut world);
+            storage_buffer(ctx, "grid update positions", &world)
+        };
+        let all_sigma = zeroed_storage_buffer::<f32>(ctx, "grid update sigma", n);
+        let marched = work.marched.as_ref().expect("a marched recipe has buffers");
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
         let late = work.readback.is_late();
         if late {
@@ -270,8 +287,14 @@ impl GpuModel {
         let ctx = &self.context;
         let grid = self.grid.as_ref().expect("a marched recipe has a grid");
         let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+        let mut guard = self.work();
+        let work = &mut *guard;
+        let field = &mut work.fields[self.recipe.levels[0].field];
+        let unit_cube = field.coordinates() == Coordinates::UnitCube;
         let (mut world, mut variances) = (Vec::new(), Vec::new());
-        if frustums {
+        if unit_cube {
+            world.extend_from_slice(samples.positions);
+        } else if frustums {
             grid_sample_gaussians(
                 samples,
                 origins,
@@ -283,10 +306,7 @@ impl GpuModel {
         } else {
             to_world(&grid.mapping, samples.positions, &mut world);
         }
-        let mut guard = self.work();
-        let work = &mut *guard;
         let marched = work.marched.as_ref().expect("a marched recipe has buffers");
-        let field = &mut work.fields[self.recipe.levels[0].field];
         let chunk = grid.samples;
         for (i, ((sigma, rgb), d)) in sigma
             .chunks_mut(chunk)

@@ -66,6 +66,7 @@ use super::step::{
     CompositeAndLoss, RayBuffers, SampleBuffers, SampleGradientBuffers, StepReadback, StepResults,
 };
 use super::timing::{Stage, StageClock, StageTiming};
+use crate::engine::cpu::fields::Coordinates;
 use crate::engine::cpu::march::{
     BatchSizer, GridSamples, MarchParams, mix_seed, render_through_grid,
 };
@@ -78,6 +79,7 @@ use crate::engine::cpu::state::{ModelHeader, ModelState};
 use crate::engine::crop::{crop_densities, crop_ray_bounds};
 use crate::field::common::{BatchSize, Recipe, SampleShape, SamplerKind};
 use crate::field::ngp::LossKind;
+use crate::field::params::ParamLayout;
 use crate::model::batch::RayBatch;
 use crate::model::checkpoint::Checkpoint;
 use crate::model::pixels::{render_pixels, to_image};
@@ -338,6 +340,9 @@ pub struct GpuModel {
     recipe: Recipe,
     stages: Stages,
     ranges: Vec<Range<usize>>,
+    /// How Adam treats each part of the parameters (the cpu model's
+    /// layout: sparse hash tables, weight decay on network weights).
+    layout: ParamLayout,
     param_count: usize,
     /// Every field's parameters, one after the other (the cpu's layout).
     params: wgpu::Buffer,
@@ -375,6 +380,7 @@ impl GpuModel {
         recipe: Recipe,
         params: Vec<f32>,
         ranges: Vec<Range<usize>>,
+        layout: ParamLayout,
         mut make_field: impl FnMut(&GpuContext, usize, usize) -> Result<Box<dyn GpuField>, GpuError>,
         scene: &Scene,
         seed: u64,
@@ -447,11 +453,26 @@ impl GpuModel {
             fields.push(field);
         }
         let param_count = ranges.last().map_or(0, |r| r.end);
-        if params.len() != param_count {
+        if params.len() != param_count || layout.len() != param_count {
             return Err(format!(
-                "{} initial parameters for fields of {param_count}",
-                params.len()
+                "{} initial parameters and a layout of {} for fields of {param_count}",
+                params.len(),
+                layout.len()
             ));
+        }
+        // As `CpuModel::new`: fixed-count levels and frustums are placed in
+        // world units.
+        let marches_points = recipe.samples == SampleShape::Points && matches!(plan, Plan::Marched);
+        if !marches_points
+            && fields
+                .iter()
+                .any(|f| f.coordinates() == Coordinates::UnitCube)
+        {
+            return Err(
+                "a field of unit-cube positions takes marched points (fixed-count \
+                        levels and frustums are placed in world units)"
+                    .into(),
+            );
         }
         // The widest importance bins and sample sets, and resampling's
         // blurred weights (the previous level's, in the bin weights).
@@ -544,6 +565,7 @@ impl GpuModel {
             gradients: f("model gradients", param_count),
             param_count,
             ranges,
+            layout,
             stages,
             work: Mutex::new(work),
             batch_sizer,
@@ -607,6 +629,12 @@ impl GpuModel {
     pub fn forward_backward(&mut self, batch: &RayBatch, step: u32) -> StepStats {
         self.work().clock.reset();
         self.run(batch, step, false)
+    }
+
+    /// The side of the box the first level's field's encoding spans, where
+    /// its checkpoint must match it.
+    fn grid_extent(&self) -> Option<f32> {
+        self.work().fields[self.recipe.levels[0].field].grid_extent()
     }
 
     fn work(&self) -> std::sync::MutexGuard<'_, Work> {
@@ -830,7 +858,7 @@ impl RadianceModel for GpuModel {
                 param_count: self.param_count,
                 sampling: self.identity.sampling.map(Into::into),
                 used_fraction: None,
-                grid_extent: None,
+                grid_extent: self.grid_extent(),
             },
             params: self.params(),
             adam,
@@ -847,6 +875,9 @@ impl RadianceModel for GpuModel {
             self.grid.as_ref().map(|g| g.grid.values().len()),
         )?;
         check_sampling(&state.header, &self.identity)?;
+        if let Some(extent) = self.grid_extent() {
+            state.header.check_grid_extent(extent)?;
+        }
         let queue = &self.context.queue;
         for (values, buffer) in [
             (&state.adam.m, &self.adam.m),
