@@ -4,7 +4,8 @@
 //! step's loss over 20 steps (the grid's full update at step 0 and its next
 //! at step 16 among them), every checkpoint tensor (parameters, Adam's
 //! moments, the occupancy grid) and its header, the checkpoint file's
-//! bytes, and a rendered view's pixels, bit for bit. A checkpoint of each
+//! bytes, a rendered view's pixels, bit for bit, and the bytes each draws
+//! into the viewer's texture on the device. A checkpoint of each
 //! loads into the other. The hash table has 2^12 entries per level instead
 //! of 2^19 (every level hashes, as the paper's finer levels do), to keep
 //! the test to a minute on lavapipe.
@@ -22,9 +23,12 @@ use std::sync::Arc;
 
 use zrak::engine::cpu::fields::ngp::NgpShape;
 use zrak::engine::cpu::hash_grid::HashGridLayout;
+use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::ngp::GpuNgp;
+use zrak::engine::gpu::render::{read_texture_rgba8, render_target};
 use zrak::field::ngp::HashGridConfig;
 use zrak::field::ngp::LossKind;
+use zrak::model::RenderMode;
 use zrak::scene::Scene;
 use zrak::train::checkpoint::Checkpoint;
 use zrak::train::model::{RadianceModel, RenderedPixel};
@@ -51,10 +55,21 @@ fn small_shape(scene: &Scene) -> NgpShape {
     shape
 }
 
-fn old_driver(scene: &Scene) -> Box<dyn RadianceModel> {
+/// The test's device, shared by both drivers and the textures they draw
+/// into (a context per driver, as the viewer's worker makes them).
+fn shared(context: &GpuContext) -> GpuContext {
+    GpuContext::from_existing(
+        &context.adapter,
+        context.device.clone(),
+        context.queue.clone(),
+    )
+    .unwrap()
+}
+
+fn old_driver(scene: &Scene, context: &GpuContext) -> Box<dyn RadianceModel> {
     Box::new(
         GpuNgp::with_shape(
-            common::gpu_context(),
+            shared(context),
             small_shape(scene),
             scene.depth_range(),
             SEED,
@@ -65,10 +80,10 @@ fn old_driver(scene: &Scene) -> Box<dyn RadianceModel> {
     )
 }
 
-fn new_driver(scene: &Scene) -> Box<dyn RadianceModel> {
+fn new_driver(scene: &Scene, context: &GpuContext) -> Box<dyn RadianceModel> {
     Box::new(
         zrak::train::gpu_ngp_with_shape(
-            common::gpu_context(),
+            shared(context),
             scene,
             small_shape(scene),
             SEED,
@@ -96,6 +111,35 @@ fn render_view(model: &dyn RadianceModel, scene: &Scene) -> Vec<u32> {
         .flat_map(|p| [p.rgb[0], p.rgb[1], p.rgb[2], p.opacity, p.depth])
         .map(f32::to_bits)
         .collect()
+}
+
+/// The bytes `model` draws into the viewer's texture for the first
+/// validation view.
+fn texture_of(
+    model: &dyn RadianceModel,
+    scene: &Scene,
+    context: &GpuContext,
+    mode: RenderMode,
+) -> Vec<u8> {
+    let camera = &scene.val[0].camera;
+    let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
+    let texture = render_target(&context.device, width, height);
+    let render = model
+        .texture_render()
+        .expect("a gpu model draws into textures");
+    render
+        .render_to_texture(camera, mode, [1.0; 3], &texture)
+        .unwrap();
+    let bytes = read_texture_rgba8(context, &texture);
+    // Not all one colour: the view shows the trained field (its depth,
+    // after 20 steps, is still too faint to show).
+    if mode == RenderMode::Rgb {
+        assert!(
+            bytes.chunks_exact(4).any(|p| p != &bytes[..4]),
+            "a flat image"
+        );
+    }
+    bytes
 }
 
 /// A checkpoint's bytes as a file holds them.
@@ -177,8 +221,9 @@ fn assert_same(old: &Run, new: &Run) {
 #[test]
 fn instant_ngp_on_the_generic_driver_matches_its_own_driver_bit_for_bit() {
     let scene = small_scene();
-    let old = run(old_driver(&scene), &scene);
-    let mut new = run(new_driver(&scene), &scene);
+    let context = common::gpu_context();
+    let old = run(old_driver(&scene, &context), &scene);
+    let mut new = run(new_driver(&scene, &context), &scene);
     assert_same(&old, &new);
     // The run trained: the loss fell.
     let loss = |bits: u32| f32::from_bits(bits);
@@ -188,6 +233,15 @@ fn instant_ngp_on_the_generic_driver_matches_its_own_driver_bit_for_bit() {
         loss(old.losses[0]),
         loss(old.losses[STEPS - 1])
     );
+    // The view drawn on the device into the viewer's texture, colour and
+    // depth: the same bytes from both drivers.
+    for mode in [RenderMode::Rgb, RenderMode::Depth] {
+        assert_eq!(
+            texture_of(old.trainer.model.as_ref(), &scene, &context, mode),
+            texture_of(new.trainer.model.as_ref(), &scene, &context, mode),
+            "{mode:?} texture"
+        );
+    }
     // A checkpoint of the old driver loads into the new one and renders the
     // same view.
     new.trainer.model.load(&old.checkpoint).unwrap();

@@ -60,7 +60,7 @@ use super::kernel::{
 };
 use super::loss::GpuLoss;
 use super::march::{GpuGrid, GpuMarch, GpuMarchBuffers, GpuRays};
-use super::render::check_target;
+use super::render::{RenderBuffers, RenderKernels, check_target};
 use super::sampling::GpuSampling;
 use super::step::{
     CompositeAndLoss, RayBuffers, SampleBuffers, SampleGradientBuffers, StepReadback, StepResults,
@@ -90,6 +90,7 @@ use crate::scene::{Aabb, Scene, UnitCubeMapping};
 
 mod levels;
 mod marched;
+mod walk;
 
 /// How a recipe's samples are placed.
 enum Plan {
@@ -365,6 +366,12 @@ pub struct GpuModel {
     depth_range: (f32, f32),
     /// What rendering keeps ([`RadianceModel::set_crop`]).
     crop: Option<CropBox>,
+    /// The device render walk's kernels, for a recipe that marches points
+    /// (`walk.rs`).
+    render: Option<RenderKernels>,
+    /// Buffers of the last texture render, kept for the next frame of the
+    /// same size.
+    render_buffers: Mutex<Option<RenderBuffers>>,
 }
 
 impl GpuModel {
@@ -578,6 +585,11 @@ impl GpuModel {
             pending_grid: None,
             depth_range: scene.depth_range(),
             crop: None,
+            render: marches_points
+                .then(|| RenderKernels::new(ctx))
+                .transpose()
+                .map_err(gpu)?,
+            render_buffers: Mutex::new(None),
             identity,
             recipe,
             context,
@@ -683,12 +695,13 @@ impl GpuModel {
     }
 }
 
-/// NeRF and Mip-NeRF composite each ray's samples on the host (their
-/// marching, or their reads of the composited colours, go through it
-/// anyway), so their view reaches the texture as one upload of the
-/// finished pixels: the image `render::to_image(render_pixels(..))` makes,
-/// byte for byte. The viewer then draws every model on the gpu engine the
-/// same way, from a texture on the model's device.
+/// A recipe that marches points through the grid (Instant-NGP, NeRF with
+/// its occupancy sampler) is drawn on the device (`walk.rs`). The paper's
+/// samplers and Mip-NeRF's frustums composite each ray's samples on the
+/// host, so their view reaches the texture as one upload of the finished
+/// pixels: the image `render::to_image(render_pixels(..))` makes, byte for
+/// byte. The viewer draws every model on the gpu engine the same way, from
+/// a texture on the model's device.
 impl TextureRender for GpuModel {
     fn render_to_texture(
         &self,
@@ -697,6 +710,11 @@ impl TextureRender for GpuModel {
         background: [f32; 3],
         target: &wgpu::Texture,
     ) -> Result<(), String> {
+        if self.walks_on_device() {
+            return self
+                .walk_to_texture(camera, mode, background, target)
+                .map_err(|e| e.to_string());
+        }
         let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
         check_target(target, width, height, wgpu::TextureUsages::COPY_DST)
             .map_err(|e| e.to_string())?;
