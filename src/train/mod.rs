@@ -49,15 +49,13 @@ pub fn build_model(
             let context = engine
                 .gpu
                 .ok_or("the gpu engine was chosen without a gpu context")?;
-            let samples = settings
-                .batch_samples
-                .unwrap_or(crate::field::ngp::SAMPLES_PER_BATCH);
-            crate::engine::gpu::ngp::GpuNgp::with_batch_samples(
+            gpu_ngp_with_shape(
                 context,
                 scene,
+                crate::engine::cpu::fields::ngp::NgpShape::for_scene(scene),
                 settings.seed,
                 settings.loss,
-                samples,
+                settings.batch_samples,
             )
             .map(|model| Box::new(model) as Box<dyn RadianceModel>)
             .map_err(|e| format!("building Instant-NGP on the gpu engine: {e}"))
