@@ -247,3 +247,199 @@ fn instant_ngp_on_the_generic_driver_matches_its_own_driver_bit_for_bit() {
     new.trainer.model.load(&old.checkpoint).unwrap();
     assert_eq!(render_view(new.trainer.model.as_ref(), &scene), old.pixels);
 }
+
+/// Where the old driver's record lives.
+const FIXTURE: &str = concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/tests/fixtures/ngp_gpu_driver.txt"
+);
+
+/// Relative difference allowed between a step's loss here and the
+/// record's on another device than the record's (another GPU, or
+/// lavapipe of another LLVM): such a device only reorders f32 sums and
+/// float atomic adds (≈ 1e-7 relative each), which 20 steps keep orders of
+/// magnitude below 1e-3, while a broken stage moves the losses by more (the
+/// cpu gate's argument, tests/ngp_driver_gate.rs).
+const LOSS_TOLERANCE: f64 = 1e-3;
+
+/// The format version's bytes in a checkpoint file: after the 8-byte
+/// magic, a little-endian u32 (src/model/checkpoint.rs).
+const VERSION_BYTES: std::ops::Range<usize> = 8..12;
+
+/// CRC-32C of `u32`s, little-endian.
+fn crc_of_words(words: &[u32]) -> u32 {
+    let bytes: Vec<u8> = words.iter().flat_map(|w| w.to_le_bytes()).collect();
+    zrak::crc32c::crc32c(&bytes)
+}
+
+/// What a fixed-seed run produced, as the fixture holds it.
+#[derive(Debug, Clone, PartialEq)]
+struct Record {
+    /// The adapter and driver the run computed on.
+    device: String,
+    losses: Vec<u32>,
+    /// Every checkpoint tensor: name, length, CRC-32C of its bits.
+    tensors: Vec<(String, usize, u32)>,
+    /// CRC-32C of a validation view's pixels (colour, opacity, depth bits).
+    pixels: u32,
+    /// CRC-32C of the colour texture's bytes.
+    texture: u32,
+    /// CRC-32C of the checkpoint file's bytes, the version zeroed.
+    checkpoint: u32,
+}
+
+impl Record {
+    fn of(run: &Run, scene: &Scene, context: &GpuContext) -> Self {
+        let mut bytes = file_bytes(&run.checkpoint);
+        bytes[VERSION_BYTES].fill(0);
+        Self {
+            device: device_name(context),
+            losses: run.losses.clone(),
+            tensors: run
+                .checkpoint
+                .tensors
+                .iter()
+                .map(|(name, values)| {
+                    let bits: Vec<u32> = values.iter().map(|v| v.to_bits()).collect();
+                    (name.clone(), values.len(), crc_of_words(&bits))
+                })
+                .collect(),
+            pixels: crc_of_words(&run.pixels),
+            texture: zrak::crc32c::crc32c(&texture_of(
+                run.trainer.model.as_ref(),
+                scene,
+                context,
+                RenderMode::Rgb,
+            )),
+            checkpoint: zrak::crc32c::crc32c(&bytes),
+        }
+    }
+
+    fn to_text(&self) -> String {
+        let mut text = String::from(
+            "# Instant-NGP through its own gpu driver (GpuNgp), seed 7, 20 steps of\n\
+             # 2^12 samples on the 32-pixel demo scene, hash table 2^12 per level:\n\
+             # written by record_the_old_driver in tests/ngp_gpu_driver_gate.rs\n\
+             # while both drivers existed; CRCs are CRC-32C.\n",
+        );
+        text += &format!("device {}\n", self.device);
+        for (step, loss) in self.losses.iter().enumerate() {
+            text += &format!("loss {step} {loss:08x}\n");
+        }
+        for (name, len, crc) in &self.tensors {
+            text += &format!("tensor {name} {len} {crc:08x}\n");
+        }
+        text += &format!("pixels {:08x}\n", self.pixels);
+        text += &format!("texture {:08x}\n", self.texture);
+        text += &format!("checkpoint {:08x}\n", self.checkpoint);
+        text
+    }
+
+    fn parse(text: &str) -> Result<Self, String> {
+        let hex = |s: &str| u32::from_str_radix(s, 16).map_err(|e| format!("`{s}`: {e}"));
+        let mut record = Record {
+            device: String::new(),
+            losses: Vec::new(),
+            tensors: Vec::new(),
+            pixels: 0,
+            texture: 0,
+            checkpoint: 0,
+        };
+        for (number, line) in text.lines().enumerate() {
+            let at = |problem: String| format!("{FIXTURE} line {}: {problem}", number + 1);
+            if let Some(device) = line.strip_prefix("device ") {
+                record.device = device.to_string();
+                continue;
+            }
+            let words: Vec<&str> = line.split_whitespace().collect();
+            match words.as_slice() {
+                [] => {}
+                [first, ..] if first.starts_with('#') => {}
+                ["loss", step, bits] => {
+                    if step.parse::<usize>() != Ok(record.losses.len()) {
+                        return Err(at(format!("step {step} out of order")));
+                    }
+                    record.losses.push(hex(bits).map_err(at)?);
+                }
+                ["tensor", name, len, crc] => record.tensors.push((
+                    name.to_string(),
+                    len.parse()
+                        .map_err(|e| at(format!("length `{len}`: {e}")))?,
+                    hex(crc).map_err(at)?,
+                )),
+                ["pixels", crc] => record.pixels = hex(crc).map_err(at)?,
+                ["texture", crc] => record.texture = hex(crc).map_err(at)?,
+                ["checkpoint", crc] => record.checkpoint = hex(crc).map_err(at)?,
+                _ => return Err(at(format!("unexpected line `{line}`"))),
+            }
+        }
+        if record.device.is_empty() || record.losses.len() != STEPS {
+            return Err(format!(
+                "{FIXTURE}: needs a `device` line and {STEPS} losses"
+            ));
+        }
+        Ok(record)
+    }
+}
+
+/// The adapter and its driver, as the record names them.
+fn device_name(context: &GpuContext) -> String {
+    format!("{} / {}", context.info.name, context.info.driver_info)
+}
+
+#[test]
+fn gpu_model_reproduces_the_old_drivers_record() {
+    let scene = small_scene();
+    let context = common::gpu_context();
+    let text = std::fs::read_to_string(FIXTURE).unwrap_or_else(|e| panic!("{FIXTURE}: {e}"));
+    let expected = Record::parse(&text).unwrap_or_else(|e| panic!("{e}"));
+    let run = run(new_driver(&scene, &context), &scene);
+    let record = Record::of(&run, &scene, &context);
+    if record.device == expected.device {
+        for (step, (got, want)) in record.losses.iter().zip(&expected.losses).enumerate() {
+            assert_eq!(
+                got,
+                want,
+                "step {step}'s loss: {} here, {} recorded",
+                f32::from_bits(*got),
+                f32::from_bits(*want)
+            );
+        }
+        assert_eq!(record.tensors, expected.tensors, "checkpoint tensors");
+        assert_eq!(record.pixels, expected.pixels, "rendered pixels");
+        assert_eq!(record.texture, expected.texture, "texture bytes");
+        assert_eq!(
+            record.checkpoint, expected.checkpoint,
+            "checkpoint file bytes"
+        );
+    } else {
+        eprintln!(
+            "device {} here, {} in the record: losses compared within {LOSS_TOLERANCE}",
+            record.device, expected.device
+        );
+        for (step, (got, want)) in record.losses.iter().zip(&expected.losses).enumerate() {
+            let (got, want) = (f32::from_bits(*got) as f64, f32::from_bits(*want) as f64);
+            assert!(
+                (got - want).abs() <= LOSS_TOLERANCE * want.abs(),
+                "step {step}'s loss: {got} here, {want} recorded"
+            );
+        }
+        let names = |r: &Record| -> Vec<(String, usize)> {
+            r.tensors.iter().map(|(n, l, _)| (n.clone(), *l)).collect()
+        };
+        assert_eq!(names(&record), names(&expected), "checkpoint tensors");
+    }
+}
+
+/// Writes the fixture from the old driver (run while both drivers exist):
+/// `cargo test --test ngp_gpu_driver_gate -- --ignored record`.
+#[test]
+#[ignore]
+fn record_the_old_driver() {
+    let scene = small_scene();
+    let context = common::gpu_context();
+    let run = run(old_driver(&scene, &context), &scene);
+    let record = Record::of(&run, &scene, &context);
+    assert_eq!(Record::parse(&record.to_text()).unwrap(), record);
+    std::fs::write(FIXTURE, record.to_text()).unwrap();
+}
