@@ -85,7 +85,6 @@ fn shader_errors_are_reported_not_panicked() {
 /// stage) is refused with the limit named.
 #[test]
 fn an_existing_device_is_used_when_it_has_what_the_engine_needs() {
-    use zrak::engine::gpu::ngp::GpuNgp;
     use zrak::field::ngp::LossKind;
     use zrak::scene::demo::{self, DemoConfig};
 
@@ -106,7 +105,7 @@ fn an_existing_device_is_used_when_it_has_what_the_engine_needs() {
         val_views: 1,
         test_views: 1,
     });
-    GpuNgp::with_batch_samples(context, &scene, 1, LossKind::Huber, 1024)
+    zrak::train::gpu_ngp(context, &scene, 1, LossKind::Huber, 1024)
         .expect("every kernel compiles and binds on the shared device");
 
     let (device, queue) = pollster::block_on(adapter.request_device(&Default::default()))

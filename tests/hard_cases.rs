@@ -35,7 +35,6 @@ use zrak::engine::cpu::hash_grid::HashGridLayout;
 use zrak::engine::cpu::model::CpuModel;
 use zrak::engine::cpu::occupancy::GridGeometry;
 use zrak::engine::gpu::model::GpuModel;
-use zrak::engine::gpu::ngp::GpuNgp;
 use zrak::field::nerf::Sampling;
 use zrak::field::ngp::{HashGridConfig, LossKind, OccupancyConfig};
 use zrak::scene::Scene;
@@ -68,12 +67,6 @@ trait Probe: RadianceModel {
 impl Probe for CpuModel {
     fn gradient(&self) -> Vec<f32> {
         self.gradients().to_vec()
-    }
-}
-
-impl Probe for GpuNgp {
-    fn gradient(&self) -> Vec<f32> {
-        self.gradients()
     }
 }
 
@@ -380,13 +373,13 @@ fn rows() -> Vec<Row> {
             engine: Gpu,
             build: |scene| {
                 Box::new(
-                    GpuNgp::with_shape(
+                    zrak::train::gpu_ngp_with_shape(
                         common::gpu_context(),
+                        scene,
                         small_ngp_shape(scene),
-                        scene.depth_range(),
                         SEED,
                         LossKind::Huber,
-                        BATCH_SAMPLES,
+                        Some(BATCH_SAMPLES),
                     )
                     .expect("gpu model"),
                 )

@@ -664,3 +664,72 @@ fn an_occupancy_step_waits_for_the_device_once() {
         assert!(counts[1..].iter().all(|&n| n == 1), "{model:?}: {counts:?}");
     }
 }
+
+/// σ and colour at points (what meshes and point clouds are made of) from
+/// the last level's field on the gpu engine, against the cpu engine's
+/// answer for the same parameters: NeRF's fine field at points, Mip-NeRF's
+/// field at a cube of the footprint's side as a Gaussian, and σ zero where
+/// the occupancy grid is empty.
+#[test]
+fn density_and_colour_at_points_match_the_cpu_engine() {
+    for (model, sampling) in [
+        (Model::Nerf, Sampling::Paper),
+        (Model::MipNerf, Sampling::Occupancy),
+    ] {
+        let scene = small_scene();
+        let (mut cpu, mut gpu) = model.engines(&scene, &settings(sampling), |_| {});
+        if let Some(grid) = cpu.occupancy_mut() {
+            // Half the cells occupied, so the empty ones are seen too.
+            let geometry = grid.geometry();
+            for (i, v) in grid.values_mut().iter_mut().enumerate() {
+                *v = if geometry.cell_centre(geometry.cell_at(i)).x < 0.5 {
+                    1.0
+                } else {
+                    0.0
+                };
+            }
+            grid.build_bitfield();
+            gpu.load(&cpu.save()).unwrap();
+        }
+        let mut rng = Pcg32::new(11, 0);
+        let mut uniform = || 2.4 * rng.next_f32() - 1.2;
+        let n = 700;
+        let positions: Vec<Vec3> = (0..n)
+            .map(|_| Vec3::new(uniform(), uniform(), uniform()))
+            .collect();
+        let directions: Vec<Vec3> = (0..n)
+            .map(|_| Vec3::new(uniform(), uniform(), uniform()).normalize_or(Vec3::Z))
+            .collect();
+        let (mut sigma_cpu, mut sigma_gpu) = (vec![0.0; n], vec![0.0; n]);
+        cpu.density_at(&positions, 0.05, &mut sigma_cpu).unwrap();
+        gpu.density_at(&positions, 0.05, &mut sigma_gpu)
+            .expect("the gpu engine answers σ at points");
+        let (mut rgb_cpu, mut rgb_gpu) = (vec![0.0; 3 * n], vec![0.0; 3 * n]);
+        cpu.colour_at(&positions, &directions, 0.05, &mut rgb_cpu)
+            .unwrap();
+        gpu.colour_at(&positions, &directions, 0.05, &mut rgb_gpu)
+            .expect("the gpu engine answers colours at points");
+        let largest = sigma_cpu.iter().fold(0f32, |m, s| m.max(s.abs()));
+        let worst_sigma = sigma_cpu
+            .iter()
+            .zip(&sigma_gpu)
+            .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+        let worst_rgb = rgb_cpu
+            .iter()
+            .zip(&rgb_gpu)
+            .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+        let empty = sigma_gpu.iter().filter(|s| **s == 0.0).count();
+        println!(
+            "{model:?}: σ up to {largest}, worst difference {worst_sigma:e}; colour {worst_rgb:e}; \
+             {empty} of {n} zero"
+        );
+        // f32 networks on both engines, summed in different orders:
+        // relative 1e-4 of the largest σ, 1e-4 on colours in [0, 1].
+        assert!(largest > 0.0, "{model:?}: σ all zero");
+        assert!(worst_sigma <= 1e-4 * largest, "{model:?}: {worst_sigma}");
+        assert!(worst_rgb <= 1e-4, "{model:?}: {worst_rgb}");
+        if sampling == Sampling::Occupancy {
+            assert!(empty > n / 4 && empty < n, "{model:?}: {empty} of {n} zero");
+        }
+    }
+}

@@ -11,7 +11,7 @@ use std::time::Instant;
 use common::{batch, relative, relative_norm};
 use glam::Vec3;
 use zrak::engine::cpu::model::CpuModel;
-use zrak::engine::gpu::ngp::GpuNgp;
+use zrak::engine::gpu::model::GpuModel;
 use zrak::engine::gpu::timing::StageTiming;
 use zrak::field::ngp::LossKind;
 use zrak::scene::Scene;
@@ -25,7 +25,7 @@ fn small_scene() -> Arc<Scene> {
     common::small_scene(32)
 }
 
-fn models(scene: &Scene) -> (CpuModel, GpuNgp) {
+fn models(scene: &Scene) -> (CpuModel, GpuModel) {
     let cpu = zrak::train::cpu_ngp_with_shape(
         scene,
         zrak::engine::cpu::fields::ngp::NgpShape::for_scene(scene),
@@ -34,7 +34,7 @@ fn models(scene: &Scene) -> (CpuModel, GpuNgp) {
         Some(BATCH_SAMPLES),
     );
     let context = common::gpu_context();
-    let mut gpu = GpuNgp::with_batch_samples(context, scene, SEED, LossKind::Huber, BATCH_SAMPLES)
+    let mut gpu = zrak::train::gpu_ngp(context, scene, SEED, LossKind::Huber, BATCH_SAMPLES)
         .expect("gpu model");
     // Each step's own loss and the cpu's order of grid updates, to compare
     // step by step.
@@ -46,7 +46,7 @@ fn models(scene: &Scene) -> (CpuModel, GpuNgp) {
 /// cpu model, which also checks that one loads into the other): occupied
 /// inside a ball around the centre, so rays get ~20 samples and ~170 fit
 /// the budget, instead of the untrained grid's ~1000 samples for 4 rays.
-fn share_ball_grid(cpu: &mut CpuModel, gpu: &mut GpuNgp) {
+fn share_ball_grid(cpu: &mut CpuModel, gpu: &mut GpuModel) {
     {
         let grid = cpu.occupancy_mut().expect("Instant-NGP has a grid");
         let geometry = grid.geometry();
@@ -63,7 +63,7 @@ fn share_ball_grid(cpu: &mut CpuModel, gpu: &mut GpuNgp) {
     }
     gpu.load(&cpu.save()).unwrap();
     assert_eq!(
-        gpu.occupancy().bitfield(),
+        gpu.occupancy().unwrap().bitfield(),
         cpu.occupancy().unwrap().bitfield()
     );
 }
@@ -253,7 +253,10 @@ fn a_gpu_checkpoint_renders_the_same_pixels_on_the_cpu_engine() {
     let checkpoint = gpu.save();
     cpu.load(&checkpoint).unwrap();
     assert!(cpu.params() == gpu.params().as_slice());
-    assert_eq!(cpu.occupancy().unwrap().values(), gpu.occupancy().values());
+    assert_eq!(
+        cpu.occupancy().unwrap().values(),
+        gpu.occupancy().unwrap().values()
+    );
     let from_cpu = render_view(&cpu, &scene);
     let from_gpu = render_view(&gpu, &scene);
     let mut worst = 0f32;
@@ -292,7 +295,7 @@ fn occupancy_update_matches_the_cpu_engine() {
         "gpu step 0 with the full grid update: {:.0} ms",
         clock.elapsed().as_secs_f64() * 1e3
     );
-    let (c, g) = (cpu.occupancy().unwrap(), gpu.occupancy());
+    let (c, g) = (cpu.occupancy().unwrap(), gpu.occupancy().unwrap());
     let error = relative_norm(g.values(), c.values());
     let flipped: u32 = g
         .bitfield()

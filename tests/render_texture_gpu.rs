@@ -8,9 +8,10 @@ use std::sync::Arc;
 use glam::{Quat, Vec3};
 
 use zrak::engine::gpu::GpuContext;
-use zrak::engine::gpu::ngp::GpuNgp;
+use zrak::engine::gpu::model::GpuModel;
 use zrak::engine::gpu::render::{read_texture_rgba8, render_target};
 use zrak::field::ngp::LossKind;
+use zrak::model::TextureRender;
 use zrak::render::{RenderMode, render_pixels, to_image};
 use zrak::rng::Pcg32;
 use zrak::scene::crop::CropBox;
@@ -33,12 +34,12 @@ fn scene() -> Arc<Scene> {
 /// A gpu model holding what a cpu model learned in 60 steps (the cpu
 /// engine is the fast one here). Its batches of 1024 samples make a render
 /// of 24 × 24 rays take several rounds, the first of three groups of rays.
-fn trained_gpu_model(scene: &Scene, batch_samples: usize) -> GpuNgp {
+fn trained_gpu_model(scene: &Scene, batch_samples: usize) -> GpuModel {
     trained_models(scene, batch_samples).1
 }
 
 /// The cpu model of [`trained_gpu_model`] and the gpu model loaded from it.
-fn trained_models(scene: &Scene, batch_samples: usize) -> (impl RadianceModel, GpuNgp) {
+fn trained_models(scene: &Scene, batch_samples: usize) -> (impl RadianceModel, GpuModel) {
     let mut cpu = zrak::train::cpu_ngp_with_shape(
         scene,
         zrak::engine::cpu::fields::ngp::NgpShape::for_scene(scene),
@@ -59,7 +60,7 @@ fn trained_models(scene: &Scene, batch_samples: usize) -> (impl RadianceModel, G
         cpu.step(&batch, step);
     }
     let context = GpuContext::new().expect("lavapipe or a GPU");
-    let mut gpu = GpuNgp::with_batch_samples(context, scene, SEED, LossKind::Huber, batch_samples)
+    let mut gpu = zrak::train::gpu_ngp(context, scene, SEED, LossKind::Huber, batch_samples)
         .expect("gpu model");
     gpu.load(&cpu.save()).expect("the cpu checkpoint loads");
     (cpu, gpu)
@@ -68,7 +69,7 @@ fn trained_models(scene: &Scene, batch_samples: usize) -> (impl RadianceModel, G
 /// Renders `camera` into a texture in `mode` and checks it against the
 /// read-back render's `pixels` (made with the same background).
 fn compare(
-    gpu: &GpuNgp,
+    gpu: &GpuModel,
     camera: &Camera,
     mode: RenderMode,
     background: [f32; 3],
@@ -254,7 +255,7 @@ fn render_to_texture_matches_the_read_back_render_with_cone_steps() {
 fn a_wrong_target_is_refused_with_what_is_wrong() {
     let scene = scene();
     let context = GpuContext::new().expect("lavapipe or a GPU");
-    let gpu = GpuNgp::with_batch_samples(context, &scene, SEED, LossKind::Huber, 1 << 10).unwrap();
+    let gpu = zrak::train::gpu_ngp(context, &scene, SEED, LossKind::Huber, 1 << 10).unwrap();
     let camera = scene.val[0].camera;
     let small = render_target(&gpu.context().device, 8, 8);
     let message = gpu

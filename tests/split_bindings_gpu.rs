@@ -19,7 +19,6 @@ use zrak::engine::gpu::adam::GpuAdam;
 use zrak::engine::gpu::dense::GpuDense;
 use zrak::engine::gpu::hash_grid::GpuHashGrid;
 use zrak::engine::gpu::kernel::{read_buffer, rows_per_piece, storage_buffer};
-use zrak::engine::gpu::ngp::GpuNgp;
 use zrak::field::ngp::{HashGridConfig, LossKind, OptimiserConfig};
 use zrak::rng::Pcg32;
 use zrak::scene::Scene;
@@ -240,9 +239,8 @@ fn instant_ngp_step_with_split_bindings_matches_the_unsplit_step() {
         &mut batch,
     );
     let run = |context: GpuContext| {
-        let mut model =
-            GpuNgp::with_batch_samples(context, &scene, 5, LossKind::Huber, batch_samples)
-                .expect("gpu model");
+        let mut model = zrak::train::gpu_ngp(context, &scene, 5, LossKind::Huber, batch_samples)
+            .expect("gpu model");
         let stats = model.forward_backward(&batch, 0);
         (stats, model.gradients())
     };

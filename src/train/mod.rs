@@ -166,6 +166,25 @@ pub fn gpu_ngp_with_shape(
     )
 }
 
+/// Instant-NGP on the `gpu` engine with the paper's parts, batches of
+/// `batch_samples` samples (tests use few).
+pub fn gpu_ngp(
+    context: crate::engine::gpu::GpuContext,
+    scene: &Scene,
+    seed: u64,
+    loss: LossKind,
+    batch_samples: usize,
+) -> Result<crate::engine::gpu::model::GpuModel, String> {
+    gpu_ngp_with_shape(
+        context,
+        scene,
+        crate::engine::cpu::fields::ngp::NgpShape::for_scene(scene),
+        seed,
+        loss,
+        Some(batch_samples),
+    )
+}
+
 /// What Instant-NGP's models are called, in the viewer and in checkpoints.
 pub fn ngp_identity() -> crate::engine::cpu::model::ModelIdentity {
     crate::engine::cpu::model::ModelIdentity {

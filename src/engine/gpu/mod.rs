@@ -16,7 +16,6 @@ pub mod march;
 #[cfg(test)]
 pub(crate) mod mirror;
 pub mod model;
-pub mod ngp;
 pub mod occupancy;
 pub mod render;
 pub mod sampling;

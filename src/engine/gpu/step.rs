@@ -1,8 +1,8 @@
 //! What every model driver on the `gpu` engine does with its rays, whatever
 //! its sampler and field: the per-ray buffers of a batch and their upload,
 //! and compositing → loss → compositing's backward pass, recorded into one
-//! command encoder. Instant-NGP's driver ([`super::ngp::GpuNgp`]) and the
-//! recipe driver ([`super::model::GpuModel`]) both call these.
+//! command encoder. The recipe driver ([`super::model::GpuModel`]) calls
+//! these for every level it composites.
 
 use std::ops::Range;
 

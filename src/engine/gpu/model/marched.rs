@@ -6,9 +6,9 @@ use super::*;
 use crate::engine::cpu::composite_batch::Distortion;
 
 impl GpuModel {
-    /// A step through the occupancy grid, in two submissions as Instant-NGP's
-    /// (`super::ngp`): the march, whose two counters (samples, rays kept)
-    /// are read back to size the rest; then the field, compositing with the
+    /// A step through the occupancy grid, in two submissions: the march,
+    /// whose two counters (samples, rays kept) are read back to size the
+    /// rest; then the field, compositing with the
     /// march's transmittance cut, the loss, the backward passes and Adam.
     ///
     /// Unlike the cpu model, the field's forward and backward passes run on

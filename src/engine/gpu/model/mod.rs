@@ -90,6 +90,7 @@ use crate::scene::{Aabb, Scene, UnitCubeMapping};
 
 mod levels;
 mod marched;
+mod points;
 mod walk;
 
 /// How a recipe's samples are placed.
@@ -626,6 +627,25 @@ impl GpuModel {
     }
 
     /// The occupancy grid, for a recipe that marches through one.
+    /// Near and far depth that depth images map to white and black (the
+    /// scene's, as the `render` command uses).
+    pub fn depth_range(&self) -> (f32, f32) {
+        self.depth_range
+    }
+
+    /// How the stages of a step are timed: GPU timestamps where the device
+    /// has them (the default), else the wall clock with a wait at each
+    /// stage boundary.
+    pub fn stage_timing(&self) -> StageTiming {
+        self.work().clock.timing()
+    }
+
+    /// Chooses how stages are timed ([`StageTiming::Timestamps`] falls back
+    /// to the wall clock on a device without timestamps).
+    pub fn set_stage_timing(&mut self, timing: StageTiming) {
+        self.work().clock = StageClock::new(&self.context, timing);
+    }
+
     pub fn occupancy(&self) -> Option<&OccupancyGrid> {
         self.grid.as_ref().map(|g| &g.grid)
     }
@@ -861,6 +881,28 @@ impl RadianceModel for GpuModel {
 
     fn set_crop(&mut self, crop: Option<CropBox>) -> Result<(), String> {
         self.crop = crop;
+        Ok(())
+    }
+
+    fn density_at(
+        &self,
+        positions: &[Vec3],
+        footprint: f32,
+        sigma: &mut [f32],
+    ) -> Result<(), String> {
+        self.evaluate_points(positions, footprint, sigma, None);
+        Ok(())
+    }
+
+    fn colour_at(
+        &self,
+        positions: &[Vec3],
+        directions: &[Vec3],
+        footprint: f32,
+        rgb: &mut [f32],
+    ) -> Result<(), String> {
+        let mut sigma = vec![0.0; positions.len()];
+        self.evaluate_points(positions, footprint, &mut sigma, Some((directions, rgb)));
         Ok(())
     }
 

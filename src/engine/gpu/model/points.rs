@@ -1,0 +1,107 @@
+//! σ and colour at given points (meshes and point clouds), as the cpu
+//! model answers them: the last level's field, a cube of the footprint's
+//! side as a Gaussian for a field of frustums, σ zero in cells the
+//! occupancy grid marks empty (where rendering never looks).
+
+use super::*;
+
+impl GpuModel {
+    /// σ of the last level's field at world `positions`, and with
+    /// `colour` (directions and an output) its colour, evaluated on the
+    /// device in passes of the field's capacity.
+    pub(super) fn evaluate_points(
+        &self,
+        positions: &[Vec3],
+        footprint: f32,
+        sigma: &mut [f32],
+        mut colour: Option<(&[Vec3], &mut [f32])>,
+    ) {
+        let ctx = &self.context;
+        let level = *self.recipe.levels.last().expect("a recipe has levels");
+        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+        // A cube of side s as a Gaussian of the same variance per axis,
+        // s²/12 (that of a uniform distribution over the side).
+        let variance = footprint * footprint / 12.0;
+        let mut guard = self.work();
+        let field = &mut guard.fields[level.field];
+        let unit_cube = field.coordinates() == Coordinates::UnitCube;
+        let mapping = self.grid.as_ref().map(|g| g.mapping);
+        let chunk = field.capacity().min(positions.len()).max(1);
+        let f = |label: &str, n: usize| zeroed_storage_buffer::<f32>(ctx, label, n);
+        let point_buffer = f("points positions", 3 * chunk);
+        let variance_buffer = f("points variances", if frustums { 3 * chunk } else { 1 });
+        let direction_buffer = f("points directions", 3 * chunk);
+        let sigma_buffer = f("points sigma", chunk);
+        let rgb_buffer = f("points rgb", 3 * chunk);
+        let queue = &ctx.queue;
+        for (i, (points, sigma)) in positions
+            .chunks(chunk)
+            .zip(sigma.chunks_mut(chunk))
+            .enumerate()
+        {
+            let n = points.len();
+            let flat: Vec<f32> = points
+                .iter()
+                .flat_map(|&p| match mapping {
+                    Some(mapping) if unit_cube => mapping.to_unit(p).to_array(),
+                    _ => p.to_array(),
+                })
+                .collect();
+            queue.write_buffer(&point_buffer, 0, bytemuck::cast_slice(&flat));
+            if frustums {
+                queue.write_buffer(
+                    &variance_buffer,
+                    0,
+                    bytemuck::cast_slice(&vec![variance; 3 * n]),
+                );
+            }
+            let variances = frustums.then_some(&variance_buffer);
+            let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            match colour.as_ref() {
+                Some((directions, _)) => {
+                    let rows = &directions[chunk * i..chunk * i + n];
+                    let flat: Vec<f32> = rows.iter().flat_map(|d| d.to_array()).collect();
+                    queue.write_buffer(&direction_buffer, 0, bytemuck::cast_slice(&flat));
+                    field.record_forward(
+                        ctx,
+                        &mut encoder,
+                        &self.params,
+                        &point_buffer,
+                        variances,
+                        &direction_buffer,
+                        n,
+                        &sigma_buffer,
+                        &rgb_buffer,
+                    );
+                }
+                None => field.record_density(
+                    ctx,
+                    &mut encoder,
+                    &self.params,
+                    &point_buffer,
+                    variances,
+                    n,
+                    &sigma_buffer,
+                ),
+            }
+            queue.submit([encoder.finish()]);
+            sigma.copy_from_slice(&read_buffer::<f32>(ctx, &sigma_buffer, n));
+            if let Some((_, rgb)) = colour.as_mut() {
+                rgb[3 * chunk * i..3 * (chunk * i + n)].copy_from_slice(&read_buffer::<f32>(
+                    ctx,
+                    &rgb_buffer,
+                    3 * n,
+                ));
+            }
+        }
+        if colour.is_none()
+            && let Some(grid) = &self.grid
+        {
+            for (s, p) in sigma.iter_mut().zip(positions) {
+                if !grid.grid.occupied_at(grid.mapping.to_unit(*p)) {
+                    *s = 0.0;
+                }
+            }
+        }
+    }
+}
