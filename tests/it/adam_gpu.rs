@@ -134,6 +134,7 @@ fn compare(
 
 #[test]
 fn adam_matches_cpu_over_several_steps() {
+    let _cores = crate::common::shared();
     let context = GpuContext::new().expect("CI installs mesa-vulkan-drivers, so an adapter exists");
     // Network weights in the middle, hash entries on both sides; a count
     // that is not a multiple of the workgroup.
@@ -170,6 +171,7 @@ fn adam_matches_cpu_over_several_steps() {
 
 #[test]
 fn adam_resumes_from_a_cpu_state() {
+    let _cores = crate::common::shared();
     // A checkpointed cpu state continues on the gpu as it would on the cpu.
     let context = GpuContext::new().expect("an adapter exists");
     let n = 3000;
@@ -211,6 +213,7 @@ fn adam_resumes_from_a_cpu_state() {
 
 #[test]
 fn adam_covers_instant_ngp_sized_parameter_sets() {
+    let _cores = crate::common::shared();
     // 16 levels × 2^19 entries × 2 features + the networks: more than
     // 65535 workgroups of 256, so the dispatch is a 2-D grid. One step;
     // every parameter must have moved as on the cpu (checked on a sample

@@ -1,10 +1,8 @@
 //! The `zrak` binary as a user runs it: resuming from a run folder alone,
 //! interrupts, closed pipes and the README's own commands.
 
-mod common;
-#[path = "cli/quality.rs"]
+use crate::common;
 mod quality;
-#[path = "cli/safety.rs"]
 mod safety;
 
 use std::path::Path;
@@ -73,6 +71,7 @@ fn temp_dir() -> tempfile::TempDir {
 
 #[test]
 fn resume_takes_everything_from_the_run_folder() {
+    let _cores = crate::common::shared();
     let dir = temp_dir();
     let d = dir.path();
     // Settings that differ from every default, so the resumed run can only
@@ -190,6 +189,7 @@ fn send(child: &std::process::Child, signal: i32) {
 
 #[test]
 fn an_interrupt_finishes_the_step_writes_the_checkpoint_and_says_how_to_resume() {
+    let _cores = crate::common::shared();
     for signal in [libc::SIGINT, libc::SIGTERM] {
         let dir = temp_dir();
         let d = dir.path();
@@ -233,6 +233,7 @@ fn an_interrupt_finishes_the_step_writes_the_checkpoint_and_says_how_to_resume()
 
 #[test]
 fn a_second_interrupt_a_second_later_ends_the_process_at_once() {
+    let _cores = crate::common::shared();
     let dir = temp_dir();
     let d = dir.path();
     let mut child = start_long_training(d);
@@ -254,6 +255,7 @@ fn a_second_interrupt_a_second_later_ends_the_process_at_once() {
 /// are one request: the run still finishes its step and keeps it.
 #[test]
 fn two_signals_at_once_are_one_request() {
+    let _cores = crate::common::shared();
     for signal in [libc::SIGINT, libc::SIGTERM] {
         let dir = temp_dir();
         let d = dir.path();
@@ -278,6 +280,7 @@ fn two_signals_at_once_are_one_request() {
 /// everything): every run keeps its checkpoint.
 #[test]
 fn gnu_timeout_ends_a_run_with_its_checkpoint() {
+    let _cores = crate::common::shared();
     for attempt in 0..3 {
         let dir = temp_dir();
         let d = dir.path();
@@ -321,6 +324,7 @@ fn gnu_timeout_ends_a_run_with_its_checkpoint() {
 /// SIGTERM still stops the run with its checkpoint.
 #[test]
 fn nohup_keeps_a_run_alive_through_a_hangup() {
+    let _cores = crate::common::shared();
     let dir = temp_dir();
     let d = dir.path();
     let mut child = Command::new("nohup")
@@ -374,6 +378,7 @@ fn nohup_keeps_a_run_alive_through_a_hangup() {
 /// the lock lets the run continue.
 #[test]
 fn one_writer_per_run_folder_and_an_early_first_checkpoint() {
+    let _cores = crate::common::shared();
     let dir = temp_dir();
     let d = dir.path();
     let mut child = start_long_training(d);
@@ -424,6 +429,7 @@ fn one_writer_per_run_folder_and_an_early_first_checkpoint() {
 /// shorter than 10 s).
 #[test]
 fn checkpoint_every_sets_the_interval() {
+    let _cores = crate::common::shared();
     let dir = temp_dir();
     let d = dir.path();
     let mut child = zrak()
@@ -508,6 +514,7 @@ fn with_closed_pipe(dir: &Path, args: &[&str], close_stderr: bool) -> Output {
 
 #[test]
 fn printing_to_a_closed_pipe_ends_quietly() {
+    let _cores = crate::common::shared();
     use std::os::unix::process::ExitStatusExt;
     let dir = temp_dir();
     let d = dir.path();
@@ -556,7 +563,7 @@ fn printing_to_a_closed_pipe_ends_quietly() {
 /// The commands of the README's "On the command line" block, one per
 /// line, comments and the leading `zrak` removed.
 fn readme_commands() -> Vec<String> {
-    let readme = include_str!("../README.md");
+    let readme = include_str!("../../README.md");
     let block = readme
         .split("On the command line:")
         .nth(1)
@@ -657,6 +664,7 @@ fn as_tested(command: &str, tmp: &Path, runs_made: &mut usize) -> Vec<String> {
 
 #[test]
 fn the_readme_commands_work_as_written() {
+    let _cores = crate::common::shared();
     let dir = temp_dir();
     let d = dir.path();
     std::fs::create_dir_all(d.join("tmp")).unwrap();

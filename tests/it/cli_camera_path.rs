@@ -4,7 +4,7 @@
 //! `ffprobe` and `ffmpeg`, from Debian's `ffmpeg` package, which `.ci/run`
 //! installs), and bad path files refused by name.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
@@ -113,6 +113,7 @@ fn rgb(path: &Path) -> image::RgbImage {
 
 #[test]
 fn frames_ranges_and_continuing_where_a_render_stopped() {
+    let _cores = crate::common::shared();
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     trained_run(d);
@@ -342,6 +343,7 @@ const VIDEO_MAE_BOUND: f64 = 6.0;
 
 #[test]
 fn a_video_decodes_with_ffmpeg_to_the_frames_it_was_made_of() {
+    let _cores = crate::common::shared();
     let ffprobe = ffmpeg_tool("ffprobe");
     let ffmpeg = ffmpeg_tool("ffmpeg");
     let dir = tempfile::tempdir().unwrap();
@@ -487,6 +489,7 @@ fn a_video_decodes_with_ffmpeg_to_the_frames_it_was_made_of() {
 
 #[test]
 fn bad_path_files_are_refused_by_name() {
+    let _cores = crate::common::shared();
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     succeed(

@@ -245,6 +245,7 @@ fn d_rgb_for(rays: usize, seed: u64) -> Vec<f32> {
 
 #[test]
 fn compositing_matches_cpu() {
+    let _cores = crate::common::shared();
     let context = GpuContext::new().expect("CI installs mesa-vulkan-drivers, so an adapter exists");
     let composite = GpuComposite::new(&context).expect("the kernels compile");
     let batch = Batch::random(3000, 1);
@@ -363,6 +364,7 @@ fn compositing_matches_cpu() {
 
 #[test]
 fn backward_with_the_distortion_loss_matches_cpu() {
+    let _cores = crate::common::shared();
     let context = GpuContext::new().expect("an adapter exists");
     let composite = GpuComposite::new(&context).expect("the kernels compile");
     let batch = Batch::random(2000, 5);
@@ -412,6 +414,7 @@ fn backward_with_the_distortion_loss_matches_cpu() {
 
 #[test]
 fn loss_matches_cpu() {
+    let _cores = crate::common::shared();
     let context = GpuContext::new().expect("an adapter exists");
     let loss = GpuLoss::new(&context).expect("the kernels compile");
     let rays = 5000;
@@ -448,6 +451,7 @@ fn loss_matches_cpu() {
 
 #[test]
 fn forward_loss_backward_chain_in_one_submission() {
+    let _cores = crate::common::shared();
     // The training step's order, recorded into one encoder: composite,
     // loss on the composited colours, composite backward from the loss
     // gradient. Against the same chain on the cpu.

@@ -8,6 +8,7 @@ use glam::Vec3;
 
 #[test]
 fn default_config_matches_nerf_synthetic_shape() {
+    let _cores = crate::common::shared();
     let config = DemoConfig::default();
     assert_eq!(config.size, 128);
     assert_eq!(
@@ -19,6 +20,7 @@ fn default_config_matches_nerf_synthetic_shape() {
 
 #[test]
 fn built_frames_are_what_render_view_draws() {
+    let _cores = crate::common::shared();
     let config = DemoConfig {
         size: 40,
         train_views: 4,
@@ -44,6 +46,7 @@ fn built_frames_are_what_render_view_draws() {
 
 #[test]
 fn render_view_works_for_any_camera() {
+    let _cores = crate::common::shared();
     // A wide, non-square camera close to the scene, from the side.
     let intrinsics = Intrinsics::from_fov_x(60, 30, 1.2);
     let camera = Camera::look_at(intrinsics, Vec3::new(0.0, -2.5, 0.8), Vec3::ZERO, Vec3::Z);
@@ -58,6 +61,7 @@ fn render_view_works_for_any_camera() {
 
 #[test]
 fn written_scene_has_blender_files() {
+    let _cores = crate::common::shared();
     let dir = tempfile::tempdir().unwrap();
     let config = DemoConfig {
         size: 16,
@@ -90,6 +94,7 @@ fn written_scene_has_blender_files() {
 
 #[test]
 fn written_scene_loads_back_as_the_built_one() {
+    let _cores = crate::common::shared();
     let dir = tempfile::tempdir().unwrap();
     let config = DemoConfig {
         size: 24,

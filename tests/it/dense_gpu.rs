@@ -90,6 +90,7 @@ fn assert_close(what: &str, gpu: &[f32], cpu: &[f32]) {
 
 #[test]
 fn dense_layers_match_cpu() {
+    let _cores = crate::common::shared();
     let context = GpuContext::new().expect("CI installs mesa-vulkan-drivers, so an adapter exists");
     let dense = GpuDense::new(&context).expect("the dense kernels compile");
     let ngp = NetworkConfig::PAPER;
@@ -185,75 +186,6 @@ fn dense_layers_match_cpu() {
         assert_eq!(
             d_params_again, gpu_d_params,
             "case {case}: gradients differ between runs"
-        );
-    }
-}
-
-/// Throughput of the Instant-NGP networks on this adapter (lavapipe here:
-/// slow, which is why software adapters get the cpu engine). Run with
-/// `cargo test --release --test dense_gpu -- --ignored --nocapture`.
-#[test]
-#[ignore]
-fn throughput() {
-    use zrak::engine::gpu::dense::GpuMlpWorkspace;
-    use zrak::engine::gpu::kernel::{read_buffer, storage_buffer, zeroed_storage_buffer};
-    let context = GpuContext::new().expect("an adapter exists");
-    eprintln!("adapter: {}", context.describe());
-    let dense = GpuDense::new(&context).unwrap();
-    let rows = 1 << 16;
-    let ngp = NetworkConfig::PAPER;
-    for layout in [
-        MlpLayout::ngp_density(&ngp, &HashGridConfig::paper(1.0)),
-        MlpLayout::ngp_colour(&ngp),
-    ] {
-        let mut rng = Pcg32::new(1, 1);
-        let params = storage_buffer(&context, "params", &layout.init_params(1));
-        let input = storage_buffer(
-            &context,
-            "input",
-            &random(&mut rng, rows * layout.input_width(), 1.0),
-        );
-        let d_output = storage_buffer(
-            &context,
-            "d_out",
-            &random(&mut rng, rows * layout.output_width(), 1.0),
-        );
-        let d_params = zeroed_storage_buffer::<f32>(&context, "d_params", layout.param_count());
-        let d_input =
-            zeroed_storage_buffer::<f32>(&context, "d_input", rows * layout.input_width());
-        let workspace = GpuMlpWorkspace::new(&context, &layout, rows);
-        let run = |backward: bool| {
-            let start = std::time::Instant::now();
-            let mut encoder = context.device.create_command_encoder(&Default::default());
-            dense.record_forward(&context, &mut encoder, &params, &input, &workspace, rows);
-            if backward {
-                dense.record_backward(
-                    &context,
-                    &mut encoder,
-                    &params,
-                    &input,
-                    &workspace,
-                    &d_output,
-                    &d_params,
-                    Some(&d_input),
-                    rows,
-                );
-            }
-            context.queue.submit([encoder.finish()]);
-            let _: Vec<f32> = read_buffer(&context, &d_params, 1);
-            start.elapsed().as_secs_f64()
-        };
-        run(true);
-        let forward = run(false);
-        let both = run(true);
-        let flop = 2.0 * (layout.macs_per_row() * rows) as f64;
-        eprintln!(
-            "{:?}: forward {:.0} ms ({:.2} GFLOP/s), forward+backward {:.0} ms ({:.2} GFLOP/s)",
-            layout.widths,
-            forward * 1e3,
-            flop / forward / 1e9,
-            both * 1e3,
-            3.0 * flop / both / 1e9
         );
     }
 }

@@ -78,6 +78,7 @@ fn cpu_encode(encoding: &FrequencyEncoding, x: &[f32], v: Option<&[f32]>) -> Vec
 
 #[test]
 fn nerf_encodings_match_cpu() {
+    let _cores = crate::common::shared();
     let context = GpuContext::new().expect("CI installs mesa-vulkan-drivers, so an adapter exists");
     let frequency = GpuFrequency::new(&context).expect("the kernels compile");
     let rows = 4001;
@@ -98,6 +99,7 @@ fn nerf_encodings_match_cpu() {
 
 #[test]
 fn integrated_encoding_matches_cpu() {
+    let _cores = crate::common::shared();
     let context = GpuContext::new().expect("an adapter exists");
     let frequency = GpuFrequency::new(&context).expect("the kernels compile");
     let rows = 4001;
@@ -141,6 +143,7 @@ fn integrated_encoding_matches_cpu() {
 
 #[test]
 fn more_rows_than_one_dispatch_dimension_holds() {
+    let _cores = crate::common::shared();
     let context = GpuContext::new().expect("an adapter exists");
     let frequency = GpuFrequency::new(&context).expect("the kernels compile");
     // 65535 workgroups of 64 rows and then some: the grid must go 2-D and

@@ -683,24 +683,28 @@ fn fuzz_colmap(cases: u32) -> Counts {
 
 #[test]
 fn blender_transforms_never_panic() {
+    let _cores = crate::common::shared();
     let counts = fuzz_blender(BOUNDED_CASES);
     assert!(counts.both_seen(), "{counts:?}");
 }
 
 #[test]
 fn instant_ngp_transforms_never_panic() {
+    let _cores = crate::common::shared();
     let counts = fuzz_instant_ngp(BOUNDED_CASES);
     assert!(counts.both_seen(), "{counts:?}");
 }
 
 #[test]
 fn colmap_models_never_panic() {
+    let _cores = crate::common::shared();
     let counts = fuzz_colmap(BOUNDED_CASES);
     assert!(counts.both_seen(), "{counts:?}");
 }
 
 #[test]
 fn checkpoint_reader_never_panics() {
+    let _cores = crate::common::shared();
     let counts = fuzz_checkpoint(BOUNDED_CASES);
     assert!(counts.both_seen(), "{counts:?}");
 }
@@ -710,6 +714,7 @@ fn checkpoint_reader_never_panics() {
 #[test]
 #[ignore = "long: set ZRAK_FUZZ_MINUTES and run with --ignored"]
 fn long_fuzz_of_every_parser() {
+    let _cores = crate::common::shared();
     let setting = |name: &str, default: u64| -> u64 {
         std::env::var(name)
             .ok()
@@ -753,6 +758,7 @@ fn long_fuzz_of_every_parser() {
 /// infinite) as the f32 the cameras use.
 #[test]
 fn focal_lengths_that_vanish_in_f32_are_refused() {
+    let _cores = crate::common::shared();
     let dir = image_folder();
     let mut document = instant_ngp_document();
     document["frames"][0]["fl_x"] = json!(5.3e-134);
@@ -777,6 +783,7 @@ fn focal_lengths_that_vanish_in_f32_are_refused() {
 /// quaternion whose squared norm overflows (its rotation becomes NaN).
 #[test]
 fn colmap_values_that_break_in_f32_are_refused() {
+    let _cores = crate::common::shared();
     let load_with = |edit: &dyn Fn(&mut ColmapModel)| {
         let dir = image_folder();
         let mut model = colmap_model();

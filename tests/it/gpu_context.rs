@@ -1,7 +1,7 @@
 //! The wgpu context runs WGSL on whatever adapter the machine has (lavapipe in
 //! CI) and returns what the cpu computes.
 
-mod common;
+use crate::common;
 
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::kernel::{Kernel, groups_for, read_buffer, storage_buffer, uniform_buffer};
@@ -15,6 +15,7 @@ struct Params {
 
 #[test]
 fn compute_shader_matches_cpu() {
+    let _cores = crate::common::shared();
     let context = GpuContext::new().expect("CI installs mesa-vulkan-drivers, so an adapter exists");
     eprintln!("adapter: {}", context.describe());
     // The engine asks for the adapter's own limits, not wgpu's defaults.
@@ -32,7 +33,7 @@ fn compute_shader_matches_cpu() {
     let kernel = Kernel::new(
         &context,
         "scale_add",
-        include_str!("../shaders/scale_add.wgsl"),
+        include_str!("../../shaders/scale_add.wgsl"),
         "main",
     )
     .unwrap();
@@ -67,6 +68,7 @@ fn compute_shader_matches_cpu() {
 
 #[test]
 fn shader_errors_are_reported_not_panicked() {
+    let _cores = crate::common::shared();
     let context = GpuContext::new().expect("an adapter exists");
     let broken = "@compute @workgroup_size(1) fn main() { let x: f32 = undefined_name; }";
     let error = Kernel::new(&context, "broken", broken, "main")
@@ -85,6 +87,7 @@ fn shader_errors_are_reported_not_panicked() {
 /// stage) is refused with the limit named.
 #[test]
 fn an_existing_device_is_used_when_it_has_what_the_engine_needs() {
+    let _cores = crate::common::shared();
     use zrak::engine::gpu::ngp::GpuNgp;
     use zrak::field::ngp::LossKind;
     use zrak::scene::demo::{self, DemoConfig};
@@ -126,6 +129,7 @@ fn an_existing_device_is_used_when_it_has_what_the_engine_needs() {
 /// the device counts, the quality run's report and the evaluation.
 #[test]
 fn the_gpu_report_script_runs_end_to_end() {
+    let _cores = crate::common::shared();
     let dir = tempfile::tempdir().unwrap();
     let scene = dir.path().join("scene");
     let out = dir.path().join("report");

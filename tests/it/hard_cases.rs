@@ -22,7 +22,7 @@
 //! models that march one is a small occupied ball at the centre, so a
 //! step on lavapipe stays short (a few hundred samples).
 
-mod common;
+use crate::common;
 
 use std::time::Instant;
 
@@ -868,10 +868,12 @@ fn run_rows(engine: EngineKind) {
 
 #[test]
 fn hard_cases_on_the_cpu_engine() {
+    let _cores = crate::common::shared();
     run_rows(EngineKind::Cpu);
 }
 
 #[test]
 fn hard_cases_on_the_gpu_engine() {
+    let _cores = crate::common::shared();
     run_rows(EngineKind::Gpu);
 }

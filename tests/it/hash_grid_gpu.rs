@@ -103,18 +103,21 @@ fn box_positions(layout: &HashGridLayout, count: usize, seed: u64) -> Vec<[f32; 
 
 #[test]
 fn forward_matches_cpu() {
+    let _cores = crate::common::shared();
     let layout = paper_layout();
     check_forward(&layout, &positions(&layout, 4000, 2));
 }
 
 #[test]
 fn forward_over_a_large_scenes_box_matches_cpu() {
+    let _cores = crate::common::shared();
     let layout = box_layout();
     check_forward(&layout, &box_positions(&layout, 4000, 2));
 }
 
 #[test]
 fn backward_over_a_large_scenes_box_matches_cpu() {
+    let _cores = crate::common::shared();
     let layout = box_layout();
     check_backward_at(&layout, &box_positions(&layout, 4000, 4), true);
 }
@@ -185,11 +188,13 @@ fn check_backward_at(layout: &HashGridLayout, positions: &[[f32; 3]], float_atom
 
 #[test]
 fn backward_with_float_atomics_matches_cpu() {
+    let _cores = crate::common::shared();
     check_backward(&paper_layout(), 4000, true);
 }
 
 #[test]
 fn backward_with_compare_and_swap_matches_cpu() {
+    let _cores = crate::common::shared();
     check_backward(&paper_layout(), 4000, false);
 }
 
@@ -211,6 +216,7 @@ fn contended_layout() -> HashGridLayout {
 
 #[test]
 fn contended_backward_loses_no_update() {
+    let _cores = crate::common::shared();
     let layout = contended_layout();
     // Level 0 is a dense 3³ grid whose centre vertex is a corner of every
     // cell, so it gets a contribution from each sample: n ≤ 800, and the
@@ -222,6 +228,7 @@ fn contended_backward_loses_no_update() {
 
 #[test]
 fn dispatches_share_one_encoder() {
+    let _cores = crate::common::shared();
     // Two batch sizes recorded into one encoder: each dispatch must see its
     // own sample count, and the backward must see the forward's inputs.
     let context = context();
@@ -302,6 +309,7 @@ fn dispatches_share_one_encoder() {
 
 #[test]
 fn large_batches_fold_into_more_dispatch_dimensions() {
+    let _cores = crate::common::shared();
     // 65535 workgroups of 64 cover 4194240 samples; one more sample needs a
     // second row of workgroups (z = 2), whose samples must not be lost.
     let context = context();

@@ -178,6 +178,7 @@ fn imports(src: &Path) -> BTreeMap<(String, String), usize> {
 
 #[test]
 fn every_module_of_src_has_a_layer() {
+    let _cores = crate::common::shared();
     let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
     let mut files = Vec::new();
     rust_files(&src, &mut files);
@@ -194,6 +195,7 @@ fn every_module_of_src_has_a_layer() {
 
 #[test]
 fn no_module_imports_one_above_it_beyond_the_known_ones() {
+    let _cores = crate::common::shared();
     let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
     let counts = imports(&src);
     let mut upward = Vec::new();
@@ -234,6 +236,7 @@ fn no_module_imports_one_above_it_beyond_the_known_ones() {
 
 #[test]
 fn the_reader_finds_plain_paths_and_use_groups_and_skips_comments() {
+    let _cores = crate::common::shared();
     let text = without_comments(
         "use crate::{engine::cpu, train::{a, b}, render};\n\
          // crate::app::x in a comment\n\

@@ -3,7 +3,6 @@
 //! operation, with fused multiply-adds prevented), the same offsets, the
 //! same grid update and bitfield.
 
-use glam::Vec3;
 use zrak::engine::cpu::march::{MarchParams, MarchStats, MarchWorkspace, MarchedSamples, march};
 use zrak::engine::cpu::occupancy::{OccupancyGrid, UNTRAINED, mix64};
 use zrak::engine::gpu::GpuContext;
@@ -12,9 +11,7 @@ use zrak::engine::gpu::occupancy::GpuOccupancy;
 use zrak::field::ngp::{MarchConfig, OccupancyConfig};
 use zrak::scene::UnitCubeMapping;
 
-fn uniform(key: u64) -> f32 {
-    (mix64(key) >> 40) as f32 / (1u64 << 24) as f32
-}
+use crate::common::march::{rays, uniform};
 
 /// Blocks of 8³ cells empty, sparse, half or full, each cell then drawn.
 fn random_grid(cascades: u32, seed: u64) -> OccupancyGrid {
@@ -37,37 +34,6 @@ fn random_grid(cascades: u32, seed: u64) -> OccupancyGrid {
     }
     grid.build_bitfield();
     grid
-}
-
-/// Rays from a sphere of radius 4 towards the box, some from inside it,
-/// and the hard cases: axis-parallel (also along cell boundaries and box
-/// faces), missing, zero direction.
-fn rays(n: usize, seed: u64) -> (Vec<f32>, Vec<f32>) {
-    let mut origins = Vec::new();
-    let mut directions = Vec::new();
-    let mut push = |o: Vec3, d: Vec3| {
-        origins.extend_from_slice(&o.to_array());
-        directions.extend_from_slice(&d.to_array());
-    };
-    let face = UnitCubeMapping::BLENDER.to_world(Vec3::new(1.0, 0.25, 0.5));
-    push(Vec3::new(0.0, 0.0, 4.0), -Vec3::Z);
-    push(Vec3::new(face.x, face.y, 4.0), -Vec3::Z);
-    push(Vec3::new(-4.0, 0.3, -0.2), Vec3::X);
-    push(Vec3::ZERO, Vec3::Y);
-    push(Vec3::new(0.0, 3.0, 4.0), -Vec3::Z);
-    push(Vec3::new(0.0, 0.0, 4.0), Vec3::Z);
-    push(Vec3::new(0.0, 0.0, 4.0), Vec3::ZERO);
-    let u = |i: usize, j: u64| uniform(seed ^ mix64((i as u64) * 16 + j));
-    for i in 0..n {
-        let z = 2.0 * u(i, 0) - 1.0;
-        let phi = std::f32::consts::TAU * u(i, 1);
-        let r = (1.0 - z * z).sqrt();
-        let radius = if i % 8 == 0 { 1.2 * u(i, 2) } else { 4.0 };
-        let origin = radius * Vec3::new(r * phi.cos(), r * phi.sin(), z);
-        let target = Vec3::new(u(i, 3), u(i, 4), u(i, 5)) * 2.4 - 1.2;
-        push(origin, (target - origin).normalize());
-    }
-    (origins, directions)
 }
 
 fn cpu_march(
@@ -124,6 +90,7 @@ fn assert_same_samples(cpu: &MarchedSamples, gpu: &MarchedSamples, label: &str) 
 
 #[test]
 fn march_matches_cpu() {
+    let _cores = crate::common::shared();
     let context = GpuContext::new().expect("lavapipe or a GPU");
     let gpu = GpuMarch::new(&context).unwrap();
     // (cascades, aabb_scale, seed, jitter, cone angle, distance of the
@@ -195,6 +162,7 @@ fn march_matches_cpu() {
 
 #[test]
 fn budget_and_sample_limit_match_cpu() {
+    let _cores = crate::common::shared();
     let context = GpuContext::new().expect("lavapipe or a GPU");
     let gpu = GpuMarch::new(&context).unwrap();
     let grid = random_grid(1, 11);
@@ -247,6 +215,7 @@ fn budget_and_sample_limit_match_cpu() {
 
 #[test]
 fn prefix_sum_over_many_blocks() {
+    let _cores = crate::common::shared();
     // 150 000 rays: 293 scan blocks, so the block totals take two tiles of
     // the single-workgroup step and its carry. At most 3 samples per ray
     // keeps the write small.
@@ -276,6 +245,7 @@ fn prefix_sum_over_many_blocks() {
 
 #[test]
 fn bitfield_matches_cpu() {
+    let _cores = crate::common::shared();
     let context = GpuContext::new().expect("lavapipe or a GPU");
     let gpu = GpuOccupancy::new(&context).unwrap();
     for (cascades, scale, seed) in [(1, 0.03, 1u64), (2, 0.01, 2), (1, 0.004, 3)] {
@@ -331,6 +301,7 @@ fn bitfield_matches_cpu() {
 
 #[test]
 fn grid_update_matches_cpu() {
+    let _cores = crate::common::shared();
     let context = GpuContext::new().expect("lavapipe or a GPU");
     let gpu = GpuOccupancy::new(&context).unwrap();
     let mut grid = OccupancyGrid::new(OccupancyConfig::PAPER, 2, MarchConfig::PAPER.step);
@@ -376,42 +347,4 @@ fn grid_update_matches_cpu() {
             100.0 * grid.occupancy_fraction()
         );
     }
-}
-
-/// Throughput of the gpu march (on lavapipe here): about 2^18 samples over
-/// a ball of radius 0.35. Run with
-/// `cargo test --release --test march_gpu -- --ignored --nocapture`.
-#[test]
-#[ignore]
-fn gpu_march_throughput() {
-    let context = GpuContext::new().expect("lavapipe or a GPU");
-    eprintln!("adapter: {}", context.describe());
-    let gpu = GpuMarch::new(&context).unwrap();
-    let mut grid = OccupancyGrid::new(OccupancyConfig::PAPER, 1, MarchConfig::PAPER.step);
-    let geometry = grid.geometry();
-    for (i, v) in grid.values_mut().iter_mut().enumerate() {
-        let centre = geometry.cell_min(geometry.cell_at(i)) + Vec3::splat(0.5 / 128.0);
-        *v = if centre.distance(Vec3::splat(0.5)) < 0.35 {
-            1.0
-        } else {
-            0.0
-        };
-    }
-    grid.build_bitfield();
-    let (origins, directions) = rays(1400, 3);
-    let ray_count = origins.len() / 3;
-    let params = MarchParams::training(UnitCubeMapping::BLENDER, 1);
-    let (_, stats) = gpu.march(&context, &grid, &origins, &directions, &params, 1 << 20);
-    let iterations = 10;
-    let started = std::time::Instant::now();
-    for _ in 0..iterations {
-        gpu.march(&context, &grid, &origins, &directions, &params, 1 << 20);
-    }
-    let seconds = started.elapsed().as_secs_f64() / iterations as f64;
-    eprintln!(
-        "{ray_count} rays, {} samples: {:.1} ms per march with upload and read-back, {:.2} M samples/s",
-        stats.samples,
-        1e3 * seconds,
-        stats.samples as f64 / seconds / 1e6
-    );
 }

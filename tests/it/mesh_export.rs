@@ -68,6 +68,7 @@ fn scene_of(trainer: &Trainer) -> &Scene {
 
 #[test]
 fn mesh_vertices_lie_on_the_true_surfaces() {
+    let _cores = crate::common::shared();
     let trainer = trained().lock().unwrap_or_else(|e| e.into_inner());
     let scene = scene_of(&trainer);
     let resolution = 128;
@@ -137,6 +138,7 @@ fn mesh_vertices_lie_on_the_true_surfaces() {
 
 #[test]
 fn point_cloud_lies_on_the_true_surfaces() {
+    let _cores = crate::common::shared();
     let trainer = trained().lock().unwrap_or_else(|e| e.into_inner());
     let scene = scene_of(&trainer);
     let views = &scene.train[..20];
@@ -171,6 +173,7 @@ fn left_box() -> CropBox {
 
 #[test]
 fn a_crop_box_leaves_background_where_it_cuts_an_object_away() {
+    let _cores = crate::common::shared();
     let mut trainer = trained().lock().unwrap_or_else(|e| e.into_inner());
     let crop = left_box();
     let cameras: Vec<_> = trainer.scene.val.iter().map(|f| f.camera).collect();

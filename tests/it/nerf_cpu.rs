@@ -3,7 +3,7 @@
 //! sampler, exact resumption, and recovery from an emptied grid. Hard
 //! numerical cases are in tests/hard_cases.rs, for every model.
 
-mod common;
+use crate::common;
 
 use std::sync::Arc;
 
@@ -59,6 +59,7 @@ fn uniform(rng: &mut Pcg32, lo: f32, hi: f32) -> f32 {
 
 #[test]
 fn field_gradient_matches_finite_differences() {
+    let _cores = crate::common::shared();
     for kind in KINDS {
         check_field_gradient(kind);
     }
@@ -268,6 +269,7 @@ fn check_step_gradient(kind: NerfKind, sampling: Sampling) {
 
 #[test]
 fn step_gradient_matches_finite_differences_with_the_occupancy_sampler() {
+    let _cores = crate::common::shared();
     for kind in KINDS {
         check_step_gradient(kind, Sampling::Occupancy);
     }
@@ -275,6 +277,7 @@ fn step_gradient_matches_finite_differences_with_the_occupancy_sampler() {
 
 #[test]
 fn step_gradient_matches_finite_differences_with_the_paper_sampler() {
+    let _cores = crate::common::shared();
     for kind in KINDS {
         check_step_gradient(kind, Sampling::Paper);
     }
@@ -323,6 +326,7 @@ fn check_resume(kind: NerfKind, sampling: Sampling) {
 
 #[test]
 fn resumed_run_matches_uninterrupted_run_with_either_sampler() {
+    let _cores = crate::common::shared();
     for kind in KINDS {
         check_resume(kind, Sampling::Occupancy);
         check_resume(kind, Sampling::Paper);
@@ -331,6 +335,7 @@ fn resumed_run_matches_uninterrupted_run_with_either_sampler() {
 
 #[test]
 fn checkpoint_of_the_other_sampler_or_model_is_refused() {
+    let _cores = crate::common::shared();
     let scene = small_scene();
     let paper = model(&scene, Sampling::Paper).save();
     let error = model(&scene, Sampling::Occupancy).load(&paper).unwrap_err();
@@ -356,6 +361,7 @@ fn checkpoint_of_the_other_sampler_or_model_is_refused() {
 
 #[test]
 fn every_sample_in_empty_space_gives_no_samples_and_a_finite_step() {
+    let _cores = crate::common::shared();
     let scene = small_scene();
     let mut trainer = Trainer::new(
         Box::new(model(&scene, Sampling::Occupancy)),
@@ -390,6 +396,7 @@ fn every_sample_in_empty_space_gives_no_samples_and_a_finite_step() {
 
 #[test]
 fn centre_crop_covers_the_first_steps_only() {
+    let _cores = crate::common::shared();
     let scene = small_scene();
     let nerf = model(&scene, Sampling::Paper);
     // config_lego.txt: precrop_iters 500, precrop_frac 0.5.

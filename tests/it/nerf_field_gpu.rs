@@ -569,12 +569,14 @@ fn check_parity(shape: &NerfShape, rows: usize, seed: u64) {
 
 #[test]
 fn small_field_matches_cpu() {
+    let _cores = crate::common::shared();
     // 997 rows: not a multiple of any tile or workgroup size.
     check_parity(&small_shape(DensityActivation::Relu), 997, 1);
 }
 
 #[test]
 fn shifted_softplus_density_matches_cpu() {
+    let _cores = crate::common::shared();
     // Mip-NeRF's density (`density_bias` −1, i.e. softplus(x − 1)).
     check_parity(
         &small_shape(DensityActivation::ShiftedSoftplus { shift: 1.0 }),
@@ -585,6 +587,7 @@ fn shifted_softplus_density_matches_cpu() {
 
 #[test]
 fn paper_field_matches_cpu() {
+    let _cores = crate::common::shared();
     // 8 × 256 with the skip after 5, γ(x) of 10 and γ(d) of 4 frequencies.
     // Lavapipe ran this shape at ~60 ms a row (forward, backward and σ
     // alone, 2 cores shared with a benchmark): 100 rows (not a multiple of
@@ -595,6 +598,7 @@ fn paper_field_matches_cpu() {
 /// `record_backward` adds into the gradient buffer, like the cpu field.
 #[test]
 fn backward_accumulates() {
+    let _cores = crate::common::shared();
     let shape = small_shape(DensityActivation::Relu);
     let params = params_with_biases(&shape, 4);
     let rows = 130;
@@ -641,6 +645,7 @@ fn backward_accumulates() {
 /// a time; the pieces must give bit for bit what one binding gives.
 #[test]
 fn split_bindings_give_the_same_bits() {
+    let _cores = crate::common::shared();
     let shape = small_shape(DensityActivation::Relu);
     let params = params_with_biases(&shape, 6);
     let rows = 1000;

@@ -199,11 +199,13 @@ fn relative_norm(a: &[f32], b: &[f32]) -> f64 {
 
 #[test]
 fn nerf_training_step_matches_the_cpu_engine() {
+    let _cores = crate::common::shared();
     one_training_step_matches_the_cpu_engine(Model::Nerf);
 }
 
 #[test]
 fn mipnerf_training_step_matches_the_cpu_engine() {
+    let _cores = crate::common::shared();
     one_training_step_matches_the_cpu_engine(Model::MipNerf);
 }
 
@@ -331,11 +333,13 @@ fn render(model: &dyn RadianceModel, scene: &Scene) -> Vec<RenderedPixel> {
 
 #[test]
 fn a_nerf_gpu_checkpoint_loads_on_the_cpu_engine_and_renders_the_same() {
+    let _cores = crate::common::shared();
     a_gpu_checkpoint_loads_on_the_cpu_engine_and_renders_the_same(Model::Nerf);
 }
 
 #[test]
 fn a_mipnerf_gpu_checkpoint_loads_on_the_cpu_engine_and_renders_the_same() {
+    let _cores = crate::common::shared();
     a_gpu_checkpoint_loads_on_the_cpu_engine_and_renders_the_same(Model::MipNerf);
 }
 
@@ -376,11 +380,13 @@ fn a_gpu_checkpoint_loads_on_the_cpu_engine_and_renders_the_same(model: Model) {
 
 #[test]
 fn nerf_occupancy_step_and_grid_update_match_the_cpu_engine() {
+    let _cores = crate::common::shared();
     one_occupancy_step_and_grid_update_match_the_cpu_engine(Model::Nerf);
 }
 
 #[test]
 fn mipnerf_occupancy_step_and_grid_update_match_the_cpu_engine() {
+    let _cores = crate::common::shared();
     one_occupancy_step_and_grid_update_match_the_cpu_engine(Model::MipNerf);
 }
 
@@ -493,11 +499,13 @@ fn one_occupancy_step_and_grid_update_match_the_cpu_engine(model: Model) {
 
 #[test]
 fn nerf_draws_its_view_into_a_texture_as_the_cpu_engine_renders_it() {
+    let _cores = crate::common::shared();
     texture_matches_the_cpu_render(Model::Nerf, Sampling::Paper);
 }
 
 #[test]
 fn mipnerf_draws_its_view_into_a_texture_as_the_cpu_engine_renders_it() {
+    let _cores = crate::common::shared();
     texture_matches_the_cpu_render(Model::MipNerf, Sampling::Occupancy);
 }
 
@@ -589,6 +597,7 @@ fn texture_matches_the_cpu_render(model: Model, sampling: Sampling) {
 /// waits for its own loss.
 #[test]
 fn an_occupancy_step_waits_for_the_device_once() {
+    let _cores = crate::common::shared();
     for model in [Model::Nerf, Model::MipNerf] {
         let scene = small_scene();
         let settings = ModelSettings {

@@ -132,6 +132,7 @@ fn train_demo(kind: Kind, default_steps: u32) -> (f64, f64) {
 
 #[test]
 fn nerf_learns_the_demo_scene_above_the_mean_colour() {
+    let _cores = crate::common::shared();
     let (baseline, trained) = train_demo(Kind::Nerf, 400);
     // 2.5 dB over the baseline is 56 % of its squared error, 1 dB short of
     // what was measured (other kernels round differently and the run
@@ -146,6 +147,7 @@ fn nerf_learns_the_demo_scene_above_the_mean_colour() {
 
 #[test]
 fn mipnerf_learns_the_demo_scene_above_the_mean_colour() {
+    let _cores = crate::common::shared();
     // Measured on the development machine (AVX2 kernels, seed 0, two cores
     // shared with other builds, 64³ grid): 11.6, 13.0 and 14.9 dB at steps
     // 100, 200 and 300 against the mean colour's 10.0; 12.83 dB at step 200
@@ -220,6 +222,7 @@ fn area_averaged_render_psnr(trainer: &Trainer, scene: &Scene, factor: usize) ->
 /// size and area-averaged: what a perfect anti-aliaser would score.
 #[test]
 fn mipnerf_trained_on_three_sizes_beats_nerf_at_each() {
+    let _cores = crate::common::shared();
     let size = env_or("ZRAK_AA_SIZE", 32u32);
     let scales = env_or("ZRAK_AA_SCALES", 3u32);
     let steps = env_or("ZRAK_AA_STEPS", 600u32);

@@ -3,7 +3,7 @@
 //! empty occupancy grid. Hard numerical cases are in tests/hard_cases.rs,
 //! for every model.
 
-mod common;
+use crate::common;
 
 use std::sync::Arc;
 
@@ -32,6 +32,7 @@ fn model(scene: &Scene) -> CpuModel {
 
 #[test]
 fn chained_gradient_matches_finite_differences() {
+    let _cores = crate::common::shared();
     let scene = small_scene();
     let mut trainer = Trainer::new(Box::new(model(&scene)), scene.clone(), 3);
     // Train a little so the networks are past their symmetric start and
@@ -84,6 +85,7 @@ fn chained_gradient_matches_finite_differences() {
 
 #[test]
 fn resumed_run_matches_uninterrupted_run() {
+    let _cores = crate::common::shared();
     let scene = small_scene();
     let steps = 40; // spans two occupancy-grid updates (every 16 steps)
     let mut whole = Trainer::new(Box::new(model(&scene)), scene.clone(), 5);
@@ -121,6 +123,7 @@ fn resumed_run_matches_uninterrupted_run() {
 
 #[test]
 fn checkpoint_of_another_scene_is_refused() {
+    let _cores = crate::common::shared();
     let scene = small_scene();
     let trainer = Trainer::new(Box::new(model(&scene)), scene.clone(), 1);
     let checkpoint = trainer.checkpoint(serde_json::json!({}));
@@ -140,6 +143,7 @@ fn checkpoint_of_another_scene_is_refused() {
 
 #[test]
 fn training_recovers_from_an_emptied_occupancy_grid() {
+    let _cores = crate::common::shared();
     let scene = small_scene();
     let mut trainer = Trainer::new(Box::new(model(&scene)), scene.clone(), 9);
     for _ in 0..40 {

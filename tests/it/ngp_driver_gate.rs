@@ -16,7 +16,7 @@
 //! on a processor with other kernels the losses are compared within a
 //! tolerance instead (see [`LOSS_TOLERANCE`]).
 
-mod common;
+use crate::common;
 
 use std::sync::Arc;
 
@@ -254,6 +254,7 @@ fn new_driver(scene: &Scene, seed: u64, loss: LossKind) -> zrak::engine::cpu::mo
 
 #[test]
 fn cpu_model_reproduces_the_old_drivers_record() {
+    let _cores = crate::common::shared();
     let scene = small_scene();
     let expected = fixture();
     let (record, trained) = Record::of(Box::new(new_driver(&scene, SEED, LossKind::Huber)), &scene);
@@ -317,6 +318,7 @@ fn cpu_model_reproduces_the_old_drivers_record() {
 #[test]
 #[ignore]
 fn rerecord_from_the_new_driver() {
+    let _cores = crate::common::shared();
     let scene = small_scene();
     let model = new_driver(&scene, SEED, LossKind::Huber);
     let (record, _) = Record::of(Box::new(model), &scene);

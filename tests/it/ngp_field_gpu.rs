@@ -11,7 +11,7 @@
 //! The hash table's gradient is summed by many samples into shared
 //! entries in another order on the gpu, within the same bound.
 
-mod common;
+use crate::common;
 
 use common::relative_norm;
 use zrak::engine::cpu::fields::ngp::{NgpField, NgpShape};
@@ -145,6 +145,7 @@ fn gpu_outputs(
 
 #[test]
 fn gpu_ngp_field_matches_the_cpu_field() {
+    let _cores = crate::common::shared();
     let shape = small_shape();
     let params = params(&shape, 5);
     let mut rng = Pcg32::new(5, 7);

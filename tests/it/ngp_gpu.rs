@@ -2,7 +2,7 @@
 //! whole training step from the same state, the occupancy update, and a
 //! checkpoint moved from the gpu engine to the cpu engine.
 
-mod common;
+use crate::common;
 
 use std::ops::Range;
 use std::sync::Arc;
@@ -70,6 +70,7 @@ fn share_ball_grid(cpu: &mut CpuModel, gpu: &mut GpuNgp) {
 
 #[test]
 fn one_training_step_matches_the_cpu_engine() {
+    let _cores = crate::common::shared();
     let scene = small_scene();
     let (mut cpu, mut gpu) = models(&scene);
     // The same initial parameters, bit for bit (the same seeds per part).
@@ -205,6 +206,7 @@ fn render_view(model: &dyn RadianceModel, scene: &Scene) -> Vec<RenderedPixel> {
 /// timing does not change what the step computes.
 #[test]
 fn a_step_reports_the_time_of_each_stage() {
+    let _cores = crate::common::shared();
     let scene = small_scene();
     let (mut cpu, mut gpu) = models(&scene);
     share_ball_grid(&mut cpu, &mut gpu);
@@ -243,6 +245,7 @@ fn a_step_reports_the_time_of_each_stage() {
 
 #[test]
 fn a_gpu_checkpoint_renders_the_same_pixels_on_the_cpu_engine() {
+    let _cores = crate::common::shared();
     let scene = small_scene();
     let (mut cpu, mut gpu) = models(&scene);
     share_ball_grid(&mut cpu, &mut gpu);
@@ -279,6 +282,7 @@ fn a_gpu_checkpoint_renders_the_same_pixels_on_the_cpu_engine() {
 #[test]
 #[ignore]
 fn occupancy_update_matches_the_cpu_engine() {
+    let _cores = crate::common::shared();
     let scene = small_scene();
     let (mut cpu, mut gpu) = models(&scene);
     let rays = batch(&scene, 256, 23);
@@ -322,6 +326,7 @@ fn occupancy_update_matches_the_cpu_engine() {
 /// grid update; step 0 has no earlier step and waits for its own loss.
 #[test]
 fn a_step_waits_for_the_device_once() {
+    let _cores = crate::common::shared();
     let scene = small_scene();
     let (mut cpu, mut gpu) = models(&scene);
     share_ball_grid(&mut cpu, &mut gpu);

@@ -87,6 +87,7 @@ const SEEDS: [u64; 3] = [0, 1, 2];
 
 #[test]
 fn learns_the_demo_scene_well_above_the_mean_colour() {
+    let _cores = crate::common::shared();
     // 64×64 views, 250 steps of 2^16 samples: about a minute on two idle
     // cores. Measured on the development machine (seed 0): 9.7 dB for the
     // mean colour, 22 dB at step 200, 27 dB at step 300.
@@ -117,6 +118,7 @@ fn learns_the_demo_scene_well_above_the_mean_colour() {
 
 #[test]
 fn mixed_precision_learns_as_well_as_f32() {
+    let _cores = crate::common::shared();
     if Precision::Mixed.kernels_here() != Precision::Mixed {
         // Past the test harness's capture, so a skipped check is seen.
         let mut stderr = std::io::stderr();

@@ -111,6 +111,7 @@ fn compare(
 
 #[test]
 fn render_to_texture_matches_the_read_back_render() {
+    let _cores = crate::common::shared();
     let scene = scene();
     let gpu = trained_gpu_model(&scene, 1 << 10);
     let model: &dyn RadianceModel = &gpu;
@@ -134,6 +135,7 @@ fn render_to_texture_matches_the_read_back_render() {
 /// shows where the box cuts the objects away.
 #[test]
 fn a_crop_box_renders_the_same_into_the_texture_and_on_both_engines() {
+    let _cores = crate::common::shared();
     let scene = scene();
     let (mut cpu, mut gpu) = trained_models(&scene, 1 << 10);
     let camera = scene.val[0].camera;
@@ -178,6 +180,7 @@ fn a_crop_box_renders_the_same_into_the_texture_and_on_both_engines() {
 /// both), so `zrak export mesh` and the viewer's export work on either.
 #[test]
 fn density_and_colour_at_points_match_the_cpu_engine() {
+    let _cores = crate::common::shared();
     let scene = scene();
     let (cpu, gpu) = trained_models(&scene, 1 << 10);
     let mut rng = Pcg32::new(11, 0);
@@ -224,6 +227,7 @@ fn density_and_colour_at_points_match_the_cpu_engine() {
 /// render's (the cpu marcher's) do, or the colours move apart.
 #[test]
 fn render_to_texture_matches_the_read_back_render_with_cone_steps() {
+    let _cores = crate::common::shared();
     let scene = Arc::new(demo::build_large(&DemoConfig {
         size: 24,
         train_views: 16,
@@ -252,6 +256,7 @@ fn render_to_texture_matches_the_read_back_render_with_cone_steps() {
 
 #[test]
 fn a_wrong_target_is_refused_with_what_is_wrong() {
+    let _cores = crate::common::shared();
     let scene = scene();
     let context = GpuContext::new().expect("lavapipe or a GPU");
     let gpu = GpuNgp::with_batch_samples(context, &scene, SEED, LossKind::Huber, 1 << 10).unwrap();

@@ -68,6 +68,7 @@ fn planes(rays: usize, seed: u64) -> (Vec<f32>, Vec<f32>) {
 
 #[test]
 fn stratified_matches_cpu_bit_for_bit() {
+    let _cores = crate::common::shared();
     let Some((context, sampling)) = setup() else {
         return;
     };
@@ -141,6 +142,7 @@ fn pdf_inputs(rays: usize, bins: usize, seed: u64) -> (Vec<f32>, Vec<f32>) {
 
 #[test]
 fn sample_pdf_matches_cpu_within_ulps_of_the_bin_width() {
+    let _cores = crate::common::shared();
     let Some((context, sampling)) = setup() else {
         return;
     };
@@ -209,6 +211,7 @@ fn sample_pdf_matches_cpu_within_ulps_of_the_bin_width() {
 
 #[test]
 fn merge_blur_and_intervals_match_cpu_bit_for_bit() {
+    let _cores = crate::common::shared();
     let Some((context, sampling)) = setup() else {
         return;
     };
@@ -361,6 +364,7 @@ fn check_gaussians(
 
 #[test]
 fn frustums_between_edges_match_cpu() {
+    let _cores = crate::common::shared();
     let Some((context, _)) = setup() else {
         return;
     };
@@ -480,6 +484,7 @@ fn frustums_between_edges_match_cpu() {
 
 #[test]
 fn frustums_of_marched_steps_match_cpu() {
+    let _cores = crate::common::shared();
     let Some((context, _)) = setup() else {
         return;
     };

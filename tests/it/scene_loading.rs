@@ -30,6 +30,7 @@ fn write_instant_ngp(root: &Path) {
 
 #[test]
 fn blender_folder() {
+    let _cores = crate::common::shared();
     let dir = tempfile::tempdir().unwrap();
     write_blender(dir.path());
     let scene = Scene::load(dir.path(), LoadOptions::default()).unwrap();
@@ -39,6 +40,7 @@ fn blender_folder() {
 
 #[test]
 fn instant_ngp_folder() {
+    let _cores = crate::common::shared();
     let dir = tempfile::tempdir().unwrap();
     write_instant_ngp(dir.path());
     let scene = Scene::load(dir.path(), LoadOptions::default()).unwrap();
@@ -48,6 +50,7 @@ fn instant_ngp_folder() {
 
 #[test]
 fn split_files_win_over_transforms_json() {
+    let _cores = crate::common::shared();
     let dir = tempfile::tempdir().unwrap();
     write_blender(dir.path());
     write_instant_ngp(dir.path());
@@ -57,6 +60,7 @@ fn split_files_win_over_transforms_json() {
 
 #[test]
 fn path_to_a_json_file() {
+    let _cores = crate::common::shared();
     let dir = tempfile::tempdir().unwrap();
     write_blender(dir.path());
     write_instant_ngp(dir.path());
@@ -70,6 +74,7 @@ fn path_to_a_json_file() {
 
 #[test]
 fn folder_without_scene_files() {
+    let _cores = crate::common::shared();
     let dir = tempfile::tempdir().unwrap();
     let e = Scene::load(dir.path(), LoadOptions::default())
         .unwrap_err()
@@ -83,6 +88,7 @@ fn folder_without_scene_files() {
 
 #[test]
 fn missing_folder() {
+    let _cores = crate::common::shared();
     let dir = tempfile::tempdir().unwrap();
     let e = Scene::load(&dir.path().join("gone"), LoadOptions::default()).unwrap_err();
     assert!(e.to_string().contains("gone: folder not found"), "{e}");
@@ -90,6 +96,7 @@ fn missing_folder() {
 
 #[test]
 fn downscale_zero() {
+    let _cores = crate::common::shared();
     let dir = tempfile::tempdir().unwrap();
     write_blender(dir.path());
     let e = Scene::load(dir.path(), LoadOptions { downscale: 0 }).unwrap_err();

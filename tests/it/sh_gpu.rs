@@ -38,6 +38,7 @@ fn close(gpu: f32, cpu: f32) -> bool {
 
 #[test]
 fn sh_encoding_matches_cpu() {
+    let _cores = crate::common::shared();
     let context = GpuContext::new().expect("CI installs mesa-vulkan-drivers, so an adapter exists");
     let sh = GpuSh::new(&context).expect("the kernel compiles");
     let rows = 4001;
@@ -60,6 +61,7 @@ fn sh_encoding_matches_cpu() {
 
 #[test]
 fn sh_encoding_writes_into_a_wider_matrix() {
+    let _cores = crate::common::shared();
     let context = GpuContext::new().expect("an adapter exists");
     let sh = GpuSh::new(&context).expect("the kernel compiles");
     let rows = 3000;

@@ -56,6 +56,7 @@ fn assert_bits_equal(what: &str, split: &[f32], whole: &[f32]) {
 
 #[test]
 fn dense_forward_and_backward_split_by_rows_are_bit_exact() {
+    let _cores = crate::common::shared();
     // 20 000 rows × 64 wide is 5 MiB per activation; under a 2 MiB limit
     // each layer runs in 3 pieces of 8192 rows, and the weight gradients'
     // partial sums of all pieces are reduced together. (The partials, 79
@@ -102,6 +103,7 @@ fn small_grid() -> HashGridLayout {
 
 #[test]
 fn hash_grid_split_by_levels_and_samples_matches_whole() {
+    let _cores = crate::common::shared();
     // A 300 KiB limit: the table (~1.7 MiB) is bound two levels at a time
     // and the 5000 × 32 encodings (625 KiB) in pieces of 2368 samples.
     let cap = 300 << 10;
@@ -146,6 +148,7 @@ fn hash_grid_split_by_levels_and_samples_matches_whole() {
 
 #[test]
 fn a_single_level_over_the_limit_is_refused_clearly() {
+    let _cores = crate::common::shared();
     let small = capped(64 << 10);
     let error = GpuHashGrid::new(&small, &small_grid(), true)
         .err()
@@ -157,6 +160,7 @@ fn a_single_level_over_the_limit_is_refused_clearly() {
 
 #[test]
 fn adam_split_into_pieces_is_bit_exact() {
+    let _cores = crate::common::shared();
     // 100 000 parameters (391 KiB per array) under a 64 KiB limit: seven
     // pieces, the network range crossing piece boundaries.
     let count = 100_000;
@@ -225,6 +229,7 @@ fn relative_norm(a: &[f32], b: &[f32]) -> f64 {
 
 #[test]
 fn instant_ngp_step_with_split_bindings_matches_the_unsplit_step() {
+    let _cores = crate::common::shared();
     // 2^15 samples under a 4.5 MiB limit: the paper's table (4 MiB per
     // hashed level) is bound a level at a time, the 64-wide activations
     // (8 MiB) in two pieces, Adam's 50 MiB arrays in twelve.

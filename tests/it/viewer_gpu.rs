@@ -175,6 +175,7 @@ fn largest_difference(a: &[u8], b: &[u8]) -> u8 {
 
 #[test]
 fn the_gpu_engine_draws_the_view_into_a_texture_on_the_shared_device() {
+    let _cores = crate::common::shared();
     let clock = Instant::now();
     let config = demo_config();
     let scene = Arc::new(demo::build(&config));
@@ -291,6 +292,7 @@ fn the_gpu_engine_draws_the_view_into_a_texture_on_the_shared_device() {
 /// pixels are composited on the host and uploaded.
 #[test]
 fn a_level_drawn_in_bands_is_the_level_drawn_whole() {
+    let _cores = crate::common::shared();
     use zrak::app::progressive::draw_band_to_texture;
     use zrak::engine::gpu::render::render_target;
     let config = demo_config();

@@ -128,6 +128,7 @@ fn harness_with_scene() -> (Harness<'static, ViewerUi>, RecordingLink) {
 
 #[test]
 fn panels_show_every_control() {
+    let _cores = crate::common::shared();
     let (mut harness, link) = harness_with_scene();
     link.push(Event::Stats(stats(7, 0.0123)));
     harness.run_steps(2);
@@ -186,6 +187,7 @@ fn panels_show_every_control() {
 
 #[test]
 fn start_pause_step_and_reset_send_their_commands() {
+    let _cores = crate::common::shared();
     let (mut harness, link) = harness_with_scene();
     link.clear();
     harness.get_by_label("Start").click();
@@ -208,6 +210,7 @@ fn start_pause_step_and_reset_send_their_commands() {
 
 #[test]
 fn model_toggle_selects_each_model_once() {
+    let _cores = crate::common::shared();
     let (mut harness, link) = harness_with_scene();
     link.clear();
     // Clicking the active model changes nothing: its state is kept.
@@ -241,6 +244,7 @@ fn model_toggle_selects_each_model_once() {
 
 #[test]
 fn render_requests_follow_mode_and_nothing_else() {
+    let _cores = crate::common::shared();
     let (mut harness, link) = harness_with_scene();
     let first = link.render_requests();
     assert_eq!(first.len(), 1, "one request for the first view");
@@ -285,6 +289,7 @@ fn render_requests_follow_mode_and_nothing_else() {
 
 #[test]
 fn next_view_snaps_the_camera_to_that_training_view() {
+    let _cores = crate::common::shared();
     let (mut harness, link) = harness_with_scene();
     harness.get_by_label("Side by side").click();
     harness.run_steps(2);
@@ -326,6 +331,7 @@ fn solid_frame(generation: u64, width: u32, height: u32, rgb: [f32; 3]) -> Rende
 
 #[test]
 fn the_latest_frame_fills_the_viewport_and_stale_frames_are_dropped() {
+    let _cores = crate::common::shared();
     let (mut harness, link) = harness_with_scene();
     let request = link.render_requests().pop().unwrap();
     let k = request.camera.intrinsics;
@@ -364,6 +370,7 @@ fn the_latest_frame_fills_the_viewport_and_stale_frames_are_dropped() {
 
 #[test]
 fn plots_record_every_model_and_reset_starts_the_curve_again() {
+    let _cores = crate::common::shared();
     let (mut harness, link) = harness_with_scene();
     for step in 1..=5 {
         link.push(Event::Stats(stats(step, 0.1 / step as f32)));
@@ -390,6 +397,7 @@ fn plots_record_every_model_and_reset_starts_the_curve_again() {
 
 #[test]
 fn a_failed_scene_shows_its_error_in_the_window() {
+    let _cores = crate::common::shared();
     let (mut harness, link) = harness_with_scene();
     link.push(Event::SceneFailed {
         source: SceneSource::Folder("/nowhere/broken-scene".into()),
@@ -408,6 +416,7 @@ fn a_failed_scene_shows_its_error_in_the_window() {
 /// the demo scene running and says which folder failed, in the window.
 #[test]
 fn opening_a_bad_folder_with_the_real_worker_names_the_folder() {
+    let _cores = crate::common::shared();
     let folder = tempfile::tempdir().unwrap();
     let bad = folder.path().join("not-a-scene");
     std::fs::create_dir(&bad).unwrap();
@@ -471,6 +480,7 @@ fn opening_a_bad_folder_with_the_real_worker_names_the_folder() {
 /// every channel has MSE 0.01, so PSNR = −10·log10(0.01) = 20 dB exactly.
 #[test]
 fn comparing_at_a_training_view_measures_the_error() {
+    let _cores = crate::common::shared();
     let (mut harness, link) = harness_with_scene();
     button(&harness, "Side by side").click();
     harness.run_steps(2);
@@ -504,6 +514,7 @@ fn comparing_at_a_training_view_measures_the_error() {
 
 #[test]
 fn training_all_models_in_turn_is_one_click_and_plots_against_training_time() {
+    let _cores = crate::common::shared();
     let (mut harness, link) = harness_with_scene();
     link.clear();
     button(&harness, "Train all models in turn").click();
@@ -557,6 +568,7 @@ fn evaluated(model: ModelKind, step: u32, train_seconds: f64, val_psnr: f32) -> 
 
 #[test]
 fn the_plot_and_table_export_from_the_window_with_the_sessions_numbers() {
+    let _cores = crate::common::shared();
     let (mut harness, link) = harness_with_scene();
     // Instant-NGP: 20 dB after 10 s of training, 30 dB after 40 s;
     // NeRF: 15 dB after 10 s.
@@ -599,6 +611,7 @@ fn the_plot_and_table_export_from_the_window_with_the_sessions_numbers() {
 
 #[test]
 fn the_stats_show_where_the_thread_time_goes_and_how_far_the_picture_lags() {
+    let _cores = crate::common::shared();
     use zrak::app::protocol::{LevelTime, ScheduleTrace};
     let (mut harness, link) = harness_with_scene();
     // The timing column shows where the thread's time goes, or on a click
@@ -691,6 +704,7 @@ fn the_stats_show_where_the_thread_time_goes_and_how_far_the_picture_lags() {
 
 #[test]
 fn the_crop_box_window_sends_the_box_and_shows_a_refusal() {
+    let _cores = crate::common::shared();
     let (mut harness, link) = harness_with_scene();
     button(&harness, "Crop box…").click();
     harness.run_steps(2);
@@ -726,6 +740,7 @@ fn the_crop_box_window_sends_the_box_and_shows_a_refusal() {
 
 #[test]
 fn the_export_window_sends_a_mesh_export_and_shows_its_progress() {
+    let _cores = crate::common::shared();
     let (mut harness, link) = harness_with_scene();
     harness.state_mut().open_export(ExportKind::Mesh);
     harness.run_steps(2);
@@ -765,6 +780,7 @@ fn the_export_window_sends_a_mesh_export_and_shows_its_progress() {
 
 #[test]
 fn the_path_editor_adds_keyframes_and_plays_them_in_the_viewport() {
+    let _cores = crate::common::shared();
     let (mut harness, link) = harness_with_scene();
     harness.get_by_label("Camera path…").click();
     harness.run_steps(2);

@@ -10,7 +10,7 @@
 //! Needs `Xvfb` (Debian's xvfb; `.ci/run` installs it). Without it the
 //! test says so and passes, except under CI, where a missing Xvfb fails.
 
-mod common;
+use crate::common;
 
 use std::io::BufRead;
 use std::path::{Path, PathBuf};
@@ -228,6 +228,7 @@ fn run_viewer_until_interrupted(
 /// the status of an interrupted command (130, as `zrak train`).
 #[test]
 fn window_trains_on_the_demo_scene_shows_it_and_keeps_it_on_ctrl_c() {
+    let _cores = crate::common::shared();
     let Some(display) = Display::start() else {
         return;
     };

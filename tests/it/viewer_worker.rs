@@ -1,10 +1,9 @@
 //! The viewer's training thread on the cpu engine and a small demo scene:
 //! what it answers to each command, checked by value.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
-use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use glam::Vec3;
@@ -19,9 +18,6 @@ use zrak::render::export::ExportSettings;
 use zrak::render::path::Turntable;
 use zrak::scene::demo::{self, CAMERA_ANGLE_X, DemoConfig};
 use zrak::scene::{Camera, Intrinsics};
-
-/// The tests share two cores; one worker at a time keeps each one quick.
-static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
 
 /// Generous: on a loaded machine a step can take a second.
 const PATIENCE: Duration = Duration::from_secs(60);
@@ -128,7 +124,7 @@ fn frames_until_full(worker: &TrainingWorker, generation: u64) -> Vec<RenderedFr
 
 #[test]
 fn training_reports_stats_with_a_finite_loss_and_honest_psnrs() {
-    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let _alone = common::alone();
     let worker = spawn(WorkerOptions {
         loss: Some(LossKind::L2),
         // Evaluate after every step, so the first report carries a PSNR.
@@ -178,7 +174,7 @@ fn training_reports_stats_with_a_finite_loss_and_honest_psnrs() {
 
 #[test]
 fn a_render_request_refines_to_full_size_and_old_generations_stop() {
-    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let _alone = common::alone();
     let worker = spawn(options());
     // An untrained field is dense everywhere, so every ray marches its
     // full length: views stay small to keep the test short.
@@ -262,7 +258,7 @@ fn a_render_request_refines_to_full_size_and_old_generations_stop() {
 
 #[test]
 fn reset_forgets_the_steps_and_selecting_the_model_keeps_them() {
-    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let _alone = common::alone();
     let worker = spawn(options());
     for expected in 1..=3 {
         assert_eq!(step_once(&worker), expected);
@@ -284,7 +280,7 @@ fn reset_forgets_the_steps_and_selecting_the_model_keeps_them() {
 
 #[test]
 fn a_missing_scene_folder_is_reported_while_training_goes_on() {
-    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let _alone = common::alone();
     let worker = spawn(options());
     worker.send(Command::Start);
     let first = wait_for(&worker, |e| match e {
@@ -324,7 +320,7 @@ fn save(worker: &TrainingWorker, path: &Path) {
 
 #[test]
 fn a_checkpoint_restores_its_step_and_one_of_another_scene_is_refused() {
-    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let _alone = common::alone();
     let dir = tempfile::tempdir().unwrap();
     let checkpoint = dir.path().join("viewer.zrak");
     let worker = spawn(options());
@@ -388,7 +384,7 @@ fn turntable(out_dir: &Path, frames: usize) -> ExportSettings {
 
 #[test]
 fn a_turntable_export_reports_progress_and_can_be_cancelled() {
-    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let _alone = common::alone();
     let dir = tempfile::tempdir().unwrap();
     let worker = spawn(options());
     worker.send(Command::ExportTurntable(turntable(dir.path(), 3)));
@@ -429,7 +425,7 @@ fn a_turntable_export_reports_progress_and_can_be_cancelled() {
 
 #[test]
 fn closing_keeps_each_model_trained_since_its_last_save() {
-    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let _alone = common::alone();
     let dir = tempfile::tempdir().unwrap();
     let kept_in = |runs: &Path| -> Vec<PathBuf> {
         std::fs::read_dir(runs)
@@ -486,7 +482,7 @@ fn closing_keeps_each_model_trained_since_its_last_save() {
 
 #[test]
 fn a_scene_loads_while_the_current_one_trains() {
-    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let _alone = common::alone();
     let dir = tempfile::tempdir().unwrap();
     // Large enough that reading and decoding it takes longer than a couple
     // of small steps.
@@ -522,7 +518,7 @@ fn a_scene_loads_while_the_current_one_trains() {
 
 #[test]
 fn models_in_turn_train_in_order_at_equal_shares_of_training_time() {
-    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let _alone = common::alone();
     let worker = spawn(WorkerOptions {
         // NeRF with the paper's sampler on batches of 4 rays (1024
         // samples): steps of tens of ms and no occupancy-grid update, so
@@ -608,7 +604,7 @@ fn models_in_turn_train_in_order_at_equal_shares_of_training_time() {
 
 #[test]
 fn training_goes_on_while_the_camera_never_rests() {
-    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let _alone = common::alone();
     let worker = spawn(options());
     wait_for(&worker, |event| match event {
         Event::Engine { .. } => Some(()),
@@ -874,7 +870,7 @@ fn the_picture_keeps_up_while_training_keeps_its_share(
 
 #[test]
 fn nerf_on_the_cpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
-    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let _alone = common::alone();
     the_picture_keeps_up_while_training_keeps_its_share(
         ModelKind::Nerf,
         EngineKind::Cpu,
@@ -889,7 +885,7 @@ fn nerf_on_the_cpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
 
 #[test]
 fn mipnerf_on_the_cpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
-    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let _alone = common::alone();
     the_picture_keeps_up_while_training_keeps_its_share(
         ModelKind::MipNerf,
         EngineKind::Cpu,
@@ -909,7 +905,7 @@ fn mipnerf_on_the_cpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
 /// nerf`: 86 s a step of 2^12 samples), a pixel of them in about a second,
 /// so the models have the small networks the gpu parity tests use.
 fn on_the_gpu_engine(model: ModelKind, shape: common::NerfKind) {
-    let _serial = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let _alone = common::alone();
     let context = match zrak::engine::gpu::GpuContext::new() {
         Ok(context) => context,
         Err(error) => {

@@ -25,6 +25,7 @@ const QUALITY_TINY: [&str; 14] = [
 
 #[test]
 fn bench_quality_writes_its_report_and_holds_the_numbers_the_runs_logged() {
+    let _cores = crate::common::shared();
     let dir = temp_dir();
     let d = dir.path();
     // NeRF with the paper's sampler: no occupancy grid to fill first.
@@ -177,6 +178,7 @@ fn bench_quality_writes_its_report_and_holds_the_numbers_the_runs_logged() {
 
 #[test]
 fn bench_quality_refuses_bad_input_by_name() {
+    let _cores = crate::common::shared();
     let dir = temp_dir();
     let d = dir.path();
     let quality = |extra: &[&str]| {
@@ -243,6 +245,7 @@ fn bench_quality_refuses_bad_input_by_name() {
 
 #[test]
 fn an_interrupted_bench_quality_continues_where_it_stopped() {
+    let _cores = crate::common::shared();
     let dir = temp_dir();
     let d = dir.path();
     // The first step passes the first mark; training to the budget takes

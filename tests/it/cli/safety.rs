@@ -452,6 +452,7 @@ fn snapshot(dir: &Path) -> Vec<(std::path::PathBuf, Vec<u8>)> {
 
 #[test]
 fn bad_input_is_refused_by_name_and_nothing_on_disk_is_lost() {
+    let _cores = crate::common::shared();
     let dir = temp_dir();
     let d = dir.path();
     bad_input_fixture(d);
@@ -503,6 +504,7 @@ fn bad_input_is_refused_by_name_and_nothing_on_disk_is_lost() {
 
 #[test]
 fn force_moves_the_old_run_aside_and_never_deletes_it() {
+    let _cores = crate::common::shared();
     let dir = temp_dir();
     let d = dir.path();
     succeed(
@@ -546,6 +548,7 @@ fn force_moves_the_old_run_aside_and_never_deletes_it() {
 
 #[test]
 fn a_resumed_log_is_cut_back_to_the_checkpoint() {
+    let _cores = crate::common::shared();
     let dir = temp_dir();
     let d = dir.path();
     succeed(
@@ -583,6 +586,7 @@ fn a_resumed_log_is_cut_back_to_the_checkpoint() {
 
 #[test]
 fn a_colmap_images_txt_without_point_lines_loads_every_image() {
+    let _cores = crate::common::shared();
     let dir = temp_dir();
     let d = dir.path();
     colmap_scene(d, "with-points", |text| text);
@@ -600,6 +604,7 @@ fn a_colmap_images_txt_without_point_lines_loads_every_image() {
 
 #[test]
 fn a_refused_bench_quality_leaves_nothing_that_blocks_its_corrected_run() {
+    let _cores = crate::common::shared();
     let dir = temp_dir();
     let d = dir.path();
     succeed(
@@ -672,6 +677,7 @@ fn with_full_stdout(dir: &Path, args: &[&str]) -> Output {
 
 #[test]
 fn a_full_standard_output_is_an_error_not_a_panic() {
+    let _cores = crate::common::shared();
     let dir = temp_dir();
     let d = dir.path();
     succeed(
@@ -763,6 +769,7 @@ fn fill_disk(folder: &Path) {
 /// at 4 KiB).
 #[test]
 fn a_full_disk_never_cuts_a_file_short() {
+    let _cores = crate::common::shared();
     let dir = temp_dir();
     let d = dir.path();
     let Some(_disk) = SmallDisk::mount(&d.join("full"), 256 * 1024) else {

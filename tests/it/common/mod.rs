@@ -2,13 +2,14 @@
 //! NeRF's field in miniature, a gpu context, and the `zrak` binary run as a
 //! child process.
 //!
-//! Each test file is its own crate and uses only some of these, so unused
-//! ones are not an error there.
+//! Every test holds [`shared`] or [`alone`] while it runs.
 #![allow(dead_code)]
+
+pub mod march;
 
 use std::path::PathBuf;
 use std::process::{Child, Output};
-use std::sync::Arc;
+use std::sync::{Arc, RwLock, RwLockReadGuard, RwLockWriteGuard};
 use std::time::{Duration, Instant};
 
 use zrak::engine::cpu::fields::nerf::{DensityActivation, NerfShape};
@@ -158,4 +159,32 @@ pub fn readbacks_per_step(
         counts.push((counters.read() - before).blocking_readbacks);
     }
     counts
+}
+
+/// Held by every test: shared by those that may run side by side, taken
+/// whole by those that must run alone.
+///
+/// The integration tests were one binary per file, and cargo ran the
+/// binaries one after another; now one process runs them all, two at a
+/// time. A test that measures how the machine shares its time (the
+/// viewer's training thread: training's share of the wall clock, how far
+/// the picture lags behind training, how soon a resting camera is drawn
+/// whole) ran alone in its binary, beside nothing but another test of that
+/// binary waiting for its turn. Beside any other test of this process it
+/// would share the two cores and rayon's one global thread pool (its steps
+/// queued behind another test's work), and its bounds would measure that
+/// test too. std's RwLock on Linux lets no new reader in while a writer
+/// waits, so [`alone`] waits only for the tests already running.
+static CORES: RwLock<()> = RwLock::new(());
+
+/// For a test that may run beside other tests (all but [`alone`]'s).
+pub fn shared() -> RwLockReadGuard<'static, ()> {
+    // A test that panicked while running alone poisons the lock; the lock
+    // guards no data, so the next test goes on.
+    CORES.read().unwrap_or_else(|e| e.into_inner())
+}
+
+/// For a test that must have the process to itself: see [`CORES`].
+pub fn alone() -> RwLockWriteGuard<'static, ()> {
+    CORES.write().unwrap_or_else(|e| e.into_inner())
 }
