@@ -5,8 +5,8 @@
 //! naming the problem; never a panic or an abort.
 //!
 //! `cargo test` runs a bounded number of cases. The long mode is ignored by
-//! default: `ZRAK_FUZZ_MINUTES=60 cargo test --release --test fuzz_parsers
-//! -- --ignored --nocapture` runs every parser in turn, in rounds of
+//! default: `ZRAK_FUZZ_MINUTES=60 cargo test --release --test it
+//! fuzz_parsers -- --ignored --nocapture` runs every parser in turn, in rounds of
 //! `ZRAK_FUZZ_CASES` cases (default 2000), until that much time has passed,
 //! and prints the counts.
 

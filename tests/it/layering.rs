@@ -186,7 +186,7 @@ fn every_module_of_src_has_a_layer() {
         if let Some(module) = module_of(&src, &file) {
             assert!(
                 layer_of(&module).is_some(),
-                "{} is in no layer of tests/layering.rs: give src/{module} its place",
+                "{} is in no layer of tests/it/layering.rs: give src/{module} its place",
                 file.display()
             );
         }

@@ -1,7 +1,7 @@
 //! NeRF and Mip-NeRF on the cpu engine (one driver, one field shape, two
 //! recipes): the field's gradients, the whole step's gradient with either
 //! sampler, exact resumption, and recovery from an emptied grid. Hard
-//! numerical cases are in tests/hard_cases.rs, for every model.
+//! numerical cases are in tests/it/hard_cases.rs, for every model.
 
 use crate::common;
 

@@ -7,7 +7,7 @@
 //! models are one gpu driver with two recipes.
 //!
 //! Tolerances. Every stage of the step has its own parity test against the
-//! cpu (tests/nerf_field_gpu.rs, sampling_gpu.rs, composite and loss
+//! cpu (tests/it/nerf_field_gpu.rs, sampling_gpu.rs, composite and loss
 //! tests): the sampling kernels are bit-equal, the rest agree to f32
 //! rounding, ~1e-6 relative, different only in summation order and in
 //! `exp` (the gpu's 1 − e^{−τ} is a Taylor series below τ = 0.25, the
@@ -19,8 +19,8 @@
 //! and still far below what a wrong sample, weight, chunk share or
 //! parameter offset gives (those are off by O(1)). Mip-NeRF's step adds
 //! two stages to the chain, both with parity tests of their own: the
-//! frustum Gaussians (tests/sampling_gpu.rs: within a few ulps, bit-equal
-//! on lavapipe) and the integrated encoding (tests/frequency_gpu.rs: within
+//! frustum Gaussians (tests/it/sampling_gpu.rs: within a few ulps, bit-equal
+//! on lavapipe) and the integrated encoding (tests/it/frequency_gpu.rs: within
 //! 2.2e-7 absolute, the exp of the damping); its resampled edges move
 //! continuously with the blurred coarse weights, as NeRF's importance
 //! samples do. So the same 1e-4 holds for it, and a frustum stage or
@@ -74,7 +74,7 @@ enum Model {
 }
 
 impl Model {
-    /// The model's field in miniature, as tests/nerf_cpu.rs: every part of
+    /// The model's field in miniature, as tests/it/nerf_cpu.rs: every part of
     /// the paper's (NeRF: both encodings with raw inputs; Mip-NeRF: the
     /// integrated position encoding without, the shifted softplus and the
     /// widened colour; the skip, σ and feature heads, the colour branch),
@@ -296,7 +296,7 @@ fn one_training_step_matches_the_cpu_engine(model: Model) {
             if (dc - dg).abs() > 1e-3 * dc.abs().max(dg.abs()) + ulp {
                 mismatched += 1;
                 // Only a gradient at the level of summation noise may
-                // differ in sign (see tests/ngp_gpu.rs for the bound).
+                // differ in sign (see tests/it/ngp_gpu.rs for the bound).
                 assert!(
                     cpu_gradient[i].abs() <= 1e-4 * largest,
                     "parameter {i}: update gpu {dg} cpu {dc} (gradient cpu {} gpu {})",

@@ -1,6 +1,6 @@
 //! Instant-NGP on the cpu engine as a whole: the chained step's gradient
 //! against finite differences, exact resumption, and recovery from an
-//! empty occupancy grid. Hard numerical cases are in tests/hard_cases.rs,
+//! empty occupancy grid. Hard numerical cases are in tests/it/hard_cases.rs,
 //! for every model.
 
 use crate::common;

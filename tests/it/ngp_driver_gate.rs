@@ -173,7 +173,7 @@ impl Record {
     fn to_text(&self) -> String {
         let mut text = String::from(
             "# Instant-NGP on the cpu engine, seed 7, 20 steps of 2^13 samples\n\
-             # on the 32-pixel demo scene: written by tests/ngp_driver_gate.rs\n\
+             # on the 32-pixel demo scene: written by tests/it/ngp_driver_gate.rs\n\
              # (CRCs are CRC-32C).\n",
         );
         text += &format!("kernels {}\n", self.kernels);
@@ -314,7 +314,7 @@ fn cpu_model_reproduces_the_old_drivers_record() {
 /// Rewrites the fixture from `CpuModel`: only for a change meant to move
 /// Instant-NGP's numerics (a new kernel, another sum order), named in its
 /// commit, once the change is shown to train as well as before:
-/// `cargo test --test ngp_driver_gate -- --ignored rerecord`.
+/// `cargo test --test it ngp_driver_gate -- --ignored rerecord`.
 #[test]
 #[ignore]
 fn rerecord_from_the_new_driver() {

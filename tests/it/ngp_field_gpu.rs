@@ -4,7 +4,7 @@
 //! a small hash table, the field's parameters starting at offset 0 and at
 //! an offset inside a larger buffer (as a model's second field would).
 //!
-//! Tolerances are those of tests/ngp_gpu.rs's step comparison, whose
+//! Tolerances are those of tests/it/ngp_gpu.rs's step comparison, whose
 //! stages these are: each stage matches the cpu within 1e-4 relative
 //! (tests/*_gpu.rs), the chain multiplies a handful of such factors, and
 //! relative norms are dominated by the large, well-conditioned entries.
@@ -31,7 +31,7 @@ fn uniform(rng: &mut Pcg32, lo: f32, hi: f32) -> f32 {
     lo + (hi - lo) * rng.next_f32()
 }
 
-/// The paper's field with a 2^12-entry table per level (tests/hard_cases.rs
+/// The paper's field with a 2^12-entry table per level (tests/it/hard_cases.rs
 /// uses the same): every level hashes, as the paper's finer levels do.
 fn small_shape() -> NgpShape {
     let scene = common::small_scene(8);

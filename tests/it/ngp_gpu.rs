@@ -278,7 +278,7 @@ fn a_gpu_checkpoint_renders_the_same_pixels_on_the_cpu_engine() {
 }
 
 // Slow on lavapipe (~1.5 minutes: 2^21 density evaluations), so it runs on
-// request: `cargo test --test ngp_gpu -- --ignored`.
+// request: `cargo test --test it ngp_gpu -- --ignored`.
 #[test]
 #[ignore]
 fn occupancy_update_matches_the_cpu_engine() {
