@@ -22,6 +22,7 @@ mod gpu_context;
 mod hard_cases;
 mod hash_grid_gpu;
 mod layering;
+mod locks;
 mod march_gpu;
 mod mesh_export;
 mod nerf_cpu;
