@@ -1,6 +1,6 @@
 //! Every integration test of zrak, one module per subject, in one test
 //! crate: one binary links zrak, wgpu and egui once, where one binary per
-//! file linked them thirty times over (issue 28).
+//! file linked them 33 times over (issue 28).
 //!
 //! One process now runs them all, two at a time on two cores, so what a
 //! binary of its own used to keep apart is kept apart here: each test holds
