@@ -4,8 +4,8 @@
 //!
 //! The self-check runs each model on the same small inputs on both engines,
 //! from the same state, and holds the gpu to the tolerances the parity tests
-//! hold it to on lavapipe (`tests/ngp_gpu.rs`, `tests/nerf_gpu.rs`,
-//! `tests/render_texture_gpu.rs`): a user with any GPU learns whether zrak
+//! hold it to on lavapipe (`tests/it/ngp_gpu.rs`, `tests/it/nerf_gpu.rs`,
+//! `tests/it/render_texture_gpu.rs`): a user with any GPU learns whether zrak
 //! computes right there with nothing but the binary.
 
 use std::sync::Arc;
@@ -181,7 +181,7 @@ pub struct Check {
 ///
 /// The loss is a mean of per-channel terms computed by the same formulas in
 /// f32: the engines agree to ~1e-6, and 1e-4 still catches any wrong
-/// sample, ray or weight (`tests/ngp_gpu.rs`).
+/// sample, ray or weight (`tests/it/ngp_gpu.rs`).
 const LOSS_RELATIVE: f32 = 1e-4;
 /// Adam's first steps move each parameter by about lr · sign(g): where a
 /// gradient is at the level of summation-order noise its sign may differ
@@ -197,11 +197,11 @@ fn parameter_mismatch_share(kind: ModelKind) -> f64 {
 const PARAMETER_RELATIVE: f32 = 1e-3;
 /// Colours and opacity lie in [0, 1]; 1e-4 is a stage's relative 1e-4 at
 /// full scale, and early termination can move a ray's cut by one sample
-/// (`tests/ngp_gpu.rs`).
+/// (`tests/it/ngp_gpu.rs`).
 const RENDER_ABSOLUTE: f32 = 1e-4;
 /// The texture render rounds to 8 bits on the device, the read-back render
 /// on the host: a value at a half level may round either way
-/// (`tests/render_texture_gpu.rs`).
+/// (`tests/it/render_texture_gpu.rs`).
 const TEXTURE_LEVELS: u8 = 1;
 
 fn relative(a: f32, b: f32) -> f32 {

@@ -26,7 +26,7 @@ const NODES_PER_BATCH: usize = 1 << 16;
 /// `compute_and_save_marching_cubes_mesh`'s default `thresh`); zrak's
 /// densities are per world unit, a world unit being `scale` unit-cube
 /// lengths, so that is 2.5 · `scale` here. On the demo scene after 300
-/// steps, where the true surfaces are known (`tests/mesh_export.rs`, cells
+/// steps, where the true surfaces are known (`tests/it/mesh_export.rs`, cells
 /// of 0.024 world units), vertices lie a median 2.9 cells from them at
 /// 2.5 world⁻¹ (NGP's 2.5 per unit length is 0.83 world⁻¹: 3.1 cells) and
 /// 1.1 cells at 10 and at 25 world⁻¹, while at 100 most of the surface is

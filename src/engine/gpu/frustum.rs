@@ -22,7 +22,7 @@
 //! The kernels repeat the cpu's f32 operations with products kept apart
 //! from the sums they feed; the only operations WGSL may round differently
 //! are the divisions (2.5 ulp), so the two engines agree to a few ulps (on
-//! lavapipe, bit for bit: see `tests/sampling_gpu.rs`).
+//! lavapipe, bit for bit: see `tests/it/sampling_gpu.rs`).
 
 use super::context::{GpuContext, GpuError};
 use super::kernel::{Kernel, float_range};

@@ -311,7 +311,7 @@ mod tests {
 
     /// The encoder's own decoder reads the file's frames back close to the
     /// pictures (the independent check, with ffmpeg, is in
-    /// tests/video_ffmpeg.rs).
+    /// tests/it/cli_camera_path.rs).
     #[test]
     fn frames_survive_encoding() {
         let dir = tempfile::tempdir().unwrap();

@@ -1,0 +1,251 @@
+//! The source's layers import one way: a module may use those below it,
+//! never one above (docs/design.md, "Shape"). The test reads `src/`, counts
+//! every path into another top-level module (`crate::x`, or `zrak::x` from
+//! the binary's modules, `use` groups included, comments left out) and
+//! fails on an upward import that is not one of today's known ones, or on
+//! more of a known kind than are left: the known ones may only go away.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+/// Bottom to top. Utilities (checksums, files, interrupts, random
+/// numbers) sit below everything; image metrics just above the scene's
+/// images.
+const LAYERS: &[&[&str]] = &[
+    &["crc32c", "files", "interrupt", "rng"],
+    &["scene"],
+    &["metrics"],
+    &["field"],
+    &["model"],
+    &["engine"],
+    &["train"],
+    &["render", "mesh"],
+    &["bench"],
+    &["app"],
+    &["cli"],
+];
+
+/// Upward imports that remain, as (from, to, how many paths at most).
+/// Lower a count when a change removes some; remove the row at zero.
+const KNOWN_UPWARD: &[(&str, &str, usize)] = &[];
+
+fn layer_of(module: &str) -> Option<usize> {
+    LAYERS.iter().position(|layer| layer.contains(&module))
+}
+
+fn rust_files(dir: &Path, out: &mut Vec<PathBuf>) {
+    for entry in std::fs::read_dir(dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.is_dir() {
+            rust_files(&path, out);
+        } else if path.extension().is_some_and(|e| e == "rs") {
+            out.push(path);
+        }
+    }
+}
+
+/// The top-level module a file of `src/` belongs to (`None` for the crate
+/// roots, which only declare modules).
+fn module_of(src: &Path, file: &Path) -> Option<String> {
+    let relative = file.strip_prefix(src).unwrap();
+    let first = relative.components().next()?.as_os_str().to_str()?;
+    let name = first.strip_suffix(".rs").unwrap_or(first);
+    (!matches!(name, "lib" | "main")).then(|| name.to_string())
+}
+
+/// The source without its comments (line comments, doc comments and block
+/// comments); string contents are kept, which no import resembles.
+fn without_comments(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    let mut chars = text.chars().peekable();
+    let mut in_string = false;
+    while let Some(c) = chars.next() {
+        if in_string {
+            out.push(c);
+            if c == '\\' {
+                if let Some(next) = chars.next() {
+                    out.push(next);
+                }
+            } else if c == '"' {
+                in_string = false;
+            }
+            continue;
+        }
+        match (c, chars.peek()) {
+            ('"', _) => {
+                in_string = true;
+                out.push(c);
+            }
+            ('/', Some('/')) => {
+                for skipped in chars.by_ref() {
+                    if skipped == '\n' {
+                        out.push('\n');
+                        break;
+                    }
+                }
+            }
+            ('/', Some('*')) => {
+                chars.next();
+                let mut previous = ' ';
+                for skipped in chars.by_ref() {
+                    if previous == '*' && skipped == '/' {
+                        break;
+                    }
+                    previous = skipped;
+                }
+            }
+            _ => out.push(c),
+        }
+    }
+    out
+}
+
+fn identifier_at(text: &str, at: usize) -> &str {
+    let rest = &text[at..];
+    let end = rest
+        .find(|c: char| !(c.is_alphanumeric() || c == '_'))
+        .unwrap_or(rest.len());
+    &rest[..end]
+}
+
+/// The top-level modules named by each path that starts with `root::`: a
+/// plain path names one; a `use root::{a::x, b}` group names each of its
+/// first-level entries.
+fn modules_named(text: &str, root: &str) -> Vec<String> {
+    let prefix = format!("{root}::");
+    let mut named = Vec::new();
+    let mut from = 0;
+    while let Some(found) = text[from..].find(&prefix) {
+        let start = from + found;
+        from = start + prefix.len();
+        let boundary = text[..start]
+            .chars()
+            .next_back()
+            .is_none_or(|c| !(c.is_alphanumeric() || c == '_' || c == ':'));
+        if !boundary {
+            continue;
+        }
+        if text[from..].starts_with('{') {
+            let mut depth = 0;
+            let mut expecting = true;
+            for (offset, c) in text[from..].char_indices() {
+                match c {
+                    '{' => {
+                        depth += 1;
+                        expecting = depth == 1;
+                    }
+                    '}' => {
+                        depth -= 1;
+                        if depth == 0 {
+                            break;
+                        }
+                    }
+                    ',' if depth == 1 => expecting = true,
+                    c if expecting && depth == 1 && (c.is_alphanumeric() || c == '_') => {
+                        named.push(identifier_at(text, from + offset).to_string());
+                        expecting = false;
+                    }
+                    _ => {}
+                }
+            }
+        } else {
+            named.push(identifier_at(text, from).to_string());
+        }
+    }
+    named
+}
+
+/// Paths from each module into every other, counted.
+fn imports(src: &Path) -> BTreeMap<(String, String), usize> {
+    let mut files = Vec::new();
+    rust_files(src, &mut files);
+    let mut counts = BTreeMap::new();
+    for file in files {
+        let Some(module) = module_of(src, &file) else {
+            continue;
+        };
+        let text = without_comments(&std::fs::read_to_string(&file).unwrap());
+        for root in ["crate", "zrak"] {
+            for named in modules_named(&text, root) {
+                if named != module && layer_of(&named).is_some() {
+                    *counts.entry((module.clone(), named)).or_insert(0) += 1;
+                }
+            }
+        }
+    }
+    counts
+}
+
+#[test]
+fn every_module_of_src_has_a_layer() {
+    let _cores = crate::common::shared();
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut files = Vec::new();
+    rust_files(&src, &mut files);
+    for file in files {
+        if let Some(module) = module_of(&src, &file) {
+            assert!(
+                layer_of(&module).is_some(),
+                "{} is in no layer of tests/it/layering.rs: give src/{module} its place",
+                file.display()
+            );
+        }
+    }
+}
+
+#[test]
+fn no_module_imports_one_above_it_beyond_the_known_ones() {
+    let _cores = crate::common::shared();
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let counts = imports(&src);
+    let mut upward = Vec::new();
+    for ((from, to), &count) in &counts {
+        if layer_of(to) > layer_of(from) {
+            upward.push(format!("{from} -> {to}: {count}"));
+        }
+    }
+    eprintln!("upward imports: {upward:?}");
+    let mut problems = Vec::new();
+    for ((from, to), &count) in &counts {
+        if layer_of(to) <= layer_of(from) {
+            continue;
+        }
+        match KNOWN_UPWARD.iter().find(|(f, t, _)| f == from && t == to) {
+            None => problems.push(format!(
+                "src/{from} imports src/{to}, a layer above it ({count} paths)"
+            )),
+            Some(&(_, _, known)) if count > known => problems.push(format!(
+                "src/{from} imports src/{to} {count} times, {known} are known: no new ones"
+            )),
+            Some(&(_, _, known)) if count < known => problems.push(format!(
+                "src/{from} imports src/{to} {count} times now, fewer than {known}: \
+                 lower its row in KNOWN_UPWARD"
+            )),
+            Some(_) => {}
+        }
+    }
+    for (from, to, known) in KNOWN_UPWARD {
+        if !counts.contains_key(&(from.to_string(), to.to_string())) {
+            problems.push(format!(
+                "src/{from} no longer imports src/{to} ({known} known): remove its row"
+            ));
+        }
+    }
+    assert!(problems.is_empty(), "{}", problems.join("\n"));
+}
+
+#[test]
+fn the_reader_finds_plain_paths_and_use_groups_and_skips_comments() {
+    let _cores = crate::common::shared();
+    let text = without_comments(
+        "use crate::{engine::cpu, train::{a, b}, render};\n\
+         // crate::app::x in a comment\n\
+         /* crate::cli */ let s = \"// not a comment\"; crate::scene::load();\n\
+         notcrate::field::x; zrak::bench::run();",
+    );
+    assert_eq!(
+        modules_named(&text, "crate"),
+        vec!["engine", "train", "render", "scene"]
+    );
+    assert_eq!(modules_named(&text, "zrak"), vec!["bench"]);
+}

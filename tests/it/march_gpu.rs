@@ -1,0 +1,350 @@
+//! The gpu march and occupancy grid against the cpu engine on lavapipe:
+//! the same samples (the kernels repeat the cpu's arithmetic operation for
+//! operation, with fused multiply-adds prevented), the same offsets, the
+//! same grid update and bitfield.
+
+use zrak::engine::cpu::march::{MarchParams, MarchStats, MarchWorkspace, MarchedSamples, march};
+use zrak::engine::cpu::occupancy::{OccupancyGrid, UNTRAINED, mix64};
+use zrak::engine::gpu::GpuContext;
+use zrak::engine::gpu::march::GpuMarch;
+use zrak::engine::gpu::occupancy::GpuOccupancy;
+use zrak::field::ngp::{MarchConfig, OccupancyConfig};
+use zrak::scene::UnitCubeMapping;
+
+use crate::common::march::{rays, uniform};
+
+/// Blocks of 8³ cells empty, sparse, half or full, each cell then drawn.
+fn random_grid(cascades: u32, seed: u64) -> OccupancyGrid {
+    let mut grid = OccupancyGrid::new(OccupancyConfig::PAPER, cascades, MarchConfig::PAPER.step);
+    let res = OccupancyConfig::PAPER.resolution as usize;
+    for (i, v) in grid.values_mut().iter_mut().enumerate() {
+        let local = i % (res * res * res);
+        let (x, y, z) = (
+            local % res / 8,
+            local / res % res / 8,
+            local / (res * res) / 8,
+        );
+        let block = (i / (res * res * res)) * 4096 + x + 16 * (y + 16 * z);
+        let p = [0.0, 0.03, 0.5, 1.0][(mix64(seed ^ block as u64) % 4) as usize];
+        *v = if uniform(seed.wrapping_add(1) ^ mix64(i as u64)) < p {
+            1.0
+        } else {
+            0.0
+        };
+    }
+    grid.build_bitfield();
+    grid
+}
+
+fn cpu_march(
+    grid: &OccupancyGrid,
+    origins: &[f32],
+    directions: &[f32],
+    params: &MarchParams,
+) -> (MarchedSamples, MarchStats) {
+    let mut out = MarchedSamples::default();
+    let stats = march(
+        grid,
+        origins,
+        directions,
+        params,
+        &mut MarchWorkspace::default(),
+        &mut out,
+    );
+    (out, stats)
+}
+
+fn assert_same_samples(cpu: &MarchedSamples, gpu: &MarchedSamples, label: &str) {
+    assert_eq!(cpu.ray_offsets, gpu.ray_offsets, "{label}: offsets");
+    assert_eq!(cpu.sample_count(), gpu.sample_count(), "{label}");
+    // The kernels repeat the cpu's operations one for one (no fma), so
+    // positions agree to the bit on lavapipe; 1e-5 leaves room for a GPU
+    // whose division is not correctly rounded (WGSL allows 2.5 ulp), which
+    // moves a ray's entry point by ~1e-7.
+    let mut worst = 0f32;
+    for (i, (a, b)) in cpu.positions.iter().zip(&gpu.positions).enumerate() {
+        assert!(
+            (a - b).abs() <= 1e-5,
+            "{label}: position {i}: cpu {a} gpu {b}"
+        );
+        worst = worst.max((a - b).abs());
+    }
+    assert_eq!(
+        cpu.directions, gpu.directions,
+        "{label}: directions are copied"
+    );
+    // A sample's step is the fixed step times a power of two (cone steps
+    // on large scenes), exact on both engines.
+    assert_eq!(cpu.dt, gpu.dt, "{label}: dt");
+    for (i, (a, b)) in cpu.t.iter().zip(&gpu.t).enumerate() {
+        assert!(
+            (a - b).abs() <= 1e-5 * a.abs().max(1.0),
+            "{label}: t {i}: cpu {a} gpu {b}"
+        );
+    }
+    eprintln!(
+        "{label}: {} samples, largest position difference {worst:e}",
+        cpu.sample_count()
+    );
+}
+
+#[test]
+fn march_matches_cpu() {
+    let _cores = crate::common::shared();
+    let context = GpuContext::new().expect("lavapipe or a GPU");
+    let gpu = GpuMarch::new(&context).unwrap();
+    // (cascades, aabb_scale, seed, jitter, cone angle, distance of the
+    // random rays' origins in multiples of 4 world units): Blender scenes
+    // with the fixed step; larger boxes with the fixed step and with cone
+    // steps, from inside the box (entry at distance 0, octave 0) and from
+    // far outside it (entry in a later octave, the first stretch shorter
+    // than an octave).
+    for (cascades, aabb_scale, seed, jitter, cone_angle, distance) in [
+        (1, 1.0, 1u64, true, 1.0 / 256.0, 1.0),
+        (1, 1.0, 2, false, 1.0 / 256.0, 1.0),
+        (3, 3.0, 3, true, 0.0, 1.0),
+        (3, 3.0, 4, true, 1.0 / 256.0, 1.0),
+        (3, 3.0, 5, false, 1.0 / 256.0, 6.0),
+        (4, 8.0, 6, true, 1.0 / 256.0, 1.0),
+    ] {
+        let grid = random_grid(cascades, seed);
+        let mapping = UnitCubeMapping {
+            aabb_scale,
+            ..UnitCubeMapping::BLENDER
+        };
+        let mut params = if jitter {
+            MarchParams::training(mapping, seed as u32 * 7)
+        } else {
+            MarchParams::rendering(mapping)
+        };
+        params.config.cone_angle = cone_angle;
+        let (mut origins, directions) = rays(400, seed);
+        // The seven hard-case rays stay where they are.
+        for o in &mut origins[21..] {
+            *o *= distance;
+        }
+        let (cpu, cpu_stats) = cpu_march(&grid, &origins, &directions, &params);
+        let (marched, stats) = gpu.march(
+            &context,
+            &grid,
+            &origins,
+            &directions,
+            &params,
+            cpu.sample_count() + 10,
+        );
+        assert_eq!(stats, cpu_stats);
+        // The hard cases: the axis-parallel rays and the one from the
+        // centre get samples; the zero direction gets none, nor do the ray
+        // passing 3 world units off centre and the one pointing away from
+        // z = 4, unless the box is 3 times larger (half side 1.5 / 0.33 ≈
+        // 4.5) and holds their origins.
+        for r in 0..4 {
+            assert!(!marched.ray(r).is_empty(), "ray {r}");
+        }
+        assert_eq!(marched.ray(4).is_empty(), aabb_scale == 1.0);
+        assert_eq!(marched.ray(5).is_empty(), aabb_scale == 1.0);
+        assert!(marched.ray(6).is_empty());
+        assert!(cpu.sample_count() > 10_000, "{}", cpu.sample_count());
+        if cone_angle > 0.0 && aabb_scale > 1.0 {
+            // Steps grow along the rays: at least three sizes of step.
+            let mut steps = cpu.dt.clone();
+            steps.sort_by(f32::total_cmp);
+            steps.dedup();
+            assert!(steps.len() >= 3, "{steps:?}");
+        }
+        assert_same_samples(
+            &cpu,
+            &marched,
+            &format!("{cascades} cascades, seed {seed}, cone angle {cone_angle}"),
+        );
+    }
+}
+
+#[test]
+fn budget_and_sample_limit_match_cpu() {
+    let _cores = crate::common::shared();
+    let context = GpuContext::new().expect("lavapipe or a GPU");
+    let gpu = GpuMarch::new(&context).unwrap();
+    let grid = random_grid(1, 11);
+    let (origins, directions) = rays(300, 11);
+    let full = MarchParams::training(UnitCubeMapping::BLENDER, 5);
+    let (all, _) = cpu_march(&grid, &origins, &directions, &full);
+    let params = MarchParams {
+        sample_budget: all.sample_count() / 3,
+        config: MarchConfig {
+            max_steps: 100,
+            ..MarchConfig::PAPER
+        },
+        ..full
+    };
+    let (cpu, cpu_stats) = cpu_march(&grid, &origins, &directions, &params);
+    assert!(cpu_stats.rays_kept < cpu_stats.rays);
+    let (marched, stats) = gpu.march(
+        &context,
+        &grid,
+        &origins,
+        &directions,
+        &params,
+        all.sample_count(),
+    );
+    assert_eq!(stats, cpu_stats);
+    assert_same_samples(&cpu, &marched, "budget");
+
+    // A capacity below the budget acts as the budget.
+    let (capped, capped_stats) = gpu.march(
+        &context,
+        &grid,
+        &origins,
+        &directions,
+        &full,
+        cpu.sample_count(),
+    );
+    assert!(capped_stats.samples <= cpu.sample_count());
+    let (cpu_capped, cpu_capped_stats) = cpu_march(
+        &grid,
+        &origins,
+        &directions,
+        &MarchParams {
+            sample_budget: cpu.sample_count(),
+            ..full
+        },
+    );
+    assert_eq!(capped_stats, cpu_capped_stats);
+    assert_same_samples(&cpu_capped, &capped, "capacity");
+}
+
+#[test]
+fn prefix_sum_over_many_blocks() {
+    let _cores = crate::common::shared();
+    // 150 000 rays: 293 scan blocks, so the block totals take two tiles of
+    // the single-workgroup step and its carry. At most 3 samples per ray
+    // keeps the write small.
+    let context = GpuContext::new().expect("lavapipe or a GPU");
+    let gpu = GpuMarch::new(&context).unwrap();
+    let grid = random_grid(1, 21);
+    let (origins, directions) = rays(150_000, 21);
+    let params = MarchParams {
+        config: MarchConfig {
+            max_steps: 3,
+            ..MarchConfig::PAPER
+        },
+        ..MarchParams::training(UnitCubeMapping::BLENDER, 9)
+    };
+    let (cpu, cpu_stats) = cpu_march(&grid, &origins, &directions, &params);
+    let (marched, stats) = gpu.march(
+        &context,
+        &grid,
+        &origins,
+        &directions,
+        &params,
+        cpu.sample_count(),
+    );
+    assert_eq!(stats, cpu_stats);
+    assert_same_samples(&cpu, &marched, "150 000 rays");
+}
+
+#[test]
+fn bitfield_matches_cpu() {
+    let _cores = crate::common::shared();
+    let context = GpuContext::new().expect("lavapipe or a GPU");
+    let gpu = GpuOccupancy::new(&context).unwrap();
+    for (cascades, scale, seed) in [(1, 0.03, 1u64), (2, 0.01, 2), (1, 0.004, 3)] {
+        let mut grid =
+            OccupancyGrid::new(OccupancyConfig::PAPER, cascades, MarchConfig::PAPER.step);
+        // Values uniform in [0, scale), a few untrained.
+        for (i, v) in grid.values_mut().iter_mut().enumerate() {
+            let u = uniform(seed ^ mix64(i as u64));
+            *v = if u < 0.001 {
+                UNTRAINED
+            } else {
+                scale * uniform(seed.wrapping_add(7) ^ mix64(i as u64))
+            };
+        }
+        grid.build_bitfield();
+        let (bits, threshold) = gpu.build_bitfield(&context, &grid);
+        // The GPU sums in f32 in a tree, the cpu in f64: the means agree to
+        // a few ulps of f32 (relative 1e-5 is generous).
+        assert!(
+            (threshold - grid.threshold()).abs() <= 1e-5 * grid.threshold(),
+            "threshold gpu {threshold} cpu {}",
+            grid.threshold()
+        );
+        let mut differing = 0;
+        for (i, &v) in grid.values().iter().enumerate() {
+            let (a, b) = (
+                (grid.bitfield()[i / 32] >> (i % 32)) & 1,
+                (bits[i / 32] >> (i % 32)) & 1,
+            );
+            if a != b {
+                // Only a cell whose value lies between the two thresholds
+                // may differ.
+                assert!(
+                    (v - grid.threshold()).abs() <= 1e-5 * grid.threshold(),
+                    "cell {i}: {v}"
+                );
+                differing += 1;
+            }
+        }
+        if grid.threshold() == 0.01 {
+            // mean ≥ 0.01: both thresholds are the constant, bits equal.
+            assert_eq!(differing, 0);
+            assert_eq!(bits, grid.bitfield());
+        }
+        assert!(differing <= 10, "{differing}");
+        let occupied: u32 = bits.iter().map(|w| w.count_ones()).sum();
+        eprintln!(
+            "{cascades} cascades: threshold {threshold}, {occupied} occupied of {}, {differing} differ",
+            grid.values().len()
+        );
+    }
+}
+
+#[test]
+fn grid_update_matches_cpu() {
+    let _cores = crate::common::shared();
+    let context = GpuContext::new().expect("lavapipe or a GPU");
+    let gpu = GpuOccupancy::new(&context).unwrap();
+    let mut grid = OccupancyGrid::new(OccupancyConfig::PAPER, 2, MarchConfig::PAPER.step);
+    // Start from a mix of sampled cells and untrained ones.
+    for (i, v) in grid.values_mut().iter_mut().enumerate() {
+        *v = if uniform(mix64(i as u64)) < 0.2 {
+            UNTRAINED
+        } else {
+            0.03 * uniform(i as u64)
+        };
+    }
+    grid.build_bitfield();
+    // A warm-up update (every cell) and a later one (a quarter plus a
+    // quarter from occupied cells, so some cells are drawn several times
+    // and the compare-and-swap has to take the largest).
+    for (step, seed) in [(0u32, 4u64), (1000, 5)] {
+        let report = grid.plan_update(step, seed);
+        assert_eq!(report.full, step == 0);
+        // Densities spread over a few decades, with some broken ones.
+        let sigma: Vec<f32> = (0..report.samples)
+            .map(|i| match i % 97 {
+                0 => f32::NAN,
+                1 => -3.0,
+                2 => f32::INFINITY,
+                _ => 10f32.powf(4.0 * uniform(seed ^ mix64(i as u64)) - 2.0),
+            })
+            .collect();
+        let (values, bits, threshold) = gpu.apply_update(&context, &grid, &sigma);
+        grid.apply_update(&sigma);
+        // The same operations on the same floats, and max does not depend
+        // on the order the samples land in: the values agree to the bit.
+        assert!(values == grid.values(), "step {step}: values differ");
+        assert!((threshold - grid.threshold()).abs() <= 1e-5 * grid.threshold());
+        let differing = bits
+            .iter()
+            .zip(grid.bitfield())
+            .map(|(a, b)| (a ^ b).count_ones())
+            .sum::<u32>();
+        assert!(differing <= 10, "step {step}: {differing} bits differ");
+        eprintln!(
+            "update at step {step}: {} samples, threshold {threshold}, {:.1}% occupied, {differing} bits differ",
+            report.samples,
+            100.0 * grid.occupancy_fraction()
+        );
+    }
+}

@@ -1,0 +1,270 @@
+//! End to end: NeRF and Mip-NeRF (the papers' fields, with the occupancy
+//! sampler) on the cpu engine learn the built-in demo scene, measured on
+//! held-out views against the simplest possible predictor.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use zrak::engine::cpu::dense::Precision;
+use zrak::engine::cpu::fields::nerf::NerfShape;
+use zrak::field::nerf::Sampling;
+use zrak::field::ngp::LossKind;
+use zrak::scene::Scene;
+use zrak::scene::demo::{self, DemoConfig};
+use zrak::train::eval::{mean_colour_psnr, mean_psnr};
+use zrak::train::trainer::Trainer;
+use zrak::train::{
+    ModelSettings, cpu_model_of_nerf_fields, mipnerf_identity, mipnerf_recipe, nerf_identity,
+    nerf_recipe,
+};
+
+fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
+    std::env::var(name)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Kind {
+    Nerf,
+    MipNerf,
+}
+
+/// A trainer of `kind` on the demo at `size` pixels (60 training views, 4
+/// held out; each training view also at ½, ¼, … size for `scales` > 1) with
+/// batches of `batch` samples and a 32³ occupancy grid.
+fn demo_trainer(
+    kind: Kind,
+    size: u32,
+    scales: u32,
+    batch: usize,
+    precision: Precision,
+) -> (Arc<Scene>, Trainer) {
+    let scene = Arc::new(
+        demo::build(&DemoConfig {
+            size,
+            train_views: 60,
+            val_views: 4,
+            test_views: 1,
+        })
+        .with_training_scales(scales),
+    );
+    let settings = ModelSettings {
+        seed: 0,
+        loss: LossKind::L2,
+        batch_samples: Some(batch),
+        sampling: Sampling::Occupancy,
+        precision,
+    };
+    let (identity, mut recipe, shape) = match kind {
+        Kind::Nerf => (
+            nerf_identity(&settings),
+            nerf_recipe(&scene, &settings),
+            NerfShape::paper(),
+        ),
+        Kind::MipNerf => (
+            mipnerf_identity(&settings),
+            mipnerf_recipe(&scene, &settings),
+            NerfShape::mipnerf(),
+        ),
+    };
+    // The batch is 1/4 of the shipped 2^14 samples and the occupancy grid
+    // gets 1/8 of its cells (32³ instead of 64³): an update then costs no
+    // more of a step than it does in a real run. With 64³ cells the
+    // grid's density queries took more than half of this test's time.
+    recipe.occupancy.resolution = env_or("ZRAK_NERF_E2E_GRID", 32u32);
+    let model = cpu_model_of_nerf_fields(identity, recipe, &scene, &settings, &shape);
+    let trainer = Trainer::new(Box::new(model), scene.clone(), 0);
+    (scene, trainer)
+}
+
+/// Trains `kind` for `steps` on the 32-pixel demo; returns (baseline,
+/// held-out PSNR) in dB.
+fn train_demo(kind: Kind, default_steps: u32) -> (f64, f64) {
+    // 32×32 views and batches of 2^12 samples keep a step of the 8 × 256
+    // network near a quarter of a second on two cores. Measured on the
+    // development machine (AVX2 kernels, seed 0, 64³ grid): 10.0 dB for the
+    // mean colour; 8.7, 11.4, 12.6 and 13.5 dB at steps 100 to 400; with
+    // the 32³ grid below, 13.95 dB at step 400 (232 s with Mip-NeRF's test
+    // beside it, against 360 s with 64³, side by side on a 2-core AVX2 EPYC).
+    // NeRF starts slowly: its density first grows into a fog that fills the
+    // box, so the occupancy grid samples every ray end to end (~300
+    // samples) and a batch holds a dozen rays until the fog clears.
+    let size = env_or("ZRAK_NERF_E2E_SIZE", 32u32);
+    let steps = env_or("ZRAK_NERF_E2E_STEPS", default_steps);
+    let batch = env_or("ZRAK_NERF_E2E_BATCH", 1usize << 12);
+    let (scene, mut trainer) = demo_trainer(kind, size, 1, batch, Precision::F32);
+
+    // The baseline: every pixel of a held-out view predicted as the mean
+    // colour of the training images on white.
+    let baseline = mean_colour_psnr(&scene.train, &scene.val);
+    let started = Instant::now();
+    let mut last_loss = 0.0;
+    let held_out = |trainer: &Trainer| {
+        mean_psnr(
+            trainer.model.as_ref(),
+            &scene.val.iter().collect::<Vec<_>>(),
+        )
+    };
+    // Held-out views are rendered at the end only (each evaluation of the
+    // fog-filled early field costs about as much as 80 training steps);
+    // ZRAK_NERF_E2E_PROGRESS=1 prints the curve every 100 steps.
+    let progress = std::env::var("ZRAK_NERF_E2E_PROGRESS").is_ok();
+    while trainer.step < steps {
+        last_loss = trainer.step().loss;
+        if progress && trainer.step.is_multiple_of(100) {
+            eprintln!(
+                "{kind:?} step {} loss {last_loss:.5} val psnr {:.2} ({:.0} s)",
+                trainer.step,
+                held_out(&trainer),
+                started.elapsed().as_secs_f64()
+            );
+        }
+    }
+    let trained = held_out(&trainer);
+    eprintln!(
+        "{kind:?}: baseline {baseline:.2} dB, trained {trained:.2} dB after {steps} steps ({:.0} s), loss {last_loss:.5}",
+        started.elapsed().as_secs_f64()
+    );
+    (baseline, trained)
+}
+
+#[test]
+fn nerf_learns_the_demo_scene_above_the_mean_colour() {
+    let _cores = crate::common::shared();
+    let (baseline, trained) = train_demo(Kind::Nerf, 400);
+    // 2.5 dB over the baseline is 56 % of its squared error, 1 dB short of
+    // what was measured (other kernels round differently and the run
+    // diverges in its last bits); the mean colour cannot get there, and a
+    // field that learned nothing stays near or below it (8.7 dB at step
+    // 100, before the fog has cleared).
+    assert!(
+        trained > baseline + 2.5,
+        "baseline {baseline:.2} dB, trained {trained:.2} dB"
+    );
+}
+
+#[test]
+fn mipnerf_learns_the_demo_scene_above_the_mean_colour() {
+    let _cores = crate::common::shared();
+    // Measured on the development machine (AVX2 kernels, seed 0, two cores
+    // shared with other builds, 64³ grid): 11.6, 13.0 and 14.9 dB at steps
+    // 100, 200 and 300 against the mean colour's 10.0; 12.83 dB at step 200
+    // with the test's 32³ grid. Mip-NeRF starts faster than
+    // NeRF: softplus(raw − 1) begins nearly transparent, so there is no fog
+    // to clear. 200 steps keep the test near NeRF's in time.
+    let (baseline, trained) = train_demo(Kind::MipNerf, 200);
+    // 2 dB over the baseline (63 % of its squared error), 1 dB below what
+    // was measured, for the same reasons as NeRF's margin.
+    assert!(
+        trained > baseline + 2.0,
+        "baseline {baseline:.2} dB, trained {trained:.2} dB"
+    );
+}
+
+/// Mean held-out PSNR of `trainer`'s model on `scene`'s validation views
+/// shrunk by `factor` (area-averaged photographs, cameras with pixels
+/// `factor` times wider: Mip-NeRF's cones widen with them).
+fn held_out_psnr_at(trainer: &Trainer, scene: &Scene, factor: u32) -> f64 {
+    let views: Vec<_> = scene.val.iter().map(|f| f.downscaled(factor)).collect();
+    mean_psnr(trainer.model.as_ref(), &views.iter().collect::<Vec<_>>())
+}
+
+/// Mean PSNR of the model's renders of `scene`'s validation views drawn at
+/// full size and area-averaged by `factor`: what a perfectly anti-aliased
+/// render at that size would score, for comparison (ZRAK_AA_SUPERSAMPLED=1).
+fn area_averaged_render_psnr(trainer: &Trainer, scene: &Scene, factor: usize) -> f64 {
+    use zrak::metrics::{RgbImage, WHITE, psnr};
+    use zrak::render::{render_pixels, rgb_of};
+    let mut sum = 0.0;
+    for frame in &scene.val {
+        let k = frame.camera.intrinsics;
+        let (w, h) = (k.width as usize, k.height as usize);
+        let full = rgb_of(&render_pixels(trainer.model.as_ref(), &frame.camera, WHITE));
+        let (small_w, small_h) = (w / factor, h / factor);
+        let mut small = vec![[0f32; 3]; small_w * small_h];
+        let share = 1.0 / (factor * factor) as f32;
+        for y in 0..small_h * factor {
+            for x in 0..small_w * factor {
+                let pixel = &mut small[(y / factor) * small_w + x / factor];
+                for (sum, value) in pixel.iter_mut().zip(full[y * w + x]) {
+                    *sum += value * share;
+                }
+            }
+        }
+        let truth = RgbImage::from_rgba8_over(&frame.downscaled(factor as u32).image, WHITE);
+        let small = RgbImage::new(small_w, small_h, small).expect("one pixel per block");
+        sum += psnr(&small, &truth).expect("same size");
+    }
+    sum / scene.val.len() as f64
+}
+
+/// Mip-NeRF's anti-aliasing (Barron et al. 2021, section 5.1, the
+/// multiscale Blender protocol): trained on every view at full, ½ and ¼
+/// size (area-averaged photographs, an equal share of rays each), one
+/// Mip-NeRF serves all three sizes, its cones as wide as each size's
+/// pixels, while NeRF's single ray per pixel cannot tell the sizes apart
+/// and must blur the full-size views and alias the small ones. Mip-NeRF's
+/// held-out PSNR is above NeRF's at each size. Measured on the development
+/// machine (Zen 4) after 600 steps, at full, ½ and ¼ size: mixed precision
+/// NeRF 18.27 / 20.50 / 22.36 dB, Mip-NeRF 19.12 / 22.04 / 23.58; f32
+/// NeRF 18.20 / 20.39 / 22.14, Mip-NeRF 19.11 / 22.04 / 23.78: ahead by at
+/// least 0.85 dB everywhere. The lead at ¼ size is the cones' doing:
+/// trained on full size only (ZRAK_AA_SCALES=1) Mip-NeRF starts faster as
+/// well (it begins transparent, NeRF in a fog), 0.8 and 1.0 dB ahead at
+/// full and ½ size after 600 steps, yet 3.0 dB behind at ¼ (19.46 against
+/// 22.50 dB), a cone wider than any it was trained on. Later the lead
+/// narrows at ½ size and widens at ¼ (1800 steps, mixed: 1.69, 0.82 and
+/// 2.86 dB; f32: 1.06, 0.05 and 2.10).
+///
+/// ZRAK_AA_SUPERSAMPLED=1 also prints each model's views drawn at full
+/// size and area-averaged: what a perfect anti-aliaser would score.
+#[test]
+fn mipnerf_trained_on_three_sizes_beats_nerf_at_each() {
+    let _cores = crate::common::shared();
+    let size = env_or("ZRAK_AA_SIZE", 32u32);
+    let scales = env_or("ZRAK_AA_SCALES", 3u32);
+    let steps = env_or("ZRAK_AA_STEPS", 600u32);
+    let batch = env_or("ZRAK_AA_BATCH", 1usize << 12);
+    let every = env_or("ZRAK_AA_EVERY", steps);
+    let precision = if std::env::var("ZRAK_AA_F32").is_ok() {
+        Precision::F32
+    } else {
+        Precision::best_available()
+    };
+    let mut scores = Vec::new();
+    for kind in [Kind::Nerf, Kind::MipNerf] {
+        let (scene, mut trainer) = demo_trainer(kind, size, scales, batch, precision);
+        let started = Instant::now();
+        let mut psnrs = [0.0; 3];
+        while trainer.step < steps {
+            trainer.step();
+            if trainer.step.is_multiple_of(every) || trainer.step == steps {
+                psnrs = [1, 2, 4].map(|factor| held_out_psnr_at(&trainer, &scene, factor));
+                eprintln!(
+                    "{kind:?} step {}: {:.2} / {:.2} / {:.2} dB at full, ½, ¼ size \
+                     ({:.0} s)",
+                    trainer.step,
+                    psnrs[0],
+                    psnrs[1],
+                    psnrs[2],
+                    started.elapsed().as_secs_f64()
+                );
+            }
+        }
+        if std::env::var("ZRAK_AA_SUPERSAMPLED").is_ok() {
+            eprintln!(
+                "{kind:?} drawn at full size and area-averaged: {:.2} / {:.2} dB at ½, ¼ size",
+                area_averaged_render_psnr(&trainer, &scene, 2),
+                area_averaged_render_psnr(&trainer, &scene, 4)
+            );
+        }
+        scores.push(psnrs);
+    }
+    let (nerf, mipnerf) = (scores[0], scores[1]);
+    assert!(
+        (0..3).all(|size| mipnerf[size] > nerf[size]),
+        "held-out PSNR at full, ½, ¼ size: NeRF {nerf:.2?} dB, Mip-NeRF {mipnerf:.2?} dB"
+    );
+}

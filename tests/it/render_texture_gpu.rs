@@ -1,0 +1,279 @@
+//! The viewer's render path on the gpu engine (lavapipe): `render_to_texture`
+//! writes the same pixels as the read-back render (`render_pixels` then
+//! `to_image`), in every mode, on a model with structure (a few hundred cpu
+//! steps on the demo scene, moved to the gpu through a checkpoint).
+
+use std::sync::Arc;
+
+use glam::{Quat, Vec3};
+
+use zrak::engine::gpu::GpuContext;
+use zrak::engine::gpu::model::GpuModel;
+use zrak::engine::gpu::render::{read_texture_rgba8, render_target};
+use zrak::field::ngp::LossKind;
+use zrak::model::TextureRender;
+use zrak::render::{RenderMode, render_pixels, to_image};
+use zrak::rng::Pcg32;
+use zrak::scene::crop::CropBox;
+use zrak::scene::demo::{self, DemoConfig};
+use zrak::scene::{Camera, Scene};
+use zrak::train::batch::{RayBatch, TrainingBackground, sample_rays};
+use zrak::train::model::{RadianceModel, RenderedPixel};
+
+const SEED: u64 = 3;
+
+fn scene() -> Arc<Scene> {
+    Arc::new(demo::build(&DemoConfig {
+        size: 24,
+        train_views: 16,
+        val_views: 2,
+        test_views: 1,
+    }))
+}
+
+/// A gpu model holding what a cpu model learned in 60 steps (the cpu
+/// engine is the fast one here). Its batches of 1024 samples make a render
+/// of 24 × 24 rays take several rounds, the first of three groups of rays.
+fn trained_gpu_model(scene: &Scene, batch_samples: usize) -> GpuModel {
+    trained_models(scene, batch_samples).1
+}
+
+/// The cpu model of [`trained_gpu_model`] and the gpu model loaded from it.
+fn trained_models(scene: &Scene, batch_samples: usize) -> (impl RadianceModel, GpuModel) {
+    let mut cpu = zrak::train::cpu_ngp_with_shape(
+        scene,
+        zrak::engine::cpu::fields::ngp::NgpShape::for_scene(scene),
+        SEED,
+        LossKind::Huber,
+        Some(1 << 12),
+    );
+    let mut rng = Pcg32::new(SEED, 1);
+    let mut batch = RayBatch::default();
+    for step in 0..60 {
+        sample_rays(
+            &scene.train,
+            cpu.rays_for_next_batch(),
+            TrainingBackground::Random,
+            &mut rng,
+            &mut batch,
+        );
+        cpu.step(&batch, step);
+    }
+    let context = GpuContext::new().expect("lavapipe or a GPU");
+    let mut gpu = zrak::train::gpu_ngp(context, scene, SEED, LossKind::Huber, batch_samples)
+        .expect("gpu model");
+    gpu.load(&cpu.save()).expect("the cpu checkpoint loads");
+    (cpu, gpu)
+}
+
+/// Renders `camera` into a texture in `mode` and checks it against the
+/// read-back render's `pixels` (made with the same background).
+fn compare(
+    gpu: &GpuModel,
+    camera: &Camera,
+    mode: RenderMode,
+    background: [f32; 3],
+    pixels: &[RenderedPixel],
+) {
+    let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
+    let texture = render_target(&gpu.context().device, width, height);
+    let clock = std::time::Instant::now();
+    gpu.render_to_texture(camera, mode, background, &texture)
+        .expect("renders");
+    let on_gpu = read_texture_rgba8(gpu.context(), &texture);
+    println!(
+        "{mode:?}: render_to_texture {:.2} s",
+        clock.elapsed().as_secs_f64()
+    );
+    let expected = to_image(pixels, width, height, mode, gpu.depth_range());
+    assert_eq!(on_gpu.len(), expected.data.len());
+    // Both march the same samples and composite them in the same order;
+    // they differ by f32 rounding (exp, the 1 − e^{−τ} series) and the
+    // conversion to 8 bits, which may round either way at a half level.
+    let mut worst = 0;
+    for (i, (a, b)) in on_gpu.iter().zip(&expected.data).enumerate() {
+        let difference = a.abs_diff(*b);
+        worst = worst.max(difference);
+        assert!(
+            difference <= 1,
+            "{mode:?}: pixel {} channel {}: texture {a}, read-back {b}",
+            i / 4,
+            i % 4
+        );
+    }
+    // The image must show something, or the comparison proves little.
+    let distinct: std::collections::BTreeSet<&[u8]> = expected.data.chunks(4).collect();
+    println!(
+        "{mode:?}: {} distinct colours, largest difference {worst} level(s)",
+        distinct.len()
+    );
+    assert!(distinct.len() > 20, "{mode:?}: a flat image");
+}
+
+#[test]
+fn render_to_texture_matches_the_read_back_render() {
+    let _cores = crate::common::shared();
+    let scene = scene();
+    let gpu = trained_gpu_model(&scene, 1 << 10);
+    let model: &dyn RadianceModel = &gpu;
+    assert!(model.texture_render().is_some(), "a gpu model says so");
+    let camera = scene.val[0].camera;
+    for background in [[1.0; 3], [0.1, 0.5, 0.9]] {
+        let clock = std::time::Instant::now();
+        let pixels = render_pixels(&gpu, &camera, background);
+        println!("read-back render {:.2} s", clock.elapsed().as_secs_f64());
+        compare(&gpu, &camera, RenderMode::Rgb, background, &pixels);
+        if background == [1.0; 3] {
+            compare(&gpu, &camera, RenderMode::Depth, background, &pixels);
+            compare(&gpu, &camera, RenderMode::Opacity, background, &pixels);
+        }
+    }
+}
+
+/// With a crop box (turned, so its rotation is used) the texture holds the
+/// read-back render's pixels, and both hold the cpu engine's: samples
+/// outside the box have no density on either engine, so the background
+/// shows where the box cuts the objects away.
+#[test]
+fn a_crop_box_renders_the_same_into_the_texture_and_on_both_engines() {
+    let _cores = crate::common::shared();
+    let scene = scene();
+    let (mut cpu, mut gpu) = trained_models(&scene, 1 << 10);
+    let camera = scene.val[0].camera;
+    let background = [1.0; 3];
+    let whole = render_pixels(&gpu, &camera, background);
+    let crop = CropBox {
+        centre: Vec3::new(-0.85, 0.0, 0.2),
+        size: Vec3::new(1.0, 1.2, 1.0),
+        rotation: Quat::from_rotation_y(0.5),
+    };
+    cpu.set_crop(Some(crop)).unwrap();
+    gpu.set_crop(Some(crop)).expect("the gpu engine crops");
+    let cropped = render_pixels(&gpu, &camera, background);
+    let on_cpu = render_pixels(&cpu, &camera, background);
+    let worst = cropped
+        .iter()
+        .zip(&on_cpu)
+        .flat_map(|(g, c)| (0..3).map(move |k| (g.rgb[k] - c.rgb[k]).abs()))
+        .fold(0f32, f32::max);
+    println!("cropped: worst colour difference between engines {worst:e}");
+    // The same samples and σ on both engines up to f32 rounding of the
+    // networks (the uncropped parity tests allow the same).
+    assert!(worst < 1e-3, "{worst}");
+    compare(&gpu, &camera, RenderMode::Rgb, background, &cropped);
+    compare(&gpu, &camera, RenderMode::Opacity, background, &cropped);
+    let width = camera.intrinsics.width;
+    let (mut missed, mut cut) = (0, 0);
+    for (i, (a, b)) in whole.iter().zip(&cropped).enumerate() {
+        let ray = camera.pixel_ray(i as u32 % width, i as u32 / width);
+        if crop.intersect(ray.origin, ray.direction, 0.0).is_none() {
+            assert_eq!((b.opacity, b.rgb), (0.0, background), "pixel {i}");
+            missed += 1;
+            cut += usize::from(a.opacity > 0.5);
+        }
+    }
+    println!("{missed} rays miss the box, {cut} of them on an object uncropped");
+    assert!(cut > 10, "the box must cut something away: {cut}");
+}
+
+/// Meshes ask a model for σ and colour at points: the gpu engine answers
+/// as the cpu engine does for the same parameters (σ zero in empty cells on
+/// both), so `zrak export mesh` and the viewer's export work on either.
+#[test]
+fn density_and_colour_at_points_match_the_cpu_engine() {
+    let _cores = crate::common::shared();
+    let scene = scene();
+    let (cpu, gpu) = trained_models(&scene, 1 << 10);
+    let mut rng = Pcg32::new(11, 0);
+    let mut uniform = || 2.4 * rng.next_f32() - 1.2;
+    let positions: Vec<Vec3> = (0..2000)
+        .map(|_| Vec3::new(uniform(), uniform(), uniform()))
+        .collect();
+    let directions: Vec<Vec3> = (0..2000)
+        .map(|_| Vec3::new(uniform(), uniform(), uniform()).normalize_or(Vec3::Z))
+        .collect();
+    let n = positions.len();
+    let (mut sigma_cpu, mut sigma_gpu) = (vec![0.0; n], vec![0.0; n]);
+    cpu.density_at(&positions, 0.01, &mut sigma_cpu).unwrap();
+    gpu.density_at(&positions, 0.01, &mut sigma_gpu)
+        .expect("the gpu engine answers σ at points");
+    let (mut rgb_cpu, mut rgb_gpu) = (vec![0.0; 3 * n], vec![0.0; 3 * n]);
+    cpu.colour_at(&positions, &directions, 0.01, &mut rgb_cpu)
+        .unwrap();
+    gpu.colour_at(&positions, &directions, 0.01, &mut rgb_gpu)
+        .expect("the gpu engine answers colours at points");
+    let largest = sigma_cpu.iter().fold(0f32, |m, s| m.max(s.abs()));
+    let worst_sigma = sigma_cpu
+        .iter()
+        .zip(&sigma_gpu)
+        .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+    let worst_rgb = rgb_cpu
+        .iter()
+        .zip(&rgb_gpu)
+        .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+    let empty = sigma_gpu.iter().filter(|s| **s == 0.0).count();
+    println!(
+        "σ up to {largest}, worst difference {worst_sigma:e}; colour {worst_rgb:e}; {empty} of {n} in empty cells"
+    );
+    // f32 networks on both engines, summed in different orders: relative
+    // 1e-4 of the largest σ, 1e-4 on colours in [0, 1].
+    assert!(largest > 0.5, "a model with structure: σ up to {largest}");
+    assert!(worst_sigma <= 1e-4 * largest, "{worst_sigma}");
+    assert!(worst_rgb <= 1e-4, "{worst_rgb}");
+    assert!(empty > 0 && empty < n, "{empty} of {n} in empty cells");
+}
+
+/// On a large scene (aabb_scale 8) the march steps by cone angle: the
+/// texture render's steps must grow along each ray as the read-back
+/// render's (the cpu marcher's) do, or the colours move apart.
+#[test]
+fn render_to_texture_matches_the_read_back_render_with_cone_steps() {
+    let _cores = crate::common::shared();
+    let scene = Arc::new(demo::build_large(&DemoConfig {
+        size: 24,
+        train_views: 16,
+        val_views: 2,
+        test_views: 1,
+    }));
+    assert!(
+        scene.unit_cube.aabb_scale > 1.0,
+        "a large scene marches cones"
+    );
+    // Rays cross the backdrop's whole box: rounds of up to 64 samples a
+    // ray (2^14 samples for the rays rendered) keep the rounds few.
+    let gpu = trained_gpu_model(&scene, 1 << 14);
+    // The middle 8 × 8 pixels of a held-out view (the objects, in front of
+    // the backdrop; 38 distinct colours on lavapipe): a ninth of the rays
+    // keeps lavapipe's time down (the middle 12 × 12 took twice as long).
+    let view = scene.val[0].camera;
+    let camera = Camera::new(view.intrinsics.cropped(8, 8, 8, 8), view.camera_to_world);
+    let background = [1.0; 3];
+    let pixels = render_pixels(&gpu, &camera, background);
+    // Colour only: the backdrop's depth range leaves a handful of 8-bit
+    // depth levels, too few to show anything, while every colour depends
+    // on each sample's step through 1 − e^{−σ·dt}.
+    compare(&gpu, &camera, RenderMode::Rgb, background, &pixels);
+}
+
+#[test]
+fn a_wrong_target_is_refused_with_what_is_wrong() {
+    let _cores = crate::common::shared();
+    let scene = scene();
+    let context = GpuContext::new().expect("lavapipe or a GPU");
+    let gpu = zrak::train::gpu_ngp(context, &scene, SEED, LossKind::Huber, 1 << 10).unwrap();
+    let camera = scene.val[0].camera;
+    let small = render_target(&gpu.context().device, 8, 8);
+    let message = gpu
+        .render_to_texture(&camera, RenderMode::Rgb, [1.0; 3], &small)
+        .unwrap_err()
+        .to_string();
+    assert!(message.contains("8×8"), "{message}");
+    let cpu: &dyn RadianceModel = &zrak::train::cpu_ngp_with_shape(
+        &scene,
+        zrak::engine::cpu::fields::ngp::NgpShape::for_scene(&scene),
+        1,
+        LossKind::Huber,
+        Some(1024),
+    );
+    assert!(cpu.texture_render().is_none());
+}

@@ -1,0 +1,939 @@
+//! The viewer's training thread on the cpu engine and a small demo scene:
+//! what it answers to each command, checked by value.
+
+use crate::common;
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use glam::Vec3;
+use zrak::app::protocol::{Command, Event, InTurn, RenderRequest, RenderedFrame, SceneSource};
+use zrak::app::worker::{TrainingWorker, WorkerOptions};
+use zrak::engine::EngineKind;
+use zrak::field::ModelKind;
+use zrak::field::nerf::Sampling;
+use zrak::field::ngp::LossKind;
+use zrak::render::RenderMode;
+use zrak::render::export::ExportSettings;
+use zrak::render::path::Turntable;
+use zrak::scene::demo::{self, CAMERA_ANGLE_X, DemoConfig};
+use zrak::scene::{Camera, Intrinsics};
+
+/// Generous: on a loaded machine a step can take a second.
+const PATIENCE: Duration = Duration::from_secs(60);
+
+fn small_demo() -> DemoConfig {
+    DemoConfig {
+        size: 32,
+        train_views: 12,
+        val_views: 2,
+        test_views: 1,
+    }
+}
+
+fn options() -> WorkerOptions {
+    WorkerOptions {
+        demo: small_demo(),
+        batch_samples: Some(1 << 12),
+        ..WorkerOptions::default()
+    }
+}
+
+fn spawn(options: WorkerOptions) -> TrainingWorker {
+    TrainingWorker::spawn_with(
+        SceneSource::Demo,
+        Some(EngineKind::Cpu),
+        ModelKind::Ngp,
+        options,
+    )
+}
+
+/// Events until `pick` returns a value; panics with what was seen when
+/// none does within [`PATIENCE`].
+fn wait_for<T>(worker: &TrainingWorker, mut pick: impl FnMut(&Event) -> Option<T>) -> T {
+    let deadline = Instant::now() + PATIENCE;
+    let mut seen = Vec::new();
+    while let Some(left) = deadline.checked_duration_since(Instant::now()) {
+        let Some(event) = worker.recv_timeout(left) else {
+            break;
+        };
+        if let Some(value) = pick(&event) {
+            return value;
+        }
+        seen.push(summary(&event));
+    }
+    panic!("the awaited event did not come; seen: {seen:?}");
+}
+
+fn summary(event: &Event) -> String {
+    match event {
+        Event::Frame(f) => format!(
+            "Frame(gen {}, 1/{}, {}×{}, step {})",
+            f.generation, f.downscale, f.width, f.height, f.step
+        ),
+        Event::Stats(s) => format!("Stats(step {}, loss {})", s.step, s.loss),
+        Event::SceneLoaded(info) => format!("SceneLoaded({})", info.scene.name),
+        other => format!("{other:?}"),
+    }
+}
+
+fn stats_step(event: &Event) -> Option<u32> {
+    match event {
+        Event::Stats(stats) => Some(stats.step),
+        _ => None,
+    }
+}
+
+fn step_once(worker: &TrainingWorker) -> u32 {
+    worker.send(Command::StepOnce);
+    wait_for(worker, stats_step)
+}
+
+fn camera(size: u32, azimuth: f32) -> Camera {
+    let eye = 4.0 * Vec3::new(azimuth.cos(), azimuth.sin(), 0.6).normalize();
+    Camera::look_at(
+        Intrinsics::from_fov_x(size, size, CAMERA_ANGLE_X),
+        eye,
+        Vec3::ZERO,
+        Vec3::Z,
+    )
+}
+
+fn render(worker: &TrainingWorker, generation: u64, camera: Camera) {
+    worker.send(Command::Render(RenderRequest {
+        generation,
+        camera,
+        mode: RenderMode::Rgb,
+        moving: false,
+        needs_pixels: false,
+    }));
+}
+
+/// Frames of `generation` up to its full-resolution one.
+fn frames_until_full(worker: &TrainingWorker, generation: u64) -> Vec<RenderedFrame> {
+    let mut frames = Vec::new();
+    wait_for(worker, |event| match event {
+        Event::Frame(frame) if frame.generation == generation => {
+            frames.push(frame.clone());
+            (frame.downscale == 1).then_some(())
+        }
+        _ => None,
+    });
+    frames
+}
+
+#[test]
+fn training_reports_stats_with_a_finite_loss_and_honest_psnrs() {
+    let _alone = common::alone();
+    let worker = spawn(WorkerOptions {
+        loss: Some(LossKind::L2),
+        // Evaluate after every step, so the first report carries a PSNR.
+        val_every_train_seconds: 0.0,
+        ..options()
+    });
+    let engine = wait_for(&worker, |e| match e {
+        Event::Engine { kind, .. } => Some(*kind),
+        _ => None,
+    });
+    assert_eq!(engine, EngineKind::Cpu);
+    worker.send(Command::Start);
+    // The first report with a held-out PSNR (the evaluation renders in
+    // chunks after the step, so it may come in a later report).
+    let stats = wait_for(&worker, |e| match e {
+        Event::Stats(stats) if stats.step > 0 && stats.val_psnr.is_some() => Some(*stats),
+        Event::Stats(stats) => {
+            assert!(stats.loss.is_finite(), "{stats:?}");
+            None
+        }
+        _ => None,
+    });
+    assert_eq!(stats.model, ModelKind::Ngp);
+    assert!(stats.loss.is_finite() && stats.loss > 0.0, "{stats:?}");
+    // L2 is the batch's MSE, so its PSNR is -10 log10(loss) exactly.
+    let batch_psnr = stats.batch_psnr.expect("an L2 loss has a batch PSNR");
+    assert!(
+        (batch_psnr + 10.0 * stats.loss.log10()).abs() < 1e-3,
+        "{stats:?}"
+    );
+    let val_psnr = stats.val_psnr.expect("picked for it");
+    // Colours lie in [0, 1], so the MSE is at most 1 (PSNR ≥ 0); an
+    // untrained field is far from the 100 dB cap.
+    assert!((0.0..60.0).contains(&val_psnr), "{stats:?}");
+    assert!(
+        stats.train_seconds > 0.0 && stats.ms_per_step > 0.0,
+        "{stats:?}"
+    );
+    assert!(stats.samples_per_ray > 0.0 && stats.samples_per_second > 0.0);
+    assert!(stats.memory_bytes > 1 << 20, "{stats:?}");
+    worker.send(Command::Pause);
+    wait_for(&worker, |e| {
+        matches!(e, Event::Running(false)).then_some(())
+    });
+    worker.shutdown();
+}
+
+#[test]
+fn a_render_request_refines_to_full_size_and_old_generations_stop() {
+    let _alone = common::alone();
+    let worker = spawn(options());
+    // An untrained field is dense everywhere, so every ray marches its
+    // full length: views stay small to keep the test short.
+    render(&worker, 7, camera(32, 0.3));
+    let frames = frames_until_full(&worker, 7);
+    let sizes: Vec<(u32, u32, u32)> = frames
+        .iter()
+        .map(|f| (f.downscale, f.width, f.height))
+        .collect();
+    assert_eq!(sizes, vec![(8, 4, 4), (4, 8, 8), (2, 16, 16), (1, 32, 32)]);
+    for frame in &frames {
+        assert_eq!(frame.pixels.len(), (frame.width * frame.height) as usize);
+        assert_eq!((frame.model, frame.step), (ModelKind::Ngp, 0));
+        for p in &frame.pixels {
+            assert!(p.rgb.iter().all(|c| (0.0..=1.0).contains(c)), "{p:?}");
+            assert!((0.0..=1.0).contains(&p.opacity), "{p:?}");
+        }
+    }
+
+    // A larger view, at once replaced by another: after the newer one's
+    // first frame, nothing of the older one arrives.
+    render(&worker, 8, camera(256, 1.0));
+    render(&worker, 9, camera(32, 2.0));
+    let mut newer_seen = false;
+    let mut newer = Vec::new();
+    wait_for(&worker, |event| match event {
+        Event::Frame(frame) if frame.generation == 8 => {
+            assert!(!newer_seen, "a frame of generation 8 after generation 9's");
+            None
+        }
+        Event::Frame(frame) if frame.generation == 9 => {
+            newer_seen = true;
+            newer.push(frame.downscale);
+            (frame.downscale == 1).then_some(())
+        }
+        _ => None,
+    });
+    assert_eq!(newer, vec![8, 4, 2, 1]);
+    // Nothing of generation 8 is still on its way: a third request (tiny)
+    // is answered in full with no frame of generation 8 among its frames.
+    render(&worker, 10, camera(8, 3.0));
+    wait_for(&worker, |event| match event {
+        Event::Frame(frame) => {
+            assert_ne!(frame.generation, 8, "generation 8 went on");
+            (frame.generation == 10 && frame.downscale == 1).then_some(())
+        }
+        _ => None,
+    });
+
+    // A moving camera gets its coarsest level at once; the same camera at
+    // rest is refined to full size under the new generation.
+    let dragged = camera(32, 4.0);
+    worker.send(Command::Render(RenderRequest {
+        generation: 11,
+        camera: dragged,
+        mode: RenderMode::Rgb,
+        moving: true,
+        needs_pixels: false,
+    }));
+    let first = wait_for(&worker, |event| match event {
+        Event::Frame(frame) if frame.generation == 11 => Some(frame.downscale),
+        _ => None,
+    });
+    assert_eq!(first, 8);
+    render(&worker, 12, dragged);
+    let mut rested = false;
+    wait_for(&worker, |event| match event {
+        Event::Frame(frame) if frame.generation == 11 => {
+            assert!(!rested, "generation 11 after generation 12");
+            None
+        }
+        Event::Frame(frame) if frame.generation == 12 => {
+            rested = true;
+            assert_eq!(frame.pixels.len(), (frame.width * frame.height) as usize);
+            (frame.downscale == 1).then_some(())
+        }
+        _ => None,
+    });
+    worker.shutdown();
+}
+
+#[test]
+fn reset_forgets_the_steps_and_selecting_the_model_keeps_them() {
+    let _alone = common::alone();
+    let worker = spawn(options());
+    for expected in 1..=3 {
+        assert_eq!(step_once(&worker), expected);
+    }
+    worker.send(Command::SelectModel(ModelKind::Ngp));
+    wait_for(&worker, |e| {
+        matches!(e, Event::ModelSelected(ModelKind::Ngp)).then_some(())
+    });
+    render(&worker, 1, camera(16, 0.5));
+    let frames = frames_until_full(&worker, 1);
+    assert!(frames.iter().all(|f| f.step == 3), "{:?}", frames.len());
+
+    worker.send(Command::Reset);
+    render(&worker, 2, camera(16, 1.5));
+    let frames = frames_until_full(&worker, 2);
+    assert!(frames.iter().all(|f| f.step == 0));
+    worker.shutdown();
+}
+
+#[test]
+fn a_missing_scene_folder_is_reported_while_training_goes_on() {
+    let _alone = common::alone();
+    let worker = spawn(options());
+    worker.send(Command::Start);
+    let first = wait_for(&worker, |e| match e {
+        Event::Stats(stats) if stats.step > 0 => Some(*stats),
+        _ => None,
+    });
+    // Huber (the default loss) is not a squared error: no batch PSNR.
+    assert_eq!(first.batch_psnr, None);
+    let before = first.step;
+    let missing = PathBuf::from("/nonexistent/zrak-missing-scene");
+    worker.send(Command::OpenScene(SceneSource::Folder(missing.clone())));
+    let (source, error) = wait_for(&worker, |e| match e {
+        Event::SceneFailed { source, error } => Some((source.clone(), error.clone())),
+        Event::SceneLoaded(_) => panic!("a missing folder loaded"),
+        _ => None,
+    });
+    assert_eq!(source, SceneSource::Folder(missing));
+    assert!(
+        error.contains("/nonexistent/zrak-missing-scene") && error.contains("not found"),
+        "{error}"
+    );
+    // The same model keeps counting: the scene was not replaced.
+    let after = wait_for(&worker, |e| stats_step(e).filter(|&s| s > before));
+    assert!(after > before);
+    worker.shutdown();
+}
+
+fn save(worker: &TrainingWorker, path: &Path) {
+    worker.send(Command::SaveCheckpoint(path.to_path_buf()));
+    let saved = wait_for(worker, |e| match e {
+        Event::CheckpointSaved(p) => Some(p.clone()),
+        Event::Error(e) => panic!("{e}"),
+        _ => None,
+    });
+    assert_eq!(saved, path);
+}
+
+#[test]
+fn a_checkpoint_restores_its_step_and_one_of_another_scene_is_refused() {
+    let _alone = common::alone();
+    let dir = tempfile::tempdir().unwrap();
+    let checkpoint = dir.path().join("viewer.zrak");
+    let worker = spawn(options());
+    assert_eq!(step_once(&worker), 1);
+    assert_eq!(step_once(&worker), 2);
+    save(&worker, &checkpoint);
+    assert_eq!(step_once(&worker), 3);
+
+    worker.send(Command::LoadCheckpoint(checkpoint.clone()));
+    let (path, model, step) = wait_for(&worker, |e| match e {
+        Event::CheckpointLoaded { path, model, step } => Some((path.clone(), *model, *step)),
+        Event::Error(e) => panic!("{e}"),
+        _ => None,
+    });
+    assert_eq!((path, model, step), (checkpoint.clone(), ModelKind::Ngp, 2));
+    assert_eq!(step_once(&worker), 3);
+
+    // Another scene on disk: the checkpoint no longer fits.
+    let other = dir.path().join("other-scene");
+    let other_config = DemoConfig {
+        train_views: 6,
+        ..small_demo()
+    };
+    demo::write(&other_config, &other).unwrap();
+    worker.send(Command::OpenScene(SceneSource::Folder(other.clone())));
+    let frames = wait_for(&worker, |e| match e {
+        Event::SceneLoaded(info) => Some(info.scene.train.len()),
+        Event::SceneFailed { error, .. } => panic!("{error}"),
+        _ => None,
+    });
+    assert_eq!(frames, 6);
+    assert_eq!(step_once(&worker), 1);
+    worker.send(Command::LoadCheckpoint(checkpoint.clone()));
+    let error = wait_for(&worker, |e| match e {
+        Event::Error(error) => Some(error.clone()),
+        Event::CheckpointLoaded { .. } => panic!("a checkpoint of another scene loaded"),
+        _ => None,
+    });
+    assert!(
+        error.contains("viewer.zrak") && error.contains("the checkpoint was trained on scene"),
+        "{error}"
+    );
+    // The current model is untouched.
+    assert_eq!(step_once(&worker), 2);
+    worker.shutdown();
+}
+
+fn turntable(out_dir: &Path, frames: usize) -> ExportSettings {
+    ExportSettings {
+        turntable: Turntable {
+            frames,
+            size: Some((8, 8)),
+            ..Turntable::default()
+        },
+        mode: RenderMode::Rgb,
+        out_dir: out_dir.to_path_buf(),
+        write_gif: true,
+        replace_existing: false,
+    }
+}
+
+#[test]
+fn a_turntable_export_reports_progress_and_can_be_cancelled() {
+    let _alone = common::alone();
+    let dir = tempfile::tempdir().unwrap();
+    let worker = spawn(options());
+    worker.send(Command::ExportTurntable(turntable(dir.path(), 3)));
+    let mut progress = Vec::new();
+    let files = wait_for(&worker, |e| match e {
+        Event::ExportProgress { done, total } => {
+            progress.push((*done, *total));
+            None
+        }
+        Event::ExportFinished(result) => Some(result.clone()),
+        _ => None,
+    })
+    .expect("the export succeeds");
+    assert_eq!(progress, vec![(0, 3), (1, 3), (2, 3), (3, 3)]);
+    // Three PNG frames, then the GIF.
+    assert_eq!(files.len(), 4, "{files:?}");
+    assert!(files.iter().all(|f| f.is_file()), "{files:?}");
+    assert!(files[3].ends_with("turntable.gif"));
+
+    let cancelled = dir.path().join("cancelled");
+    worker.send(Command::ExportTurntable(turntable(&cancelled, 10_000)));
+    wait_for(&worker, |e| {
+        matches!(e, Event::ExportProgress { done: 1, .. }).then_some(())
+    });
+    worker.send(Command::CancelExport);
+    let result = wait_for(&worker, |e| match e {
+        Event::ExportFinished(result) => Some(result.clone()),
+        _ => None,
+    });
+    assert!(result.unwrap_err().contains("cancelled"));
+    // Cancelled before the end: not every frame was written, and the
+    // unfinished GIF was removed.
+    let written = std::fs::read_dir(&cancelled).unwrap().count();
+    assert!((1..10_000).contains(&written), "{written} files");
+    assert!(!cancelled.join("turntable.gif").exists());
+    worker.shutdown();
+}
+
+#[test]
+fn closing_keeps_each_model_trained_since_its_last_save() {
+    let _alone = common::alone();
+    let dir = tempfile::tempdir().unwrap();
+    let kept_in = |runs: &Path| -> Vec<PathBuf> {
+        std::fs::read_dir(runs)
+            .map(|entries| entries.map(|e| e.unwrap().path()).collect())
+            .unwrap_or_default()
+    };
+
+    // Trained and never saved: kept as a run folder when the thread stops.
+    let runs = dir.path().join("runs");
+    let worker = spawn(WorkerOptions {
+        autosave: Some(runs.clone()),
+        ..options()
+    });
+    assert_eq!(step_once(&worker), 1);
+    assert_eq!(step_once(&worker), 2);
+    worker.shutdown();
+    let kept = kept_in(&runs);
+    assert_eq!(kept.len(), 1, "{kept:?}");
+    let name = kept[0].file_name().unwrap().to_string_lossy().into_owned();
+    assert!(name.starts_with("demo-ngp-"), "{name}");
+    let checkpoint =
+        zrak::train::checkpoint::Checkpoint::load(&kept[0].join("checkpoint.zrak")).unwrap();
+    assert_eq!(checkpoint.header["trainer"]["step"], 2);
+    let run: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(kept[0].join("run.json")).unwrap()).unwrap();
+    assert_eq!(
+        (&run["scene"], &run["model"]),
+        (&"demo".into(), &"ngp".into())
+    );
+
+    // Saved and not trained since: nothing more to keep.
+    let runs = dir.path().join("runs_after_save");
+    let worker = spawn(WorkerOptions {
+        autosave: Some(runs.clone()),
+        ..options()
+    });
+    assert_eq!(step_once(&worker), 1);
+    save(&worker, &dir.path().join("saved.zrak"));
+    worker.shutdown();
+    assert!(kept_in(&runs).is_empty(), "{:?}", kept_in(&runs));
+
+    // `--keep-runs 0`: nothing of this session kept, and the run kept by
+    // the first session above is not removed to make room.
+    let runs = dir.path().join("runs");
+    let worker = spawn(WorkerOptions {
+        autosave: Some(runs.clone()),
+        kept_runs: 0,
+        ..options()
+    });
+    assert_eq!(step_once(&worker), 1);
+    worker.shutdown();
+    assert_eq!(kept_in(&runs), kept);
+}
+
+#[test]
+fn a_scene_loads_while_the_current_one_trains() {
+    let _alone = common::alone();
+    let dir = tempfile::tempdir().unwrap();
+    // Large enough that reading and decoding it takes longer than a couple
+    // of small steps.
+    let big = dir.path().join("big");
+    demo::write(&DemoConfig::default(), &big).unwrap();
+    let worker = spawn(options());
+    assert_eq!(step_once(&worker), 1);
+    worker.send(Command::OpenScene(SceneSource::Folder(big)));
+    worker.send(Command::StepOnce);
+    worker.send(Command::StepOnce);
+    let mut steps_before_loaded = Vec::new();
+    let frames = wait_for(&worker, |e| match e {
+        Event::Stats(stats) => {
+            steps_before_loaded.push(stats.step);
+            None
+        }
+        Event::SceneLoaded(info) => Some(info.scene.train.len()),
+        Event::SceneFailed { error, .. } => panic!("{error}"),
+        _ => None,
+    });
+    assert_eq!(frames, DemoConfig::default().train_views);
+    // The steps asked for after the scene were taken while it loaded, on
+    // the scene of the moment (a stalled thread would take them after,
+    // on the new scene, from step 1).
+    assert!(
+        steps_before_loaded.contains(&2),
+        "steps answered before the scene loaded: {steps_before_loaded:?}"
+    );
+    // The new scene's model starts afresh.
+    assert_eq!(step_once(&worker), 1);
+    worker.shutdown();
+}
+
+#[test]
+fn models_in_turn_train_in_order_at_equal_shares_of_training_time() {
+    let _alone = common::alone();
+    let worker = spawn(WorkerOptions {
+        // NeRF with the paper's sampler on batches of 4 rays (1024
+        // samples): steps of tens of ms and no occupancy-grid update, so
+        // turns come quickly. No held-out evaluations, which would pause
+        // training.
+        sampling: Sampling::Paper,
+        batch_samples: Some(1 << 10),
+        val_every_train_seconds: 1e9,
+        ..options()
+    });
+    const SLICE: f64 = 0.4;
+    let turns = InTurn {
+        models: vec![ModelKind::Ngp, ModelKind::Nerf],
+        slice_seconds: SLICE,
+    };
+    worker.send(Command::TrainInTurn(Some(turns.clone())));
+    let echoed = wait_for(&worker, |e| match e {
+        Event::InTurn(settings) => Some(settings.clone()),
+        _ => None,
+    });
+    assert_eq!(echoed, Some(turns));
+    worker.send(Command::Start);
+    // Each turn's model, and its training seconds and step time at the
+    // last report of the turn (the one sent when the turn passes on).
+    let mut ends: Vec<(ModelKind, f64, f64)> = Vec::new();
+    wait_for(&worker, |e| {
+        let Event::Stats(stats) = e else {
+            return None;
+        };
+        let report = (
+            stats.model,
+            stats.train_seconds,
+            stats.ms_per_step as f64 / 1e3,
+        );
+        match ends.last_mut() {
+            Some(last) if last.0 == stats.model => *last = report,
+            _ => ends.push(report),
+        }
+        // Five turns started: four have ended.
+        (ends.len() == 5).then_some(())
+    });
+    worker.send(Command::Pause);
+    let order: Vec<ModelKind> = ends.iter().map(|e| e.0).collect();
+    assert_eq!(
+        order,
+        [
+            ModelKind::Ngp,
+            ModelKind::Nerf,
+            ModelKind::Ngp,
+            ModelKind::Nerf,
+            ModelKind::Ngp
+        ]
+    );
+    // A turn ends when its model's training time has crossed a whole
+    // number of slices since the turns began, within a step after (a step
+    // is not cut short). A model that a long step put ahead (the first
+    // Instant-NGP step can take longer than a slice) is passed over until
+    // the others have caught up, so a turn may span several slices.
+    for (i, &(model, seconds, step)) in ends[..4].iter().enumerate() {
+        let slices = (seconds / SLICE).floor();
+        assert!(
+            slices >= 1.0 && seconds - slices * SLICE <= 3.0 * step + 0.25,
+            "turn {i} of {model:?} ended at {seconds:.3} s (steps of {step:.3} s): {ends:?}"
+        );
+    }
+    // At every hand-over after the first, the two models' training times
+    // are within a slice and a step of each other.
+    for pair in ends[..4].windows(2).skip(1) {
+        let (a, b) = (&pair[0], &pair[1]);
+        assert!(
+            (a.1 - b.1).abs() <= SLICE + 3.0 * a.2.max(b.2) + 0.25,
+            "{ends:?}"
+        );
+    }
+    worker.send(Command::TrainInTurn(None));
+    let echoed = wait_for(&worker, |e| match e {
+        Event::InTurn(settings) => Some(settings.clone()),
+        _ => None,
+    });
+    assert_eq!(echoed, None);
+    worker.shutdown();
+}
+
+#[test]
+fn training_goes_on_while_the_camera_never_rests() {
+    let _alone = common::alone();
+    let worker = spawn(options());
+    wait_for(&worker, |event| match event {
+        Event::Engine { .. } => Some(()),
+        _ => None,
+    });
+    // A new moving camera every 20 ms, as a long drag or `--auto-orbit`
+    // sends, the first before training starts: each coarse frame (1/8 of
+    // 256 px, an untrained field marched end to end) takes longer than
+    // that, so without a share kept for training the renders would follow
+    // one another and no step would run.
+    let moving_camera = |generation: u64| {
+        Command::Render(RenderRequest {
+            generation,
+            camera: camera(256, generation as f32 * 0.05),
+            mode: RenderMode::Rgb,
+            moving: true,
+            needs_pixels: false,
+        })
+    };
+    let mut generation = 100;
+    worker.send(moving_camera(generation));
+    worker.send(Command::Start);
+    let started = Instant::now();
+    let mut trained_seconds = 0.0;
+    let mut steps = Vec::new();
+    while started.elapsed() < Duration::from_secs(8) {
+        generation += 1;
+        worker.send(moving_camera(generation));
+        let next_request = Instant::now() + Duration::from_millis(20);
+        while let Some(left) = next_request.checked_duration_since(Instant::now()) {
+            if let Some(Event::Stats(stats)) = worker.recv_timeout(left) {
+                steps.push(stats.step);
+                trained_seconds = stats.train_seconds;
+            }
+        }
+    }
+    let elapsed = started.elapsed().as_secs_f64();
+    worker.shutdown();
+    // Training gets a quarter of the time while the camera moves (a step
+    // of d seconds, then 3 d for rendering: `MOVING_IDLE_PER_STEP`); a
+    // tenth allows for the step in progress when the clock stops and for
+    // a loaded machine.
+    assert!(
+        trained_seconds >= 0.1 * elapsed,
+        "{trained_seconds:.2} s of training in {elapsed:.1} s of a moving camera, steps {steps:?}"
+    );
+}
+
+/// A frame of the view as it arrived: when (seconds since the run began),
+/// the step and training seconds its level began at, and its downscale.
+#[derive(Debug, Clone, Copy)]
+struct Arrival {
+    at: f64,
+    step: u32,
+    train_seconds: f64,
+    downscale: u32,
+}
+
+/// What a run of the thread showed.
+#[derive(Debug, Default)]
+struct Watched {
+    frames: Vec<Arrival>,
+    /// (seconds since the run began, training seconds, step) of each
+    /// stats event.
+    stats: Vec<(f64, f64, u32)>,
+    /// The longest step reported (ms per step of a report: a grid update's
+    /// step is its report's whole time).
+    longest_step: f64,
+}
+
+/// Collects frames of `generation` (as pixels or textures) and stats for
+/// `seconds`, or until `stop` says so of a frame.
+fn watch(
+    worker: &TrainingWorker,
+    generation: u64,
+    began: Instant,
+    seconds: f64,
+    mut stop: impl FnMut(&Arrival) -> bool,
+    into: &mut Watched,
+) {
+    let deadline = began + Duration::from_secs_f64(seconds);
+    while let Some(left) = deadline.checked_duration_since(Instant::now()) {
+        let Some(event) = worker.recv_timeout(left) else {
+            break;
+        };
+        let at = began.elapsed().as_secs_f64();
+        let arrival = match &event {
+            Event::Frame(f) if f.generation == generation => Arrival {
+                at,
+                step: f.step,
+                train_seconds: f.train_seconds,
+                downscale: f.downscale,
+            },
+            Event::GpuFrame(f) if f.generation == generation => Arrival {
+                at,
+                step: f.step,
+                train_seconds: f.train_seconds,
+                downscale: f.downscale,
+            },
+            Event::Stats(s) => {
+                into.stats.push((at, s.train_seconds, s.step));
+                into.longest_step = into.longest_step.max(s.ms_per_step as f64 / 1e3);
+                continue;
+            }
+            Event::Error(error) => panic!("{error}"),
+            _ => continue,
+        };
+        into.frames.push(arrival);
+        if stop(&arrival) {
+            return;
+        }
+    }
+}
+
+/// NeRF or Mip-NeRF with the camera at rest: training gets its share, the
+/// picture keeps up, and a camera that comes to rest is drawn at full
+/// resolution within [`settle_bound_seconds`]. `view` is the viewport's
+/// side: small enough that its whole render fits the refresh budget once
+/// the occupancy grid has tightened a little.
+fn the_picture_keeps_up_while_training_keeps_its_share(
+    model: ModelKind,
+    engine: EngineKind,
+    options: WorkerOptions,
+    view: u32,
+    rest_seconds: f64,
+) {
+    use zrak::app::schedule::{DEFAULT_TRAINING_SHARE, lag_bound_seconds, settle_bound_seconds};
+    let worker = TrainingWorker::spawn_with(SceneSource::Demo, Some(engine), model, options);
+    wait_for(&worker, |event| match event {
+        Event::Engine { kind, .. } => {
+            assert_eq!(*kind, engine);
+            Some(())
+        }
+        _ => None,
+    });
+    let began = Instant::now();
+    render(&worker, 1, camera(view, 0.3));
+    worker.send(Command::Start);
+    let mut run = Watched::default();
+    watch(&worker, 1, began, rest_seconds, |_| false, &mut run);
+
+    // Training's share of the wall time, from the start to its last report.
+    // The share is 0.7; the issue asks for at least 0.6. The time is shared
+    // step by step, so over a run of a few steps (a step that updates the
+    // occupancy grid takes seconds on two busy cores) the share measured
+    // swings by up to 0.3 of a step over the run; and evaluation takes at
+    // least 48 pixels however slow the model.
+    assert!(
+        !run.stats.is_empty(),
+        "no step in {rest_seconds} s; frames {:?}",
+        run.frames
+    );
+    let (first, last) = (run.stats[0], *run.stats.last().expect("stats"));
+    let (wall, trained) = (last.0, last.1);
+    let share = trained / wall;
+    let steps = last.2;
+    println!(
+        "{model:?} on {engine:?}: {steps} steps, training {trained:.1} s of {wall:.1} s \
+         ({share:.2}); longest step {:.2} s; frames {:?}",
+        run.longest_step,
+        run.frames
+            .iter()
+            .map(|f| (format!("{:.1}", f.at), f.step, f.downscale))
+            .collect::<Vec<_>>()
+    );
+    assert!(
+        share >= 0.6,
+        "training had {share:.2} of the wall time ({trained:.1} of {wall:.1} s)"
+    );
+    // No upper bound: the view takes its share only while it has work. A
+    // view this small is redrawn at full resolution in a fraction of a
+    // step, and once the picture shows the latest step there is nothing
+    // to draw until the next, so training goes on (measured: 0.91 for
+    // NeRF on a 16-pixel view). What the view gets is checked below.
+
+    // The picture keeps up: after the first step, a picture of a later
+    // step than any shown before comes at least every `lag_bound_seconds`
+    // (two refreshes at rendering's share, and a step), so the one shown
+    // is never older than that.
+    let bound = lag_bound_seconds(DEFAULT_TRAINING_SHARE, run.longest_step);
+    let shown = &run.frames;
+    assert!(
+        shown.windows(2).all(|p| p[1].step >= p[0].step),
+        "a picture of an earlier step after a later one: {shown:?}"
+    );
+    let mut advances: Vec<&Arrival> = Vec::new();
+    for frame in shown.iter().filter(|f| f.at >= first.0) {
+        if advances.last().is_none_or(|a| frame.step > a.step) {
+            advances.push(frame);
+        }
+    }
+    assert!(
+        advances.len() >= 3,
+        "the shown step advanced {} times in {wall:.1} s: {shown:?}",
+        advances.len()
+    );
+    let mut since = first.0;
+    for frame in &advances {
+        assert!(
+            frame.at - since <= bound,
+            "the shown step stood still for {:.1} s (bound {bound:.1} s) before {frame:?}: \
+             {shown:?}",
+            frame.at - since
+        );
+        since = frame.at;
+    }
+    assert!(
+        last.0 - since <= bound,
+        "the shown step stood still for the last {:.1} s (bound {bound:.1} s)",
+        last.0 - since
+    );
+    let latest = shown.last().expect("frames");
+    assert!(
+        last.1 - latest.train_seconds <= bound,
+        "the last picture is {:.1} s of training behind (bound {bound:.1} s)",
+        last.1 - latest.train_seconds
+    );
+
+    // The camera moves for a second, then rests: its first full-resolution
+    // picture comes within the settle bound (first level and refinements
+    // within 4/3 of the refresh budget at rendering's share, and a step).
+    // Doubled, and a second more: the cost of a pixel is estimated from
+    // the levels before, and a misjudged level may be started again.
+    let moved = camera(view, 1.3);
+    for generation in 2..=6 {
+        worker.send(Command::Render(RenderRequest {
+            generation,
+            camera: moved,
+            mode: RenderMode::Rgb,
+            moving: true,
+            needs_pixels: false,
+        }));
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    let rested = Instant::now();
+    render(&worker, 7, moved);
+    let mut after = Watched::default();
+    let limit = 2.0 * settle_bound_seconds(DEFAULT_TRAINING_SHARE, run.longest_step) + 1.0;
+    watch(
+        &worker,
+        7,
+        rested,
+        limit + 30.0,
+        |f| f.downscale == 1,
+        &mut after,
+    );
+    let full = after
+        .frames
+        .iter()
+        .find(|f| f.downscale == 1)
+        .unwrap_or_else(|| panic!("no full-resolution frame: {:?}", after.frames));
+    println!(
+        "full resolution {:.1} s after the camera came to rest (bound {limit:.1} s): {:?}",
+        full.at, after.frames
+    );
+    assert!(
+        full.at <= limit,
+        "full resolution came {:.1} s after the camera rested (bound {limit:.1} s)",
+        full.at
+    );
+    worker.shutdown();
+}
+
+#[test]
+fn nerf_on_the_cpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
+    let _alone = common::alone();
+    the_picture_keeps_up_while_training_keeps_its_share(
+        ModelKind::Nerf,
+        EngineKind::Cpu,
+        WorkerOptions {
+            demo: small_demo(),
+            ..WorkerOptions::default()
+        },
+        16,
+        25.0,
+    );
+}
+
+#[test]
+fn mipnerf_on_the_cpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
+    let _alone = common::alone();
+    the_picture_keeps_up_while_training_keeps_its_share(
+        ModelKind::MipNerf,
+        EngineKind::Cpu,
+        WorkerOptions {
+            demo: small_demo(),
+            ..WorkerOptions::default()
+        },
+        16,
+        25.0,
+    );
+}
+
+/// The gpu engine (lavapipe here) on a device shared with a window, as
+/// `zrak view --engine gpu` runs it: the view comes as textures drawn band
+/// by band. lavapipe runs the papers' 8 × 256 networks at well under a
+/// G FLOP/s on two busy cores (`zrak bench throughput --engine gpu --model
+/// nerf`: 86 s a step of 2^12 samples), a pixel of them in about a second,
+/// so the models have the small networks the gpu parity tests use.
+fn on_the_gpu_engine(model: ModelKind, shape: common::NerfKind) {
+    let _alone = common::alone();
+    let context = match zrak::engine::gpu::GpuContext::new() {
+        Ok(context) => context,
+        Err(error) => {
+            println!("no gpu adapter ({error}): nothing to test");
+            return;
+        }
+    };
+    the_picture_keeps_up_while_training_keeps_its_share(
+        model,
+        EngineKind::Gpu,
+        WorkerOptions {
+            demo: small_demo(),
+            batch_samples: Some(1 << 12),
+            nerf_shape: Some(common::small_nerf_shape(shape)),
+            gpu_device: Some(context),
+            ..WorkerOptions::default()
+        },
+        8,
+        30.0,
+    );
+}
+
+#[test]
+fn nerf_on_the_gpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
+    on_the_gpu_engine(ModelKind::Nerf, common::NerfKind::Nerf);
+}
+
+#[test]
+fn mipnerf_on_the_gpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
+    on_the_gpu_engine(ModelKind::MipNerf, common::NerfKind::MipNerf);
+}
