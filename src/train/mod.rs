@@ -116,12 +116,26 @@ pub fn cpu_ngp_with_shape(
     loss: LossKind,
     batch_samples: Option<usize>,
 ) -> crate::engine::cpu::model::CpuModel {
+    let recipe = crate::field::ngp::recipe(scene.unit_cube.aabb_scale);
+    cpu_ngp_with_recipe(scene, shape, recipe, seed, loss, batch_samples)
+}
+
+/// [`cpu_ngp_with_shape`] with another recipe than the paper's (tests use
+/// a coarser occupancy grid).
+pub fn cpu_ngp_with_recipe(
+    scene: &Scene,
+    shape: crate::engine::cpu::fields::ngp::NgpShape,
+    recipe: crate::field::common::Recipe,
+    seed: u64,
+    loss: LossKind,
+    batch_samples: Option<usize>,
+) -> crate::engine::cpu::model::CpuModel {
     use crate::engine::cpu::fields::Field;
     use crate::engine::cpu::fields::ngp::NgpField;
     let fields: Vec<Box<dyn Field>> = vec![Box::new(NgpField::new(shape))];
     crate::engine::cpu::model::CpuModel::new(
         ngp_identity(),
-        crate::field::ngp::recipe(scene.unit_cube.aabb_scale),
+        recipe,
         fields,
         scene,
         seed,
@@ -142,6 +156,21 @@ pub fn gpu_ngp_with_shape(
     loss: LossKind,
     batch_samples: Option<usize>,
 ) -> Result<crate::engine::gpu::model::GpuModel, String> {
+    let recipe = crate::field::ngp::recipe(scene.unit_cube.aabb_scale);
+    gpu_ngp_with_recipe(context, scene, shape, recipe, seed, loss, batch_samples)
+}
+
+/// [`gpu_ngp_with_shape`] with another recipe than the paper's (tests use
+/// a coarser occupancy grid).
+pub fn gpu_ngp_with_recipe(
+    context: crate::engine::gpu::GpuContext,
+    scene: &Scene,
+    shape: crate::engine::cpu::fields::ngp::NgpShape,
+    recipe: crate::field::common::Recipe,
+    seed: u64,
+    loss: LossKind,
+    batch_samples: Option<usize>,
+) -> Result<crate::engine::gpu::model::GpuModel, String> {
     use crate::engine::cpu::fields::Field;
     use crate::engine::cpu::fields::ngp::NgpField;
     use crate::engine::gpu::fields::GpuField;
@@ -152,7 +181,7 @@ pub fn gpu_ngp_with_shape(
     crate::engine::gpu::model::GpuModel::new(
         context,
         ngp_identity(),
-        crate::field::ngp::recipe(scene.unit_cube.aabb_scale),
+        recipe,
         params,
         ranges,
         layout,
