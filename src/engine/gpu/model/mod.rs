@@ -3,10 +3,14 @@
 //! per level a sampler (stratified, importance sampling of the previous
 //! level's weights merged with its samples, or Mip-NeRF's resampling of
 //! frustums), a field, compositing and the loss; then one Adam step over
-//! every field's parameters. NeRF is this driver with
-//! [`super::fields::nerf::GpuNerfField`] and the recipe of
-//! [`crate::field::nerf`]; Mip-NeRF is the same driver and field with the
-//! recipe of [`crate::field::mipnerf`] (one field for both levels).
+//! every field's parameters, each part as the parameter layout says (a
+//! hash table sparsely, networks densely, with or without weight decay).
+//! NeRF is this driver with [`super::fields::nerf::GpuNerfField`] and the
+//! recipe of [`crate::field::nerf`]; Mip-NeRF is the same driver and field
+//! with the recipe of [`crate::field::mipnerf`] (one field for both
+//! levels); Instant-NGP is this driver with
+//! [`super::fields::ngp::GpuNgpField`] (unit-cube positions) and the recipe
+//! of [`crate::field::ngp`].
 //!
 //! A recipe of conical frustums ([`SampleShape::ConicalFrustums`]) places
 //! interval edges instead of points: stratified edges, or edges resampled
@@ -38,8 +42,8 @@
 //! values, not part of the backward pass.
 //!
 //! A recipe whose level marches through the occupancy grid
-//! ([`SamplerKind::Occupancy`]) runs as Instant-NGP's gpu driver does: the
-//! grid's values on the host with the cpu engine's update code, its
+//! ([`SamplerKind::Occupancy`]) keeps the grid's values on the host with
+//! the cpu engine's update code, its
 //! bitfield on the device, the march ([`GpuMarch`]) and everything after
 //! it on the device (see [`GpuModel::run_marched`] for the one difference
 //! from the cpu: no σ-first compaction yet).
@@ -626,7 +630,6 @@ impl GpuModel {
         read_buffer(&self.context, &self.gradients, self.param_count)
     }
 
-    /// The occupancy grid, for a recipe that marches through one.
     /// Near and far depth that depth images map to white and black (the
     /// scene's, as the `render` command uses).
     pub fn depth_range(&self) -> (f32, f32) {
@@ -646,6 +649,7 @@ impl GpuModel {
         self.work().clock = StageClock::new(&self.context, timing);
     }
 
+    /// The occupancy grid, for a recipe that marches through one.
     pub fn occupancy(&self) -> Option<&OccupancyGrid> {
         self.grid.as_ref().map(|g| &g.grid)
     }
