@@ -183,16 +183,6 @@ pub struct Check {
 /// f32: the engines agree to ~1e-6, and 1e-4 still catches any wrong
 /// sample, ray or weight (`tests/it/ngp_gpu.rs`).
 const LOSS_RELATIVE: f32 = 1e-4;
-/// Adam's first steps move each parameter by about lr · sign(g): where a
-/// gradient is at the level of summation-order noise its sign may differ
-/// between engines, so a few updates may disagree. The tests allow 0.1 %
-/// (Instant-NGP) and 1 % (NeRF, Mip-NeRF) of the changed parameters.
-fn parameter_mismatch_share(kind: ModelKind) -> f64 {
-    match kind {
-        ModelKind::Ngp => 0.001,
-        ModelKind::Nerf | ModelKind::MipNerf => 0.01,
-    }
-}
 /// An update that differs by more than this, relatively, is a mismatch.
 const PARAMETER_RELATIVE: f32 = 1e-3;
 /// Colours and opacity lie in [0, 1]; 1e-4 is a stage's relative 1e-4 at
@@ -337,7 +327,7 @@ pub fn self_check(context: &GpuContext, kind: ModelKind, size: CheckSize) -> Vec
                 mismatched += 1;
             }
         }
-        let allowed = parameter_mismatch_share(kind);
+        let allowed = kind.spec().engine_update_mismatch_share;
         let share = mismatched as f64 / changed.max(1) as f64;
         check(
             "parameters after Adam",

@@ -10,7 +10,6 @@ use zrak::engine::cpu::dense::{Precision, backend_for};
 use zrak::engine::{EngineKind, choose_engine};
 use zrak::field::ModelKind;
 use zrak::field::nerf::Sampling;
-use zrak::field::ngp::OccupancyConfig;
 use zrak::interrupt::{self, note, say};
 use zrak::render::RenderMode;
 use zrak::scene::{Camera, Scene};
@@ -142,20 +141,15 @@ pub fn bench_dense(args: DenseArgs) -> anyhow::Result<()> {
 /// lavapipe. There the bench is a correctness run.
 const SOFTWARE_GPU_SAMPLES: usize = 1 << 12;
 
-/// Unmeasured steps before a throughput measurement: past the occupancy
-/// grid's warm-up (its first 256 steps update every cell, twice the work of
-/// a later update) and a few more, so the figures are those of most of a
-/// run; 1 on a software adapter, where a gpu step takes minutes.
+/// Unmeasured steps before a throughput measurement: the model's own
+/// (past its occupancy grid's warm-up); 2 with the paper's sampler, which
+/// has no grid, so a few steps settle its caches; 1 on a software adapter,
+/// where a gpu step takes minutes. There the bench is a correctness run.
 fn default_warmup(model: ModelKind, sampling: Sampling, software_gpu: bool) -> usize {
-    match model {
+    match sampling {
         _ if software_gpu => 1,
-        ModelKind::Ngp => OccupancyConfig::PAPER.warmup_steps as usize + 32,
-        // Past the grid's warm-up too, with the occupancy sampler; the
-        // paper's sampler has no grid, and a few steps settle its caches.
-        ModelKind::Nerf | ModelKind::MipNerf => match sampling {
-            Sampling::Occupancy => zrak::field::nerf::OCCUPANCY.warmup_steps as usize + 16,
-            Sampling::Paper => 2,
-        },
+        Sampling::Paper if model.has_paper_sampler() => 2,
+        _ => model.spec().bench_warmup_steps,
     }
 }
 
@@ -403,7 +397,7 @@ mod tests {
 
     #[test]
     fn warm_up_passes_the_occupancy_grids_own_warm_up() {
-        let ngp_grid = OccupancyConfig::PAPER.warmup_steps as usize;
+        let ngp_grid = zrak::field::ngp::OccupancyConfig::PAPER.warmup_steps as usize;
         let nerf_grid = zrak::field::nerf::OCCUPANCY.warmup_steps as usize;
         assert_eq!(
             default_warmup(ModelKind::Ngp, Sampling::Occupancy, false),
@@ -418,6 +412,11 @@ mod tests {
             nerf_grid + 16
         );
         assert_eq!(default_warmup(ModelKind::Nerf, Sampling::Paper, false), 2);
+        // Instant-NGP has no paper sampler: the setting leaves it on its grid.
+        assert_eq!(
+            default_warmup(ModelKind::Ngp, Sampling::Paper, false),
+            ngp_grid + 32
+        );
         // On a software adapter a step takes minutes: one is enough.
         for model in ModelKind::ALL {
             assert_eq!(default_warmup(model, Sampling::Occupancy, true), 1);

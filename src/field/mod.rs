@@ -23,7 +23,17 @@ pub enum ModelKind {
 }
 
 impl ModelKind {
-    pub const ALL: [ModelKind; 3] = [ModelKind::Ngp, ModelKind::Nerf, ModelKind::MipNerf];
+    /// Every model, in [`MODELS`]'s order (read from it, so a new model is
+    /// a variant and a row).
+    pub const ALL: [ModelKind; MODELS.len()] = {
+        let mut all = [ModelKind::Ngp; MODELS.len()];
+        let mut index = 0;
+        while index < MODELS.len() {
+            all[index] = MODELS[index].kind;
+            index += 1;
+        }
+        all
+    };
 
     /// The model's row of [`MODELS`].
     pub fn spec(self) -> &'static ModelSpec {
@@ -69,10 +79,56 @@ pub struct ModelSpec {
     pub samplings: &'static [nerf::Sampling],
     /// Its colour in the viewer's plots and the exported ones (RGB).
     pub colour: [u8; 3],
+    /// The viewer's training batches where the recipe's would make a step
+    /// too long to wait behind.
+    pub viewer_batch: ViewerBatch,
+    /// Unmeasured steps before `zrak bench throughput` measures the model
+    /// with its default sampler: past the occupancy grid's warm-up (its
+    /// first updates visit every cell, twice the work of a later one) and
+    /// a few updates more, so the figures are those of most of a run.
+    pub bench_warmup_steps: usize,
+    /// The share of changed parameters whose first Adam updates may differ
+    /// between the engines in `zrak bench gpu`'s self-check: Adam's first
+    /// steps move each parameter by about lr · sign(g), and where a
+    /// gradient is at the level of summation-order noise its sign may
+    /// differ between engines. The parity tests allow the same
+    /// (`tests/it/ngp_gpu.rs`, `tests/it/nerf_gpu.rs`).
+    pub engine_update_mismatch_share: f64,
 }
 
+/// The viewer's training batches, in samples, where the recipe's own would
+/// make a step too long for the commands and render chunks that wait
+/// behind it (`None` keeps the recipe's).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ViewerBatch {
+    /// On the cpu engine with the model's default sampler.
+    pub cpu: Option<usize>,
+    /// With the paper's sampler on the cpu engine, or on a software gpu
+    /// adapter (lavapipe's few GFLOP/s).
+    pub slow: Option<usize>,
+}
+
+/// Instant-NGP's batch in the viewer on the cpu engine: a quarter of its
+/// 2^18 samples, so a step takes ~60 ms rather than ~250 ms on two cores.
+/// Commands and render chunks wait behind at most one step, and the view
+/// improves in more, smaller steps during the first minute.
+const NGP_VIEWER_CPU_SAMPLES: usize = 1 << 16;
+
+/// NeRF's and Mip-NeRF's batch in the viewer with the paper's samplers, or
+/// on a software gpu adapter: the paper's 1024 rays × 256 samples of the
+/// 8 × 256 network are ~1 T FLOP a step, seconds on two cores (minutes on
+/// lavapipe), so 2^12 samples. With the occupancy sampler on the cpu
+/// engine they train on their recipe's batch (2^14 samples, ~0.15 s a
+/// step on two cores), as `zrak train` does: their occupancy grid is
+/// updated every 16 steps whatever the batch, at ~20 steps' cost (64³
+/// density queries of the 8 × 256 network), so a quarter of the batch
+/// spent half of the viewer's training time on grid updates (measured on
+/// lego_400: 21.6 of 42.2 s), twice `zrak train`'s share; and the same
+/// batch makes the viewer's steps comparable with `zrak train`'s.
+const NERF_VIEWER_SMALL_SAMPLES: usize = 1 << 12;
+
 /// Every model, in [`ModelKind`]'s order.
-pub const MODELS: [ModelSpec; 3] = [
+pub const MODELS: &[ModelSpec] = &[
     ModelSpec {
         kind: ModelKind::Ngp,
         name: "Instant-NGP",
@@ -81,6 +137,12 @@ pub const MODELS: [ModelSpec; 3] = [
         default_loss: ngp::LossKind::Huber,
         samplings: &[nerf::Sampling::Occupancy],
         colour: [0x4c, 0x9b, 0xe8],
+        viewer_batch: ViewerBatch {
+            cpu: Some(NGP_VIEWER_CPU_SAMPLES),
+            slow: None,
+        },
+        bench_warmup_steps: ngp::OccupancyConfig::PAPER.warmup_steps as usize + 32,
+        engine_update_mismatch_share: 0.001,
     },
     ModelSpec {
         kind: ModelKind::Nerf,
@@ -90,6 +152,14 @@ pub const MODELS: [ModelSpec; 3] = [
         default_loss: ngp::LossKind::L2,
         samplings: &[nerf::Sampling::Occupancy, nerf::Sampling::Paper],
         colour: [0xe8, 0x8a, 0x3c],
+        viewer_batch: ViewerBatch {
+            cpu: None,
+            slow: Some(NERF_VIEWER_SMALL_SAMPLES),
+        },
+        // A NeRF step costs 8 × 256 network evaluations per sample: one
+        // grid update past the warm-up.
+        bench_warmup_steps: nerf::OCCUPANCY.warmup_steps as usize + 16,
+        engine_update_mismatch_share: 0.01,
     },
     ModelSpec {
         kind: ModelKind::MipNerf,
@@ -99,6 +169,12 @@ pub const MODELS: [ModelSpec; 3] = [
         default_loss: ngp::LossKind::L2,
         samplings: &[nerf::Sampling::Occupancy, nerf::Sampling::Paper],
         colour: [0x5c, 0xc0, 0x6a],
+        viewer_batch: ViewerBatch {
+            cpu: None,
+            slow: Some(NERF_VIEWER_SMALL_SAMPLES),
+        },
+        bench_warmup_steps: nerf::OCCUPANCY.warmup_steps as usize + 16,
+        engine_update_mismatch_share: 0.01,
     },
 ];
 
@@ -116,7 +192,7 @@ mod spec_tests {
         keys.dedup();
         assert_eq!(keys.len(), MODELS.len());
         // The key is what clap and serde read and write.
-        for model in &MODELS {
+        for model in MODELS {
             let parsed = <ModelKind as clap::ValueEnum>::from_str(model.key, false);
             assert_eq!(parsed, Ok(model.kind), "{}", model.key);
             assert_eq!(

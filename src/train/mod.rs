@@ -36,6 +36,67 @@ pub struct ModelSettings {
     pub precision: Precision,
 }
 
+/// How a model is built on each engine: the only place a model meets the
+/// engines' drivers, one row per model in [`BUILDERS`], so a new model is
+/// its field files and a row here and in [`crate::field::MODELS`], not an
+/// arm in every `match`.
+pub struct ModelBuilder {
+    pub kind: ModelKind,
+    /// The model on the `cpu` engine.
+    pub cpu: fn(&Scene, &ModelSettings) -> Box<dyn RadianceModel>,
+    /// The model on the `gpu` engine, sharing the context's device.
+    pub gpu: GpuBuilder,
+}
+
+/// Builds a model on the `gpu` engine with the context's device, or says
+/// why it cannot.
+pub type GpuBuilder = fn(
+    crate::engine::gpu::GpuContext,
+    &Scene,
+    &ModelSettings,
+) -> Result<Box<dyn RadianceModel>, String>;
+
+/// Every model's builders, in [`ModelKind`]'s order.
+pub const BUILDERS: [ModelBuilder; crate::field::MODELS.len()] = [
+    ModelBuilder {
+        kind: ModelKind::Ngp,
+        cpu: |scene, settings| Box::new(cpu_ngp(scene, settings)),
+        gpu: |context, scene, settings| {
+            let shape = crate::engine::cpu::fields::ngp::NgpShape::for_scene(scene);
+            let (seed, loss, batch) = (settings.seed, settings.loss, settings.batch_samples);
+            gpu_ngp_with_shape(context, scene, shape, seed, loss, batch)
+                .map(|model| Box::new(model) as Box<dyn RadianceModel>)
+        },
+    },
+    ModelBuilder {
+        kind: ModelKind::Nerf,
+        cpu: |scene, settings| Box::new(cpu_nerf(scene, settings)),
+        gpu: |context, scene, settings| {
+            gpu_nerf(context, scene, settings)
+                .map(|model| Box::new(model) as Box<dyn RadianceModel>)
+        },
+    },
+    ModelBuilder {
+        kind: ModelKind::MipNerf,
+        cpu: |scene, settings| {
+            let shape = crate::engine::cpu::fields::nerf::NerfShape::mipnerf();
+            Box::new(cpu_mipnerf_with_shape(scene, settings, &shape))
+        },
+        gpu: |context, scene, settings| {
+            let shape = crate::engine::cpu::fields::nerf::NerfShape::mipnerf();
+            gpu_mipnerf_with_shape(context, scene, settings, &shape)
+                .map(|model| Box::new(model) as Box<dyn RadianceModel>)
+        },
+    },
+];
+
+impl ModelBuilder {
+    /// The row of `kind` in [`BUILDERS`].
+    pub fn of(kind: ModelKind) -> &'static ModelBuilder {
+        &BUILDERS[kind as usize]
+    }
+}
+
 /// A fresh model of `kind` for `scene` on the chosen engine.
 pub fn build_model(
     kind: ModelKind,
@@ -43,49 +104,15 @@ pub fn build_model(
     scene: &Scene,
     settings: &ModelSettings,
 ) -> Result<Box<dyn RadianceModel>, String> {
-    match (kind, engine.kind) {
-        (ModelKind::Ngp, EngineKind::Cpu) => Ok(Box::new(cpu_ngp(scene, settings))),
-        (ModelKind::Ngp, EngineKind::Gpu) => {
+    let builder = ModelBuilder::of(kind);
+    match engine.kind {
+        EngineKind::Cpu => Ok((builder.cpu)(scene, settings)),
+        EngineKind::Gpu => {
             let context = engine
                 .gpu
                 .ok_or("the gpu engine was chosen without a gpu context")?;
-            gpu_ngp_with_shape(
-                context,
-                scene,
-                crate::engine::cpu::fields::ngp::NgpShape::for_scene(scene),
-                settings.seed,
-                settings.loss,
-                settings.batch_samples,
-            )
-            .map(|model| Box::new(model) as Box<dyn RadianceModel>)
-            .map_err(|e| format!("building Instant-NGP on the gpu engine: {e}"))
-        }
-        (ModelKind::Nerf, EngineKind::Cpu) => Ok(Box::new(cpu_nerf(scene, settings))),
-        (ModelKind::Nerf, EngineKind::Gpu) => {
-            let context = engine
-                .gpu
-                .ok_or("the gpu engine was chosen without a gpu context")?;
-            gpu_nerf(context, scene, settings)
-                .map(|model| Box::new(model) as Box<dyn RadianceModel>)
-                .map_err(|e| format!("building NeRF on the gpu engine: {e}"))
-        }
-        (ModelKind::MipNerf, EngineKind::Cpu) => Ok(Box::new(cpu_mipnerf_with_shape(
-            scene,
-            settings,
-            &crate::engine::cpu::fields::nerf::NerfShape::mipnerf(),
-        ))),
-        (ModelKind::MipNerf, EngineKind::Gpu) => {
-            let context = engine
-                .gpu
-                .ok_or("the gpu engine was chosen without a gpu context")?;
-            gpu_mipnerf_with_shape(
-                context,
-                scene,
-                settings,
-                &crate::engine::cpu::fields::nerf::NerfShape::mipnerf(),
-            )
-            .map(|model| Box::new(model) as Box<dyn RadianceModel>)
-            .map_err(|e| format!("building Mip-NeRF on the gpu engine: {e}"))
+            (builder.gpu)(context, scene, settings)
+                .map_err(|e| format!("building {} on the gpu engine: {e}", kind.name()))
         }
     }
 }
@@ -217,8 +244,8 @@ pub fn gpu_ngp(
 /// What Instant-NGP's models are called, in the viewer and in checkpoints.
 pub fn ngp_identity() -> crate::engine::cpu::model::ModelIdentity {
     crate::engine::cpu::model::ModelIdentity {
-        name: "Instant-NGP",
-        key: "ngp",
+        name: ModelKind::Ngp.name(),
+        key: ModelKind::Ngp.key(),
         sampling: None,
     }
 }
@@ -404,8 +431,8 @@ pub fn mipnerf_recipe(scene: &Scene, settings: &ModelSettings) -> crate::field::
 /// What Mip-NeRF's models are called, in the viewer and in checkpoints.
 pub fn mipnerf_identity(settings: &ModelSettings) -> crate::engine::cpu::model::ModelIdentity {
     crate::engine::cpu::model::ModelIdentity {
-        name: "Mip-NeRF",
-        key: "mipnerf",
+        name: ModelKind::MipNerf.name(),
+        key: ModelKind::MipNerf.key(),
         sampling: Some(settings.sampling.name()),
     }
 }
@@ -413,8 +440,8 @@ pub fn mipnerf_identity(settings: &ModelSettings) -> crate::engine::cpu::model::
 /// What NeRF's models are called, in the viewer and in checkpoints.
 pub fn nerf_identity(settings: &ModelSettings) -> crate::engine::cpu::model::ModelIdentity {
     crate::engine::cpu::model::ModelIdentity {
-        name: "NeRF",
-        key: "nerf",
+        name: ModelKind::Nerf.name(),
+        key: ModelKind::Nerf.key(),
         sampling: Some(settings.sampling.name()),
     }
 }
@@ -443,4 +470,18 @@ fn batch_of(
             Sampling::Occupancy => BatchSize::Samples(samples),
             Sampling::Paper => BatchSize::Rays((samples / per_ray.max(1)).max(1)),
         })
+}
+
+#[cfg(test)]
+mod builder_tests {
+    use super::*;
+
+    #[test]
+    fn every_model_has_its_builders_in_its_row() {
+        assert_eq!(BUILDERS.len(), ModelKind::ALL.len());
+        for (index, kind) in ModelKind::ALL.into_iter().enumerate() {
+            assert_eq!(BUILDERS[index].kind, kind, "row {index}");
+            assert_eq!(ModelBuilder::of(kind).kind, kind);
+        }
+    }
 }

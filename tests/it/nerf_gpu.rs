@@ -503,27 +503,52 @@ fn nerf_draws_its_view_into_a_texture_as_the_cpu_engine_renders_it() {
     texture_matches_the_cpu_render(Model::Nerf, Sampling::Paper);
 }
 
-/// With the occupancy sampler NeRF is drawn on the device (the render
-/// walk of marched points, mapped to the world for NeRF's field), not
-/// composited on the host: after 24 steps (untrained, its view through the
-/// grid is empty), the texture holds the image of the same model's
-/// read-back render, in every mode, within the one level of rounding a
-/// half-level difference may take.
+/// The largest difference between two RGBA8 images' bytes, and how many
+/// distinct pixels the expected one holds (one means nothing was drawn).
+fn compare_images(drawn: &[u8], expected: &[u8]) -> (u8, usize) {
+    assert_eq!(drawn.len(), expected.len());
+    let worst = drawn
+        .iter()
+        .zip(expected)
+        .map(|(a, b)| a.abs_diff(*b))
+        .max()
+        .unwrap_or(0);
+    let distinct: std::collections::HashSet<&[u8]> = expected.chunks(4).collect();
+    (worst, distinct.len())
+}
+
+/// With the occupancy sampler NeRF and Mip-NeRF are drawn on the device
+/// (the render walk, its points mapped to the world for NeRF's field, or
+/// turned into the frustums of their steps for Mip-NeRF's), not composited
+/// on the host: after 24 steps, the texture holds the image of the same
+/// model's read-back render, in every mode, within the one level of
+/// rounding a half-level difference may take.
 #[test]
 fn nerf_with_the_occupancy_grid_draws_its_view_on_the_device() {
     let _cores = crate::common::shared();
+    draws_its_view_through_the_grid_on_the_device(Model::Nerf);
+}
+
+#[test]
+fn mipnerf_with_the_occupancy_grid_draws_its_view_on_the_device() {
+    let _cores = crate::common::shared();
+    draws_its_view_through_the_grid_on_the_device(Model::MipNerf);
+}
+
+fn draws_its_view_through_the_grid_on_the_device(model: Model) {
     let scene = small_scene();
     let settings = ModelSettings {
         batch_samples: Some(1 << 11),
         ..settings(Sampling::Occupancy)
     };
-    let (_, mut gpu) = Model::Nerf.engines(&scene, &settings, |recipe| {
+    let (_, mut gpu) = model.engines(&scene, &settings, |recipe| {
         recipe.occupancy.resolution = 16;
     });
     for step in 0..24 {
         let rays = batch(&scene, gpu.rays_for_next_batch(), 300 + step as u64);
         gpu.step(&rays, step);
     }
+    assert!(gpu.walks_on_device(), "{model:?} is drawn on the host");
     let camera = scene.val[0].downscaled(2).camera;
     let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
     let pixels = render_pixels(&gpu, &camera, [1.0; 3]);
@@ -535,20 +560,14 @@ fn nerf_with_the_occupancy_grid_draws_its_view_on_the_device() {
             .expect("draws");
         let drawn = read_texture_rgba8(gpu.context(), &texture);
         let expected = to_image(&pixels, width, height, mode, scene.depth_range());
-        let worst = drawn
-            .iter()
-            .zip(&expected.data)
-            .map(|(a, b)| a.abs_diff(*b))
-            .max()
-            .unwrap_or(0);
-        let distinct: std::collections::HashSet<&[u8]> = expected.data.chunks(4).collect();
+        let (worst, distinct) = compare_images(&drawn, &expected.data);
         println!(
-            "NeRF (grid) {mode:?}: worst byte difference {worst}, {} distinct pixels",
-            distinct.len()
+            "{model:?} (grid) {mode:?}: worst byte difference {worst}, {} distinct pixels",
+            distinct
         );
         assert!(worst <= 1, "{mode:?}: {worst}");
         if mode == RenderMode::Opacity {
-            assert!(distinct.len() > 1, "nothing drawn");
+            assert!(distinct > 1, "nothing drawn");
         }
     }
 }
@@ -600,17 +619,11 @@ fn texture_matches_the_cpu_render(model: Model, sampling: Sampling) {
             // The engines' pixels agree to ~1e-5 (the render test above);
             // the conversion to 8 bits may round such a difference either
             // way at a half level, so one level is allowed, no more.
-            let worst = drawn
-                .iter()
-                .zip(&expected.data)
-                .map(|(a, b)| a.abs_diff(*b))
-                .max()
-                .unwrap_or(0);
-            let distinct: std::collections::HashSet<&[u8]> = expected.data.chunks(4).collect();
+            let (worst, distinct) = compare_images(&drawn, &expected.data);
             println!(
                 "{model:?} {mode:?} crop {}: worst byte difference {worst}, {} distinct pixels",
                 crop.is_some(),
-                distinct.len()
+                distinct
             );
             assert!(worst <= 1, "{model:?} {mode:?}: {worst}");
         }
@@ -702,43 +715,11 @@ fn density_and_colour_at_points_match_the_cpu_engine() {
             grid.build_bitfield();
             gpu.load(&cpu.save()).unwrap();
         }
-        let mut rng = Pcg32::new(11, 0);
-        let mut uniform = || 2.4 * rng.next_f32() - 1.2;
         let n = 700;
-        let positions: Vec<Vec3> = (0..n)
-            .map(|_| Vec3::new(uniform(), uniform(), uniform()))
-            .collect();
-        let directions: Vec<Vec3> = (0..n)
-            .map(|_| Vec3::new(uniform(), uniform(), uniform()).normalize_or(Vec3::Z))
-            .collect();
-        let (mut sigma_cpu, mut sigma_gpu) = (vec![0.0; n], vec![0.0; n]);
-        cpu.density_at(&positions, 0.05, &mut sigma_cpu).unwrap();
-        gpu.density_at(&positions, 0.05, &mut sigma_gpu)
-            .expect("the gpu engine answers σ at points");
-        let (mut rgb_cpu, mut rgb_gpu) = (vec![0.0; 3 * n], vec![0.0; 3 * n]);
-        cpu.colour_at(&positions, &directions, 0.05, &mut rgb_cpu)
-            .unwrap();
-        gpu.colour_at(&positions, &directions, 0.05, &mut rgb_gpu)
-            .expect("the gpu engine answers colours at points");
-        let largest = sigma_cpu.iter().fold(0f32, |m, s| m.max(s.abs()));
-        let worst_sigma = sigma_cpu
-            .iter()
-            .zip(&sigma_gpu)
-            .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
-        let worst_rgb = rgb_cpu
-            .iter()
-            .zip(&rgb_gpu)
-            .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
-        let empty = sigma_gpu.iter().filter(|s| **s == 0.0).count();
-        println!(
-            "{model:?}: σ up to {largest}, worst difference {worst_sigma:e}; colour {worst_rgb:e}; \
-             {empty} of {n} zero"
-        );
-        // f32 networks on both engines, summed in different orders:
-        // relative 1e-4 of the largest σ, 1e-4 on colours in [0, 1].
+        let label = format!("{model:?}");
+        let (largest, empty) =
+            crate::common::assert_engines_agree_at_points(&label, &cpu, &gpu, n, 0.05);
         assert!(largest > 0.0, "{model:?}: σ all zero");
-        assert!(worst_sigma <= 1e-4 * largest, "{model:?}: {worst_sigma}");
-        assert!(worst_rgb <= 1e-4, "{model:?}: {worst_rgb}");
         if sampling == Sampling::Occupancy {
             assert!(empty > n / 4 && empty < n, "{model:?}: {empty} of {n} zero");
         }

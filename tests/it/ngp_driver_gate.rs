@@ -17,6 +17,7 @@
 //! tolerance instead (see [`LOSS_TOLERANCE`]).
 
 use crate::common;
+use crate::common::gate_record::{Fixture, GateRecord};
 
 use std::sync::Arc;
 
@@ -60,23 +61,6 @@ fn render_view(model: &dyn RadianceModel, scene: &Scene) -> Vec<RenderedPixel> {
     out
 }
 
-/// The bits of every pixel's colour, opacity and depth.
-fn pixel_bits(pixels: &[RenderedPixel]) -> Vec<u32> {
-    pixels
-        .iter()
-        .flat_map(|p| [p.rgb[0], p.rgb[1], p.rgb[2], p.opacity, p.depth])
-        .map(f32::to_bits)
-        .collect()
-}
-
-/// A checkpoint's bytes as a file holds them.
-fn file_bytes(checkpoint: &Checkpoint) -> Vec<u8> {
-    let dir = tempfile::tempdir().unwrap();
-    let path = dir.path().join("model.zrak");
-    checkpoint.save(&path).unwrap();
-    std::fs::read(path).unwrap()
-}
-
 /// Trains `model` for [`STEPS`] steps on the batches a trainer seeded with
 /// [`SEED`] draws; returns each step's loss bits and the trainer.
 fn train(model: Box<dyn RadianceModel>, scene: &Arc<Scene>) -> (Vec<u32>, Trainer) {
@@ -104,11 +88,20 @@ fn assert_same_state(old: &Checkpoint, new: &Checkpoint) {
     assert_eq!(old.tensors.len(), new.tensors.len(), "tensor count");
 }
 
-/// Where the old driver's record lives.
-const FIXTURE: &str = concat!(
-    env!("CARGO_MANIFEST_DIR"),
-    "/tests/fixtures/ngp_cpu_driver.txt"
-);
+/// The old driver's record: the kernels its products ran on
+/// (`dense::backend()`), and the header `record_the_old_driver` wrote.
+const FIXTURE: Fixture = Fixture {
+    path: concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/fixtures/ngp_cpu_driver.txt"
+    ),
+    origin_key: "kernels",
+    header: "# Instant-NGP through its own cpu driver (CpuNgp), seed 7, 20 steps of\n\
+             # 2^13 samples on the 32-pixel demo scene: written by\n\
+             # record_the_old_driver in tests/ngp_driver_gate.rs at commit cf99a53,\n\
+             # before CpuNgp was deleted; CRCs are CRC-32C.\n",
+    steps: STEPS,
+};
 
 /// Relative difference allowed between a step's loss here and the
 /// record's when this processor's kernels are not the record's. Other
@@ -120,125 +113,19 @@ const FIXTURE: &str = concat!(
 /// broken stage moves them by more, so 1e-3 still fails on either.
 const LOSS_TOLERANCE: f64 = 1e-3;
 
-/// CRC-32C of f32 values' bits, little-endian as a checkpoint stores them.
-fn crc_of_floats(values: &[f32]) -> u32 {
-    let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
-    zrak::crc32c::crc32c(&bytes)
-}
-
-/// The format version's bytes in a checkpoint file: after the 8-byte
-/// magic, a little-endian u32 (src/train/checkpoint.rs).
-const VERSION_BYTES: std::ops::Range<usize> = 8..12;
-
-/// What one driver's fixed-seed run produced, as the fixture holds it.
-#[derive(Debug, Clone, PartialEq)]
-struct Record {
-    /// The kernels the run's products ran on (`dense::backend()`).
-    kernels: String,
-    /// The bits of every step's loss.
-    losses: Vec<u32>,
-    /// Every checkpoint tensor after the run: name, length, CRC-32C.
-    tensors: Vec<(String, usize, u32)>,
-    /// CRC-32C of the bits of a validation view's pixels (colour, opacity,
-    /// depth).
-    pixels: u32,
-    /// CRC-32C of the checkpoint file's bytes, the version zeroed.
-    checkpoint: u32,
-}
-
-impl Record {
-    /// Trains `model` on the fixed seed and records what it produced.
-    fn of(model: Box<dyn RadianceModel>, scene: &Arc<Scene>) -> (Self, Trainer) {
-        let (losses, trainer) = train(model, scene);
-        let state = trainer.model.save();
-        let tensors = state
-            .tensors
-            .iter()
-            .map(|(name, values)| (name.clone(), values.len(), crc_of_floats(values)))
-            .collect();
-        let pixel_bits = pixel_bits(&render_view(trainer.model.as_ref(), scene));
-        let pixels = zrak::crc32c::crc32c(bytemuck_bits(&pixel_bits).as_slice());
-        let mut bytes = file_bytes(&state);
-        bytes[VERSION_BYTES].fill(0);
-        let record = Self {
-            kernels: format!("{:?}", zrak::engine::cpu::dense::backend()),
-            losses,
-            tensors,
-            pixels,
-            checkpoint: zrak::crc32c::crc32c(&bytes),
-        };
-        (record, trainer)
-    }
-
-    fn to_text(&self) -> String {
-        let mut text = String::from(
-            "# Instant-NGP on the cpu engine, seed 7, 20 steps of 2^13 samples\n\
-             # on the 32-pixel demo scene: written by tests/it/ngp_driver_gate.rs\n\
-             # (CRCs are CRC-32C).\n",
-        );
-        text += &format!("kernels {}\n", self.kernels);
-        for (step, loss) in self.losses.iter().enumerate() {
-            text += &format!("loss {step} {loss:08x}\n");
-        }
-        for (name, len, crc) in &self.tensors {
-            text += &format!("tensor {name} {len} {crc:08x}\n");
-        }
-        text += &format!("pixels {:08x}\n", self.pixels);
-        text += &format!("checkpoint {:08x}\n", self.checkpoint);
-        text
-    }
-
-    fn parse(text: &str) -> Result<Self, String> {
-        let hex = |s: &str| u32::from_str_radix(s, 16).map_err(|e| format!("`{s}`: {e}"));
-        let mut record = Record {
-            kernels: String::new(),
-            losses: Vec::new(),
-            tensors: Vec::new(),
-            pixels: 0,
-            checkpoint: 0,
-        };
-        for (number, line) in text.lines().enumerate() {
-            let at = |problem: String| format!("{FIXTURE} line {}: {problem}", number + 1);
-            let words: Vec<&str> = line.split_whitespace().collect();
-            match words.as_slice() {
-                [] => {}
-                [first, ..] if first.starts_with('#') => {}
-                ["kernels", name] => record.kernels = name.to_string(),
-                ["loss", step, bits] => {
-                    if step.parse::<usize>() != Ok(record.losses.len()) {
-                        return Err(at(format!("step {step} out of order")));
-                    }
-                    record.losses.push(hex(bits).map_err(at)?);
-                }
-                ["tensor", name, len, crc] => record.tensors.push((
-                    name.to_string(),
-                    len.parse()
-                        .map_err(|e| at(format!("length `{len}`: {e}")))?,
-                    hex(crc).map_err(at)?,
-                )),
-                ["pixels", crc] => record.pixels = hex(crc).map_err(at)?,
-                ["checkpoint", crc] => record.checkpoint = hex(crc).map_err(at)?,
-                _ => return Err(at(format!("unexpected line `{line}`"))),
-            }
-        }
-        if record.kernels.is_empty() || record.losses.len() != STEPS {
-            return Err(format!(
-                "{FIXTURE}: needs a `kernels` line and {STEPS} losses"
-            ));
-        }
-        Ok(record)
-    }
-}
-
-/// The little-endian bytes of `bits`.
-fn bytemuck_bits(bits: &[u32]) -> Vec<u8> {
-    bits.iter().flat_map(|b| b.to_le_bytes()).collect()
-}
-
-fn fixture() -> Record {
-    let text =
-        std::fs::read_to_string(FIXTURE).unwrap_or_else(|e| panic!("reading {FIXTURE}: {e}"));
-    Record::parse(&text).unwrap_or_else(|e| panic!("{e}"))
+/// The run's record: what it computed with, its losses, checkpoint and
+/// a validation view's pixels.
+fn record_of(model: Box<dyn RadianceModel>, scene: &Arc<Scene>) -> (GateRecord, Trainer) {
+    let (losses, trainer) = train(model, scene);
+    let pixels = render_view(trainer.model.as_ref(), scene);
+    let record = GateRecord::new(
+        format!("{:?}", zrak::engine::cpu::dense::backend()),
+        losses,
+        &trainer.model.save(),
+        &pixels,
+        None,
+    );
+    (record, trainer)
 }
 
 /// Instant-NGP through the generic driver, as the gate trains it.
@@ -256,43 +143,15 @@ fn new_driver(scene: &Scene, seed: u64, loss: LossKind) -> zrak::engine::cpu::mo
 fn cpu_model_reproduces_the_old_drivers_record() {
     let _cores = crate::common::shared();
     let scene = small_scene();
-    let expected = fixture();
-    let (record, trained) = Record::of(Box::new(new_driver(&scene, SEED, LossKind::Huber)), &scene);
+    let expected = GateRecord::read(&FIXTURE);
+    let (record, trained) = record_of(Box::new(new_driver(&scene, SEED, LossKind::Huber)), &scene);
     assert_eq!(trained.model.describe(), "Instant-NGP (cpu)");
-    if record.kernels == expected.kernels {
-        for (step, (got, want)) in record.losses.iter().zip(&expected.losses).enumerate() {
-            assert_eq!(
-                got,
-                want,
-                "step {step}'s loss: {} here, {} recorded",
-                f32::from_bits(*got),
-                f32::from_bits(*want)
-            );
-        }
-        assert_eq!(record.tensors, expected.tensors, "checkpoint tensors");
-        assert_eq!(record.pixels, expected.pixels, "rendered pixels");
-        assert_eq!(
-            record.checkpoint, expected.checkpoint,
-            "checkpoint file bytes"
-        );
-        assert_eq!(record, expected);
-    } else {
-        eprintln!(
-            "kernels {} here, {} in the record: losses compared within {LOSS_TOLERANCE}",
-            record.kernels, expected.kernels
-        );
-        for (step, (got, want)) in record.losses.iter().zip(&expected.losses).enumerate() {
-            let (got, want) = (f32::from_bits(*got) as f64, f32::from_bits(*want) as f64);
-            assert!(
-                (got - want).abs() <= LOSS_TOLERANCE * want.abs(),
-                "step {step}'s loss: {got} here, {want} recorded"
-            );
-        }
-        let names = |r: &Record| -> Vec<(String, usize)> {
-            r.tensors.iter().map(|(n, l, _)| (n.clone(), *l)).collect()
-        };
-        assert_eq!(names(&record), names(&expected), "checkpoint tensors");
-    }
+    // The fixture's format reads back what it writes.
+    assert_eq!(
+        GateRecord::parse(&record.to_text(&FIXTURE), &FIXTURE).as_ref(),
+        Ok(&record)
+    );
+    record.assert_reproduces(&expected, &FIXTURE, LOSS_TOLERANCE);
 
     // The checkpoint, read back from its file, loads into a fresh model of
     // another seed and loss, and both take the same next step.
@@ -321,7 +180,6 @@ fn rerecord_from_the_new_driver() {
     let _cores = crate::common::shared();
     let scene = small_scene();
     let model = new_driver(&scene, SEED, LossKind::Huber);
-    let (record, _) = Record::of(Box::new(model), &scene);
-    assert_eq!(Record::parse(&record.to_text()).unwrap(), record);
-    std::fs::write(FIXTURE, record.to_text()).unwrap();
+    let (record, _) = record_of(Box::new(model), &scene);
+    std::fs::write(FIXTURE.path, record.to_text(&FIXTURE)).unwrap();
 }

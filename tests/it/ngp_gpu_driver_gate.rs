@@ -21,6 +21,7 @@
 //! old driver, float atomics of the hash grid's backward pass included.
 
 use crate::common;
+use crate::common::gate_record::{Fixture, GateRecord};
 
 use std::sync::Arc;
 
@@ -32,7 +33,6 @@ use zrak::field::ngp::HashGridConfig;
 use zrak::field::ngp::LossKind;
 use zrak::model::RenderMode;
 use zrak::scene::Scene;
-use zrak::train::checkpoint::Checkpoint;
 use zrak::train::model::{RadianceModel, RenderedPixel};
 use zrak::train::trainer::Trainer;
 
@@ -82,7 +82,7 @@ fn new_driver(scene: &Scene, context: &GpuContext) -> Box<dyn RadianceModel> {
     )
 }
 
-fn render_view(model: &dyn RadianceModel, scene: &Scene) -> Vec<u32> {
+fn render_view(model: &dyn RadianceModel, scene: &Scene) -> Vec<RenderedPixel> {
     let camera = &scene.val[0].camera;
     let rays = camera.all_rays();
     let origins: Vec<_> = rays.iter().map(|r| r.origin).collect();
@@ -95,10 +95,7 @@ fn render_view(model: &dyn RadianceModel, scene: &Scene) -> Vec<u32> {
         [1.0; 3],
         &mut out,
     );
-    out.iter()
-        .flat_map(|p| [p.rgb[0], p.rgb[1], p.rgb[2], p.opacity, p.depth])
-        .map(f32::to_bits)
-        .collect()
+    out
 }
 
 /// The bytes `model` draws into the viewer's texture for the first
@@ -130,166 +127,49 @@ fn texture_of(
     bytes
 }
 
-/// A checkpoint's bytes as a file holds them.
-fn file_bytes(checkpoint: &Checkpoint) -> Vec<u8> {
-    let dir = tempfile::tempdir().unwrap();
-    let path = dir.path().join("model.zrak");
-    checkpoint.save(&path).unwrap();
-    std::fs::read(path).unwrap()
-}
-
-/// What a fixed-seed run produced.
-struct Run {
-    losses: Vec<u32>,
-    checkpoint: Checkpoint,
-    pixels: Vec<u32>,
-    trainer: Trainer,
-}
-
-fn run(model: Box<dyn RadianceModel>, scene: &Arc<Scene>) -> Run {
+/// The new driver's record of the fixed-seed run: its losses, checkpoint,
+/// a validation view's pixels and the colour image it draws into the
+/// viewer's texture.
+fn record_of(
+    model: Box<dyn RadianceModel>,
+    scene: &Arc<Scene>,
+    context: &GpuContext,
+) -> GateRecord {
     let mut trainer = Trainer::new(model, scene.clone(), SEED);
     let losses = (0..STEPS).map(|_| trainer.step().loss.to_bits()).collect();
-    Run {
+    let model = trainer.model.as_ref();
+    let texture = texture_of(model, scene, context, RenderMode::Rgb);
+    GateRecord::new(
+        device_name(context),
         losses,
-        checkpoint: trainer.model.save(),
-        pixels: render_view(trainer.model.as_ref(), scene),
-        trainer,
-    }
+        &model.save(),
+        &render_view(model, scene),
+        Some(&texture),
+    )
 }
 
-/// Where the old driver's record lives.
-const FIXTURE: &str = concat!(
-    env!("CARGO_MANIFEST_DIR"),
-    "/tests/fixtures/ngp_gpu_driver.txt"
-);
+/// The old driver's record: the device it ran on, and the header
+/// `record_the_old_driver` wrote.
+const FIXTURE: Fixture = Fixture {
+    path: concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/fixtures/ngp_gpu_driver.txt"
+    ),
+    origin_key: "device",
+    header: "# Instant-NGP through its own gpu driver (GpuNgp), seed 7, 20 steps of\n\
+             # 2^12 samples on the 32-pixel demo scene, hash table 2^12 per level:\n\
+             # written by record_the_old_driver in tests/ngp_gpu_driver_gate.rs\n\
+             # while both drivers existed; CRCs are CRC-32C.\n",
+    steps: STEPS,
+};
 
 /// Relative difference allowed between a step's loss here and the
 /// record's on another device than the record's (another GPU, or
 /// lavapipe of another LLVM): such a device only reorders f32 sums and
 /// float atomic adds (≈ 1e-7 relative each), which 20 steps keep orders of
 /// magnitude below 1e-3, while a broken stage moves the losses by more (the
-/// cpu gate's argument, tests/ngp_driver_gate.rs).
+/// cpu gate's argument, tests/it/ngp_driver_gate.rs).
 const LOSS_TOLERANCE: f64 = 1e-3;
-
-/// The format version's bytes in a checkpoint file: after the 8-byte
-/// magic, a little-endian u32 (src/model/checkpoint.rs).
-const VERSION_BYTES: std::ops::Range<usize> = 8..12;
-
-/// CRC-32C of `u32`s, little-endian.
-fn crc_of_words(words: &[u32]) -> u32 {
-    let bytes: Vec<u8> = words.iter().flat_map(|w| w.to_le_bytes()).collect();
-    zrak::crc32c::crc32c(&bytes)
-}
-
-/// What a fixed-seed run produced, as the fixture holds it.
-#[derive(Debug, Clone, PartialEq)]
-struct Record {
-    /// The adapter and driver the run computed on.
-    device: String,
-    losses: Vec<u32>,
-    /// Every checkpoint tensor: name, length, CRC-32C of its bits.
-    tensors: Vec<(String, usize, u32)>,
-    /// CRC-32C of a validation view's pixels (colour, opacity, depth bits).
-    pixels: u32,
-    /// CRC-32C of the colour texture's bytes.
-    texture: u32,
-    /// CRC-32C of the checkpoint file's bytes, the version zeroed.
-    checkpoint: u32,
-}
-
-impl Record {
-    fn of(run: &Run, scene: &Scene, context: &GpuContext) -> Self {
-        let mut bytes = file_bytes(&run.checkpoint);
-        bytes[VERSION_BYTES].fill(0);
-        Self {
-            device: device_name(context),
-            losses: run.losses.clone(),
-            tensors: run
-                .checkpoint
-                .tensors
-                .iter()
-                .map(|(name, values)| {
-                    let bits: Vec<u32> = values.iter().map(|v| v.to_bits()).collect();
-                    (name.clone(), values.len(), crc_of_words(&bits))
-                })
-                .collect(),
-            pixels: crc_of_words(&run.pixels),
-            texture: zrak::crc32c::crc32c(&texture_of(
-                run.trainer.model.as_ref(),
-                scene,
-                context,
-                RenderMode::Rgb,
-            )),
-            checkpoint: zrak::crc32c::crc32c(&bytes),
-        }
-    }
-
-    fn to_text(&self) -> String {
-        let mut text = String::from(
-            "# Instant-NGP through its own gpu driver (GpuNgp), seed 7, 20 steps of\n\
-             # 2^12 samples on the 32-pixel demo scene, hash table 2^12 per level:\n\
-             # written by record_the_old_driver in tests/it/ngp_gpu_driver_gate.rs\n\
-             # while both drivers existed; CRCs are CRC-32C.\n",
-        );
-        text += &format!("device {}\n", self.device);
-        for (step, loss) in self.losses.iter().enumerate() {
-            text += &format!("loss {step} {loss:08x}\n");
-        }
-        for (name, len, crc) in &self.tensors {
-            text += &format!("tensor {name} {len} {crc:08x}\n");
-        }
-        text += &format!("pixels {:08x}\n", self.pixels);
-        text += &format!("texture {:08x}\n", self.texture);
-        text += &format!("checkpoint {:08x}\n", self.checkpoint);
-        text
-    }
-
-    fn parse(text: &str) -> Result<Self, String> {
-        let hex = |s: &str| u32::from_str_radix(s, 16).map_err(|e| format!("`{s}`: {e}"));
-        let mut record = Record {
-            device: String::new(),
-            losses: Vec::new(),
-            tensors: Vec::new(),
-            pixels: 0,
-            texture: 0,
-            checkpoint: 0,
-        };
-        for (number, line) in text.lines().enumerate() {
-            let at = |problem: String| format!("{FIXTURE} line {}: {problem}", number + 1);
-            if let Some(device) = line.strip_prefix("device ") {
-                record.device = device.to_string();
-                continue;
-            }
-            let words: Vec<&str> = line.split_whitespace().collect();
-            match words.as_slice() {
-                [] => {}
-                [first, ..] if first.starts_with('#') => {}
-                ["loss", step, bits] => {
-                    if step.parse::<usize>() != Ok(record.losses.len()) {
-                        return Err(at(format!("step {step} out of order")));
-                    }
-                    record.losses.push(hex(bits).map_err(at)?);
-                }
-                ["tensor", name, len, crc] => record.tensors.push((
-                    name.to_string(),
-                    len.parse()
-                        .map_err(|e| at(format!("length `{len}`: {e}")))?,
-                    hex(crc).map_err(at)?,
-                )),
-                ["pixels", crc] => record.pixels = hex(crc).map_err(at)?,
-                ["texture", crc] => record.texture = hex(crc).map_err(at)?,
-                ["checkpoint", crc] => record.checkpoint = hex(crc).map_err(at)?,
-                _ => return Err(at(format!("unexpected line `{line}`"))),
-            }
-        }
-        if record.device.is_empty() || record.losses.len() != STEPS {
-            return Err(format!(
-                "{FIXTURE}: needs a `device` line and {STEPS} losses"
-            ));
-        }
-        Ok(record)
-    }
-}
 
 /// The adapter and its driver, as the record names them.
 fn device_name(context: &GpuContext) -> String {
@@ -301,44 +181,12 @@ fn gpu_model_reproduces_the_old_drivers_record() {
     let _cores = crate::common::shared();
     let scene = small_scene();
     let context = common::gpu_context();
-    let text = std::fs::read_to_string(FIXTURE).unwrap_or_else(|e| panic!("{FIXTURE}: {e}"));
-    let expected = Record::parse(&text).unwrap_or_else(|e| panic!("{e}"));
-    let run = run(new_driver(&scene, &context), &scene);
-    let record = Record::of(&run, &scene, &context);
+    let expected = GateRecord::read(&FIXTURE);
+    let record = record_of(new_driver(&scene, &context), &scene, &context);
     // The fixture's format reads back what it writes.
-    assert_eq!(Record::parse(&record.to_text()).as_ref(), Ok(&record));
-    if record.device == expected.device {
-        for (step, (got, want)) in record.losses.iter().zip(&expected.losses).enumerate() {
-            assert_eq!(
-                got,
-                want,
-                "step {step}'s loss: {} here, {} recorded",
-                f32::from_bits(*got),
-                f32::from_bits(*want)
-            );
-        }
-        assert_eq!(record.tensors, expected.tensors, "checkpoint tensors");
-        assert_eq!(record.pixels, expected.pixels, "rendered pixels");
-        assert_eq!(record.texture, expected.texture, "texture bytes");
-        assert_eq!(
-            record.checkpoint, expected.checkpoint,
-            "checkpoint file bytes"
-        );
-    } else {
-        eprintln!(
-            "device {} here, {} in the record: losses compared within {LOSS_TOLERANCE}",
-            record.device, expected.device
-        );
-        for (step, (got, want)) in record.losses.iter().zip(&expected.losses).enumerate() {
-            let (got, want) = (f32::from_bits(*got) as f64, f32::from_bits(*want) as f64);
-            assert!(
-                (got - want).abs() <= LOSS_TOLERANCE * want.abs(),
-                "step {step}'s loss: {got} here, {want} recorded"
-            );
-        }
-        let names = |r: &Record| -> Vec<(String, usize)> {
-            r.tensors.iter().map(|(n, l, _)| (n.clone(), *l)).collect()
-        };
-        assert_eq!(names(&record), names(&expected), "checkpoint tensors");
-    }
+    assert_eq!(
+        GateRecord::parse(&record.to_text(&FIXTURE), &FIXTURE).as_ref(),
+        Ok(&record)
+    );
+    record.assert_reproduces(&expected, &FIXTURE, LOSS_TOLERANCE);
 }

@@ -85,6 +85,12 @@ fn train_and_score(
 const MIXED_TOLERANCE_DB: f64 = 1.5;
 const SEEDS: [u64; 3] = [0, 1, 2];
 
+/// Instant-NGP learns the demo scene well above the mean colour in f32;
+/// and, on a processor with bf16 kernels, as well with the networks'
+/// products in bf16 as in f32, over three seeds (see
+/// [`MIXED_TOLERANCE_DB`]). The f32 run of the first seed is both the
+/// learning check and the first of the comparison's f32 runs, so the
+/// comparison trains five more rather than six.
 #[test]
 fn learns_the_demo_scene_well_above_the_mean_colour() {
     let _cores = crate::common::shared();
@@ -104,7 +110,7 @@ fn learns_the_demo_scene_well_above_the_mean_colour() {
     // The baseline: every pixel of a held-out view predicted as the mean
     // colour of the training images on white.
     let baseline = mean_colour_psnr(&scene.train, &scene.val);
-    let seed = env_or("ZRAK_E2E_SEED", 0u64);
+    let seed = env_or("ZRAK_E2E_SEED", SEEDS[0]);
     let trained = train_and_score(&scene, Precision::F32, seed, steps, batch, loss);
     eprintln!("baseline {baseline:.2} dB");
     // 10 dB over the baseline is a tenth of its squared error: far past
@@ -114,33 +120,35 @@ fn learns_the_demo_scene_well_above_the_mean_colour() {
         trained > baseline + 10.0,
         "baseline {baseline:.2} dB, trained {trained:.2} dB"
     );
-}
 
-#[test]
-fn mixed_precision_learns_as_well_as_f32() {
-    let _cores = crate::common::shared();
     if Precision::Mixed.kernels_here() != Precision::Mixed {
         // Past the test harness's capture, so a skipped check is seen.
         let mut stderr = std::io::stderr();
         let _ = writeln!(
             stderr,
-            "SKIPPED mixed_precision_learns_as_well_as_f32: this processor has no bf16 kernels"
+            "SKIPPED mixed precision against f32: this processor has no bf16 kernels"
         );
         return;
     }
-    // The same training as above with the networks' products in bf16 and
-    // in f32, over three seeds (see MIXED_TOLERANCE_DB).
-    let steps = env_or("ZRAK_E2E_STEPS", 250u32);
-    let batch = env_or("ZRAK_E2E_BATCH", 1usize << 16);
-    let scene = demo_scene(64);
-    let mean = |precision: Precision| {
+    // The comparison holds its seeds and the first's settings.
+    if seed != SEEDS[0] || size != 64 || loss != LossKind::Huber {
+        return;
+    }
+    let mean = |precision: Precision, first: Option<f64>| {
         SEEDS
             .iter()
-            .map(|&seed| train_and_score(&scene, precision, seed, steps, batch, LossKind::Huber))
+            .enumerate()
+            .map(|(i, &seed)| match first {
+                Some(psnr) if i == 0 => psnr,
+                _ => train_and_score(&scene, precision, seed, steps, batch, loss),
+            })
             .sum::<f64>()
             / SEEDS.len() as f64
     };
-    let (f32_psnr, mixed) = (mean(Precision::F32), mean(Precision::Mixed));
+    let (f32_psnr, mixed) = (
+        mean(Precision::F32, Some(trained)),
+        mean(Precision::Mixed, None),
+    );
     eprintln!("mean over seeds: f32 {f32_psnr:.2} dB, mixed {mixed:.2} dB");
     assert!(
         mixed > f32_psnr - MIXED_TOLERANCE_DB,

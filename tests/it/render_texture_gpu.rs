@@ -184,42 +184,10 @@ fn density_and_colour_at_points_match_the_cpu_engine() {
     let _cores = crate::common::shared();
     let scene = scene();
     let (cpu, gpu) = trained_models(&scene, 1 << 10);
-    let mut rng = Pcg32::new(11, 0);
-    let mut uniform = || 2.4 * rng.next_f32() - 1.2;
-    let positions: Vec<Vec3> = (0..2000)
-        .map(|_| Vec3::new(uniform(), uniform(), uniform()))
-        .collect();
-    let directions: Vec<Vec3> = (0..2000)
-        .map(|_| Vec3::new(uniform(), uniform(), uniform()).normalize_or(Vec3::Z))
-        .collect();
-    let n = positions.len();
-    let (mut sigma_cpu, mut sigma_gpu) = (vec![0.0; n], vec![0.0; n]);
-    cpu.density_at(&positions, 0.01, &mut sigma_cpu).unwrap();
-    gpu.density_at(&positions, 0.01, &mut sigma_gpu)
-        .expect("the gpu engine answers σ at points");
-    let (mut rgb_cpu, mut rgb_gpu) = (vec![0.0; 3 * n], vec![0.0; 3 * n]);
-    cpu.colour_at(&positions, &directions, 0.01, &mut rgb_cpu)
-        .unwrap();
-    gpu.colour_at(&positions, &directions, 0.01, &mut rgb_gpu)
-        .expect("the gpu engine answers colours at points");
-    let largest = sigma_cpu.iter().fold(0f32, |m, s| m.max(s.abs()));
-    let worst_sigma = sigma_cpu
-        .iter()
-        .zip(&sigma_gpu)
-        .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
-    let worst_rgb = rgb_cpu
-        .iter()
-        .zip(&rgb_gpu)
-        .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
-    let empty = sigma_gpu.iter().filter(|s| **s == 0.0).count();
-    println!(
-        "σ up to {largest}, worst difference {worst_sigma:e}; colour {worst_rgb:e}; {empty} of {n} in empty cells"
-    );
-    // f32 networks on both engines, summed in different orders: relative
-    // 1e-4 of the largest σ, 1e-4 on colours in [0, 1].
+    let n = 2000;
+    let (largest, empty) =
+        crate::common::assert_engines_agree_at_points("Instant-NGP", &cpu, &gpu, n, 0.01);
     assert!(largest > 0.5, "a model with structure: σ up to {largest}");
-    assert!(worst_sigma <= 1e-4 * largest, "{worst_sigma}");
-    assert!(worst_rgb <= 1e-4, "{worst_rgb}");
     assert!(empty > 0 && empty < n, "{empty} of {n} in empty cells");
 }
 

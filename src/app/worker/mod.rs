@@ -59,25 +59,6 @@ use export_jobs::{ExportJob, ExportOrder};
 pub use training::Turns;
 use view::TexturePool;
 
-/// Training batch of the viewer on the cpu engine, in samples: a quarter
-/// of Instant-NGP's 2^18, so a step takes ~60 ms rather than ~250 ms on two
-/// cores. Commands and render chunks wait behind at most one step, and the
-/// view improves in more, smaller steps during the first minute.
-pub const CPU_BATCH_SAMPLES: usize = 1 << 16;
-
-/// NeRF's and Mip-NeRF's batch in the viewer with the paper's samplers, or
-/// on a software gpu adapter: the paper's 1024 rays × 256 samples of the
-/// 8 × 256 network are ~1 T FLOP a step, seconds on two cores (minutes on
-/// lavapipe), so 2^12 samples. With the occupancy sampler on the cpu
-/// engine they train on their recipe's batch (2^14 samples, ~0.15 s a
-/// step on two cores), as `zrak train` does: their occupancy grid is
-/// updated every 16 steps whatever the batch, at ~20 steps' cost (64³
-/// density queries of the 8 × 256 network), so a quarter of the batch
-/// spent half of the viewer's training time on grid updates (measured on
-/// lego_400: 21.6 of 42.2 s), twice `zrak train`'s share; and the same
-/// batch makes the viewer's steps comparable with `zrak train`'s.
-pub const NERF_SMALL_BATCH_SAMPLES: usize = 1 << 12;
-
 pub type RepaintCallback = Box<dyn Fn() + Send>;
 
 /// Stats go out at most this often (ten times a second), aggregated over
@@ -112,14 +93,33 @@ const MAX_KEPT_TEXTURES: usize = 8;
 /// request, refused before it allocates gigabytes of pixels.
 const MAX_VIEWPORT_SIDE: u32 = 8_192;
 
+/// The viewer's training batch of `kind`, in samples, where the model's
+/// recipe would make a step too long to wait behind (its
+/// [`crate::field::ViewerBatch`]); `None` keeps the recipe's.
+fn viewer_batch_samples(
+    kind: ModelKind,
+    engine: EngineKind,
+    software_gpu: bool,
+    sampling: Sampling,
+) -> Option<usize> {
+    let batch = kind.spec().viewer_batch;
+    let paper_sampler = sampling == Sampling::Paper && kind.has_paper_sampler();
+    match engine {
+        EngineKind::Cpu if paper_sampler => batch.slow.or(batch.cpu),
+        EngineKind::Cpu => batch.cpu,
+        EngineKind::Gpu if software_gpu => batch.slow,
+        EngineKind::Gpu => None,
+    }
+}
+
 /// How the thread trains and measures; [`Default`] is what the viewer uses.
 pub struct WorkerOptions {
     pub seed: u64,
     /// The loss every model trains with; `None` gives each model its own
     /// default ([`ModelKind::default_loss`]).
     pub loss: Option<LossKind>,
-    /// Samples per training batch; `None` picks by engine: see
-    /// [`CPU_BATCH_SAMPLES`].
+    /// Samples per training batch; `None` picks by engine and sampler: the
+    /// model's [`crate::field::ViewerBatch`].
     pub batch_samples: Option<usize>,
     /// NeRF's sampler.
     pub sampling: Sampling,
@@ -867,16 +867,7 @@ impl Worker {
             loss: self.options.loss.unwrap_or(kind.default_loss()),
             batch_samples: self.options.batch_samples.or_else(|| {
                 let software_gpu = self.engine.gpu.as_ref().is_some_and(|g| g.is_software());
-                match (self.engine.kind, kind, self.options.sampling) {
-                    (EngineKind::Cpu, ModelKind::Ngp, _) => Some(CPU_BATCH_SAMPLES),
-                    (EngineKind::Cpu, ModelKind::Nerf | ModelKind::MipNerf, Sampling::Paper) => {
-                        Some(NERF_SMALL_BATCH_SAMPLES)
-                    }
-                    (EngineKind::Gpu, ModelKind::Nerf | ModelKind::MipNerf, _) if software_gpu => {
-                        Some(NERF_SMALL_BATCH_SAMPLES)
-                    }
-                    _ => None,
-                }
+                viewer_batch_samples(kind, self.engine.kind, software_gpu, self.options.sampling)
             }),
             sampling: self.options.sampling,
             precision: self.options.precision,

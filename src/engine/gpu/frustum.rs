@@ -3,14 +3,17 @@
 //! [`crate::engine::cpu::frustum`], same formulas, same operation order,
 //! same layouts, recorded into a command encoder.
 //!
-//! Two kernels, one per way a model places its samples:
+//! Three kernels, one per way a model places its samples:
 //!
 //! - [`GpuFrustums::record_edges`], for fixed-count levels: each ray's
 //!   N + 1 interval edges (stratified, or resampled from the previous
 //!   level) become N frustums, as the cpu model's `sample_level`;
 //! - [`GpuFrustums::record_marched`], for samples marched through the
 //!   occupancy grid: each sample stands for the frustum of its step, centred
-//!   on it, as the cpu model's marched step.
+//!   on it, as the cpu model's marched step;
+//! - [`GpuFrustums::record_walked`], for the samples of the viewer's device
+//!   walk (`engine::gpu::model::walk`): the same frustums, for slots of a
+//!   round's rays rather than a compacted batch.
 //!
 //! Only a forward pass: no gradient flows into the frustums. The loss
 //! reaches the network's parameters through the integrated encoding of the
@@ -69,6 +72,7 @@ pub struct MarchedIntervals<'a> {
 pub struct GpuFrustums {
     edges: Kernel,
     marched: Kernel,
+    walked: Kernel,
 }
 
 impl GpuFrustums {
@@ -89,6 +93,10 @@ impl GpuFrustums {
             marched: kernel(
                 "sample_marched_frustums",
                 include_str!("../../../shaders/sample_marched_frustums.wgsl"),
+            )?,
+            walked: kernel(
+                "render_frustums",
+                include_str!("../../../shaders/render_frustums.wgsl"),
             )?,
         })
     }
@@ -164,6 +172,49 @@ impl GpuFrustums {
                 float_range(marched.dt, 0, s),
                 float_range(means, 0, 3 * s),
                 float_range(variances, 0, 3 * s),
+            ]
+        });
+    }
+
+    /// Records the Gaussians of the frustums a round of the render walk's
+    /// samples stand for: `round_rays` rays of `on` (the view's), listed by
+    /// index in `ray_list`, ray i of the round at slots i·`per_ray`.. of
+    /// `t` and `dt`; into `means` and `variances` (3 per slot), as
+    /// [`crate::engine::cpu::model::grid_sample_gaussians`] on the host.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_walked(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        on: FrustumRays,
+        ray_list: wgpu::BufferBinding,
+        round_rays: usize,
+        per_ray: usize,
+        t: &wgpu::Buffer,
+        dt: &wgpu::Buffer,
+        means: &wgpu::Buffer,
+        variances: &wgpu::Buffer,
+    ) {
+        let slots = round_rays * per_ray;
+        if slots == 0 {
+            return;
+        }
+        let template = SampleUniforms {
+            samples: per_ray as u32,
+            ..Default::default()
+        };
+        // Each slot is one invocation; every binding is whole, so a piece
+        // of slots finds its own through `ray_base`.
+        GpuSampling::record_rays(context, encoder, &self.walked, slots, 3, template, |_| {
+            vec![
+                on.origins.as_entire_buffer_binding(),
+                on.directions.as_entire_buffer_binding(),
+                on.radii.as_entire_buffer_binding(),
+                ray_list.clone(),
+                float_range(t, 0, slots),
+                float_range(dt, 0, slots),
+                float_range(means, 0, 3 * slots),
+                float_range(variances, 0, 3 * slots),
             ]
         });
     }

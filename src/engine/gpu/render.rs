@@ -150,6 +150,8 @@ pub(crate) struct RenderBuffers {
     /// pixels × 3 f32 each, world space.
     pub origins: wgpu::Buffer,
     pub directions: wgpu::Buffer,
+    /// pixels cone radii at unit distance (Mip-NeRF's frustums).
+    pub radii: wgpu::Buffer,
     /// pixels × `RayState`.
     pub states: wgpu::Buffer,
     /// The active rays of this round and of the next.
@@ -179,6 +181,7 @@ impl RenderBuffers {
             pixels,
             origins: f("render origins", 3 * pixels),
             directions: f("render directions", 3 * pixels),
+            radii: f("render radii", pixels),
             states: u("render states", STATE_WORDS * pixels),
             active: [u("render active 0", pixels), u("render active 1", pixels)],
             counts: u("render counts", round_rays),

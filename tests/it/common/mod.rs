@@ -5,6 +5,7 @@
 //! Every test holds [`shared`] or [`alone`] while it runs.
 #![allow(dead_code)]
 
+pub mod gate_record;
 pub mod march;
 
 use std::path::PathBuf;
@@ -111,6 +112,50 @@ pub fn relative_norm(a: &[f32], b: &[f32]) -> f64 {
         n += (y as f64).powi(2);
     }
     (d / n.max(1e-300)).sqrt()
+}
+
+/// What σ and colour two models holding the same parameters, one per
+/// engine, answer at `n` random points of [-1.2, 1.2]³ with random
+/// directions: f32 networks on both engines summed in different orders,
+/// so σ must agree within 1e-4 of the largest and colours in [0, 1]
+/// within 1e-4. Returns the largest σ and how many points the gpu engine
+/// gave σ zero (empty cells).
+pub fn assert_engines_agree_at_points(
+    label: &str,
+    cpu: &dyn zrak::model::RadianceModel,
+    gpu: &dyn zrak::model::RadianceModel,
+    n: usize,
+    footprint: f32,
+) -> (f32, usize) {
+    let mut rng = Pcg32::new(11, 0);
+    let mut uniform = || 2.4 * rng.next_f32() - 1.2;
+    let positions: Vec<glam::Vec3> = (0..n)
+        .map(|_| glam::Vec3::new(uniform(), uniform(), uniform()))
+        .collect();
+    let directions: Vec<glam::Vec3> = (0..n)
+        .map(|_| glam::Vec3::new(uniform(), uniform(), uniform()).normalize_or(glam::Vec3::Z))
+        .collect();
+    let (mut sigma_cpu, mut sigma_gpu) = (vec![0.0; n], vec![0.0; n]);
+    cpu.density_at(&positions, footprint, &mut sigma_cpu)
+        .unwrap();
+    gpu.density_at(&positions, footprint, &mut sigma_gpu)
+        .expect("the gpu engine answers σ at points");
+    let (mut rgb_cpu, mut rgb_gpu) = (vec![0.0; 3 * n], vec![0.0; 3 * n]);
+    cpu.colour_at(&positions, &directions, footprint, &mut rgb_cpu)
+        .unwrap();
+    gpu.colour_at(&positions, &directions, footprint, &mut rgb_gpu)
+        .expect("the gpu engine answers colours at points");
+    let largest = sigma_cpu.iter().fold(0f32, |m, s| m.max(s.abs()));
+    let worst = |a: &[f32], b: &[f32]| a.iter().zip(b).fold(0f32, |m, (x, y)| m.max((x - y).abs()));
+    let (worst_sigma, worst_rgb) = (worst(&sigma_cpu, &sigma_gpu), worst(&rgb_cpu, &rgb_gpu));
+    let empty = sigma_gpu.iter().filter(|s| **s == 0.0).count();
+    println!(
+        "{label}: σ up to {largest}, worst difference {worst_sigma:e}; colour {worst_rgb:e}; \
+         {empty} of {n} zero"
+    );
+    assert!(worst_sigma <= 1e-4 * largest, "{label}: σ {worst_sigma}");
+    assert!(worst_rgb <= 1e-4, "{label}: colour {worst_rgb}");
+    (largest, empty)
 }
 
 /// The binary under test. `ZRAK_BIN` overrides cargo's path to it for a

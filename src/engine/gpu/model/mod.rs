@@ -590,7 +590,7 @@ impl GpuModel {
             pending_grid: None,
             depth_range: scene.depth_range(),
             crop: None,
-            render: marches_points
+            render: matches!(plan, Plan::Marched)
                 .then(|| RenderKernels::new(ctx))
                 .transpose()
                 .map_err(gpu)?,
@@ -719,10 +719,9 @@ impl GpuModel {
     }
 }
 
-/// A recipe that marches points through the grid (Instant-NGP, NeRF with
-/// its occupancy sampler) is drawn on the device (`walk.rs`). The paper's
-/// samplers and Mip-NeRF's frustums composite each ray's samples on the
-/// host, so their view reaches the texture as one upload of the finished
+/// A recipe that marches through the grid (Instant-NGP; NeRF and Mip-NeRF
+/// with the occupancy sampler) is drawn on the device (`walk.rs`). The
+/// paper's samplers composite each ray's samples on the host, so their view reaches the texture as one upload of the finished
 /// pixels: the image `render::to_image(render_pixels(..))` makes, byte for
 /// byte. The viewer draws every model on the gpu engine the same way, from
 /// a texture on the model's device.

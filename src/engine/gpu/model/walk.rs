@@ -1,11 +1,12 @@
-//! The viewer's view drawn on the device for a recipe that marches points
-//! through the occupancy grid (Instant-NGP; NeRF with its occupancy
+//! The viewer's view drawn on the device for a recipe that marches through
+//! the occupancy grid (Instant-NGP; NeRF and Mip-NeRF with the occupancy
 //! sampler): rounds of the lattice walk, the level's field and
 //! front-to-back compositing into per-ray state, then the image written
 //! into the target texture, without reading pixels back (see
 //! [`super::super::render`]). Whatever the field, the walk and compositing
-//! are the same; a field of world positions gets the walk's unit-cube
-//! points mapped to the world first, as in a training step.
+//! are the same; as in a training step, a field of world positions gets
+//! the walk's unit-cube points mapped to the world first, and a field of
+//! frustums gets the Gaussian of each sample's step on its pixel's cone.
 
 use super::*;
 use crate::engine::cpu::march::Marcher;
@@ -20,9 +21,9 @@ const WORKGROUP: u32 = 64;
 
 impl GpuModel {
     /// Whether [`Self::walk_to_texture`] can draw this model: a recipe
-    /// marching points through the grid, with batches large enough for a
-    /// round of rays.
-    pub(super) fn walks_on_device(&self) -> bool {
+    /// marching through the grid, with batches large enough for a round of
+    /// rays.
+    pub fn walks_on_device(&self) -> bool {
         self.render.is_some()
             && self
                 .grid
@@ -58,6 +59,12 @@ impl GpuModel {
         let mut active: Vec<u32> = Vec::with_capacity(pixels);
         let mut origins = Vec::with_capacity(3 * pixels);
         let mut directions = Vec::with_capacity(3 * pixels);
+        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+        let radii: Vec<f32> = if frustums {
+            rays.iter().map(|ray| ray.radius()).collect()
+        } else {
+            Vec::new()
+        };
         for (i, ray) in rays.iter().enumerate() {
             origins.extend(ray.origin.to_array());
             directions.extend(ray.direction.to_array());
@@ -82,6 +89,9 @@ impl GpuModel {
         let queue = &ctx.queue;
         queue.write_buffer(&buffers.origins, 0, bytemuck::cast_slice(&origins));
         queue.write_buffer(&buffers.directions, 0, bytemuck::cast_slice(&directions));
+        if frustums {
+            queue.write_buffer(&buffers.radii, 0, bytemuck::cast_slice(&radii));
+        }
         if !active.is_empty() {
             queue.write_buffer(&buffers.active[0], 0, bytemuck::cast_slice(&active));
         }
@@ -145,7 +155,24 @@ impl GpuModel {
                     dispatch_grid(n + 1, WORKGROUP).0,
                 );
                 let samples = n * per_ray;
-                if !unit_cube {
+                if frustums {
+                    self.stages.frustums.record_walked(
+                        ctx,
+                        &mut encoder,
+                        FrustumRays {
+                            origins: &buffers.origins,
+                            directions: &buffers.directions,
+                            radii: &buffers.radii,
+                        },
+                        float_range(list, start, n),
+                        n,
+                        per_ray,
+                        &out.t,
+                        &out.dt,
+                        &marched.world,
+                        &marched.variances,
+                    );
+                } else if !unit_cube {
                     self.stages.sampling.record_to_world(
                         ctx,
                         &mut encoder,
@@ -164,7 +191,7 @@ impl GpuModel {
                     } else {
                         &marched.world
                     },
-                    None,
+                    frustums.then_some(&marched.variances),
                     &out.directions,
                     samples,
                     &marched.sigma,
