@@ -221,3 +221,12 @@ pub struct Recipe {
     /// image during the first `steps` steps.
     pub centre_crop: Option<(u32, f32)>,
 }
+
+impl Recipe {
+    /// The central fraction of each image that step `step`'s rays come
+    /// from, while the recipe crops to the centre.
+    pub fn centre_crop_at(&self, step: u32) -> Option<f32> {
+        self.centre_crop
+            .and_then(|(steps, fraction)| (step < steps).then_some(fraction))
+    }
+}

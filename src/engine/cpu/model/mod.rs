@@ -407,16 +407,11 @@ impl RadianceModel for CpuModel {
     }
 
     fn rays_for_next_batch(&self) -> usize {
-        match self.batch_size {
-            BatchSize::Rays(rays) => rays,
-            BatchSize::Samples(_) => self.batch_sizer.rays(),
-        }
+        rays_for_batch(self.batch_size, &self.batch_sizer)
     }
 
     fn centre_crop(&self, step: u32) -> Option<f32> {
-        self.recipe
-            .centre_crop
-            .and_then(|(steps, fraction)| (step < steps).then_some(fraction))
+        self.recipe.centre_crop_at(step)
     }
 
     fn step(&mut self, batch: &RayBatch, step: u32) -> StepStats {
@@ -479,18 +474,16 @@ impl RadianceModel for CpuModel {
                             }
                             return;
                         }
-                        if frustums {
-                            grid_sample_gaussians(
-                                samples,
-                                origins,
-                                directions,
-                                radii,
-                                &mut world,
-                                &mut variances,
-                            );
-                        } else {
-                            to_world(&mapping, samples.positions, &mut world);
-                        }
+                        grid_sample_inputs(
+                            samples,
+                            frustums,
+                            &mapping,
+                            origins,
+                            directions,
+                            radii,
+                            &mut world,
+                            &mut variances,
+                        );
                         field.radiance(
                             params,
                             &world,

@@ -148,6 +148,38 @@ pub fn grid_sample_gaussians(
     }
 }
 
+/// Rays for the next batch of a model that sizes its batches as
+/// `batch_size` says (by samples, through the sizer's estimate of samples
+/// per ray).
+pub fn rays_for_batch(batch_size: BatchSize, sizer: &BatchSizer) -> usize {
+    match batch_size {
+        BatchSize::Rays(rays) => rays,
+        BatchSize::Samples(_) => sizer.rays(),
+    }
+}
+
+/// What a field of world positions takes for samples marched through the
+/// grid for rendering: for a recipe of `frustums`, each sample's Gaussian
+/// ([`grid_sample_gaussians`]: means into `world`, covariance diagonals
+/// into `variances`); else its position mapped to the world.
+#[allow(clippy::too_many_arguments)]
+pub fn grid_sample_inputs(
+    samples: &GridSamples,
+    frustums: bool,
+    mapping: &UnitCubeMapping,
+    origins: &[Vec3],
+    directions: &[Vec3],
+    radii: &[f32],
+    world: &mut Vec<f32>,
+    variances: &mut Vec<f32>,
+) {
+    if frustums {
+        grid_sample_gaussians(samples, origins, directions, radii, world, variances);
+    } else {
+        to_world(mapping, samples.positions, world);
+    }
+}
+
 /// Unit-cube positions (n × 3) to world positions.
 pub fn to_world(mapping: &UnitCubeMapping, unit: &[f32], world: &mut Vec<f32>) {
     set_len(world, unit.len());

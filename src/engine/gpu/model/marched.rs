@@ -294,17 +294,17 @@ impl GpuModel {
         let (mut world, mut variances) = (Vec::new(), Vec::new());
         if unit_cube {
             world.extend_from_slice(samples.positions);
-        } else if frustums {
-            grid_sample_gaussians(
+        } else {
+            grid_sample_inputs(
                 samples,
+                frustums,
+                &grid.mapping,
                 origins,
                 directions,
                 radii,
                 &mut world,
                 &mut variances,
             );
-        } else {
-            to_world(&grid.mapping, samples.positions, &mut world);
         }
         let marched = work.marched.as_ref().expect("a marched recipe has buffers");
         let chunk = grid.samples;

@@ -76,7 +76,7 @@ use crate::engine::cpu::march::{
 };
 use crate::engine::cpu::model::{
     ModelIdentity, RAYS_PER_CHUNK, check_sampling, chunk_jitter_seed, describe, grid_cell_variance,
-    grid_sample_gaussians, ray_bounds, to_world,
+    grid_sample_inputs, ray_bounds, rays_for_batch, to_world,
 };
 use crate::engine::cpu::occupancy::OccupancyGrid;
 use crate::engine::cpu::state::{ModelHeader, ModelState};
@@ -771,16 +771,11 @@ impl RadianceModel for GpuModel {
     }
 
     fn rays_for_next_batch(&self) -> usize {
-        match self.batch_size {
-            BatchSize::Rays(rays) => rays,
-            BatchSize::Samples(_) => self.batch_sizer.rays(),
-        }
+        rays_for_batch(self.batch_size, &self.batch_sizer)
     }
 
     fn centre_crop(&self, step: u32) -> Option<f32> {
-        self.recipe
-            .centre_crop
-            .and_then(|(steps, fraction)| (step < steps).then_some(fraction))
+        self.recipe.centre_crop_at(step)
     }
 
     fn step(&mut self, batch: &RayBatch, step: u32) -> StepStats {
