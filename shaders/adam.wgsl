@@ -1,5 +1,5 @@
-// One Adam step, one invocation per parameter (the cpu engine's
-// `engine::cpu::adam`, as tiny-cuda-nn runs it for instant-ngp):
+// One Adam step, one invocation per parameter (the host's reference,
+// `engine::shared::adam`, as tiny-cuda-nn runs it for instant-ngp):
 // network weights [network_start, network_end) get L2 regularisation and
 // are always updated; every other parameter is a hash-table entry, left
 // alone (value, moments, bias-correction denominators) where its gradient

@@ -2,7 +2,7 @@
 // `march_write.wgsl` and `render_walk.wgsl` (prepended to each; each
 // defines `emit_sample`, which `walk` calls for every sample). The same arithmetic, in the same
 // order, as the cpu engine's `engine::cpu::march` and
-// `engine::cpu::occupancy::GridGeometry`, so both engines find the same
+// `engine::shared::occupancy::GridGeometry`, so both engines find the same
 // samples at the same positions. `march_params.wgsl` comes first; the entry
 // files declare `params`, `bitfield`, `origins` and `directions`.
 

@@ -108,8 +108,8 @@ pub fn tiles(frame: &Frame, n: u32, side: u32, index: usize, seed: u64) -> Vec<F
     for by in 0..blocks_y {
         for bx in 0..blocks_x {
             let block = u64::from(by * blocks_x + bx);
-            let draw = crate::engine::cpu::occupancy::mix64(
-                seed ^ crate::engine::cpu::occupancy::mix64(((index as u64) << 32) | block),
+            let draw = crate::engine::shared::occupancy::mix64(
+                seed ^ crate::engine::shared::occupancy::mix64(((index as u64) << 32) | block),
             );
             let pick = (draw % u64::from(n * n)) as u32;
             let (tx, ty) = (bx * n + pick % n, by * n + pick / n);

@@ -4,6 +4,7 @@
 pub mod cpu;
 pub mod crop;
 pub mod gpu;
+pub mod shared;
 
 use gpu::GpuContext;
 

@@ -3,6 +3,18 @@
 
 use super::ngp::{MarchConfig, OccupancyConfig};
 
+/// Where the positions a field is given live.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Coordinates {
+    /// World units (NeRF, Mip-NeRF: their encodings' frequencies are per
+    /// world unit).
+    World,
+    /// The scene's unit cube, where the occupancy grid marches (Instant-NGP:
+    /// its hash grid spans a box around the unit cube, and marched samples
+    /// reach it without a round trip through world units).
+    UnitCube,
+}
+
 /// How the learning rate changes with the optimiser's step count.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum LrSchedule {

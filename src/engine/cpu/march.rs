@@ -34,7 +34,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use super::occupancy::{Cell, GridGeometry, OccupancyGrid, bit_is_set};
-use crate::field::ngp::{MarchConfig, SAMPLES_PER_BATCH};
+use crate::field::ngp::MarchConfig;
 use crate::model::RenderedPixel;
 use crate::scene::{Aabb, UnitCubeMapping};
 
@@ -1134,9 +1134,7 @@ pub fn render_through_grid(
     }
 }
 
-mod batch_sizer;
-
-pub use batch_sizer::BatchSizer;
+pub use crate::engine::shared::batch_sizer::BatchSizer;
 
 #[cfg(test)]
 mod tests;

@@ -1,7 +1,6 @@
 //! The `cpu` engine: every stage in plain Rust, and the reference the `gpu`
 //! engine is tested against.
 
-pub mod adam;
 pub mod composite;
 pub mod composite_batch;
 pub mod dense;
@@ -12,7 +11,9 @@ pub mod hash_grid;
 pub mod loss;
 pub mod march;
 pub mod model;
-pub mod occupancy;
 pub mod sampling;
 pub mod sh;
-pub mod state;
+
+// What both engines hold on the host, under the paths the cpu engine's
+// stages have always named them by.
+pub use super::shared::{adam, occupancy, state};

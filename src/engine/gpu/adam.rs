@@ -1,5 +1,5 @@
 //! The Adam step on the GPU (`shaders/adam.wgsl`): the state of
-//! [`crate::engine::cpu::adam::Adam`] in GPU buffers, updated by the same
+//! [`crate::engine::shared::adam::Adam`] in GPU buffers, updated by the same
 //! formula, one invocation per parameter.
 
 use std::ops::Range;
@@ -9,7 +9,7 @@ use super::context::{GpuContext, GpuError};
 use super::kernel::{
     Kernel, float_range, pieces, read_buffer, rows_per_piece, storage_buffer, uniform_buffer,
 };
-use crate::engine::cpu::adam::Adam;
+use crate::engine::shared::adam::Adam;
 use crate::field::ngp::OptimiserConfig;
 use crate::field::params::{ParamLayout, Update};
 

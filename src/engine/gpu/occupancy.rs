@@ -9,7 +9,7 @@
 use super::context::{GpuContext, GpuError};
 use super::kernel::{Kernel, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer};
 use super::march::{dispatch_grid, source};
-use crate::engine::cpu::occupancy::{GridGeometry, OccupancyGrid};
+use crate::engine::shared::occupancy::{GridGeometry, OccupancyGrid};
 use crate::field::ngp::OccupancyConfig;
 
 /// Threads per workgroup of the per-element kernels.

@@ -8,17 +8,9 @@ pub mod ngp;
 
 use crate::field::params::ParamLayout;
 
-/// Where the positions a field is given live.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Coordinates {
-    /// World units (NeRF, Mip-NeRF: their encodings' frequencies are per
-    /// world unit).
-    World,
-    /// The scene's unit cube, where the occupancy grid marches (Instant-NGP:
-    /// its hash grid spans a box around the unit cube, and marched samples
-    /// reach it without a round trip through world units).
-    UnitCube,
-}
+// Where a field's positions live is a property of the field on either
+// engine: declared beside the recipe.
+pub use crate::field::common::Coordinates;
 
 /// How a backward pass leaves the field's gradient.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -1,7 +1,8 @@
 use super::*;
 use crate::engine::cpu::composite::{RaySamples, composite};
-use crate::engine::cpu::occupancy::mix64;
+use crate::engine::shared::occupancy::mix64;
 use crate::field::ngp::OccupancyConfig;
+use crate::field::ngp::SAMPLES_PER_BATCH;
 
 const BLENDER: UnitCubeMapping = UnitCubeMapping::BLENDER;
 

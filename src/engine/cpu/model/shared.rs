@@ -49,7 +49,7 @@ pub fn describe(identity: &ModelIdentity, engine: &str) -> String {
 
 /// Refuses a checkpoint trained with another sampler than `identity`'s.
 pub(crate) fn check_sampling(
-    header: &crate::engine::cpu::state::ModelHeader,
+    header: &crate::engine::shared::state::ModelHeader,
     identity: &ModelIdentity,
 ) -> Result<(), String> {
     let saved = header.sampling.as_deref();

@@ -8,7 +8,7 @@ pub mod nerf;
 pub mod ngp;
 
 use super::context::GpuContext;
-use crate::engine::cpu::fields::Coordinates;
+use crate::field::common::Coordinates;
 
 /// A field on the `gpu` engine, as a model driver records it: a forward
 /// pass that keeps its activations, the backward pass of that forward

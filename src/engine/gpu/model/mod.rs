@@ -70,17 +70,16 @@ use super::step::{
     CompositeAndLoss, RayBuffers, SampleBuffers, SampleGradientBuffers, StepReadback, StepResults,
 };
 use super::timing::{Stage, StageClock, StageTiming};
-use crate::engine::cpu::fields::Coordinates;
-use crate::engine::cpu::march::{
-    BatchSizer, GridSamples, MarchParams, mix_seed, render_through_grid,
-};
+use crate::engine::cpu::march::{GridSamples, MarchParams, mix_seed, render_through_grid};
 use crate::engine::cpu::model::{
     ModelIdentity, RAYS_PER_CHUNK, check_sampling, chunk_jitter_seed, describe, grid_cell_variance,
     grid_sample_inputs, ray_bounds, rays_for_batch, to_world,
 };
-use crate::engine::cpu::occupancy::OccupancyGrid;
-use crate::engine::cpu::state::{ModelHeader, ModelState};
 use crate::engine::crop::{crop_densities, crop_ray_bounds};
+use crate::engine::shared::batch_sizer::BatchSizer;
+use crate::engine::shared::occupancy::OccupancyGrid;
+use crate::engine::shared::state::{ModelHeader, ModelState};
+use crate::field::common::Coordinates;
 use crate::field::common::{BatchSize, Recipe, SampleShape, SamplerKind};
 use crate::field::ngp::LossKind;
 use crate::field::params::ParamLayout;

@@ -1,7 +1,7 @@
 //! How many rays a training batch takes, so that it holds about the
 //! target number of samples as the samples per ray change.
 
-use super::*;
+use crate::field::ngp::SAMPLES_PER_BATCH;
 
 /// Chooses how many rays the next training batch takes so that it holds
 /// about `target_samples` samples (instant-ngp measures batches in samples:

@@ -1,0 +1,12 @@
+//! What both engines hold on the host and neither owns: the batch sizer
+//! (rays per batch from the samples per ray the steps report), the
+//! occupancy grid (its cells, bitfield and update rule; the gpu engine
+//! mirrors it on the device and reads it back), Adam's state and its
+//! reference update (the gpu engine's kernel keeps the same moments) and a
+//! model's checkpoint state, so checkpoints move between engines. The gpu
+//! engine takes these from here, not from the cpu engine.
+
+pub mod adam;
+pub mod batch_sizer;
+pub mod occupancy;
+pub mod state;
