@@ -107,6 +107,47 @@ impl StepStats {
     }
 }
 
+/// The loss of a step of fixed levels (stratified, then importance or
+/// resampled), summed alike on both engines: each chunk's mean loss at a
+/// level counts with its share of the batch's rays, and with the level's
+/// weight in the total.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct LevelLossSum {
+    loss: f64,
+    level_losses: [f32; 2],
+}
+
+impl LevelLossSum {
+    /// Adds a chunk's mean loss `value` at level `level` (of weight
+    /// `loss_weight`), the chunk holding `share` of the batch's rays.
+    pub fn add(&mut self, level: usize, loss_weight: f32, share: f32, value: f64) {
+        self.loss += value * (loss_weight * share) as f64;
+        if let Some(l) = self.level_losses.get_mut(level) {
+            *l += (value * share as f64) as f32;
+        }
+    }
+
+    /// The step's stats. Every sample of a fixed level is composited, so
+    /// none is counted apart.
+    pub fn into_stats(
+        self,
+        rays: usize,
+        samples: usize,
+        times: StageTimes,
+        network_flops: f64,
+    ) -> StepStats {
+        StepStats {
+            loss: self.loss as f32,
+            level_losses: self.level_losses,
+            rays,
+            samples,
+            samples_composited: None,
+            times,
+            network_flops,
+        }
+    }
+}
+
 /// One rendered pixel.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct RenderedPixel {

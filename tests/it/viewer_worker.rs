@@ -1,5 +1,11 @@
 //! The viewer's training thread on the cpu engine and a small demo scene:
 //! what it answers to each command, checked by value.
+//!
+//! The tests whose bounds are on the wall clock (training's share, the
+//! picture's lag, a resting camera's first whole picture, turns, a scene
+//! read while steps go on, the progressive levels a render budget picks)
+//! run alone; those that check only what is answered, however long it
+//! takes within [`PATIENCE`], run beside other tests.
 
 use crate::common;
 
@@ -124,7 +130,7 @@ fn frames_until_full(worker: &TrainingWorker, generation: u64) -> Vec<RenderedFr
 
 #[test]
 fn training_reports_stats_with_a_finite_loss_and_honest_psnrs() {
-    let _alone = common::alone();
+    let _cores = common::shared();
     let worker = spawn(WorkerOptions {
         loss: Some(LossKind::L2),
         // Evaluate after every step, so the first report carries a PSNR.
@@ -258,7 +264,7 @@ fn a_render_request_refines_to_full_size_and_old_generations_stop() {
 
 #[test]
 fn reset_forgets_the_steps_and_selecting_the_model_keeps_them() {
-    let _alone = common::alone();
+    let _cores = common::shared();
     let worker = spawn(options());
     for expected in 1..=3 {
         assert_eq!(step_once(&worker), expected);
@@ -280,7 +286,7 @@ fn reset_forgets_the_steps_and_selecting_the_model_keeps_them() {
 
 #[test]
 fn a_missing_scene_folder_is_reported_while_training_goes_on() {
-    let _alone = common::alone();
+    let _cores = common::shared();
     let worker = spawn(options());
     worker.send(Command::Start);
     let first = wait_for(&worker, |e| match e {
@@ -320,7 +326,7 @@ fn save(worker: &TrainingWorker, path: &Path) {
 
 #[test]
 fn a_checkpoint_restores_its_step_and_one_of_another_scene_is_refused() {
-    let _alone = common::alone();
+    let _cores = common::shared();
     let dir = tempfile::tempdir().unwrap();
     let checkpoint = dir.path().join("viewer.zrak");
     let worker = spawn(options());
@@ -384,7 +390,7 @@ fn turntable(out_dir: &Path, frames: usize) -> ExportSettings {
 
 #[test]
 fn a_turntable_export_reports_progress_and_can_be_cancelled() {
-    let _alone = common::alone();
+    let _cores = common::shared();
     let dir = tempfile::tempdir().unwrap();
     let worker = spawn(options());
     worker.send(Command::ExportTurntable(turntable(dir.path(), 3)));
@@ -425,7 +431,7 @@ fn a_turntable_export_reports_progress_and_can_be_cancelled() {
 
 #[test]
 fn closing_keeps_each_model_trained_since_its_last_save() {
-    let _alone = common::alone();
+    let _cores = common::shared();
     let dir = tempfile::tempdir().unwrap();
     let kept_in = |runs: &Path| -> Vec<PathBuf> {
         std::fs::read_dir(runs)
@@ -719,6 +725,16 @@ fn watch(
     }
 }
 
+/// How long the camera rests while training's share and the picture's lag
+/// are measured. The share of a run read at a report is off by at most a
+/// fraction of a step: with the longest steps measured on two busy cores
+/// (2.9 s for NeRF on the cpu engine, a grid update; 1.9 s on lavapipe),
+/// 0.3 of one over 20 s is 0.04, well inside the 0.1 between the schedule's
+/// 0.7 and the 0.6 asked for. The runs measured took 20 to 37 steps (cpu)
+/// and 55 to 104 (lavapipe) in 20 to 30 s, many more than the three
+/// advances of the picture asserted.
+const WATCH_SECONDS: f64 = 20.0;
+
 /// NeRF or Mip-NeRF with the camera at rest: training gets its share, the
 /// picture keeps up, and a camera that comes to rest is drawn at full
 /// resolution within [`settle_bound_seconds`]. `view` is the viewport's
@@ -729,7 +745,6 @@ fn the_picture_keeps_up_while_training_keeps_its_share(
     engine: EngineKind,
     options: WorkerOptions,
     view: u32,
-    rest_seconds: f64,
 ) {
     use zrak::app::schedule::{DEFAULT_TRAINING_SHARE, lag_bound_seconds, settle_bound_seconds};
     let worker = TrainingWorker::spawn_with(SceneSource::Demo, Some(engine), model, options);
@@ -744,7 +759,7 @@ fn the_picture_keeps_up_while_training_keeps_its_share(
     render(&worker, 1, camera(view, 0.3));
     worker.send(Command::Start);
     let mut run = Watched::default();
-    watch(&worker, 1, began, rest_seconds, |_| false, &mut run);
+    watch(&worker, 1, began, WATCH_SECONDS, |_| false, &mut run);
 
     // Training's share of the wall time, from the start to its last report.
     // The share is 0.7; the issue asks for at least 0.6. The time is shared
@@ -754,7 +769,7 @@ fn the_picture_keeps_up_while_training_keeps_its_share(
     // least 48 pixels however slow the model.
     assert!(
         !run.stats.is_empty(),
-        "no step in {rest_seconds} s; frames {:?}",
+        "no step in {WATCH_SECONDS} s; frames {:?}",
         run.frames
     );
     let (first, last) = (run.stats[0], *run.stats.last().expect("stats"));
@@ -879,7 +894,6 @@ fn nerf_on_the_cpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
             ..WorkerOptions::default()
         },
         16,
-        25.0,
     );
 }
 
@@ -894,7 +908,6 @@ fn mipnerf_on_the_cpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
             ..WorkerOptions::default()
         },
         16,
-        25.0,
     );
 }
 
@@ -924,7 +937,6 @@ fn on_the_gpu_engine(model: ModelKind, shape: common::NerfKind) {
             ..WorkerOptions::default()
         },
         8,
-        30.0,
     );
 }
 

@@ -3,6 +3,7 @@
 //! number of samples per ray.
 
 use super::*;
+use crate::model::LevelLossSum;
 
 impl CpuModel {
     /// A step of fixed-count levels (stratified, then importance), in
@@ -12,8 +13,7 @@ impl CpuModel {
         let rays = self.buffers.origins.len() / 3;
         // Chunks and levels add to the gradient.
         self.buffers.gradients.fill(0.0);
-        let mut loss = 0.0f64;
-        let mut level_losses = [0f32; 2];
+        let mut losses = LevelLossSum::default();
         let mut samples = 0usize;
         let mut network_flops = 0f64;
         let (mut near, mut far) = (Vec::new(), Vec::new());
@@ -74,10 +74,7 @@ impl CpuModel {
                     None,
                     &mut b.rays,
                 );
-                loss += level_loss * (level.loss_weight * share) as f64;
-                if let Some(l) = level_losses.get_mut(level_index) {
-                    *l += (level_loss * share as f64) as f32;
-                }
+                losses.add(level_index, level.loss_weight, share, level_loss);
                 times.composite += clock.elapsed().as_secs_f64();
 
                 let clock = Instant::now();
@@ -91,15 +88,7 @@ impl CpuModel {
                 times.networks_backward += clock.elapsed().as_secs_f64();
             }
         }
-        StepStats {
-            loss: loss as f32,
-            level_losses,
-            rays,
-            samples,
-            samples_composited: None,
-            times,
-            network_flops,
-        }
+        losses.into_stats(rays, samples, times, network_flops)
     }
 
     /// Fills level `level`'s samples for rays `rays` of the step's buffers

@@ -3,6 +3,7 @@
 //! step with the paper samplers' fixed samples per ray.
 
 use super::*;
+use crate::model::LevelLossSum;
 
 impl GpuModel {
     /// Records every level of a chunk of `count` rays (already on the
@@ -329,25 +330,17 @@ impl GpuModel {
 
         // The cpu's sums: the loss weighted per level and chunk, the level
         // losses per chunk's share.
-        let mut loss = 0f64;
-        let mut level_losses = [0f32; 2];
+        let mut sum = LevelLossSum::default();
         for (chunk, &share) in shares.iter().enumerate() {
             for (li, level) in self.recipe.levels.iter().enumerate() {
-                let value = values[chunk * levels + li] as f64;
-                loss += value * (level.loss_weight * share) as f64;
-                if let Some(l) = level_losses.get_mut(li) {
-                    *l += (value * share as f64) as f32;
-                }
+                sum.add(
+                    li,
+                    level.loss_weight,
+                    share,
+                    values[chunk * levels + li] as f64,
+                );
             }
         }
-        StepStats {
-            loss: loss as f32,
-            level_losses,
-            rays,
-            samples,
-            samples_composited: None,
-            times,
-            network_flops: 0.0,
-        }
+        sum.into_stats(rays, samples, times, 0.0)
     }
 }
