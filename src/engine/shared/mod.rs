@@ -3,10 +3,14 @@
 //! occupancy grid (its cells, bitfield and update rule; the gpu engine
 //! mirrors it on the device and reads it back), Adam's state and its
 //! reference update (the gpu engine's kernel keeps the same moments) and a
-//! model's checkpoint state, so checkpoints move between engines. The gpu
-//! engine takes these from here, not from the cpu engine.
+//! model's checkpoint state, so checkpoints move between engines; the
+//! inputs of compositing (a batch's samples and rays, the distortion
+//! weights) and the stratified sampler's step. The gpu engine takes these
+//! from here, not from the cpu engine.
 
 pub mod adam;
 pub mod batch_sizer;
+pub mod composite;
 pub mod occupancy;
+pub mod sampling;
 pub mod state;
