@@ -16,7 +16,9 @@
 
 use super::context::{GpuContext, GpuError};
 use super::kernel::{Kernel, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer};
-use crate::engine::cpu::march::{MarchParams, MarchStats, MarchedSamples, cone_for, skip_margin};
+use crate::engine::shared::march::{
+    MarchParams, MarchStats, MarchedSamples, cone_for, skip_margin,
+};
 use crate::engine::shared::occupancy::{GridGeometry, OccupancyGrid};
 
 /// Threads per workgroup of the per-ray and per-element kernels.

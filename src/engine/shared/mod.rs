@@ -5,12 +5,16 @@
 //! reference update (the gpu engine's kernel keeps the same moments) and a
 //! model's checkpoint state, so checkpoints move between engines; the
 //! inputs of compositing (a batch's samples and rays, the distortion
-//! weights) and the stratified sampler's step. The gpu engine takes these
+//! weights), the stratified sampler's step, and the march through the
+//! occupancy grid (the lattice, the walk, the seeds, the samples it yields
+//! and the render loop) that the cpu engine's batch march and the gpu
+//! engine's kernels both follow. The gpu engine takes these
 //! from here, not from the cpu engine.
 
 pub mod adam;
 pub mod batch_sizer;
 pub mod composite;
+pub mod march;
 pub mod occupancy;
 pub mod sampling;
 pub mod state;
