@@ -70,12 +70,12 @@ use super::step::{
     CompositeAndLoss, RayBuffers, SampleBuffers, SampleGradientBuffers, StepReadback, StepResults,
 };
 use super::timing::{Stage, StageClock, StageTiming};
-use crate::engine::cpu::model::{
+use crate::engine::crop::{crop_densities, crop_ray_bounds};
+use crate::engine::shared::batch_sizer::BatchSizer;
+use crate::engine::shared::driver::{
     ModelIdentity, RAYS_PER_CHUNK, check_sampling, chunk_jitter_seed, describe, grid_cell_variance,
     grid_sample_inputs, ray_bounds, rays_for_batch, to_world,
 };
-use crate::engine::crop::{crop_densities, crop_ray_bounds};
-use crate::engine::shared::batch_sizer::BatchSizer;
 use crate::engine::shared::march::{GridSamples, MarchParams, mix_seed, render_through_grid};
 use crate::engine::shared::occupancy::OccupancyGrid;
 use crate::engine::shared::state::{ModelHeader, ModelState};
