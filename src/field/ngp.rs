@@ -165,7 +165,7 @@ pub struct MarchConfig {
     /// For scenes with aabb_scale > 1, the step grows to this fraction of
     /// the distance from the camera (testbed: `cone_angle_constant` 1/256,
     /// used when aabb_scale > 1; Blender scenes keep the fixed step). See
-    /// `engine::cpu::march::Lattice`.
+    /// `engine::shared::march::Lattice`.
     pub cone_angle: f32,
 }
 
@@ -208,7 +208,7 @@ impl MarchConfig {
 pub const LARGE_SCENE_DISTORTION: f32 = 0.01;
 
 /// λ of the distortion loss for a scene of this aabb_scale (see
-/// `engine::cpu::composite_batch::Distortion`): [`LARGE_SCENE_DISTORTION`]
+/// `engine::shared::composite::Distortion`): [`LARGE_SCENE_DISTORTION`]
 /// for aabb_scale > 1, 0 for the object scenes (which have no fog between
 /// camera and object to drain, and train as instant-ngp does). The
 /// environment variable `ZRAK_DISTORTION` overrides it when it holds a

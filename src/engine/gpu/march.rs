@@ -10,8 +10,8 @@
 //! deterministic; no sample's place depends on which invocation ran first.
 //!
 //! Large scenes (aabb_scale > 1) step by cone angle as the cpu engine does
-//! (`engine::cpu::march::Lattice`, in whole octaves with exact power-of-two
-//! arithmetic), so both engines take the same samples with the same steps;
+//! (`engine::shared::march::Lattice`, in whole octaves with exact
+//! power-of-two arithmetic), so both engines take the same samples with the same steps;
 //! each sample carries its own step.
 
 use super::context::{GpuContext, GpuError};

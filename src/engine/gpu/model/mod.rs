@@ -24,8 +24,8 @@
 //! checkpoint, and one step on either engine gives the same result up to
 //! f32 rounding:
 //!
-//! - rays go in chunks of the cpu's [`RAYS_PER_CHUNK`] (the chunk index
-//!   seeds its jitter, [`chunk_jitter_seed`]), each chunk one submission:
+//! - rays go in chunks of [`RAYS_PER_CHUNK`], as on the cpu (the chunk
+//!   index seeds its jitter, [`chunk_jitter_seed`]), each chunk one submission:
 //!   its rays are written to the device, then every level's sampling,
 //!   forward pass, compositing, loss and backward pass are recorded, the
 //!   gradients adding up in one buffer; the device's memory holds one
