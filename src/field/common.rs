@@ -226,7 +226,7 @@ pub struct Recipe {
     pub occupancy: OccupancyConfig,
     /// λ of the distortion loss on a level marched through the occupancy
     /// grid (Mip-NeRF 360, Barron et al. 2022, eq. 15; see
-    /// `engine::cpu::composite_batch::Distortion`), per ray of the batch;
+    /// `engine::shared::composite::Distortion`), per ray of the batch;
     /// 0 for none.
     pub distortion: f32,
     /// (steps, fraction): rays come from the central `fraction` of each

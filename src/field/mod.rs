@@ -2,7 +2,9 @@
 //! sampling strategy and paper defaults, one place per model.
 
 pub mod common;
+pub mod encoding;
 pub mod mipnerf;
+pub mod mlp;
 pub mod nerf;
 pub mod ngp;
 pub mod params;

@@ -2,12 +2,17 @@
 //! Representing Scenes as Neural Radiance Fields for View Synthesis"): every
 //! constant of the model, with where it comes from. "Paper" is the ECCV
 //! paper; "config" is the reference code's `configs/config_lego.txt`;
-//! "reference" is its `run_nerf.py` / `run_nerf_helpers.py`.
+//! "reference" is its `run_nerf.py` / `run_nerf_helpers.py`. Also the
+//! field's shapes ([`NerfShape`]: the encodings, the trunk with its skip,
+//! the colour branch and σ's activation, also Mip-NeRF's), which both
+//! engines build their NeRF field from.
 
 pub use super::common::Recipe;
 use super::common::{
     BatchSize, Level, LrSchedule, OptimiserConfig, RayBounds, SampleShape, SamplerKind,
 };
+use super::encoding::FrequencyEncoding;
+use super::mlp::{Activation, MlpLayout, Precision};
 use super::ngp::{MarchConfig, OccupancyConfig};
 
 /// Frequencies of the position encoding γ(x): 2⁰ … 2⁹ (paper, section 5.1:
@@ -209,5 +214,160 @@ pub fn recipe(sampling: Sampling, blender_scene: bool) -> Recipe {
         // No distortion loss in the paper.
         distortion: 0.0,
         centre_crop: Some((CENTRE_CROP_STEPS, CENTRE_CROP_FRACTION)),
+    }
+}
+
+// The field's shapes, which both engines build their networks from.
+
+/// How the raw σ output becomes a density.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum DensityActivation {
+    /// max(x, 0) (NeRF reference, `raw2outputs`).
+    Relu,
+    /// softplus(x − shift) (Mip-NeRF, `density_bias` −1).
+    ShiftedSoftplus { shift: f32 },
+}
+
+impl DensityActivation {
+    pub fn apply(self, x: f32) -> f32 {
+        match self {
+            DensityActivation::Relu => x.max(0.0),
+            DensityActivation::ShiftedSoftplus { shift } => softplus(x - shift),
+        }
+    }
+
+    /// dσ/dx at the raw input x.
+    pub fn derivative(self, x: f32) -> f32 {
+        match self {
+            DensityActivation::Relu => {
+                if x > 0.0 {
+                    1.0
+                } else {
+                    0.0
+                }
+            }
+            DensityActivation::ShiftedSoftplus { shift } => sigmoid(x - shift),
+        }
+    }
+}
+
+/// log(1 + eˣ) without overflow for large x or loss of digits for very
+/// negative x.
+fn softplus(x: f32) -> f32 {
+    if x > 20.0 { x } else { x.exp().ln_1p() }
+}
+
+fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+/// The shapes of a NeRF field.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NerfShape {
+    pub position: FrequencyEncoding,
+    pub direction: FrequencyEncoding,
+    /// Layers up to the skip.
+    pub trunk_a: MlpLayout,
+    /// Layers after the skip, ending in [σ_raw | feature].
+    pub trunk_b: MlpLayout,
+    pub colour: MlpLayout,
+    pub density: DensityActivation,
+    /// The sigmoid's output widened to [−p, 1 + p]: rgb · (1 + 2p) − p
+    /// (Mip-NeRF's `rgb_padding`; 0 for NeRF).
+    pub colour_padding: f32,
+}
+
+impl NerfShape {
+    /// The paper's field (section 5.1, figure 7).
+    pub fn paper() -> Self {
+        Self::new(
+            FrequencyEncoding {
+                frequencies: POSITION_FREQUENCIES,
+                include_input: ENCODING_INCLUDES_INPUT,
+            },
+            FrequencyEncoding {
+                frequencies: DIRECTION_FREQUENCIES,
+                include_input: ENCODING_INCLUDES_INPUT,
+            },
+            TRUNK_WIDTH,
+            TRUNK_LAYERS,
+            SKIP_AFTER_LAYERS,
+            COLOUR_HIDDEN_WIDTH,
+            DensityActivation::Relu,
+        )
+    }
+
+    /// Mip-NeRF's field: NeRF's networks on the integrated encoding of
+    /// each frustum's Gaussian, σ = softplus(raw − 1), colour widened by
+    /// 0.001 (constants in [`crate::field::mipnerf`]).
+    pub fn mipnerf() -> Self {
+        use crate::field::mipnerf as mip;
+        Self::new(
+            FrequencyEncoding {
+                frequencies: mip::POSITION_FREQUENCIES,
+                include_input: false,
+            },
+            FrequencyEncoding {
+                frequencies: mip::DIRECTION_FREQUENCIES,
+                include_input: true,
+            },
+            TRUNK_WIDTH,
+            TRUNK_LAYERS,
+            SKIP_AFTER_LAYERS,
+            COLOUR_HIDDEN_WIDTH,
+            DensityActivation::ShiftedSoftplus {
+                shift: -mip::DENSITY_BIAS,
+            },
+        )
+        .with_colour_padding(mip::RGB_PADDING)
+    }
+
+    /// The same field with its networks' products at `precision`.
+    pub fn with_precision(mut self, precision: Precision) -> Self {
+        self.trunk_a = self.trunk_a.with_precision(precision);
+        self.trunk_b = self.trunk_b.with_precision(precision);
+        self.colour = self.colour.with_precision(precision);
+        self
+    }
+
+    pub fn with_colour_padding(mut self, padding: f32) -> Self {
+        self.colour_padding = padding;
+        self
+    }
+
+    /// A field of any size (tests use small ones): `layers` trunk layers of
+    /// `width`, the encoded position entering again after `skip_after`.
+    pub fn new(
+        position: FrequencyEncoding,
+        direction: FrequencyEncoding,
+        width: usize,
+        layers: usize,
+        skip_after: usize,
+        colour_hidden: usize,
+        density: DensityActivation,
+    ) -> Self {
+        assert!(
+            (1..layers).contains(&skip_after),
+            "the skip must fall inside the trunk"
+        );
+        let encoded = position.output_width();
+        let mut a = vec![encoded];
+        a.extend(std::iter::repeat_n(width, skip_after));
+        let mut b = vec![width + encoded];
+        b.extend(std::iter::repeat_n(width, layers - skip_after));
+        b.push(1 + width);
+        Self {
+            position,
+            direction,
+            trunk_a: MlpLayout::new(a, Activation::Relu, Activation::Relu, true),
+            trunk_b: MlpLayout::new(b, Activation::Relu, Activation::None, true),
+            colour: MlpLayout::new(
+                vec![width + direction.output_width(), colour_hidden, 3],
+                Activation::Relu,
+                Activation::Sigmoid,
+                true,
+            ),
+            density,
+            colour_padding: 0.0,
+        }
     }
 }

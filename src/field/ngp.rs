@@ -2,7 +2,16 @@
 //! Primitives with a Multiresolution Hash Encoding"): every constant of the
 //! model, with where it comes from. "Paper" is the paper; "config" is
 //! instant-ngp's `configs/nerf/base.json`; "testbed" is instant-ngp's NeRF
-//! training code (`src/testbed_nerf.cu`).
+//! training code (`src/testbed_nerf.cu`). Also the field's shapes
+//! ([`NgpShape`]: the hash grid's levels and the two networks), which both
+//! engines build their Instant-NGP field from.
+
+use std::ops::Range;
+
+use super::encoding::HashGridLayout;
+use super::mlp::{MlpLayout, Precision};
+use super::params::{ParamLayout, Update};
+use crate::scene::{Scene, UnitCubeMapping};
 
 /// Multiresolution hash encoding (paper, section 3 and table 1).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -156,7 +165,7 @@ pub struct MarchConfig {
     /// For scenes with aabb_scale > 1, the step grows to this fraction of
     /// the distance from the camera (testbed: `cone_angle_constant` 1/256,
     /// used when aabb_scale > 1; Blender scenes keep the fixed step). See
-    /// `engine::cpu::march::Lattice`.
+    /// `engine::shared::march::Lattice`.
     pub cone_angle: f32,
 }
 
@@ -199,7 +208,7 @@ impl MarchConfig {
 pub const LARGE_SCENE_DISTORTION: f32 = 0.01;
 
 /// λ of the distortion loss for a scene of this aabb_scale (see
-/// `engine::cpu::composite_batch::Distortion`): [`LARGE_SCENE_DISTORTION`]
+/// `engine::shared::composite::Distortion`): [`LARGE_SCENE_DISTORTION`]
 /// for aabb_scale > 1, 0 for the object scenes (which have no fog between
 /// camera and object to drain, and train as instant-ngp does). The
 /// environment variable `ZRAK_DISTORTION` overrides it when it holds a
@@ -279,6 +288,67 @@ pub fn recipe(aabb_scale: f32) -> super::common::Recipe {
         distortion: distortion_weight(aabb_scale),
         // instant-ngp samples rays from whole images from the start.
         centre_crop: None,
+    }
+}
+
+/// The parts of the model that do not change during training: the hash
+/// grid's and the networks' shapes, the network constants and the scene's
+/// unit-cube mapping. Both engines build Instant-NGP's field from these.
+#[derive(Debug, Clone)]
+pub struct NgpShape {
+    pub grid: HashGridLayout,
+    pub density: MlpLayout,
+    pub colour: MlpLayout,
+    pub network: NetworkConfig,
+    pub mapping: UnitCubeMapping,
+}
+
+impl NgpShape {
+    pub fn for_scene(scene: &Scene) -> Self {
+        let network = NetworkConfig::PAPER;
+        let grid_config = HashGridConfig::paper(scene.unit_cube.aabb_scale);
+        Self {
+            grid: HashGridLayout::new(&grid_config),
+            density: MlpLayout::ngp_density(&network, &grid_config),
+            colour: MlpLayout::ngp_colour(&network),
+            network,
+            mapping: scene.unit_cube,
+        }
+    }
+
+    /// The same model with its networks' products at `precision`.
+    pub fn with_precision(mut self, precision: Precision) -> Self {
+        self.density = self.density.with_precision(precision);
+        self.colour = self.colour.with_precision(precision);
+        self
+    }
+
+    pub fn grid_range(&self) -> Range<usize> {
+        0..self.grid.param_count()
+    }
+
+    pub fn density_range(&self) -> Range<usize> {
+        let start = self.grid.param_count();
+        start..start + self.density.param_count()
+    }
+
+    pub fn colour_range(&self) -> Range<usize> {
+        let start = self.density_range().end;
+        start..start + self.colour.param_count()
+    }
+
+    pub fn param_count(&self) -> usize {
+        self.colour_range().end
+    }
+
+    /// The parameters part by part: the grid sparse, the networks dense
+    /// with weight decay.
+    pub fn layout(&self) -> ParamLayout {
+        let dense = Update::Dense { l2: true };
+        ParamLayout::new()
+            .with("hash grid", self.grid.param_count(), Update::Sparse)
+            .with("density network", self.density.param_count(), dense)
+            .with("colour network", self.colour.param_count(), dense)
     }
 }
 

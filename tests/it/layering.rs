@@ -249,3 +249,151 @@ fn the_reader_finds_plain_paths_and_use_groups_and_skips_comments() {
     );
     assert_eq!(modules_named(&text, "zrak"), vec!["bench"]);
 }
+
+/// The source without its `#[cfg(test)]` modules: each `#[cfg(test)]`
+/// followed by a `mod name { … }` loses the block (braces in string
+/// literals are skipped); a `#[cfg(test)] mod name;` is kept, its file
+/// being a test file of its own (see [`test_module_files`]).
+fn without_test_modules(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    let mut rest = text;
+    while let Some(found) = rest.find("#[cfg(test)]") {
+        out.push_str(&rest[..found]);
+        let after = &rest[found + "#[cfg(test)]".len()..];
+        let item = after.trim_start();
+        let item = item.strip_prefix("pub(crate)").unwrap_or(item).trim_start();
+        let body = item
+            .strip_prefix("mod ")
+            .and_then(|m| m.find(['{', ';']).map(|end| (m, end)))
+            .filter(|(m, end)| m.as_bytes()[*end] == b'{');
+        let Some((module, open)) = body else {
+            out.push_str("#[cfg(test)]");
+            rest = after;
+            continue;
+        };
+        let (mut depth, mut in_string, mut escaped) = (0usize, false, false);
+        let mut end = module.len();
+        for (offset, c) in module[open..].char_indices() {
+            match c {
+                _ if escaped => escaped = false,
+                '\\' if in_string => escaped = true,
+                '"' => in_string = !in_string,
+                '{' if !in_string => depth += 1,
+                '}' if !in_string => {
+                    depth -= 1;
+                    if depth == 0 {
+                        end = open + offset + 1;
+                        break;
+                    }
+                }
+                _ => {}
+            }
+        }
+        rest = &module[end..];
+    }
+    out.push_str(rest);
+    out
+}
+
+/// Files of `dir` that only tests compile: every `tests.rs`, and the file
+/// of each module declared `#[cfg(test)] mod name;`.
+fn test_module_files(dir: &Path) -> Vec<PathBuf> {
+    let mut files = Vec::new();
+    rust_files(dir, &mut files);
+    let mut tests: Vec<PathBuf> = files
+        .iter()
+        .filter(|f| f.file_name().is_some_and(|n| n == "tests.rs"))
+        .cloned()
+        .collect();
+    for file in &files {
+        let text = without_comments(&std::fs::read_to_string(file).unwrap());
+        // A module's children sit beside `mod.rs` and under a folder named
+        // after any other file.
+        let folder = if file.file_name().is_some_and(|n| n == "mod.rs") {
+            file.parent().unwrap().to_path_buf()
+        } else {
+            file.with_extension("")
+        };
+        for part in text.split("#[cfg(test)]").skip(1) {
+            let item = part.trim_start();
+            let item = item.strip_prefix("pub(crate)").unwrap_or(item).trim_start();
+            if let Some(module) = item.strip_prefix("mod ") {
+                let name = identifier_at(module.trim_start(), 0);
+                if module.trim_start()[name.len()..]
+                    .trim_start()
+                    .starts_with(';')
+                {
+                    tests.push(folder.join(format!("{name}.rs")));
+                    tests.push(folder.join(name).join("mod.rs"));
+                }
+            }
+        }
+    }
+    tests
+}
+
+/// How many paths of `text` (comments already removed) lead into the cpu
+/// engine: `engine::cpu`, `super::cpu` (from the engine's own modules),
+/// or `cpu` in a `use crate::engine::{…}` group.
+fn paths_into_cpu_engine(text: &str) -> usize {
+    let text: String = text.chars().filter(|c| !c.is_whitespace()).collect();
+    let plain = text.matches("engine::cpu").count() + text.matches("super::cpu").count();
+    let grouped = text
+        .match_indices("engine::{")
+        .filter(|&(at, _)| modules_named(&text[at..], "engine").contains(&"cpu".to_string()))
+        .count();
+    plain + grouped
+}
+
+/// zrak issue 28: the gpu engine takes what both engines use from
+/// `engine::shared` and `field`, never from the cpu engine. Tests may
+/// compare against the cpu engine: `tests.rs` files, `#[cfg(test)]`
+/// modules and the files they declare are left out.
+#[test]
+fn the_gpu_engine_names_nothing_in_the_cpu_engine_outside_its_tests() {
+    let _cores = crate::common::shared();
+    let gpu = Path::new(env!("CARGO_MANIFEST_DIR")).join("src/engine/gpu");
+    let tests = test_module_files(&gpu);
+    let mut files = Vec::new();
+    rust_files(&gpu, &mut files);
+    let mut offenders = Vec::new();
+    let mut checked = 0;
+    for file in files.iter().filter(|f| !tests.contains(f)) {
+        checked += 1;
+        let text = std::fs::read_to_string(file).unwrap();
+        let count = paths_into_cpu_engine(&without_test_modules(&without_comments(&text)));
+        if count > 0 {
+            offenders.push(format!(
+                "{} names engine::cpu {count} times: take it from engine::shared or field",
+                file.display()
+            ));
+        }
+    }
+    assert!(
+        checked > 20,
+        "only {checked} files of {} read",
+        gpu.display()
+    );
+    assert!(offenders.is_empty(), "{}", offenders.join("\n"));
+}
+
+#[test]
+fn the_cpu_engine_check_sees_paths_and_groups_and_skips_test_modules() {
+    let _cores = crate::common::shared();
+    let text = without_comments(
+        "use crate::engine::cpu::march::Marcher;\n\
+         // crate::engine::cpu::sh in a comment\n\
+         use crate::engine::{cpu::dense, shared};\n\
+         use crate::engine::{gpu, shared::march};\n\
+         let s = \"}\"; fn f() { super::cpu::x(); }\n\
+         #[cfg(test)]\nmod tests {\n    use crate::engine::cpu::sh;\n    \
+         fn g() { let s = \"{ }}\"; }\n}\n\
+         #[cfg(test)]\nmod mirror;\n\
+         crate::engine::gpu::march::x();",
+    );
+    assert_eq!(paths_into_cpu_engine(&text), 4);
+    let kept = without_test_modules(&text);
+    assert_eq!(paths_into_cpu_engine(&kept), 3);
+    assert!(kept.contains("mod mirror;"), "{kept}");
+    assert!(kept.contains("crate::engine::gpu::march::x();"), "{kept}");
+}

@@ -38,34 +38,9 @@ use num_traits::Float;
 /// splitting costs nothing next to the work.
 const LEAF_SAMPLES: usize = 2048;
 
-/// The inputs of compositing for a batch of rays.
-#[derive(Debug, Clone, Copy)]
-pub struct RayBatch<'a, F> {
-    /// σ per sample, already activated (≥ 0; negative values are treated as
-    /// empty space, as in the reference).
-    pub density: &'a [F],
-    /// Colour per sample, S × 3, already through the sigmoid.
-    pub rgb: &'a [F],
-    /// Interval length δ per sample, in world units.
-    pub dt: &'a [F],
-    /// Distance of each sample along its ray, in world units (for depth).
-    pub t: &'a [F],
-    /// R + 1 offsets into the samples, non-decreasing.
-    pub ray_offsets: &'a [u32],
-    /// Background colour per ray, R × 3.
-    pub background: &'a [F],
-}
+pub use crate::engine::shared::composite::{Distortion, RayBatch};
 
 impl<F> RayBatch<'_, F> {
-    pub fn ray_count(&self) -> usize {
-        self.ray_offsets.len().saturating_sub(1)
-    }
-
-    /// Samples covered by the rays (`ray_offsets[R]`).
-    pub fn sample_count(&self) -> usize {
-        self.ray_offsets.last().map_or(0, |&n| n as usize)
-    }
-
     /// Panics on inconsistent lengths or decreasing offsets: either would
     /// make the unchecked-looking slicing below index the wrong samples.
     fn validate(&self) {
@@ -135,19 +110,6 @@ pub struct CompositeGradients<'a, F> {
     /// R × 3: ∂L/∂background, if wanted (training with random backgrounds
     /// does not need it).
     pub background: Option<&'a mut [F]>,
-}
-
-/// Mip-NeRF 360's distortion loss ([`super::composite::distortion`]) added
-/// to the loss on colours: λ × the mean over rays of each ray's distortion,
-/// on the samples before its cut, at distances s = t × `distance_scale`.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Distortion<F> {
-    /// λ divided by the rays of the batch.
-    pub weight_per_ray: F,
-    /// Converts distances along the ray into the loss's unit (the models
-    /// use the scene box's diagonal as 1, so λ means the same in every
-    /// scene).
-    pub distance_scale: F,
 }
 
 /// τ = σ δ with negative densities treated as empty space (as the

@@ -45,24 +45,9 @@
 use num_traits::Float;
 use rayon::prelude::*;
 
-/// The most frequencies supported: 2^31 is the largest scale, and ½·4^31 =
-/// 2^61 still fits comfortably in f32, so every scale is an exact f32.
-pub const MAX_FREQUENCIES: u32 = 32;
-
-/// Frequencies 2^0 … 2^(frequencies−1) of each of 3 input coordinates.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct FrequencyEncoding {
-    pub frequencies: u32,
-    pub include_input: bool,
-}
+pub use crate::field::encoding::{FrequencyEncoding, MAX_FREQUENCIES};
 
 impl FrequencyEncoding {
-    /// Values per row: the 3 inputs when included, and a sine and a cosine
-    /// per coordinate and frequency.
-    pub const fn output_width(&self) -> usize {
-        3 * self.include_input as usize + 6 * self.frequencies as usize
-    }
-
     /// Column of the first sinusoid (after the raw input, if any).
     const fn first_sinusoid(&self) -> usize {
         3 * self.include_input as usize

@@ -40,8 +40,6 @@
 use num_traits::Float;
 use rayon::prelude::*;
 
-use crate::field::ngp::HashGridConfig;
-
 /// π₁, π₂, π₃ of the spatial hash (paper, section 3, eq. 4). π₁ = 1 keeps
 /// neighbouring x in neighbouring entries, which helps the cache.
 pub const HASH_PRIMES: [u32; 3] = [1, 2_654_435_761, 805_459_861];
@@ -53,101 +51,7 @@ pub fn spatial_hash(x: u32, y: u32, z: u32) -> u32 {
     x.wrapping_mul(HASH_PRIMES[0]) ^ y.wrapping_mul(HASH_PRIMES[1]) ^ z.wrapping_mul(HASH_PRIMES[2])
 }
 
-/// Feature counts the stage is compiled for (tiny-cuda-nn supports the same
-/// set); the paper uses F = 2.
-pub const SUPPORTED_FEATURES: [u32; 4] = [1, 2, 4, 8];
-
-/// Where one level lives in the parameter array.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct LevelLayout {
-    /// N_l: cells per side; the grid has N_l + 1 vertices per side.
-    pub resolution: u32,
-    /// Index of the level's first entry (multiply by F for the first
-    /// parameter).
-    pub offset: usize,
-    /// Entries the level stores: (N_l + 1)³ when dense, T when hashed.
-    pub entries: usize,
-    /// Dense (one entry per vertex) rather than hashed.
-    pub dense: bool,
-}
-
-/// The levels of a hash grid and where their entries are.
-#[derive(Debug, Clone, PartialEq)]
-pub struct HashGridLayout {
-    config: HashGridConfig,
-    levels: Vec<LevelLayout>,
-    entries: usize,
-}
-
-impl HashGridLayout {
-    pub fn new(config: &HashGridConfig) -> Self {
-        assert!(config.levels >= 1, "a hash grid needs at least one level");
-        assert!(config.base_resolution >= 1, "N_min must be at least 1");
-        assert!(
-            SUPPORTED_FEATURES.contains(&config.features_per_level),
-            "features per level must be one of {SUPPORTED_FEATURES:?}, got {}",
-            config.features_per_level
-        );
-        assert!(config.log2_table_size <= 31, "T must fit in u32");
-        assert!(
-            config.extent.is_finite() && config.extent > 0.0,
-            "the grid's box must have a positive side, got {}",
-            config.extent
-        );
-        let table_size = config.table_size();
-        let growth = config.growth_factor();
-        let mut levels = Vec::with_capacity(config.levels as usize);
-        let mut offset = 0;
-        for l in 0..config.levels {
-            // The relative nudge keeps N_min · b^(L−1), which is N_max in exact
-            // arithmetic, from flooring to N_max − 1 after rounding.
-            let exact = config.base_resolution as f64 * growth.powi(l as i32);
-            let resolution = (exact * (1.0 + 1e-12)).floor() as u32;
-            let vertices = (resolution as u64 + 1).pow(3);
-            let dense = vertices <= table_size as u64;
-            let entries = if dense { vertices as usize } else { table_size };
-            levels.push(LevelLayout {
-                resolution,
-                offset,
-                entries,
-                dense,
-            });
-            offset += entries;
-        }
-        Self {
-            config: *config,
-            levels,
-            entries: offset,
-        }
-    }
-
-    pub fn config(&self) -> &HashGridConfig {
-        &self.config
-    }
-
-    pub fn levels(&self) -> &[LevelLayout] {
-        &self.levels
-    }
-
-    pub fn features(&self) -> usize {
-        self.config.features_per_level as usize
-    }
-
-    /// Entries over all levels.
-    pub fn entry_count(&self) -> usize {
-        self.entries
-    }
-
-    /// Parameters over all levels: entries × F.
-    pub fn param_count(&self) -> usize {
-        self.entries * self.features()
-    }
-
-    /// Encoded width: L · F.
-    pub fn output_width(&self) -> usize {
-        self.config.output_width()
-    }
-}
+pub use crate::field::encoding::{HashGridLayout, LevelLayout, SUPPORTED_FEATURES};
 
 /// The floating-point types the stage runs in.
 pub trait Real: Float + Send + Sync + 'static {
@@ -190,7 +94,7 @@ impl Real for f64 {
 /// from a counter-based generator, so the result depends only on `seed` and
 /// not on the number of threads.
 pub fn init_params(layout: &HashGridLayout, seed: u64) -> Vec<f32> {
-    let range = layout.config.init_range;
+    let range = layout.config().init_range;
     let key = splitmix64(seed ^ 0x6861_7368_6772_6964); // "hashgrid"
     let mut params = vec![0.0f32; layout.param_count()];
     params
@@ -260,7 +164,7 @@ impl<T: Real> Corners<T> {
 impl<T: Real> LevelMath<T> {
     fn new(layout: &HashGridLayout, level: &LevelLayout) -> Self {
         let side = level.resolution + 1;
-        let (box_min, inverse_extent) = layout.config.box_mapping();
+        let (box_min, inverse_extent) = layout.config().box_mapping();
         let real = |v: f64| T::from(v).expect("a finite box");
         Self {
             box_min: real(box_min),
@@ -269,7 +173,7 @@ impl<T: Real> LevelMath<T> {
             last_cell: level.resolution - 1,
             stride_y: side,
             stride_z: if level.dense { side * side } else { 0 },
-            mask: (layout.config.table_size() - 1) as u32,
+            mask: (layout.config().table_size() - 1) as u32,
         }
     }
 
@@ -431,7 +335,7 @@ pub fn encode_with_scratch<T: Real>(
     }
     let scratch = &mut scratch[..samples * width];
     for (level, level_out) in layout
-        .levels
+        .levels()
         .iter()
         .zip(scratch.chunks_exact_mut(samples * features))
     {
@@ -523,10 +427,10 @@ fn backward_sweeps<T: Real>(
     with_level_constants!(features, true, F, _D, {
         rows_to_level_major::<T, F>(d_out, scratch, samples)
     });
-    let mut tasks: Vec<(&LevelLayout, &[T], &mut [T])> = Vec::with_capacity(layout.levels.len());
+    let mut tasks: Vec<(&LevelLayout, &[T], &mut [T])> = Vec::with_capacity(layout.levels().len());
     let mut rest = d_params;
     for (level, level_d_out) in layout
-        .levels
+        .levels()
         .iter()
         .zip(scratch.chunks_exact(samples * features))
     {

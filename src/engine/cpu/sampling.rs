@@ -129,15 +129,7 @@ pub fn stratified(
         });
 }
 
-/// 1/(N − 1), the linspace step (0 for a single sample); the gpu engine
-/// passes this same value to its kernel.
-pub fn stratified_step(samples_per_ray: usize) -> f32 {
-    if samples_per_ray > 1 {
-        1.0 / (samples_per_ray - 1) as f32
-    } else {
-        0.0
-    }
-}
+pub use crate::engine::shared::sampling::stratified_step;
 
 /// A weight as the pdf uses it: non-finite, negative and subnormal weights
 /// count as zero (subnormals because GPUs may flush them to zero, and the

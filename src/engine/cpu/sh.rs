@@ -26,8 +26,7 @@
 use num_traits::Float;
 use rayon::prelude::*;
 
-/// The highest degree supported (bands l ≤ 3).
-pub const SH_MAX_DEGREE: u32 = 4;
+pub use crate::field::encoding::{SH_MAX_DEGREE, sh_coefficients};
 
 /// 1/(2√π) = K_0^0.
 const C0: f64 = 0.282_094_791_773_878_14;
@@ -50,11 +49,6 @@ const C3_1: f64 = 0.457_045_799_464_465_8;
 const C3_0: f64 = 0.373_176_332_590_115_4;
 /// (1/2)√(105/(4π)): Y_3^2 = c z (x² − y²).
 const C3_2: f64 = 1.445_305_721_320_277;
-
-/// Number of coefficients for `degree`.
-pub fn sh_coefficients(degree: u32) -> usize {
-    (degree * degree) as usize
-}
 
 fn c<F: Float>(x: f64) -> F {
     F::from(x).expect("representable")

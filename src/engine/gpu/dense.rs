@@ -33,7 +33,7 @@ use super::kernel::{
     Kernel, float_range, groups_for, pieces, read_buffer, rows_per_piece, storage_buffer,
     uniform_buffer, zeroed_storage_buffer,
 };
-use crate::engine::cpu::dense::{Activation, MlpLayout};
+use crate::field::mlp::{Activation, MlpLayout};
 use crate::field::ngp::DENSITY_EXP_CLAMP;
 
 const COMMON: &str = include_str!("../../../shaders/dense_common.wgsl");

@@ -7,7 +7,7 @@ use super::kernel::{
     Kernel, float_range, pieces, read_buffer, rows_per_piece, storage_buffer, uniform_buffer,
     zeroed_storage_buffer,
 };
-use crate::engine::cpu::frequency::{FrequencyEncoding, MAX_FREQUENCIES};
+use crate::field::encoding::{FrequencyEncoding, MAX_FREQUENCIES};
 
 /// Threads per workgroup in frequency_encode.wgsl.
 const WORKGROUP: u32 = 64;

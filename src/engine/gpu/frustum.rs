@@ -180,7 +180,7 @@ impl GpuFrustums {
     /// samples stand for: `round_rays` rays of `on` (the view's), listed by
     /// index in `ray_list`, ray i of the round at slots i·`per_ray`.. of
     /// `t` and `dt`; into `means` and `variances` (3 per slot), as
-    /// [`crate::engine::cpu::model::grid_sample_gaussians`] on the host.
+    /// [`crate::engine::shared::driver::grid_sample_gaussians`] on the host.
     #[allow(clippy::too_many_arguments)]
     pub fn record_walked(
         &self,

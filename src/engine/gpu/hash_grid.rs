@@ -15,7 +15,7 @@ use super::kernel::{
     Kernel, float_range, pieces, read_buffer, rows_per_piece, storage_buffer, uniform_buffer,
     zeroed_storage_buffer,
 };
-use crate::engine::cpu::hash_grid::HashGridLayout;
+use crate::field::encoding::{HashGridLayout, LevelLayout};
 
 /// Threads per workgroup in the hash kernels (WORKGROUP in hash_common.wgsl).
 const WORKGROUP: u32 = 64;
@@ -65,9 +65,8 @@ fn level_groups(
 ) -> Result<Vec<LevelGroup>, GpuError> {
     let features = layout.features();
     let align_floats = (alignment / 4).max(1) as usize;
-    let span = |level: &crate::engine::cpu::hash_grid::LevelLayout| {
-        level.offset * features..(level.offset + level.entries) * features
-    };
+    let span =
+        |level: &LevelLayout| level.offset * features..(level.offset + level.entries) * features;
     let mut groups: Vec<LevelGroup> = Vec::new();
     for (l, level) in layout.levels().iter().enumerate() {
         let range = span(level);

@@ -10,13 +10,15 @@
 //! deterministic; no sample's place depends on which invocation ran first.
 //!
 //! Large scenes (aabb_scale > 1) step by cone angle as the cpu engine does
-//! (`engine::cpu::march::Lattice`, in whole octaves with exact power-of-two
-//! arithmetic), so both engines take the same samples with the same steps;
+//! (`engine::shared::march::Lattice`, in whole octaves with exact
+//! power-of-two arithmetic), so both engines take the same samples with the same steps;
 //! each sample carries its own step.
 
 use super::context::{GpuContext, GpuError};
 use super::kernel::{Kernel, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer};
-use crate::engine::cpu::march::{MarchParams, MarchStats, MarchedSamples, cone_for, skip_margin};
+use crate::engine::shared::march::{
+    MarchParams, MarchStats, MarchedSamples, cone_for, skip_margin,
+};
 use crate::engine::shared::occupancy::{GridGeometry, OccupancyGrid};
 
 /// Threads per workgroup of the per-ray and per-element kernels.

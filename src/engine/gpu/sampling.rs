@@ -19,7 +19,7 @@
 use super::context::{GpuContext, GpuError};
 use super::kernel::{Kernel, float_range, pieces, rows_per_piece, uniform_buffer};
 use super::march::{dispatch_grid, source};
-use crate::engine::cpu::sampling::stratified_step;
+use crate::engine::shared::sampling::stratified_step;
 
 /// Threads per workgroup of every sampling kernel.
 const WORKGROUP: u32 = 64;

@@ -6,7 +6,7 @@ use super::kernel::{
     Kernel, float_range, pieces, read_buffer, rows_per_piece, storage_buffer, uniform_buffer,
     zeroed_storage_buffer,
 };
-use crate::engine::cpu::sh::{SH_MAX_DEGREE, sh_coefficients};
+use crate::field::encoding::{SH_MAX_DEGREE, sh_coefficients};
 
 /// Threads per workgroup in sh_encode.wgsl.
 const WORKGROUP: u32 = 64;

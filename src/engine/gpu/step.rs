@@ -13,7 +13,7 @@ use super::context::GpuContext;
 use super::kernel::{MapRequest, staging_buffer, zeroed_storage_buffer};
 use super::loss::{GpuLoss, LossBuffers};
 use super::timing::{PendingTimes, StageClock};
-use crate::engine::cpu::composite_batch::Distortion;
+use crate::engine::shared::composite::Distortion;
 use crate::field::ngp::LossKind;
 use crate::model::StageTimes;
 use crate::model::batch::RayBatch;

@@ -444,6 +444,7 @@ mod tests {
 
     use super::super::*;
     use super::*;
+    use crate::rng::Pcg32;
 
     fn random(seed: u64, n: usize, scale: f32) -> Vec<f32> {
         let mut rng = Pcg32::new(seed, 11);

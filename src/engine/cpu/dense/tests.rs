@@ -1,4 +1,6 @@
 use super::*;
+use crate::field::ngp::{DENSITY_EXP_CLAMP, HashGridConfig, NetworkConfig};
+use crate::rng::Pcg32;
 
 fn random(seed: u64, n: usize, scale: f32) -> Vec<f32> {
     let mut rng = Pcg32::new(seed, 7);

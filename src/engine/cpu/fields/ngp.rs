@@ -20,21 +20,19 @@
 //! pass on the samples before each ray's cut gathers them instead of
 //! encoding again, and composites with the σ the cut was found with.
 
-use std::ops::Range;
 use std::sync::Mutex;
 
 use rayon::prelude::*;
 
 use super::{Coordinates, Field, Gradient, gather_rows, set_len};
 use crate::engine::cpu::dense::{
-    Backend, MlpLayout, MlpWorkspace, Precision, mlp_backward, mlp_backward_columns, mlp_forward,
-    mlp_inference, mlp_inference_leading,
+    Backend, MlpWorkspace, mlp_backward, mlp_backward_columns, mlp_forward, mlp_inference,
+    mlp_inference_leading,
 };
-use crate::engine::cpu::hash_grid::{self, HashGridLayout};
+use crate::engine::cpu::hash_grid;
 use crate::engine::cpu::sh::sh_encode;
-use crate::field::ngp::{DENSITY_EXP_CLAMP, HashGridConfig, NetworkConfig};
-use crate::field::params::{ParamLayout, Update};
-use crate::scene::{Scene, UnitCubeMapping};
+use crate::field::ngp::DENSITY_EXP_CLAMP;
+use crate::field::params::ParamLayout;
 
 /// Rows per rayon task in the element-wise passes.
 const ROWS_PER_TASK: usize = 4096;
@@ -43,64 +41,9 @@ const ROWS_PER_TASK: usize = 4096;
 /// are ~80 floats a sample, so 2^16 rows hold ~20 MB.
 const INFERENCE_ROWS: usize = 1 << 16;
 
-/// The parts of the model that do not change during training.
-#[derive(Debug, Clone)]
-pub struct NgpShape {
-    pub grid: HashGridLayout,
-    pub density: MlpLayout,
-    pub colour: MlpLayout,
-    pub network: NetworkConfig,
-    pub mapping: UnitCubeMapping,
-}
+pub use crate::field::ngp::NgpShape;
 
 impl NgpShape {
-    pub fn for_scene(scene: &Scene) -> Self {
-        let network = NetworkConfig::PAPER;
-        let grid_config = HashGridConfig::paper(scene.unit_cube.aabb_scale);
-        Self {
-            grid: HashGridLayout::new(&grid_config),
-            density: MlpLayout::ngp_density(&network, &grid_config),
-            colour: MlpLayout::ngp_colour(&network),
-            network,
-            mapping: scene.unit_cube,
-        }
-    }
-
-    /// The same model with its networks' products at `precision`.
-    pub fn with_precision(mut self, precision: Precision) -> Self {
-        self.density = self.density.with_precision(precision);
-        self.colour = self.colour.with_precision(precision);
-        self
-    }
-
-    pub fn grid_range(&self) -> Range<usize> {
-        0..self.grid.param_count()
-    }
-
-    pub fn density_range(&self) -> Range<usize> {
-        let start = self.grid.param_count();
-        start..start + self.density.param_count()
-    }
-
-    pub fn colour_range(&self) -> Range<usize> {
-        let start = self.density_range().end;
-        start..start + self.colour.param_count()
-    }
-
-    pub fn param_count(&self) -> usize {
-        self.colour_range().end
-    }
-
-    /// The parameters part by part: the grid sparse, the networks dense
-    /// with weight decay.
-    pub fn layout(&self) -> ParamLayout {
-        let dense = Update::Dense { l2: true };
-        ParamLayout::new()
-            .with("hash grid", self.grid.param_count(), Update::Sparse)
-            .with("density network", self.density.param_count(), dense)
-            .with("colour network", self.colour.param_count(), dense)
-    }
-
     /// Initial parameters: the grid's entries uniform in ±1e-4 (paper,
     /// section 4), each network from its own seed.
     pub fn init_params(&self, seed: u64) -> Vec<f32> {

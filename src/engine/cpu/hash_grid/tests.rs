@@ -1,4 +1,5 @@
 use super::*;
+use crate::field::ngp::HashGridConfig;
 
 /// A small deterministic stream of uniforms in [0, 1) for tests.
 struct Uniforms(u64);

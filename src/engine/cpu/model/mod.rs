@@ -32,17 +32,17 @@ use super::adam::Adam;
 use super::composite_batch::Distortion;
 use super::composite_batch::{self, CompositeGradients, CompositeOutputs};
 use super::fields::{Coordinates, Field, Gradient, gather_rows, set_len};
-use super::frustum::{frustum_gaussian, frustum_gaussians};
+use super::frustum::frustum_gaussians;
 use super::loss::loss_and_gradient;
 use super::march::{
-    BatchSizer, GridSamples, MarchParams, MarchWorkspace, MarchedSamples, march, mix_seed, mix32,
+    BatchSizer, GridSamples, MarchParams, MarchWorkspace, MarchedSamples, march, mix_seed,
     render_through_grid,
 };
 use super::occupancy::OccupancyGrid;
 use super::sampling;
 use super::state::{ModelHeader, ModelState};
 use crate::engine::crop::{crop_densities, crop_ray_bounds};
-use crate::field::common::{BatchSize, RayBounds, Recipe, SampleShape, SamplerKind};
+use crate::field::common::{BatchSize, Recipe, SampleShape, SamplerKind};
 use crate::field::ngp::LossKind;
 use crate::field::params::ParamLayout;
 use crate::model::batch::RayBatch;
@@ -56,25 +56,6 @@ mod shared;
 
 use fixed::*;
 pub use shared::*;
-
-/// Rays per chunk of the paper's sampler: 256 rays × 192 fine samples is
-/// 49k rows of activations (~0.5 GB for NeRF's networks).
-pub const RAYS_PER_CHUNK: usize = 256;
-
-/// Rows per rayon task in the element-wise passes.
-const ROWS_PER_TASK: usize = 4096;
-
-/// Names and settings that identify a model built on this driver.
-#[derive(Debug, Clone)]
-pub struct ModelIdentity {
-    /// Shown to the user, e.g. "NeRF".
-    pub name: &'static str,
-    /// Stored in checkpoints, e.g. "nerf".
-    pub key: &'static str,
-    /// The sampler's name, stored in checkpoints ("paper", "occupancy"),
-    /// for models with a choice of samplers.
-    pub sampling: Option<&'static str>,
-}
 
 /// Buffers of one level of a step, reused between steps.
 #[derive(Default)]

@@ -29,7 +29,6 @@
 
 use std::ops::Range;
 
-use crate::engine::cpu::fields::nerf::{DensityActivation, NerfShape};
 use crate::engine::gpu::context::{GpuContext, GpuError};
 use crate::engine::gpu::dense::{GpuDense, GpuMlpWorkspace};
 use crate::engine::gpu::frequency::GpuFrequency;
@@ -38,6 +37,7 @@ use crate::engine::gpu::kernel::{
     zeroed_storage_buffer,
 };
 use crate::engine::gpu::march::dispatch_grid;
+use crate::field::nerf::{DensityActivation, NerfShape};
 
 /// Threads per workgroup of the nerf_* kernels.
 const WORKGROUP: u32 = 64;

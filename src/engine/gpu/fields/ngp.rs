@@ -13,7 +13,6 @@
 //! gradient buffer, so nothing is copied in or out. Positions are the unit
 //! cube's, as marched.
 
-use crate::engine::cpu::fields::ngp::NgpShape;
 use crate::engine::gpu::context::{GpuContext, GpuError};
 use crate::engine::gpu::dense::{GpuDense, GpuMlpWorkspace};
 use crate::engine::gpu::fields::GpuField;
@@ -25,6 +24,7 @@ use crate::engine::gpu::march::dispatch_grid;
 use crate::engine::gpu::sh::GpuSh;
 use crate::field::common::Coordinates;
 use crate::field::ngp::DENSITY_EXP_CLAMP;
+use crate::field::ngp::NgpShape;
 
 /// Threads per workgroup of the activation kernels.
 const WORKGROUP: u32 = 64;

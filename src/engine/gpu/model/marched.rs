@@ -3,7 +3,7 @@
 //! marched samples for rendering.
 
 use super::*;
-use crate::engine::cpu::composite_batch::Distortion;
+use crate::engine::shared::composite::Distortion;
 
 impl GpuModel {
     /// A step through the occupancy grid, in two submissions: the march,

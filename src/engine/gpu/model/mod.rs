@@ -24,8 +24,8 @@
 //! checkpoint, and one step on either engine gives the same result up to
 //! f32 rounding:
 //!
-//! - rays go in chunks of the cpu's [`RAYS_PER_CHUNK`] (the chunk index
-//!   seeds its jitter, [`chunk_jitter_seed`]), each chunk one submission:
+//! - rays go in chunks of [`RAYS_PER_CHUNK`], as on the cpu (the chunk
+//!   index seeds its jitter, [`chunk_jitter_seed`]), each chunk one submission:
 //!   its rays are written to the device, then every level's sampling,
 //!   forward pass, compositing, loss and backward pass are recorded, the
 //!   gradients adding up in one buffer; the device's memory holds one
@@ -70,13 +70,13 @@ use super::step::{
     CompositeAndLoss, RayBuffers, SampleBuffers, SampleGradientBuffers, StepReadback, StepResults,
 };
 use super::timing::{Stage, StageClock, StageTiming};
-use crate::engine::cpu::march::{GridSamples, MarchParams, mix_seed, render_through_grid};
-use crate::engine::cpu::model::{
+use crate::engine::crop::{crop_densities, crop_ray_bounds};
+use crate::engine::shared::batch_sizer::BatchSizer;
+use crate::engine::shared::driver::{
     ModelIdentity, RAYS_PER_CHUNK, check_sampling, chunk_jitter_seed, describe, grid_cell_variance,
     grid_sample_inputs, ray_bounds, rays_for_batch, to_world,
 };
-use crate::engine::crop::{crop_densities, crop_ray_bounds};
-use crate::engine::shared::batch_sizer::BatchSizer;
+use crate::engine::shared::march::{GridSamples, MarchParams, mix_seed, render_through_grid};
 use crate::engine::shared::occupancy::OccupancyGrid;
 use crate::engine::shared::state::{ModelHeader, ModelState};
 use crate::field::common::Coordinates;

@@ -9,12 +9,12 @@
 //! frustums gets the Gaussian of each sample's step on its pixel's cone.
 
 use super::*;
-use crate::engine::cpu::march::Marcher;
 use crate::engine::gpu::kernel::{float_range, uniform_buffer};
 use crate::engine::gpu::march::dispatch_grid;
 use crate::engine::gpu::render::{
     CompactUniforms, CompositeUniforms, ImageUniforms, RAY_GROUP_ALIGN, RenderBuffers,
 };
+use crate::engine::shared::march::Marcher;
 
 /// Threads per workgroup of the render kernels.
 const WORKGROUP: u32 = 64;

@@ -1,0 +1,139 @@
+//! The shapes of the input encodings, as both engines and the checkpoints
+//! see them: the multiresolution hash grid's levels and where their entries
+//! sit ([`HashGridLayout`], Müller et al. 2022, section 3), the frequency
+//! encoding's width ([`FrequencyEncoding`], NeRF's γ and Mip-NeRF's IPE)
+//! and the spherical-harmonics degrees ([`SH_MAX_DEGREE`]). The encodings
+//! themselves are computed by each engine's stages (`engine::cpu::hash_grid`,
+//! `frequency`, `sh` and their `engine::gpu` twins), which document the
+//! formulas and the output layouts.
+
+use crate::field::ngp::HashGridConfig;
+
+// The multiresolution hash grid.
+
+/// Feature counts the stage is compiled for (tiny-cuda-nn supports the same
+/// set); the paper uses F = 2.
+pub const SUPPORTED_FEATURES: [u32; 4] = [1, 2, 4, 8];
+
+/// Where one level lives in the parameter array.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct LevelLayout {
+    /// N_l: cells per side; the grid has N_l + 1 vertices per side.
+    pub resolution: u32,
+    /// Index of the level's first entry (multiply by F for the first
+    /// parameter).
+    pub offset: usize,
+    /// Entries the level stores: (N_l + 1)³ when dense, T when hashed.
+    pub entries: usize,
+    /// Dense (one entry per vertex) rather than hashed.
+    pub dense: bool,
+}
+
+/// The levels of a hash grid and where their entries are.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HashGridLayout {
+    config: HashGridConfig,
+    levels: Vec<LevelLayout>,
+    entries: usize,
+}
+
+impl HashGridLayout {
+    pub fn new(config: &HashGridConfig) -> Self {
+        assert!(config.levels >= 1, "a hash grid needs at least one level");
+        assert!(config.base_resolution >= 1, "N_min must be at least 1");
+        assert!(
+            SUPPORTED_FEATURES.contains(&config.features_per_level),
+            "features per level must be one of {SUPPORTED_FEATURES:?}, got {}",
+            config.features_per_level
+        );
+        assert!(config.log2_table_size <= 31, "T must fit in u32");
+        assert!(
+            config.extent.is_finite() && config.extent > 0.0,
+            "the grid's box must have a positive side, got {}",
+            config.extent
+        );
+        let table_size = config.table_size();
+        let growth = config.growth_factor();
+        let mut levels = Vec::with_capacity(config.levels as usize);
+        let mut offset = 0;
+        for l in 0..config.levels {
+            // The relative nudge keeps N_min · b^(L−1), which is N_max in exact
+            // arithmetic, from flooring to N_max − 1 after rounding.
+            let exact = config.base_resolution as f64 * growth.powi(l as i32);
+            let resolution = (exact * (1.0 + 1e-12)).floor() as u32;
+            let vertices = (resolution as u64 + 1).pow(3);
+            let dense = vertices <= table_size as u64;
+            let entries = if dense { vertices as usize } else { table_size };
+            levels.push(LevelLayout {
+                resolution,
+                offset,
+                entries,
+                dense,
+            });
+            offset += entries;
+        }
+        Self {
+            config: *config,
+            levels,
+            entries: offset,
+        }
+    }
+
+    pub fn config(&self) -> &HashGridConfig {
+        &self.config
+    }
+
+    pub fn levels(&self) -> &[LevelLayout] {
+        &self.levels
+    }
+
+    pub fn features(&self) -> usize {
+        self.config.features_per_level as usize
+    }
+
+    /// Entries over all levels.
+    pub fn entry_count(&self) -> usize {
+        self.entries
+    }
+
+    /// Parameters over all levels: entries × F.
+    pub fn param_count(&self) -> usize {
+        self.entries * self.features()
+    }
+
+    /// Encoded width: L · F.
+    pub fn output_width(&self) -> usize {
+        self.config.output_width()
+    }
+}
+
+// The frequency encoding.
+
+/// The most frequencies supported: 2^31 is the largest scale, and ½·4^31 =
+/// 2^61 still fits comfortably in f32, so every scale is an exact f32.
+pub const MAX_FREQUENCIES: u32 = 32;
+
+/// Frequencies 2^0 … 2^(frequencies−1) of each of 3 input coordinates.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FrequencyEncoding {
+    pub frequencies: u32,
+    pub include_input: bool,
+}
+
+impl FrequencyEncoding {
+    /// Values per row: the 3 inputs when included, and a sine and a cosine
+    /// per coordinate and frequency.
+    pub const fn output_width(&self) -> usize {
+        3 * self.include_input as usize + 6 * self.frequencies as usize
+    }
+}
+
+// Spherical harmonics.
+
+/// The highest degree supported (bands l ≤ 3).
+pub const SH_MAX_DEGREE: u32 = 4;
+
+/// Number of coefficients for `degree`.
+pub fn sh_coefficients(degree: u32) -> usize {
+    (degree * degree) as usize
+}
