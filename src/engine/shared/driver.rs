@@ -201,3 +201,26 @@ pub fn to_world(mapping: &UnitCubeMapping, unit: &[f32], world: &mut Vec<f32>) {
             }
         });
 }
+
+/// The [`crate::model::RadianceModel`] methods both drivers answer alike,
+/// written once: which model on which engine (`$engine`), how many rays the
+/// next batch takes, and the centre crop at a step. Expanded inside a
+/// driver's `impl RadianceModel`; the driver holds `identity`
+/// ([`ModelIdentity`]), `batch_size` ([`BatchSize`]), `batch_sizer`
+/// ([`BatchSizer`]) and `recipe` ([`crate::field::common::Recipe`]).
+macro_rules! answers_of_a_driver {
+    ($engine:literal) => {
+        fn describe(&self) -> String {
+            $crate::engine::shared::driver::describe(&self.identity, $engine)
+        }
+
+        fn rays_for_next_batch(&self) -> usize {
+            $crate::engine::shared::driver::rays_for_batch(self.batch_size, &self.batch_sizer)
+        }
+
+        fn centre_crop(&self, step: u32) -> Option<f32> {
+            self.recipe.centre_crop_at(step)
+        }
+    };
+}
+pub(crate) use answers_of_a_driver;

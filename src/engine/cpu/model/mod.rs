@@ -383,17 +383,7 @@ impl RadianceModel for CpuModel {
             })
     }
 
-    fn describe(&self) -> String {
-        describe(&self.identity, "cpu")
-    }
-
-    fn rays_for_next_batch(&self) -> usize {
-        rays_for_batch(self.batch_size, &self.batch_sizer)
-    }
-
-    fn centre_crop(&self, step: u32) -> Option<f32> {
-        self.recipe.centre_crop_at(step)
-    }
+    crate::engine::shared::driver::answers_of_a_driver!("cpu");
 
     fn step(&mut self, batch: &RayBatch, step: u32) -> StepStats {
         let clock = Instant::now();

@@ -73,8 +73,8 @@ use super::timing::{Stage, StageClock, StageTiming};
 use crate::engine::crop::{crop_densities, crop_ray_bounds};
 use crate::engine::shared::batch_sizer::BatchSizer;
 use crate::engine::shared::driver::{
-    ModelIdentity, RAYS_PER_CHUNK, check_sampling, chunk_jitter_seed, describe, grid_cell_variance,
-    grid_sample_inputs, ray_bounds, rays_for_batch, to_world,
+    ModelIdentity, RAYS_PER_CHUNK, check_sampling, chunk_jitter_seed, grid_cell_variance,
+    grid_sample_inputs, ray_bounds, to_world,
 };
 use crate::engine::shared::march::{GridSamples, MarchParams, mix_seed, render_through_grid};
 use crate::engine::shared::occupancy::OccupancyGrid;
@@ -765,17 +765,7 @@ impl RadianceModel for GpuModel {
         Some(self)
     }
 
-    fn describe(&self) -> String {
-        describe(&self.identity, "gpu")
-    }
-
-    fn rays_for_next_batch(&self) -> usize {
-        rays_for_batch(self.batch_size, &self.batch_sizer)
-    }
-
-    fn centre_crop(&self, step: u32) -> Option<f32> {
-        self.recipe.centre_crop_at(step)
-    }
+    crate::engine::shared::driver::answers_of_a_driver!("gpu");
 
     fn step(&mut self, batch: &RayBatch, step: u32) -> StepStats {
         self.work().clock.reset();
