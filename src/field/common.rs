@@ -171,6 +171,20 @@ pub enum SamplerKind {
     Resample { count: usize, padding: f32 },
 }
 
+impl SamplerKind {
+    /// Samples per ray a level of this sampler evaluates after a level of
+    /// `previous` (0 before the first): an importance level evaluates the
+    /// previous level's samples and its own, the others only their own;
+    /// the occupancy grid's march has no fixed count (0).
+    pub fn samples_evaluated(self, previous: usize) -> usize {
+        match self {
+            SamplerKind::Stratified { count } | SamplerKind::Resample { count, .. } => count,
+            SamplerKind::Importance { count, .. } => previous + count,
+            SamplerKind::Occupancy => 0,
+        }
+    }
+}
+
 /// What a sample stands for, which decides what the field is given.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum SampleShape {

@@ -453,15 +453,11 @@ fn batch_of(
     recipe: &crate::field::common::Recipe,
     settings: &ModelSettings,
 ) -> Option<crate::field::common::BatchSize> {
-    use crate::field::common::{BatchSize, SamplerKind};
+    use crate::field::common::BatchSize;
     let mut per_ray = 0;
     let mut level_samples = 0;
     for level in &recipe.levels {
-        level_samples = match level.sampler {
-            SamplerKind::Stratified { count } | SamplerKind::Resample { count, .. } => count,
-            SamplerKind::Importance { count, .. } => level_samples + count,
-            SamplerKind::Occupancy => 0,
-        };
+        level_samples = level.sampler.samples_evaluated(level_samples);
         per_ray += level_samples;
     }
     settings

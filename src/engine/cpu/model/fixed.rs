@@ -116,7 +116,7 @@ impl CpuModel {
             &b.radii[rays.clone()]
         };
         sample_level(
-            self.recipe.levels[level].sampler,
+            &*self.samplers[level],
             self.recipe.samples,
             before.last(),
             RaysOfChunk {
@@ -169,7 +169,7 @@ impl CpuModel {
                 let (before, rest) = levels.split_at_mut(index);
                 let lb = &mut rest[0];
                 sample_level(
-                    level.sampler,
+                    &*self.samplers[index],
                     self.recipe.samples,
                     before.last(),
                     RaysOfChunk {
@@ -249,7 +249,7 @@ pub(super) struct SamplingScratch {
 /// `held`, where given, replaces the drawn distances (points or edges).
 #[allow(clippy::too_many_arguments)]
 pub(super) fn sample_level(
-    sampler: SamplerKind,
+    sampler: &dyn LevelSampler,
     shape: SampleShape,
     previous: Option<&LevelBuffers>,
     chunk: RaysOfChunk,
@@ -259,18 +259,18 @@ pub(super) fn sample_level(
     lb: &mut LevelBuffers,
 ) {
     let count = chunk.near.len();
-    let per_ray = match (shape, sampler, held) {
-        (SampleShape::Points, _, Some(t)) => {
+    let per_ray = match (shape, held) {
+        (SampleShape::Points, Some(t)) => {
             lb.t.clear();
             lb.t.extend_from_slice(t);
             t.len() / count.max(1)
         }
-        (SampleShape::ConicalFrustums, _, Some(edges)) => {
+        (SampleShape::ConicalFrustums, Some(edges)) => {
             lb.edges.clear();
             lb.edges.extend_from_slice(edges);
             (edges.len() / count.max(1)).saturating_sub(1)
         }
-        _ => sample_distances(sampler, shape, previous, &chunk, jitter, scratch, lb),
+        (_, None) => sampler.draw(previous, &chunk, jitter, scratch, lb),
     };
 
     lb.ray_offsets.clear();
@@ -324,69 +324,6 @@ pub(super) fn sample_level(
                 d.copy_from_slice(&chunk.directions[3 * r as usize..][..3]);
             }
         }
-    }
-}
-
-/// Draws a fixed-count level's sample distances into `lb` (points into
-/// `t`, frustum edges into `edges`; see [`sample_level`]) and returns the
-/// samples per ray.
-pub(super) fn sample_distances(
-    sampler: SamplerKind,
-    shape: SampleShape,
-    previous: Option<&LevelBuffers>,
-    chunk: &RaysOfChunk,
-    jitter: Option<u32>,
-    scratch: &mut SamplingScratch,
-    lb: &mut LevelBuffers,
-) -> usize {
-    let count = chunk.near.len();
-    match (shape, sampler) {
-        (SampleShape::Points, SamplerKind::Stratified { count: n }) => {
-            set_len(&mut lb.t, count * n);
-            sampling::stratified(chunk.near, chunk.far, n, jitter, &mut lb.t);
-            n
-        }
-        (SampleShape::Points, SamplerKind::Importance { count: n, padding }) => {
-            let previous = previous.expect("importance sampling follows a level");
-            let m = previous.t.len() / count.max(1);
-            importance_samples(
-                &previous.t,
-                &previous.weights,
-                m,
-                n,
-                padding,
-                jitter,
-                &mut scratch.edges,
-                &mut scratch.inner_weights,
-                &mut scratch.fine_t,
-            );
-            set_len(&mut lb.t, count * (m + n));
-            sampling::merge_sorted(&previous.t, m, &scratch.fine_t, n, &mut lb.t);
-            m + n
-        }
-        (SampleShape::ConicalFrustums, SamplerKind::Stratified { count: n }) => {
-            set_len(&mut lb.edges, count * (n + 1));
-            sampling::stratified(chunk.near, chunk.far, n + 1, jitter, &mut lb.edges);
-            n
-        }
-        (SampleShape::ConicalFrustums, SamplerKind::Resample { count: n, padding }) => {
-            let previous = previous.expect("resampling follows a level");
-            let m = previous.weights.len() / count.max(1);
-            set_len(&mut scratch.blurred, previous.weights.len());
-            sampling::blur_weights(&previous.weights, m.max(1), &mut scratch.blurred);
-            set_len(&mut lb.edges, count * (n + 1));
-            sampling::sample_pdf(
-                &previous.edges,
-                &scratch.blurred,
-                m,
-                padding,
-                n + 1,
-                jitter,
-                &mut lb.edges,
-            );
-            n
-        }
-        (shape, sampler) => unreachable!("{sampler:?} does not sample {shape:?}"),
     }
 }
 

@@ -52,9 +52,11 @@ use crate::scene::{Aabb, Scene, UnitCubeMapping};
 
 mod fixed;
 mod marched;
+mod samplers;
 mod shared;
 
 use fixed::*;
+use samplers::{LevelSampler, level_sampler};
 pub use shared::*;
 
 /// Buffers of one level of a step, reused between steps.
@@ -143,6 +145,9 @@ pub struct CpuModel {
     used_fraction: f64,
     /// What rendering keeps ([`RadianceModel::set_crop`]).
     crop: Option<crate::scene::crop::CropBox>,
+    /// The sampler of each fixed-count level (none for a recipe that
+    /// marches through the occupancy grid).
+    samplers: Vec<Box<dyn LevelSampler>>,
 }
 
 impl CpuModel {
@@ -163,14 +168,26 @@ impl CpuModel {
             recipe.levels.iter().all(|l| l.field < fields.len()),
             "a level names a missing field"
         );
-        assert!(
-            recipe.levels.iter().all(|l| match l.sampler {
-                SamplerKind::Importance { .. } => recipe.samples == SampleShape::Points,
-                SamplerKind::Resample { .. } => recipe.samples == SampleShape::ConicalFrustums,
-                _ => true,
-            }),
-            "importance sampling adds points; resampling draws frustums"
-        );
+        let marches = recipe.levels[0].sampler == SamplerKind::Occupancy;
+        // Fixed-count levels: one sampler each (none when marching).
+        let samplers: Vec<Box<dyn LevelSampler>> = if marches {
+            Vec::new()
+        } else {
+            recipe
+                .levels
+                .iter()
+                .map(|l| {
+                    level_sampler(l.sampler, recipe.samples).unwrap_or_else(|| {
+                        panic!(
+                            "{:?} does not sample {:?}: importance sampling adds points, \
+                             resampling draws frustums, and only a first and only level \
+                             marches",
+                            l.sampler, recipe.samples
+                        )
+                    })
+                })
+                .collect()
+        };
         let (params, ranges) = init_field_params(&fields, seed);
         let layout = model_layout(&fields);
         assert!(
@@ -180,7 +197,6 @@ impl CpuModel {
             "a field of unit-cube positions takes marched points (fixed-count levels and \
              frustums are placed in world units)"
         );
-        let marches = recipe.levels[0].sampler == SamplerKind::Occupancy;
         let mapping = scene.unit_cube;
         let grid = marches.then(|| {
             let mut grid = OccupancyGrid::new(
@@ -223,6 +239,7 @@ impl CpuModel {
             // Early training has no ray opaque before its last sample.
             used_fraction: 1.0,
             crop: None,
+            samplers,
         }
     }
 

@@ -45,82 +45,22 @@ impl GpuModel {
             let lb = &mut rest[0];
             let per_ray = lb.per_ray;
             let rows = count * per_ray;
-            match level.sampler {
-                // Frustums: n + 1 edges make n intervals.
-                SamplerKind::Stratified { count: n } => s.sampling.record_stratified(
-                    ctx,
-                    encoder,
+            self.samplers[li].record(
+                ctx,
+                encoder,
+                &s.sampling,
+                LevelSampling {
+                    rays: count,
                     near,
                     far,
-                    count,
-                    n + frustums as usize,
-                    jitter(li),
-                    if frustums { &lb.edges } else { &lb.t },
-                ),
-                SamplerKind::Resample { count: n, padding } => {
-                    // Mip-NeRF: new edges from the previous level's edges
-                    // and blurred weights (the cpu's `sample_distances`).
-                    let previous = before.last().expect("checked by samples_per_ray");
-                    let m = previous.per_ray;
-                    s.sampling.record_blur_weights(
-                        ctx,
-                        encoder,
-                        &previous.weights,
-                        count,
-                        m,
-                        bin_weights,
-                    );
-                    s.sampling.record_sample_pdf(
-                        ctx,
-                        encoder,
-                        &previous.edges,
-                        bin_weights,
-                        count,
-                        m,
-                        padding,
-                        n + 1,
-                        jitter(li),
-                        &lb.edges,
-                    );
-                }
-                SamplerKind::Importance { count: n, padding } => {
-                    let previous = before.last().expect("checked by samples_per_ray");
-                    let m = previous.per_ray;
-                    s.sampling.record_importance_bins(
-                        ctx,
-                        encoder,
-                        &previous.t,
-                        &previous.weights,
-                        count,
-                        m,
-                        edges,
-                        bin_weights,
-                    );
-                    s.sampling.record_sample_pdf(
-                        ctx,
-                        encoder,
-                        edges,
-                        bin_weights,
-                        count,
-                        m - 2,
-                        padding,
-                        n,
-                        jitter(li),
-                        fine_t,
-                    );
-                    s.sampling.record_merge_sorted(
-                        ctx,
-                        encoder,
-                        &previous.t,
-                        m,
-                        fine_t,
-                        n,
-                        count,
-                        &lb.t,
-                    );
-                }
-                SamplerKind::Occupancy => unreachable!("refused by samples_per_ray"),
-            }
+                    previous: before.last(),
+                    edges,
+                    bin_weights,
+                    fine_t,
+                    out: lb,
+                },
+                jitter(li),
+            );
             if frustums {
                 s.frustums.record_edges(
                     ctx,

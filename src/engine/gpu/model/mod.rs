@@ -94,14 +94,17 @@ use crate::scene::{Aabb, Scene, UnitCubeMapping};
 mod levels;
 mod marched;
 mod points;
+mod samplers;
 mod walk;
+
+use samplers::{LevelSampler, LevelSampling, level_sampler};
 
 /// How a recipe's samples are placed.
 enum Plan {
     /// One level marching through the occupancy grid.
     Marched,
-    /// Fixed-count levels, with their samples per ray.
-    Fixed(Vec<usize>),
+    /// Fixed-count levels: each one's sampler and samples per ray.
+    Fixed(Vec<(Box<dyn LevelSampler>, usize)>),
 }
 
 /// What the gpu driver makes of `recipe`'s levels, or why it cannot drive
@@ -116,58 +119,21 @@ fn plan(recipe: &Recipe) -> Result<Plan, String> {
         }
         return Ok(Plan::Marched);
     }
-    samples_per_ray(recipe).map(Plan::Fixed)
-}
-
-/// Samples per ray of each fixed-count level of `recipe` (an importance
-/// level evaluates the previous level's samples and its own; a resampled
-/// level only its own frustums), or why the levels cannot be sampled so.
-pub fn samples_per_ray(recipe: &Recipe) -> Result<Vec<usize>, String> {
-    let frustums = recipe.samples == SampleShape::ConicalFrustums;
-    let mut out: Vec<usize> = Vec::with_capacity(recipe.levels.len());
+    let mut levels: Vec<(Box<dyn LevelSampler>, usize)> = Vec::with_capacity(recipe.levels.len());
     for (i, level) in recipe.levels.iter().enumerate() {
-        let n = match level.sampler {
-            SamplerKind::Stratified { count } => count,
-            SamplerKind::Importance { .. } if frustums => {
-                return Err(format!(
-                    "level {i} adds importance points to frustums: frustum levels resample"
-                ));
-            }
-            SamplerKind::Resample { .. } if !frustums => {
-                return Err(format!(
-                    "level {i} resamples frustums, but the recipe's samples are points"
-                ));
-            }
-            SamplerKind::Resample { count, .. } => match out.last() {
-                Some(_) => count,
-                None => return Err("the first level cannot be a resampled level".into()),
-            },
-            SamplerKind::Importance { count, .. } => match out.last() {
-                Some(&previous) if previous >= 3 => previous + count,
-                Some(_) => {
-                    return Err(format!(
-                        "level {i} samples the previous level's weights, which needs three \
-                         samples per ray"
-                    ));
-                }
-                None => return Err("the first level cannot be an importance level".into()),
-            },
-            SamplerKind::Occupancy => {
-                return Err(format!(
-                    "level {i} marches through the occupancy grid, which only a first and only \
-                     level can"
-                ));
-            }
-        };
+        let sampler = level_sampler(level.sampler, recipe.samples)
+            .map_err(|why| format!("level {i}: {why}"))?;
+        // An importance level evaluates the previous level's samples and
+        // its own; a resampled level only its own frustums.
+        let n = sampler
+            .samples_per_ray(levels.last().map(|(_, n)| *n))
+            .map_err(|why| format!("level {i}: {why}"))?;
         if n == 0 {
             return Err(format!("level {i} has no samples"));
         }
-        out.push(n);
+        levels.push((sampler, n));
     }
-    if out.is_empty() {
-        return Err("the recipe has no levels".into());
-    }
-    Ok(out)
+    Ok(Plan::Fixed(levels))
 }
 
 /// The occupancy grid and its marching, for a recipe that marches.
@@ -343,6 +309,9 @@ pub struct GpuModel {
     context: GpuContext,
     identity: ModelIdentity,
     recipe: Recipe,
+    /// The sampler of each fixed-count level (none for a recipe that
+    /// marches through the occupancy grid).
+    samplers: Vec<Box<dyn LevelSampler>>,
     stages: Stages,
     ranges: Vec<Range<usize>>,
     /// How Adam treats each part of the parameters (the cpu model's
@@ -399,18 +368,19 @@ impl GpuModel {
         batch_size: Option<BatchSize>,
     ) -> Result<Self, String> {
         let plan = plan(&recipe)?;
-        let per_ray = match &plan {
-            Plan::Fixed(per_ray) => per_ray.clone(),
-            Plan::Marched => Vec::new(),
+        let marches = matches!(plan, Plan::Marched);
+        let (samplers, per_ray): (Vec<_>, Vec<_>) = match plan {
+            Plan::Fixed(levels) => levels.into_iter().unzip(),
+            Plan::Marched => (Vec::new(), Vec::new()),
         };
         let batch_size = batch_size.unwrap_or(recipe.batch);
         // A marched batch is sized in samples; its buffers hold that many.
-        let marched_samples = match (&plan, batch_size) {
-            (Plan::Marched, BatchSize::Samples(samples)) => Some(samples.max(1)),
-            (Plan::Marched, BatchSize::Rays(_)) => {
+        let marched_samples = match (marches, batch_size) {
+            (true, BatchSize::Samples(samples)) => Some(samples.max(1)),
+            (true, BatchSize::Rays(_)) => {
                 return Err("marching through the occupancy grid needs a batch in samples".into());
             }
-            (Plan::Fixed(_), _) => None,
+            (false, _) => None,
         };
         if let Some(samples) = marched_samples {
             // The march's and compositing's per-sample arrays (at most 3
@@ -473,7 +443,7 @@ impl GpuModel {
         }
         // As `CpuModel::new`: fixed-count levels and frustums are placed in
         // world units.
-        let marches_points = recipe.samples == SampleShape::Points && matches!(plan, Plan::Marched);
+        let marches_points = recipe.samples == SampleShape::Points && marches;
         if !marches_points
             && fields
                 .iter()
@@ -490,17 +460,11 @@ impl GpuModel {
         let mut edges = 1;
         let mut bins = 1;
         let mut fine = 1;
-        for (i, level) in recipe.levels.iter().enumerate() {
-            match level.sampler {
-                SamplerKind::Importance { count, .. } => {
-                    let m = per_ray[i - 1];
-                    edges = edges.max(RAYS_PER_CHUNK * (m - 1));
-                    bins = bins.max(RAYS_PER_CHUNK * (m - 2));
-                    fine = fine.max(RAYS_PER_CHUNK * count);
-                }
-                SamplerKind::Resample { .. } => bins = bins.max(RAYS_PER_CHUNK * per_ray[i - 1]),
-                SamplerKind::Stratified { .. } | SamplerKind::Occupancy => {}
-            }
+        for (i, sampler) in samplers.iter().enumerate().skip(1) {
+            let needs = sampler.scratch_per_ray(per_ray[i - 1]);
+            edges = edges.max(RAYS_PER_CHUNK * needs.edges);
+            bins = bins.max(RAYS_PER_CHUNK * needs.bins);
+            fine = fine.max(RAYS_PER_CHUNK * needs.fine);
         }
         let frustums = recipe.samples == SampleShape::ConicalFrustums;
         let f = |label: &str, n: usize| zeroed_storage_buffer::<f32>(ctx, label, n);
@@ -589,13 +553,14 @@ impl GpuModel {
             pending_grid: None,
             depth_range: scene.depth_range(),
             crop: None,
-            render: matches!(plan, Plan::Marched)
+            render: marches
                 .then(|| RenderKernels::new(ctx))
                 .transpose()
                 .map_err(gpu)?,
             render_buffers: Mutex::new(None),
             identity,
             recipe,
+            samplers,
             context,
         })
     }
