@@ -13,7 +13,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use crate::engine::gpu::context::{CounterReading, GpuCounters};
-use crate::model::{StageTimes, StepStats};
+use crate::model::{Stage, StageTimes, StepStats};
 use crate::scene::Scene;
 use crate::train::trainer::Trainer;
 
@@ -129,27 +129,20 @@ pub fn throughput(
         .iter()
         .map(|r| r.1.samples_per_ray() as f64)
         .collect();
-    let stage = |f: fn(&StageTimes) -> f64| {
-        let mut v: Vec<f64> = records.iter().map(|r| f(&r.1.times)).collect();
-        median(&mut v)
-    };
-    let stages = StageTimes {
-        march: stage(|t| t.march),
-        encode: stage(|t| t.encode),
-        networks_forward: stage(|t| t.networks_forward),
-        composite: stage(|t| t.composite),
-        networks_backward: stage(|t| t.networks_backward),
-        encode_backward: stage(|t| t.encode_backward),
-        optimiser: stage(|t| t.optimiser),
-        // The grid is updated every 16 steps: its mean cost per step is the
-        // fair figure, not its median (which is 0).
-        grid_update: records.iter().map(|r| r.1.times.grid_update).sum::<f64>()
-            / steps.max(1) as f64,
-    };
+    let stages = StageTimes::from_fn(|stage| {
+        let mut v: Vec<f64> = records.iter().map(|r| r.1.times[stage]).collect();
+        if stage == Stage::GridUpdate {
+            // The grid is updated every 16 steps: its mean cost per step
+            // is the fair figure, not its median (which is 0).
+            v.iter().sum::<f64>() / steps.max(1) as f64
+        } else {
+            median(&mut v)
+        }
+    });
     let network_flops: f64 = records.iter().map(|r| r.1.network_flops).sum();
     let network_seconds: f64 = records
         .iter()
-        .map(|r| r.1.times.networks_forward + r.1.times.networks_backward)
+        .map(|r| r.1.times[Stage::NetworksForward] + r.1.times[Stage::NetworksBackward])
         .sum();
     ThroughputReport {
         network_gflops: (network_flops > 0.0 && network_seconds > 0.0)

@@ -13,53 +13,86 @@ pub mod pixels;
 use batch::RayBatch;
 use checkpoint::Checkpoint;
 
-/// Seconds spent in each stage of one training step.
+/// A stage of a training step, as both engines time it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stage {
+    March,
+    Encode,
+    NetworksForward,
+    Composite,
+    NetworksBackward,
+    EncodeBackward,
+    Optimiser,
+    GridUpdate,
+}
+
+impl Stage {
+    /// Every stage, in the order of a step (the grid's update, every 16
+    /// steps, last).
+    pub const ALL: [Stage; 8] = [
+        Stage::March,
+        Stage::Encode,
+        Stage::NetworksForward,
+        Stage::Composite,
+        Stage::NetworksBackward,
+        Stage::EncodeBackward,
+        Stage::Optimiser,
+        Stage::GridUpdate,
+    ];
+
+    /// The stage's name in reports and the viewer.
+    pub fn name(self) -> &'static str {
+        match self {
+            Stage::March => "march",
+            Stage::Encode => "encode",
+            Stage::NetworksForward => "networks forward",
+            Stage::Composite => "composite + loss",
+            Stage::NetworksBackward => "networks backward",
+            Stage::EncodeBackward => "encode backward",
+            Stage::Optimiser => "optimiser",
+            Stage::GridUpdate => "grid update",
+        }
+    }
+}
+
+/// Seconds spent in each stage of one training step: a table indexed by
+/// [`Stage`] (`times[Stage::March]`), so a new stage is a variant, not a
+/// field to add in every place that sums, scales or names the times.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct StageTimes {
-    pub march: f64,
-    pub encode: f64,
-    pub networks_forward: f64,
-    pub composite: f64,
-    pub networks_backward: f64,
-    pub encode_backward: f64,
-    pub optimiser: f64,
-    pub grid_update: f64,
+pub struct StageTimes([f64; Stage::ALL.len()]);
+
+impl std::ops::Index<Stage> for StageTimes {
+    type Output = f64;
+
+    fn index(&self, stage: Stage) -> &f64 {
+        &self.0[stage as usize]
+    }
+}
+
+impl std::ops::IndexMut<Stage> for StageTimes {
+    fn index_mut(&mut self, stage: Stage) -> &mut f64 {
+        &mut self.0[stage as usize]
+    }
 }
 
 impl StageTimes {
-    pub fn total(&self) -> f64 {
-        self.march
-            + self.encode
-            + self.networks_forward
-            + self.composite
-            + self.networks_backward
-            + self.encode_backward
-            + self.optimiser
-            + self.grid_update
+    /// The table of `seconds(stage)` for every stage.
+    pub fn from_fn(mut seconds: impl FnMut(Stage) -> f64) -> Self {
+        Self(Stage::ALL.map(&mut seconds))
     }
 
-    pub fn named(&self) -> [(&'static str, f64); 8] {
-        [
-            ("march", self.march),
-            ("encode", self.encode),
-            ("networks forward", self.networks_forward),
-            ("composite + loss", self.composite),
-            ("networks backward", self.networks_backward),
-            ("encode backward", self.encode_backward),
-            ("optimiser", self.optimiser),
-            ("grid update", self.grid_update),
-        ]
+    pub fn total(&self) -> f64 {
+        self.0.iter().sum()
+    }
+
+    pub fn named(&self) -> [(&'static str, f64); Stage::ALL.len()] {
+        Stage::ALL.map(|stage| (stage.name(), self[stage]))
     }
 
     pub fn add(&mut self, other: &StageTimes) {
-        self.march += other.march;
-        self.encode += other.encode;
-        self.networks_forward += other.networks_forward;
-        self.composite += other.composite;
-        self.networks_backward += other.networks_backward;
-        self.encode_backward += other.encode_backward;
-        self.optimiser += other.optimiser;
-        self.grid_update += other.grid_update;
+        for stage in Stage::ALL {
+            self[stage] += other[stage];
+        }
     }
 }
 
@@ -301,5 +334,28 @@ pub trait RadianceModel: Send {
                 self.describe()
             )),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `Stage::ALL` lists every stage once, in the order of their slots,
+    /// so each stage reads and writes its own slot of the table.
+    #[test]
+    fn each_stage_has_its_own_slot_of_the_table() {
+        for (slot, stage) in Stage::ALL.into_iter().enumerate() {
+            assert_eq!(stage as usize, slot, "{stage:?}");
+        }
+        let times = StageTimes::from_fn(|stage| 1.0 + stage as usize as f64);
+        let mut twice = times;
+        twice.add(&times);
+        for (stage, (name, seconds)) in Stage::ALL.into_iter().zip(times.named()) {
+            assert_eq!((name, seconds), (stage.name(), 1.0 + stage as usize as f64));
+            assert_eq!(twice[stage], 2.0 * seconds);
+        }
+        // 1 + 2 + … + 8.
+        assert_eq!(times.total(), 36.0);
     }
 }

@@ -272,7 +272,7 @@ impl Worker {
             self.ledger.record_training(seconds);
         }
         self.trace.training_seconds += seconds;
-        self.trace.grid_update_seconds += stats.times.grid_update;
+        self.trace.grid_update_seconds += stats.times[Stage::GridUpdate];
         self.trace.steps += 1;
         let due = slot
             .last_stats
@@ -340,16 +340,7 @@ impl Worker {
                 0.0
             },
             memory_bytes: slot.trainer.model.memory_bytes(),
-            times: StageTimes {
-                march: per(t.march),
-                encode: per(t.encode),
-                networks_forward: per(t.networks_forward),
-                composite: per(t.composite),
-                networks_backward: per(t.networks_backward),
-                encode_backward: per(t.encode_backward),
-                optimiser: per(t.optimiser),
-                grid_update: per(t.grid_update),
-            },
+            times: StageTimes::from_fn(|stage| per(t[stage])),
         };
         slot.last_report = Some(TrainingStats {
             val_psnr: None,

@@ -22,36 +22,8 @@ use wgpu::Features;
 
 use super::context::GpuContext;
 use super::kernel::MapRequest;
+pub use crate::model::Stage;
 use crate::model::StageTimes;
-
-/// A stage of the training step, as in [`StageTimes`].
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Stage {
-    March,
-    Encode,
-    NetworksForward,
-    Composite,
-    NetworksBackward,
-    EncodeBackward,
-    Optimiser,
-    GridUpdate,
-}
-
-impl Stage {
-    fn add(self, times: &mut StageTimes, seconds: f64) {
-        let slot = match self {
-            Stage::March => &mut times.march,
-            Stage::Encode => &mut times.encode,
-            Stage::NetworksForward => &mut times.networks_forward,
-            Stage::Composite => &mut times.composite,
-            Stage::NetworksBackward => &mut times.networks_backward,
-            Stage::EncodeBackward => &mut times.encode_backward,
-            Stage::Optimiser => &mut times.optimiser,
-            Stage::GridUpdate => &mut times.grid_update,
-        };
-        *slot += seconds;
-    }
-}
 
 /// How stage times are measured.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -205,7 +177,7 @@ impl StageClock {
                     .expect("waiting for the GPU");
                 let now = Instant::now();
                 if let Some(stage) = stage {
-                    stage.add(&mut self.wall, (now - self.last).as_secs_f64());
+                    self.wall[stage] += (now - self.last).as_secs_f64();
                 }
                 self.last = now;
             }
@@ -286,7 +258,7 @@ fn stage_times(intervals: &[Option<Stage>], ticks: &[u64], period_ns: f64) -> St
             // Timestamps may wrap or (on some drivers) go backwards
             // across submissions: such an interval counts as 0.
             let delta = ticks[i + 1].saturating_sub(ticks[i]);
-            stage.add(&mut times, delta as f64 * period_ns * 1e-9);
+            times[*stage] += delta as f64 * period_ns * 1e-9;
         }
     }
     times

@@ -39,7 +39,7 @@ impl CpuModel {
                     &far[start..end],
                     Some(seed_of(level_index)),
                 );
-                times.march += clock.elapsed().as_secs_f64();
+                times[Stage::March] += clock.elapsed().as_secs_f64();
 
                 let clock = Instant::now();
                 let b = &mut self.buffers;
@@ -61,7 +61,7 @@ impl CpuModel {
                     &mut lb.sigma,
                     &mut lb.rgb,
                 );
-                times.networks_forward += clock.elapsed().as_secs_f64();
+                times[Stage::NetworksForward] += clock.elapsed().as_secs_f64();
 
                 let clock = Instant::now();
                 let level_loss = composite_and_loss(
@@ -75,7 +75,7 @@ impl CpuModel {
                     &mut b.rays,
                 );
                 losses.add(level_index, level.loss_weight, share, level_loss);
-                times.composite += clock.elapsed().as_secs_f64();
+                times[Stage::Composite] += clock.elapsed().as_secs_f64();
 
                 let clock = Instant::now();
                 self.fields[level.field].backward(
@@ -85,7 +85,7 @@ impl CpuModel {
                     &mut b.gradients[field_range],
                     Gradient::Add,
                 );
-                times.networks_backward += clock.elapsed().as_secs_f64();
+                times[Stage::NetworksBackward] += clock.elapsed().as_secs_f64();
             }
         }
         losses.into_stats(rays, samples, times, network_flops)

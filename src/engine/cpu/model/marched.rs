@@ -69,7 +69,7 @@ impl CpuModel {
                 &mut b.variances_marched,
             );
         }
-        times.march = clock.elapsed().as_secs_f64();
+        times[Stage::March] = clock.elapsed().as_secs_f64();
 
         // Where each ray becomes opaque (its cut) needs σ of every marched
         // sample; after it a sample's colour is never read and every
@@ -176,7 +176,7 @@ impl CpuModel {
             );
             gather_rows(&b.sigma_marched, 1, &b.source, &mut lb.sigma);
         }
-        times.networks_forward = clock.elapsed().as_secs_f64();
+        times[Stage::NetworksForward] = clock.elapsed().as_secs_f64();
 
         let clock = Instant::now();
         let distortion = (self.recipe.distortion > 0.0 && kept > 0).then(|| Distortion {
@@ -193,7 +193,7 @@ impl CpuModel {
             distortion,
             &mut b.rays,
         );
-        times.composite = clock.elapsed().as_secs_f64();
+        times[Stage::Composite] = clock.elapsed().as_secs_f64();
 
         let clock = Instant::now();
         // The one field's backward pass writes its gradient; any other
@@ -230,7 +230,7 @@ impl CpuModel {
                 Gradient::Overwrite,
             );
         }
-        times.networks_backward = clock.elapsed().as_secs_f64();
+        times[Stage::NetworksBackward] = clock.elapsed().as_secs_f64();
         if s > 0 {
             self.used_fraction = u as f64 / s as f64;
         }

@@ -47,7 +47,7 @@ use crate::field::ngp::LossKind;
 use crate::field::params::ParamLayout;
 use crate::model::batch::RayBatch;
 use crate::model::checkpoint::Checkpoint;
-use crate::model::{RadianceModel, RenderedPixel, StageTimes, StepStats};
+use crate::model::{RadianceModel, RenderedPixel, Stage, StageTimes, StepStats};
 use crate::scene::{Aabb, Scene, UnitCubeMapping};
 
 mod fixed;
@@ -409,7 +409,7 @@ impl RadianceModel for CpuModel {
         }
         let grid_update = clock.elapsed().as_secs_f64();
         let mut stats = self.forward_backward(batch, step);
-        stats.times.grid_update = grid_update;
+        stats.times[Stage::GridUpdate] = grid_update;
         let clock = Instant::now();
         self.adam.step_layout(
             &self.recipe.optimiser,
@@ -417,7 +417,7 @@ impl RadianceModel for CpuModel {
             &mut self.params,
             &self.buffers.gradients,
         );
-        stats.times.optimiser = clock.elapsed().as_secs_f64();
+        stats.times[Stage::Optimiser] = clock.elapsed().as_secs_f64();
         stats
     }
 

@@ -69,7 +69,7 @@ use super::sampling::GpuSampling;
 use super::step::{
     CompositeAndLoss, RayBuffers, SampleBuffers, SampleGradientBuffers, StepReadback, StepResults,
 };
-use super::timing::{Stage, StageClock, StageTiming};
+use super::timing::{StageClock, StageTiming};
 use crate::engine::crop::{crop_densities, crop_ray_bounds};
 use crate::engine::shared::batch_sizer::BatchSizer;
 use crate::engine::shared::driver::{
@@ -86,7 +86,7 @@ use crate::field::params::ParamLayout;
 use crate::model::batch::RayBatch;
 use crate::model::checkpoint::Checkpoint;
 use crate::model::pixels::{render_pixels, to_image};
-use crate::model::{RadianceModel, RenderMode, RenderedPixel, StepStats, TextureRender};
+use crate::model::{RadianceModel, RenderMode, RenderedPixel, Stage, StepStats, TextureRender};
 use crate::scene::Camera;
 use crate::scene::crop::CropBox;
 use crate::scene::{Aabb, Scene, UnitCubeMapping};
@@ -745,7 +745,7 @@ impl RadianceModel for GpuModel {
             // applies its densities while the device runs the step.
             self.apply_pending_grid_update();
         } else {
-            stats.times.grid_update = grid_update;
+            stats.times[Stage::GridUpdate] = grid_update;
         }
         stats
     }
