@@ -321,6 +321,20 @@ impl NerfShape {
         .with_colour_padding(mip::RGB_PADDING)
     }
 
+    /// Multiply-adds of the networks per sample in one forward pass (the
+    /// backward pass does twice as many).
+    pub fn macs_per_sample(&self) -> usize {
+        self.trunk_a.macs_per_row() + self.trunk_b.macs_per_row() + self.colour.macs_per_row()
+    }
+
+    /// Multiply-adds per sample of σ alone: trunk A, and trunk B without
+    /// the feature columns of its last layer (σ inference computes its
+    /// leading output only).
+    pub fn density_macs_per_sample(&self) -> usize {
+        let width = self.trunk_a.output_width();
+        self.trunk_a.macs_per_row() + self.trunk_b.macs_per_row() - width * width
+    }
+
     /// The same field with its networks' products at `precision`.
     pub fn with_precision(mut self, precision: Precision) -> Self {
         self.trunk_a = self.trunk_a.with_precision(precision);

@@ -323,6 +323,20 @@ impl NgpShape {
         self
     }
 
+    /// Multiply-adds of the two networks per sample in one forward pass
+    /// (the hash encoding's lookups not counted).
+    pub fn macs_per_sample(&self) -> usize {
+        self.density.macs_per_row() + self.colour.macs_per_row()
+    }
+
+    /// Multiply-adds per sample of σ alone: the density network's hidden
+    /// layers and its σ output.
+    pub fn density_macs_per_sample(&self) -> usize {
+        let widths = &self.density.widths;
+        widths.windows(2).map(|w| w[0] * w[1]).sum::<usize>()
+            - widths[widths.len() - 2] * (widths[widths.len() - 1] - 1)
+    }
+
     pub fn grid_range(&self) -> Range<usize> {
         0..self.grid.param_count()
     }

@@ -111,7 +111,8 @@ pub struct StepStats {
     /// Of those, the samples before the rays' cuts (transmittance below
     /// 1e-4), which compositing weighs and the backward passes run on:
     /// instant-ngp's testbed calls these per ray "samples/ray", after
-    /// compaction. Reported by the engines that count them on the host.
+    /// compaction. Reported by steps that compact (the gpu engine's σ-first
+    /// steps) or count them on the host (every cpu engine step).
     pub samples_composited: Option<usize>,
     pub times: StageTimes,
     /// Floating-point operations of the networks' forward and backward

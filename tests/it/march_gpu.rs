@@ -348,3 +348,105 @@ fn grid_update_matches_cpu() {
         );
     }
 }
+
+/// σ-first compaction: rays whose samples before the cut are counted keep
+/// those samples, rays in order and samples in order within each ray; empty
+/// rays, rays that keep nothing and rays that keep everything among them,
+/// with more rays than a scan block holds (the binary search and the
+/// prefix sum across blocks).
+#[test]
+fn compaction_keeps_each_rays_samples_before_its_cut_in_order() {
+    use zrak::engine::gpu::compact::{CompactedSamples, GpuCompaction, MarchedInputs};
+    use zrak::engine::gpu::kernel::{read_buffer, storage_buffer};
+
+    let context = crate::common::gpu_context();
+    let rays = 700;
+    // Marched samples per ray 0..=5 and, of those, used 0..=all.
+    let marched: Vec<u32> = (0..rays).map(|r| (mix64(r as u64) % 6) as u32).collect();
+    let used: Vec<u32> = marched
+        .iter()
+        .enumerate()
+        .map(|(r, &n)| (mix64(r as u64 ^ 0x5eed) % (n as u64 + 1)) as u32)
+        .collect();
+    let mut offsets = vec![0u32];
+    for &n in &marched {
+        offsets.push(offsets.last().unwrap() + n);
+    }
+    let samples = *offsets.last().unwrap() as usize;
+    // Every value names its sample and component.
+    let values = |components: usize, tag: f32| -> Vec<f32> {
+        (0..samples * components)
+            .map(|i| tag + i as f32)
+            .collect()
+    };
+    let (positions, directions, variances) = (values(3, 0.0), values(3, 1e5), values(3, 2e5));
+    let (dt, t, sigma) = (values(1, 3e5), values(1, 4e5), values(1, 5e5));
+    let buffer = |data: &[f32], label: &str| storage_buffer(&context, label, data);
+    let march = GpuMarch::new(&context).unwrap();
+    let compaction = GpuCompaction::new(&context).unwrap();
+    let out = CompactedSamples::new(&context, rays, samples, true);
+    let offsets_buffer = storage_buffer(&context, "offsets", &offsets);
+    let used_buffer = storage_buffer(&context, "used", &used);
+    let inputs = [
+        buffer(&positions, "positions"),
+        buffer(&directions, "directions"),
+        buffer(&variances, "variances"),
+        buffer(&dt, "dt"),
+        buffer(&t, "t"),
+        buffer(&sigma, "sigma"),
+    ];
+    let mut encoder = context.device.create_command_encoder(&Default::default());
+    compaction.record(
+        &context,
+        &mut encoder,
+        &march,
+        rays,
+        MarchedInputs {
+            ray_offsets: &offsets_buffer,
+            samples_used: &used_buffer,
+            positions: &inputs[0],
+            directions: &inputs[1],
+            variances: Some(&inputs[2]),
+            dt: &inputs[3],
+            t: &inputs[4],
+            sigma: &inputs[5],
+        },
+        &out,
+    );
+    context.queue.submit([encoder.finish()]);
+
+    // The same on the host.
+    let kept: Vec<usize> = (0..rays)
+        .flat_map(|r| offsets[r] as usize..(offsets[r] + used[r]) as usize)
+        .collect();
+    let gather = |data: &[f32], components: usize| -> Vec<f32> {
+        kept.iter()
+            .flat_map(|&s| data[components * s..components * (s + 1)].iter().copied())
+            .collect()
+    };
+    let mut compact_offsets = vec![0u32];
+    for &n in &used {
+        compact_offsets.push(compact_offsets.last().unwrap() + n);
+    }
+    let n = kept.len();
+    assert!(n > 300 && n < samples, "{n} of {samples}");
+    assert_eq!(read_buffer::<u32>(&context, &out.counters, 1)[0] as usize, n);
+    assert_eq!(
+        read_buffer::<u32>(&context, &out.ray_offsets, rays + 1),
+        compact_offsets
+    );
+    for (name, buffer, data, components) in [
+        ("positions", &out.positions, &positions, 3),
+        ("directions", &out.directions, &directions, 3),
+        ("variances", &out.variances, &variances, 3),
+        ("dt", &out.dt, &dt, 1),
+        ("t", &out.t, &t, 1),
+        ("sigma", &out.sigma, &sigma, 1),
+    ] {
+        assert_eq!(
+            read_buffer::<f32>(&context, buffer, components * n),
+            gather(data, components),
+            "{name}"
+        );
+    }
+}

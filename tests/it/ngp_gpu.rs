@@ -94,6 +94,9 @@ fn one_training_step_matches_the_cpu_engine() {
     assert_eq!(gpu_stats.samples, cpu_stats.samples);
     assert_eq!(gpu_stats.rays, cpu_stats.rays);
     assert!(cpu_stats.rays >= 20, "{cpu_stats:?}");
+    // Both go σ first, and compact to the same samples before the cut.
+    assert!(gpu_stats.samples_composited.is_some(), "{gpu_stats:?}");
+    assert_eq!(gpu_stats.samples_composited, cpu_stats.samples_composited);
     let cpu_gradient = cpu.gradients().to_vec();
     let gpu_gradient = gpu.gradients();
     let ranges: Vec<(String, Range<usize>)> = cpu

@@ -100,7 +100,7 @@ pub struct GpuMarchBuffers {
 
 impl GpuMarchBuffers {
     pub fn new(context: &GpuContext, ray_count: usize, capacity: usize) -> Self {
-        let blocks = (ray_count + 1).div_ceil(SCAN_BLOCK);
+        let blocks = block_sums_len(ray_count);
         Self {
             positions: zeroed_storage_buffer::<f32>(context, "march positions", 3 * capacity),
             directions: zeroed_storage_buffer::<f32>(context, "march directions", 3 * capacity),
@@ -114,6 +114,25 @@ impl GpuMarchBuffers {
             capacity,
         }
     }
+}
+
+/// The buffers of a prefix sum of per-ray counts
+/// ([`GpuMarch::record_prefix_sum`]).
+#[derive(Debug, Clone, Copy)]
+pub struct PrefixSum<'a> {
+    /// ray_count u32.
+    pub counts: &'a wgpu::Buffer,
+    /// ray_count + 1 u32.
+    pub offsets: &'a wgpu::Buffer,
+    /// [`block_sums_len`] u32.
+    pub block_sums: &'a wgpu::Buffer,
+    /// 2 u32: [total, rays].
+    pub counters: &'a wgpu::Buffer,
+}
+
+/// The scan's block totals for `ray_count` counts.
+pub fn block_sums_len(ray_count: usize) -> usize {
+    (ray_count + 1).div_ceil(SCAN_BLOCK)
 }
 
 /// The grid a march reads: its geometry and its bitfield on the GPU.
@@ -258,19 +277,16 @@ impl GpuMarch {
             &[&uniform, grid.bitfield, origins, directions, &out.counts],
             groups,
         );
-        self.scan_blocks.record(
+        self.record_scan(
             context,
             encoder,
-            &[&uniform, &out.counts, &out.ray_offsets, &out.block_sums],
-            [uniforms.block_count, 1, 1],
-        );
-        self.scan_sums
-            .record(context, encoder, &[&uniform, &out.block_sums], [1, 1, 1]);
-        self.scan_add.record(
-            context,
-            encoder,
-            &[&uniform, &out.block_sums, &out.ray_offsets, &out.counters],
-            groups,
+            (&uniform, &uniforms),
+            PrefixSum {
+                counts: &out.counts,
+                offsets: &out.ray_offsets,
+                block_sums: &out.block_sums,
+                counters: &out.counters,
+            },
         );
         self.clamp.record(
             context,
@@ -292,6 +308,61 @@ impl GpuMarch {
                 &out.dt,
                 &out.t,
             ],
+            groups,
+        );
+    }
+
+    /// Records the exclusive prefix sum of `ray_count` counts into
+    /// `ray_count + 1` offsets, the last being the total, which also goes
+    /// to `counters[0]` (cleared here; `counters[1]` gets the number of
+    /// rays): the march's scan with no sample budget, for counts made
+    /// elsewhere (the samples before each ray's cut).
+    pub fn record_prefix_sum(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        sum: PrefixSum,
+        ray_count: usize,
+    ) {
+        let element_count = ray_count + 1;
+        let uniforms = MarchUniforms {
+            ray_count: ray_count as u32,
+            row_stride: dispatch_grid(element_count, WORKGROUP).1,
+            budget: u32::MAX,
+            element_count: element_count as u32,
+            block_count: element_count.div_ceil(SCAN_BLOCK) as u32,
+            ..bytemuck::Zeroable::zeroed()
+        };
+        assert!(
+            (uniforms.block_count as usize) <= 65535,
+            "too many rays for one prefix sum: {ray_count}"
+        );
+        let uniform = uniform_buffer(context, "prefix sum params", &uniforms);
+        encoder.clear_buffer(sum.counters, 0, None);
+        self.record_scan(context, encoder, (&uniform, &uniforms), sum);
+    }
+
+    /// The three passes of the scan, with the march's uniforms.
+    fn record_scan(
+        &self,
+        context: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        (uniform, uniforms): (&wgpu::Buffer, &MarchUniforms),
+        sum: PrefixSum,
+    ) {
+        let (groups, _) = dispatch_grid(uniforms.element_count as usize, WORKGROUP);
+        self.scan_blocks.record(
+            context,
+            encoder,
+            &[uniform, sum.counts, sum.offsets, sum.block_sums],
+            [uniforms.block_count, 1, 1],
+        );
+        self.scan_sums
+            .record(context, encoder, &[uniform, sum.block_sums], [1, 1, 1]);
+        self.scan_add.record(
+            context,
+            encoder,
+            &[uniform, sum.block_sums, sum.offsets, sum.counters],
             groups,
         );
     }

@@ -6,6 +6,7 @@ pub mod kernel;
 
 pub use context::{GpuContext, GpuError};
 pub mod adam;
+pub mod compact;
 pub mod composite;
 pub mod dense;
 pub mod fields;

@@ -164,6 +164,37 @@ pub fn rays_for_batch(batch_size: BatchSize, sizer: &BatchSizer) -> usize {
     }
 }
 
+/// Which pass finds where each marched ray becomes opaque (its cut), for a
+/// field whose forward pass costs `forward_macs` multiply-adds a sample and
+/// whose σ alone costs `density_macs`, when the last step's rays used
+/// `used_fraction` of their marched samples. After a ray's cut no sample's
+/// colour is read and every gradient through it is zero, so the cut needs
+/// σ of every marched sample; two ways to find it:
+///
+/// - σ first (`true`): a σ-only pass over every marched sample, then the
+///   forward and backward passes on the samples before the cut only (the
+///   compaction of instant-ngp);
+/// - forward first (`false`): the forward pass over every marched sample
+///   finds the cut as it goes, and the backward pass runs on them all,
+///   zero past the cut.
+///
+/// Per marched sample the first costs D + 3F·u and the second 3F (D the σ
+/// pass, F the forward pass, u the share used; the backward pass is twice
+/// the forward), so forward first wins above u = 1 − D/3F: 0.72 for NeRF's
+/// field, whose rays on a Blender object use 90–100 % of their samples.
+/// A field that cannot find the cut in its forward pass
+/// (`may_find_cut_in_forward` false) always goes σ first. Both engines
+/// decide with this, so they take the same passes.
+pub fn sigma_first(
+    may_find_cut_in_forward: bool,
+    forward_macs: usize,
+    density_macs: usize,
+    used_fraction: f64,
+) -> bool {
+    !may_find_cut_in_forward
+        || used_fraction <= 1.0 - density_macs as f64 / (3 * forward_macs) as f64
+}
+
 /// What a field of world positions takes for samples marched through the
 /// grid for rendering: for a recipe of `frustums`, each sample's Gaussian
 /// ([`grid_sample_gaussians`]: means into `world`, covariance diagonals

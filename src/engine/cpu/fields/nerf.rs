@@ -482,15 +482,11 @@ impl Field for NerfField {
     }
 
     fn macs_per_sample(&self) -> usize {
-        let s = &self.shape;
-        s.trunk_a.macs_per_row() + s.trunk_b.macs_per_row() + s.colour.macs_per_row()
+        self.shape.macs_per_sample()
     }
 
     fn density_macs_per_sample(&self) -> usize {
-        // Trunk A, and trunk B without the feature columns of its last
-        // layer (inference computes its leading σ output only).
-        let s = &self.shape;
-        s.trunk_a.macs_per_row() + s.trunk_b.macs_per_row() - s.width() * s.width()
+        self.shape.density_macs_per_sample()
     }
 
     fn workspace_bytes(&self) -> usize {

@@ -468,14 +468,11 @@ impl Field for NgpField {
     }
 
     fn macs_per_sample(&self) -> usize {
-        self.shape.density.macs_per_row() + self.shape.colour.macs_per_row()
+        self.shape.macs_per_sample()
     }
 
     fn density_macs_per_sample(&self) -> usize {
-        // The hidden layers and the σ output of the density network.
-        let widths = &self.shape.density.widths;
-        widths.windows(2).map(|w| w[0] * w[1]).sum::<usize>()
-            - widths[widths.len() - 2] * (widths[widths.len() - 1] - 1)
+        self.shape.density_macs_per_sample()
     }
 
     fn workspace_bytes(&self) -> usize {

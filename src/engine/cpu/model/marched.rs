@@ -3,6 +3,7 @@
 //! updates.
 
 use super::*;
+use crate::engine::shared::driver::sigma_first;
 
 impl CpuModel {
     /// A step through the occupancy grid (one level).
@@ -71,27 +72,19 @@ impl CpuModel {
         }
         times[Stage::March] = clock.elapsed().as_secs_f64();
 
-        // Where each ray becomes opaque (its cut) needs σ of every marched
-        // sample; after it a sample's colour is never read and every
-        // gradient through it is zero. Two ways to find it, chosen by the
-        // share of samples the last step used:
-        // - σ first: a σ-only pass over every marched sample, then the
-        //   forward and backward passes on the samples before the cut;
-        // - forward first: the forward pass over every marched sample finds
-        //   the cut as it goes, and the backward pass runs on them all,
-        //   zero past the cut.
-        // Per marched sample the first costs D + 3F·u and the second 3F
-        // multiply-adds (D the σ pass, F the forward pass, u the share
-        // used; the backward is twice the forward), so forward first wins
-        // above u = 1 − D/3F: 0.72 for NeRF's field, whose rays on a
-        // Blender object use 90–100 % of their samples.
-        // Both passes are counted as the networks' forward time (the
-        // encodings are part of the field here).
+        // Where each ray becomes opaque (its cut): σ first or forward
+        // first, as `sigma_first` weighs them. Both passes are counted as
+        // the networks' forward time (the encodings are part of the field
+        // here).
         let clock = Instant::now();
         let (forward_macs, density_macs) =
             (field.macs_per_sample(), field.density_macs_per_sample());
-        let forward_first = field.may_find_cut_in_forward()
-            && self.used_fraction > 1.0 - density_macs as f64 / (3 * forward_macs) as f64;
+        let forward_first = !sigma_first(
+            field.may_find_cut_in_forward(),
+            forward_macs,
+            density_macs,
+            self.used_fraction,
+        );
         let field_params = &self.params[field_range.clone()];
         // The field's positions: unit-cube ones as marched, or world ones.
         let positions = if unit_cube {

@@ -85,6 +85,21 @@ pub trait GpuField: Send {
         sigma_out: &wgpu::Buffer,
     );
 
+    /// Multiply-adds of the networks per sample in one forward pass, and of
+    /// σ alone (as the cpu twin's), which weigh σ first against forward
+    /// first in a marched step
+    /// ([`crate::engine::shared::driver::sigma_first`]).
+    fn macs_per_sample(&self) -> usize;
+
+    fn density_macs_per_sample(&self) -> usize;
+
+    /// Whether a marched step may find each ray's cut in the forward pass
+    /// over every marched sample (as the cpu twin's
+    /// [`crate::engine::cpu::fields::Field::may_find_cut_in_forward`]).
+    fn may_find_cut_in_forward(&self) -> bool {
+        true
+    }
+
     /// Bytes of the field's workspaces on the device.
     fn workspace_bytes(&self) -> usize;
 }

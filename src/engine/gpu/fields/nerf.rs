@@ -859,6 +859,14 @@ impl super::GpuField for GpuNerfField {
         )
     }
 
+    fn macs_per_sample(&self) -> usize {
+        self.shape.macs_per_sample()
+    }
+
+    fn density_macs_per_sample(&self) -> usize {
+        self.shape.density_macs_per_sample()
+    }
+
     fn workspace_bytes(&self) -> usize {
         let buffers = [
             &self.encoded_position,

@@ -349,6 +349,21 @@ impl GpuField for GpuNgpField {
         self.forward_inputs = None;
     }
 
+    fn macs_per_sample(&self) -> usize {
+        self.shape.macs_per_sample()
+    }
+
+    fn density_macs_per_sample(&self) -> usize {
+        self.shape.density_macs_per_sample()
+    }
+
+    fn may_find_cut_in_forward(&self) -> bool {
+        // As the cpu twin (which reuses the σ pass's hash features) and as
+        // instant-ngp, which always compacts: here the σ pass recomputes
+        // the encoding, but both engines take the same passes.
+        false
+    }
+
     fn workspace_bytes(&self) -> usize {
         [
             &self.encoded,

@@ -7,16 +7,18 @@ use crate::engine::shared::composite::Distortion;
 
 impl GpuModel {
     /// A step through the occupancy grid, in two submissions: the march,
-    /// whose two counters (samples, rays kept) are read back to size the
-    /// rest; then the field, compositing with the
-    /// march's transmittance cut, the loss, the backward passes and Adam.
-    ///
-    /// Unlike the cpu model, the field's forward and backward passes run on
-    /// every marched sample, not only on those before each ray's cut: the
-    /// gradient is the same (compositing's backward pass gives the samples
-    /// past the cut zero gradient), the work is larger by the share of
-    /// samples past the cut. A σ-first pass and compaction on the device
-    /// are not built yet.
+    /// and for a σ-first step the σ pass over every marched sample, each
+    /// ray's cut and the compaction of the samples before it, whose
+    /// counters (samples, rays kept, samples used) are read back to size
+    /// the rest; then the field's forward pass (on the samples before the
+    /// cut, or on every marched sample going forward first), compositing
+    /// with the march's transmittance cut, the loss, the backward passes
+    /// and Adam. σ first or forward first is chosen as on the cpu engine
+    /// ([`sigma_first`]), from the share of samples the last measured step
+    /// used: a σ-first step's own share, read with its counters; a
+    /// forward-first step's, counted on the device after its compositing,
+    /// is read with the next step's counters, so it chooses the step after
+    /// that (one step later than on the cpu engine, which adds no wait).
     pub(super) fn run_marched(&mut self, batch: &RayBatch, step: u32, optimise: bool) -> StepStats {
         let ctx = &self.context;
         let grid = self.grid.as_ref().expect("a marched recipe has a grid");
@@ -25,20 +27,81 @@ impl GpuModel {
         let mut guard = self.work.lock().unwrap_or_else(|e| e.into_inner());
         let work = &mut *guard;
         let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
-        let unit_cube = work.fields[level.field].coordinates() == Coordinates::UnitCube;
+        let field = &mut work.fields[level.field];
+        let unit_cube = field.coordinates() == Coordinates::UnitCube;
+        let compact = sigma_first(
+            field.may_find_cut_in_forward(),
+            field.macs_per_sample(),
+            field.density_macs_per_sample(),
+            grid.used_fraction,
+        );
         let marched = work.marched.as_mut().expect("a marched recipe has buffers");
         if rays > marched.rays.capacity {
             *marched = MarchedBuffers::new(ctx, rays, grid.samples, frustums);
         }
         marched.rays.upload(ctx, batch, 0..rays, &mut work.scratch);
-
-        // Submission 1: the march and its counters.
-        let (samples, kept) = if rays == 0 {
-            (0, 0)
+        marched.out.ray_count = rays;
+        let marched = &*marched;
+        let s = &self.stages;
+        // The field's inputs from the march's samples: unit-cube positions
+        // as marched, world positions, or each step's frustum.
+        let record_inputs = |encoder: &mut wgpu::CommandEncoder, samples: usize, rays: usize| {
+            if frustums {
+                // Each marched sample stands for the frustum of its step,
+                // centred on it; its Gaussian's mean replaces the point.
+                s.frustums.record_marched(
+                    ctx,
+                    encoder,
+                    FrustumRays {
+                        origins: &marched.rays.origins,
+                        directions: &marched.rays.directions,
+                        radii: &marched.rays.radii,
+                    },
+                    MarchedIntervals {
+                        ray_offsets: &marched.out.ray_offsets,
+                        t: &marched.out.t,
+                        dt: &marched.out.dt,
+                        samples,
+                    },
+                    rays,
+                    &marched.world,
+                    &marched.variances,
+                );
+            } else if !unit_cube {
+                s.sampling.record_to_world(
+                    ctx,
+                    encoder,
+                    &grid.mapping,
+                    &marched.out.positions,
+                    samples,
+                    &marched.world,
+                );
+            }
+        };
+        let positions = if unit_cube {
+            &marched.out.positions
         } else {
-            marched.out.ray_count = rays;
+            &marched.world
+        };
+        let variances = frustums.then_some(&marched.variances);
+
+        // Submission 1: the march (and σ first: the σ pass, the cut and the
+        // compaction) and its counters.
+        let (samples, kept, used, counters) = if rays == 0 {
+            (0, 0, 0, None)
+        } else {
             let mut encoder = ctx.device.create_command_encoder(&Default::default());
             work.clock.restart(ctx, &mut encoder);
+            // The samples the last forward-first step used, counted after
+            // its compositing (before this step's compaction reuses the
+            // counter).
+            encoder.copy_buffer_to_buffer(
+                &marched.compacted.counters,
+                0,
+                &grid.counters_staging,
+                12,
+                4,
+            );
             grid.march.record(
                 ctx,
                 &mut encoder,
@@ -58,65 +121,130 @@ impl GpuModel {
                 },
                 &marched.out,
             );
-            work.clock.mark(ctx, &mut encoder, Stage::March);
+            if compact {
+                // How many samples the march kept is not known here: the
+                // inputs and σ are made for the march's whole capacity
+                // (rays past the budget have empty ranges, slots past the
+                // samples are never read), which the batch sizer keeps
+                // close to the samples marched.
+                record_inputs(&mut encoder, grid.samples, rays);
+                work.clock.mark(ctx, &mut encoder, Stage::March);
+                field.record_density(
+                    ctx,
+                    &mut encoder,
+                    &self.params,
+                    positions,
+                    variances,
+                    grid.samples,
+                    &marched.sigma,
+                );
+                // Each ray's samples before its cut, by compositing's own
+                // arithmetic over the σ pass (its colours are not read
+                // back; compositing runs again on the kept samples).
+                s.composite.record_forward(
+                    ctx,
+                    &mut encoder,
+                    &marched.rays.batch(
+                        SampleBuffers {
+                            sigma: &marched.sigma,
+                            rgb: &marched.rgb,
+                            dt: &marched.out.dt,
+                            t: &marched.out.t,
+                            ray_offsets: &marched.out.ray_offsets,
+                        },
+                        rays,
+                    ),
+                    self.recipe.march.min_transmittance,
+                    &CompositeOutputBuffers {
+                        rgb: &marched.rays.rgb,
+                        opacity: &marched.rays.opacity,
+                        depth: &marched.rays.depth,
+                        samples_used: &marched.rays.samples_used,
+                    },
+                );
+                grid.compaction.record(
+                    ctx,
+                    &mut encoder,
+                    &grid.march,
+                    rays,
+                    MarchedInputs {
+                        ray_offsets: &marched.out.ray_offsets,
+                        samples_used: &marched.rays.samples_used,
+                        positions,
+                        directions: &marched.out.directions,
+                        variances,
+                        dt: &marched.out.dt,
+                        t: &marched.out.t,
+                        sigma: &marched.sigma,
+                    },
+                    &marched.compacted,
+                );
+                work.clock.mark(ctx, &mut encoder, Stage::NetworksForward);
+            } else {
+                work.clock.mark(ctx, &mut encoder, Stage::March);
+            }
             encoder.copy_buffer_to_buffer(&marched.out.counters, 0, &grid.counters_staging, 0, 8);
+            encoder.copy_buffer_to_buffer(
+                &marched.compacted.counters,
+                0,
+                &grid.counters_staging,
+                8,
+                4,
+            );
             ctx.queue.submit([encoder.finish()]);
-            let counters: Vec<u32> = read_mapped(ctx, &grid.counters_staging, 2);
-            (counters[0] as usize, counters[1] as usize)
+            let counters: Vec<u32> = read_mapped(ctx, &grid.counters_staging, 4);
+            let (samples, kept) = (counters[0] as usize, counters[1] as usize);
+            let used = if compact {
+                counters[2] as usize
+            } else {
+                samples
+            };
+            (samples, kept, used, Some(counters))
         };
         let previous = work.readback.take_previous(ctx);
 
         // Submission 2: field, compositing, loss, backward, Adam.
-        let s = &self.stages;
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
         work.clock.restart(ctx, &mut encoder);
         encoder.clear_buffer(&self.gradients, 0, None);
-        if frustums {
-            // Each marched sample stands for the frustum of its step,
-            // centred on it; its Gaussian's mean replaces the point.
-            s.frustums.record_marched(
-                ctx,
-                &mut encoder,
-                FrustumRays {
-                    origins: &marched.rays.origins,
-                    directions: &marched.rays.directions,
-                    radii: &marched.rays.radii,
-                },
-                MarchedIntervals {
-                    ray_offsets: &marched.out.ray_offsets,
-                    t: &marched.out.t,
-                    dt: &marched.out.dt,
-                    samples,
-                },
-                kept,
-                &marched.world,
-                &marched.variances,
-            );
-        } else if !unit_cube {
-            s.sampling.record_to_world(
-                ctx,
-                &mut encoder,
-                &grid.mapping,
-                &marched.out.positions,
-                samples,
-                &marched.world,
-            );
-        }
-        work.clock.mark(ctx, &mut encoder, Stage::March);
-        let positions = if unit_cube {
-            &marched.out.positions
-        } else {
-            &marched.world
-        };
-        let field = &mut work.fields[level.field];
+        // The samples the field, compositing and the backward pass see: the
+        // compacted ones (σ from the σ pass, as the cut was found with it),
+        // or all marched ones.
+        let c = &marched.compacted;
+        let (field_positions, field_variances, directions, sample_sigma, dt, t, offsets) =
+            if compact {
+                (
+                    &c.positions,
+                    frustums.then_some(&c.variances),
+                    &c.directions,
+                    &c.sigma,
+                    &c.dt,
+                    &c.t,
+                    &c.ray_offsets,
+                )
+            } else {
+                record_inputs(&mut encoder, samples, kept);
+                work.clock.mark(ctx, &mut encoder, Stage::March);
+                (
+                    positions,
+                    variances,
+                    &marched.out.directions,
+                    &marched.sigma,
+                    &marched.out.dt,
+                    &marched.out.t,
+                    &marched.out.ray_offsets,
+                )
+            };
+        // σ first, the forward pass's own σ goes to the march's σ buffer,
+        // unused.
         field.record_forward(
             ctx,
             &mut encoder,
             &self.params,
-            positions,
-            frustums.then_some(&marched.variances),
-            &marched.out.directions,
-            samples,
+            field_positions,
+            field_variances,
+            directions,
+            used,
             &marched.sigma,
             &marched.rgb,
         );
@@ -136,11 +264,11 @@ impl GpuModel {
             &mut encoder,
             &marched.rays,
             SampleBuffers {
-                sigma: &marched.sigma,
+                sigma: sample_sigma,
                 rgb: &marched.rgb,
-                dt: &marched.out.dt,
-                t: &marched.out.t,
-                ray_offsets: &marched.out.ray_offsets,
+                dt,
+                t,
+                ray_offsets: offsets,
             },
             kept,
             self.recipe.march.min_transmittance,
@@ -152,6 +280,17 @@ impl GpuModel {
                 rgb: &marched.d_rgb,
             },
         );
+        if !compact && kept > 0 {
+            // The samples this step used, for the next step's choice.
+            grid.compaction.record_count(
+                ctx,
+                &mut encoder,
+                &grid.march,
+                &marched.rays.samples_used,
+                kept,
+                &marched.compacted,
+            );
+        }
         work.clock.mark(ctx, &mut encoder, Stage::Composite);
         field.record_backward(
             ctx,
@@ -159,7 +298,7 @@ impl GpuModel {
             &self.params,
             &marched.d_sigma,
             &marched.d_rgb,
-            samples,
+            used,
             &self.gradients,
         );
         work.clock.mark(ctx, &mut encoder, Stage::NetworksBackward);
@@ -180,12 +319,29 @@ impl GpuModel {
         let StepResults { loss, times } = work.readback.finish(ctx, &work.clock, previous);
         drop(guard);
         self.batch_sizer.record(kept, samples);
+        // The share of samples used, for the next step's choice: this
+        // step's, σ first; the last forward-first step's, counted after its
+        // compositing and read with this step's counters.
+        let grid = self.grid.as_mut().expect("a marched recipe has a grid");
+        if let Some(counters) = counters {
+            if let Some(previous) = grid.forward_first_samples.take()
+                && previous > 0
+            {
+                grid.used_fraction = counters[3] as f64 / previous as f64;
+            }
+            if compact && samples > 0 {
+                grid.used_fraction = used as f64 / samples as f64;
+            }
+        }
+        if !compact && kept > 0 {
+            grid.forward_first_samples = Some(samples);
+        }
         StepStats {
             loss,
             level_losses: [loss, 0.0],
             rays: if rays == 0 { 0 } else { kept },
             samples,
-            samples_composited: None,
+            samples_composited: compact.then_some(used),
             times,
             network_flops: 0.0,
         }

@@ -45,8 +45,8 @@
 //! ([`SamplerKind::Occupancy`]) keeps the grid's values on the host with
 //! the cpu engine's update code, its
 //! bitfield on the device, the march ([`GpuMarch`]) and everything after
-//! it on the device (see [`GpuModel::run_marched`] for the one difference
-//! from the cpu: no σ-first compaction yet).
+//! it on the device, σ first or forward first as the cpu engine chooses
+//! (see [`GpuModel::run_marched`]).
 
 use std::ops::Range;
 use std::sync::Mutex;
@@ -55,6 +55,7 @@ use std::time::Instant;
 use glam::Vec3;
 
 use super::adam::GpuAdam;
+use super::compact::{CompactedSamples, GpuCompaction, MarchedInputs};
 use super::composite::{CompositeOutputBuffers, GpuComposite};
 use super::context::{GpuContext, GpuError};
 use super::fields::GpuField;
@@ -74,7 +75,7 @@ use crate::engine::crop::{crop_densities, crop_ray_bounds};
 use crate::engine::shared::batch_sizer::BatchSizer;
 use crate::engine::shared::driver::{
     ModelIdentity, RAYS_PER_CHUNK, check_sampling, chunk_jitter_seed, grid_cell_variance,
-    grid_sample_inputs, ray_bounds, to_world,
+    grid_sample_inputs, ray_bounds, sigma_first, to_world,
 };
 use crate::engine::shared::march::{GridSamples, MarchParams, mix_seed, render_through_grid};
 use crate::engine::shared::occupancy::OccupancyGrid;
@@ -146,7 +147,18 @@ struct Grid {
     mapping: UnitCubeMapping,
     /// Samples per batch: every per-sample buffer holds this many.
     samples: usize,
+    /// The march's two counters, the samples kept after the cut by this
+    /// step's σ-first compaction, and those of the last step that went
+    /// forward first (measured after it, read with this step's counters).
     counters_staging: wgpu::Buffer,
+    compaction: GpuCompaction,
+    /// The share of its marched samples the last measured step used
+    /// (before each ray's cut), which chooses σ first or forward first
+    /// ([`sigma_first`]).
+    used_fraction: f64,
+    /// The marched samples of the last step that went forward first, whose
+    /// used samples are counted on the device after its compositing.
+    forward_first_samples: Option<usize>,
     /// Frustum recipes: the covariance diagonal the field's density is
     /// asked for at each grid update position (one cell's,
     /// [`grid_cell_variance`], `samples` × 3).
@@ -169,6 +181,8 @@ impl Grid {
 /// Per-sample and per-ray buffers of a marched step.
 struct MarchedBuffers {
     out: GpuMarchBuffers,
+    /// The samples before each ray's cut, σ first.
+    compacted: CompactedSamples,
     rays: RayBuffers,
     /// Marched positions in world space (the field's input): the frustums'
     /// means for a frustum recipe.
@@ -187,6 +201,7 @@ impl MarchedBuffers {
         let f = |label: &str, n: usize| zeroed_storage_buffer::<f32>(context, label, n);
         Self {
             out: GpuMarchBuffers::new(context, rays, samples),
+            compacted: CompactedSamples::new(context, rays, samples, frustums),
             rays: RayBuffers::new(context, rays),
             world: f("marched world positions", 3 * samples),
             variances: f("marched variances", if frustums { 3 * samples } else { 1 }),
@@ -202,6 +217,7 @@ impl MarchedBuffers {
         self.out.capacity * 4 * (3 + 3 + 1 + 1 + 3 + 1 + 3 + 1 + 3)
             + self.variances.size() as usize
             + self.rays.bytes()
+            + self.compacted.bytes()
     }
 }
 
@@ -527,10 +543,13 @@ impl GpuModel {
                     samples,
                     counters_staging: ctx.device.create_buffer(&wgpu::BufferDescriptor {
                         label: Some("march counters read-back"),
-                        size: 8,
+                        size: 16,
                         usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
                         mapped_at_creation: false,
                     }),
+                    compaction: GpuCompaction::new(ctx).map_err(gpu)?,
+                    used_fraction: 1.0,
+                    forward_first_samples: None,
                 })
             }
         };
@@ -577,6 +596,24 @@ impl GpuModel {
         }
         self.rays_per_chunk = rays;
         Ok(())
+    }
+
+    /// Whether marched steps choose between σ first and forward first by
+    /// the share of samples used (as `CpuModel`'s: fields that may find the
+    /// cut in their forward pass); the choice is saved with a checkpoint.
+    fn chooses_pass_order(&self) -> bool {
+        self.grid.is_some()
+            && self.work().fields[self.recipe.levels[0].field].may_find_cut_in_forward()
+    }
+
+    /// Marched steps choose σ first or forward first as if the last step
+    /// had used `fraction` of its samples (tests compare both orders), as
+    /// `CpuModel::assume_used_fraction`.
+    pub fn assume_used_fraction(&mut self, fraction: f64) {
+        if let Some(grid) = self.grid.as_mut() {
+            grid.used_fraction = fraction;
+            grid.forward_first_samples = None;
+        }
     }
 
     pub fn context(&self) -> &GpuContext {
@@ -869,7 +906,10 @@ impl RadianceModel for GpuModel {
                 samples_per_ray: self.batch_sizer.samples_per_ray(),
                 param_count: self.param_count,
                 sampling: self.identity.sampling.map(Into::into),
-                used_fraction: None,
+                used_fraction: self
+                    .chooses_pass_order()
+                    .then(|| self.grid.as_ref().map(|g| g.used_fraction))
+                    .flatten(),
                 grid_extent: self.grid_extent(),
             },
             params: self.params(),
@@ -914,6 +954,10 @@ impl RadianceModel for GpuModel {
             .set_samples_per_ray(state.header.samples_per_ray);
         self.loss = state.header.loss;
         self.seed = state.header.seed;
+        if let Some(grid) = self.grid.as_mut() {
+            grid.used_fraction = state.header.used_fraction.unwrap_or(1.0);
+            grid.forward_first_samples = None;
+        }
         Ok(())
     }
 
