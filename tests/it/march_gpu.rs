@@ -356,6 +356,7 @@ fn grid_update_matches_cpu() {
 /// prefix sum across blocks).
 #[test]
 fn compaction_keeps_each_rays_samples_before_its_cut_in_order() {
+    let _cores = crate::common::shared();
     use zrak::engine::gpu::compact::{CompactedSamples, GpuCompaction, MarchedInputs};
     use zrak::engine::gpu::kernel::{read_buffer, storage_buffer};
 
