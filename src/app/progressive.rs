@@ -11,7 +11,7 @@ use glam::Vec3;
 use crate::engine::gpu::GpuContext;
 use crate::render::RenderMode;
 use crate::scene::{Camera, Intrinsics};
-use crate::train::model::{RadianceModel, RenderedPixel, TextureRender};
+use crate::train::model::{RadianceModel, RenderRays, RenderedPixel, TextureRender};
 
 /// `camera` seen at 1/`downscale` of its resolution, at least one pixel each
 /// way. The image plane keeps its extent, so the focal lengths and the
@@ -169,13 +169,13 @@ impl LevelRender {
             self.directions.push(ray.direction);
             self.radii.push(ray.radius());
         }
-        model.render(
-            &self.origins,
-            &self.directions,
-            &self.radii,
+        let rays = RenderRays {
+            origins: &self.origins,
+            directions: &self.directions,
+            radii: &self.radii,
             background,
-            &mut self.pixels[self.done..end],
-        );
+        };
+        model.render(rays, &mut self.pixels[self.done..end]);
         let rendered = end - self.done;
         self.done = end;
         rendered

@@ -781,14 +781,7 @@ mod tests {
             Default::default()
         }
 
-        fn render(
-            &self,
-            _: &[glam::Vec3],
-            _: &[glam::Vec3],
-            _: &[f32],
-            _: [f32; 3],
-            out: &mut [crate::model::RenderedPixel],
-        ) {
+        fn render(&self, _: crate::model::RenderRays, out: &mut [crate::model::RenderedPixel]) {
             for pixel in out {
                 *pixel = crate::model::RenderedPixel {
                     rgb: [1.0; 3],

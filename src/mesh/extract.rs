@@ -6,7 +6,7 @@ use glam::Vec3;
 use super::marching::{ScalarGrid, marching_cubes};
 use super::{Mesh, MinComponent};
 use crate::field::ModelKind;
-use crate::model::RadianceModel;
+use crate::model::{PointQuery, RadianceModel};
 use crate::scene::crop::CropBox;
 use crate::scene::image::to_u8;
 
@@ -176,7 +176,12 @@ impl DensitySampler {
                 let k = index / layer;
                 self.grid.position(i, j, k)
             }));
-            model.density_at(&positions, footprint, &mut self.grid.values[start..end])?;
+            let query = PointQuery {
+                positions: &positions,
+                directions: &[],
+                footprint,
+            };
+            model.density_at(query, &mut self.grid.values[start..end])?;
             if turned {
                 // The grid covers the turned box's bounding box: nodes
                 // outside the box itself are empty.
@@ -257,12 +262,12 @@ fn surface_of(
         .map(|&n| if n == Vec3::ZERO { -Vec3::Z } else { -n })
         .collect();
     let mut rgb = vec![0f32; 3 * mesh.positions.len()];
-    model.colour_at(
-        &mesh.positions,
-        &directions,
-        grid.spacing.max_element(),
-        &mut rgb,
-    )?;
+    let query = PointQuery {
+        positions: &mesh.positions,
+        directions: &directions,
+        footprint: grid.spacing.max_element(),
+    };
+    model.colour_at(query, &mut rgb)?;
     mesh.colours = rgb
         .chunks_exact(3)
         .map(|c| [to_u8(c[0]), to_u8(c[1]), to_u8(c[2])])

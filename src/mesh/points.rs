@@ -3,7 +3,7 @@
 
 use glam::Vec3;
 
-use crate::model::RadianceModel;
+use crate::model::{RadianceModel, RayColumns};
 use crate::scene::crop::CropBox;
 use crate::scene::image::to_u8;
 use crate::scene::{Frame, Ray};
@@ -69,12 +69,10 @@ pub fn points_of_view(
         .map(|(i, j)| view.camera.pixel_ray(i, j))
         .collect();
     for chunk in rays.chunks(RAYS_PER_CALL) {
-        let origins: Vec<Vec3> = chunk.iter().map(|r| r.origin).collect();
-        let directions: Vec<Vec3> = chunk.iter().map(|r| r.direction).collect();
-        let radii: Vec<f32> = chunk.iter().map(|r| r.radius()).collect();
+        let columns = RayColumns::of(chunk);
         pixels.resize(chunk.len(), Default::default());
-        model.render(&origins, &directions, &radii, [0.0; 3], &mut pixels);
-        for ((o, d), p) in origins.iter().zip(&directions).zip(&pixels) {
+        model.render(columns.over([0.0; 3]), &mut pixels);
+        for ((o, d), p) in columns.origins.iter().zip(&columns.directions).zip(&pixels) {
             if !(p.opacity >= settings.min_opacity && p.opacity > 0.0) {
                 continue;
             }

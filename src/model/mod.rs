@@ -182,6 +182,58 @@ impl LevelLossSum {
     }
 }
 
+/// Rays to render, as [`RadianceModel::render`] takes them: world origins,
+/// unit directions and cone radii at unit distance
+/// ([`crate::scene::Ray::radius`], which models of cones (Mip-NeRF) read
+/// and the others ignore), composited over `background`.
+#[derive(Debug, Clone, Copy)]
+pub struct RenderRays<'a> {
+    pub origins: &'a [Vec3],
+    pub directions: &'a [Vec3],
+    pub radii: &'a [f32],
+    pub background: [f32; 3],
+}
+
+/// A list of rays as the columns [`RenderRays`] borrows.
+#[derive(Debug, Clone, Default)]
+pub struct RayColumns {
+    pub origins: Vec<Vec3>,
+    pub directions: Vec<Vec3>,
+    pub radii: Vec<f32>,
+}
+
+impl RayColumns {
+    pub fn of(rays: &[crate::scene::Ray]) -> Self {
+        Self {
+            origins: rays.iter().map(|r| r.origin).collect(),
+            directions: rays.iter().map(|r| r.direction).collect(),
+            radii: rays.iter().map(|r| r.radius()).collect(),
+        }
+    }
+
+    /// The rays, composited over `background`.
+    pub fn over(&self, background: [f32; 3]) -> RenderRays<'_> {
+        RenderRays {
+            origins: &self.origins,
+            directions: &self.directions,
+            radii: &self.radii,
+            background,
+        }
+    }
+}
+
+/// World positions at which a model is asked for σ or colour (for meshes),
+/// each standing for a cube of side `footprint` (world units), which
+/// models of cones (Mip-NeRF) integrate over and the others ignore; colour
+/// is seen along unit `directions` (one per position; σ ignores them, and
+/// they may be empty there).
+#[derive(Debug, Clone, Copy)]
+pub struct PointQuery<'a> {
+    pub positions: &'a [Vec3],
+    pub directions: &'a [Vec3],
+    pub footprint: f32,
+}
+
 /// One rendered pixel.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct RenderedPixel {
@@ -249,17 +301,9 @@ pub trait RadianceModel: Send {
     /// every random choice inside the step.
     fn step(&mut self, batch: &RayBatch, step: u32) -> StepStats;
 
-    /// Inference: composites each ray over `background`. `radii` are the
-    /// rays' cone radii at unit distance ([`crate::scene::Ray::radius`]),
-    /// which models of cones (Mip-NeRF) read and the others ignore.
-    fn render(
-        &self,
-        origins: &[Vec3],
-        directions: &[Vec3],
-        radii: &[f32],
-        background: [f32; 3],
-        out: &mut [RenderedPixel],
-    );
+    /// Inference: composites each ray over its background, a pixel per
+    /// ray into `out`.
+    fn render(&self, rays: RenderRays, out: &mut [RenderedPixel]);
 
     /// Everything needed to resume bit for bit: parameters, optimiser state,
     /// grids, counters. The header holds small values as JSON.
@@ -276,8 +320,6 @@ pub trait RadianceModel: Send {
         None
     }
 
-    /// The dense kernels of a model on the cpu engine (`None` on the gpu
-    /// engine).
     /// On the gpu engine: read each step's loss, stage times and occupancy
     /// update back at once (`false`: the step's own figures and the cpu
     /// engine's order of updates, at two or three waits for the device a
@@ -292,32 +334,18 @@ pub trait RadianceModel: Send {
         None
     }
 
-    /// σ (per world unit) at world `positions`, each sample standing for a
-    /// cube of side `footprint` (world units), which models of cones
-    /// (Mip-NeRF) integrate over and the others ignore: for meshes. Models
-    /// of levels answer with their finest field.
-    fn density_at(
-        &self,
-        _positions: &[Vec3],
-        _footprint: f32,
-        _sigma: &mut [f32],
-    ) -> Result<(), String> {
+    /// σ (per world unit) at `points`: for meshes. Models of levels answer
+    /// with their finest field.
+    fn density_at(&self, _points: PointQuery, _sigma: &mut [f32]) -> Result<(), String> {
         Err(format!(
             "{} cannot be asked for its density at points; give --engine cpu",
             self.describe()
         ))
     }
 
-    /// Colour (linear 0 to 1, n × 3) at world `positions` seen along unit
-    /// `directions`, with `footprint` as in [`Self::density_at`]: for the
-    /// colours of a mesh's vertices.
-    fn colour_at(
-        &self,
-        _positions: &[Vec3],
-        _directions: &[Vec3],
-        _footprint: f32,
-        _rgb: &mut [f32],
-    ) -> Result<(), String> {
+    /// Colour (linear 0 to 1, n × 3) at `points`, seen along their
+    /// directions: for the colours of a mesh's vertices.
+    fn colour_at(&self, _points: PointQuery, _rgb: &mut [f32]) -> Result<(), String> {
         Err(format!(
             "{} cannot be asked for its colour at points; give --engine cpu",
             self.describe()

@@ -5,7 +5,7 @@
 
 use rayon::prelude::*;
 
-use super::{RadianceModel, RenderMode, RenderedPixel};
+use super::{RadianceModel, RayColumns, RenderMode, RenderedPixel};
 use crate::scene::{Camera, ImageRgba8, image::to_u8};
 
 /// Rays per call into the model: large enough to keep every core busy,
@@ -22,10 +22,7 @@ pub fn render_pixels(
     let rays = camera.all_rays();
     let mut out = vec![RenderedPixel::default(); rays.len()];
     for (chunk, out) in rays.chunks(TILE_RAYS).zip(out.chunks_mut(TILE_RAYS)) {
-        let origins: Vec<_> = chunk.iter().map(|r| r.origin).collect();
-        let directions: Vec<_> = chunk.iter().map(|r| r.direction).collect();
-        let radii: Vec<_> = chunk.iter().map(|r| r.radius()).collect();
-        model.render(&origins, &directions, &radii, background, out);
+        model.render(RayColumns::of(chunk).over(background), out);
     }
     out
 }

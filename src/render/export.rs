@@ -344,7 +344,7 @@ mod tests {
     use super::*;
     use crate::model::batch::RayBatch;
     use crate::model::checkpoint::Checkpoint;
-    use crate::model::{RenderedPixel, StepStats};
+    use crate::model::{RenderRays, RenderedPixel, StepStats};
     use crate::scene::demo::{DemoConfig, build};
 
     /// A model-free stand-in: every ray's colour is its direction, so
@@ -364,15 +364,8 @@ mod tests {
             StepStats::default()
         }
 
-        fn render(
-            &self,
-            _origins: &[Vec3],
-            directions: &[Vec3],
-            _radii: &[f32],
-            _background: [f32; 3],
-            out: &mut [RenderedPixel],
-        ) {
-            for (pixel, d) in out.iter_mut().zip(directions) {
+        fn render(&self, rays: RenderRays, out: &mut [RenderedPixel]) {
+            for (pixel, d) in out.iter_mut().zip(rays.directions) {
                 let colour = 0.5 * (*d + Vec3::ONE);
                 *pixel = RenderedPixel {
                     rgb: colour.to_array(),

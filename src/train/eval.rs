@@ -7,7 +7,7 @@ use crate::metrics::{self, ImageScores, RgbImage, WHITE};
 use crate::model::pixels::{render_pixels, rgb_of};
 use crate::scene::Frame;
 
-use crate::model::RadianceModel;
+use crate::model::{RadianceModel, RayColumns};
 
 /// Scores of one view.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -76,11 +76,8 @@ pub fn mean_psnr_sampled(model: &dyn RadianceModel, frames: &[&Frame], rays: usi
                 .iter()
                 .map(|&(x, y)| frame.camera.pixel_ray(x, y))
                 .collect();
-            let origins: Vec<_> = rays.iter().map(|r| r.origin).collect();
-            let directions: Vec<_> = rays.iter().map(|r| r.direction).collect();
-            let radii: Vec<_> = rays.iter().map(|r| r.radius()).collect();
             let mut out = vec![Default::default(); coordinates.len()];
-            model.render(&origins, &directions, &radii, WHITE, &mut out);
+            model.render(RayColumns::of(&rays).over(WHITE), &mut out);
             let mut squared = 0f64;
             for (&(x, y), pixel) in coordinates.iter().zip(&out) {
                 let truth = frame.image.rgb_over(x, y, WHITE);
@@ -212,7 +209,7 @@ mod tests {
     use super::*;
     use crate::model::batch::RayBatch;
     use crate::model::checkpoint::Checkpoint;
-    use crate::model::{RenderedPixel, StepStats};
+    use crate::model::{RenderRays, RenderedPixel, StepStats};
     use crate::scene::{Camera, ImageRgba8, Intrinsics};
 
     /// Renders every pixel black.
@@ -228,14 +225,7 @@ mod tests {
         fn step(&mut self, _batch: &RayBatch, _step: u32) -> StepStats {
             StepStats::default()
         }
-        fn render(
-            &self,
-            _origins: &[Vec3],
-            _directions: &[Vec3],
-            _radii: &[f32],
-            _background: [f32; 3],
-            out: &mut [RenderedPixel],
-        ) {
+        fn render(&self, _: RenderRays, out: &mut [RenderedPixel]) {
             for pixel in out {
                 pixel.rgb = [0.0; 3];
                 pixel.opacity = 1.0;

@@ -441,16 +441,9 @@ mod tests {
                 ..StepStats::default()
             }
         }
-        fn render(
-            &self,
-            _origins: &[glam::Vec3],
-            _directions: &[glam::Vec3],
-            _radii: &[f32],
-            background: [f32; 3],
-            out: &mut [RenderedPixel],
-        ) {
+        fn render(&self, rays: crate::model::RenderRays, out: &mut [RenderedPixel]) {
             for pixel in out {
-                pixel.rgb = background;
+                pixel.rgb = rays.background;
             }
         }
         fn save(&self) -> Checkpoint {

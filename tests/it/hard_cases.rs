@@ -804,13 +804,13 @@ fn run_row(row: &Row, scene: &Scene) -> Vec<String> {
         let gradient = model.gradient();
         let saved = model.save();
         let mut pixels = vec![RenderedPixel::default(); batch.len()];
-        model.render(
-            &batch.origins,
-            &batch.directions,
-            &batch.radii,
-            case.background,
-            &mut pixels,
-        );
+        let view = zrak::model::RenderRays {
+            origins: &batch.origins,
+            directions: &batch.directions,
+            radii: &batch.radii,
+            background: case.background,
+        };
+        model.render(view, &mut pixels);
         let outcome = Outcome {
             layout: &layout,
             rays: &rays,

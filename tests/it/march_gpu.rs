@@ -376,9 +376,7 @@ fn compaction_keeps_each_rays_samples_before_its_cut_in_order() {
     let samples = *offsets.last().unwrap() as usize;
     // Every value names its sample and component.
     let values = |components: usize, tag: f32| -> Vec<f32> {
-        (0..samples * components)
-            .map(|i| tag + i as f32)
-            .collect()
+        (0..samples * components).map(|i| tag + i as f32).collect()
     };
     let (positions, directions, variances) = (values(3, 0.0), values(3, 1e5), values(3, 2e5));
     let (dt, t, sigma) = (values(1, 3e5), values(1, 4e5), values(1, 5e5));
@@ -431,7 +429,10 @@ fn compaction_keeps_each_rays_samples_before_its_cut_in_order() {
     }
     let n = kept.len();
     assert!(n > 300 && n < samples, "{n} of {samples}");
-    assert_eq!(read_buffer::<u32>(&context, &out.counters, 1)[0] as usize, n);
+    assert_eq!(
+        read_buffer::<u32>(&context, &out.counters, 1)[0] as usize,
+        n
+    );
     assert_eq!(
         read_buffer::<u32>(&context, &out.ray_offsets, rays + 1),
         compact_offsets

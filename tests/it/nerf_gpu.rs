@@ -327,7 +327,13 @@ fn render(model: &dyn RadianceModel, scene: &Scene) -> Vec<RenderedPixel> {
         }
     }
     let mut out = vec![RenderedPixel::default(); origins.len()];
-    model.render(&origins, &directions, &radii, [1.0; 3], &mut out);
+    let rays = zrak::model::RenderRays {
+        origins: &origins,
+        directions: &directions,
+        radii: &radii,
+        background: [1.0; 3],
+    };
+    model.render(rays, &mut out);
     out
 }
 

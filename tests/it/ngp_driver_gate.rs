@@ -51,13 +51,13 @@ fn render_view(model: &dyn RadianceModel, scene: &Scene) -> Vec<RenderedPixel> {
         }
     }
     let mut out = vec![RenderedPixel::default(); origins.len()];
-    model.render(
-        &origins,
-        &directions,
-        &vec![0.0; origins.len()],
-        [1.0; 3],
-        &mut out,
-    );
+    let rays = zrak::model::RenderRays {
+        origins: &origins,
+        directions: &directions,
+        radii: &vec![0.0; origins.len()],
+        background: [1.0; 3],
+    };
+    model.render(rays, &mut out);
     out
 }
 

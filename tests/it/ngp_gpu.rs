@@ -199,8 +199,13 @@ fn render_view(model: &dyn RadianceModel, scene: &Scene) -> Vec<RenderedPixel> {
         }
     }
     let mut out = vec![RenderedPixel::default(); origins.len()];
-    let radii = vec![0.0; origins.len()];
-    model.render(&origins, &directions, &radii, [1.0; 3], &mut out);
+    let rays = zrak::model::RenderRays {
+        origins: &origins,
+        directions: &directions,
+        radii: &vec![0.0; origins.len()],
+        background: [1.0; 3],
+    };
+    model.render(rays, &mut out);
     out
 }
 

@@ -85,16 +85,13 @@ fn new_driver(scene: &Scene, context: &GpuContext) -> Box<dyn RadianceModel> {
 fn render_view(model: &dyn RadianceModel, scene: &Scene) -> Vec<RenderedPixel> {
     let camera = &scene.val[0].camera;
     let rays = camera.all_rays();
-    let origins: Vec<_> = rays.iter().map(|r| r.origin).collect();
-    let directions: Vec<_> = rays.iter().map(|r| r.direction).collect();
+    // Rays without cones, as the record was made.
+    let columns = zrak::model::RayColumns {
+        radii: vec![0.0; rays.len()],
+        ..zrak::model::RayColumns::of(&rays)
+    };
     let mut out = vec![RenderedPixel::default(); rays.len()];
-    model.render(
-        &origins,
-        &directions,
-        &vec![0.0; rays.len()],
-        [1.0; 3],
-        &mut out,
-    );
+    model.render(columns.over([1.0; 3]), &mut out);
     out
 }
 

@@ -34,7 +34,7 @@ use crate::scene::demo::{self, DemoConfig};
 use crate::scene::{Camera, Frame, LoadOptions, Scene};
 use crate::train::checkpoint::Checkpoint;
 use crate::train::eval::{pixel_grid, spread_views};
-use crate::train::model::{RadianceModel, RenderedPixel, Stage, StageTimes, StepStats};
+use crate::train::model::{RadianceModel, RayColumns, RenderedPixel, Stage, StageTimes, StepStats};
 use crate::train::trainer::Trainer;
 use crate::train::{ModelSettings, build_model};
 

@@ -78,11 +78,8 @@ impl ValJob {
             .iter()
             .map(|&(view, x, y)| frames[view].camera.pixel_ray(x, y))
             .collect();
-        let origins: Vec<_> = rays.iter().map(|r| r.origin).collect();
-        let directions: Vec<_> = rays.iter().map(|r| r.direction).collect();
-        let radii: Vec<_> = rays.iter().map(|r| r.radius()).collect();
         let mut out = vec![RenderedPixel::default(); chunk.len()];
-        model.render(&origins, &directions, &radii, WHITE, &mut out);
+        model.render(RayColumns::of(&rays).over(WHITE), &mut out);
         for (&(view, x, y), pixel) in chunk.iter().zip(&out) {
             let truth = frames[view].image.rgb_over(x, y, WHITE);
             self.squared[view] += pixel

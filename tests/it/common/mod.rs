@@ -135,15 +135,18 @@ pub fn assert_engines_agree_at_points(
     let directions: Vec<glam::Vec3> = (0..n)
         .map(|_| glam::Vec3::new(uniform(), uniform(), uniform()).normalize_or(glam::Vec3::Z))
         .collect();
+    let query = zrak::model::PointQuery {
+        positions: &positions,
+        directions: &directions,
+        footprint,
+    };
     let (mut sigma_cpu, mut sigma_gpu) = (vec![0.0; n], vec![0.0; n]);
-    cpu.density_at(&positions, footprint, &mut sigma_cpu)
-        .unwrap();
-    gpu.density_at(&positions, footprint, &mut sigma_gpu)
+    cpu.density_at(query, &mut sigma_cpu).unwrap();
+    gpu.density_at(query, &mut sigma_gpu)
         .expect("the gpu engine answers σ at points");
     let (mut rgb_cpu, mut rgb_gpu) = (vec![0.0; 3 * n], vec![0.0; 3 * n]);
-    cpu.colour_at(&positions, &directions, footprint, &mut rgb_cpu)
-        .unwrap();
-    gpu.colour_at(&positions, &directions, footprint, &mut rgb_gpu)
+    cpu.colour_at(query, &mut rgb_cpu).unwrap();
+    gpu.colour_at(query, &mut rgb_gpu)
         .expect("the gpu engine answers colours at points");
     let largest = sigma_cpu.iter().fold(0f32, |m, s| m.max(s.abs()));
     let worst = |a: &[f32], b: &[f32]| a.iter().zip(b).fold(0f32, |m, (x, y)| m.max((x - y).abs()));

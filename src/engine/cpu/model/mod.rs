@@ -47,7 +47,9 @@ use crate::field::ngp::LossKind;
 use crate::field::params::ParamLayout;
 use crate::model::batch::RayBatch;
 use crate::model::checkpoint::Checkpoint;
-use crate::model::{RadianceModel, RenderedPixel, Stage, StageTimes, StepStats};
+use crate::model::{
+    PointQuery, RadianceModel, RenderRays, RenderedPixel, Stage, StageTimes, StepStats,
+};
 use crate::scene::{Aabb, Scene, UnitCubeMapping};
 
 mod fixed;
@@ -421,14 +423,8 @@ impl RadianceModel for CpuModel {
         stats
     }
 
-    fn render(
-        &self,
-        origins: &[Vec3],
-        directions: &[Vec3],
-        radii: &[f32],
-        background: [f32; 3],
-        out: &mut [RenderedPixel],
-    ) {
+    fn render(&self, rays: RenderRays, out: &mut [RenderedPixel]) {
+        let (origins, directions) = (rays.origins, rays.directions);
         let flat = |v: &[Vec3]| v.iter().flat_map(|x| x.to_array()).collect::<Vec<f32>>();
         match &self.grid {
             Some(grid) => {
@@ -444,7 +440,7 @@ impl RadianceModel for CpuModel {
                     &self.mapping,
                     origins,
                     directions,
-                    background,
+                    rays.background,
                     &self.recipe.march,
                     field.inference_rows(),
                     |samples: &GridSamples, sigma, rgb| {
@@ -468,7 +464,7 @@ impl RadianceModel for CpuModel {
                             &mapping,
                             origins,
                             directions,
-                            radii,
+                            rays.radii,
                             &mut world,
                             &mut variances,
                         );
@@ -487,16 +483,18 @@ impl RadianceModel for CpuModel {
                     out,
                 );
             }
-            None => self.render_fixed(&flat(origins), &flat(directions), radii, background, out),
+            None => self.render_fixed(
+                &flat(origins),
+                &flat(directions),
+                rays.radii,
+                rays.background,
+                out,
+            ),
         }
     }
 
-    fn density_at(
-        &self,
-        positions: &[Vec3],
-        footprint: f32,
-        sigma: &mut [f32],
-    ) -> Result<(), String> {
+    fn density_at(&self, query: PointQuery, sigma: &mut [f32]) -> Result<(), String> {
+        let (positions, footprint) = (query.positions, query.footprint);
         let level = *self.recipe.levels.last().expect("a recipe has levels");
         let field = &self.fields[level.field];
         let params = &self.params[self.ranges[level.field].clone()];
@@ -533,13 +531,9 @@ impl RadianceModel for CpuModel {
         Ok(())
     }
 
-    fn colour_at(
-        &self,
-        positions: &[Vec3],
-        directions: &[Vec3],
-        footprint: f32,
-        rgb: &mut [f32],
-    ) -> Result<(), String> {
+    fn colour_at(&self, query: PointQuery, rgb: &mut [f32]) -> Result<(), String> {
+        let (positions, directions) = (query.positions, query.directions);
+        let footprint = query.footprint;
         let level = *self.recipe.levels.last().expect("a recipe has levels");
         let field = &self.fields[level.field];
         let params = &self.params[self.ranges[level.field].clone()];

@@ -87,7 +87,10 @@ use crate::field::params::ParamLayout;
 use crate::model::batch::RayBatch;
 use crate::model::checkpoint::Checkpoint;
 use crate::model::pixels::{render_pixels, to_image};
-use crate::model::{RadianceModel, RenderMode, RenderedPixel, Stage, StepStats, TextureRender};
+use crate::model::{
+    PointQuery, RadianceModel, RenderMode, RenderRays, RenderedPixel, Stage, StepStats,
+    TextureRender,
+};
 use crate::scene::Camera;
 use crate::scene::crop::CropBox;
 use crate::scene::{Aabb, Scene, UnitCubeMapping};
@@ -791,21 +794,15 @@ impl RadianceModel for GpuModel {
         self.work().readback.set_late(late);
     }
 
-    fn render(
-        &self,
-        origins: &[Vec3],
-        directions: &[Vec3],
-        radii: &[f32],
-        background: [f32; 3],
-        out: &mut [RenderedPixel],
-    ) {
+    fn render(&self, view: RenderRays, out: &mut [RenderedPixel]) {
+        let (origins, directions, radii) = (view.origins, view.directions, view.radii);
         if let Some(grid) = &self.grid {
             render_through_grid(
                 &grid.grid,
                 &grid.mapping,
                 origins,
                 directions,
-                background,
+                view.background,
                 &self.recipe.march,
                 grid.samples,
                 |samples, sigma, rgb| {
@@ -822,7 +819,7 @@ impl RadianceModel for GpuModel {
         let rays = origins.len().min(directions.len()).min(out.len());
         let flat = |v: &[Vec3]| v.iter().flat_map(|x| x.to_array()).collect::<Vec<f32>>();
         let (origins, directions) = (flat(&origins[..rays]), flat(&directions[..rays]));
-        let backgrounds = background.repeat(RAYS_PER_CHUNK);
+        let backgrounds = view.background.repeat(RAYS_PER_CHUNK);
         let mut guard = self.work();
         let work = &mut *guard;
         ctx.queue.write_buffer(
@@ -873,25 +870,15 @@ impl RadianceModel for GpuModel {
         Ok(())
     }
 
-    fn density_at(
-        &self,
-        positions: &[Vec3],
-        footprint: f32,
-        sigma: &mut [f32],
-    ) -> Result<(), String> {
-        self.evaluate_points(positions, footprint, sigma, None);
+    fn density_at(&self, query: PointQuery, sigma: &mut [f32]) -> Result<(), String> {
+        self.evaluate_points(query.positions, query.footprint, sigma, None);
         Ok(())
     }
 
-    fn colour_at(
-        &self,
-        positions: &[Vec3],
-        directions: &[Vec3],
-        footprint: f32,
-        rgb: &mut [f32],
-    ) -> Result<(), String> {
-        let mut sigma = vec![0.0; positions.len()];
-        self.evaluate_points(positions, footprint, &mut sigma, Some((directions, rgb)));
+    fn colour_at(&self, query: PointQuery, rgb: &mut [f32]) -> Result<(), String> {
+        let mut sigma = vec![0.0; query.positions.len()];
+        let colour = Some((query.directions, rgb));
+        self.evaluate_points(query.positions, query.footprint, &mut sigma, colour);
         Ok(())
     }
 

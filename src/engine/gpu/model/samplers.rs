@@ -291,14 +291,8 @@ mod tests {
             recipe.levels[level].sampler = sampler;
             per_ray(&recipe).expect_err("refused")
         };
-        let importance = SamplerKind::Importance {
-            count: 8,
-            padding: 0.0,
-        };
-        let resample = SamplerKind::Resample {
-            count: 8,
-            padding: 0.0,
-        };
+        // Each paper's second level, put where the other paper's goes.
+        let (importance, resample) = (nerf.levels[1].sampler, mipnerf.levels[1].sampler);
         let refusals = [
             (
                 with(&mipnerf, 1, importance),
