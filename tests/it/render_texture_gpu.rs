@@ -3,15 +3,17 @@
 //! `to_image`), in every mode, on a model with structure (a few hundred cpu
 //! steps on the demo scene, moved to the gpu through a checkpoint).
 
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use glam::{Quat, Vec3};
 
+use zrak::engine::cpu::model::CpuModel;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::model::GpuModel;
 use zrak::engine::gpu::render::{read_texture_rgba8, render_target};
 use zrak::field::ngp::LossKind;
 use zrak::model::TextureRender;
+use zrak::model::checkpoint::Checkpoint;
 use zrak::render::{RenderMode, render_pixels, to_image};
 use zrak::rng::Pcg32;
 use zrak::scene::crop::CropBox;
@@ -22,10 +24,12 @@ use zrak::train::model::{RadianceModel, RenderedPixel};
 
 const SEED: u64 = 3;
 
+const SMALL_TRAIN_VIEWS: usize = 16;
+
 fn scene() -> Arc<Scene> {
     Arc::new(demo::build(&DemoConfig {
         size: 24,
-        train_views: 16,
+        train_views: SMALL_TRAIN_VIEWS,
         val_views: 2,
         test_views: 1,
     }))
@@ -39,14 +43,44 @@ fn trained_gpu_model(scene: &Scene, batch_samples: usize) -> GpuModel {
 }
 
 /// The cpu model of [`trained_gpu_model`] and the gpu model loaded from it.
+/// The small scene's training ([`scene`]) is done once and shared by the
+/// tests that render it (each gets its own models from its checkpoint).
 fn trained_models(scene: &Scene, batch_samples: usize) -> (impl RadianceModel, GpuModel) {
-    let mut cpu = zrak::train::cpu_ngp_with_shape(
+    static SMALL_SCENE_TRAINED: Mutex<Option<Checkpoint>> = Mutex::new(None);
+    let small = scene.train.len() == SMALL_TRAIN_VIEWS && scene.unit_cube.aabb_scale == 1.0;
+    let mut cpu = untrained_cpu_model(scene);
+    let mut shared = SMALL_SCENE_TRAINED
+        .lock()
+        .unwrap_or_else(|e| e.into_inner());
+    match &*shared {
+        Some(checkpoint) if small => cpu.load(checkpoint).expect("the shared checkpoint loads"),
+        _ => {
+            train(&mut cpu, scene);
+            if small {
+                *shared = Some(cpu.save());
+            }
+        }
+    }
+    drop(shared);
+    let context = GpuContext::new().expect("lavapipe or a GPU");
+    let mut gpu = zrak::train::gpu_ngp(context, scene, SEED, LossKind::Huber, batch_samples)
+        .expect("gpu model");
+    gpu.load(&cpu.save()).expect("the cpu checkpoint loads");
+    (cpu, gpu)
+}
+
+fn untrained_cpu_model(scene: &Scene) -> CpuModel {
+    zrak::train::cpu_ngp_with_shape(
         scene,
         zrak::engine::cpu::fields::ngp::NgpShape::for_scene(scene),
         SEED,
         LossKind::Huber,
         Some(1 << 12),
-    );
+    )
+}
+
+/// 60 steps of the cpu engine on `scene`'s training views.
+fn train(cpu: &mut CpuModel, scene: &Scene) {
     let mut rng = Pcg32::new(SEED, 1);
     let mut batch = RayBatch::default();
     for step in 0..60 {
@@ -59,11 +93,6 @@ fn trained_models(scene: &Scene, batch_samples: usize) -> (impl RadianceModel, G
         );
         cpu.step(&batch, step);
     }
-    let context = GpuContext::new().expect("lavapipe or a GPU");
-    let mut gpu = zrak::train::gpu_ngp(context, scene, SEED, LossKind::Huber, batch_samples)
-        .expect("gpu model");
-    gpu.load(&cpu.save()).expect("the cpu checkpoint loads");
-    (cpu, gpu)
 }
 
 /// Renders `camera` into a texture in `mode` and checks it against the
