@@ -49,19 +49,22 @@ fn trained_models(scene: &Scene, batch_samples: usize) -> (impl RadianceModel, G
     static SMALL_SCENE_TRAINED: Mutex<Option<Checkpoint>> = Mutex::new(None);
     let small = scene.train.len() == SMALL_TRAIN_VIEWS && scene.unit_cube.aabb_scale == 1.0;
     let mut cpu = untrained_cpu_model(scene);
-    let mut shared = SMALL_SCENE_TRAINED
-        .lock()
-        .unwrap_or_else(|e| e.into_inner());
-    match &*shared {
-        Some(checkpoint) if small => cpu.load(checkpoint).expect("the shared checkpoint loads"),
-        _ => {
-            train(&mut cpu, scene);
-            if small {
+    if small {
+        // Held while the first test trains, so the others wait for its
+        // checkpoint instead of training too.
+        let mut shared = SMALL_SCENE_TRAINED
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        match &*shared {
+            Some(checkpoint) => cpu.load(checkpoint).expect("the shared checkpoint loads"),
+            None => {
+                train(&mut cpu, scene);
                 *shared = Some(cpu.save());
             }
         }
+    } else {
+        train(&mut cpu, scene);
     }
-    drop(shared);
     let context = GpuContext::new().expect("lavapipe or a GPU");
     let mut gpu = zrak::train::gpu_ngp(context, scene, SEED, LossKind::Huber, batch_samples)
         .expect("gpu model");
