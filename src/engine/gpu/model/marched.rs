@@ -36,7 +36,10 @@ impl GpuModel {
             grid.used_fraction,
         );
         let marched = work.marched.as_mut().expect("a marched recipe has buffers");
-        if rays > marched.rays.capacity {
+        // New buffers lose the last forward-first step's count of samples
+        // used.
+        let reallocated = rays > marched.rays.capacity;
+        if reallocated {
             *marched = MarchedBuffers::new(ctx, rays, grid.samples, frustums);
         }
         marched.rays.upload(ctx, batch, 0..rays, &mut work.scratch);
@@ -326,6 +329,7 @@ impl GpuModel {
         if let Some(counters) = counters {
             if let Some(previous) = grid.forward_first_samples.take()
                 && previous > 0
+                && !reallocated
             {
                 grid.used_fraction = counters[3] as f64 / previous as f64;
             }
