@@ -25,7 +25,7 @@ use zrak::engine::cpu::fields::ngp::NgpShape;
 use zrak::field::ngp::LossKind;
 use zrak::scene::Scene;
 use zrak::train::checkpoint::Checkpoint;
-use zrak::train::model::{RadianceModel, RenderedPixel};
+use zrak::train::model::RadianceModel;
 use zrak::train::trainer::Trainer;
 
 const SEED: u64 = 7;
@@ -37,28 +37,6 @@ const BATCH_SAMPLES: usize = 1 << 13;
 
 fn small_scene() -> Arc<Scene> {
     common::small_scene(32)
-}
-
-fn render_view(model: &dyn RadianceModel, scene: &Scene) -> Vec<RenderedPixel> {
-    let camera = &scene.val[0].camera;
-    let k = camera.intrinsics;
-    let (mut origins, mut directions) = (Vec::new(), Vec::new());
-    for y in 0..k.height {
-        for x in 0..k.width {
-            let ray = camera.pixel_ray(x, y);
-            origins.push(ray.origin);
-            directions.push(ray.direction);
-        }
-    }
-    let mut out = vec![RenderedPixel::default(); origins.len()];
-    let rays = zrak::model::RenderRays {
-        origins: &origins,
-        directions: &directions,
-        radii: &vec![0.0; origins.len()],
-        background: [1.0; 3],
-    };
-    model.render(rays, &mut out);
-    out
 }
 
 /// Trains `model` for [`STEPS`] steps on the batches a trainer seeded with
@@ -117,7 +95,7 @@ const LOSS_TOLERANCE: f64 = 1e-3;
 /// a validation view's pixels.
 fn record_of(model: Box<dyn RadianceModel>, scene: &Arc<Scene>) -> (GateRecord, Trainer) {
     let (losses, trainer) = train(model, scene);
-    let pixels = render_view(trainer.model.as_ref(), scene);
+    let pixels = common::render_first_val_view(trainer.model.as_ref(), scene);
     let record = GateRecord::new(
         format!("{:?}", zrak::engine::cpu::dense::backend()),
         losses,

@@ -17,7 +17,7 @@ use zrak::engine::gpu::timing::StageTiming;
 use zrak::field::common::Recipe;
 use zrak::field::ngp::LossKind;
 use zrak::scene::Scene;
-use zrak::train::model::{RadianceModel, RenderedPixel, Stage};
+use zrak::train::model::{RadianceModel, Stage};
 
 /// 2^12 samples per batch: a few dozen rays through a sparse grid.
 const BATCH_SAMPLES: usize = 1 << 12;
@@ -213,28 +213,6 @@ fn one_training_step_matches_the_cpu_engine() {
     assert!(mismatched * 1000 <= changed, "{mismatched} of {changed}");
 }
 
-fn render_view(model: &dyn RadianceModel, scene: &Scene) -> Vec<RenderedPixel> {
-    let camera = &scene.val[0].camera;
-    let k = camera.intrinsics;
-    let (mut origins, mut directions) = (Vec::new(), Vec::new());
-    for y in 0..k.height {
-        for x in 0..k.width {
-            let ray = camera.pixel_ray(x, y);
-            origins.push(ray.origin);
-            directions.push(ray.direction);
-        }
-    }
-    let mut out = vec![RenderedPixel::default(); origins.len()];
-    let rays = zrak::model::RenderRays {
-        origins: &origins,
-        directions: &directions,
-        radii: &vec![0.0; origins.len()],
-        background: [1.0; 3],
-    };
-    model.render(rays, &mut out);
-    out
-}
-
 /// Every stage of a step reports its time, from GPU timestamps where the
 /// device has them (lavapipe does) and from the wall clock otherwise; the
 /// timing does not change what the step computes.
@@ -294,8 +272,8 @@ fn a_gpu_checkpoint_renders_the_same_pixels_on_the_cpu_engine() {
         cpu.occupancy().unwrap().values(),
         gpu.occupancy().unwrap().values()
     );
-    let from_cpu = render_view(&cpu, &scene);
-    let from_gpu = render_view(&gpu, &scene);
+    let from_cpu = common::render_first_val_view(&cpu, &scene);
+    let from_gpu = common::render_first_val_view(&gpu, &scene);
     let mut worst = 0f32;
     for (a, b) in from_gpu.iter().zip(&from_cpu) {
         for (x, y) in a.rgb.iter().zip(&b.rgb).chain([(&a.opacity, &b.opacity)]) {

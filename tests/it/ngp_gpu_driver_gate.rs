@@ -33,7 +33,7 @@ use zrak::field::ngp::HashGridConfig;
 use zrak::field::ngp::LossKind;
 use zrak::model::RenderMode;
 use zrak::scene::Scene;
-use zrak::train::model::{RadianceModel, RenderedPixel};
+use zrak::train::model::RadianceModel;
 use zrak::train::trainer::Trainer;
 
 const SEED: u64 = 7;
@@ -82,19 +82,6 @@ fn new_driver(scene: &Scene, context: &GpuContext) -> Box<dyn RadianceModel> {
     )
 }
 
-fn render_view(model: &dyn RadianceModel, scene: &Scene) -> Vec<RenderedPixel> {
-    let camera = &scene.val[0].camera;
-    let rays = camera.all_rays();
-    // Rays without cones, as the record was made.
-    let columns = zrak::model::RayColumns {
-        radii: vec![0.0; rays.len()],
-        ..zrak::model::RayColumns::of(&rays)
-    };
-    let mut out = vec![RenderedPixel::default(); rays.len()];
-    model.render(columns.over([1.0; 3]), &mut out);
-    out
-}
-
 /// The bytes `model` draws into the viewer's texture for the first
 /// validation view.
 fn texture_of(
@@ -140,7 +127,7 @@ fn record_of(
         device_name(context),
         losses,
         &model.save(),
-        &render_view(model, scene),
+        &common::render_first_val_view(model, scene),
         Some(&texture),
     )
 }

@@ -95,6 +95,22 @@ pub fn small_nerf_shape(kind: NerfKind) -> NerfShape {
 }
 
 /// The gpu engine's device: lavapipe where there is no GPU.
+/// The first validation view of `scene` rendered by `model` over white,
+/// row-major, with rays without cones (as the gates' records were made).
+pub fn render_first_val_view(
+    model: &dyn zrak::model::RadianceModel,
+    scene: &Scene,
+) -> Vec<zrak::model::RenderedPixel> {
+    let rays = scene.val[0].camera.all_rays();
+    let columns = zrak::model::RayColumns {
+        radii: vec![0.0; rays.len()],
+        ..zrak::model::RayColumns::of(&rays)
+    };
+    let mut out = vec![zrak::model::RenderedPixel::default(); rays.len()];
+    model.render(columns.over([1.0; 3]), &mut out);
+    out
+}
+
 pub fn gpu_context() -> GpuContext {
     GpuContext::new().expect("CI installs mesa-vulkan-drivers, so an adapter exists")
 }
