@@ -3,51 +3,32 @@
 //! vertices and its points measured against the analytic objects the
 //! demo's ray tracer draws.
 
-use std::sync::{Arc, Mutex, OnceLock};
+use std::sync::{Mutex, OnceLock};
 use std::time::Instant;
 
 use glam::Vec3;
 use zrak::field::ModelKind;
-use zrak::field::ngp::LossKind;
 use zrak::mesh::extract::{MeshSettings, default_threshold, extract_mesh};
 use zrak::mesh::points::{PointSettings, extract_points};
 use zrak::render::render_pixels;
 use zrak::scene::Scene;
 use zrak::scene::crop::CropBox;
-use zrak::scene::demo::{self, DemoConfig, GREEN_CENTRE, RED_CENTRE, surface_distance};
+use zrak::scene::demo::{GREEN_CENTRE, RED_CENTRE, surface_distance};
 use zrak::train::trainer::Trainer;
 
-/// Steps of 2^16 samples on 64×64 views: the learning test's setting
-/// (27 dB on held-out views by step 300 on the development machine).
+/// Steps of 2^16 samples on 64×64 views: the learning test's model
+/// (common::demo_ngp) trained on (27 dB on held-out views by step 300 on
+/// the development machine).
 const STEPS: u32 = 300;
 
 /// The demo scene, trained once for every test in this file.
 fn trained() -> &'static Mutex<Trainer> {
     static TRAINED: OnceLock<Mutex<Trainer>> = OnceLock::new();
     TRAINED.get_or_init(|| {
-        let scene = Arc::new(demo::build(&DemoConfig {
-            size: 64,
-            train_views: 100,
-            val_views: 5,
-            test_views: 1,
-        }));
-        let model = zrak::train::cpu_ngp(
-            &scene,
-            &zrak::train::ModelSettings {
-                seed: 0,
-                loss: LossKind::Huber,
-                batch_samples: Some(1 << 16),
-                sampling: zrak::field::nerf::Sampling::Occupancy,
-                precision: zrak::engine::cpu::dense::Precision::F32,
-            },
-        );
-        let mut trainer = Trainer::new(Box::new(model), scene, 0);
         let started = Instant::now();
-        while trainer.step < STEPS {
-            trainer.step();
-        }
+        let trainer = crate::common::demo_ngp::trained(STEPS);
         eprintln!(
-            "trained {STEPS} steps in {:.0} s",
+            "trained to step {STEPS} in {:.0} s",
             started.elapsed().as_secs_f64()
         );
         Mutex::new(trainer)

@@ -9,27 +9,17 @@ use zrak::engine::cpu::dense::Precision;
 use zrak::engine::cpu::fields::ngp::NgpShape;
 use zrak::field::ngp::LossKind;
 use zrak::scene::Scene;
-use zrak::scene::demo::{self, DemoConfig};
 use zrak::train::eval::{mean_colour_psnr, mean_psnr};
 use zrak::train::model::RadianceModel;
 use zrak::train::trainer::Trainer;
+
+use crate::common::demo_ngp;
 
 fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
     std::env::var(name)
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(default)
-}
-
-/// The demo scene as the learning tests train on it: 100 training views
-/// of `size` pixels, 5 held out.
-fn demo_scene(size: u32) -> Arc<Scene> {
-    Arc::new(demo::build(&DemoConfig {
-        size,
-        train_views: 100,
-        val_views: 5,
-        test_views: 1,
-    }))
 }
 
 /// Mean held-out PSNR of `model` on `scene`'s val views.
@@ -51,12 +41,36 @@ fn train_and_score(
     batch: usize,
     loss: LossKind,
 ) -> f64 {
+    let grid = env_or("ZRAK_E2E_GRID", 128u32);
+    let started = Instant::now();
+    // The mesh tests train on from this run: it is trained once
+    // (common::demo_ngp), unless the PSNR is logged along the way.
+    let shared = (precision, seed, steps, batch, loss, grid)
+        == (
+            Precision::F32,
+            demo_ngp::SEED,
+            demo_ngp::SHARED_STEPS,
+            demo_ngp::BATCH_SAMPLES,
+            demo_ngp::LOSS,
+            128,
+        )
+        && scene.train[0].camera.intrinsics.width == demo_ngp::SIZE
+        && std::env::var("ZRAK_E2E_LOG_PSNR").is_err();
+    if shared {
+        let trainer = demo_ngp::trained(steps);
+        let trained = val_psnr(trainer.model.as_ref(), &trainer.scene);
+        eprintln!(
+            "{precision:?} seed {seed}: {trained:.2} dB after {steps} steps (shared with the \
+             mesh tests; {:.0} s here)",
+            started.elapsed().as_secs_f64()
+        );
+        return trained;
+    }
     let shape = NgpShape::for_scene(scene).with_precision(precision);
     let mut recipe = zrak::field::ngp::recipe(scene.unit_cube.aabb_scale);
-    recipe.occupancy.resolution = env_or("ZRAK_E2E_GRID", 128u32);
+    recipe.occupancy.resolution = grid;
     let model = zrak::train::cpu_ngp_with_recipe(scene, shape, recipe, seed, loss, Some(batch));
     let mut trainer = Trainer::new(Box::new(model), scene.clone(), seed);
-    let started = Instant::now();
     let mut last_loss = 0.0;
     while trainer.step < steps {
         last_loss = trainer.step().loss;
@@ -110,7 +124,7 @@ fn learns_the_demo_scene_well_above_the_mean_colour() {
     } else {
         LossKind::Huber
     };
-    let scene = demo_scene(size);
+    let scene = demo_ngp::demo_scene(size);
 
     // The baseline: every pixel of a held-out view predicted as the mean
     // colour of the training images on white.

@@ -5,6 +5,7 @@
 //! Every test holds [`shared`] or [`alone`] while it runs.
 #![allow(dead_code)]
 
+pub mod demo_ngp;
 pub mod gate_record;
 pub mod march;
 
