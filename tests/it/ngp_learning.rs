@@ -41,7 +41,10 @@ fn train_and_score(
     batch: usize,
     loss: LossKind,
 ) -> f64 {
-    let grid = env_or("ZRAK_E2E_GRID", 128u32);
+    let mut recipe = zrak::field::ngp::recipe(scene.unit_cube.aabb_scale);
+    let paper_grid = recipe.occupancy.resolution;
+    let grid = env_or("ZRAK_E2E_GRID", paper_grid);
+    recipe.occupancy.resolution = grid;
     let started = Instant::now();
     // The mesh tests train on from this run: it is trained once
     // (common::demo_ngp), unless the PSNR is logged along the way.
@@ -52,7 +55,7 @@ fn train_and_score(
             demo_ngp::SHARED_STEPS,
             demo_ngp::BATCH_SAMPLES,
             demo_ngp::LOSS,
-            128,
+            paper_grid,
         )
         && scene.train[0].camera.intrinsics.width == demo_ngp::SIZE
         && std::env::var("ZRAK_E2E_LOG_PSNR").is_err();
@@ -67,8 +70,6 @@ fn train_and_score(
         return trained;
     }
     let shape = NgpShape::for_scene(scene).with_precision(precision);
-    let mut recipe = zrak::field::ngp::recipe(scene.unit_cube.aabb_scale);
-    recipe.occupancy.resolution = grid;
     let model = zrak::train::cpu_ngp_with_recipe(scene, shape, recipe, seed, loss, Some(batch));
     let mut trainer = Trainer::new(Box::new(model), scene.clone(), seed);
     let mut last_loss = 0.0;
