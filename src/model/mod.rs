@@ -275,7 +275,7 @@ pub trait TextureRender {
 /// Which vector kernels a model on the cpu engine runs, in words.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct CpuKernels {
-    /// `Avx512Bf16`, `Avx512`, `Avx2` or `Portable`.
+    /// `AmxBf16`, `Avx512Bf16`, `Avx512`, `Avx2` or `Portable`.
     pub name: String,
     /// How the networks' products are computed.
     pub precision: &'static str,

@@ -25,15 +25,25 @@
 use super::MlpLayout;
 
 /// The weights of every layer as bf16 pairs, packed once per pass.
+///
+/// Each layer's pairs are a matrix of words with its row count and row
+/// stride rounded up to `align` (1 for `vdpbf16ps`, [`amx::TILE`] for the
+/// tile registers) and zeros in the padding, and the words end with
+/// `2 · align` zero words of slack: the tile kernels read whole tiles
+/// past a product's last column.
 #[derive(Default)]
 pub(super) struct PairedWeights {
     /// Per layer, Wᵀ as pairs along `in`: ⌈in/2⌉ × out words.
     forward: Vec<u32>,
-    forward_at: Vec<usize>,
+    forward_at: Vec<(usize, usize)>,
     /// Per layer, W as pairs along `out`: ⌈out/2⌉ × in words.
     backward: Vec<u32>,
-    backward_at: Vec<usize>,
+    backward_at: Vec<(usize, usize)>,
 }
+
+/// Layer `l`'s weights as bf16 pairs: where its words start in the
+/// packed buffer, and their row stride.
+type PairedAt = (usize, usize);
 
 impl PairedWeights {
     /// Words held (for memory accounting; a word is 4 bytes).
@@ -42,74 +52,97 @@ impl PairedWeights {
     }
 
     /// Packs Wᵀ of every layer for the forward product.
-    pub(super) fn pack_forward(&mut self, layout: &MlpLayout, params: &[f32]) {
-        self.forward_at.clear();
-        let mut total = 0;
-        for l in 0..layout.layers() {
-            self.forward_at.push(total);
-            total += layout.widths[l].div_ceil(2) * layout.widths[l + 1];
-        }
-        self.forward.resize(total, 0);
-        for l in 0..layout.layers() {
-            let (i, o) = (layout.widths[l], layout.widths[l + 1]);
-            let w = &params[layout.weight_offset(l)..][..i * o];
-            let at = self.forward_at[l];
-            let dst = &mut self.forward[at..at + i.div_ceil(2) * o];
-            // Word (p, j) holds W[j, 2p] and W[j, 2p + 1].
-            for (p, row) in dst.chunks_exact_mut(o).enumerate() {
-                for (j, word) in row.iter_mut().enumerate() {
-                    let lo = w[j * i + 2 * p];
-                    let hi = if 2 * p + 1 < i {
-                        w[j * i + 2 * p + 1]
-                    } else {
-                        0.0
-                    };
-                    *word = pair(lo, hi);
-                }
-            }
-        }
+    pub(super) fn pack_forward(&mut self, layout: &MlpLayout, params: &[f32], align: usize) {
+        // Word (p, j) holds W[j, 2p] and W[j, 2p + 1].
+        pack(
+            layout,
+            params,
+            align,
+            true,
+            &mut self.forward,
+            &mut self.forward_at,
+        );
     }
 
     /// Packs W of every layer for the input-gradient product.
-    pub(super) fn pack_backward(&mut self, layout: &MlpLayout, params: &[f32]) {
-        self.backward_at.clear();
-        let mut total = 0;
-        for l in 0..layout.layers() {
-            self.backward_at.push(total);
-            total += layout.widths[l + 1].div_ceil(2) * layout.widths[l];
-        }
-        self.backward.resize(total, 0);
-        for l in 0..layout.layers() {
-            let (i, o) = (layout.widths[l], layout.widths[l + 1]);
-            let w = &params[layout.weight_offset(l)..][..i * o];
-            let at = self.backward_at[l];
-            let dst = &mut self.backward[at..at + o.div_ceil(2) * i];
-            // Word (p, c) holds W[2p, c] and W[2p + 1, c].
-            for (p, row) in dst.chunks_exact_mut(i).enumerate() {
-                for (c, word) in row.iter_mut().enumerate() {
-                    let lo = w[2 * p * i + c];
-                    let hi = if 2 * p + 1 < o {
-                        w[(2 * p + 1) * i + c]
-                    } else {
-                        0.0
-                    };
-                    *word = pair(lo, hi);
-                }
-            }
-        }
+    pub(super) fn pack_backward(&mut self, layout: &MlpLayout, params: &[f32], align: usize) {
+        // Word (p, c) holds W[2p, c] and W[2p + 1, c].
+        pack(
+            layout,
+            params,
+            align,
+            false,
+            &mut self.backward,
+            &mut self.backward_at,
+        );
     }
 
-    /// Layer `l`'s packed Wᵀ and W, null where not packed.
-    pub(super) fn layer(&self, l: usize) -> (*const u32, *const u32) {
-        let at = |words: &[u32], offsets: &[usize]| {
+    /// Layer `l`'s packed Wᵀ and W with their row strides, null where not
+    /// packed.
+    pub(super) fn layer(&self, l: usize) -> [(*const u32, usize); 2] {
+        let at = |words: &[u32], offsets: &[PairedAt]| {
             offsets
                 .get(l)
-                .map_or(std::ptr::null(), |&at| words[at..].as_ptr())
+                .map_or((std::ptr::null(), 0), |&(at, stride)| {
+                    (words[at..].as_ptr(), stride)
+                })
         };
-        (
+        [
             at(&self.forward, &self.forward_at),
             at(&self.backward, &self.backward_at),
-        )
+        ]
+    }
+}
+
+/// Every layer's W (`transposed`: Wᵀ) as rows of pairs along its
+/// reduction, padded to `align` as [`PairedWeights`] describes. Every word
+/// is written, padding included, so a buffer packed for another alignment
+/// before leaves nothing behind.
+fn pack(
+    layout: &MlpLayout,
+    params: &[f32],
+    align: usize,
+    transposed: bool,
+    words: &mut Vec<u32>,
+    offsets: &mut Vec<PairedAt>,
+) {
+    offsets.clear();
+    let mut total = 0;
+    for l in 0..layout.layers() {
+        let (i, o) = (layout.widths[l], layout.widths[l + 1]);
+        let (reduced, columns) = if transposed { (i, o) } else { (o, i) };
+        let stride = columns.next_multiple_of(align);
+        offsets.push((total, stride));
+        total += reduced.div_ceil(2).next_multiple_of(align) * stride;
+    }
+    let slack = if align > 1 { 2 * align } else { 0 };
+    words.resize(total + slack, 0);
+    words[total..].fill(0);
+    for (l, &(at, stride)) in offsets.iter().enumerate() {
+        let (i, o) = (layout.widths[l], layout.widths[l + 1]);
+        let w = &params[layout.weight_offset(l)..][..i * o];
+        // W[r, c] with r < o, c < i; the reduction runs over c for Wᵀ.
+        let (reduced, columns) = if transposed { (i, o) } else { (o, i) };
+        let value = |reduction: usize, column: usize| {
+            if reduction >= reduced {
+                0.0
+            } else if transposed {
+                w[column * i + reduction]
+            } else {
+                w[reduction * i + column]
+            }
+        };
+        let rows = reduced.div_ceil(2).next_multiple_of(align);
+        let dst = &mut words[at..at + rows * stride];
+        for (p, row) in dst.chunks_exact_mut(stride).enumerate() {
+            for (j, word) in row.iter_mut().enumerate() {
+                *word = if j < columns {
+                    pair(value(2 * p, j), value(2 * p + 1, j))
+                } else {
+                    0
+                };
+            }
+        }
     }
 }
 
@@ -136,6 +169,9 @@ fn pair(lo: f32, hi: f32) -> u32 {
 
 #[cfg(target_arch = "x86_64")]
 pub(super) use kernels::Bf16Products;
+
+#[cfg(target_arch = "x86_64")]
+pub(super) mod amx;
 
 #[cfg(target_arch = "x86_64")]
 mod kernels {
@@ -254,7 +290,7 @@ mod kernels {
     }
 
     #[inline(always)]
-    fn mask(n: usize) -> __mmask16 {
+    pub(super) fn mask(n: usize) -> __mmask16 {
         if n >= 16 {
             0xffff
         } else {
@@ -266,7 +302,7 @@ mod kernels {
     /// ⌈cols/2⌉ words of consecutive bf16 pairs (row stride
     /// `dst_stride`), an odd row's last word padded with zero.
     #[inline(always)]
-    unsafe fn rows_to_pairs(
+    pub(super) unsafe fn rows_to_pairs(
         src: *const f32,
         rows: usize,
         cols: usize,
@@ -297,31 +333,34 @@ mod kernels {
         }
     }
 
+    /// The halfword order that turns `_mm512_cvtne2ps_pbh(second, first)`
+    /// into words of (first, second) pairs, lane by lane. Halfword t of a
+    /// converted pair of vectors is lane t of the first (t < 16) or lane
+    /// t − 16 of the second: take 0, 16, 1, 17, ….
+    pub(super) static PAIR_ZIP: [u16; 32] = {
+        let mut zip = [0u16; 32];
+        let mut t = 0;
+        while t < 16 {
+            zip[2 * t] = t as u16;
+            zip[2 * t + 1] = t as u16 + 16;
+            t += 1;
+        }
+        zip
+    };
+
     /// Rows 2p and 2p + 1 of `rows` rows of `cols` floats (row stride
     /// `stride`) as one row of `cols` words: word (p, c) holds the two
     /// rows' column c, the second zero past the last row.
     #[inline(always)]
-    unsafe fn interleave_row_pairs(
+    pub(super) unsafe fn interleave_row_pairs(
         src: *const f32,
         rows: usize,
         cols: usize,
         stride: usize,
         dst: *mut u32,
     ) {
-        // Halfword t of a converted pair of vectors is lane t of the first
-        // (t < 16) or lane t − 16 of the second: take 0, 16, 1, 17, ….
-        static ZIP: [u16; 32] = {
-            let mut zip = [0u16; 32];
-            let mut t = 0;
-            while t < 16 {
-                zip[2 * t] = t as u16;
-                zip[2 * t + 1] = t as u16 + 16;
-                t += 1;
-            }
-            zip
-        };
         unsafe {
-            let zip = _mm512_loadu_si512(ZIP.as_ptr().cast());
+            let zip = _mm512_loadu_si512(PAIR_ZIP.as_ptr().cast());
             for p in 0..rows.div_ceil(2) {
                 let first = src.add(2 * p * stride);
                 let second = 2 * p + 1 < rows;
@@ -370,7 +409,7 @@ mod kernels {
                     a_m: k,
                     a_k: 1,
                     b: layer.wt_pairs,
-                    b_k: layer.outw,
+                    b_k: layer.wt_pairs_stride,
                     out,
                 });
             }
@@ -430,7 +469,7 @@ mod kernels {
                     a_m: k,
                     a_k: 1,
                     b: layer.w_pairs.add(first),
-                    b_k: layer.inw,
+                    b_k: layer.w_pairs_stride,
                     out,
                 });
             }
@@ -478,6 +517,17 @@ mod tests {
             "SKIPPED {test}: the bf16 kernels (Avx512Bf16) need AVX512-BF16, which this processor lacks"
         );
         false
+    }
+
+    /// The mixed-precision kernels this processor runs: `vdpbf16ps`, and
+    /// the tile kernels where it has them (their weight gradient is
+    /// `vdpbf16ps`'s, the other two products their own).
+    fn mixed_backends() -> Vec<Backend> {
+        let mut all = vec![Backend::Avx512Bf16];
+        if tile_kernels_available() {
+            all.push(Backend::AmxBf16);
+        }
+        all
     }
 
     /// The parameters of layer `l` of `layout` as a one-layer network's,
@@ -586,59 +636,56 @@ mod tests {
             )
         });
         for (case, (layout, rows)) in cases.into_iter().chain(sweep).enumerate() {
-            let params = random(100 + case as u64, layout.param_count(), 0.5);
-            let input = random(200 + case as u64, rows * layout.input_width(), 1.0);
-            let mut ws = MlpWorkspace::new(&layout, rows);
-            let mut out = vec![0.0; rows * layout.output_width()];
-            forward_with(
-                Backend::Avx512Bf16,
-                &layout,
-                &params,
-                &input,
-                rows,
-                &mut ws,
-                &mut out,
-            );
-            for l in 0..layout.layers() {
-                let (i, o) = (layout.widths[l], layout.widths[l + 1]);
-                let x = if l == 0 {
-                    &input[..]
-                } else {
-                    &ws.activations(l - 1)[..rows * i]
-                };
-                let act = layout.activation(l);
-                let single = MlpLayout::new(vec![i, o], act, act, layout.bias);
-                let narrow = o <= NARROW_COLUMNS;
-                let x64: Vec<f64> = if narrow {
-                    x.iter().map(|&v| v as f64).collect()
-                } else {
-                    rounded(x)
-                };
-                let p64 = layer_params(&layout, &params, l, !narrow);
-                let want = reference_forward(&single, &p64, &x64, rows).remove(0);
-                // Sums of ≤ 319 products in f32: ~√319 · 6e-8 ≈ 1e-6 of the
-                // scale with random signs; a wrongly rounded operand would
-                // be off by up to 2⁻⁸ ≈ 4e-3 of its term.
-                let e = max_relative(&ws.activations(l)[..rows * o], &want);
-                assert!(
-                    e < 2e-5,
-                    "case {case} ({:?}) layer {l}: {e:e}",
-                    layout.widths
+            for backend in mixed_backends() {
+                let params = random(100 + case as u64, layout.param_count(), 0.5);
+                let input = random(200 + case as u64, rows * layout.input_width(), 1.0);
+                let mut ws = MlpWorkspace::new(&layout, rows);
+                let mut out = vec![0.0; rows * layout.output_width()];
+                forward_with(backend, &layout, &params, &input, rows, &mut ws, &mut out);
+                for l in 0..layout.layers() {
+                    let (i, o) = (layout.widths[l], layout.widths[l + 1]);
+                    let x = if l == 0 {
+                        &input[..]
+                    } else {
+                        &ws.activations(l - 1)[..rows * i]
+                    };
+                    let act = layout.activation(l);
+                    let single = MlpLayout::new(vec![i, o], act, act, layout.bias);
+                    let narrow = o <= NARROW_COLUMNS;
+                    let x64: Vec<f64> = if narrow {
+                        x.iter().map(|&v| v as f64).collect()
+                    } else {
+                        rounded(x)
+                    };
+                    let p64 = layer_params(&layout, &params, l, !narrow);
+                    let want = reference_forward(&single, &p64, &x64, rows).remove(0);
+                    // Sums of ≤ 319 products in f32: ~√319 · 6e-8 ≈ 1e-6 of the
+                    // scale with random signs; a wrongly rounded operand would
+                    // be off by up to 2⁻⁸ ≈ 4e-3 of its term.
+                    let e = max_relative(&ws.activations(l)[..rows * o], &want);
+                    assert!(
+                        e < 2e-5,
+                        "{backend:?} case {case} ({:?}) layer {l}: {e:e}",
+                        layout.widths
+                    );
+                }
+                assert_eq!(&out[..], &ws.activations(layout.layers() - 1)[..out.len()]);
+                let mut inferred = vec![0.0; out.len()];
+                let out_w = layout.output_width();
+                inference_with(
+                    backend,
+                    &layout,
+                    &params,
+                    &input,
+                    rows,
+                    &mut inferred,
+                    out_w,
+                );
+                assert_eq!(
+                    inferred, out,
+                    "{backend:?} case {case}: inference differs from forward"
                 );
             }
-            assert_eq!(&out[..], &ws.activations(layout.layers() - 1)[..out.len()]);
-            let mut inferred = vec![0.0; out.len()];
-            let out_w = layout.output_width();
-            inference_with(
-                Backend::Avx512Bf16,
-                &layout,
-                &params,
-                &input,
-                rows,
-                &mut inferred,
-                out_w,
-            );
-            assert_eq!(inferred, out, "case {case}: inference differs from forward");
         }
     }
 
@@ -658,61 +705,55 @@ mod tests {
             (vec![33, 50], Activation::Relu, 64),
         ];
         for (case, (widths, act, rows)) in cases.into_iter().enumerate() {
-            let layout = MlpLayout::new(widths, act, act, true);
-            let (i, o) = (layout.widths[0], layout.widths[1]);
-            let params = random(10 + case as u64, layout.param_count(), 0.5);
-            let input = random(20 + case as u64, rows * i, 1.0);
-            let d_out = random(30 + case as u64, rows * o, 1.0);
-            let mut ws = MlpWorkspace::new(&layout, rows);
-            let mut out = vec![0.0; rows * o];
-            forward_with(
-                Backend::Avx512Bf16,
-                &layout,
-                &params,
-                &input,
-                rows,
-                &mut ws,
-                &mut out,
-            );
-            let mut d_params = vec![1.0f32; params.len()];
-            let mut d_input = vec![f32::NAN; input.len()];
-            backward_with(
-                Backend::Avx512Bf16,
-                &layout,
-                &params,
-                &input,
-                rows,
-                &mut ws,
-                &d_out,
-                &mut d_params,
-                Some((&mut d_input, 0..i)),
-            );
-            let g: Vec<f32> = d_out
-                .iter()
-                .zip(&out)
-                .map(|(&d, &y)| d * act.derivative_from_output(y))
-                .collect();
-            let (g16, x16, w16) = (rounded(&g), rounded(&input), rounded(&params[..i * o]));
-            let mut want_dw = vec![1.0f64; i * o];
-            let mut want_db = vec![1.0f64; o];
-            let mut want_dx = vec![0.0f64; rows * i];
-            for r in 0..rows {
-                for k in 0..o {
-                    want_db[k] += g[r * o + k] as f64;
-                    for c in 0..i {
-                        want_dw[k * i + c] += g16[r * o + k] * x16[r * i + c];
-                        want_dx[r * i + c] += g16[r * o + k] * w16[k * i + c];
+            for backend in mixed_backends() {
+                let layout = MlpLayout::new(widths.clone(), act, act, true);
+                let (i, o) = (layout.widths[0], layout.widths[1]);
+                let params = random(10 + case as u64, layout.param_count(), 0.5);
+                let input = random(20 + case as u64, rows * i, 1.0);
+                let d_out = random(30 + case as u64, rows * o, 1.0);
+                let mut ws = MlpWorkspace::new(&layout, rows);
+                let mut out = vec![0.0; rows * o];
+                forward_with(backend, &layout, &params, &input, rows, &mut ws, &mut out);
+                let mut d_params = vec![1.0f32; params.len()];
+                let mut d_input = vec![f32::NAN; input.len()];
+                backward_with(
+                    backend,
+                    &layout,
+                    &params,
+                    &input,
+                    rows,
+                    &mut ws,
+                    &d_out,
+                    &mut d_params,
+                    Some((&mut d_input, 0..i)),
+                );
+                let g: Vec<f32> = d_out
+                    .iter()
+                    .zip(&out)
+                    .map(|(&d, &y)| d * act.derivative_from_output(y))
+                    .collect();
+                let (g16, x16, w16) = (rounded(&g), rounded(&input), rounded(&params[..i * o]));
+                let mut want_dw = vec![1.0f64; i * o];
+                let mut want_db = vec![1.0f64; o];
+                let mut want_dx = vec![0.0f64; rows * i];
+                for r in 0..rows {
+                    for k in 0..o {
+                        want_db[k] += g[r * o + k] as f64;
+                        for c in 0..i {
+                            want_dw[k * i + c] += g16[r * o + k] * x16[r * i + c];
+                            want_dx[r * i + c] += g16[r * o + k] * w16[k * i + c];
+                        }
                     }
                 }
+                // Sums of up to 2500 terms in f32 (in row chunks): √2500 · 6e-8
+                // ≈ 3e-6 of the scale with random signs.
+                let e = max_relative(&d_params[..i * o], &want_dw);
+                assert!(e < 2e-5, "{backend:?} case {case} dW: {e:e}");
+                let e = max_relative(&d_params[i * o..], &want_db);
+                assert!(e < 2e-5, "{backend:?} case {case} db: {e:e}");
+                let e = max_relative(&d_input, &want_dx);
+                assert!(e < 2e-5, "{backend:?} case {case} dX: {e:e}");
             }
-            // Sums of up to 2500 terms in f32 (in row chunks): √2500 · 6e-8
-            // ≈ 3e-6 of the scale with random signs.
-            let e = max_relative(&d_params[..i * o], &want_dw);
-            assert!(e < 2e-5, "case {case} dW: {e:e}");
-            let e = max_relative(&d_params[i * o..], &want_db);
-            assert!(e < 2e-5, "case {case} db: {e:e}");
-            let e = max_relative(&d_input, &want_dx);
-            assert!(e < 2e-5, "case {case} dX: {e:e}");
         }
     }
 

@@ -37,6 +37,13 @@ macro_rules! entry_points {
     };
 }
 
+// The tile instructions are inline assembly and need no feature enabled.
+#[cfg(target_arch = "x86_64")]
+entry_points!(
+    amxbf16,
+    bf16::amx::AmxProducts,
+    "avx512f,avx512vl,avx512bw,avx512bf16,avx2,fma"
+);
 #[cfg(target_arch = "x86_64")]
 entry_points!(
     avx512bf16,
@@ -52,6 +59,8 @@ entry_points!(portable, F32Products<Portable>,);
 macro_rules! route {
     ($backend:expr, $f:ident($($arg:expr),*)) => {
         match $backend {
+            #[cfg(target_arch = "x86_64")]
+            Backend::AmxBf16 => unsafe { amxbf16::$f($($arg),*) },
             #[cfg(target_arch = "x86_64")]
             Backend::Avx512Bf16 => unsafe { avx512bf16::$f($($arg),*) },
             #[cfg(target_arch = "x86_64")]

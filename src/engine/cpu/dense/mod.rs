@@ -71,10 +71,15 @@ const MAX_CHUNKS: usize = 32;
 /// the split.
 const FORWARD_CHUNK: usize = 16 * BLOCK;
 
-/// A task's scratch, in BLOCK × max-width units: two buffers the layers
-/// of a block alternate between, and one for the mixed-precision kernels'
-/// bf16 pairs of a block (at most BLOCK × max-width words).
-const SCRATCH_BLOCKS: usize = 3;
+/// A task's scratch, in floats, for a network at most `max_width` wide:
+/// two BLOCK × max-width buffers the layers of a block alternate between,
+/// then the mixed-precision kernels' bf16 pairs of a block. BLOCK ×
+/// max-width words hold a block's pairs; the tile kernels pad rows and
+/// columns to multiples of 16 and, for the weight gradient, hold both
+/// operands' pairs: twice BLOCK × (max-width + 16) words hold them all.
+fn scratch_floats(max_width: usize) -> usize {
+    2 * BLOCK * max_width + 2 * BLOCK * (max_width + 16)
+}
 
 pub use crate::field::mlp::{Activation, MlpLayout, Precision};
 
@@ -147,7 +152,7 @@ impl MlpWorkspace {
                 .collect(),
             packed: vec![0.0; layout.macs_per_row()],
             partials: vec![0.0; chunks * layout.param_count()],
-            scratch: vec![0.0; chunks * SCRATCH_BLOCKS * BLOCK * layout.max_width()],
+            scratch: vec![0.0; chunks * scratch_floats(layout.max_width())],
             pairs: bf16::PairedWeights::default(),
         }
     }
@@ -197,6 +202,9 @@ impl MlpWorkspace {
 /// Which vector kernels run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Backend {
+    /// bf16 pair products on Intel's matrix units (`tdpbf16ps`) for the
+    /// layer products, AVX-512 for the rest: [`Precision::Mixed`].
+    AmxBf16,
     /// bf16 pair products (`vdpbf16ps`) for the layer products, AVX-512
     /// for the rest: [`Precision::Mixed`].
     Avx512Bf16,
@@ -208,8 +216,18 @@ pub enum Backend {
 impl Backend {
     pub fn precision(self) -> Precision {
         match self {
-            Backend::Avx512Bf16 => Precision::Mixed,
+            Backend::AmxBf16 | Backend::Avx512Bf16 => Precision::Mixed,
             _ => Precision::F32,
+        }
+    }
+
+    /// The multiple the mixed-precision kernels pad the weights' bf16
+    /// pairs to (rows and row stride).
+    fn pair_alignment(self) -> usize {
+        match self {
+            #[cfg(target_arch = "x86_64")]
+            Backend::AmxBf16 => bf16::amx::TILE,
+            _ => 1,
         }
     }
 }
@@ -233,9 +251,22 @@ pub fn mixed_kernels_available() -> bool {
     false
 }
 
+/// Whether this processor has Intel's bf16 matrix units (AMX-BF16) and
+/// lets zrak use them (see [`bf16::amx`]).
+#[cfg(target_arch = "x86_64")]
+pub fn tile_kernels_available() -> bool {
+    mixed_kernels_available() && bf16::amx::available()
+}
+
+#[cfg(not(target_arch = "x86_64"))]
+pub fn tile_kernels_available() -> bool {
+    false
+}
+
 /// The kernels a network at `precision` runs on here.
 pub fn backend_for(precision: Precision) -> Backend {
     match precision {
+        Precision::Mixed if tile_kernels_available() => Backend::AmxBf16,
         Precision::Mixed if mixed_kernels_available() => Backend::Avx512Bf16,
         _ => backend(),
     }
@@ -431,14 +462,16 @@ fn net<'a>(
         let (i, o) = (layout.widths[layer], layout.widths[layer + 1]);
         let w_off = layout.weight_offset(layer);
         let b_off = layout.bias_offset(layer);
-        let (wt_pairs, w_pairs) = pairs.layer(layer);
+        let [(wt_pairs, wt_pairs_stride), (w_pairs, w_pairs_stride)] = pairs.layer(layer);
         layers.push(Layer {
             inw: i,
             outw: o,
             w: params[w_off..].as_ptr(),
             wt: packed.get(at..).map_or(std::ptr::null(), <[f32]>::as_ptr),
             wt_pairs,
+            wt_pairs_stride,
             w_pairs,
+            w_pairs_stride,
             bias: b_off.map_or(std::ptr::null(), |b| params[b..].as_ptr()),
             w_off,
             b_off,
@@ -464,8 +497,10 @@ fn forward_with(
 ) {
     check_sizes(layout, params, input, rows, output.len());
     workspace.check(layout, rows);
-    if backend == Backend::Avx512Bf16 {
-        workspace.pairs.pack_forward(layout, params);
+    if backend.precision() == Precision::Mixed {
+        workspace
+            .pairs
+            .pack_forward(layout, params, backend.pair_alignment());
     } else {
         pack_transposed(layout, params, &mut workspace.packed);
     }
@@ -484,7 +519,7 @@ fn forward_with(
     };
     let tasks = rows.div_ceil(FORWARD_CHUNK);
     (0..tasks).into_par_iter().for_each_init(
-        || vec![0.0f32; SCRATCH_BLOCKS * BLOCK * max_width],
+        || vec![0.0f32; scratch_floats(max_width)],
         |scratch, t| {
             let range = t * FORWARD_CHUNK..((t + 1) * FORWARD_CHUNK).min(rows);
             // SAFETY: tasks write disjoint row ranges of the activations
@@ -515,8 +550,8 @@ fn inference_with(
     );
     let mut packed = Vec::new();
     let mut pairs = bf16::PairedWeights::default();
-    if backend == Backend::Avx512Bf16 {
-        pairs.pack_forward(layout, params);
+    if backend.precision() == Precision::Mixed {
+        pairs.pack_forward(layout, params, backend.pair_alignment());
     } else {
         packed.resize(layout.macs_per_row(), 0.0);
         pack_transposed(layout, params, &mut packed);
@@ -529,7 +564,7 @@ fn inference_with(
         output: SendPtr(output.as_mut_ptr()),
         out_columns,
     };
-    let scratch_len = SCRATCH_BLOCKS * BLOCK * layout.max_width();
+    let scratch_len = scratch_floats(layout.max_width());
     let tasks = rows.div_ceil(FORWARD_CHUNK);
     (0..tasks).into_par_iter().for_each_init(
         || vec![0.0f32; scratch_len],
@@ -582,8 +617,10 @@ fn backward_with(
     // The forward pass packed Wᵀ; the backward pass uses W itself (or, in
     // mixed precision, W's pairs of rows), but `net` wants a slice to
     // point into.
-    if backend == Backend::Avx512Bf16 {
-        workspace.pairs.pack_backward(layout, params);
+    if backend.precision() == Precision::Mixed {
+        workspace
+            .pairs
+            .pack_backward(layout, params, backend.pair_alignment());
     }
     let net = net(layout, params, &workspace.packed, &workspace.pairs);
     let n_params = layout.param_count();
@@ -607,7 +644,7 @@ fn backward_with(
         // its range.
         unsafe {
             let partial = partials.get().add(c * n_params);
-            let g = scratch.get().add(c * SCRATCH_BLOCKS * BLOCK * max_width);
+            let g = scratch.get().add(c * scratch_floats(max_width));
             dispatch::backward(backend, &job, range, partial, g)
         }
     });
@@ -651,11 +688,13 @@ struct Layer {
     /// Wᵀ, in × out (f32 kernels only).
     wt: *const f32,
     /// Wᵀ as bf16 pairs along `in`: ⌈in/2⌉ × out words (mixed-precision
-    /// kernels only, else null).
+    /// kernels only, else null), rows `wt_pairs_stride` words apart.
     wt_pairs: *const u32,
+    wt_pairs_stride: usize,
     /// W as bf16 pairs along `out`: ⌈out/2⌉ × in words (mixed-precision
-    /// backward only, else null).
+    /// backward only, else null), rows `w_pairs_stride` words apart.
     w_pairs: *const u32,
+    w_pairs_stride: usize,
     /// Null without biases.
     bias: *const f32,
     w_off: usize,

@@ -49,8 +49,9 @@ pub fn measure_peak_gflops() -> f64 {
 
 /// The multiply-add ceiling of `kernels` on all threads, in GFLOP/s:
 /// each thread runs independent chains of the instruction the kernels
-/// multiply with (f32 FMA, or bf16 pair dot products for
-/// [`Backend::Avx512Bf16`]) on registers only, the best of five runs. No
+/// multiply with (f32 FMA, bf16 pair dot products for
+/// [`Backend::Avx512Bf16`], tile products for [`Backend::AmxBf16`]) on
+/// registers only, the best of five runs. No
 /// kernel that reads memory can pass it.
 pub fn arithmetic_peak_gflops(kernels: Backend) -> f64 {
     const ITERATIONS: usize = 1 << 22;
@@ -77,6 +78,9 @@ fn chains(kernels: Backend, iterations: usize, seed: f32) -> (f64, f32) {
     match kernels {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: a Backend is only ever one this processor supports.
+        Backend::AmxBf16 => unsafe { super::bf16::amx::tile_chains(iterations, seed) },
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: as above.
         Backend::Avx512Bf16 => unsafe { x86::bf16_chains(iterations, seed) },
         #[cfg(target_arch = "x86_64")]
         Backend::Avx512 => unsafe { x86::avx512_chains(iterations, seed) },
