@@ -192,8 +192,10 @@ unsafe fn block<const MR: usize, const NC: usize>(
             b = b.add(TILE * g.b_stride);
         }
         // The block as 32 rows of 32 floats.
-        let mut stored = Stored([0.0; 4 * TILE * TILE]);
-        let c = stored.0.as_mut_ptr();
+        // Left uninitialised: the stores below write every float the
+        // epilogue reads (rows < 16·MR, columns < 16·NC).
+        let mut stored = std::mem::MaybeUninit::<Stored>::uninit();
+        let c = stored.as_mut_ptr().cast::<f32>();
         let row_bytes = 4 * 2 * TILE;
         asm!("tilestored [{p} + {s} * 1], tmm0", p = in(reg) c, s = in(reg) row_bytes,
             options(nostack));
@@ -340,6 +342,37 @@ unsafe fn transposed_row_pairs(
     }
 }
 
+/// The forward and input-gradient products: `nb` rows of `width` floats
+/// at `a`, as padded pairs in `pairs`, times `n` columns of the weights'
+/// pair rows at `weights` (row stride `stride`).
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+unsafe fn rows_times_paired_weights(
+    a: *const f32,
+    nb: usize,
+    width: usize,
+    weights: *const u32,
+    stride: usize,
+    n: usize,
+    out: Destination,
+    pairs: *mut u32,
+) {
+    let k = padded_pairs(width);
+    unsafe {
+        rows_to_padded_pairs(a, nb, width, pairs, k);
+        tile_gemm(&TileGemm {
+            m: nb,
+            n,
+            pairs: k,
+            a: pairs,
+            a_stride: k,
+            b: weights,
+            b_stride: stride,
+            out,
+        });
+    }
+}
+
 /// The three products on the tile registers.
 pub struct AmxProducts;
 
@@ -355,19 +388,17 @@ impl Products for AmxProducts {
         out: Destination,
         pairs: *mut u32,
     ) {
-        let k = padded_pairs(layer.inw);
         unsafe {
-            rows_to_padded_pairs(a, nb, layer.inw, pairs, k);
-            tile_gemm(&TileGemm {
-                m: nb,
+            rows_times_paired_weights(
+                a,
+                nb,
+                layer.inw,
+                layer.wt_pairs,
+                layer.wt_pairs_stride,
                 n,
-                pairs: k,
-                a: pairs,
-                a_stride: k,
-                b: layer.wt_pairs,
-                b_stride: layer.wt_pairs_stride,
                 out,
-            });
+                pairs,
+            )
         }
     }
 
@@ -422,19 +453,17 @@ impl Products for AmxProducts {
         out: Destination,
         pairs: *mut u32,
     ) {
-        let k = padded_pairs(layer.outw);
         unsafe {
-            rows_to_padded_pairs(g, nb, layer.outw, pairs, k);
-            tile_gemm(&TileGemm {
-                m: nb,
+            rows_times_paired_weights(
+                g,
+                nb,
+                layer.outw,
+                layer.w_pairs.add(first),
+                layer.w_pairs_stride,
                 n,
-                pairs: k,
-                a: pairs,
-                a_stride: k,
-                b: layer.w_pairs.add(first),
-                b_stride: layer.w_pairs_stride,
                 out,
-            });
+                pairs,
+            )
         }
     }
 }
