@@ -84,7 +84,7 @@ fn special_file(meta: &std::fs::Metadata) -> Option<&'static str> {
     use std::os::unix::fs::FileTypeExt;
     let kind = meta.file_type();
     if kind.is_fifo() {
-        Some("a named pipe (FIFO), not a file: zrak reads scenes from files")
+        Some("a named pipe (FIFO), not a file: zrak reads only regular files")
     } else if kind.is_socket() {
         Some("a socket, not a file")
     } else if kind.is_block_device() || kind.is_char_device() {
@@ -127,6 +127,129 @@ pub fn check_regular_file(path: &Path) -> Result<(), String> {
     }
 }
 
+/// Opens `path` for reading only if it is a regular file, and returns it
+/// with its length. The file is opened without blocking, so a named pipe
+/// answers at once instead of waiting forever for a writer, and checked on
+/// the open descriptor, so a file swapped for something else between a
+/// check and the open is still caught. The error is the description ("not
+/// found", "a named pipe (FIFO), not a file", …), as
+/// [`check_regular_file`]'s.
+pub fn open_regular(path: &Path) -> Result<(File, u64), String> {
+    let mut options = std::fs::OpenOptions::new();
+    options.read(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.custom_flags(libc::O_NONBLOCK);
+    }
+    let file = options
+        .open(path)
+        .map_err(|e| describe_unreadable(path, &e))?;
+    let meta = file.metadata().map_err(|e| describe_unreadable(path, &e))?;
+    if !meta.is_file() {
+        return Err(describe_unreadable(
+            path,
+            &std::io::Error::other("not a regular file"),
+        ));
+    }
+    Ok((file, meta.len()))
+}
+
+/// Reads the whole of a regular file of at most `max_bytes`, refusing
+/// anything else before reading a byte: a named pipe, a device such as
+/// `/dev/zero` (which would be read until memory runs out), a folder, and a
+/// file larger than `what` can honestly be. The error is a description to
+/// follow the path ("a named pipe …", "2.1 GB, more than the 64.0 MB a
+/// camera path can be").
+pub fn read_regular_bounded(path: &Path, max_bytes: u64, what: &str) -> Result<Vec<u8>, String> {
+    use std::io::Read;
+    let (file, length) = open_regular(path)?;
+    if length > max_bytes {
+        return Err(format!(
+            "{}, more than the {} {what} can be",
+            human_bytes(length),
+            human_bytes(max_bytes)
+        ));
+    }
+    let mut bytes = Vec::with_capacity(length as usize);
+    // The length is read again through the bound: a file that grows while
+    // it is read stops at the bound plus one byte, and is refused.
+    file.take(max_bytes + 1)
+        .read_to_end(&mut bytes)
+        .map_err(|e| format!("cannot read it: {e}"))?;
+    if bytes.len() as u64 > max_bytes {
+        return Err(format!(
+            "it grew past the {} {what} can be while it was read",
+            human_bytes(max_bytes)
+        ));
+    }
+    Ok(bytes)
+}
+
+/// [`read_regular_bounded`] for UTF-8 text.
+pub fn read_text_bounded(path: &Path, max_bytes: u64, what: &str) -> Result<String, String> {
+    String::from_utf8(read_regular_bounded(path, max_bytes, what)?).map_err(|e| {
+        format!(
+            "not UTF-8 text (byte {} is not)",
+            e.utf8_error().valid_up_to()
+        )
+    })
+}
+
+/// Opens `path` for writing with `options` without following a symbolic
+/// link in its last component, and only if what it opens is a regular
+/// file. A link there (a run folder downloaded or left in a shared `/tmp`
+/// can point its lock or its log at a user's own files) is refused, not
+/// written through; so is a named pipe, which would otherwise block. The
+/// error names the path and what is there.
+pub fn open_for_writing_no_follow(
+    path: &Path,
+    options: &mut std::fs::OpenOptions,
+) -> Result<File, String> {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK);
+    }
+    let refuse_link = || {
+        format!(
+            "{}: a symbolic link, which zrak does not write through (it could point at \
+             any file); remove it and run again",
+            path.display()
+        )
+    };
+    // Checked by name first where the system has no O_NOFOLLOW; on Unix
+    // the open itself refuses, and this only words the refusal.
+    if std::fs::symlink_metadata(path).is_ok_and(|m| m.file_type().is_symlink()) {
+        return Err(refuse_link());
+    }
+    let file = options.open(path).map_err(|e| {
+        if is_link_loop(&e) {
+            refuse_link()
+        } else if std::fs::symlink_metadata(path).is_ok_and(|m| !m.is_file()) {
+            format!(
+                "{}: cannot write it: it is {}",
+                path.display(),
+                describe_unreadable(path, &e)
+            )
+        } else {
+            format!("{}: cannot open it for writing: {e}", path.display())
+        }
+    })?;
+    match file.metadata() {
+        Ok(meta) if meta.is_file() => Ok(file),
+        Ok(_) => Err(format!(
+            "{}: cannot write it: it is {}",
+            path.display(),
+            describe_unreadable(path, &std::io::Error::other("not a regular file"))
+        )),
+        Err(e) => Err(format!(
+            "{}: cannot open it for writing: {e}",
+            path.display()
+        )),
+    }
+}
+
 /// Why `path` is not a folder, for a path that was expected to be one.
 pub fn describe_not_a_folder(path: &Path) -> String {
     match std::fs::metadata(path) {
@@ -149,13 +272,97 @@ pub fn exists_at_all(path: &Path) -> bool {
     std::fs::symlink_metadata(path).is_ok()
 }
 
-/// Free memory in bytes as the kernel estimates it for new allocations
-/// (`MemAvailable`), or `None` where that is unknown.
+/// Memory in bytes this process can still allocate, or `None` where that
+/// is unknown: the least of what the machine has free for new allocations
+/// (`MemAvailable`), what the process's control group still allows
+/// (cgroup v2 `memory.max`, v1 `memory.limit_in_bytes`, less what the group
+/// uses) and what its address-space limit (`ulimit -v`) leaves above the
+/// address space it already maps. A container or a shell limit is as real
+/// as the machine's RAM: an allocation beyond it aborts the process too.
 pub fn available_memory() -> Option<u64> {
+    [
+        machine_available_memory(),
+        cgroup_available_memory(),
+        address_space_left(),
+    ]
+    .into_iter()
+    .flatten()
+    .min()
+}
+
+fn machine_available_memory() -> Option<u64> {
     let text = std::fs::read_to_string("/proc/meminfo").ok()?;
-    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    kib_field(&text, "MemAvailable:")
+}
+
+/// A `NAME: N kB` line's value in bytes, from `/proc` text.
+fn kib_field(text: &str, name: &str) -> Option<u64> {
+    let line = text.lines().find(|l| l.starts_with(name))?;
     let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
     Some(kib * 1024)
+}
+
+/// What the process's memory control group still allows, if it sets a
+/// limit.
+fn cgroup_available_memory() -> Option<u64> {
+    let groups = std::fs::read_to_string("/proc/self/cgroup").ok()?;
+    let read_number =
+        |path: PathBuf| -> Option<u64> { std::fs::read_to_string(path).ok()?.trim().parse().ok() };
+    let mut least: Option<u64> = None;
+    for line in groups.lines() {
+        let mut fields = line.splitn(3, ':');
+        let (Some(_), Some(controllers), Some(group)) =
+            (fields.next(), fields.next(), fields.next())
+        else {
+            continue;
+        };
+        let relative = group.trim_start_matches('/');
+        let (limit, usage) = if controllers.is_empty() {
+            let dir = Path::new("/sys/fs/cgroup").join(relative);
+            (dir.join("memory.max"), dir.join("memory.current"))
+        } else if controllers.split(',').any(|c| c == "memory") {
+            let dir = Path::new("/sys/fs/cgroup/memory").join(relative);
+            (
+                dir.join("memory.limit_in_bytes"),
+                dir.join("memory.usage_in_bytes"),
+            )
+        } else {
+            continue;
+        };
+        // "max" (v2) does not parse, and v1 writes its "no limit" as a
+        // number near 2^63: neither is a limit.
+        let Some(limit) = read_number(limit).filter(|&l| l < 1 << 60) else {
+            continue;
+        };
+        let left = limit.saturating_sub(read_number(usage).unwrap_or(0));
+        least = Some(least.map_or(left, |l| l.min(left)));
+    }
+    least
+}
+
+/// What `ulimit -v` (`RLIMIT_AS`) leaves above the address space the
+/// process already maps.
+fn address_space_left() -> Option<u64> {
+    #[cfg(unix)]
+    {
+        let mut limit = libc::rlimit {
+            rlim_cur: 0,
+            rlim_max: 0,
+        };
+        // SAFETY: getrlimit writes one rlimit into the struct it is given.
+        if unsafe { libc::getrlimit(libc::RLIMIT_AS, &mut limit) } != 0
+            || limit.rlim_cur == libc::RLIM_INFINITY
+        {
+            return None;
+        }
+        let status = std::fs::read_to_string("/proc/self/status").ok()?;
+        let mapped = kib_field(&status, "VmSize:").unwrap_or(0);
+        Some(limit.rlim_cur.saturating_sub(mapped))
+    }
+    #[cfg(not(unix))]
+    {
+        None
+    }
 }
 
 /// Bytes in words: `12.3 MB`, `4.0 GB`.
@@ -252,6 +459,75 @@ mod tests {
         let path = Path::new("/x/checkpoint.zrak");
         assert_ne!(temporary_beside(path), temporary_beside(path));
         assert_eq!(temporary_beside(path).parent(), Some(Path::new("/x")));
+    }
+
+    #[cfg(unix)]
+    fn make_fifo(path: &Path) {
+        let name = std::ffi::CString::new(path.to_str().unwrap()).unwrap();
+        // SAFETY: a valid NUL-terminated path.
+        assert_eq!(unsafe { libc::mkfifo(name.as_ptr(), 0o600) }, 0);
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn bounded_reads_refuse_pipes_devices_and_large_files_before_reading() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        let fifo = d.join("run.json");
+        make_fifo(&fifo);
+        let started = std::time::Instant::now();
+        let error = read_regular_bounded(&fifo, 1 << 20, "a run's settings").unwrap_err();
+        assert!(error.contains("named pipe"), "{error}");
+        // Refused at once: a blocking open would wait for a writer forever.
+        assert!(started.elapsed() < std::time::Duration::from_secs(1));
+        let zero = d.join("zero");
+        std::os::unix::fs::symlink("/dev/zero", &zero).unwrap();
+        let error = read_regular_bounded(&zero, 1 << 20, "a run's settings").unwrap_err();
+        assert!(error.contains("a device"), "{error}");
+        let big = d.join("big");
+        std::fs::write(&big, vec![b' '; 2001]).unwrap();
+        let error = read_regular_bounded(&big, 2000, "a run's settings").unwrap_err();
+        assert_eq!(
+            error,
+            "2.0 kB, more than the 2.0 kB a run's settings can be"
+        );
+        std::fs::write(&big, b"{}").unwrap();
+        assert_eq!(read_text_bounded(&big, 2000, "x").unwrap(), "{}");
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn writing_refuses_links_and_pipes_and_leaves_their_targets_alone() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path();
+        let target = d.join("bashrc");
+        std::fs::write(&target, "user's own").unwrap();
+        let link = d.join(".zrak.lock");
+        std::os::unix::fs::symlink(&target, &link).unwrap();
+        let mut options = std::fs::OpenOptions::new();
+        options.write(true).create(true).truncate(true);
+        let error = open_for_writing_no_follow(&link, &mut options).unwrap_err();
+        assert!(error.contains("symbolic link"), "{error}");
+        assert_eq!(std::fs::read_to_string(&target).unwrap(), "user's own");
+        let fifo = d.join("metrics.jsonl");
+        make_fifo(&fifo);
+        let mut options = std::fs::OpenOptions::new();
+        options.append(true).create(true);
+        let error = open_for_writing_no_follow(&fifo, &mut options).unwrap_err();
+        assert!(error.contains("named pipe"), "{error}");
+        let plain = d.join("plain");
+        let mut options = std::fs::OpenOptions::new();
+        options.append(true).create(true);
+        let mut file = open_for_writing_no_follow(&plain, &mut options).unwrap();
+        file.write_all(b"ok").unwrap();
+        assert_eq!(std::fs::read_to_string(&plain).unwrap(), "ok");
+    }
+
+    #[test]
+    fn available_memory_is_at_most_what_the_machine_has_free() {
+        if let (Some(all), Some(ours)) = (machine_available_memory(), available_memory()) {
+            assert!(ours <= all);
+        }
     }
 
     #[cfg(unix)]
