@@ -131,6 +131,17 @@ impl LevelRender {
         }
     }
 
+    /// A redraw of `previous` (a finished level of the same camera and
+    /// downscale, row-major): its pixels stand until each is drawn again.
+    /// `None` when `previous` is not of this level's size.
+    pub fn over(camera: &Camera, downscale: u32, previous: &[RenderedPixel]) -> Option<Self> {
+        let mut render = Self::new(camera, downscale);
+        (render.pixels.len() == previous.len()).then(|| {
+            render.pixels.copy_from_slice(previous);
+            render
+        })
+    }
+
     pub fn width(&self) -> u32 {
         self.camera.intrinsics.width
     }
@@ -179,6 +190,12 @@ impl LevelRender {
         let rendered = end - self.done;
         self.done = end;
         rendered
+    }
+
+    /// The pixels as they stand: those rendered so far, and after them
+    /// the picture this level redraws (or defaults), row-major.
+    pub fn pixels_so_far(&self) -> &[RenderedPixel] {
+        &self.pixels
     }
 
     /// The finished pixels, row-major.

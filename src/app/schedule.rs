@@ -9,25 +9,29 @@
 //!   `share` of the thread's busy time and the view and the evaluation
 //!   the rest ([`Ledger`]).
 //! - **Levels sized by cost.** Each model's render cost per pixel is
-//!   measured as it renders ([`RenderCost`]); a level's size is chosen so
-//!   its render fits a budget in seconds: a new or moving camera's first
-//!   level within [`FIRST_LEVEL_SECONDS`], a refresh of a resting view
-//!   within [`refresh_budget`] (1 s of render time at the default share).
-//!   While training is paused, a resting view refines to full resolution.
-//! - **The picture keeps up.** While training runs, a resting view is
-//!   redrawn at the finest level within the budget as soon as the last
-//!   refresh is on screen, so what is shown is at most two refreshes old
-//!   ([`lag_bound_seconds`]).
+//!   measured as it renders ([`RenderCost`]); a new or moving camera's
+//!   first level is sized so that it renders within
+//!   [`FIRST_LEVEL_SECONDS`].
+//! - **A resting picture sharpens to full resolution.** Once the camera
+//!   rests, levels refine to full resolution however long each takes on
+//!   the machine: they are drawn a chunk or band at a time at the view's
+//!   share of the thread, never given up, and the picture never gets
+//!   coarser while the camera rests. While training runs, the level on
+//!   screen is redrawn as soon as the last redraw is done; a redraw that
+//!   takes more than [`refresh_budget`] of render time is shown band by
+//!   band, a budget's worth at a time. What is shown is at most two
+//!   redraws old ([`lag_bound_seconds`]), which is seconds where a
+//!   viewport's render fits the budget and longer, in proportion to the
+//!   measured cost of a full-resolution picture, where it does not.
 
 use std::time::Duration;
 
 /// The default training share ([`crate::app::protocol::Balance`]).
 pub const DEFAULT_TRAINING_SHARE: f64 = 0.7;
 
-/// Render seconds a refresh of a resting view may take at the default
-/// training share: the whole viewport redrawn in at most this much render
-/// time (issue 27's figure for the cpu engine), which at a share of 0.7
-/// is ~3.3 s of wall time.
+/// Render seconds between two sends of a slow redraw of a resting view at
+/// the default training share (issue 27's figure for the cpu engine): at a
+/// share of 0.7 a picture that changes ~3.3 s of wall time apart.
 pub const REFRESH_SECONDS_AT_DEFAULT_SHARE: f64 = 1.0;
 
 /// Render seconds the first level of a new (or moving) camera may take:
@@ -60,43 +64,47 @@ pub const EVAL_SHARE: f64 = 0.05;
 /// still 11 % of the wall time on the demo.)
 pub const MIN_EVAL_PIXELS: usize = 48;
 
-/// Render seconds a refresh may take while training runs at `share`: the
-/// default share's [`REFRESH_SECONDS_AT_DEFAULT_SHARE`], scaled with the
-/// time left to rendering, so that a refresh takes about the same wall
-/// time at any share (~3.3 s): a lower training share buys finer levels,
-/// a higher one coarser levels rather than an older picture.
+/// Render seconds between two sends of a redraw while training runs at
+/// `share`: the default share's [`REFRESH_SECONDS_AT_DEFAULT_SHARE`],
+/// scaled with the time left to rendering, so that the picture changes
+/// about as often in wall time (~3.3 s) at any share.
 pub fn refresh_budget(share: f64) -> f64 {
     let left = (1.0 - share.clamp(0.0, 1.0)).max(0.0);
     REFRESH_SECONDS_AT_DEFAULT_SHARE * left / (1.0 - DEFAULT_TRAINING_SHARE)
 }
 
-/// Wall seconds the picture of a resting camera may lag behind training
-/// while it trains at `share`: a refresh takes its render budget at the
-/// rendering's share of the time, the evaluation's share aside, and what
-/// is on screen began at most three refreshes ago (the refresh shown, one
-/// given up when it took its budget with a tenth still to draw, then one
-/// sized by what that one cost); plus `step_seconds` for the step a
-/// refresh may wait behind. At the default share: 3 × 1 s / 0.265 + a
-/// step ≈ 11.3 s of wall time, ~7.9 s of training; two refreshes (7.6 s,
-/// ~5.3 s of training) once the cost of a pixel has settled.
-pub fn lag_bound_seconds(share: f64, step_seconds: f64) -> f64 {
+/// The share of the thread's time left to the view while training runs at
+/// `share` (the evaluation's share of the training time aside).
+pub fn rendering_share(share: f64) -> f64 {
     let share = share.clamp(0.0, 1.0);
-    let rendering = (1.0 - share - EVAL_SHARE * share).max(1e-3);
-    3.0 * refresh_budget(share) / rendering + step_seconds
+    (1.0 - share - EVAL_SHARE * share).max(1e-3)
 }
 
-/// Wall seconds from a camera coming to rest until the finest level its
-/// refresh budget allows is on screen, while training runs at `share`:
-/// the first level and the refinements (each level a quarter of the next
-/// one's pixels, so all of them at most 4/3 of the last, which fits the
-/// budget) at rendering's share of the time, plus `step_seconds` for the
-/// step a level may wait behind. At the default share: (0.05 + 4/3 × 1 s)
-/// / 0.265 + a step ≈ 5.2 s + a step. The last level is full resolution
-/// whenever the whole viewport's render fits the budget.
-pub fn settle_bound_seconds(share: f64, step_seconds: f64) -> f64 {
-    let share = share.clamp(0.0, 1.0);
-    let rendering = (1.0 - share - EVAL_SHARE * share).max(1e-3);
-    (FIRST_LEVEL_SECONDS + 4.0 / 3.0 * refresh_budget(share)) / rendering + step_seconds
+/// Wall seconds the picture of a resting camera may lag behind training
+/// while it trains at `share`, where a redraw of the level on screen
+/// takes `redraw_seconds` of render time (measured: what the whole level
+/// cost, or less than the refresh budget where it fits), and a step
+/// `step_seconds`. The picture on screen began at most two redraws ago
+/// (the one shown, and the one in progress), each at rendering's share of
+/// the time and each waiting behind at most one step. At the default share
+/// with a level that fits the 1 s budget: 2 × (1 s / 0.265 + a step) ≈
+/// 7.5 s + two steps.
+pub fn lag_bound_seconds(share: f64, redraw_seconds: f64, step_seconds: f64) -> f64 {
+    let redraw = redraw_seconds.max(refresh_budget(share));
+    2.0 * (redraw / rendering_share(share) + step_seconds)
+}
+
+/// Wall seconds from a camera coming to rest until its full-resolution
+/// picture is on screen, while training runs at `share`, where the full
+/// level takes `full_level_seconds` of render time (measured) and a step
+/// `step_seconds`: the first level and the refinements (each level a
+/// quarter of the next one's pixels, so all of them at most 4/3 of the
+/// last) at rendering's share of the time, plus a step a level may wait
+/// behind. With a full level of 1 s at the default share: (0.05 + 4/3 ×
+/// 1 s) / 0.265 + a step ≈ 5.2 s + a step.
+pub fn settle_bound_seconds(share: f64, full_level_seconds: f64, step_seconds: f64) -> f64 {
+    (FIRST_LEVEL_SECONDS + 4.0 / 3.0 * full_level_seconds.max(0.0)) / rendering_share(share)
+        + step_seconds
 }
 
 /// Pixels of a `width × height` view at 1/`downscale` in each direction
@@ -378,10 +386,17 @@ mod tests {
         assert!((refresh_budget(0.85) - 0.5).abs() < 1e-12);
         assert!(refresh_budget(0.0) > 3.0);
         assert_eq!(refresh_budget(1.0), 0.0);
-        // At the default share: three refreshes of 1 s at 26.5 % of the
-        // time, and a step.
-        let bound = lag_bound_seconds(0.7, 0.1);
-        assert!((bound - (3.0 / 0.265 + 0.1)).abs() < 1e-9, "{bound}");
+        // At the default share: two redraws of 1 s at 26.5 % of the time,
+        // each behind a step; a redraw slower than the budget counts whole.
+        let bound = lag_bound_seconds(0.7, 0.2, 0.1);
+        assert!((bound - 2.0 * (1.0 / 0.265 + 0.1)).abs() < 1e-9, "{bound}");
+        let slow = lag_bound_seconds(0.7, 5.0, 0.1);
+        assert!((slow - 2.0 * (5.0 / 0.265 + 0.1)).abs() < 1e-9, "{slow}");
+        let settle = settle_bound_seconds(0.7, 1.0, 0.5);
+        assert!(
+            (settle - ((0.05 + 4.0 / 3.0) / 0.265 + 0.5)).abs() < 1e-9,
+            "{settle}"
+        );
     }
 
     #[test]

@@ -44,8 +44,8 @@ use super::protocol::{
     SceneSource, TrainingStats,
 };
 use super::schedule::{
-    EVAL_SHARE, Ledger, MIN_EVAL_PIXELS, RenderCost, ScheduleTrace, TRACE_INTERVAL, finest_within,
-    first_level, next_finer_level, refresh_budget,
+    EVAL_SHARE, Ledger, MIN_EVAL_PIXELS, RenderCost, ScheduleTrace, TRACE_INTERVAL, first_level,
+    next_finer_level, refresh_budget,
 };
 
 mod export_jobs;
@@ -455,10 +455,6 @@ struct View {
     /// The last finished level of this camera and model (re-sent when the
     /// same camera is requested again).
     shown: Option<Shown>,
-    /// The last level begun was given up for overrunning its budget; the
-    /// next one, sized by what that one cost, is drawn to the end, so a
-    /// cost that keeps rising never leaves the screen without a picture.
-    gave_up_last: bool,
 }
 
 /// A finished level on screen.
@@ -479,8 +475,11 @@ struct LevelJob {
     revision: u64,
     /// Render seconds spent on it so far.
     seconds: f64,
-    /// Whether it may be given up when it overruns its budget.
-    may_give_up: bool,
+    /// Whether it redraws the level on screen, starting from its picture,
+    /// so that it may be sent before its last row.
+    over_shown: bool,
+    /// Render seconds spent on it when it was last sent unfinished.
+    seconds_at_last_send: f64,
     draw: LevelDraw,
 }
 

@@ -1,6 +1,8 @@
 //! The view: the levels of the resting camera's picture, drawn chunk by
-//! chunk (or band by band into textures on the gpu engine), sized from the
-//! model's render cost, given up when they overrun their budget.
+//! chunk (or band by band into textures on the gpu engine) between
+//! training steps, the first sized from the model's render cost, the rest
+//! refining to full resolution; a redraw slower than the refresh budget is
+//! sent band by band as it goes.
 
 use super::*;
 
@@ -45,28 +47,6 @@ impl LevelJob {
             LevelDraw::Pixels(render) => render.is_done(),
             LevelDraw::Texture(level) => level.next_row >= level.camera.intrinsics.height,
         }
-    }
-
-    /// Pixels drawn so far.
-    pub(super) fn drawn(&self) -> usize {
-        match &self.draw {
-            LevelDraw::Pixels(render) => render.rendered(),
-            LevelDraw::Texture(level) => {
-                level.next_row as usize * level.camera.intrinsics.width as usize
-            }
-        }
-    }
-
-    /// True when the level has taken its whole `budget` of render seconds
-    /// with a tenth or more still to draw: the cost was misjudged. Early in
-    /// NeRF's training the cost of a pixel rises several times over within
-    /// a few steps (on lego_400, ~90 µs at step 7 to ~470 µs at step 15) as
-    /// the occupancy grid fills, and the rows drawn first, mostly
-    /// background, understate the rest: a level judged by its first half
-    /// ran to 3.4 s of a 1 s budget and held a 20 s old picture on screen.
-    pub(super) fn overruns(&self, budget: f64) -> bool {
-        let (drawn, pixels) = (self.drawn(), self.pixels());
-        self.may_give_up && drawn > 0 && 10 * drawn < 9 * pixels && self.seconds > budget
     }
 }
 
@@ -161,40 +141,28 @@ pub(super) fn draw_band(
 impl Worker {
     /// The level the view should draw next (its downscale), if any: a
     /// first level for a camera or model not yet shown; then, once the
-    /// camera rests, finer levels up to the target; then, whenever the
-    /// model has changed since the shown level began, the target again.
-    /// The target is the finest level whose render fits the refresh
-    /// budget while the thread has other work, full resolution otherwise.
+    /// camera rests, finer levels up to full resolution, however long
+    /// each takes (it is drawn a chunk or band at a time between training
+    /// steps, at the view's share of the thread); then, whenever the model
+    /// has changed since the shown level began, that level again. A resting
+    /// picture never gets coarser: a redraw slower than the refresh budget
+    /// is shown band by band as it goes ([`Self::send_partial_if_due`]).
     pub(super) fn next_level(&self) -> Option<u32> {
         let view = self.view.as_ref()?;
         let slot = self.slot(self.active)?;
         let k = view.request.camera.intrinsics;
-        let cost = slot.cost.seconds_per_pixel();
         let Some(shown) = &view.shown else {
+            let cost = slot.cost.seconds_per_pixel();
             return Some(first_level(k.width, k.height, cost));
         };
         if view.moving() {
             // A moving camera gets one level per request.
             return None;
         }
-        let busy = self.training_active() || self.export.is_some();
-        let target = match (busy, cost) {
-            (false, _) => 1,
-            (true, Some(per_pixel)) => finest_within(
-                k.width,
-                k.height,
-                per_pixel,
-                refresh_budget(self.training_share()),
-            ),
-            // Only after a first level, which measures the cost.
-            (true, None) => shown.downscale,
-        };
-        if shown.downscale > target
-            && let Some(finer) = next_finer_level(k.width, k.height, shown.downscale, target)
-        {
+        if let Some(finer) = next_finer_level(k.width, k.height, shown.downscale, 1) {
             return Some(finer);
         }
-        (shown.revision != slot.revision).then_some(target)
+        (shown.revision != slot.revision).then_some(shown.downscale)
     }
 
     pub(super) fn set_view(&mut self, request: RenderRequest) -> Result<(), UiGone> {
@@ -237,7 +205,6 @@ impl Worker {
             received: now,
             job: None,
             shown: None,
-            gave_up_last: false,
         });
         Ok(())
     }
@@ -278,31 +245,65 @@ impl Worker {
         if finished {
             return self.finish_level();
         }
-        // A level far over its budget while training waits on it is given
-        // up for a coarser one, sized by what this one has cost so far;
-        // whole levels (a new camera's first) are small and always finish.
+        self.send_partial_if_due()
+    }
+
+    /// Sends a redraw of the level on screen as far as it has gone, once
+    /// it has taken another refresh budget of render seconds: the rows
+    /// drawn so far over the rest of the picture it replaces. A redraw
+    /// that takes many budgets (NeRF at full resolution on a slow machine)
+    /// then shows its progress band by band instead of holding the old
+    /// picture until its last row.
+    fn send_partial_if_due(&mut self) -> Result<(), UiGone> {
         let budget = refresh_budget(self.training_share());
-        if !whole_level
-            && self.training_active()
-            && let (Some(view), Some(slot)) = (
-                self.view.as_mut(),
-                self.slots.iter_mut().find(|s| s.kind == self.active),
-            )
-            && view.job.as_ref().is_some_and(|job| job.overruns(budget))
-        {
-            let job = view.job.take().expect("checked");
-            slot.cost.replace(job.drawn(), job.seconds);
-            view.gave_up_last = true;
+        let Some(view) = self.view.as_mut() else {
+            return Ok(());
+        };
+        let Some(job) = view.job.as_mut() else {
+            return Ok(());
+        };
+        if !job.over_shown || job.seconds - job.seconds_at_last_send < budget.max(1e-3) {
+            return Ok(());
         }
-        Ok(())
+        job.seconds_at_last_send = job.seconds;
+        let event = match &job.draw {
+            LevelDraw::Pixels(render) => Event::Frame(RenderedFrame {
+                generation: view.request.generation,
+                model: job.model,
+                step: job.step,
+                train_seconds: job.train_seconds,
+                downscale: job.downscale,
+                width: render.width(),
+                height: render.height(),
+                mode: view.request.mode,
+                pixels: render.pixels_so_far().to_vec(),
+            }),
+            LevelDraw::Texture(level) => {
+                self.textures.sent(&level.texture);
+                Event::GpuFrame(GpuFrame {
+                    generation: view.request.generation,
+                    model: job.model,
+                    step: job.step,
+                    train_seconds: job.train_seconds,
+                    downscale: job.downscale,
+                    width: level.camera.intrinsics.width,
+                    height: level.camera.intrinsics.height,
+                    mode: view.request.mode,
+                    texture: level.texture.clone(),
+                })
+            }
+        };
+        self.outbox.send(event)
     }
 
     /// A level of the view at `downscale` of the active model's current
     /// state: into a texture when the window shares the engine's device.
+    /// A redraw of the level on screen starts from the picture shown, so
+    /// that what it sends before its last row keeps the rows not yet
+    /// redrawn.
     pub(super) fn start_level(&mut self, downscale: u32) -> LevelJob {
         let view = self.view.as_ref().expect("a view to draw");
         let camera = level_camera(&view.request.camera, downscale);
-        let may_give_up = !view.gave_up_last;
         let request_to_texture = self.draws_to_texture(&view.request);
         let slot = self.slot(self.active).expect("checked by the caller");
         let (model, step, train_seconds, revision) = (
@@ -311,15 +312,51 @@ impl Worker {
             slot.trainer.train_seconds,
             slot.revision,
         );
-        let draw = if request_to_texture {
-            let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
-            LevelDraw::Texture(TextureLevel {
-                texture: self.texture(width, height),
+        let shown = view
+            .shown
+            .as_ref()
+            .filter(|shown| shown.downscale == downscale)
+            .map(|shown| &shown.picture);
+        let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
+        let (draw, over_shown) = if request_to_texture {
+            let shown_texture = match shown {
+                Some(Picture::Texture(frame)) if (frame.width, frame.height) == (width, height) => {
+                    Some(frame.texture.clone())
+                }
+                _ => None,
+            };
+            let texture = self.texture(width, height);
+            if let (Some(shown), Some(context)) = (&shown_texture, self.engine.gpu.as_ref()) {
+                let mut encoder = context.device.create_command_encoder(&Default::default());
+                encoder.copy_texture_to_texture(
+                    shown.as_image_copy(),
+                    texture.as_image_copy(),
+                    wgpu::Extent3d {
+                        width,
+                        height,
+                        depth_or_array_layers: 1,
+                    },
+                );
+                context.queue.submit([encoder.finish()]);
+            }
+            let draw = LevelDraw::Texture(TextureLevel {
+                texture,
                 camera,
                 next_row: 0,
-            })
+            });
+            (draw, shown_texture.is_some())
         } else {
-            LevelDraw::Pixels(LevelRender::new(&view.request.camera, downscale))
+            let view = self.view.as_ref().expect("checked above");
+            let render = match shown {
+                Some(Picture::Pixels(frame)) => {
+                    LevelRender::over(&view.request.camera, downscale, &frame.pixels)
+                }
+                _ => None,
+            };
+            let over_shown = render.is_some();
+            let render =
+                render.unwrap_or_else(|| LevelRender::new(&view.request.camera, downscale));
+            (LevelDraw::Pixels(render), over_shown)
         };
         LevelJob {
             downscale,
@@ -328,7 +365,8 @@ impl Worker {
             train_seconds,
             revision,
             seconds: 0.0,
-            may_give_up,
+            over_shown,
+            seconds_at_last_send: 0.0,
             draw,
         }
     }
@@ -384,6 +422,7 @@ impl Worker {
             // the CPU.
             self.textures_shared = false;
             job.draw = LevelDraw::Pixels(LevelRender::new(&view.request.camera, job.downscale));
+            job.over_shown = false;
             self.send(Event::Error(format!(
                 "drawing the view on the gpu failed ({error}); the view now comes \
                  through the CPU"
@@ -412,7 +451,6 @@ impl Worker {
         let Some(job) = view.job.take() else {
             return Ok(());
         };
-        view.gave_up_last = false;
         slot.cost.record(job.pixels(), job.seconds);
         self.trace.add_rendering(job.downscale, 0.0, true);
         let picture = match job.draw {
