@@ -982,6 +982,114 @@ fn the_picture_keeps_up_while_training_keeps_its_share(
     worker.shutdown();
 }
 
+/// Issue 43: on a slow machine a whole viewport of NeRF takes several
+/// refresh budgets to render, and the picture stayed at the finest level
+/// that fit one budget (1/3 of the viewport for 40 s on a 2-core Zen 3).
+/// Here a viewport of 64 × 64 pixels of NeRF on the cpu engine takes
+/// seconds of render time: the resting picture must still reach full
+/// resolution, within the settle bound of the full level's measured cost,
+/// and a redraw slower than the budget must be shown band by band (several
+/// full-resolution frames of one step) while training goes on.
+#[test]
+fn a_resting_picture_reaches_full_resolution_when_a_level_takes_several_budgets() {
+    use zrak::app::schedule::{DEFAULT_TRAINING_SHARE, refresh_budget, settle_bound_seconds};
+    let _alone = common::alone();
+    let worker = TrainingWorker::spawn_with(
+        SceneSource::Demo,
+        Some(EngineKind::Cpu),
+        ModelKind::Nerf,
+        WorkerOptions {
+            demo: small_demo(),
+            ..WorkerOptions::default()
+        },
+    );
+    wait_for(&worker, |event| {
+        matches!(event, Event::Engine { .. }).then_some(())
+    });
+    let began = Instant::now();
+    render(&worker, 1, camera(64, 0.3));
+    worker.send(Command::Start);
+    let mut run = Watched::default();
+    // A guard only: the bound is checked below from what the levels cost.
+    watch(&worker, 1, began, 300.0, |f| f.downscale == 1, &mut run);
+    let full = *run
+        .frames
+        .iter()
+        .find(|f| f.downscale == 1)
+        .unwrap_or_else(|| panic!("no full-resolution frame: {:?}", run.frames));
+    // Go on until a redraw of the full level has been sent (band by band
+    // when it is slow) and finished: until a full-resolution frame of a
+    // third step comes, which only the redraw after it sends.
+    let mut steps_at_full = vec![full.step];
+    let patience = 60.0
+        + 10.0 * run.longest_any_level() / zrak::app::schedule::rendering_share(0.7)
+        + 4.0 * run.longest_step;
+    watch(
+        &worker,
+        1,
+        Instant::now(),
+        patience,
+        |f| {
+            if f.downscale == 1 && !steps_at_full.contains(&f.step) {
+                steps_at_full.push(f.step);
+            }
+            steps_at_full.len() >= 3
+        },
+        &mut run,
+    );
+    assert!(
+        steps_at_full.len() >= 3,
+        "the full-resolution picture was not redrawn as training went on: {:?}",
+        run.frames
+    );
+    // The trace of the redraw's last band.
+    let trace_wait = zrak::app::schedule::TRACE_INTERVAL.as_secs_f64() + 0.5;
+    watch(&worker, 1, Instant::now(), trace_wait, |_| false, &mut run);
+    worker.shutdown();
+    let full_level = run
+        .longest_level(1)
+        .expect("the full level finished and was traced");
+    let limit =
+        2.0 * settle_bound_seconds(DEFAULT_TRAINING_SHARE, full_level, run.longest_step) + 1.0;
+    let budget = refresh_budget(DEFAULT_TRAINING_SHARE);
+    println!(
+        "full resolution after {:.1} s (full level {full_level:.2} s of render time, budget \
+         {budget:.1} s, longest step {:.2} s, bound {limit:.1} s); frames {:?}",
+        full.at,
+        run.longest_step,
+        run.frames
+            .iter()
+            .map(|f| (format!("{:.1}", f.at), f.step, f.downscale))
+            .collect::<Vec<_>>()
+    );
+    assert!(
+        full.at <= limit,
+        "full resolution came {:.1} s after the camera rested (bound {limit:.1} s)",
+        full.at
+    );
+    if full_level > 2.0 * budget {
+        // A redraw of several budgets: the frames of one step at full
+        // resolution, sent as its bands were drawn, more than once.
+        let mut most_of_one_step = 0;
+        for frame in run.frames.iter().filter(|f| f.downscale == 1) {
+            let same = run
+                .frames
+                .iter()
+                .filter(|g| g.downscale == 1 && g.step == frame.step)
+                .count();
+            most_of_one_step = most_of_one_step.max(same);
+        }
+        assert!(
+            most_of_one_step >= 2,
+            "a redraw of {full_level:.1} s (budget {budget:.1} s) was not shown band by band: \
+             {:?}",
+            run.frames
+        );
+    } else {
+        println!("the full level fit two budgets here: no redraw was sent in bands");
+    }
+}
+
 #[test]
 fn nerf_on_the_cpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
     let _alone = common::alone();
