@@ -11,6 +11,7 @@ pub mod engine;
 pub mod field;
 pub mod files;
 pub mod interrupt;
+pub mod isa;
 pub mod mesh;
 pub mod metrics;
 pub mod model;

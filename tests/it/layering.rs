@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 /// numbers) sit below everything; image metrics just above the scene's
 /// images.
 const LAYERS: &[&[&str]] = &[
-    &["crc32c", "files", "interrupt", "rng"],
+    &["crc32c", "files", "interrupt", "isa", "rng"],
     &["scene"],
     &["metrics"],
     &["field"],

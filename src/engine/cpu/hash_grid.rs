@@ -609,11 +609,11 @@ macro_rules! dispatch_by_isa {
         fn $name<T: Real, const F: usize, const DENSE: bool>($($arg: $ty),*) {
             #[cfg(target_arch = "x86_64")]
             {
-                if std::is_x86_feature_detected!("avx512f") && std::is_x86_feature_detected!("avx512vl") {
+                if crate::isa::avx512() {
                     // SAFETY: the CPU has the features the function is compiled for.
                     return unsafe { $avx512::<T, F, DENSE>($($arg),*) };
                 }
-                if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+                if crate::isa::avx2_fma() {
                     // SAFETY: as above.
                     return unsafe { $avx2::<T, F, DENSE>($($arg),*) };
                 }
@@ -670,11 +670,7 @@ mod x86_gather {
         #[cfg(target_arch = "x86_64")]
         {
             use std::any::TypeId;
-            if F == 2
-                && TypeId::of::<T>() == TypeId::of::<f32>()
-                && std::is_x86_feature_detected!("avx512f")
-                && std::is_x86_feature_detected!("avx512vl")
-            {
+            if F == 2 && TypeId::of::<T>() == TypeId::of::<f32>() && crate::isa::avx512() {
                 // SAFETY: T is f32 (checked above), so the casts change
                 // nothing but the static type; the CPU has AVX-512F/VL.
                 unsafe {

@@ -245,11 +245,11 @@ impl Adam {
 fn update<const NETWORK: bool>(hyper: &Hyper, slices: Slices) {
     #[cfg(target_arch = "x86_64")]
     {
-        if is_x86_feature_detected!("avx512f") {
+        if crate::isa::avx512() {
             // SAFETY: the processor has the feature, checked just above.
             return unsafe { update_avx512::<NETWORK>(hyper, slices) };
         }
-        if is_x86_feature_detected!("avx2") {
+        if crate::isa::avx2_fma() {
             // SAFETY: as above.
             return unsafe { update_avx2::<NETWORK>(hyper, slices) };
         }

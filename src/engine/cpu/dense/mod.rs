@@ -272,19 +272,17 @@ pub fn backend_for(precision: Precision) -> Backend {
     }
 }
 
-/// The best f32 kernels this CPU supports.
+/// The best f32 kernels this CPU supports (within `ZRAK_CPU_KERNELS`,
+/// [`crate::isa`]).
 pub fn backend() -> Backend {
     static DETECTED: std::sync::OnceLock<Backend> = std::sync::OnceLock::new();
     *DETECTED.get_or_init(|| {
         #[cfg(target_arch = "x86_64")]
         {
-            if is_x86_feature_detected!("avx512f")
-                && is_x86_feature_detected!("avx2")
-                && is_x86_feature_detected!("fma")
-            {
+            if crate::isa::avx512() {
                 return Backend::Avx512;
             }
-            if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
+            if crate::isa::avx2_fma() {
                 return Backend::Avx2;
             }
         }
