@@ -784,8 +784,8 @@ fn watch(
     }
 }
 
-/// How long the camera rests while training's share and the picture's lag
-/// are measured. The share of a run read at a report is off by at most a
+/// How long the camera rests, after the first step, while training's share
+/// and the picture's lag are measured. The share of a run read at a report is off by at most a
 /// fraction of a step: with the longest steps measured on two busy cores
 /// (3.0 s for NeRF on the cpu engine, a grid update; 2.1 s on lavapipe),
 /// 0.3 of one over 15 s is 0.06, inside the 0.1 between the schedule's 0.7
@@ -794,6 +794,11 @@ fn watch(
 /// lavapipe, shares 0.69 to 0.74; three quarters of those steps are still
 /// many more than the three advances of the picture asserted.
 const WATCH_SECONDS: f64 = 15.0;
+
+/// A guard on the wait for the first step, which the watch then follows:
+/// not a bound on its time, which the lag bound takes from the longest
+/// step measured.
+const FIRST_STEP_PATIENCE: f64 = 300.0;
 
 /// NeRF or Mip-NeRF with the camera at rest: training gets its share, the
 /// picture keeps up, and a camera that comes to rest is drawn at full
@@ -821,7 +826,22 @@ fn the_picture_keeps_up_while_training_keeps_its_share(
     render(&worker, 1, camera(view, 0.3));
     worker.send(Command::Start);
     let mut run = Watched::default();
-    watch(&worker, 1, began, WATCH_SECONDS, |_| false, &mut run);
+    // Until the first step ends (Instant-NGP's first steps on lavapipe
+    // update every cell of its 128³ occupancy grid: tens of seconds), then
+    // for the watch itself.
+    while run.stats.is_empty() && began.elapsed().as_secs_f64() < FIRST_STEP_PATIENCE {
+        let until = began.elapsed().as_secs_f64() + 0.5;
+        watch(&worker, 1, began, until, |_| false, &mut run);
+    }
+    let first_step_at = run.stats.first().map_or(0.0, |s| s.0);
+    watch(
+        &worker,
+        1,
+        began,
+        first_step_at + WATCH_SECONDS,
+        |_| false,
+        &mut run,
+    );
 
     // Training's share of the wall time, from the start to its last report.
     // The share is 0.7; the issue asks for at least 0.6. The time is shared
@@ -1112,6 +1132,43 @@ fn mipnerf_on_the_cpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
         EngineKind::Cpu,
         WorkerOptions {
             demo: small_demo(),
+            ..WorkerOptions::default()
+        },
+        16,
+    );
+}
+
+#[test]
+fn ngp_on_the_cpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
+    let _alone = common::alone();
+    the_picture_keeps_up_while_training_keeps_its_share(
+        ModelKind::Ngp,
+        EngineKind::Cpu,
+        WorkerOptions {
+            demo: small_demo(),
+            ..WorkerOptions::default()
+        },
+        32,
+    );
+}
+
+#[test]
+fn ngp_on_the_gpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
+    let _alone = common::alone();
+    let context = match zrak::engine::gpu::GpuContext::new() {
+        Ok(context) => context,
+        Err(error) => {
+            println!("no gpu adapter ({error}): nothing to test");
+            return;
+        }
+    };
+    the_picture_keeps_up_while_training_keeps_its_share(
+        ModelKind::Ngp,
+        EngineKind::Gpu,
+        WorkerOptions {
+            demo: small_demo(),
+            batch_samples: Some(1 << 12),
+            gpu_device: Some(context),
             ..WorkerOptions::default()
         },
         16,
