@@ -286,17 +286,18 @@ impl MemoryBudget {
         if needed <= share {
             return Ok(());
         }
+        let needed_words = crate::files::human_bytes(needed);
         let what = match pixels {
-            Some((width, height)) => format!("the image is {width}×{height} pixels"),
-            None => format!("the image file is {}", crate::files::human_bytes(needed)),
+            Some((width, height)) => format!(
+                "{width}×{height} pixels, which need about {needed_words} of memory to decode"
+            ),
+            None => format!("a {needed_words} file, which the JPEG decoder reads whole"),
         };
         Err(SceneError::new(
             path,
             format!(
-                "{what}: decoding it needs about {} of memory, more than the {}; \
-                 make the image smaller (zrak decodes each image at full size before any \
-                 --downscale) or give zrak more memory",
-                crate::files::human_bytes(needed),
+                "{what}, more than the {}; make the image smaller (zrak decodes each image at \
+                 full size before any --downscale) or give zrak more memory",
                 self.describe_available()
             ),
         ))

@@ -89,8 +89,8 @@ pub fn lookalike_hint(path: &Path) -> Option<String> {
             "its accented letters differ".to_string()
         };
         return Some(format!(
-            "{} holds \"{}\", which looks alike but is another name to the file system \
-             ({how}); rename the file or change the scene file to match",
+            "{} holds \"{}\", which looks alike but is another name to the file system: \
+             {how}; rename the file or change the scene file to match",
             escape_controls(&folder.display().to_string()),
             escape_controls(&found),
         ));

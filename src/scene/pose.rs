@@ -365,14 +365,14 @@ fn not_an_image_file(written: &str, path: &Path) -> String {
 }
 
 /// What is at `path`, which is not a regular file, in words: "a folder,
-/// not an image file", "a device, not an image file", "a symbolic link
-/// that loops …". What counts is what the name leads to through any links:
+/// not a file", "a device, not a file", "a symbolic link that loops …".
+/// What counts is what the name leads to through any links:
 /// `/dev/stdin` is a link to a descriptor, and the device or pipe behind it
 /// is what a reader would meet.
 pub fn what_is_there(path: &Path) -> String {
     match std::fs::metadata(path) {
         Ok(meta) => match kind_of(&meta) {
-            Some(kind) => format!("{kind}, not an image file"),
+            Some(kind) => format!("{kind}, not a file"),
             None => crate::files::describe_unreadable(
                 path,
                 &std::io::Error::other("not a regular file"),

@@ -216,8 +216,7 @@ fn an_image_too_large_for_the_memory_is_refused_by_its_size() {
         &stderr,
         &[
             "train/r_0.png",
-            "30000×30000 pixels",
-            "needs about 4.5 GB",
+            "30000×30000 pixels, which need about 4.5 GB of memory to decode, more than the",
             "available",
             "make the image smaller",
         ],
@@ -268,7 +267,7 @@ fn a_folder_or_pipe_named_like_the_image_is_named_for_what_it_is() {
         &stderr,
         &[
             "frame 0",
-            "train/r_0.png, which is a folder, not an image file",
+            "train/r_0.png, which is a folder, not a file",
             "`file_path` must name a PNG or JPEG file",
         ],
     );
@@ -291,7 +290,7 @@ fn a_folder_or_pipe_named_like_the_image_is_named_for_what_it_is() {
     assert!(started.elapsed().as_secs() < 20, "the pipe was waited on");
     assert_mentions(
         &stderr,
-        &["train/r_0.png, which is a named pipe (FIFO), not an image file"],
+        &["train/r_0.png, which is a named pipe (FIFO), not a file"],
     );
     assert!(!stderr.contains("not found"), "{stderr}");
 }
@@ -362,8 +361,8 @@ fn a_device_as_file_path_is_named_a_device() {
     assert_mentions(
         &stderr,
         &[
-            "transforms_train.json: frame 1: `file_path` \"/dev/stdin\" is a device, not an \
-             image file: `file_path` must name a PNG or JPEG file",
+            "transforms_train.json: frame 1: `file_path` \"/dev/stdin\" is a device, not a \
+             file: `file_path` must name a PNG or JPEG file",
         ],
     );
 }
