@@ -498,11 +498,9 @@ fn check_same_size(sources: &[FrameSource], decoded: &[DecodedImage]) -> SceneRe
     };
     for (source, image) in sources.iter().zip(decoded) {
         if (image.width, image.height) != (first.width, first.height) {
-            let first_file = first_source
-                .json_path
-                .file_name()
-                .unwrap_or_default()
-                .to_string_lossy();
+            let first_file = shown(Path::new(
+                first_source.json_path.file_name().unwrap_or_default(),
+            ));
             return Err(source.error(format!(
                 "frames of different sizes: image {} is {}×{}, but image {} (frame {} of {first_file}) is {}×{}",
                 shown(&source.image_path),
