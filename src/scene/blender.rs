@@ -18,11 +18,13 @@ pub fn split_file_name(split: Split) -> String {
     format!("transforms_{}.json", split.name())
 }
 
-/// Whether `folder` holds at least one of the split files.
+/// Whether `folder` holds at least one of the split files. A split file
+/// that cannot be read (a link that loops or points nowhere, a folder of
+/// that name) counts, so that loading it says what is wrong with it.
 pub fn is_blender_folder(folder: &Path) -> bool {
     Split::ALL
         .iter()
-        .any(|&split| folder.join(split_file_name(split)).is_file())
+        .any(|&split| crate::files::exists_at_all(&folder.join(split_file_name(split))))
 }
 
 /// One split file, read and checked, its images not yet decoded.
@@ -46,7 +48,10 @@ pub fn load(folder: &Path, options: LoadOptions) -> SceneResult<Scene> {
     let mut files = Vec::new();
     for split in Split::ALL {
         let path = folder.join(split_file_name(split));
-        if path.exists() {
+        // Anything of that name is read: a split file that cannot be (a
+        // link that loops, say) is an error naming it, not a split left
+        // empty, which would train on the others without a word.
+        if crate::files::exists_at_all(&path) {
             files.push(read_split_file(folder, &path, split)?);
         }
     }

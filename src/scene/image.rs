@@ -139,38 +139,169 @@ pub struct LoadedImage {
 
 /// Reads a PNG (8- or 16-bit) or JPEG, RGB or RGBA, grey or grey-alpha, into
 /// 8-bit RGBA, turned upright by its EXIF orientation when it has one.
-/// 16-bit channels are rounded to 8 bits.
+/// 16-bit channels are rounded to 8 bits. The memory the decode needs is
+/// checked against what the process has available before any of it is
+/// allocated: see [`load_image_sharing`].
 pub fn load_image(path: &Path) -> SceneResult<LoadedImage> {
-    if let Err(problem) = crate::files::check_regular_file(path) {
-        return Err(SceneError::new(
+    load_image_sharing(path, 1)
+}
+
+/// [`load_image`] for one of `decodes_at_once` images decoded side by side
+/// (a scene decodes its images in parallel), each of which may take only
+/// its share of the memory available. A small file can hold a huge image
+/// (a 30000×30000 PNG of one colour compresses to a few megabytes and
+/// decodes to gigabytes), so the size in the file's header, not the file's
+/// length, decides: an image whose decode would not fit is refused with its
+/// size and the memory it needs, instead of aborting the process when an
+/// allocation fails.
+pub fn load_image_sharing(path: &Path, decodes_at_once: usize) -> SceneResult<LoadedImage> {
+    // Opened as a regular file only, without blocking: a named pipe or a
+    // device named like an image is refused, not read forever.
+    let (file, file_length) = crate::files::open_regular(path).map_err(|problem| {
+        SceneError::new(
             path,
             if problem == "not found" {
                 "image file not found".to_string()
             } else {
                 format!("the image file is {problem}")
             },
-        ));
-    }
-    let reader = image::ImageReader::open(path)
-        .map_err(|e| SceneError::new(path, format!("cannot open image: {e}")))?
+        )
+    })?;
+    let mut reader = image::ImageReader::new(std::io::BufReader::new(file))
         .with_guessed_format()
         .map_err(|e| SceneError::new(path, format!("cannot read image: {e}")))?;
+    let budget = MemoryBudget::now(decodes_at_once);
+    // The JPEG decoder reads the whole file into memory before its header.
+    let is_jpeg = reader.format() == Some(image::ImageFormat::Jpeg);
+    if is_jpeg {
+        budget.check(path, None, file_length)?;
+    }
+    // The decoders' own buffers (the PNG decoder's chunk and row buffers)
+    // stay within the share too.
+    let mut limits = image::Limits::default();
+    if let Some(share) = budget.share() {
+        limits.max_alloc = Some(share);
+    }
+    reader.limits(limits.clone());
     // Phones store JPEGs in the sensor's orientation with an EXIF tag
     // saying how to turn them; the intrinsics COLMAP and other tools
     // estimate are for the turned image, as every viewer shows it.
-    let decode_error =
-        |e: image::ImageError| SceneError::new(path, format!("cannot decode image: {e}"));
+    let decode_error = |e: image::ImageError| match e {
+        image::ImageError::Limits(limit) => SceneError::new(
+            path,
+            format!(
+                "cannot decode image: {limit} ({})",
+                budget.describe_available()
+            ),
+        ),
+        e => SceneError::new(path, format!("cannot decode image: {e}")),
+    };
     let mut decoder = reader.into_decoder().map_err(decode_error)?;
     let orientation = image::ImageDecoder::orientation(&mut decoder).map_err(decode_error)?;
+    let (width, height) = image::ImageDecoder::dimensions(&decoder);
+    let colour = image::ImageDecoder::color_type(&decoder);
+    let jpeg_file = if is_jpeg { Some(file_length) } else { None };
+    let needed = decode_memory(&decoder, jpeg_file, orientation);
+    budget.check(path, Some((width, height)), needed)?;
+    // The size is now known to fit: the decoder may not exceed it.
+    limits.max_image_width = Some(width);
+    limits.max_image_height = Some(height);
+    image::ImageDecoder::set_limits(&mut decoder, limits).map_err(decode_error)?;
     let mut decoded = image::DynamicImage::from_decoder(decoder).map_err(decode_error)?;
     decoded.apply_orientation(orientation);
-    let file_has_alpha = decoded.color().has_alpha();
+    let file_has_alpha = colour.has_alpha();
     let rgba = decoded.into_rgba8();
     let (width, height) = rgba.dimensions();
     Ok(LoadedImage {
         image: ImageRgba8::new(width, height, rgba.into_raw()),
         file_has_alpha,
     })
+}
+
+/// Bytes a decode of `decoder`'s image holds at its peak: the decoded
+/// pixels in the file's own layout, the 8-bit RGBA copy they are turned
+/// into (unless they are that already), a turned copy when the EXIF
+/// orientation turns or mirrors the image, and for a JPEG (of
+/// `jpeg_file` bytes) the file itself and the decoder's working planes.
+fn decode_memory(
+    decoder: &impl image::ImageDecoder,
+    jpeg_file: Option<u64>,
+    orientation: image::metadata::Orientation,
+) -> u64 {
+    let (width, height) = decoder.dimensions();
+    let decoded = decoder.total_bytes();
+    let rgba = u64::from(width) * u64::from(height) * 4;
+    let mut needed = decoded;
+    if decoder.color_type() != image::ColorType::Rgba8 {
+        needed = needed.saturating_add(rgba);
+    }
+    if orientation != image::metadata::Orientation::NoTransforms {
+        needed = needed.saturating_add(rgba);
+    }
+    if let Some(file_length) = jpeg_file {
+        needed = needed.saturating_add(file_length).saturating_add(decoded);
+    }
+    needed
+}
+
+/// The memory one of several decodes running side by side may use.
+struct MemoryBudget {
+    /// What the process has available, when known.
+    available: Option<u64>,
+    decodes_at_once: u64,
+}
+
+impl MemoryBudget {
+    fn now(decodes_at_once: usize) -> Self {
+        Self {
+            available: crate::files::available_memory(),
+            decodes_at_once: decodes_at_once.max(1) as u64,
+        }
+    }
+
+    /// This decode's share of the available memory.
+    fn share(&self) -> Option<u64> {
+        self.available.map(|a| a / self.decodes_at_once)
+    }
+
+    fn describe_available(&self) -> String {
+        match (self.available, self.share()) {
+            (Some(all), Some(share)) if self.decodes_at_once > 1 => format!(
+                "{} available to each of the {} images decoded at once, {} in all",
+                crate::files::human_bytes(share),
+                self.decodes_at_once,
+                crate::files::human_bytes(all)
+            ),
+            (Some(all), _) => format!("{} available", crate::files::human_bytes(all)),
+            _ => "the memory available is unknown".into(),
+        }
+    }
+
+    /// Refuses `needed` bytes beyond this decode's share, naming the image
+    /// (and its size in pixels, when known) and the memory on both sides.
+    fn check(&self, path: &Path, pixels: Option<(u32, u32)>, needed: u64) -> SceneResult<()> {
+        let Some(share) = self.share() else {
+            return Ok(());
+        };
+        if needed <= share {
+            return Ok(());
+        }
+        let needed_words = crate::files::human_bytes(needed);
+        let what = match pixels {
+            Some((width, height)) => format!(
+                "{width}×{height} pixels, which need about {needed_words} of memory to decode"
+            ),
+            None => format!("a {needed_words} file, which the JPEG decoder reads whole"),
+        };
+        Err(SceneError::new(
+            path,
+            format!(
+                "{what}, more than the {}; make the image smaller (zrak decodes each image at \
+                 full size before any --downscale) or give zrak more memory",
+                self.describe_available()
+            ),
+        ))
+    }
 }
 
 #[cfg(test)]

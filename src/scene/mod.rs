@@ -12,6 +12,7 @@ pub mod identity;
 pub mod image;
 pub mod instant_ngp;
 pub mod lens;
+pub mod names;
 pub mod pose;
 
 use std::path::{Path, PathBuf};
@@ -407,7 +408,7 @@ impl Scene {
         }
         if blender::is_blender_folder(path) {
             blender::load(path, options)
-        } else if path.join(instant_ngp::FILE_NAME).is_file() {
+        } else if crate::files::exists_at_all(&path.join(instant_ngp::FILE_NAME)) {
             instant_ngp::load(path, options)
         } else if colmap::is_colmap_folder(path) {
             colmap::load(path, options)

@@ -10,8 +10,8 @@ use glam::{Mat4, Vec4};
 use rayon::prelude::*;
 use serde_json::{Map, Value};
 
-use super::error::{SceneError, SceneResult};
-use super::image::{ImageRgba8, load_image};
+use super::error::{SceneError, SceneResult, shown};
+use super::image::{ImageRgba8, load_image_sharing};
 
 /// How far `RᵀR` may stray from the identity. NeRF-synthetic rotations are
 /// orthonormal to about 1e-7 and COLMAP-derived ones to about 1e-6; a
@@ -31,6 +31,14 @@ pub fn read_json(path: &Path) -> SceneResult<Value> {
     crate::files::check_regular_file(path).map_err(|problem| {
         if problem == "not found" {
             SceneError::new(path, "file not found")
+        } else if problem.contains("symbolic link") {
+            SceneError::new(
+                path,
+                format!(
+                    "cannot read it: it is {problem}; replace the link with the JSON file \
+                     itself, or remove it"
+                ),
+            )
         } else {
             SceneError::new(path, format!("cannot read it: it is {problem}"))
         }
@@ -287,37 +295,111 @@ pub fn check_rigid(m: &[[f64; 4]; 4]) -> Result<(), String> {
 /// synthetic files write `./train/r_0` (a leading `./`, no extension, PNG
 /// meant); others write the file name in full. The path as written wins; a
 /// `.png` is tried only when that does not exist and the name has no image
-/// extension of its own.
+/// extension of its own. A name that leads to something other than a file
+/// (a folder, a named pipe, a device such as `/dev/stdin`) is refused by
+/// what it is; a missing one says so, naming any file there whose name
+/// differs only in how its accents are written.
 pub fn resolve_image_path(folder: &Path, file_path: &str) -> Result<PathBuf, String> {
+    if let Some(at) = file_path.find('\0') {
+        return Err(format!(
+            "`file_path` {file_path:?} holds a NUL character (\\0) at byte {at}, which no file \
+             name can hold: write the image's path there"
+        ));
+    }
     let relative = file_path.strip_prefix("./").unwrap_or(file_path);
     let as_written = folder.join(relative);
     if as_written.is_file() {
         return Ok(as_written);
     }
-    if crate::files::exists_at_all(&as_written)
-        && let Err(problem) = crate::files::check_regular_file(&as_written)
-    {
-        return Err(format!("image file {} is {problem}", as_written.display()));
+    if crate::files::exists_at_all(&as_written) {
+        return Err(not_an_image_file(file_path, &as_written));
     }
     let has_image_extension = as_written
         .extension()
         .and_then(|e| e.to_str())
         .is_some_and(|e| ["png", "jpg", "jpeg"].contains(&e.to_ascii_lowercase().as_str()));
     if has_image_extension {
-        return Err(format!("image file not found: {}", as_written.display()));
+        return Err(image_not_found(&as_written, None));
     }
     let mut with_png = as_written.clone().into_os_string();
     with_png.push(".png");
     let with_png = PathBuf::from(with_png);
     if with_png.is_file() {
         Ok(with_png)
+    } else if crate::files::exists_at_all(&with_png) {
+        Err(not_an_image_file(file_path, &with_png))
     } else {
-        Err(format!(
-            "image file not found: {} (also tried {})",
-            with_png.display(),
-            as_written.display()
-        ))
+        Err(image_not_found(&with_png, Some(&as_written)))
     }
+}
+
+/// "image file not found: PATH", with the other name tried and, where the
+/// folder holds a name that differs only in how its accents are written,
+/// that name.
+pub fn image_not_found(path: &Path, also_tried: Option<&Path>) -> String {
+    let mut message = format!("image file not found: {}", shown(path));
+    if let Some(other) = also_tried {
+        message += &format!(" (also tried {})", shown(other));
+    }
+    let hint = super::names::lookalike_hint(path)
+        .or_else(|| also_tried.and_then(super::names::lookalike_hint));
+    if let Some(hint) = hint {
+        message += &format!("; {hint}");
+    }
+    message
+}
+
+/// Why the `file_path` `written`, which leads to `path`, is not an image
+/// file: what is there instead, in words, and what to write instead.
+fn not_an_image_file(written: &str, path: &Path) -> String {
+    let what = what_is_there(path);
+    let fix = "`file_path` must name a PNG or JPEG file";
+    if Path::new(written) == path {
+        format!("`file_path` {written:?} is {what}: {fix}")
+    } else {
+        format!(
+            "`file_path` {written:?} leads to {}, which is {what}: {fix}",
+            shown(path)
+        )
+    }
+}
+
+/// What is at `path`, which is not a regular file, in words: "a folder,
+/// not a file", "a device, not a file", "a symbolic link that loops …".
+/// What counts is what the name leads to through any links:
+/// `/dev/stdin` is a link to a descriptor, and the device or pipe behind it
+/// is what a reader would meet.
+pub fn what_is_there(path: &Path) -> String {
+    match std::fs::metadata(path) {
+        Ok(meta) => match kind_of(&meta) {
+            Some(kind) => format!("{kind}, not a file"),
+            None => crate::files::describe_unreadable(
+                path,
+                &std::io::Error::other("not a regular file"),
+            ),
+        },
+        Err(e) => crate::files::describe_unreadable(path, &e),
+    }
+}
+
+/// What a path that is not a regular file is, in a few words.
+fn kind_of(meta: &std::fs::Metadata) -> Option<&'static str> {
+    if meta.is_dir() {
+        return Some("a folder");
+    }
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt;
+        let kind = meta.file_type();
+        if kind.is_fifo() {
+            return Some("a named pipe (FIFO)");
+        } else if kind.is_socket() {
+            return Some("a socket");
+        } else if kind.is_block_device() || kind.is_char_device() {
+            return Some("a device");
+        }
+    }
+    None
 }
 
 /// Checks the integer downscale factor of [`super::LoadOptions`].
@@ -365,19 +447,27 @@ pub struct DecodedImage {
 /// frame and the image; when several frames are bad, the first in `sources`
 /// order is reported, so the message does not depend on thread timing.
 pub fn decode_images(sources: &[FrameSource], downscale: u32) -> SceneResult<Vec<DecodedImage>> {
+    // Each decode may use its share of the memory available: as many run
+    // at once as rayon has threads (or frames, if fewer).
+    let decodes_at_once = rayon::current_num_threads().min(sources.len()).max(1);
     let results: Vec<SceneResult<DecodedImage>> = sources
         .par_iter()
-        .map(|source| decode_one(source, downscale))
+        .map(|source| decode_one(source, downscale, decodes_at_once))
         .collect();
     let decoded = results.into_iter().collect::<SceneResult<Vec<_>>>()?;
     check_same_size(sources, &decoded)?;
     Ok(decoded)
 }
 
-fn decode_one(source: &FrameSource, downscale: u32) -> SceneResult<DecodedImage> {
+fn decode_one(
+    source: &FrameSource,
+    downscale: u32,
+    decodes_at_once: usize,
+) -> SceneResult<DecodedImage> {
     let image_error =
-        |problem: &str| source.error(format!("image {}: {problem}", source.image_path.display()));
-    let loaded = load_image(&source.image_path).map_err(|e| image_error(&e.problem))?;
+        |problem: &str| source.error(format!("image {}: {problem}", shown(&source.image_path)));
+    let loaded = load_image_sharing(&source.image_path, decodes_at_once)
+        .map_err(|e| image_error(&e.problem))?;
     let (width, height) = (loaded.image.width, loaded.image.height);
     if width / downscale == 0 || height / downscale == 0 {
         return Err(image_error(&format!(
@@ -385,11 +475,17 @@ fn decode_one(source: &FrameSource, downscale: u32) -> SceneResult<DecodedImage>
         )));
     }
     // Downscaling here, inside the parallel loop, keeps only the small image
-    // alive and spreads the averaging across threads.
+    // alive and spreads the averaging across threads; at full resolution
+    // the decoded image is kept as it is, not copied.
+    let image = if downscale == 1 {
+        loaded.image
+    } else {
+        loaded.image.downscaled(downscale)
+    };
     Ok(DecodedImage {
         width,
         height,
-        image: loaded.image.downscaled(downscale),
+        image,
         file_has_alpha: loaded.file_has_alpha,
     })
 }
@@ -402,17 +498,15 @@ fn check_same_size(sources: &[FrameSource], decoded: &[DecodedImage]) -> SceneRe
     };
     for (source, image) in sources.iter().zip(decoded) {
         if (image.width, image.height) != (first.width, first.height) {
-            let first_file = first_source
-                .json_path
-                .file_name()
-                .unwrap_or_default()
-                .to_string_lossy();
+            let first_file = shown(Path::new(
+                first_source.json_path.file_name().unwrap_or_default(),
+            ));
             return Err(source.error(format!(
                 "frames of different sizes: image {} is {}×{}, but image {} (frame {} of {first_file}) is {}×{}",
-                source.image_path.display(),
+                shown(&source.image_path),
                 image.width,
                 image.height,
-                first_source.image_path.display(),
+                shown(&first_source.image_path),
                 first_source.index,
                 first.width,
                 first.height,

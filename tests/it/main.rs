@@ -37,6 +37,7 @@ mod ngp_gpu_driver_gate;
 mod ngp_learning;
 mod render_texture_gpu;
 mod sampling_gpu;
+mod scene_bounds;
 mod scene_loading;
 mod sh_gpu;
 mod split_bindings_gpu;

@@ -26,7 +26,7 @@ use glam::{DMat3, DQuat, DVec3, Mat4, Vec4};
 use serde_json::{Value, json};
 
 use super::camera::{Camera, Intrinsics, Lens};
-use super::error::{SceneError, SceneResult};
+use super::error::{SceneError, SceneResult, shown};
 use super::pose::{FrameSource, check_downscale, decode_images};
 use super::{Frame, LoadOptions, Scene, SceneFormat, UnitCubeMapping, folder_name};
 
@@ -544,11 +544,17 @@ pub fn load(root: &Path, options: LoadOptions) -> SceneResult<Scene> {
         .collect();
     for (source, image) in sources.iter().zip(&converted.images) {
         if !source.image_path.is_file() {
-            return Err(source.error(format!(
-                "image {} ({}) not found",
-                image.name,
-                source.image_path.display()
-            )));
+            let name = crate::scene::error::escape_controls(&image.name);
+            let path = &source.image_path;
+            return Err(source.error(if crate::files::exists_at_all(path) {
+                format!(
+                    "image {name} ({}) is {}: put the photograph there",
+                    shown(path),
+                    super::pose::what_is_there(path)
+                )
+            } else {
+                format!("image {name}: {}", super::pose::image_not_found(path, None))
+            }));
         }
     }
     let decoded = decode_images(&sources, options.downscale)?;
