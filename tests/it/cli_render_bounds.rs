@@ -160,10 +160,7 @@ fn frames_of_another_checkpoint_or_crop_box_are_refused_and_force_removes_them()
     std::fs::write(&checkpoint, &first).unwrap();
     let refusal = fail(
         d,
-        &strs(&render_path(
-            d,
-            &["--crop", "0,0,0,1,1,1", "--frames", "0..2"],
-        )),
+        &strs(&render_path(&["--crop", "0,0,0,1,1,1", "--frames", "0..2"])),
     );
     assert!(refusal.contains("(another crop box"), "{refusal}");
     // (--crop saved the box in the run: remove it again.)
@@ -247,7 +244,8 @@ fn camera_path_files_are_bounded_before_parsing_and_their_rates_named() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let baked = |frames: usize| {
-        let one = r#"{"camera_to_world":[1,0,0,0,0,1,0,0,0,0,1,4,0,0,0,1],"fov":50},"#;
+        let one =
+            r#"{"camera_to_world":[1,0,0,0,0,1,0,0,0,0,1,4,0,0,0,1],"fov":50,"aspect":1.333333},"#;
         let mut text = String::with_capacity(one.len() * frames + 100);
         text.push_str(r#"{"render_width":16,"render_height":12,"fps":24,"camera_path":["#);
         for _ in 0..frames {
@@ -257,8 +255,8 @@ fn camera_path_files_are_bounded_before_parsing_and_their_rates_named() {
         text.push_str("]}");
         text
     };
-    // A million frames: refused at once by the file's size; 200000 (13 MB)
-    // at once by their count. The run need not exist: the file is read
+    // A million frames (81 MB): refused at once by the file's size; 200000
+    // (16 MB) at once by their count. The run need not exist: the file is read
     // first.
     std::fs::write(d.join("million.json"), baked(1_000_000)).unwrap();
     std::fs::write(d.join("many.json"), baked(200_000)).unwrap();
