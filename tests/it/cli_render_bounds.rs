@@ -261,7 +261,7 @@ fn camera_path_files_are_bounded_before_parsing_and_their_rates_named() {
     std::fs::write(d.join("million.json"), baked(1_000_000)).unwrap();
     std::fs::write(d.join("many.json"), baked(200_000)).unwrap();
     for (name, says) in [
-        ("million.json", "million.json: cannot read it: "),
+        ("million.json", "million.json: 81.0 MB, more than"),
         (
             "many.json",
             "many.json: `camera_path` has 200000 frames, more than the 100000",

@@ -300,7 +300,7 @@ impl CameraPathFile {
     /// Reads a camera path file; errors name the file and the field.
     pub fn load(path: &Path) -> Result<CameraPathFile, String> {
         let bytes = crate::files::read_regular_bounded(path, MAX_FILE_BYTES, "a camera path")
-            .map_err(|problem| format!("{}: cannot read it: {problem}", path.display()))?;
+            .map_err(|problem| format!("{}: {problem}", path.display()))?;
         let text = String::from_utf8(bytes).map_err(|_| {
             format!(
                 "{}: not UTF-8 text (a camera path is a JSON file)",
