@@ -221,11 +221,36 @@ fn export_mesh(args: MeshArgs) -> anyhow::Result<()> {
         }
     );
     if mesh.faces.is_empty() {
-        note(&format!(
-            "the mesh is empty: no density above {threshold} in the box; give a lower --threshold"
-        ));
+        note(&empty_mesh_advice(threshold, args.min_component, &report));
     }
     Ok(())
+}
+
+/// Why the mesh came out empty, and what to change.
+fn empty_mesh_advice(
+    threshold: f32,
+    min_component: Option<MinComponent>,
+    report: &zrak::mesh::extract::MeshReport,
+) -> String {
+    match min_component {
+        Some(min) if report.components_before > 0 => {
+            let (pieces, largest) = (report.components_before, report.largest_component_faces);
+            format!(
+                "the mesh is empty: --min-component {} removed all {pieces} piece{} of the \
+                 surface at σ = {threshold}, the largest of {largest} face{}; give a \
+                 --min-component of {largest} faces or fewer to keep it",
+                match min {
+                    MinComponent::Faces(faces) => format!("{faces}"),
+                    MinComponent::Fraction(share) => format!("{}%", share * 100.0),
+                },
+                if pieces == 1 { "" } else { "s" },
+                if largest == 1 { "" } else { "s" },
+            )
+        }
+        _ => format!(
+            "the mesh is empty: no density above {threshold} in the box; give a lower --threshold"
+        ),
+    }
 }
 
 fn check_points_args(args: &PointsArgs) -> anyhow::Result<()> {

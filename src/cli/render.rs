@@ -11,14 +11,18 @@ use clap::Args;
 use indicatif::ProgressBar;
 use zrak::engine::EngineKind;
 use zrak::interrupt::{self, note};
+use zrak::render::camera_path::frames::RenderSource;
 use zrak::render::export::{ExportSettings, export_turntable};
 use zrak::render::path::Turntable;
 use zrak::render::{RenderMode, render_pixels, to_image};
 use zrak::scene::{Camera, Split};
 use zrak::train::run::RunFolder;
 
+use super::MAX_IMAGE_SIDE;
 use super::run_config::restore_run;
-use super::{MAX_IMAGE_SIDE, render_bytes_per_view};
+use zrak::render::camera_path::export::{file_ending, is_video};
+use zrak::render::camera_path::video::{encoder_memory_bytes, size_problem};
+use zrak::render::{frame_memory_bytes, gif_memory_bytes};
 
 #[derive(Args, Debug)]
 pub struct RenderArgs {
@@ -64,7 +68,8 @@ pub struct RenderArgs {
     #[arg(long, value_enum, default_value_t = RenderMode::Rgb)]
     mode: RenderMode,
     /// Output folder (created if missing; images already there are kept
-    /// unless --force).
+    /// unless --force); for --camera-path, a file ending in .mp4 instead
+    /// makes a video.
     #[arg(long)]
     out: PathBuf,
     #[arg(long, value_enum)]
@@ -166,15 +171,35 @@ fn check_render_args(args: &RenderArgs) -> anyhow::Result<()> {
                 "--size must be 1 to {MAX_IMAGE_SIDE} pixels, got {side}"
             );
         }
-        // One frame renders at a time; the GIF encoder keeps a copy of it.
-        let bytes = render_bytes_per_view(width, height)
-            + if args.gif {
-                width as u64 * height as u64 * 8
-            } else {
-                0
-            };
-        zrak::files::check_memory(&format!("a {width}×{height} frame"), bytes)
-            .map_err(anyhow::Error::msg)?;
+        let video = args.camera_path.is_some() && is_video(&args.out);
+        if video && let Some(problem) = size_problem(width, height) {
+            bail!(
+                "--size {width}x{height} for {}: {problem}",
+                args.out.display()
+            );
+        }
+        check_frame_memory(width, height, args.gif, video)?;
+    }
+    if let Some(ending) = file_ending(&args.out) {
+        match (&args.camera_path, args.turntable) {
+            (Some(_), _) if ending == "mp4" => {}
+            (Some(_), _) => bail!(
+                "--out {}: a camera path is rendered into a folder of PNG frames or an .mp4 \
+                 video, not a .{ending} file; give a folder or a file ending in .mp4",
+                args.out.display()
+            ),
+            (None, Some(_)) => bail!(
+                "--out {}: a turntable is written as PNG frames into a folder (and, with --gif, \
+                 turntable.gif in it), not as a .{ending} file; give a folder for --out (for a \
+                 video, render a camera path: --camera-path FILE --out NAME.mp4)",
+                args.out.display()
+            ),
+            (None, None) => bail!(
+                "--out {}: a view is written as a PNG file into a folder, not as a .{ending} \
+                 file; give a folder for --out",
+                args.out.display()
+            ),
+        }
     }
     // clap's `requires` lets these through without --camera-path (seen
     // with `--view 0 --fps 30`), so they are checked here.
@@ -221,12 +246,57 @@ fn check_render_args(args: &RenderArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Refuses a frame size whose render (with the GIF's or the video
+/// encoder's share) would not fit in the memory this process has left.
+fn check_frame_memory(width: u32, height: u32, gif: bool, video: bool) -> anyhow::Result<()> {
+    let bytes = frame_memory_bytes(width, height)
+        + if gif {
+            gif_memory_bytes(width, height)
+        } else {
+            0
+        }
+        + if video {
+            encoder_memory_bytes(width, height)
+        } else {
+            0
+        };
+    zrak::files::check_memory(&format!("a {width}×{height} frame"), bytes)
+        .map_err(|problem| anyhow::anyhow!("{problem}; give a smaller --size"))
+}
+
+/// The run's weights as a render's record names them: the CRC-32C of its
+/// checkpoint file (read again after loading; a few hundred MB a second
+/// where the processor computes CRC-32C).
+fn checkpoint_identity(folder: &RunFolder) -> anyhow::Result<String> {
+    use std::io::Read;
+    let path = folder.checkpoint_path();
+    let (mut file, _) = zrak::files::open_regular(&path)
+        .map_err(|problem| anyhow::anyhow!("{}: {problem}", path.display()))?;
+    let mut crc = zrak::crc32c::Crc32c::new();
+    let mut buffer = vec![0u8; 1 << 20];
+    loop {
+        let n = file
+            .read(&mut buffer)
+            .with_context(|| format!("{}: cannot read", path.display()))?;
+        if n == 0 {
+            break;
+        }
+        crc.update(&buffer[..n]);
+    }
+    Ok(format!("checkpoint CRC-32C {:08x}", crc.finish()))
+}
+
 pub fn render(args: RenderArgs) -> anyhow::Result<()> {
     check_render_args(&args)?;
+    let path_file = args
+        .camera_path
+        .as_deref()
+        .map(path::read_path_file)
+        .transpose()?;
     let folder = RunFolder::open(&args.run).map_err(anyhow::Error::msg)?;
-    let (_, mut trainer) = restore_run(&folder, args.engine, None)?;
-    if let Some(file_path) = &args.camera_path {
-        let file = path::load_path_file(file_path, &trainer.scene)?;
+    let (config, mut trainer) = restore_run(&folder, args.engine, None)?;
+    if let (Some(file_path), Some(file)) = (&args.camera_path, &path_file) {
+        let file = path::move_into_scene(file, &trainer.scene)?;
         // The path file's own crop box, unless --crop says otherwise.
         let crop = match (&args.crop.crop, &file.crop) {
             (None, Some(block)) => {
@@ -239,20 +309,35 @@ pub fn render(args: RenderArgs) -> anyhow::Result<()> {
             _ => args.crop.resolve(&args.run)?,
         };
         trainer.model.set_crop(crop).map_err(anyhow::Error::msg)?;
+        let source = RenderSource {
+            run: std::fs::canonicalize(&args.run)
+                .unwrap_or_else(|_| args.run.clone())
+                .display()
+                .to_string(),
+            weights: checkpoint_identity(&folder)?,
+            model: config.model.name().to_string(),
+            crop,
+        };
         let scene = &trainer.scene;
-        return path::render_camera_path(&args, &file, file_path, trainer.model.as_ref(), scene);
+        return path::render_camera_path(
+            &args,
+            &file,
+            file_path,
+            trainer.model.as_ref(),
+            scene,
+            source,
+        );
     }
     let crop = args.crop.resolve(&args.run)?;
     trainer.model.set_crop(crop).map_err(anyhow::Error::msg)?;
     let scene = &trainer.scene;
-    if args.size.is_none()
-        && let Some((width, height)) = scene.resolution()
+    // Again now that the run's model takes its share of memory.
+    if let Some((width, height)) = args
+        .size
+        .map(|s| (s.width, s.height))
+        .or_else(|| scene.resolution())
     {
-        zrak::files::check_memory(
-            &format!("a {width}×{height} frame"),
-            render_bytes_per_view(width, height),
-        )
-        .map_err(anyhow::Error::msg)?;
+        check_frame_memory(width, height, args.gif, false)?;
     }
     let cameras: Vec<(String, Camera)> = match (args.view, args.turntable) {
         (Some(view), None) => {

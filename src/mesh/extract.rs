@@ -60,6 +60,10 @@ pub struct MeshReport {
     /// Grid spacing along each axis, world units.
     pub spacing: Vec3,
     pub components_dropped: usize,
+    /// Pieces of the surface before any was dropped, and the faces of the
+    /// largest (0 when `min_component` was not given).
+    pub components_before: usize,
+    pub largest_component_faces: usize,
 }
 
 /// Grid nodes per axis and their spacing for `resolution` nodes along the
@@ -249,6 +253,13 @@ fn surface_of(
     model: &dyn RadianceModel,
 ) -> Result<(Mesh, MeshReport), String> {
     let mut mesh = marching_cubes(grid, settings.threshold, true);
+    let (components_before, largest_component_faces) = match settings.min_component {
+        Some(_) => {
+            let (_, sizes) = mesh.components();
+            (sizes.len(), sizes.iter().copied().max().unwrap_or(0))
+        }
+        None => (0, 0),
+    };
     let components_dropped = settings
         .min_component
         .map_or(0, |min| mesh.remove_small_components(min));
@@ -278,6 +289,8 @@ fn surface_of(
             dims: grid.dims,
             spacing: grid.spacing,
             components_dropped,
+            components_before,
+            largest_component_faces,
         },
     ))
 }

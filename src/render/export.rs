@@ -192,7 +192,8 @@ impl GifInProgress {
             u16::try_from(height).map_err(too_large)?,
         );
         let partial = partial_path(path);
-        let file = File::create(&partial)
+        // A new file only: never through a link someone left at the name.
+        let file = File::create_new(&partial)
             .map_err(|e| format!("{}: cannot create file: {e}", partial.display()))?;
         let gif = Self::start_encoding(file, w, h)
             .map(|encoder| GifInProgress {
@@ -300,9 +301,14 @@ fn refuse_existing(settings: &ExportSettings) -> Result<(), String> {
 }
 
 fn check_writable(dir: &Path) -> Result<(), String> {
-    let probe = dir.join(".zrak-write-check");
-    let result = File::create(&probe).and_then(|mut f| f.write_all(b"zrak"));
-    let _ = std::fs::remove_file(&probe);
+    // A name of this process's own, created new: a link at a fixed name
+    // would have the probe written through it.
+    let probe = crate::files::temporary_beside(&dir.join(".zrak-write-check"));
+    let result = File::create_new(&probe).and_then(|mut file| {
+        let written = file.write_all(b"zrak");
+        let _ = std::fs::remove_file(&probe);
+        written
+    });
     result.map_err(|e| format!("{}: cannot write to the output folder: {e}", dir.display()))
 }
 

@@ -13,6 +13,7 @@ mod adam_gpu;
 mod captures;
 mod cli;
 mod cli_camera_path;
+mod cli_render_bounds;
 mod composite_gpu;
 mod demo_scene;
 mod dense_gpu;

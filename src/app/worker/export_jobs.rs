@@ -10,6 +10,7 @@ use super::export_mesh::{MeshJob, PointsJob};
 use super::*;
 use crate::app::protocol::{CameraPathExport, MeshExport, PointsExport};
 use crate::render::camera_path::export::{PathRender, PathRenderSettings};
+use crate::render::camera_path::frames::RenderSource;
 use crate::render::camera_path::nerfstudio::scene_to_original;
 
 /// What the window asked to export (one at a time: its size does not
@@ -42,13 +43,25 @@ impl ExportJob {
         order: ExportOrder,
         model: ModelKind,
         crop: Option<CropBox>,
+        step: u32,
     ) -> Result<ExportJob, String> {
         let work = match order {
             ExportOrder::Turntable(settings) => {
                 JobWork::Turntable(TurntableExport::start(scene, settings)?)
             }
             ExportOrder::CameraPath(order) => {
-                JobWork::CameraPath(Box::new(PathRender::start(path_settings(scene, order)?)?))
+                // The frames' record: which model, trained how far, in
+                // which box, so a later job never continues over frames of
+                // another model or step.
+                let source = RenderSource {
+                    run: format!("the viewer on {}", scene.name),
+                    weights: format!("the viewer's model at step {step}"),
+                    model: model.name().to_string(),
+                    crop,
+                };
+                JobWork::CameraPath(Box::new(PathRender::start(path_settings(
+                    scene, order, source,
+                )?)?))
             }
             ExportOrder::Mesh(order) => JobWork::Mesh(MeshJob::start(scene, order, model, crop)?),
             ExportOrder::Points(order) => {
@@ -97,7 +110,11 @@ impl ExportJob {
 
 /// The render settings of a camera path order: the path moved into the
 /// scene's world, baked at the order's rate, at its size.
-fn path_settings(scene: &Scene, order: CameraPathExport) -> Result<PathRenderSettings, String> {
+fn path_settings(
+    scene: &Scene,
+    order: CameraPathExport,
+    source: RenderSource,
+) -> Result<PathRenderSettings, String> {
     let file = order.file.moved_into(scene_to_original(scene)?);
     let samples = match order.fps {
         Some(fps) => file.frames_at(fps),
@@ -129,6 +146,7 @@ fn path_settings(scene: &Scene, order: CameraPathExport) -> Result<PathRenderSet
         replace_existing: order.replace_existing,
         keep_frames: false,
         depth_range: scene.depth_range(),
+        source,
     })
 }
 
@@ -139,7 +157,8 @@ impl Worker {
                 "an export is already running; cancel it first".into(),
             ));
         }
-        match ExportJob::start(&self.scene, order, self.active, self.crop) {
+        let step = self.slot(self.active).map_or(0, |slot| slot.trainer.step);
+        match ExportJob::start(&self.scene, order, self.active, self.crop, step) {
             Ok(job) => {
                 let (done, total) = job.progress();
                 self.export = Some(job);

@@ -15,13 +15,13 @@ use std::time::Instant;
 use indicatif::{ProgressBar, ProgressStyle};
 use zrak::interrupt::{self, note};
 use zrak::render::camera_path::export::{PathRender, PathRenderSettings};
+use zrak::render::camera_path::frames::RenderSource;
 use zrak::render::camera_path::nerfstudio::{CameraPathFile, scene_to_original};
 use zrak::render::camera_path::video::size_problem;
 use zrak::scene::Scene;
 use zrak::train::model::RadianceModel;
 
 use super::RenderArgs;
-use crate::cli::render_bytes_per_view;
 
 /// A range of frames on the command line: `A..B` (B excluded), `A..` (to
 /// the end), `..B`, or `A` (that frame alone).
@@ -75,9 +75,14 @@ pub fn parse_frame_range(text: &str) -> Result<FrameRange, String> {
 
 use zrak::render::camera_path::export::is_video;
 
-/// The camera path file `file_path`, read and moved into `scene`'s world.
-pub fn load_path_file(file_path: &Path, scene: &Scene) -> anyhow::Result<CameraPathFile> {
-    let file = CameraPathFile::load(file_path).map_err(anyhow::Error::msg)?;
+/// The camera path file `file_path`, read (before the run loads, so that a
+/// bad file is refused at once).
+pub fn read_path_file(file_path: &Path) -> anyhow::Result<CameraPathFile> {
+    CameraPathFile::load(file_path).map_err(anyhow::Error::msg)
+}
+
+/// A camera path file moved into `scene`'s world.
+pub fn move_into_scene(file: &CameraPathFile, scene: &Scene) -> anyhow::Result<CameraPathFile> {
     Ok(file.moved_into(scene_to_original(scene).map_err(anyhow::Error::msg)?))
 }
 
@@ -87,6 +92,7 @@ pub fn render_camera_path(
     file_path: &Path,
     model: &dyn RadianceModel,
     scene: &Scene,
+    source: RenderSource,
 ) -> anyhow::Result<()> {
     let samples = match args.fps {
         Some(fps) => file.frames_at(fps),
@@ -99,18 +105,31 @@ pub fn render_camera_path(
         .map_or((file.render_width, file.render_height), |s| {
             (s.width, s.height)
         });
-    zrak::files::check_memory(
-        &format!("a {width}×{height} frame"),
-        render_bytes_per_view(width, height),
-    )
-    .map_err(anyhow::Error::msg)?;
     let range = match args.frames {
         Some(frames) => frames.resolve(samples.len())?,
         None => 0..samples.len(),
     };
     if is_video(&args.out) {
         if let Some(problem) = size_problem(width, height) {
-            anyhow::bail!("{}: {problem} (give --size WxH)", args.out.display());
+            anyhow::bail!(
+                "{}: {problem}, the size {} (give --size WxH)",
+                args.out.display(),
+                if args.size.is_some() {
+                    "--size gives".to_string()
+                } else {
+                    format!(
+                        "{} gives (`render_width`, `render_height`)",
+                        file_path.display()
+                    )
+                }
+            );
+        }
+        if !(1.0..=240.0).contains(&fps) {
+            anyhow::bail!(
+                "{}: `fps` is {fps}, and a video's frame rate must be 1 to 240 frames a second; \
+                 give --fps",
+                file_path.display()
+            );
         }
         if !args.force && zrak::files::exists_at_all(&args.out) {
             anyhow::bail!(
@@ -130,6 +149,7 @@ pub fn render_camera_path(
         replace_existing: args.force,
         keep_frames: args.keep_frames,
         depth_range: scene.depth_range(),
+        source,
     })
     .map_err(anyhow::Error::msg)?;
     let already = render.already();

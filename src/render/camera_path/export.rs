@@ -14,7 +14,7 @@ use std::ops::Range;
 use std::path::{Path, PathBuf};
 
 use super::PathSample;
-use super::frames::{FrameJob, MANIFEST};
+use super::frames::{FrameJob, MANIFEST, RenderSource, read_frame};
 use super::video::{Mp4Encoder, VideoInfo, size_problem};
 use crate::render::RenderMode;
 use crate::scene::ImageRgba8;
@@ -24,6 +24,19 @@ use crate::train::model::RadianceModel;
 pub fn is_video(out: &Path) -> bool {
     out.extension()
         .is_some_and(|e| e.eq_ignore_ascii_case("mp4"))
+}
+
+/// File name endings that name an image or a video file: an output folder
+/// given one of these names is surely a mistake for a file.
+const FILE_ENDINGS: [&str; 12] = [
+    "mp4", "gif", "png", "jpg", "jpeg", "avi", "mov", "mkv", "webm", "m4v", "mpg", "mpeg",
+];
+
+/// The ending of `out` (lower case) when it names an image or video file
+/// rather than a folder.
+pub fn file_ending(out: &Path) -> Option<String> {
+    let ending = out.extension()?.to_string_lossy().to_ascii_lowercase();
+    FILE_ENDINGS.contains(&ending.as_str()).then_some(ending)
 }
 
 /// Where a video's frames are rendered: `NAME.frames/` beside it.
@@ -52,6 +65,10 @@ pub struct PathRenderSettings {
     pub keep_frames: bool,
     /// The depth that maps to black and to white in depth mode.
     pub depth_range: (f32, f32),
+    /// The model and crop box rendered: the frames' record holds them, so
+    /// frames of another checkpoint or box are never taken as this
+    /// render's.
+    pub source: RenderSource,
 }
 
 /// What a finished render wrote.
@@ -86,6 +103,22 @@ impl PathRender {
     /// frames already there.
     pub fn start(settings: PathRenderSettings) -> Result<Self, String> {
         let video = is_video(&settings.out);
+        if let Some(ending) = file_ending(&settings.out).filter(|_| !video) {
+            return Err(format!(
+                "{}: a camera path is rendered into a folder of PNG frames or an .mp4 video, not \
+                 a .{ending} file; give a folder or a file ending in .mp4",
+                settings.out.display()
+            ));
+        }
+        crate::files::check_memory(
+            &format!("a {}×{} frame", settings.width, settings.height),
+            crate::render::frame_memory_bytes(settings.width, settings.height)
+                + if video {
+                    super::video::encoder_memory_bytes(settings.width, settings.height)
+                } else {
+                    0
+                },
+        )?;
         if video {
             if let Some(problem) = size_problem(settings.width, settings.height) {
                 return Err(format!("{}: {problem}", settings.out.display()));
@@ -114,6 +147,8 @@ impl PathRender {
             width: settings.width,
             height: settings.height,
             mode: settings.mode,
+            depth_range: settings.depth_range,
+            source: settings.source.clone(),
             out_dir: frames_dir,
         };
         let todo = job.prepare(settings.replace_existing)?;
@@ -154,8 +189,7 @@ impl PathRender {
     /// Does the next unit; false when none is left (then [`Self::finish`]).
     pub fn step(&mut self, model: &dyn RadianceModel) -> Result<bool, String> {
         if let Some(&index) = self.todo.get(self.next_todo) {
-            self.job
-                .render_frame(model, index, self.settings.depth_range)?;
+            self.job.render_frame(model, index)?;
             self.next_todo += 1;
             return Ok(true);
         }
@@ -175,9 +209,13 @@ impl PathRender {
             )?);
         }
         let path = self.job.frame_path(range.start + self.next_encoded);
-        let image = image::open(&path)
-            .map_err(|e| format!("{}: cannot read the frame back: {e}", path.display()))?
-            .to_rgba8();
+        let image = read_frame(&path).map_err(|e| {
+            format!(
+                "{}: cannot read the frame back ({e}); run the same command again to render it \
+                 anew",
+                path.display()
+            )
+        })?;
         let (w, h) = image.dimensions();
         self.encoder
             .as_mut()

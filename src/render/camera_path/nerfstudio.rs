@@ -55,10 +55,26 @@ pub const TO_ORIGINAL_FIELD: &str = "zrak_world_to_original";
 /// `MAX_IMAGE_SIDE` on the command line.
 const MAX_RENDER_SIDE: u64 = 16384;
 
-/// The most frames a file may bake or ask to be baked: 10⁶ (over nine hours
-/// at 30 frames a second), so a typo in `fps` or `seconds` cannot make
-/// zrak try to allocate the impossible.
-pub const MAX_FRAMES: usize = 1_000_000;
+/// The most frames a file may bake or ask to be baked: 10⁵ (55 minutes at
+/// 30 frames a second, as many as `zrak render --turntable` takes), so a
+/// typo in `fps` or `seconds` cannot make zrak try to allocate the
+/// impossible.
+pub const MAX_FRAMES: usize = 100_000;
+
+/// The largest camera path file read: 64 MB. A baked frame takes 350
+/// (nerfstudio's compact JSON) to 600 bytes (zrak's, indented), so this
+/// holds [`MAX_FRAMES`] frames of either; parsed, a file takes up to about
+/// 20 times its size in memory (see [`PARSE_BYTES_PER_BYTE`]).
+pub const MAX_FILE_BYTES: u64 = 64_000_000;
+
+/// Memory parsing takes per byte of the file, at most: a number written in
+/// two bytes (`0,`) becomes a 32-byte JSON value, plus the text and its
+/// copy with Python's non-finite numbers quoted.
+const PARSE_BYTES_PER_BYTE: u64 = 20;
+
+/// The highest frame rate a file may give: 240 frames a second, the most a
+/// video here takes.
+pub const MAX_FPS: f64 = 240.0;
 
 /// One entry of the baked `camera_path` list, as the file has it.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -283,10 +299,8 @@ impl CameraPathFile {
 
     /// Reads a camera path file; errors name the file and the field.
     pub fn load(path: &Path) -> Result<CameraPathFile, String> {
-        crate::files::check_regular_file(path)
+        let bytes = crate::files::read_regular_bounded(path, MAX_FILE_BYTES, "a camera path")
             .map_err(|problem| format!("{}: {problem}", path.display()))?;
-        let bytes =
-            std::fs::read(path).map_err(|e| format!("{}: cannot read it: {e}", path.display()))?;
         let text = String::from_utf8(bytes).map_err(|_| {
             format!(
                 "{}: not UTF-8 text (a camera path is a JSON file)",
@@ -296,8 +310,23 @@ impl CameraPathFile {
         Self::parse(&text).map_err(|problem| format!("{}: {problem}", path.display()))
     }
 
-    /// Parses a camera path from JSON text.
+    /// Parses a camera path from JSON text (a UTF-8 byte order mark before
+    /// it is allowed, as Windows editors write one).
     pub fn parse(text: &str) -> Result<CameraPathFile, String> {
+        let text = text.strip_prefix('\u{feff}').unwrap_or(text);
+        // Counted before parsing, which takes far more memory than the
+        // text: every baked frame has one `camera_to_world`.
+        let frames = text.matches("\"camera_to_world\"").count();
+        if frames > MAX_FRAMES {
+            return Err(format!(
+                "`camera_path` has {frames} frames, more than the {MAX_FRAMES} a camera path may \
+                 have"
+            ));
+        }
+        crate::files::check_memory(
+            "reading the camera path",
+            text.len() as u64 * PARSE_BYTES_PER_BYTE,
+        )?;
         let value: Value = serde_json::from_str(&quote_non_finite(text)).map_err(|e| {
             format!(
                 "malformed JSON at line {}, column {}: {e}",
@@ -503,7 +532,7 @@ fn from_object(top: &Map<String, Value>) -> Result<CameraPathFile, String> {
     let baked_values = array(top, "camera_path")?.ok_or("missing field `camera_path`")?;
     if baked_values.len() > MAX_FRAMES {
         return Err(format!(
-            "`camera_path` has {} frames, more than {MAX_FRAMES}",
+            "`camera_path` has {} frames, more than the {MAX_FRAMES} a camera path may have",
             baked_values.len()
         ));
     }
@@ -604,11 +633,30 @@ fn from_object(top: &Map<String, Value>) -> Result<CameraPathFile, String> {
             path.as_ref()
                 .map_or(baked.len() as f64 / fps, CameraPath::duration),
         ),
-        (None, Some(seconds)) if !baked.is_empty() => (baked.len() as f64 / seconds, seconds),
+        (None, Some(seconds)) if !baked.is_empty() => {
+            if seconds <= 0.0 {
+                return Err(format!(
+                    "`seconds` is {seconds} and there is no `fps`: the frame rate would be the \
+                     {} frames over {seconds} seconds; give `fps`, or `seconds` above 0",
+                    baked.len()
+                ));
+            }
+            let fps = baked.len() as f64 / seconds;
+            if fps > MAX_FPS {
+                return Err(format!(
+                    "there is no `fps`, and the {} frames over `seconds` = {seconds} make {fps} \
+                     frames a second, more than {MAX_FPS}; give `fps`",
+                    baked.len()
+                ));
+            }
+            (fps, seconds)
+        }
         _ => return Err("missing field `fps`".into()),
     };
-    if fps <= 0.0 {
-        return Err(format!("`fps` must be a positive frame rate, got {fps}"));
+    if !(fps > 0.0 && fps <= MAX_FPS) {
+        return Err(format!(
+            "`fps` must be a frame rate above 0 and at most {MAX_FPS} frames a second, got {fps}"
+        ));
     }
     if seconds < 0.0 {
         return Err(format!(

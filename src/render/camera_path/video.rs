@@ -44,9 +44,22 @@ const QP_RANGE: (u8, u8) = (10, 36);
 /// A key frame at least every 2 seconds, so players can seek.
 const KEYFRAME_SECONDS: f64 = 2.0;
 
-/// The largest side H.264 level 5.2 allows at this size of frame, and what
-/// an MP4's 16-bit width and height hold.
-pub const MAX_SIDE: u32 = 8192;
+/// The largest frame OpenH264 encodes: 3840 × 2160 (its encoder refuses
+/// a longer side over 3840 or a shorter over 2160, H.264 level 5.1's 4K),
+/// upright too (2160 × 3840).
+pub const MAX_LONG_SIDE: u32 = 3840;
+pub const MAX_SHORT_SIDE: u32 = 2160;
+
+/// The smallest side the encoder takes: one macroblock.
+pub const MIN_SIDE: u32 = 16;
+
+/// Bytes the encoder needs beyond the rendered frame: the frame read back
+/// (RGBA, 4 bytes a pixel), its YUV 4:2:0 copy (1.5) and OpenH264's own
+/// pictures (the reference, the one being coded and its padded copies,
+/// about 6 bytes a pixel at this encoder's settings), rounded up to 16.
+pub fn encoder_memory_bytes(width: u32, height: u32) -> u64 {
+    width as u64 * height as u64 * 16
+}
 
 /// What an encoder was asked to make, and what it wrote.
 #[derive(Debug, Clone, PartialEq)]
@@ -68,9 +81,12 @@ pub fn size_problem(width: u32, height: u32) -> Option<String> {
              resolution); got {width}×{height}"
         ));
     }
-    if width < 16 || height < 16 || width > MAX_SIDE || height > MAX_SIDE {
+    let (long, short) = (width.max(height), width.min(height));
+    if short < MIN_SIDE || long > MAX_LONG_SIDE || short > MAX_SHORT_SIDE {
         return Some(format!(
-            "an H.264 video here is 16 to {MAX_SIDE} pixels on a side; got {width}×{height}"
+            "the H.264 encoder (OpenH264) takes frames of {MIN_SIDE} pixels a side up to \
+             {MAX_LONG_SIDE}×{MAX_SHORT_SIDE} (or {MAX_SHORT_SIDE}×{MAX_LONG_SIDE}); got \
+             {width}×{height}"
         ));
     }
     None
@@ -385,7 +401,10 @@ mod tests {
         let e = Mp4Encoder::create(&path, 65, 48, 30.0).err().unwrap();
         assert!(e.contains("even width and height"), "{e}");
         let e = Mp4Encoder::create(&path, 8, 8, 30.0).err().unwrap();
-        assert!(e.contains("16 to 8192 pixels"), "{e}");
+        assert!(e.contains("16 pixels a side up to 3840×2160"), "{e}");
+        let e = Mp4Encoder::create(&path, 4096, 2160, 30.0).err().unwrap();
+        assert!(e.contains("got 4096×2160"), "{e}");
+        assert_eq!(size_problem(2160, 3840), None);
         let e = Mp4Encoder::create(&path, 64, 48, 0.0).err().unwrap();
         assert!(e.contains("frame rate"), "{e}");
         // A video dropped before it is finished leaves nothing behind.
