@@ -887,6 +887,131 @@ mod tests {
         assert_eq!(Checkpoint::load(&path).unwrap(), checkpoint);
     }
 
+    /// What `sample` holds, as a model would list it.
+    fn sample_needs() -> Vec<(String, usize)> {
+        sample()
+            .tensors
+            .iter()
+            .map(|(name, values)| (name.clone(), values.len()))
+            .collect()
+    }
+
+    #[test]
+    fn a_table_unlike_the_models_is_refused_before_any_tensor_is_decoded() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("checkpoint.zrak");
+        sample().save(&path).unwrap();
+        assert_eq!(
+            Checkpoint::load_for(&path, &sample_needs()).unwrap(),
+            sample()
+        );
+        // Another length than the model's.
+        let mut needs = sample_needs();
+        needs[0].1 = 5;
+        let error = Checkpoint::load_for(&path, &needs).unwrap_err().to_string();
+        assert!(
+            error.contains("checkpoint.zrak")
+                && error.contains(
+                    "tensor `weights` is listed with 4 values where this run's model has 5"
+                ),
+            "{error}"
+        );
+        // A tensor the model does not have.
+        let error = Checkpoint::load_for(&path, &sample_needs()[..1])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("a tensor `empty` that this run's model does not have"),
+            "{error}"
+        );
+        // A file longer than such a checkpoint can be (a hole after it).
+        let length = std::fs::metadata(&path).unwrap().len();
+        std::fs::OpenOptions::new()
+            .write(true)
+            .open(&path)
+            .unwrap()
+            .set_len(length + (1 << 30))
+            .unwrap();
+        let error = Checkpoint::load_for(&path, &sample_needs())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("where a checkpoint of this run's model is at most"),
+            "{error}"
+        );
+    }
+
+    #[test]
+    fn a_tensor_stored_as_a_hole_is_refused_by_name_not_allocated() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("checkpoint.zrak");
+        // `weights` claims 2^36 f32 values (256 GiB), and the file's size,
+        // mostly a hole, vouches for them.
+        let values = 1usize << 36;
+        let stored = StoredHeader {
+            header: serde_json::json!({}),
+            tensors: vec![StoredTensor {
+                name: "weights".into(),
+                values,
+                encoding: Encoding::F32,
+                bytes: 4 * values as u64,
+                crc32c: 0,
+            }],
+        };
+        let header = serde_json::to_vec(&stored).unwrap();
+        let mut bytes = MAGIC.to_vec();
+        bytes.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+        bytes.extend_from_slice(&(header.len() as u64).to_le_bytes());
+        bytes.extend_from_slice(&header);
+        bytes.extend_from_slice(&crate::crc32c::crc32c(&header).to_le_bytes());
+        std::fs::write(&path, &bytes).unwrap();
+        let file = std::fs::OpenOptions::new().write(true).open(&path).unwrap();
+        if file
+            .set_len(bytes.len() as u64 + 4 * values as u64)
+            .is_err()
+        {
+            // A file system without sparse files this large: nothing to test.
+            return;
+        }
+        drop(file);
+        let error = Checkpoint::load_for(&path, &[("weights".into(), 1000)])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("tensor `weights` is listed with 68719476736 values"),
+            "{error}"
+        );
+        // Without a model to match, the memory it asks for is refused.
+        if crate::files::available_memory().is_some() {
+            let error = Checkpoint::load(&path).unwrap_err().to_string();
+            assert!(
+                error.contains(
+                    "cannot load the checkpoint: loading its tensors needs about 274.9 GB"
+                ),
+                "{error}"
+            );
+        }
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_folder_or_a_pipe_named_checkpoint_is_refused_for_what_it_is() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("checkpoint.zrak");
+        std::fs::create_dir(&path).unwrap();
+        let error = Checkpoint::load(&path).unwrap_err().to_string();
+        assert!(
+            error.contains("checkpoint.zrak: cannot read the checkpoint: a folder, not a file"),
+            "{error}"
+        );
+        std::fs::remove_dir(&path).unwrap();
+        let name = std::ffi::CString::new(path.to_str().unwrap()).unwrap();
+        // SAFETY: a valid NUL-terminated path.
+        assert_eq!(unsafe { libc::mkfifo(name.as_ptr(), 0o600) }, 0);
+        let error = Checkpoint::load_header(&path).unwrap_err().to_string();
+        assert!(error.contains("named pipe"), "{error}");
+    }
+
     #[test]
     fn truncated_or_foreign_files_are_refused() {
         let dir = tempfile::tempdir().unwrap();
