@@ -427,7 +427,7 @@ fn edit_checkpoint_header(run: &Path, edit: impl FnOnce(&mut serde_json::Value))
 }
 
 #[test]
-fn checkpoints_that_are_folders_or_hold_impossible_steps_are_refused_by_name() {
+fn a_folder_named_checkpoint_zrak_is_called_a_folder() {
     let _cores = crate::common::shared();
     let dir = temp_dir();
     let d = dir.path();
@@ -447,6 +447,14 @@ fn checkpoints_that_are_folders_or_hold_impossible_steps_are_refused_by_name() {
         );
         assert!(!error.contains("too short"), "{error}");
     }
+}
+
+#[test]
+fn a_checkpoint_step_that_is_no_step_count_is_refused_naming_the_field() {
+    let _cores = crate::common::shared();
+    let dir = temp_dir();
+    let d = dir.path();
+    scene_and_run(d);
     // A negative step.
     let run = copy_run(d, "negative");
     edit_checkpoint_header(&run, |h| h["trainer"]["step"] = serde_json::json!(-1));
@@ -472,8 +480,15 @@ fn checkpoints_that_are_folders_or_hold_impossible_steps_are_refused_by_name() {
         error.contains("`trainer.step` is 4294967296, more than the 4294967295 steps"),
         "{error}"
     );
-    // The last step zrak counts: evaluated as it is, never continued from
-    // another step.
+}
+
+#[test]
+fn a_run_at_the_last_step_zrak_counts_is_not_continued_from_another() {
+    let _cores = crate::common::shared();
+    let dir = temp_dir();
+    let d = dir.path();
+    scene_and_run(d);
+    // Evaluated as it is, never continued from another step.
     let run = copy_run(d, "last");
     edit_checkpoint_header(&run, |h| h["trainer"]["step"] = serde_json::json!(u32::MAX));
     let log = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
