@@ -61,7 +61,10 @@ pub fn describe_unreadable(path: &Path, error: &std::io::Error) -> String {
             _ => "not found".into(),
         },
         Ok(meta) if meta.file_type().is_symlink() => match std::fs::metadata(path) {
-            Ok(_) => format!("cannot read through the symbolic link: {error}"),
+            Ok(target) => special_file(&target).map_or_else(
+                || format!("cannot read through the symbolic link: {error}"),
+                |what| format!("a symbolic link to {what}"),
+            ),
             Err(e) if is_link_loop(&e) => {
                 "a symbolic link that loops (it leads back to itself)".into()
             }

@@ -14,7 +14,9 @@ use zrak::field::nerf::Sampling;
 use zrak::field::ngp::LossKind;
 use zrak::interrupt::note;
 use zrak::scene::Scene;
-use zrak::train::run::{RunFolder, load_checkpoint};
+use zrak::train::run::{
+    MAX_RUN_JSON_BYTES, RUN_JSON_MARKER, RunFolder, SAVED_BY_COMMAND_LINE, load_checkpoint,
+};
 use zrak::train::trainer::Trainer;
 use zrak::train::{ModelSettings, build_model};
 
@@ -119,10 +121,18 @@ pub fn build_trainer(
     Ok(Trainer::new(model, scene, config.seed))
 }
 
+/// Reads a run's `run.json`: a regular file of at most
+/// [`MAX_RUN_JSON_BYTES`], refused before reading otherwise (a named pipe
+/// would block, a link to a device be read forever).
 pub fn read_run_config(folder: &RunFolder) -> anyhow::Result<RunConfig> {
     let path = folder.config_path();
-    let text = std::fs::read_to_string(&path)
-        .with_context(|| format!("{}: cannot read the run's configuration", path.display()))?;
+    let text = zrak::files::read_text_bounded(&path, MAX_RUN_JSON_BYTES, "a run's settings")
+        .map_err(|problem| {
+            anyhow::anyhow!(
+                "{}: cannot read the run's configuration: {problem}",
+                path.display()
+            )
+        })?;
     serde_json::from_str(&text)
         .with_context(|| format!("{}: malformed run configuration", path.display()))
 }
@@ -135,6 +145,15 @@ pub fn restore_run(
     precision: Option<Precision>,
 ) -> anyhow::Result<(RunConfig, Trainer)> {
     let mut config = read_run_config(folder)?;
+    // The checkpoint's kind before the scene loads and the model is
+    // built: a folder, a pipe or a device there is refused at once.
+    let checkpoint = folder.checkpoint_path();
+    zrak::files::check_regular_file(&checkpoint).map_err(|problem| {
+        anyhow::anyhow!(
+            "{}: cannot read the checkpoint: {problem}",
+            checkpoint.display()
+        )
+    })?;
     if let Some(precision) = precision {
         config.precision = precision;
     }
@@ -148,7 +167,7 @@ pub fn restore_run(
 
 /// Restores the run folder's checkpoint into `trainer`.
 pub fn restore_checkpoint(folder: &RunFolder, trainer: &mut Trainer) -> anyhow::Result<()> {
-    let checkpoint = load_checkpoint(folder).map_err(anyhow::Error::msg)?;
+    let checkpoint = load_checkpoint(folder, trainer.model.as_ref()).map_err(anyhow::Error::msg)?;
     trainer
         .restore(&checkpoint)
         .map_err(|e| anyhow::anyhow!("{}: {e}", folder.checkpoint_path().display()))
@@ -157,10 +176,14 @@ pub fn restore_checkpoint(folder: &RunFolder, trainer: &mut Trainer) -> anyhow::
 /// Writes a new run's `run.json` and clears any earlier log: a fresh run
 /// starts a fresh history. (A folder holding a checkpoint never gets here:
 /// [`RunFolder::create_new`] refuses it or moves it aside.)
+/// The `run.json` carries [`RUN_JSON_MARKER`], by which a folder is known
+/// as a run before its first checkpoint.
 pub fn start_run_folder(folder: &RunFolder, config: &RunConfig) -> anyhow::Result<()> {
+    let mut json = serde_json::to_value(config)?;
+    json[RUN_JSON_MARKER] = SAVED_BY_COMMAND_LINE.into();
     zrak::files::write_bytes_atomically(
         &folder.config_path(),
-        serde_json::to_string_pretty(config)?.as_bytes(),
+        serde_json::to_string_pretty(&json)?.as_bytes(),
     )
     .with_context(|| format!("{}: cannot write", folder.config_path().display()))?;
     let _ = std::fs::remove_file(folder.metrics_path());

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
-use anyhow::{Context, bail};
+use anyhow::bail;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use zrak::engine::cpu::dense::Precision;
@@ -129,7 +129,7 @@ fn resume_run(args: &TrainArgs, dir: &Path) -> anyhow::Result<(RunFolder, RunCon
     // Log lines past the checkpoint (written after it, before the run
     // stopped) describe steps that will be trained again.
     let dropped = MetricsLog::truncate_after(&folder.metrics_path(), trainer.step)
-        .with_context(|| format!("{}: cannot trim the log", folder.metrics_path().display()))?;
+        .map_err(anyhow::Error::msg)?;
     if dropped > 0 {
         note(&format!(
             "{}: dropped {dropped} lines logged after the checkpoint's step {}",
@@ -162,11 +162,10 @@ fn start_run(args: &TrainArgs) -> anyhow::Result<(RunFolder, RunConfig, Trainer)
     let (Some(dir), Some(scene_arg)) = (&args.out, args.scene.as_deref()) else {
         bail!("give SCENE and --out RUN to start a run, or --resume RUN to continue one");
     };
-    // A folder holding a run is refused before anything loads, so a
-    // refused command leaves nothing behind.
-    if !args.force {
-        RunFolder::refuse_if_holds_run(dir).map_err(anyhow::Error::msg)?;
-    }
+    // A folder holding a run or anything else is refused before anything
+    // loads, so a refused command leaves nothing behind.
+    check_out_is_not_the_scene(dir, scene_arg)?;
+    RunFolder::check_out(dir, args.force).map_err(anyhow::Error::msg)?;
     let config = new_run_config(args, scene_arg);
     let scene = load_run_scene(scene_arg, args.downscale, args.training_scales)?;
     if let Some(problem) = scene.training_problem() {
@@ -178,18 +177,85 @@ fn start_run(args: &TrainArgs) -> anyhow::Result<(RunFolder, RunConfig, Trainer)
     let (folder, aside) = RunFolder::create_new(dir, args.force).map_err(anyhow::Error::msg)?;
     if let Some(aside) = aside {
         note(&format!(
-            "moved the run that was in {} aside to {}",
+            "moved the {} in {} aside to {}",
+            if aside.was_run {
+                "run that was"
+            } else {
+                "files that were"
+            },
             dir.display(),
-            aside.display()
+            aside.to.display()
         ));
     }
     start_run_folder(&folder, &config)?;
     Ok((folder, config, trainer))
 }
 
+/// Refuses an `--out` that is the scene folder or a folder holding it:
+/// the run's files would go among the scene's, and `--force` would move
+/// the scene itself aside. Both are compared as the system resolves them
+/// (links and `..` followed); a run folder inside the scene folder is
+/// allowed.
+fn check_out_is_not_the_scene(out: &Path, scene: &str) -> anyhow::Result<()> {
+    if scene == "demo" {
+        return Ok(());
+    }
+    // A scene that does not resolve is said to be missing when it loads.
+    let Ok(scene_dir) = std::fs::canonicalize(scene) else {
+        return Ok(());
+    };
+    let scene_dir = if scene_dir.is_file() {
+        scene_dir
+            .parent()
+            .map(Path::to_path_buf)
+            .unwrap_or(scene_dir)
+    } else {
+        scene_dir
+    };
+    let out_resolved = resolved_even_if_missing(out);
+    if scene_dir == out_resolved {
+        bail!(
+            "--out {} is the scene folder {scene}: the run's files would go among the scene's \
+             (and --force would move the scene aside); give --out a folder of its own, e.g. \
+             {}-run",
+            out.display(),
+            scene.trim_end_matches('/')
+        );
+    }
+    if scene_dir.starts_with(&out_resolved) {
+        bail!(
+            "--out {} holds the scene folder {scene}: the run's files would go beside the \
+             scene's (and --force would move the scene aside); give --out a folder of its own",
+            out.display()
+        );
+    }
+    Ok(())
+}
+
+/// `path` with links and `..` resolved as far as it exists (the rest
+/// joined on as given), absolute.
+fn resolved_even_if_missing(path: &Path) -> PathBuf {
+    if let Ok(resolved) = std::fs::canonicalize(path) {
+        return resolved;
+    }
+    let absolute = std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf());
+    match (absolute.parent(), absolute.file_name()) {
+        (Some(parent), Some(name)) => resolved_even_if_missing(parent).join(name),
+        _ => absolute,
+    }
+}
+
 /// Refuses a resume whose limit the run has already reached: it would
 /// train nothing and say it had finished.
 fn check_resume_limits(limits: Limits, trainer: &Trainer, dir: &Path) -> anyhow::Result<()> {
+    if trainer.step == u32::MAX {
+        bail!(
+            "the run in {} is at step {}, the last step zrak counts (32 bits): it cannot be \
+             continued; evaluate or render it as it is, or start a new run with --out",
+            dir.display(),
+            trainer.step
+        );
+    }
     if let Some(steps) = limits.steps
         && steps <= trainer.step
     {

@@ -391,10 +391,39 @@ impl Checkpoint {
     }
 
     /// Reads a checkpoint, checking every checksum (files of format 2) and
-    /// that every value is finite; errors name the tensor at fault.
+    /// that every value is finite; errors name the tensor at fault. The
+    /// memory its table asks for is checked against what the machine has
+    /// before any tensor is decoded; [`Self::load_for`] checks it against
+    /// what a model needs.
     pub fn load(path: &Path) -> Result<Self, CheckpointError> {
+        Self::load_checked(path, None)
+    }
+
+    /// [`Self::load`] for a model that holds exactly `needed` tensors (name
+    /// and values, as its own [`crate::model::RadianceModel::save`] lists
+    /// them): the file's table is matched against them before a tensor is
+    /// decoded, and the file's size against what such a checkpoint can
+    /// take, so a damaged or crafted length (a tensor stored as a hole in a
+    /// sparse file) is refused by name instead of allocated. A needed
+    /// tensor the file lacks is left to the model to name.
+    pub fn load_for(path: &Path, needed: &[(String, usize)]) -> Result<Self, CheckpointError> {
+        Self::load_checked(path, Some(needed))
+    }
+
+    fn load_checked(
+        path: &Path,
+        needed: Option<&[(String, usize)]>,
+    ) -> Result<Self, CheckpointError> {
         let mut reader = Reader::open(path)?;
         let (header, tensors) = reader.table()?;
+        if let Some(needed) = needed {
+            reader.check_against(&tensors, needed)?;
+        }
+        let decoded_bytes = tensors.iter().fold(0u64, |sum, t| {
+            sum.saturating_add((t.values as u64).saturating_mul(4))
+        });
+        crate::files::check_memory("loading its tensors", decoded_bytes)
+            .map_err(|problem| reader.io(format!("cannot load the checkpoint: {problem}")))?;
         let mut loaded = Vec::with_capacity(tensors.len());
         for entry in tensors {
             let values = reader.tensor(&entry)?;
@@ -422,6 +451,8 @@ struct Reader {
     path: PathBuf,
     input: BufReader<File>,
     version: u32,
+    /// The file's size.
+    length: u64,
     remaining: u64,
 }
 
@@ -440,28 +471,31 @@ impl Reader {
         }
     }
 
+    fn io(&self, problem: String) -> CheckpointError {
+        CheckpointError::Io {
+            path: self.path.clone(),
+            problem,
+        }
+    }
+
     fn open(path: &Path) -> Result<Self, CheckpointError> {
-        let file = File::open(path).map_err(|e| CheckpointError::Io {
-            path: path.to_path_buf(),
-            problem: format!(
-                "cannot open checkpoint: {}",
-                crate::files::describe_unreadable(path, &e)
-            ),
-        })?;
+        // A regular file only, checked on the open descriptor: a named
+        // pipe would block the reader forever, a device such as /dev/zero
+        // would be read until memory ran out, and a folder deserves its
+        // own words rather than "file too short".
+        let (file, file_length) =
+            crate::files::open_regular(path).map_err(|problem| CheckpointError::Io {
+                path: path.to_path_buf(),
+                problem: format!("cannot read the checkpoint: {problem}"),
+            })?;
         // Lengths read from the file are checked against what it holds
         // before anything is allocated for them: a damaged length must give
         // an error, not an allocation failure that aborts the process.
-        let file_length = file
-            .metadata()
-            .map_err(|e| CheckpointError::Io {
-                path: path.to_path_buf(),
-                problem: format!("cannot read checkpoint: {e}"),
-            })?
-            .len();
         let mut reader = Self {
             path: path.to_path_buf(),
             input: BufReader::new(file),
             version: 0,
+            length: file_length,
             remaining: file_length.saturating_sub(20),
         };
         let mut magic = [0u8; 8];
@@ -535,6 +569,58 @@ impl Reader {
         let stored: StoredHeader = serde_json::from_slice(&header)
             .map_err(|e| self.format(&format!("bad header: {e}")))?;
         Ok((stored.header, stored.tensors))
+    }
+
+    /// Refuses a table that is not the one a model holding `needed`
+    /// tensors writes: a tensor it does not have, one of another length,
+    /// one listed twice, or a file larger than such a checkpoint can be.
+    /// Nothing is decoded before this passes.
+    fn check_against(
+        &self,
+        tensors: &[StoredTensor],
+        needed: &[(String, usize)],
+    ) -> Result<(), CheckpointError> {
+        let mut seen: Vec<&str> = Vec::with_capacity(tensors.len());
+        for entry in tensors {
+            let name = entry.name.as_str();
+            let Some((_, values)) = needed.iter().find(|(n, _)| n == name) else {
+                return Err(self.format(&format!(
+                    "it holds a tensor `{name}` that this run's model does not have (it has {})",
+                    needed
+                        .iter()
+                        .map(|(n, _)| format!("`{n}`"))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                )));
+            };
+            if entry.values != *values {
+                return Err(self.damaged(format!(
+                    "tensor `{name}` is listed with {} values where this run's model has {values} \
+                     (the file is damaged, or holds another model than run.json names)",
+                    entry.values
+                )));
+            }
+            if seen.contains(&name) {
+                return Err(self.damaged(format!("tensor `{name}` is listed twice")));
+            }
+            seen.push(name);
+        }
+        // Each tensor's stored form is at most its values as f32 (the
+        // writer keeps the smallest encoding), after the table and its
+        // checksum: a larger file is padded or holed.
+        let most = needed
+            .iter()
+            .fold(self.length - self.remaining, |sum, (_, values)| {
+                sum.saturating_add((*values as u64).saturating_mul(4))
+            });
+        if self.length > most {
+            return Err(self.damaged(format!(
+                "it is {} where a checkpoint of this run's model is at most {}",
+                crate::files::human_bytes(self.length),
+                crate::files::human_bytes(most)
+            )));
+        }
+        Ok(())
     }
 
     /// One tensor's values, checked against its checksum.
@@ -799,6 +885,131 @@ mod tests {
         let size = std::fs::metadata(&path).unwrap().len();
         assert!(size < 400_000 + (1 << 13) + 1000, "{size}");
         assert_eq!(Checkpoint::load(&path).unwrap(), checkpoint);
+    }
+
+    /// What `sample` holds, as a model would list it.
+    fn sample_needs() -> Vec<(String, usize)> {
+        sample()
+            .tensors
+            .iter()
+            .map(|(name, values)| (name.clone(), values.len()))
+            .collect()
+    }
+
+    #[test]
+    fn a_table_unlike_the_models_is_refused_before_any_tensor_is_decoded() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("checkpoint.zrak");
+        sample().save(&path).unwrap();
+        assert_eq!(
+            Checkpoint::load_for(&path, &sample_needs()).unwrap(),
+            sample()
+        );
+        // Another length than the model's.
+        let mut needs = sample_needs();
+        needs[0].1 = 5;
+        let error = Checkpoint::load_for(&path, &needs).unwrap_err().to_string();
+        assert!(
+            error.contains("checkpoint.zrak")
+                && error.contains(
+                    "tensor `weights` is listed with 4 values where this run's model has 5"
+                ),
+            "{error}"
+        );
+        // A tensor the model does not have.
+        let error = Checkpoint::load_for(&path, &sample_needs()[..1])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("a tensor `empty` that this run's model does not have"),
+            "{error}"
+        );
+        // A file longer than such a checkpoint can be (a hole after it).
+        let length = std::fs::metadata(&path).unwrap().len();
+        std::fs::OpenOptions::new()
+            .write(true)
+            .open(&path)
+            .unwrap()
+            .set_len(length + (1 << 30))
+            .unwrap();
+        let error = Checkpoint::load_for(&path, &sample_needs())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("where a checkpoint of this run's model is at most"),
+            "{error}"
+        );
+    }
+
+    #[test]
+    fn a_tensor_stored_as_a_hole_is_refused_by_name_not_allocated() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("checkpoint.zrak");
+        // `weights` claims 2^36 f32 values (256 GiB), and the file's size,
+        // mostly a hole, vouches for them.
+        let values = 1usize << 36;
+        let stored = StoredHeader {
+            header: serde_json::json!({}),
+            tensors: vec![StoredTensor {
+                name: "weights".into(),
+                values,
+                encoding: Encoding::F32,
+                bytes: 4 * values as u64,
+                crc32c: 0,
+            }],
+        };
+        let header = serde_json::to_vec(&stored).unwrap();
+        let mut bytes = MAGIC.to_vec();
+        bytes.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+        bytes.extend_from_slice(&(header.len() as u64).to_le_bytes());
+        bytes.extend_from_slice(&header);
+        bytes.extend_from_slice(&crate::crc32c::crc32c(&header).to_le_bytes());
+        std::fs::write(&path, &bytes).unwrap();
+        let file = std::fs::OpenOptions::new().write(true).open(&path).unwrap();
+        if file
+            .set_len(bytes.len() as u64 + 4 * values as u64)
+            .is_err()
+        {
+            // A file system without sparse files this large: nothing to test.
+            return;
+        }
+        drop(file);
+        let error = Checkpoint::load_for(&path, &[("weights".into(), 1000)])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("tensor `weights` is listed with 68719476736 values"),
+            "{error}"
+        );
+        // Without a model to match, the memory it asks for is refused.
+        if crate::files::available_memory().is_some() {
+            let error = Checkpoint::load(&path).unwrap_err().to_string();
+            assert!(
+                error.contains(
+                    "cannot load the checkpoint: loading its tensors needs about 274.9 GB"
+                ),
+                "{error}"
+            );
+        }
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_folder_or_a_pipe_named_checkpoint_is_refused_for_what_it_is() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("checkpoint.zrak");
+        std::fs::create_dir(&path).unwrap();
+        let error = Checkpoint::load(&path).unwrap_err().to_string();
+        assert!(
+            error.contains("checkpoint.zrak: cannot read the checkpoint: a folder, not a file"),
+            "{error}"
+        );
+        std::fs::remove_dir(&path).unwrap();
+        let name = std::ffi::CString::new(path.to_str().unwrap()).unwrap();
+        // SAFETY: a valid NUL-terminated path.
+        assert_eq!(unsafe { libc::mkfifo(name.as_ptr(), 0o600) }, 0);
+        let error = Checkpoint::load_header(&path).unwrap_err().to_string();
+        assert!(error.contains("named pipe"), "{error}");
     }
 
     #[test]

@@ -15,6 +15,10 @@ use super::bounds::Aabb;
 /// The name of a run's crop box file.
 pub const CROP_FILE: &str = "crop.json";
 
+/// The largest `crop.json` read: zrak writes about 200 bytes (nine
+/// numbers), so 64 kB is room for any hand-written one.
+const MAX_CROP_FILE_BYTES: u64 = 64 << 10;
+
 /// A box of `size` centred at `centre`, turned by `rotation` (world
 /// coordinates).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -133,11 +137,19 @@ impl CropBox {
     /// The crop box saved in run folder `run`, if any.
     pub fn load_from_run(run: &Path) -> Result<Option<CropBox>, String> {
         let path = Self::path_in(run);
-        let text = match std::fs::read_to_string(&path) {
-            Ok(text) => text,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-            Err(e) => return Err(format!("{}: cannot read the crop box: {e}", path.display())),
-        };
+        if !crate::files::exists_at_all(&path) {
+            return Ok(None);
+        }
+        // A regular file of a bounded size only: a named pipe would block,
+        // a link to a device be read until memory ran out.
+        let text = crate::files::read_text_bounded(&path, MAX_CROP_FILE_BYTES, "a crop box")
+            .map_err(|problem| {
+                format!(
+                    "{}: cannot read the crop box: {problem}; remove it, or give --crop to \
+                     replace it",
+                    path.display()
+                )
+            })?;
         let file: CropFile = serde_json::from_str(&text)
             .map_err(|e| format!("{}: not a crop box: {e}", path.display()))?;
         let crop = CropBox {

@@ -27,18 +27,24 @@ impl RunLock {
     /// holds it.
     pub fn acquire(dir: &Path) -> Result<Self, String> {
         let path = dir.join(LOCK_FILE);
-        let mut file = OpenOptions::new()
-            .read(true)
-            .write(true)
-            .create(true)
-            .truncate(false)
-            .open(&path)
-            .map_err(|e| format!("{}: cannot open the run's lock file: {e}", path.display()))?;
+        // Never through a link: a run folder downloaded or left in a shared
+        // `/tmp` could point its lock at any of the user's files, which the
+        // process id below would replace. Nor truncated on opening: the
+        // file is emptied only once the lock is ours.
+        let mut file = crate::files::open_for_writing_no_follow(
+            &path,
+            OpenOptions::new()
+                .read(true)
+                .write(true)
+                .create(true)
+                .truncate(false),
+        )?;
         match file.try_lock() {
             Ok(()) => {}
             Err(TryLockError::WouldBlock) => {
+                // A process id is a few digits: read no more than a line.
                 let mut text = String::new();
-                let _ = file.read_to_string(&mut text);
+                let _ = (&mut file).take(64).read_to_string(&mut text);
                 let holder = match text.trim().parse::<u32>() {
                     Ok(pid) => format!("another zrak (process {pid})"),
                     Err(_) => "another zrak".into(),
@@ -89,5 +95,24 @@ mod tests {
         );
         drop(first);
         RunLock::acquire(dir.path()).expect("released with the first lock");
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_lock_file_that_is_a_link_is_refused_and_its_target_left_alone() {
+        let dir = tempfile::tempdir().unwrap();
+        let target = dir.path().join("bashrc");
+        std::fs::write(&target, "the user's own").unwrap();
+        let run = dir.path().join("run");
+        std::fs::create_dir(&run).unwrap();
+        std::os::unix::fs::symlink(&target, run.join(LOCK_FILE)).unwrap();
+        let error = RunLock::acquire(&run).unwrap_err();
+        assert!(
+            error.contains(LOCK_FILE)
+                && error.contains("symbolic link")
+                && error.contains("remove it"),
+            "{error}"
+        );
+        assert_eq!(std::fs::read_to_string(&target).unwrap(), "the user's own");
     }
 }

@@ -35,9 +35,15 @@ pub struct MetricsLog {
 }
 
 impl MetricsLog {
-    /// Opens `path` for appending (a resumed run continues the same file).
-    pub fn open(path: &Path) -> std::io::Result<Self> {
-        let file = OpenOptions::new().create(true).append(true).open(path)?;
+    /// Opens `path` for appending (a resumed run continues the same file),
+    /// only if it is a regular file and not a link: a log linked to
+    /// another file would have the run's lines appended to that file. The
+    /// error names the path and what is there.
+    pub fn open(path: &Path) -> Result<Self, String> {
+        let file = crate::files::open_for_writing_no_follow(
+            path,
+            OpenOptions::new().create(true).append(true),
+        )?;
         Ok(Self {
             path: path.to_path_buf(),
             out: BufWriter::new(file),
@@ -60,12 +66,15 @@ impl MetricsLog {
     /// goes too. The file is rewritten whole through a temporary file, and
     /// only when something is dropped; returns the lines dropped. A missing
     /// log is no error.
-    pub fn truncate_after(path: &Path, step: u32) -> std::io::Result<usize> {
-        let text = match std::fs::read_to_string(path) {
-            Ok(text) => text,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(0),
-            Err(e) => return Err(e),
-        };
+    ///
+    /// A log that is a link, or not a regular file, or larger than
+    /// [`MAX_LOG_BYTES`], is refused before anything is read: the error
+    /// names the path, what is there and what to do.
+    pub fn truncate_after(path: &Path, step: u32) -> Result<usize, String> {
+        if !crate::files::exists_at_all(path) {
+            return Ok(0);
+        }
+        let text = Self::read_text(path)?;
         let mut kept = String::with_capacity(text.len());
         let mut dropped = 0;
         for line in text.lines().filter(|l| !l.trim().is_empty()) {
@@ -82,20 +91,51 @@ impl MetricsLog {
             }
         }
         if dropped > 0 {
-            crate::files::write_bytes_atomically(path, kept.as_bytes())?;
+            crate::files::write_bytes_atomically(path, kept.as_bytes())
+                .map_err(|e| format!("{}: cannot rewrite the log: {e}", path.display()))?;
         }
         Ok(dropped)
     }
 
     /// Reads every line of a log.
-    pub fn read(path: &Path) -> std::io::Result<Vec<LogLine>> {
-        let text = std::fs::read_to_string(path)?;
-        text.lines()
+    pub fn read(path: &Path) -> Result<Vec<LogLine>, String> {
+        Self::read_text(path)?
+            .lines()
             .filter(|l| !l.trim().is_empty())
-            .map(|l| serde_json::from_str(l).map_err(std::io::Error::other))
+            .map(|l| serde_json::from_str(l).map_err(|e| format!("{}: {e}", path.display())))
             .collect()
     }
+
+    /// The whole log as text, if it is a regular file (not a link, which a
+    /// resumed run would go on to append through) of at most
+    /// [`MAX_LOG_BYTES`].
+    fn read_text(path: &Path) -> Result<String, String> {
+        Self::check_not_a_link(path)?;
+        crate::files::read_text_bounded(path, MAX_LOG_BYTES, "a run's log").map_err(|problem| {
+            format!(
+                "{}: cannot read the run's log: {problem}; move it away to start the log \
+                 afresh",
+                path.display()
+            )
+        })
+    }
+
+    /// Refuses a log that is a symbolic link (see [`Self::open`]).
+    pub fn check_not_a_link(path: &Path) -> Result<(), String> {
+        if std::fs::symlink_metadata(path).is_ok_and(|m| m.file_type().is_symlink()) {
+            return Err(format!(
+                "{}: a symbolic link, which zrak does not write through (it could point at \
+                 any file); remove it and run again",
+                path.display()
+            ));
+        }
+        Ok(())
+    }
 }
+
+/// The largest `metrics.jsonl` read back: a line of about 300 bytes every
+/// 16 steps makes 512 MB some 27 million steps, far past any run's length.
+pub const MAX_LOG_BYTES: u64 = 512 << 20;
 
 #[cfg(test)]
 mod tests {
@@ -139,6 +179,30 @@ mod tests {
         assert_eq!(
             MetricsLog::truncate_after(&dir.path().join("none"), 1).unwrap(),
             0
+        );
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_log_that_is_a_link_is_neither_read_nor_appended_through() {
+        let dir = tempfile::tempdir().unwrap();
+        let target = dir.path().join("notes.txt");
+        std::fs::write(&target, "the user's own\n").unwrap();
+        let path = dir.path().join("metrics.jsonl");
+        std::os::unix::fs::symlink(&target, &path).unwrap();
+        let error = MetricsLog::truncate_after(&path, 0).unwrap_err();
+        assert!(error.contains("symbolic link"), "{error}");
+        let error = MetricsLog::open(&path).err().unwrap();
+        assert!(error.contains("symbolic link"), "{error}");
+        assert_eq!(
+            std::fs::read_to_string(&target).unwrap(),
+            "the user's own\n"
+        );
+        assert!(
+            std::fs::symlink_metadata(&path)
+                .unwrap()
+                .file_type()
+                .is_symlink()
         );
     }
 }

@@ -27,10 +27,52 @@ pub struct Limits {
 }
 
 impl Limits {
+    /// Whether training stops here: at a limit, or at the last step a
+    /// checkpoint can count (its `u32` step), which no run continues past.
     fn reached(&self, trainer: &Trainer) -> bool {
         self.steps.is_some_and(|s| trainer.step >= s)
             || self.seconds.is_some_and(|s| trainer.train_seconds >= s)
+            || trainer.step == u32::MAX
     }
+}
+
+/// The largest `run.json` read: zrak writes a few hundred bytes, so a
+/// megabyte leaves room for any later field and refuses anything else
+/// before it is read.
+pub const MAX_RUN_JSON_BYTES: u64 = 1 << 20;
+
+/// The field every `run.json` zrak writes holds (`"saved_by": "zrak"`
+/// from the command line, `"viewer"` from the viewer): a folder whose
+/// `run.json` has it is a run, even before its first checkpoint, and a
+/// `run.json` without it is someone else's file.
+pub const RUN_JSON_MARKER: &str = "saved_by";
+
+/// What the command line writes in [`RUN_JSON_MARKER`].
+pub const SAVED_BY_COMMAND_LINE: &str = "zrak";
+
+/// What is at a path given as a new run's folder.
+#[derive(Debug, Clone, PartialEq)]
+pub enum OutFolder {
+    /// Nothing, or an empty folder (a lone lock file left by a refused
+    /// start counts as empty).
+    Free,
+    /// A zrak run: a checkpoint, or a `run.json` zrak wrote (a run stopped
+    /// before its first checkpoint).
+    Run { has_checkpoint: bool },
+    /// A folder holding other files: a few of their names and how many
+    /// there are.
+    Other { names: Vec<String>, count: usize },
+    /// Not a folder (a file, a link that loops or points nowhere, a
+    /// pipe): what it is.
+    NotAFolder(String),
+}
+
+/// A run moved aside by [`RunFolder::create_new`]: where to, and whether
+/// it was a zrak run (else a folder of other files).
+#[derive(Debug, Clone, PartialEq)]
+pub struct MovedAside {
+    pub to: PathBuf,
+    pub was_run: bool,
 }
 
 /// How often to log, evaluate and checkpoint.
@@ -104,8 +146,9 @@ impl RunFolder {
                 }
             )
         })?;
+        // Created new (never through a link a stranger left at the name).
         let probe = crate::files::temporary_beside(&dir.join("write-test"));
-        std::fs::write(&probe, b"")
+        std::fs::File::create_new(&probe)
             .map_err(|e| format!("{}: the run folder is not writable: {e}", dir.display()))?;
         let _ = std::fs::remove_file(probe);
         let lock = RunLock::acquire(dir)?;
@@ -115,44 +158,76 @@ impl RunFolder {
         })
     }
 
-    /// A folder for a new run. One that already holds a run (a checkpoint)
-    /// is refused, naming the two ways on, unless `replace`: then the old
-    /// run's whole folder is renamed aside (never deleted) and its new name
-    /// returned beside the new folder.
-    pub fn create_new(dir: &Path, replace: bool) -> Result<(Self, Option<PathBuf>), String> {
-        if !Self::holds_run(dir) {
+    /// A folder for a new run. One that already holds a run, or other
+    /// files, is refused, naming the ways on (see [`Self::check_out`]),
+    /// unless `replace`: then the whole folder is renamed aside (never
+    /// deleted) and where it went is returned beside the new folder.
+    pub fn create_new(dir: &Path, replace: bool) -> Result<(Self, Option<MovedAside>), String> {
+        let found = Self::out_folder(dir);
+        if let Some(refusal) = refusal_of_out(dir, &found, replace) {
+            return Err(refusal);
+        }
+        if found == OutFolder::Free {
             return Ok((Self::create(dir)?, None));
         }
-        if !replace {
-            Self::refuse_if_holds_run(dir)?;
-        }
-        // A run another process is writing must not move under it.
-        let old_lock = RunLock::acquire(dir)?;
+        let was_run = matches!(found, OutFolder::Run { .. });
+        // A run another process is writing must not move under it. A
+        // folder with no lock file has no writer (a writer makes it first),
+        // and a folder of someone else's files gets none made in it.
+        let old_lock = crate::files::exists_at_all(&dir.join(super::lock::LOCK_FILE))
+            .then(|| RunLock::acquire(dir))
+            .transpose()?;
         let aside = free_name_beside(dir)?;
         std::fs::rename(dir, &aside).map_err(|e| {
             format!(
-                "{}: cannot move the old run aside to {}: {e}",
+                "{}: cannot move the old {} aside to {}: {e}",
                 dir.display(),
+                if was_run { "run" } else { "folder" },
                 aside.display()
             )
         })?;
         drop(old_lock);
-        Ok((Self::create(dir)?, Some(aside)))
+        Ok((Self::create(dir)?, Some(MovedAside { to: aside, was_run })))
     }
 
-    /// The refusal of a new run in `dir` when it holds one, naming it and
-    /// the two ways on.
-    pub fn refuse_if_holds_run(dir: &Path) -> Result<(), String> {
-        if !Self::holds_run(dir) {
-            return Ok(());
+    /// What is at `dir`, given as a new run's folder.
+    pub fn out_folder(dir: &Path) -> OutFolder {
+        if !crate::files::exists_at_all(dir) {
+            return OutFolder::Free;
         }
-        Err(format!(
-            "{} already holds a run{}: give --resume {} to continue it, or --force to \
-             move it aside (renamed, nothing deleted) and start a new run there",
-            dir.display(),
-            describe_run(dir),
-            dir.display()
-        ))
+        match std::fs::metadata(dir) {
+            Ok(meta) if meta.is_dir() => {}
+            Ok(meta) if meta.is_file() => return OutFolder::NotAFolder("a file".into()),
+            _ => return OutFolder::NotAFolder(crate::files::describe_not_a_folder(dir)),
+        }
+        if Self::holds_run(dir) {
+            return OutFolder::Run {
+                has_checkpoint: crate::files::exists_at_all(&dir.join(CHECKPOINT_FILE)),
+            };
+        }
+        let entries = match std::fs::read_dir(dir) {
+            Ok(entries) => entries,
+            Err(e) => return OutFolder::NotAFolder(format!("a folder that cannot be read ({e})")),
+        };
+        let mut names: Vec<String> = entries
+            .flatten()
+            .map(|entry| entry.file_name().to_string_lossy().into_owned())
+            .filter(|name| name != super::lock::LOCK_FILE)
+            .collect();
+        if names.is_empty() {
+            return OutFolder::Free;
+        }
+        names.sort();
+        let count = names.len();
+        names.truncate(3);
+        OutFolder::Other { names, count }
+    }
+
+    /// Refuses `dir` as a new run's folder when it is not a folder, and,
+    /// unless `replace`, when it holds a run or other files: each refusal
+    /// names what is there and the ways on.
+    pub fn check_out(dir: &Path, replace: bool) -> Result<(), String> {
+        refusal_of_out(dir, &Self::out_folder(dir), replace).map_or(Ok(()), Err)
     }
 
     /// A run folder to continue: it must hold a checkpoint, and no other
@@ -166,12 +241,34 @@ impl RunFolder {
             ));
         }
         // Checked before the lock, so a folder that is no run gets no
-        // lock file.
-        if !dir.join(CHECKPOINT_FILE).is_file() {
-            return Err(format!(
-                "{}: no checkpoint to resume from (no {CHECKPOINT_FILE} in the folder)",
-                dir.display()
-            ));
+        // lock file; by their kind only (nothing is opened), so a named
+        // pipe cannot block.
+        let checkpoint = dir.join(CHECKPOINT_FILE);
+        match crate::files::check_regular_file(&checkpoint) {
+            Ok(()) => {}
+            Err(problem) if problem == "not found" => {
+                return Err(format!(
+                    "{}: no checkpoint to resume from (no {CHECKPOINT_FILE} in the folder)",
+                    dir.display()
+                ));
+            }
+            Err(problem) => {
+                return Err(format!(
+                    "{}: cannot resume from it: {problem}",
+                    checkpoint.display()
+                ));
+            }
+        }
+        // The log is appended to: never through a link, never to a pipe.
+        let log = dir.join(METRICS_FILE);
+        if crate::files::exists_at_all(&log) {
+            MetricsLog::check_not_a_link(&log)?;
+            crate::files::check_regular_file(&log).map_err(|problem| {
+                format!(
+                    "{}: cannot continue the run's log: {problem}; move it away and resume again",
+                    log.display()
+                )
+            })?;
         }
         let lock = RunLock::acquire(dir)?;
         Ok(Self {
@@ -181,9 +278,10 @@ impl RunFolder {
     }
 
     /// Whether `dir` holds a run: a checkpoint, which training would
-    /// replace.
+    /// replace, or a `run.json` zrak wrote (see [`RUN_JSON_MARKER`]).
     pub fn holds_run(dir: &Path) -> bool {
         crate::files::exists_at_all(&dir.join(CHECKPOINT_FILE))
+            || is_zrak_run_json(&dir.join(CONFIG_FILE))
     }
 
     /// An existing run folder, for reading (eval and render): no lock.
@@ -233,8 +331,7 @@ pub fn run(
     stop: &AtomicBool,
     mut on_step: impl FnMut(&Progress),
 ) -> Result<Option<f64>, String> {
-    let mut log = MetricsLog::open(&folder.metrics_path())
-        .map_err(|e| format!("{}: {e}", folder.metrics_path().display()))?;
+    let mut log = MetricsLog::open(&folder.metrics_path())?;
     // The held-out views: val, else test, else (a scene with no held-out
     // split) the training views themselves.
     let scene = trainer.scene.clone();
@@ -353,9 +450,102 @@ pub fn run(
     Ok(psnr)
 }
 
-/// Loads a run's checkpoint.
-pub fn load_checkpoint(folder: &RunFolder) -> Result<Checkpoint, String> {
-    Checkpoint::load(&folder.checkpoint_path()).map_err(|e| e.to_string())
+/// Loads a run's checkpoint for `model` (the run's model, freshly built):
+/// the file's tensors are matched against the model's before any is
+/// decoded, and its trainer's step is checked to be one.
+pub fn load_checkpoint(
+    folder: &RunFolder,
+    model: &dyn crate::model::RadianceModel,
+) -> Result<Checkpoint, String> {
+    let path = folder.checkpoint_path();
+    // What the model holds, by name and length (its own checkpoint's
+    // table; the values themselves are dropped at once).
+    let needed: Vec<(String, usize)> = model
+        .save()
+        .tensors
+        .into_iter()
+        .map(|(name, values)| (name, values.len()))
+        .collect();
+    let checkpoint = Checkpoint::load_for(&path, &needed).map_err(|e| e.to_string())?;
+    checked_step(&checkpoint.header).map_err(|e| format!("{}: {e}", path.display()))?;
+    Ok(checkpoint)
+}
+
+/// The step a checkpoint's header records (`trainer.step`), or what is
+/// wrong with it, naming the field: a step is a whole number from 0 to
+/// 4294967295 (zrak counts steps in 32 bits).
+pub fn checked_step(header: &serde_json::Value) -> Result<u32, String> {
+    let field = &header["trainer"]["step"];
+    let problem = match field {
+        serde_json::Value::Null => "is missing".to_string(),
+        serde_json::Value::Number(n) => match (n.as_u64(), n.as_i64()) {
+            (Some(step), _) => match u32::try_from(step) {
+                Ok(step) => return Ok(step),
+                Err(_) => format!("is {step}, more than the {} steps zrak counts", u32::MAX),
+            },
+            (None, Some(negative)) => format!("is {negative}, and a step count cannot be negative"),
+            _ => format!("is {n}, not a whole number of steps"),
+        },
+        other => format!("is {other}, not a number of steps"),
+    };
+    Err(format!(
+        "the checkpoint's `trainer.step` {problem}: the file was not written by zrak as it is \
+         (edited or damaged); restore a copy of it, or train the run again"
+    ))
+}
+
+/// Whether `path` is a `run.json` zrak wrote: a small regular file whose
+/// JSON object has [`RUN_JSON_MARKER`]. Anything else (missing, a pipe,
+/// too large, another program's JSON) is not.
+pub fn is_zrak_run_json(path: &Path) -> bool {
+    crate::files::read_regular_bounded(path, MAX_RUN_JSON_BYTES, "a run's settings")
+        .ok()
+        .and_then(|bytes| serde_json::from_slice::<serde_json::Value>(&bytes).ok())
+        .is_some_and(|json| json[RUN_JSON_MARKER].is_string())
+}
+
+/// Why `dir` (where `found` is) cannot be a new run's folder, if it
+/// cannot: see [`RunFolder::check_out`].
+fn refusal_of_out(dir: &Path, found: &OutFolder, replace: bool) -> Option<String> {
+    let shown = dir.display();
+    let refusal = match found {
+        OutFolder::Free => return None,
+        OutFolder::NotAFolder(what) if what == "a file" => format!(
+            "{shown} is a file, not a folder: --out names the folder a run is written to; \
+                 give the name of a new folder (the file is left as it is)"
+        ),
+        OutFolder::NotAFolder(what) => format!(
+            "{shown} cannot be the run folder: it is {what}; remove it or give --out \
+                 another folder"
+        ),
+        _ if replace => return None,
+        OutFolder::Run {
+            has_checkpoint: true,
+        } => format!(
+            "{shown} already holds a run{}: give --resume {shown} to continue it, or \
+                 --force to move it aside (renamed, nothing deleted) and start a new run there",
+            describe_run(dir),
+        ),
+        OutFolder::Run {
+            has_checkpoint: false,
+        } => format!(
+            "{shown} already holds a run that stopped before its first checkpoint (its \
+                 {CONFIG_FILE}, no {CHECKPOINT_FILE}): give --force to move it aside (renamed, \
+                 nothing deleted) and start a new run there, or give --out another folder"
+        ),
+        OutFolder::Other { names, count } => format!(
+            "{shown} is not empty and holds no zrak run ({}{}): give --out a new or empty \
+                 folder, or --force to move {shown} aside (renamed, nothing deleted) and start \
+                 the run in a new {shown}",
+            names.join(", "),
+            if *count > names.len() {
+                format!(" and {} more", count - names.len())
+            } else {
+                String::new()
+            }
+        ),
+    };
+    Some(refusal)
 }
 
 /// What the run in `dir` is, from its checkpoint's header, as " (step N,
@@ -546,6 +736,8 @@ mod tests {
         );
         let (_new, aside) = RunFolder::create_new(&run_dir, true).unwrap();
         let aside = aside.unwrap();
+        assert!(aside.was_run);
+        let aside = aside.to;
         assert_eq!(aside, dir.path().join("run.old"));
         let kept = Checkpoint::load(&aside.join(CHECKPOINT_FILE)).unwrap();
         assert_eq!(kept.header["trainer"]["step"], 2);

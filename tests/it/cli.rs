@@ -3,6 +3,7 @@
 
 use crate::common;
 mod quality;
+mod run_folders;
 mod safety;
 
 use std::path::Path;
