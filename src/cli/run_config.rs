@@ -154,6 +154,14 @@ pub fn restore_run(
             checkpoint.display()
         )
     })?;
+    // So is a crop box that is no regular file: it is read only once the
+    // model is built, seconds later.
+    let crop = folder.dir.join(zrak::scene::crop::CROP_FILE);
+    if zrak::files::exists_at_all(&crop) {
+        zrak::files::check_regular_file(&crop).map_err(|problem| {
+            anyhow::anyhow!("{}: cannot read the crop box: {problem}", crop.display())
+        })?;
+    }
     if let Some(precision) = precision {
         config.precision = precision;
     }

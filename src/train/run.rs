@@ -458,17 +458,22 @@ pub fn load_checkpoint(
     model: &dyn crate::model::RadianceModel,
 ) -> Result<Checkpoint, String> {
     let path = folder.checkpoint_path();
-    // What the model holds, by name and length (its own checkpoint's
-    // table; the values themselves are dropped at once).
-    let needed: Vec<(String, usize)> = model
+    let checkpoint =
+        Checkpoint::load_for(&path, &tensors_needed(model)).map_err(|e| e.to_string())?;
+    checked_step(&checkpoint.header).map_err(|e| format!("{}: {e}", path.display()))?;
+    Ok(checkpoint)
+}
+
+/// What `model` holds, by tensor name and length: its own checkpoint's
+/// table (the values themselves are dropped at once), which a checkpoint
+/// file must match before any of its tensors is decoded.
+pub fn tensors_needed(model: &dyn crate::model::RadianceModel) -> Vec<(String, usize)> {
+    model
         .save()
         .tensors
         .into_iter()
         .map(|(name, values)| (name, values.len()))
-        .collect();
-    let checkpoint = Checkpoint::load_for(&path, &needed).map_err(|e| e.to_string())?;
-    checked_step(&checkpoint.header).map_err(|e| format!("{}: {e}", path.display()))?;
-    Ok(checkpoint)
+        .collect()
 }
 
 /// The step a checkpoint's header records (`trainer.step`), or what is

@@ -170,8 +170,11 @@ impl Worker {
     /// Restores a checkpoint into its model's slot. The state is restored
     /// into a fresh trainer first, so a refused checkpoint changes nothing.
     pub(super) fn restore_checkpoint(&mut self, path: &Path) -> Result<(ModelKind, u32), String> {
-        let checkpoint = Checkpoint::load(path).map_err(|e| e.to_string())?;
-        let model_header = &checkpoint.header["model"];
+        // The header names the model; the tensors are matched against that
+        // model's before any is decoded, as the command line does, so a
+        // crafted table cannot make the thread allocate what it claims.
+        let header = Checkpoint::load_header(path).map_err(|e| e.to_string())?;
+        let model_header = &header["model"];
         let kind: ModelKind =
             serde_json::from_value(model_header["model"].clone()).map_err(|_| {
                 format!(
@@ -183,6 +186,10 @@ impl Worker {
         let loss: LossKind = serde_json::from_value(model_header["loss"].clone())
             .unwrap_or(self.options.loss.unwrap_or(kind.default_loss()));
         let mut trainer = self.build_trainer(kind)?;
+        let needed = crate::train::run::tensors_needed(trainer.model.as_ref());
+        let checkpoint = Checkpoint::load_for(path, &needed).map_err(|e| e.to_string())?;
+        crate::train::run::checked_step(&checkpoint.header)
+            .map_err(|e| format!("{}: {e}", path.display()))?;
         trainer
             .restore(&checkpoint)
             .map_err(|e| format!("{}: {e}", path.display()))?;
