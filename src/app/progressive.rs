@@ -131,17 +131,6 @@ impl LevelRender {
         }
     }
 
-    /// A redraw of `previous` (a finished level of the same camera and
-    /// downscale, row-major): its pixels stand until each is drawn again.
-    /// `None` when `previous` is not of this level's size.
-    pub fn over(camera: &Camera, downscale: u32, previous: &[RenderedPixel]) -> Option<Self> {
-        let mut render = Self::new(camera, downscale);
-        (render.pixels.len() == previous.len()).then(|| {
-            render.pixels.copy_from_slice(previous);
-            render
-        })
-    }
-
     pub fn width(&self) -> u32 {
         self.camera.intrinsics.width
     }
@@ -192,8 +181,20 @@ impl LevelRender {
         rendered
     }
 
+    /// Fills the pixels not rendered yet from `previous` (a finished
+    /// level of the same camera and downscale, row-major), so that the
+    /// level shown before it is done keeps the old picture below the new
+    /// rows; false when `previous` is not of this level's size.
+    pub fn fill_rest_from(&mut self, previous: &[RenderedPixel]) -> bool {
+        if previous.len() != self.pixels.len() {
+            return false;
+        }
+        self.pixels[self.done..].copy_from_slice(&previous[self.done..]);
+        true
+    }
+
     /// The pixels as they stand: those rendered so far, and after them
-    /// the picture this level redraws (or defaults), row-major.
+    /// what [`Self::fill_rest_from`] put there (or defaults), row-major.
     pub fn pixels_so_far(&self) -> &[RenderedPixel] {
         &self.pixels
     }

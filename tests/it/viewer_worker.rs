@@ -684,6 +684,8 @@ struct Watched {
     levels: Vec<(u32, f64)>,
     /// Render seconds of levels not yet finished, by downscale.
     level_in_progress: Vec<(u32, f64)>,
+    /// Where the thread's time went, over the traces received.
+    time: zrak::app::schedule::ScheduleTrace,
 }
 
 impl Watched {
@@ -692,6 +694,7 @@ impl Watched {
     /// the end of one level and the start of the next charges both to the
     /// first, which only lengthens the measured cost.
     fn add_trace(&mut self, trace: &zrak::app::schedule::ScheduleTrace) {
+        self.time.merge(trace);
         for level in &trace.rendering {
             let index = match self
                 .level_in_progress
@@ -858,9 +861,18 @@ fn the_picture_keeps_up_while_training_keeps_its_share(
     let (wall, trained) = (last.0, last.1);
     let share = trained / wall;
     let steps = last.2;
+    let time = &run.time;
     println!(
         "{model:?} on {engine:?}: {steps} steps, training {trained:.1} s of {wall:.1} s \
-         ({share:.2}); longest step {:.2} s; frames {:?}",
+         ({share:.2}); the thread's traces: {:.1} s of wall time, training {:.1} s, drawing \
+         {:.1} s, evaluating {:.1} s, idle {:.1} s, other {:.1} s; longest step {:.2} s; \
+         frames {:?}",
+        time.wall_seconds,
+        time.training_seconds,
+        time.rendering_seconds(),
+        time.evaluation_seconds,
+        time.idle_seconds,
+        time.other_seconds(),
         run.longest_step,
         run.frames
             .iter()
@@ -1005,15 +1017,16 @@ fn the_picture_keeps_up_while_training_keeps_its_share(
 /// Issue 43: on a slow machine a whole viewport of NeRF takes several
 /// refresh budgets to render, and the picture stayed at the finest level
 /// that fit one budget (1/3 of the viewport for 40 s on a 2-core Zen 3).
-/// Here a viewport of 64 × 64 pixels of NeRF on the cpu engine takes
-/// seconds of render time: the resting picture must still reach full
+/// Here a viewport of 96 × 96 pixels of NeRF on the cpu engine takes
+/// seconds of render time (1 to 11 s on a 2-core Zen 4 as the occupancy
+/// grid fills): the resting picture must still reach full
 /// resolution, within the settle bound of the full level's measured cost,
 /// and a redraw slower than the budget must be shown band by band (several
 /// full-resolution frames of one step) while training goes on.
 #[test]
 fn a_resting_picture_reaches_full_resolution_when_a_level_takes_several_budgets() {
-    use zrak::app::schedule::{DEFAULT_TRAINING_SHARE, refresh_budget, settle_bound_seconds};
     let _alone = common::alone();
+    use zrak::app::schedule::{DEFAULT_TRAINING_SHARE, refresh_budget, settle_bound_seconds};
     let worker = TrainingWorker::spawn_with(
         SceneSource::Demo,
         Some(EngineKind::Cpu),
@@ -1027,7 +1040,7 @@ fn a_resting_picture_reaches_full_resolution_when_a_level_takes_several_budgets(
         matches!(event, Event::Engine { .. }).then_some(())
     });
     let began = Instant::now();
-    render(&worker, 1, camera(64, 0.3));
+    render(&worker, 1, camera(96, 0.3));
     worker.send(Command::Start);
     let mut run = Watched::default();
     // A guard only: the bound is checked below from what the levels cost.
@@ -1037,10 +1050,12 @@ fn a_resting_picture_reaches_full_resolution_when_a_level_takes_several_budgets(
         .iter()
         .find(|f| f.downscale == 1)
         .unwrap_or_else(|| panic!("no full-resolution frame: {:?}", run.frames));
-    // Go on until a redraw of the full level has been sent (band by band
-    // when it is slow) and finished: until a full-resolution frame of a
-    // third step comes, which only the redraw after it sends.
+    // Go on until a redraw of the full level has been sent band by band
+    // (two full-resolution frames of one step), or has finished: until a
+    // full-resolution frame of a third step comes, which only the redraw
+    // after it sends.
     let mut steps_at_full = vec![full.step];
+    let mut full_frames_of_step: Vec<(u32, usize)> = Vec::new();
     let patience = 60.0
         + 10.0 * run.longest_any_level() / zrak::app::schedule::rendering_share(0.7)
         + 4.0 * run.longest_step;
@@ -1050,15 +1065,25 @@ fn a_resting_picture_reaches_full_resolution_when_a_level_takes_several_budgets(
         Instant::now(),
         patience,
         |f| {
-            if f.downscale == 1 && !steps_at_full.contains(&f.step) {
+            if f.downscale != 1 {
+                return false;
+            }
+            if !steps_at_full.contains(&f.step) {
                 steps_at_full.push(f.step);
             }
-            steps_at_full.len() >= 3
+            let in_bands = f.step != full.step && {
+                match full_frames_of_step.iter_mut().find(|(s, _)| *s == f.step) {
+                    Some((_, count)) => *count += 1,
+                    None => full_frames_of_step.push((f.step, 1)),
+                }
+                full_frames_of_step.iter().any(|(_, count)| *count >= 2)
+            };
+            in_bands || steps_at_full.len() >= 3
         },
         &mut run,
     );
     assert!(
-        steps_at_full.len() >= 3,
+        steps_at_full.len() >= 2,
         "the full-resolution picture was not redrawn as training went on: {:?}",
         run.frames
     );
@@ -1066,9 +1091,11 @@ fn a_resting_picture_reaches_full_resolution_when_a_level_takes_several_budgets(
     let trace_wait = zrak::app::schedule::TRACE_INTERVAL.as_secs_f64() + 0.5;
     watch(&worker, 1, Instant::now(), trace_wait, |_| false, &mut run);
     worker.shutdown();
+    // The first full level's cost, and what a redraw has cost so far.
     let full_level = run
         .longest_level(1)
         .expect("the full level finished and was traced");
+    let redraw = run.longest_any_level();
     let limit =
         2.0 * settle_bound_seconds(DEFAULT_TRAINING_SHARE, full_level, run.longest_step) + 1.0;
     let budget = refresh_budget(DEFAULT_TRAINING_SHARE);
@@ -1087,7 +1114,9 @@ fn a_resting_picture_reaches_full_resolution_when_a_level_takes_several_budgets(
         "full resolution came {:.1} s after the camera rested (bound {limit:.1} s)",
         full.at
     );
-    if full_level > 2.0 * budget {
+    // A redraw longer than the budget and a unit of drawing (~40 ms) is
+    // sent at least once before its last row.
+    if redraw > 1.2 * budget {
         // A redraw of several budgets: the frames of one step at full
         // resolution, sent as its bands were drawn, more than once.
         let mut most_of_one_step = 0;
@@ -1101,12 +1130,12 @@ fn a_resting_picture_reaches_full_resolution_when_a_level_takes_several_budgets(
         }
         assert!(
             most_of_one_step >= 2,
-            "a redraw of {full_level:.1} s (budget {budget:.1} s) was not shown band by band: \
+            "a redraw of {redraw:.1} s (budget {budget:.1} s) was not shown band by band: \
              {:?}",
             run.frames
         );
     } else {
-        println!("the full level fit two budgets here: no redraw was sent in bands");
+        println!("the full level fit the budget here: no redraw was sent in bands");
     }
 }
 

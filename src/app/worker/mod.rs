@@ -475,9 +475,12 @@ struct LevelJob {
     revision: u64,
     /// Render seconds spent on it so far.
     seconds: f64,
-    /// Whether it redraws the level on screen, starting from its picture,
-    /// so that it may be sent before its last row.
-    over_shown: bool,
+    /// Whether it redraws the level on screen, so that it may be sent
+    /// before its last row over the rest of that picture.
+    redraws_shown: bool,
+    /// Whether the rows not drawn yet hold the picture on screen (copied
+    /// when the level is first sent unfinished).
+    holds_shown_rest: bool,
     /// Render seconds spent on it when it was last sent unfinished.
     seconds_at_last_send: f64,
     draw: LevelDraw,

@@ -138,6 +138,43 @@ pub(super) fn draw_band(
     Ok(rows)
 }
 
+/// Copies the rows of `shown` that `level` has not drawn yet into its
+/// texture, so that sent before its last band it shows the old picture
+/// below the new rows; false when the two differ in size.
+fn copy_rest_of_level(context: &GpuContext, level: &TextureLevel, shown: &wgpu::Texture) -> bool {
+    let (width, height) = (level.texture.width(), level.texture.height());
+    if (shown.width(), shown.height()) != (width, height) {
+        return false;
+    }
+    let first = level.next_row.min(height);
+    if first == height {
+        return true;
+    }
+    let origin = wgpu::Origin3d {
+        x: 0,
+        y: first,
+        z: 0,
+    };
+    let mut encoder = context.device.create_command_encoder(&Default::default());
+    encoder.copy_texture_to_texture(
+        wgpu::TexelCopyTextureInfo {
+            origin,
+            ..shown.as_image_copy()
+        },
+        wgpu::TexelCopyTextureInfo {
+            origin,
+            ..level.texture.as_image_copy()
+        },
+        wgpu::Extent3d {
+            width,
+            height: height - first,
+            depth_or_array_layers: 1,
+        },
+    );
+    context.queue.submit([encoder.finish()]);
+    true
+}
+
 impl Worker {
     /// The level the view should draw next (its downscale), if any: a
     /// first level for a camera or model not yet shown; then, once the
@@ -253,17 +290,39 @@ impl Worker {
     /// drawn so far over the rest of the picture it replaces. A redraw
     /// that takes many budgets (NeRF at full resolution on a slow machine)
     /// then shows its progress band by band instead of holding the old
-    /// picture until its last row.
+    /// picture until its last row. The rest is copied from the picture on
+    /// screen only then, so a redraw within the budget costs nothing more.
     fn send_partial_if_due(&mut self) -> Result<(), UiGone> {
         let budget = refresh_budget(self.training_share());
+        let started = Instant::now();
         let Some(view) = self.view.as_mut() else {
             return Ok(());
         };
         let Some(job) = view.job.as_mut() else {
             return Ok(());
         };
-        if !job.over_shown || job.seconds - job.seconds_at_last_send < budget.max(1e-3) {
+        if !job.redraws_shown || job.seconds - job.seconds_at_last_send < budget.max(1e-3) {
             return Ok(());
+        }
+        if !job.holds_shown_rest {
+            let shown = view.shown.as_ref().map(|shown| &shown.picture);
+            job.holds_shown_rest = match (&mut job.draw, shown) {
+                (LevelDraw::Pixels(render), Some(Picture::Pixels(frame))) => {
+                    render.fill_rest_from(&frame.pixels)
+                }
+                (LevelDraw::Texture(level), Some(Picture::Texture(frame))) => {
+                    match self.engine.gpu.as_ref() {
+                        Some(context) => copy_rest_of_level(context, level, &frame.texture),
+                        None => false,
+                    }
+                }
+                _ => false,
+            };
+            if !job.holds_shown_rest {
+                // Not the picture's size or kind: drawn to the end instead.
+                job.redraws_shown = false;
+                return Ok(());
+            }
         }
         job.seconds_at_last_send = job.seconds;
         let event = match &job.draw {
@@ -293,18 +352,22 @@ impl Worker {
                 })
             }
         };
+        // The copy and the pixels sent are the view's time too.
+        let seconds = started.elapsed().as_secs_f64();
+        self.ledger.record_other(seconds);
         self.outbox.send(event)
     }
 
     /// A level of the view at `downscale` of the active model's current
     /// state: into a texture when the window shares the engine's device.
-    /// A redraw of the level on screen starts from the picture shown, so
-    /// that what it sends before its last row keeps the rows not yet
-    /// redrawn.
     pub(super) fn start_level(&mut self, downscale: u32) -> LevelJob {
         let view = self.view.as_ref().expect("a view to draw");
         let camera = level_camera(&view.request.camera, downscale);
         let request_to_texture = self.draws_to_texture(&view.request);
+        let redraws_shown = view
+            .shown
+            .as_ref()
+            .is_some_and(|shown| shown.downscale == downscale);
         let slot = self.slot(self.active).expect("checked by the caller");
         let (model, step, train_seconds, revision) = (
             slot.kind,
@@ -312,51 +375,15 @@ impl Worker {
             slot.trainer.train_seconds,
             slot.revision,
         );
-        let shown = view
-            .shown
-            .as_ref()
-            .filter(|shown| shown.downscale == downscale)
-            .map(|shown| &shown.picture);
-        let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
-        let (draw, over_shown) = if request_to_texture {
-            let shown_texture = match shown {
-                Some(Picture::Texture(frame)) if (frame.width, frame.height) == (width, height) => {
-                    Some(frame.texture.clone())
-                }
-                _ => None,
-            };
-            let texture = self.texture(width, height);
-            if let (Some(shown), Some(context)) = (&shown_texture, self.engine.gpu.as_ref()) {
-                let mut encoder = context.device.create_command_encoder(&Default::default());
-                encoder.copy_texture_to_texture(
-                    shown.as_image_copy(),
-                    texture.as_image_copy(),
-                    wgpu::Extent3d {
-                        width,
-                        height,
-                        depth_or_array_layers: 1,
-                    },
-                );
-                context.queue.submit([encoder.finish()]);
-            }
-            let draw = LevelDraw::Texture(TextureLevel {
-                texture,
+        let draw = if request_to_texture {
+            let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
+            LevelDraw::Texture(TextureLevel {
+                texture: self.texture(width, height),
                 camera,
                 next_row: 0,
-            });
-            (draw, shown_texture.is_some())
+            })
         } else {
-            let view = self.view.as_ref().expect("checked above");
-            let render = match shown {
-                Some(Picture::Pixels(frame)) => {
-                    LevelRender::over(&view.request.camera, downscale, &frame.pixels)
-                }
-                _ => None,
-            };
-            let over_shown = render.is_some();
-            let render =
-                render.unwrap_or_else(|| LevelRender::new(&view.request.camera, downscale));
-            (LevelDraw::Pixels(render), over_shown)
+            LevelDraw::Pixels(LevelRender::new(&view.request.camera, downscale))
         };
         LevelJob {
             downscale,
@@ -365,7 +392,8 @@ impl Worker {
             train_seconds,
             revision,
             seconds: 0.0,
-            over_shown,
+            redraws_shown,
+            holds_shown_rest: false,
             seconds_at_last_send: 0.0,
             draw,
         }
@@ -422,7 +450,7 @@ impl Worker {
             // the CPU.
             self.textures_shared = false;
             job.draw = LevelDraw::Pixels(LevelRender::new(&view.request.camera, job.downscale));
-            job.over_shown = false;
+            job.redraws_shown = false;
             self.send(Event::Error(format!(
                 "drawing the view on the gpu failed ({error}); the view now comes \
                  through the CPU"
