@@ -181,15 +181,30 @@ impl LevelRender {
         rendered
     }
 
-    /// Fills the pixels not rendered yet from `previous` (a finished
-    /// level of the same camera and downscale, row-major), so that the
-    /// level shown before it is done keeps the old picture below the new
-    /// rows; false when `previous` is not of this level's size.
-    pub fn fill_rest_from(&mut self, previous: &[RenderedPixel]) -> bool {
-        if previous.len() != self.pixels.len() {
+    /// Fills the pixels not rendered yet from `previous`, a finished level
+    /// of the same camera (`width × height`, row-major, this level's size
+    /// or coarser): each takes the previous pixel its centre falls in, so
+    /// that the level shown before it is done keeps the old picture, enlarged
+    /// where it was coarser, below the new rows. False when `previous` is
+    /// not `width × height` or is finer than this level.
+    pub fn fill_rest_from(&mut self, previous: &[RenderedPixel], width: u32, height: u32) -> bool {
+        let (own_width, own_height) = (self.width(), self.height());
+        if previous.len() != width as usize * height as usize
+            || width == 0
+            || height == 0
+            || width > own_width
+            || height > own_height
+        {
             return false;
         }
-        self.pixels[self.done..].copy_from_slice(&previous[self.done..]);
+        let own_width = own_width as usize;
+        for index in self.done..self.pixels.len() {
+            let (x, y) = (index % own_width, index / own_width);
+            // Centre (x + ½) / own size, in the previous level's pixels.
+            let from_x = ((2 * x + 1) * width as usize) / (2 * own_width);
+            let from_y = ((2 * y + 1) * height as usize) / (2 * own_height as usize);
+            self.pixels[index] = previous[from_y * width as usize + from_x];
+        }
         true
     }
 
@@ -292,6 +307,39 @@ mod tests {
             assert!((got.direction - expected.direction).length() < 1e-6);
             assert_eq!(got.origin, expected.origin);
         }
+    }
+
+    #[test]
+    fn the_rows_not_drawn_show_the_coarser_picture_enlarged() {
+        let full = camera(8, 4);
+        let mut level = LevelRender::new(&full, 1);
+        let coarse: Vec<RenderedPixel> = (0..8)
+            .map(|i| RenderedPixel {
+                depth: i as f32,
+                ..Default::default()
+            })
+            .collect();
+        // Not the size it claims, or finer than the level: refused.
+        assert!(!level.fill_rest_from(&coarse[..7], 4, 2));
+        let finer = vec![RenderedPixel::default(); 32];
+        assert!(!level.fill_rest_from(&finer, 16, 2));
+        // Two rows drawn, then the rest from a 4 × 2 picture: each pixel
+        // takes the coarse pixel its centre falls in.
+        let drawn = level.pixels_so_far().len();
+        assert_eq!(drawn, 32);
+        level.done = 16;
+        assert!(level.fill_rest_from(&coarse, 4, 2));
+        let depths: Vec<f32> = level.pixels_so_far()[16..]
+            .iter()
+            .map(|p| p.depth)
+            .collect();
+        assert_eq!(
+            depths,
+            vec![
+                4.0, 4.0, 5.0, 5.0, 6.0, 6.0, 7.0, 7.0, 4.0, 4.0, 5.0, 5.0, 6.0, 6.0, 7.0, 7.0
+            ]
+        );
+        assert!(level.pixels_so_far()[..16].iter().all(|p| p.depth == 0.0));
     }
 
     #[test]

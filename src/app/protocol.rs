@@ -214,6 +214,9 @@ pub struct RenderedFrame {
     pub train_seconds: f64,
     /// 1 = full resolution; 8 = an eighth of the viewport in each direction.
     pub downscale: u32,
+    /// False for a level sent before its last row: the rows below those
+    /// drawn show the picture it replaces (enlarged, if that was coarser).
+    pub complete: bool,
     pub width: u32,
     pub height: u32,
     pub mode: RenderMode,
@@ -235,6 +238,9 @@ pub struct GpuFrame {
     pub train_seconds: f64,
     /// 1 = full resolution; 8 = an eighth of the viewport in each direction.
     pub downscale: u32,
+    /// False for a level sent before its last band: the rows below those
+    /// drawn show the picture it replaces.
+    pub complete: bool,
     pub width: u32,
     pub height: u32,
     /// Already applied: the texture holds the colours to show.

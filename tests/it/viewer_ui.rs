@@ -315,6 +315,7 @@ fn solid_frame(generation: u64, width: u32, height: u32, rgb: [f32; 3]) -> Rende
         step: 42,
         train_seconds: 4.2,
         downscale: 1,
+        complete: true,
         width,
         height,
         mode: RenderMode::Rgb,

@@ -475,9 +475,9 @@ struct LevelJob {
     revision: u64,
     /// Render seconds spent on it so far.
     seconds: f64,
-    /// Whether it redraws the level on screen, so that it may be sent
-    /// before its last row over the rest of that picture.
-    redraws_shown: bool,
+    /// Whether it may be sent before its last row over the rest of the
+    /// picture on screen (a redraw of that level, or a finer level over it).
+    over_shown: bool,
     /// Whether the rows not drawn yet hold the picture on screen (copied
     /// when the level is first sent unfinished).
     holds_shown_rest: bool,

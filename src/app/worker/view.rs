@@ -285,13 +285,14 @@ impl Worker {
         self.send_partial_if_due()
     }
 
-    /// Sends a redraw of the level on screen as far as it has gone, once
-    /// it has taken another refresh budget of render seconds: the rows
-    /// drawn so far over the rest of the picture it replaces. A redraw
-    /// that takes many budgets (NeRF at full resolution on a slow machine)
-    /// then shows its progress band by band instead of holding the old
-    /// picture until its last row. The rest is copied from the picture on
-    /// screen only then, so a redraw within the budget costs nothing more.
+    /// Sends a level as far as it has gone, once it has taken another
+    /// refresh budget of render seconds: the rows drawn so far over the
+    /// rest of the picture on screen (a redraw of that level, or a finer
+    /// level over it enlarged). A level that takes many budgets (NeRF at
+    /// full resolution on a slow machine) then shows its progress band by
+    /// band instead of holding an old picture until its last row. The rest
+    /// is copied from the picture on screen only then, so a level within
+    /// the budget costs nothing more.
     fn send_partial_if_due(&mut self) -> Result<(), UiGone> {
         let budget = refresh_budget(self.training_share());
         let started = Instant::now();
@@ -301,14 +302,14 @@ impl Worker {
         let Some(job) = view.job.as_mut() else {
             return Ok(());
         };
-        if !job.redraws_shown || job.seconds - job.seconds_at_last_send < budget.max(1e-3) {
+        if !job.over_shown || job.seconds - job.seconds_at_last_send < budget.max(1e-3) {
             return Ok(());
         }
         if !job.holds_shown_rest {
             let shown = view.shown.as_ref().map(|shown| &shown.picture);
             job.holds_shown_rest = match (&mut job.draw, shown) {
                 (LevelDraw::Pixels(render), Some(Picture::Pixels(frame))) => {
-                    render.fill_rest_from(&frame.pixels)
+                    render.fill_rest_from(&frame.pixels, frame.width, frame.height)
                 }
                 (LevelDraw::Texture(level), Some(Picture::Texture(frame))) => {
                     match self.engine.gpu.as_ref() {
@@ -320,7 +321,7 @@ impl Worker {
             };
             if !job.holds_shown_rest {
                 // Not the picture's size or kind: drawn to the end instead.
-                job.redraws_shown = false;
+                job.over_shown = false;
                 return Ok(());
             }
         }
@@ -332,6 +333,7 @@ impl Worker {
                 step: job.step,
                 train_seconds: job.train_seconds,
                 downscale: job.downscale,
+                complete: false,
                 width: render.width(),
                 height: render.height(),
                 mode: view.request.mode,
@@ -345,6 +347,7 @@ impl Worker {
                     step: job.step,
                     train_seconds: job.train_seconds,
                     downscale: job.downscale,
+                    complete: false,
                     width: level.camera.intrinsics.width,
                     height: level.camera.intrinsics.height,
                     mode: view.request.mode,
@@ -364,10 +367,12 @@ impl Worker {
         let view = self.view.as_ref().expect("a view to draw");
         let camera = level_camera(&view.request.camera, downscale);
         let request_to_texture = self.draws_to_texture(&view.request);
-        let redraws_shown = view
-            .shown
-            .as_ref()
-            .is_some_and(|shown| shown.downscale == downscale);
+        // A redraw of the level on screen, or on the cpu's pixels a finer
+        // level over it (its rows not drawn yet show the coarser picture
+        // enlarged), may be sent before its last row.
+        let over_shown = view.shown.as_ref().is_some_and(|shown| {
+            shown.downscale == downscale || matches!(shown.picture, Picture::Pixels(_))
+        });
         let slot = self.slot(self.active).expect("checked by the caller");
         let (model, step, train_seconds, revision) = (
             slot.kind,
@@ -392,7 +397,7 @@ impl Worker {
             train_seconds,
             revision,
             seconds: 0.0,
-            redraws_shown,
+            over_shown,
             holds_shown_rest: false,
             seconds_at_last_send: 0.0,
             draw,
@@ -450,7 +455,7 @@ impl Worker {
             // the CPU.
             self.textures_shared = false;
             job.draw = LevelDraw::Pixels(LevelRender::new(&view.request.camera, job.downscale));
-            job.redraws_shown = false;
+            job.over_shown = false;
             self.send(Event::Error(format!(
                 "drawing the view on the gpu failed ({error}); the view now comes \
                  through the CPU"
@@ -488,6 +493,7 @@ impl Worker {
                 step: job.step,
                 train_seconds: job.train_seconds,
                 downscale: job.downscale,
+                complete: true,
                 width: render.width(),
                 height: render.height(),
                 mode: view.request.mode,
@@ -502,6 +508,7 @@ impl Worker {
                     step: job.step,
                     train_seconds: job.train_seconds,
                     downscale: job.downscale,
+                    complete: true,
                     width: level.camera.intrinsics.width,
                     height: level.camera.intrinsics.height,
                     mode: view.request.mode,
