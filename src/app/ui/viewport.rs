@@ -130,6 +130,8 @@ pub struct ShownFrame {
     /// The model's training seconds when the frame's level began.
     pub train_seconds: f64,
     pub downscale: u32,
+    /// False while its level is still being drawn band by band.
+    pub complete: bool,
     pub width: u32,
     pub height: u32,
     pub mode: RenderMode,
@@ -230,6 +232,7 @@ impl ViewportState {
             step: frame.step,
             train_seconds: frame.train_seconds,
             downscale: frame.downscale,
+            complete: frame.complete,
             width: frame.width,
             height: frame.height,
             mode: frame.mode,
@@ -290,6 +293,7 @@ impl ViewportState {
             step: frame.step,
             train_seconds: frame.train_seconds,
             downscale: frame.downscale,
+            complete: frame.complete,
             width: frame.width,
             height: frame.height,
             mode: frame.mode,
@@ -674,11 +678,15 @@ pub fn show(ui_state: &mut ViewerUi, ui: &mut egui::Ui) {
     let state = &ui_state.viewport;
     let caption = match state.shown {
         Some(shown) => {
-            let resolution = if shown.downscale > 1 {
+            let mut resolution = if shown.downscale > 1 {
                 format!("1/{} resolution", shown.downscale)
             } else {
                 "full resolution".to_string()
             };
+            if !shown.complete {
+                // Its lower rows still show the picture before it.
+                resolution.push_str(", drawing");
+            }
             let behind = match (trained_to, lag) {
                 (Some(step), Some(lag)) if step > shown.step => {
                     format!(" (trained to {step}, {lag:.1} s of training on)")
