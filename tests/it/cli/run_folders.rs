@@ -245,7 +245,7 @@ fn pipes_and_devices_in_a_run_folder_are_refused_at_once() {
             "crop.json",
             render,
             "crop.json: cannot read the crop box",
-            false,
+            true,
         ),
     ];
     let mut timings = Vec::new();
@@ -278,8 +278,10 @@ fn pipes_and_devices_in_a_run_folder_are_refused_at_once() {
                 args.join(" ")
             );
             if *early {
+                // The bound: refused within a second (measured:
+                // 10 to 30 ms on a busy 2-core Zen 4).
                 assert!(
-                    took < Duration::from_secs(2),
+                    took < Duration::from_secs(1),
                     "{file} as a {kind}: refused after {took:?}"
                 );
             }
