@@ -213,11 +213,6 @@ impl LevelRender {
     pub fn pixels_so_far(&self) -> &[RenderedPixel] {
         &self.pixels
     }
-
-    /// The finished pixels, row-major.
-    pub fn into_pixels(self) -> Vec<RenderedPixel> {
-        self.pixels
-    }
 }
 
 /// Sizes chunks of rays so that each takes about `target` on this machine

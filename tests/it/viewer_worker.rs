@@ -1101,69 +1101,33 @@ fn a_resting_picture_reaches_full_resolution_when_a_level_takes_several_budgets(
     }
 }
 
-#[test]
-fn nerf_on_the_cpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
+/// `model` on the cpu engine, viewed `view` pixels wide.
+fn on_the_cpu_engine(model: ModelKind, view: u32) {
     let _alone = common::alone();
     the_picture_keeps_up_while_training_keeps_its_share(
-        ModelKind::Nerf,
+        model,
         EngineKind::Cpu,
         WorkerOptions {
             demo: small_demo(),
             ..WorkerOptions::default()
         },
-        16,
+        view,
     );
+}
+
+#[test]
+fn nerf_on_the_cpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
+    on_the_cpu_engine(ModelKind::Nerf, 16);
 }
 
 #[test]
 fn mipnerf_on_the_cpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
-    let _alone = common::alone();
-    the_picture_keeps_up_while_training_keeps_its_share(
-        ModelKind::MipNerf,
-        EngineKind::Cpu,
-        WorkerOptions {
-            demo: small_demo(),
-            ..WorkerOptions::default()
-        },
-        16,
-    );
+    on_the_cpu_engine(ModelKind::MipNerf, 16);
 }
 
 #[test]
 fn ngp_on_the_cpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
-    let _alone = common::alone();
-    the_picture_keeps_up_while_training_keeps_its_share(
-        ModelKind::Ngp,
-        EngineKind::Cpu,
-        WorkerOptions {
-            demo: small_demo(),
-            ..WorkerOptions::default()
-        },
-        32,
-    );
-}
-
-#[test]
-fn ngp_on_the_gpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
-    let _alone = common::alone();
-    let context = match zrak::engine::gpu::GpuContext::new() {
-        Ok(context) => context,
-        Err(error) => {
-            println!("no gpu adapter ({error}): nothing to test");
-            return;
-        }
-    };
-    the_picture_keeps_up_while_training_keeps_its_share(
-        ModelKind::Ngp,
-        EngineKind::Gpu,
-        WorkerOptions {
-            demo: small_demo(),
-            batch_samples: Some(1 << 12),
-            gpu_device: Some(context),
-            ..WorkerOptions::default()
-        },
-        16,
-    );
+    on_the_cpu_engine(ModelKind::Ngp, 32);
 }
 
 /// The gpu engine (lavapipe here) on a device shared with a window, as
@@ -1171,8 +1135,9 @@ fn ngp_on_the_gpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
 /// by band. lavapipe runs the papers' 8 × 256 networks at well under a
 /// G FLOP/s on two busy cores (`zrak bench throughput --engine gpu --model
 /// nerf`: 86 s a step of 2^12 samples), a pixel of them in about a second,
-/// so the models have the small networks the gpu parity tests use.
-fn on_the_gpu_engine(model: ModelKind, shape: common::NerfKind) {
+/// so NeRF and Mip-NeRF have the small networks the gpu parity tests use
+/// (`shape`); Instant-NGP has its own.
+fn on_the_gpu_engine(model: ModelKind, shape: Option<common::NerfKind>, view: u32) {
     let _alone = common::alone();
     let context = match zrak::engine::gpu::GpuContext::new() {
         Ok(context) => context,
@@ -1187,20 +1152,25 @@ fn on_the_gpu_engine(model: ModelKind, shape: common::NerfKind) {
         WorkerOptions {
             demo: small_demo(),
             batch_samples: Some(1 << 12),
-            nerf_shape: Some(common::small_nerf_shape(shape)),
+            nerf_shape: shape.map(common::small_nerf_shape),
             gpu_device: Some(context),
             ..WorkerOptions::default()
         },
-        8,
+        view,
     );
 }
 
 #[test]
 fn nerf_on_the_gpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
-    on_the_gpu_engine(ModelKind::Nerf, common::NerfKind::Nerf);
+    on_the_gpu_engine(ModelKind::Nerf, Some(common::NerfKind::Nerf), 8);
 }
 
 #[test]
 fn mipnerf_on_the_gpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
-    on_the_gpu_engine(ModelKind::MipNerf, common::NerfKind::MipNerf);
+    on_the_gpu_engine(ModelKind::MipNerf, Some(common::NerfKind::MipNerf), 8);
+}
+
+#[test]
+fn ngp_on_the_gpu_engine_trains_at_its_share_and_its_picture_keeps_up() {
+    on_the_gpu_engine(ModelKind::Ngp, None, 16);
 }

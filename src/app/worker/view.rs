@@ -50,7 +50,49 @@ impl LevelJob {
     }
 }
 
+impl LevelJob {
+    /// The level as it stands, as the answer to `request`: its pixels
+    /// (those drawn, and below them what [`LevelRender::fill_rest_from`]
+    /// put there) or its texture; `complete` once its last row is drawn.
+    fn picture(&self, request: &RenderRequest, complete: bool) -> Picture {
+        match &self.draw {
+            LevelDraw::Pixels(render) => Picture::Pixels(RenderedFrame {
+                generation: request.generation,
+                model: self.model,
+                step: self.step,
+                train_seconds: self.train_seconds,
+                downscale: self.downscale,
+                complete,
+                width: render.width(),
+                height: render.height(),
+                mode: request.mode,
+                pixels: render.pixels_so_far().to_vec(),
+            }),
+            LevelDraw::Texture(level) => Picture::Texture(GpuFrame {
+                generation: request.generation,
+                model: self.model,
+                step: self.step,
+                train_seconds: self.train_seconds,
+                downscale: self.downscale,
+                complete,
+                width: level.camera.intrinsics.width,
+                height: level.camera.intrinsics.height,
+                mode: request.mode,
+                texture: level.texture.clone(),
+            }),
+        }
+    }
+}
+
 impl Picture {
+    /// The picture as an event for the window.
+    fn event(&self) -> Event {
+        match self {
+            Picture::Pixels(frame) => Event::Frame(frame.clone()),
+            Picture::Texture(frame) => Event::GpuFrame(frame.clone()),
+        }
+    }
+
     /// Whether this picture answers `request` (of the same camera): pixels
     /// are shown in any mode, while a texture holds one mode's colours.
     pub(super) fn answers(&self, request: &RenderRequest, draws_to_texture: bool) -> bool {
@@ -326,35 +368,11 @@ impl Worker {
             }
         }
         job.seconds_at_last_send = job.seconds;
-        let event = match &job.draw {
-            LevelDraw::Pixels(render) => Event::Frame(RenderedFrame {
-                generation: view.request.generation,
-                model: job.model,
-                step: job.step,
-                train_seconds: job.train_seconds,
-                downscale: job.downscale,
-                complete: false,
-                width: render.width(),
-                height: render.height(),
-                mode: view.request.mode,
-                pixels: render.pixels_so_far().to_vec(),
-            }),
-            LevelDraw::Texture(level) => {
-                self.textures.sent(&level.texture);
-                Event::GpuFrame(GpuFrame {
-                    generation: view.request.generation,
-                    model: job.model,
-                    step: job.step,
-                    train_seconds: job.train_seconds,
-                    downscale: job.downscale,
-                    complete: false,
-                    width: level.camera.intrinsics.width,
-                    height: level.camera.intrinsics.height,
-                    mode: view.request.mode,
-                    texture: level.texture.clone(),
-                })
-            }
-        };
+        let picture = job.picture(&view.request, false);
+        if let Picture::Texture(frame) = &picture {
+            self.textures.sent(&frame.texture);
+        }
+        let event = picture.event();
         // The copy and the pixels sent are the view's time too.
         let seconds = started.elapsed().as_secs_f64();
         self.ledger.record_other(seconds);
@@ -486,40 +504,11 @@ impl Worker {
         };
         slot.cost.record(job.pixels(), job.seconds);
         self.trace.add_rendering(job.downscale, 0.0, true);
-        let picture = match job.draw {
-            LevelDraw::Pixels(render) => Picture::Pixels(RenderedFrame {
-                generation: view.request.generation,
-                model: job.model,
-                step: job.step,
-                train_seconds: job.train_seconds,
-                downscale: job.downscale,
-                complete: true,
-                width: render.width(),
-                height: render.height(),
-                mode: view.request.mode,
-                pixels: render.into_pixels(),
-            }),
-            LevelDraw::Texture(level) => {
-                let texture = level.texture;
-                self.textures.sent(&texture);
-                Picture::Texture(GpuFrame {
-                    generation: view.request.generation,
-                    model: job.model,
-                    step: job.step,
-                    train_seconds: job.train_seconds,
-                    downscale: job.downscale,
-                    complete: true,
-                    width: level.camera.intrinsics.width,
-                    height: level.camera.intrinsics.height,
-                    mode: view.request.mode,
-                    texture,
-                })
-            }
-        };
-        let event = match &picture {
-            Picture::Pixels(frame) => Event::Frame(frame.clone()),
-            Picture::Texture(frame) => Event::GpuFrame(frame.clone()),
-        };
+        let picture = job.picture(&view.request, true);
+        if let Picture::Texture(frame) = &picture {
+            self.textures.sent(&frame.texture);
+        }
+        let event = picture.event();
         view.shown = Some(Shown {
             picture,
             revision: job.revision,
