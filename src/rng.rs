@@ -3,6 +3,15 @@
 //! seed and a step number, which is what makes resumed runs match
 //! uninterrupted ones.
 
+/// SplitMix64 (Steele, Lea, Flood 2014): a bijective 64-bit mixer, good
+/// enough to turn a counter into independent-looking uniform bits.
+pub fn splitmix64(x: u64) -> u64 {
+    let mut z = x.wrapping_add(0x9e37_79b9_7f4a_7c15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
 /// PCG32: 64-bit state, 32-bit output.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Pcg32 {

@@ -24,7 +24,7 @@ use crate::model::checkpoint::Checkpoint;
 use crate::render::{RenderMode, render_pixels, to_image};
 use crate::rng::Pcg32;
 use crate::scene::demo::{self, DemoConfig};
-use crate::train::{ModelSettings, build_model};
+use crate::engine::build::{ModelRequest, ModelSettings, build};
 
 /// The features the engine uses or could use, with what each is for.
 const FEATURES: [(Features, &str); 7] = [
@@ -249,8 +249,10 @@ pub fn self_check(context: &GpuContext, kind: ModelKind, size: CheckSize) -> Vec
         ),
         reason: "self-check".into(),
     };
-    let built = build_model(kind, cpu_choice, &scene, &settings)
-        .and_then(|cpu| build_model(kind, gpu_choice, &scene, &settings).map(|gpu| (cpu, gpu)));
+    let request = ModelRequest::new(kind, settings);
+    let built = build(&request, cpu_choice, &scene)
+        .and_then(|cpu| build(&request, gpu_choice, &scene).map(|gpu| (cpu, gpu)))
+        .map_err(|e| e.to_string());
     let (mut cpu, mut gpu) = match built {
         Ok(models) => models,
         Err(error) => {

@@ -14,7 +14,7 @@ use zrak::interrupt::{self, note, say};
 use zrak::render::RenderMode;
 use zrak::scene::{Camera, Scene};
 use zrak::train::trainer::Trainer;
-use zrak::train::{ModelSettings, build_model};
+use zrak::engine::build::{ModelRequest, ModelSettings, build};
 
 use super::{KernelsLine, load_scene};
 
@@ -238,8 +238,7 @@ pub fn bench_gpu(args: GpuBenchArgs) -> anyhow::Result<()> {
             let counters = choice.gpu.as_ref().map(|gpu| gpu.counters.clone());
             let engine_line = choice.reason.clone();
             let settings = bench_settings(model, Sampling::Occupancy, Precision::F32, software);
-            let built =
-                build_model(model, choice, &scene, &settings).map_err(anyhow::Error::msg)?;
+            let built = build(&ModelRequest::new(model, settings), choice, &scene)?;
             let mut trainer = Trainer::new(built, scene.clone(), 0);
             let warmup = args
                 .warmup
@@ -328,7 +327,7 @@ pub fn bench_throughput(args: ThroughputArgs) -> anyhow::Result<()> {
     let warmup = warmup.unwrap_or_else(|| default_warmup(model, sampling, software_gpu));
     let settings = bench_settings(model, sampling, precision, software_gpu);
     let batch_samples = settings.batch_samples;
-    let model = build_model(model, choice, &scene, &settings).map_err(anyhow::Error::msg)?;
+    let model = build(&ModelRequest::new(model, settings), choice, &scene)?;
     let mut trainer = Trainer::new(model, scene.clone(), 0);
     if let Some(samples) = batch_samples {
         println!("software adapter: batches of ~{samples} samples (a correctness run)");

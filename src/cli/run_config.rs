@@ -18,7 +18,7 @@ use zrak::train::run::{
     MAX_RUN_JSON_BYTES, RUN_JSON_MARKER, RunFolder, SAVED_BY_COMMAND_LINE, load_checkpoint,
 };
 use zrak::train::trainer::Trainer;
-use zrak::train::{ModelSettings, build_model};
+use zrak::engine::build::{ModelRequest, ModelSettings, build};
 
 use super::load_scene;
 
@@ -105,19 +105,14 @@ pub fn build_trainer(
     scene: Arc<Scene>,
     choice: EngineChoice,
 ) -> anyhow::Result<Trainer> {
-    let model = build_model(
-        config.model,
-        choice,
-        &scene,
-        &ModelSettings {
-            seed: config.seed,
-            loss: config.loss,
-            batch_samples: config.batch_samples,
-            sampling: config.sampling,
-            precision: config.precision,
-        },
-    )
-    .map_err(anyhow::Error::msg)?;
+    let settings = ModelSettings {
+        seed: config.seed,
+        loss: config.loss,
+        batch_samples: config.batch_samples,
+        sampling: config.sampling,
+        precision: config.precision,
+    };
+    let model = build(&ModelRequest::new(config.model, settings), choice, &scene)?;
     Ok(Trainer::new(model, scene, config.seed))
 }
 

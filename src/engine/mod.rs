@@ -1,6 +1,7 @@
 //! How fields are computed: the `cpu` engine (Rust, rayon), which is also the
 //! reference for tests, and the `gpu` engine (wgpu).
 
+pub mod build;
 pub mod cpu;
 pub mod crop;
 pub mod gpu;

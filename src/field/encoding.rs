@@ -8,6 +8,7 @@
 //! formulas and the output layouts.
 
 use crate::field::ngp::HashGridConfig;
+use crate::rng::splitmix64;
 
 // The multiresolution hash grid.
 
@@ -38,6 +39,29 @@ pub struct HashGridLayout {
 }
 
 impl HashGridLayout {
+    /// Starting parameters: each uniform in ±`init_range` (paper, section
+    /// 4), from a counter-based generator, so the result depends only on
+    /// `seed` and not on the number of threads.
+    pub fn init_params(&self, seed: u64) -> Vec<f32> {
+        use rayon::prelude::*;
+        let range = self.config().init_range;
+        let key = splitmix64(seed ^ 0x6861_7368_6772_6964); // "hashgrid"
+        let mut params = vec![0.0f32; self.param_count()];
+        params
+            .par_chunks_mut(1 << 14)
+            .enumerate()
+            .for_each(|(chunk, values)| {
+                let start = (chunk << 14) as u64;
+                for (i, value) in values.iter_mut().enumerate() {
+                    let bits = splitmix64(key.wrapping_add(start + i as u64));
+                    // 24 random bits give every f32 in [0, 1) on a 2^-24 grid.
+                    let unit = (bits >> 40) as f32 * (1.0 / (1u64 << 24) as f32);
+                    *value = (2.0 * unit - 1.0) * range;
+                }
+            });
+        params
+    }
+
     pub fn new(config: &HashGridConfig) -> Self {
         assert!(config.levels >= 1, "a hash grid needs at least one level");
         assert!(config.base_resolution >= 1, "N_min must be at least 1");

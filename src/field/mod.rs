@@ -8,6 +8,9 @@ pub mod mlp;
 pub mod nerf;
 pub mod ngp;
 pub mod params;
+pub mod shape;
+
+use crate::scene::{Scene, SceneFormat};
 
 /// The models zrak trains.
 #[derive(
@@ -81,6 +84,14 @@ pub struct ModelSpec {
     pub samplings: &'static [nerf::Sampling],
     /// Its colour in the viewer's plots and the exported ones (RGB).
     pub colour: [u8; 3],
+    /// Its recipe for a scene with a sampler (of [`Self::samplings`]).
+    pub recipe: fn(&Scene, nerf::Sampling) -> common::Recipe,
+    /// The shape of its fields for a scene, the paper's.
+    pub shape: fn(&Scene) -> shape::FieldShape,
+    /// Samples per batch on the `gpu` engine where its recipe's batch is in
+    /// samples sized for the cpu's, and the settings name none (`None`
+    /// keeps the recipe's).
+    pub gpu_batch_samples: Option<usize>,
     /// The viewer's training batches where the recipe's would make a step
     /// too long to wait behind.
     pub viewer_batch: ViewerBatch,
@@ -139,6 +150,9 @@ pub const MODELS: &[ModelSpec] = &[
         default_loss: ngp::LossKind::Huber,
         samplings: &[nerf::Sampling::Occupancy],
         colour: [0x4c, 0x9b, 0xe8],
+        recipe: |scene, _| ngp::recipe(scene.unit_cube.aabb_scale),
+        shape: |scene| ngp::NgpShape::for_scene(scene).into(),
+        gpu_batch_samples: None,
         viewer_batch: ViewerBatch {
             cpu: Some(NGP_VIEWER_CPU_SAMPLES),
             slow: None,
@@ -154,6 +168,9 @@ pub const MODELS: &[ModelSpec] = &[
         default_loss: ngp::LossKind::L2,
         samplings: &[nerf::Sampling::Occupancy, nerf::Sampling::Paper],
         colour: [0xe8, 0x8a, 0x3c],
+        recipe: |scene, sampling| nerf::recipe(sampling, scene.format == SceneFormat::Blender),
+        shape: |_| nerf::NerfShape::paper().into(),
+        gpu_batch_samples: Some(nerf::GPU_OCCUPANCY_SAMPLES_PER_BATCH),
         viewer_batch: ViewerBatch {
             cpu: None,
             slow: Some(NERF_VIEWER_SMALL_SAMPLES),
@@ -171,6 +188,11 @@ pub const MODELS: &[ModelSpec] = &[
         default_loss: ngp::LossKind::L2,
         samplings: &[nerf::Sampling::Occupancy, nerf::Sampling::Paper],
         colour: [0x5c, 0xc0, 0x6a],
+        recipe: |scene, sampling| {
+            mipnerf::recipe(sampling, scene.format == SceneFormat::Blender)
+        },
+        shape: |_| nerf::NerfShape::mipnerf().into(),
+        gpu_batch_samples: Some(nerf::GPU_OCCUPANCY_SAMPLES_PER_BATCH),
         viewer_batch: ViewerBatch {
             cpu: None,
             slow: Some(NERF_VIEWER_SMALL_SAMPLES),

@@ -12,6 +12,7 @@ use super::common::{
     BatchSize, Level, LrSchedule, OptimiserConfig, RayBounds, SampleShape, SamplerKind,
 };
 use super::encoding::FrequencyEncoding;
+use super::params::{ParamLayout, Update};
 use super::mlp::{Activation, MlpLayout, Precision};
 use super::ngp::{MarchConfig, OccupancyConfig};
 
@@ -319,6 +320,34 @@ impl NerfShape {
             },
         )
         .with_colour_padding(mip::RGB_PADDING)
+    }
+
+    /// Where each network's parameters sit: trunk A, trunk B, colour.
+    pub fn ranges(&self) -> [std::ops::Range<usize>; 3] {
+        let a = self.trunk_a.param_count();
+        let b = a + self.trunk_b.param_count();
+        let c = b + self.colour.param_count();
+        [0..a, a..b, b..c]
+    }
+
+    /// The parameters part by part: network weights updated every step,
+    /// with the optimiser's weight decay (none in NeRF's and Mip-NeRF's
+    /// optimisers).
+    pub fn layout(&self) -> ParamLayout {
+        let [a, b, c] = self.ranges();
+        let dense = Update::Dense { l2: true };
+        ParamLayout::new()
+            .with("trunk A", a.len(), dense)
+            .with("trunk B", b.len(), dense)
+            .with("colour network", c.len(), dense)
+    }
+
+    /// Initial parameters, each network from its own seed.
+    pub fn init_params(&self, seed: u64) -> Vec<f32> {
+        let mut params = self.trunk_a.init_params(seed ^ 0x7472_756e_6b61);
+        params.extend(self.trunk_b.init_params(seed ^ 0x7472_756e_6b62));
+        params.extend(self.colour.init_params(seed ^ 0x636f_6c6f));
+        params
     }
 
     /// Multiply-adds of the networks per sample in one forward pass (the

@@ -355,6 +355,16 @@ impl NgpShape {
         self.colour_range().end
     }
 
+    /// Initial parameters: the grid's entries uniform in ±1e-4 (paper,
+    /// section 4), each network from its own seed.
+    pub fn init_params(&self, seed: u64) -> Vec<f32> {
+        let mut params = self.grid.init_params(seed);
+        params.extend(self.density.init_params(seed ^ 0x64656e73));
+        params.extend(self.colour.init_params(seed ^ 0x636f6c6f));
+        assert_eq!(params.len(), self.param_count());
+        params
+    }
+
     /// The parameters part by part: the grid sparse, the networks dense
     /// with weight decay.
     pub fn layout(&self) -> ParamLayout {

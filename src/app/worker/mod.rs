@@ -36,7 +36,8 @@ use crate::train::checkpoint::Checkpoint;
 use crate::train::eval::{pixel_grid, spread_views};
 use crate::train::model::{RadianceModel, RayColumns, RenderedPixel, Stage, StageTimes, StepStats};
 use crate::train::trainer::Trainer;
-use crate::train::{ModelSettings, build_model};
+use crate::engine::build::{ModelRequest, ModelSettings, build};
+use crate::field::shape::FieldShape;
 
 use super::progressive::{ChunkPacer, LevelRender, draw_band_to_texture, level_camera};
 use super::protocol::{
@@ -875,44 +876,22 @@ impl Worker {
             precision: self.options.precision,
         };
         let engine = self.engine.choice()?;
-        let mut model: Box<dyn RadianceModel> =
-            match (&self.options.nerf_shape, kind, engine.gpu) {
-                (Some(shape), ModelKind::Nerf, None) => Box::new(
-                    crate::train::cpu_nerf_with_shape(&self.scene, &settings, shape),
-                ),
-                (Some(shape), ModelKind::MipNerf, None) => Box::new(
-                    crate::train::cpu_mipnerf_with_shape(&self.scene, &settings, shape),
-                ),
-                (Some(shape), ModelKind::Nerf, Some(gpu)) if engine.kind == EngineKind::Gpu => {
-                    Box::new(crate::train::gpu_nerf_with_shape(
-                        gpu,
-                        &self.scene,
-                        &settings,
-                        shape,
-                    )?)
-                }
-                (Some(shape), ModelKind::MipNerf, Some(gpu)) if engine.kind == EngineKind::Gpu => {
-                    Box::new(crate::train::gpu_mipnerf_with_shape(
-                        gpu,
-                        &self.scene,
-                        &settings,
-                        shape,
-                    )?)
-                }
-                (_, _, gpu) => build_model(
-                    kind,
-                    EngineChoice {
-                        kind: engine.kind,
-                        gpu,
-                        reason: engine.reason,
-                    },
-                    &self.scene,
-                    &settings,
-                )?,
-            };
+        let model = build(&self.model_request(kind, settings), engine, &self.scene)
+            .map_err(|e| e.to_string())?;
         // The crop box was checked with the models of this engine already.
+        let mut model = model;
         let _ = model.set_crop(self.crop);
         Ok(Trainer::new(model, self.scene.clone(), self.options.seed))
+    }
+
+    /// The request for a model of `kind`: tests give NeRF-shaped fields
+    /// ([`WorkerOptions::nerf_shape`]) a small shape of their own.
+    fn model_request(&self, kind: ModelKind, settings: ModelSettings) -> ModelRequest {
+        let request = ModelRequest::new(kind, settings);
+        match (&self.options.nerf_shape, (kind.spec().shape)(&self.scene)) {
+            (Some(shape), FieldShape::Nerf(_)) => request.with_shape(shape.clone()),
+            _ => request,
+        }
     }
 
     fn new_slot(&mut self, kind: ModelKind, trainer: Trainer, loss: LossKind) -> ModelSlot {

@@ -90,37 +90,6 @@ impl Real for f64 {
     }
 }
 
-/// Starting parameters: each uniform in ±`init_range` (paper, section 4),
-/// from a counter-based generator, so the result depends only on `seed` and
-/// not on the number of threads.
-pub fn init_params(layout: &HashGridLayout, seed: u64) -> Vec<f32> {
-    let range = layout.config().init_range;
-    let key = splitmix64(seed ^ 0x6861_7368_6772_6964); // "hashgrid"
-    let mut params = vec![0.0f32; layout.param_count()];
-    params
-        .par_chunks_mut(1 << 14)
-        .enumerate()
-        .for_each(|(chunk, values)| {
-            let start = (chunk << 14) as u64;
-            for (i, value) in values.iter_mut().enumerate() {
-                let bits = splitmix64(key.wrapping_add(start + i as u64));
-                // 24 random bits give every f32 in [0, 1) on a 2^-24 grid.
-                let unit = (bits >> 40) as f32 * (1.0 / (1u64 << 24) as f32);
-                *value = (2.0 * unit - 1.0) * range;
-            }
-        });
-    params
-}
-
-/// SplitMix64 (Steele, Lea, Flood 2014): a bijective 64-bit mixer, good
-/// enough to turn a counter into independent-looking uniform bits.
-fn splitmix64(x: u64) -> u64 {
-    let mut z = x.wrapping_add(0x9e37_79b9_7f4a_7c15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    z ^ (z >> 31)
-}
-
 /// What the inner loops need of one level, converted once.
 #[derive(Clone, Copy)]
 struct LevelMath<T> {

@@ -7,6 +7,8 @@
 //! `CpuModel` and the `gpu` engine's `GpuModel` both call these, so the two
 //! see the same rays, seeds and samples.
 
+use std::ops::Range;
+
 use glam::Vec3;
 use rayon::prelude::*;
 
@@ -14,7 +16,9 @@ use super::batch_sizer::BatchSizer;
 use super::frustum::frustum_gaussian;
 use super::march::{GridSamples, mix32};
 use super::occupancy::OccupancyGrid;
-use crate::field::common::{BatchSize, RayBounds};
+use crate::field::common::{BatchSize, RayBounds, Recipe, SamplerKind};
+use crate::field::ngp::{MarchConfig, OccupancyConfig};
+use crate::field::params::ParamLayout;
 use crate::scene::{Aabb, UnitCubeMapping};
 
 /// Rays per chunk of the paper's sampler: 256 rays × 192 fine samples is
@@ -233,25 +237,86 @@ pub fn to_world(mapping: &UnitCubeMapping, unit: &[f32], world: &mut Vec<f32>) {
         });
 }
 
-/// The [`crate::model::RadianceModel`] methods both drivers answer alike,
-/// written once: which model on which engine (`$engine`), how many rays the
-/// next batch takes, and the centre crop at a step. Expanded inside a
-/// driver's `impl RadianceModel`; the driver holds `identity`
-/// ([`ModelIdentity`]), `batch_size` ([`BatchSize`]), `batch_sizer`
-/// ([`BatchSizer`]) and `recipe` ([`crate::field::common::Recipe`]).
-macro_rules! answers_of_a_driver {
-    ($engine:literal) => {
-        fn describe(&self) -> String {
-            $crate::engine::shared::driver::describe(&self.identity, $engine)
-        }
-
-        fn rays_for_next_batch(&self) -> usize {
-            $crate::engine::shared::driver::rays_for_batch(self.batch_size, &self.batch_sizer)
-        }
-
-        fn centre_crop(&self, step: u32) -> Option<f32> {
-            self.recipe.centre_crop_at(step)
-        }
-    };
+/// What both engines' drivers hold alike: the model's identity and
+/// recipe, its parameters' layout and where each field's sit, and the size
+/// of its batches. The drivers answer `describe`, `rays_for_next_batch` and
+/// `centre_crop` from it, and build their occupancy grid with it.
+#[derive(Debug, Clone)]
+pub struct DriverCore {
+    pub identity: ModelIdentity,
+    pub recipe: Recipe,
+    /// Every field's parts, one after the other: what Adam updates how.
+    pub layout: ParamLayout,
+    /// Where each field's parameters sit in the flat vector.
+    pub ranges: Vec<Range<usize>>,
+    /// Rays per batch for fixed-count levels, or samples per batch for
+    /// marched ones.
+    pub batch_size: BatchSize,
+    pub batch_sizer: BatchSizer,
 }
-pub(crate) use answers_of_a_driver;
+
+impl DriverCore {
+    /// `batch_size` replaces the recipe's batch (tests and the viewer ask
+    /// for smaller ones).
+    pub fn new(
+        identity: ModelIdentity,
+        recipe: Recipe,
+        layout: ParamLayout,
+        ranges: Vec<Range<usize>>,
+        batch_size: Option<BatchSize>,
+    ) -> Self {
+        let batch_size = batch_size.unwrap_or(recipe.batch);
+        let batch_sizer = BatchSizer::new(match batch_size {
+            BatchSize::Samples(samples) => samples,
+            BatchSize::Rays(rays) => rays,
+        });
+        Self {
+            identity,
+            recipe,
+            layout,
+            ranges,
+            batch_size,
+            batch_sizer,
+        }
+    }
+
+    /// Whether the recipe's one level marches through the occupancy grid.
+    pub fn marches(&self) -> bool {
+        self.recipe.levels[0].sampler == SamplerKind::Occupancy
+    }
+
+    /// The occupancy grid of a recipe that marches through one, for a scene
+    /// of `mapping`. The grid stores σ · step with σ per world unit, the
+    /// step being Instant-NGP's smallest (√3/1024 of the unit cube)
+    /// whatever this recipe marches with: the occupancy threshold (0.01)
+    /// then means the same density for every model. Its updates query
+    /// σ in chunks of a batch's samples.
+    pub fn occupancy_grid(&self, mapping: &UnitCubeMapping) -> Option<OccupancyGrid> {
+        self.marches().then(|| {
+            let mut grid = OccupancyGrid::new(
+                self.recipe.occupancy,
+                OccupancyConfig::cascades(mapping.aabb_scale),
+                MarchConfig::PAPER.step / mapping.scale,
+            );
+            if let BatchSize::Samples(samples) = self.batch_size {
+                grid.chunk = samples;
+            }
+            grid
+        })
+    }
+
+    /// What the model says it is: "NeRF (occupancy sampling, cpu)".
+    pub fn describe(&self, engine: &str) -> String {
+        describe(&self.identity, engine)
+    }
+
+    /// Rays for the next batch.
+    pub fn rays_for_next_batch(&self) -> usize {
+        rays_for_batch(self.batch_size, &self.batch_sizer)
+    }
+
+    /// The share of the image's centre that rays are drawn from at `step`.
+    pub fn centre_crop(&self, step: u32) -> Option<f32> {
+        self.recipe.centre_crop_at(step)
+    }
+}

@@ -7,10 +7,22 @@ pub mod nerf;
 pub mod ngp;
 
 use crate::field::params::ParamLayout;
+use crate::field::shape::FieldShape;
 
 // Where a field's positions live is a property of the field on either
 // engine: declared beside the recipe.
 pub use crate::field::common::Coordinates;
+
+/// The model's `count` fields of `shape` on the `cpu` engine (their
+/// initial parameters come from the shape, [`FieldShape::model_params`]).
+pub fn fields_for(shape: &FieldShape, count: usize) -> Vec<Box<dyn Field>> {
+    (0..count)
+        .map(|_| match shape {
+            FieldShape::Ngp(shape) => Box::new(ngp::NgpField::new(shape.clone())) as Box<dyn Field>,
+            FieldShape::Nerf(shape) => Box::new(nerf::NerfField::new(shape.clone())),
+        })
+        .collect()
+}
 
 /// How a backward pass leaves the field's gradient.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -20,11 +32,6 @@ pub enum Gradient {
     Overwrite,
     /// Adds to it (later chunks and levels of the same step).
     Add,
-}
-
-/// The seed of field `index`'s initial parameters from the model's seed.
-pub fn field_seed(model_seed: u64, index: usize) -> u64 {
-    model_seed ^ (0x6669_656c_6400 + index as u64)
 }
 
 /// Density and colour at samples, with gradients.
@@ -43,16 +50,6 @@ pub trait Field: Send + Sync {
 
     /// The dense kernels its networks run on.
     fn kernels(&self) -> crate::engine::cpu::dense::Backend;
-
-    /// Initial parameters, reproducible from `seed`.
-    fn init_params(&self, seed: u64) -> Vec<f32>;
-
-    /// The seed of the initial parameters of the model's field `index`:
-    /// [`field_seed`] (one per field, so NeRF's coarse and fine networks
-    /// start apart) unless the field says otherwise.
-    fn init_seed(&self, model_seed: u64, index: usize) -> u64 {
-        field_seed(model_seed, index)
-    }
 
     /// Where the positions it is given live.
     fn coordinates(&self) -> Coordinates {

@@ -28,7 +28,7 @@ use crate::engine::cpu::dense::{
     mlp_inference_leading,
 };
 use crate::engine::cpu::frequency;
-use crate::field::params::{ParamLayout, Update};
+use crate::field::params::ParamLayout;
 
 /// Rows per rayon task in the copies between the networks.
 const ROWS_PER_TASK: usize = 1024;
@@ -52,13 +52,6 @@ impl NerfShape {
 
     fn width(&self) -> usize {
         self.trunk_a.output_width()
-    }
-
-    fn ranges(&self) -> [std::ops::Range<usize>; 3] {
-        let a = self.trunk_a.param_count();
-        let b = a + self.trunk_b.param_count();
-        let c = b + self.colour.param_count();
-        [0..a, a..b, b..c]
     }
 }
 
@@ -199,26 +192,11 @@ fn take_columns(src: &[f32], width: usize, columns: std::ops::Range<usize>, dst:
 
 impl Field for NerfField {
     fn layout(&self) -> ParamLayout {
-        // Network weights: updated every step, with the optimiser's weight
-        // decay (none in NeRF's and Mip-NeRF's optimisers).
-        let [a, b, c] = self.shape.ranges();
-        let dense = Update::Dense { l2: true };
-        ParamLayout::new()
-            .with("trunk A", a.len(), dense)
-            .with("trunk B", b.len(), dense)
-            .with("colour network", c.len(), dense)
+        self.shape.layout()
     }
 
     fn kernels(&self) -> crate::engine::cpu::dense::Backend {
         self.shape.trunk_a.kernels()
-    }
-
-    fn init_params(&self, seed: u64) -> Vec<f32> {
-        let s = &self.shape;
-        let mut params = s.trunk_a.init_params(seed ^ 0x7472_756e_6b61);
-        params.extend(s.trunk_b.init_params(seed ^ 0x7472_756e_6b62));
-        params.extend(s.colour.init_params(seed ^ 0x636f_6c6f));
-        params
     }
 
     fn density(

@@ -44,16 +44,6 @@ const INFERENCE_ROWS: usize = 1 << 16;
 pub use crate::field::ngp::NgpShape;
 
 impl NgpShape {
-    /// Initial parameters: the grid's entries uniform in ±1e-4 (paper,
-    /// section 4), each network from its own seed.
-    pub fn init_params(&self, seed: u64) -> Vec<f32> {
-        let mut params = hash_grid::init_params(&self.grid, seed);
-        params.extend(self.density.init_params(seed ^ 0x64656e73));
-        params.extend(self.colour.init_params(seed ^ 0x636f6c6f));
-        assert_eq!(params.len(), self.param_count());
-        params
-    }
-
     /// Inference of σ at unit-cube positions (n × 3), with the hash
     /// features kept in `encoded` and `scratch` (grown as needed, reused
     /// between calls). Only output 0 (log-density) of the density network
@@ -256,16 +246,6 @@ impl Field for NgpField {
 
     fn kernels(&self) -> Backend {
         self.shape.density.kernels()
-    }
-
-    fn init_params(&self, seed: u64) -> Vec<f32> {
-        self.shape.init_params(seed)
-    }
-
-    /// The model's own seed: Instant-NGP is one field, seeded part by part
-    /// as its earlier driver did, so a seed starts the same run as before.
-    fn init_seed(&self, model_seed: u64, _index: usize) -> u64 {
-        model_seed
     }
 
     fn coordinates(&self) -> Coordinates {

@@ -1,4 +1,5 @@
 use super::*;
+use crate::rng::splitmix64;
 use crate::field::ngp::HashGridConfig;
 
 /// A small deterministic stream of uniforms in [0, 1) for tests.
@@ -217,7 +218,7 @@ fn naive_encode(layout: &HashGridLayout, params: &[f64], p: [f64; 3]) -> Vec<f64
 #[test]
 fn encoding_matches_a_plain_transcription_of_the_paper() {
     let layout = HashGridLayout::new(&HashGridConfig::paper(1.0));
-    let params: Vec<f64> = init_params(&layout, 12)
+    let params: Vec<f64> = layout.init_params(12)
         .iter()
         .map(|&p| p as f64 * 1e4)
         .collect();
@@ -279,7 +280,7 @@ fn faces_and_cell_boundaries_stay_in_the_table_with_unit_weights() {
 #[test]
 fn positions_outside_the_box_are_clamped() {
     let layout = HashGridLayout::new(&HashGridConfig::paper(1.0));
-    let params = init_params(&layout, 11);
+    let params = layout.init_params(11);
     let width = layout.output_width();
     let cases: [([f32; 3], [f32; 3]); 6] = [
         ([-1e-7, 0.3, 0.7], [0.0, 0.3, 0.7]),
@@ -315,7 +316,7 @@ fn a_grid_spans_its_box() {
         ..boxed
     };
     let (boxed, unit) = (HashGridLayout::new(&boxed), HashGridLayout::new(&unit));
-    let params = init_params(&boxed, 3);
+    let params = boxed.init_params(3);
     let width = boxed.output_width();
     // Unit-cube coordinates; the box is [−3.5, 4.5]³, and −3.5 + 8k/16 is
     // exactly representable, so the mapped points are exact too.
@@ -401,7 +402,7 @@ fn gradients_match_central_differences_on_the_paper_grid() {
     let d_out: Vec<f64> = (0..positions.len() * layout.output_width())
         .map(|_| u.symmetric())
         .collect();
-    let mut params: Vec<f64> = init_params(&layout, 2)
+    let mut params: Vec<f64> = layout.init_params(2)
         .iter()
         .map(|&p| p as f64 * 1e4)
         .collect();
@@ -439,7 +440,7 @@ fn gather_path_gives_the_portable_bits() {
     // full groups, a short last group, faces, corners and NaN.
     for config in [HashGridConfig::paper(1.0), small_config()] {
         let layout = HashGridLayout::new(&config);
-        let params = init_params(&layout, 3);
+        let params = layout.init_params(3);
         let mut u = Uniforms(41);
         let mut positions: Vec<[f32; 3]> = hard_positions(&layout)
             .iter()
@@ -543,7 +544,7 @@ fn backward_is_the_transpose_of_forward() {
     let d_out: Vec<f64> = (0..positions.len() * layout.output_width())
         .map(|_| u.symmetric())
         .collect();
-    let params: Vec<f64> = init_params(&layout, 4)
+    let params: Vec<f64> = layout.init_params(4)
         .iter()
         .map(|&p| p as f64 * 1e4)
         .collect();
@@ -577,7 +578,7 @@ fn backward_is_the_transpose_of_forward() {
 #[test]
 fn f32_and_f64_encodings_agree() {
     let layout = HashGridLayout::new(&HashGridConfig::paper(1.0));
-    let params = init_params(&layout, 6);
+    let params = layout.init_params(6);
     let params64: Vec<f64> = params.iter().map(|&p| p as f64).collect();
     let mut u = Uniforms(17);
     let positions: Vec<[f32; 3]> = (0..3000).map(|_| u.position().map(|x| x as f32)).collect();
@@ -601,11 +602,11 @@ fn f32_and_f64_encodings_agree() {
 #[test]
 fn init_is_deterministic_and_in_range() {
     let layout = HashGridLayout::new(&small_config());
-    let a = init_params(&layout, 1);
-    assert_eq!(a, init_params(&layout, 1));
-    assert_ne!(a, init_params(&layout, 2));
+    let a = layout.init_params(1);
+    assert_eq!(a, layout.init_params(1));
+    assert_ne!(a, layout.init_params(2));
     let layout = HashGridLayout::new(&HashGridConfig::paper(1.0));
-    let params = init_params(&layout, 1);
+    let params = layout.init_params(1);
     let r = layout.config().init_range;
     assert!(params.iter().all(|&p| p >= -r && p < r));
     let n = params.len() as f64;
@@ -647,7 +648,7 @@ fn throughput() {
             log2_table_size,
             ..HashGridConfig::paper(1.0)
         });
-        let params = init_params(&layout, 1);
+        let params = layout.init_params(1);
         let width = layout.output_width();
         let d_out: Vec<f32> = (0..SAMPLES_PER_BATCH * width)
             .map(|_| u.symmetric() as f32)

@@ -29,8 +29,8 @@ impl CpuModel {
             // Each chunk and level draws its own jitter.
             let seed_of = |level: usize| chunk_jitter_seed(step_seed, chunk, level);
             let share = chunk_rays as f32 / rays as f32;
-            for level_index in 0..self.recipe.levels.len() {
-                let level = self.recipe.levels[level_index];
+            for level_index in 0..self.core.recipe.levels.len() {
+                let level = self.core.recipe.levels[level_index];
                 let clock = Instant::now();
                 self.sample_level(
                     (chunk, level_index),
@@ -47,11 +47,11 @@ impl CpuModel {
                 let n = lb.t.len();
                 samples += n;
                 network_flops += 6.0 * (self.fields[level.field].macs_per_sample() * n) as f64;
-                let field_range = self.ranges[level.field].clone();
+                let field_range = self.core.ranges[level.field].clone();
                 let field_params = &self.params[field_range.clone()];
                 set_len(&mut lb.sigma, n);
                 set_len(&mut lb.rgb, 3 * n);
-                let variances = (self.recipe.samples == SampleShape::ConicalFrustums)
+                let variances = (self.core.recipe.samples == SampleShape::ConicalFrustums)
                     .then_some(&lb.variances[..]);
                 self.fields[level.field].forward(
                     field_params,
@@ -117,7 +117,7 @@ impl CpuModel {
         };
         sample_level(
             &*self.samplers[level],
-            self.recipe.samples,
+            self.core.recipe.samples,
             before.last(),
             RaysOfChunk {
                 origins: &b.origins[3 * rays.start..3 * rays.end],
@@ -133,7 +133,7 @@ impl CpuModel {
         );
         if let Some(held) = self.held_samples.as_mut() {
             let lb = &self.buffers.levels[level];
-            let distances = match self.recipe.samples {
+            let distances = match self.core.recipe.samples {
                 SampleShape::Points => &lb.t,
                 SampleShape::ConicalFrustums => &lb.edges,
             };
@@ -160,17 +160,17 @@ impl CpuModel {
         let mut scratch = SamplingScratch::default();
         let mut levels = [LevelBuffers::default(), LevelBuffers::default()];
         let mut pixels = RayScratch::default();
-        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+        let frustums = self.core.recipe.samples == SampleShape::ConicalFrustums;
         for start in (0..rays).step_by(RAYS_PER_CHUNK) {
             let end = (start + RAYS_PER_CHUNK).min(rays);
             let count = end - start;
             let backgrounds = background.repeat(count);
-            for (index, level) in self.recipe.levels.iter().enumerate() {
+            for (index, level) in self.core.recipe.levels.iter().enumerate() {
                 let (before, rest) = levels.split_at_mut(index);
                 let lb = &mut rest[0];
                 sample_level(
                     &*self.samplers[index],
-                    self.recipe.samples,
+                    self.core.recipe.samples,
                     before.last(),
                     RaysOfChunk {
                         origins: &origins[3 * start..3 * end],
@@ -188,7 +188,7 @@ impl CpuModel {
                 set_len(&mut lb.sigma, n);
                 set_len(&mut lb.rgb, 3 * n);
                 self.fields[level.field].radiance(
-                    &self.params[self.ranges[level.field].clone()],
+                    &self.params[self.core.ranges[level.field].clone()],
                     &lb.positions,
                     frustums.then_some(&lb.variances[..]),
                     &lb.directions,

@@ -9,19 +9,19 @@ impl CpuModel {
     /// A step through the occupancy grid (one level).
     pub(super) fn marched_step(&mut self, step: u32) -> StepStats {
         let mut times = StageTimes::default();
-        let level = self.recipe.levels[0];
-        let field_range = self.ranges[level.field].clone();
+        let level = self.core.recipe.levels[0];
+        let field_range = self.core.ranges[level.field].clone();
         let grid = self.grid.as_ref().expect("marching recipes have a grid");
         let b = &mut self.buffers;
         let rays = b.origins.len() / 3;
 
         let clock = Instant::now();
-        let budget = match self.batch_size {
+        let budget = match self.core.batch_size {
             BatchSize::Samples(samples) => samples,
             BatchSize::Rays(_) => usize::MAX,
         };
         let params = MarchParams {
-            config: self.recipe.march,
+            config: self.core.recipe.march,
             mapping: self.mapping,
             jitter_seed: Some(mix_seed(self.seed, step)),
             sample_budget: budget,
@@ -34,7 +34,7 @@ impl CpuModel {
             &mut b.march,
             &mut b.marched,
         );
-        self.batch_sizer.record(marched.rays_kept, marched.samples);
+        self.core.batch_sizer.record(marched.rays_kept, marched.samples);
         let kept = marched.rays_kept;
         let s = marched.samples;
         let field = &self.fields[level.field];
@@ -42,7 +42,7 @@ impl CpuModel {
         if !unit_cube {
             to_world(&self.mapping, &b.marched.positions, &mut b.world);
         }
-        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+        let frustums = self.core.recipe.samples == SampleShape::ConicalFrustums;
         if frustums {
             // Each marched sample stands for the frustum of its step,
             // centred on it.
@@ -92,7 +92,7 @@ impl CpuModel {
         } else {
             &b.world
         };
-        let min_transmittance = self.recipe.march.min_transmittance;
+        let min_transmittance = self.core.recipe.march.min_transmittance;
         if forward_first {
             set_len(&mut b.sigma_forward, s);
             set_len(&mut b.rgb_marched, 3 * s);
@@ -172,8 +172,8 @@ impl CpuModel {
         times[Stage::NetworksForward] = clock.elapsed().as_secs_f64();
 
         let clock = Instant::now();
-        let distortion = (self.recipe.distortion > 0.0 && kept > 0).then(|| Distortion {
-            weight_per_ray: self.recipe.distortion / kept as f32,
+        let distortion = (self.core.recipe.distortion > 0.0 && kept > 0).then(|| Distortion {
+            weight_per_ray: self.core.recipe.distortion / kept as f32,
             distance_scale: self.mapping.diagonal_scale(),
         });
         let loss = composite_and_loss(
@@ -191,7 +191,7 @@ impl CpuModel {
         let clock = Instant::now();
         // The one field's backward pass writes its gradient; any other
         // field's is zero.
-        for (i, range) in self.ranges.iter().enumerate() {
+        for (i, range) in self.core.ranges.iter().enumerate() {
             if i != level.field {
                 b.gradients[range.clone()].fill(0.0);
             }
@@ -250,12 +250,12 @@ impl CpuModel {
         let Some(grid) = self.grid.as_mut() else {
             return;
         };
-        let level = self.recipe.levels[0];
+        let level = self.core.recipe.levels[0];
         let field = &self.fields[level.field];
-        let params = &self.params[self.ranges[level.field].clone()];
+        let params = &self.params[self.core.ranges[level.field].clone()];
         let mapping = self.mapping;
         let mut world = Vec::new();
-        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+        let frustums = self.core.recipe.samples == SampleShape::ConicalFrustums;
         let cell_variance = grid_cell_variance(grid, &mapping);
         let mut variances = Vec::new();
         let unit_cube = field.coordinates() == Coordinates::UnitCube;

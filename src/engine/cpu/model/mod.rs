@@ -35,14 +35,14 @@ use super::fields::{Coordinates, Field, Gradient, gather_rows, set_len};
 use super::frustum::frustum_gaussians;
 use super::loss::loss_and_gradient;
 use super::march::{
-    BatchSizer, GridSamples, MarchParams, MarchWorkspace, MarchedSamples, march, mix_seed,
+    GridSamples, MarchParams, MarchWorkspace, MarchedSamples, march, mix_seed,
     render_through_grid,
 };
 use super::occupancy::OccupancyGrid;
 use super::sampling;
 use super::state::{ModelHeader, ModelState};
 use crate::engine::crop::{crop_densities, crop_ray_bounds};
-use crate::field::common::{BatchSize, Recipe, SampleShape, SamplerKind};
+use crate::field::common::{BatchSize, SampleShape, SamplerKind};
 use crate::field::ngp::LossKind;
 use crate::field::params::ParamLayout;
 use crate::model::batch::RayBatch;
@@ -55,11 +55,12 @@ use crate::scene::{Aabb, Scene, UnitCubeMapping};
 mod fixed;
 mod marched;
 mod samplers;
-mod shared;
 
 use fixed::*;
 use samplers::{LevelSampler, level_sampler};
-pub use shared::*;
+use super::fields::fields_for;
+use crate::engine::build::ModelRequest;
+use crate::engine::shared::driver::*;
 
 /// Buffers of one level of a step, reused between steps.
 #[derive(Default)]
@@ -115,25 +116,18 @@ struct StepBuffers {
 
 /// A model on the `cpu` engine built from a recipe and its fields.
 pub struct CpuModel {
-    identity: ModelIdentity,
-    recipe: Recipe,
+    /// Identity, recipe, layout and batch, as the gpu driver holds them.
+    core: DriverCore,
     fields: Vec<Box<dyn Field>>,
-    ranges: Vec<Range<usize>>,
-    /// Every field's parts, one after the other: what Adam updates how.
-    layout: ParamLayout,
     params: Vec<f32>,
     adam: Adam,
     /// The occupancy grid, for recipes that march through one.
     grid: Option<OccupancyGrid>,
-    batch_sizer: BatchSizer,
     mapping: UnitCubeMapping,
     bounds: Aabb,
     loss: LossKind,
     seed: u64,
     buffers: StepBuffers,
-    /// Rays per batch for fixed-size batches, or samples per batch for
-    /// marched ones.
-    batch_size: BatchSize,
     /// Sample distances kept per (chunk, level) while samples are held
     /// (see [`Self::hold_samples`]).
     held_samples: Option<std::collections::HashMap<(usize, usize), Vec<f32>>>,
@@ -153,24 +147,34 @@ pub struct CpuModel {
 }
 
 impl CpuModel {
-    /// A fresh model: `fields[i]` is the field levels name by index `i`.
-    /// `batch_size` replaces the recipe's batch (tests and the viewer ask
-    /// for smaller ones).
+    /// The model `request` asks for, on the `cpu` engine: its fields of
+    /// the requested shape, with the settings' precision.
+    pub fn build(request: &ModelRequest, scene: &Scene) -> Self {
+        let plan = request.plan(scene, None);
+        let shape = plan.shape.with_precision(request.settings.precision);
+        let fields = fields_for(&shape, plan.core.recipe.fields);
+        let settings = &request.settings;
+        Self::new(plan.core, plan.params, fields, scene, settings.seed, settings.loss)
+    }
+
+    /// A fresh model of `core`'s recipe from `params` (laid out as its
+    /// ranges): `fields[i]` is the field levels name by index `i`.
     pub fn new(
-        identity: ModelIdentity,
-        recipe: Recipe,
+        core: DriverCore,
+        params: Vec<f32>,
         fields: Vec<Box<dyn Field>>,
         scene: &Scene,
         seed: u64,
         loss: LossKind,
-        batch_size: Option<BatchSize>,
     ) -> Self {
+        let recipe = &core.recipe;
         assert_eq!(fields.len(), recipe.fields, "the recipe's field count");
         assert!(
             recipe.levels.iter().all(|l| l.field < fields.len()),
             "a level names a missing field"
         );
-        let marches = recipe.levels[0].sampler == SamplerKind::Occupancy;
+        assert_eq!(params.len(), core.layout.len(), "the initial parameters' count");
+        let marches = core.marches();
         // Fixed-count levels: one sampler each (none when marching).
         let samplers: Vec<Box<dyn LevelSampler>> = if marches {
             Vec::new()
@@ -190,8 +194,6 @@ impl CpuModel {
                 })
                 .collect()
         };
-        let (params, ranges) = init_field_params(&fields, seed);
-        let layout = model_layout(&fields);
         assert!(
             fields.iter().all(|f| f.coordinates() == Coordinates::World)
                 || (recipe.samples == SampleShape::Points
@@ -200,43 +202,19 @@ impl CpuModel {
              frustums are placed in world units)"
         );
         let mapping = scene.unit_cube;
-        let grid = marches.then(|| {
-            let mut grid = OccupancyGrid::new(
-                recipe.occupancy,
-                crate::field::ngp::OccupancyConfig::cascades(mapping.aabb_scale),
-                // The grid stores σ · step with σ per world unit, the step
-                // being Instant-NGP's smallest (√3/1024 of the unit cube)
-                // whatever this recipe marches with: the occupancy threshold
-                // (0.01) then means the same density for every model.
-                crate::field::ngp::MarchConfig::PAPER.step / mapping.scale,
-            );
-            if let BatchSize::Samples(samples) = batch_size.unwrap_or(recipe.batch) {
-                grid.chunk = samples;
-            }
-            grid
-        });
-        let batch_size = batch_size.unwrap_or(recipe.batch);
-        let batch_sizer = BatchSizer::new(match batch_size {
-            BatchSize::Samples(samples) => samples,
-            BatchSize::Rays(rays) => rays,
-        });
+        let grid = core.occupancy_grid(&mapping);
         Self {
-            identity,
             adam: Adam::new(params.len()),
             params,
-            ranges,
-            layout,
             fields,
             grid,
-            batch_sizer,
             mapping,
             bounds: scene.bounds,
             loss,
             seed,
             buffers: StepBuffers::default(),
-            batch_size,
             rays_per_chunk: RAYS_PER_CHUNK,
-            recipe,
+            core,
             held_samples: None,
             // Early training has no ray opaque before its last sample.
             used_fraction: 1.0,
@@ -295,20 +273,20 @@ impl CpuModel {
 
     /// Where each field sits in the parameter vector.
     pub fn parameter_ranges(&self) -> &[Range<usize>] {
-        &self.ranges
+        &self.core.ranges
     }
 
     /// Every part of the parameters by name, with how Adam updates it.
     pub fn layout(&self) -> &ParamLayout {
-        &self.layout
+        &self.core.layout
     }
 
     /// σ at unit-cube positions (n × 3) from the first level's field, as
     /// the occupancy grid's updates see it: for probes of where the field
     /// holds density.
     pub fn densities(&self, positions: &[f32]) -> Vec<f32> {
-        let field = &self.fields[self.recipe.levels[0].field];
-        let params = &self.params[self.ranges[self.recipe.levels[0].field].clone()];
+        let field = &self.fields[self.core.recipe.levels[0].field];
+        let params = &self.params[self.core.ranges[self.core.recipe.levels[0].field].clone()];
         let mut world = Vec::new();
         let positions = match field.coordinates() {
             Coordinates::UnitCube => positions,
@@ -325,18 +303,18 @@ impl CpuModel {
     /// Whether the share of samples used orders the next marched step's
     /// passes (see [`Self::marched_step`]).
     fn chooses_pass_order(&self) -> bool {
-        self.grid.is_some() && self.fields[self.recipe.levels[0].field].may_find_cut_in_forward()
+        self.grid.is_some() && self.fields[self.core.recipe.levels[0].field].may_find_cut_in_forward()
     }
 
     /// The side of the box the first field's encoding spans, where its
     /// checkpoint must match it.
     fn grid_extent(&self) -> Option<f32> {
-        self.fields[self.recipe.levels[0].field].grid_extent()
+        self.fields[self.core.recipe.levels[0].field].grid_extent()
     }
 
     /// Multiply-adds per sample of each level's field, forward.
     pub fn macs_per_sample(&self) -> Vec<usize> {
-        self.recipe
+        self.core.recipe
             .levels
             .iter()
             .map(|l| self.fields[l.field].macs_per_sample())
@@ -352,7 +330,7 @@ impl CpuModel {
         far: &mut Vec<f32>,
     ) {
         ray_bounds(
-            self.recipe.bounds,
+            self.core.recipe.bounds,
             &self.bounds,
             origins,
             directions,
@@ -371,7 +349,7 @@ impl CpuModel {
         b.targets.clear();
         b.backgrounds.clear();
         b.radii.clear();
-        if self.recipe.samples == SampleShape::ConicalFrustums {
+        if self.core.recipe.samples == SampleShape::ConicalFrustums {
             assert_eq!(batch.radii.len(), batch.len(), "a cone radius per ray");
             b.radii.extend_from_slice(&batch.radii);
         }
@@ -383,7 +361,7 @@ impl CpuModel {
             b.backgrounds.extend_from_slice(&batch.backgrounds[r]);
         }
         set_len(&mut b.gradients, self.params.len());
-        if self.recipe.levels[0].sampler == SamplerKind::Occupancy {
+        if self.core.recipe.levels[0].sampler == SamplerKind::Occupancy {
             self.marched_step(step)
         } else {
             self.fixed_step(step)
@@ -402,7 +380,17 @@ impl RadianceModel for CpuModel {
             })
     }
 
-    crate::engine::shared::driver::answers_of_a_driver!("cpu");
+    fn describe(&self) -> String {
+        self.core.describe("cpu")
+    }
+
+    fn rays_for_next_batch(&self) -> usize {
+        self.core.rays_for_next_batch()
+    }
+
+    fn centre_crop(&self, step: u32) -> Option<f32> {
+        self.core.centre_crop(step)
+    }
 
     fn step(&mut self, batch: &RayBatch, step: u32) -> StepStats {
         let clock = Instant::now();
@@ -414,8 +402,8 @@ impl RadianceModel for CpuModel {
         stats.times[Stage::GridUpdate] = grid_update;
         let clock = Instant::now();
         self.adam.step_layout(
-            &self.recipe.optimiser,
-            &self.layout,
+            &self.core.recipe.optimiser,
+            &self.core.layout,
             &mut self.params,
             &self.buffers.gradients,
         );
@@ -428,11 +416,11 @@ impl RadianceModel for CpuModel {
         let flat = |v: &[Vec3]| v.iter().flat_map(|x| x.to_array()).collect::<Vec<f32>>();
         match &self.grid {
             Some(grid) => {
-                let level = self.recipe.levels[0];
+                let level = self.core.recipe.levels[0];
                 let field = &self.fields[level.field];
-                let params = &self.params[self.ranges[level.field].clone()];
+                let params = &self.params[self.core.ranges[level.field].clone()];
                 let mapping = self.mapping;
-                let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+                let frustums = self.core.recipe.samples == SampleShape::ConicalFrustums;
                 let unit_cube = field.coordinates() == Coordinates::UnitCube;
                 let (mut world, mut variances) = (Vec::new(), Vec::new());
                 render_through_grid(
@@ -441,7 +429,7 @@ impl RadianceModel for CpuModel {
                     origins,
                     directions,
                     rays.background,
-                    &self.recipe.march,
+                    &self.core.recipe.march,
                     field.inference_rows(),
                     |samples: &GridSamples, sigma, rgb| {
                         if unit_cube {
@@ -495,12 +483,12 @@ impl RadianceModel for CpuModel {
 
     fn density_at(&self, query: PointQuery, sigma: &mut [f32]) -> Result<(), String> {
         let (positions, footprint) = (query.positions, query.footprint);
-        let level = *self.recipe.levels.last().expect("a recipe has levels");
+        let level = *self.core.recipe.levels.last().expect("a recipe has levels");
         let field = &self.fields[level.field];
-        let params = &self.params[self.ranges[level.field].clone()];
+        let params = &self.params[self.core.ranges[level.field].clone()];
         // A cube of side s as a Gaussian of the same variance per axis,
         // s²/12 (that of a uniform distribution over the side).
-        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+        let frustums = self.core.recipe.samples == SampleShape::ConicalFrustums;
         let variance = footprint * footprint / 12.0;
         let (mut world, mut variances) = (Vec::new(), Vec::new());
         for (points, sigma) in positions
@@ -534,10 +522,10 @@ impl RadianceModel for CpuModel {
     fn colour_at(&self, query: PointQuery, rgb: &mut [f32]) -> Result<(), String> {
         let (positions, directions) = (query.positions, query.directions);
         let footprint = query.footprint;
-        let level = *self.recipe.levels.last().expect("a recipe has levels");
+        let level = *self.core.recipe.levels.last().expect("a recipe has levels");
         let field = &self.fields[level.field];
-        let params = &self.params[self.ranges[level.field].clone()];
-        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+        let params = &self.params[self.core.ranges[level.field].clone()];
+        let frustums = self.core.recipe.samples == SampleShape::ConicalFrustums;
         let variance = footprint * footprint / 12.0;
         let (mut world, mut flat_directions, mut variances, mut sigma) =
             (Vec::new(), Vec::new(), Vec::new(), Vec::new());
@@ -579,13 +567,13 @@ impl RadianceModel for CpuModel {
     fn save(&self) -> Checkpoint {
         ModelState {
             header: ModelHeader {
-                model: self.identity.key.into(),
+                model: self.core.identity.key.into(),
                 loss: self.loss,
                 seed: self.seed,
                 adam_step: self.adam.step,
-                samples_per_ray: self.batch_sizer.samples_per_ray(),
+                samples_per_ray: self.core.batch_sizer.samples_per_ray(),
                 param_count: self.params.len(),
-                sampling: self.identity.sampling.map(Into::into),
+                sampling: self.core.identity.sampling.map(Into::into),
                 // Only where it chooses the next step's order.
                 used_fraction: self.chooses_pass_order().then_some(self.used_fraction),
                 grid_extent: self.grid_extent(),
@@ -600,11 +588,11 @@ impl RadianceModel for CpuModel {
     fn load(&mut self, checkpoint: &Checkpoint) -> Result<(), String> {
         let state = ModelState::from_checkpoint(
             checkpoint,
-            self.identity.key,
+            self.core.identity.key,
             self.params.len(),
             self.grid.as_ref().map(|g| g.values().len()),
         )?;
-        check_sampling(&state.header, &self.identity)?;
+        check_sampling(&state.header, &self.core.identity)?;
         if let Some(extent) = self.grid_extent() {
             state.header.check_grid_extent(extent)?;
         }
@@ -614,7 +602,7 @@ impl RadianceModel for CpuModel {
             grid.values_mut().copy_from_slice(values);
             grid.build_bitfield();
         }
-        self.batch_sizer
+        self.core.batch_sizer
             .set_samples_per_ray(state.header.samples_per_ray);
         self.used_fraction = state.header.used_fraction.unwrap_or(1.0);
         self.loss = state.header.loss;

@@ -7,8 +7,25 @@
 pub mod nerf;
 pub mod ngp;
 
-use super::context::GpuContext;
+use super::context::{GpuContext, GpuError};
 use crate::field::common::Coordinates;
+use crate::field::shape::FieldShape;
+
+/// One field of `shape` on the `gpu` engine, for passes of up to
+/// `capacity_rows` samples (its initial parameters come from the shape,
+/// [`FieldShape::model_params`]).
+pub fn fields_for(
+    context: &GpuContext,
+    shape: &FieldShape,
+    capacity_rows: usize,
+) -> Result<Box<dyn GpuField>, GpuError> {
+    Ok(match shape {
+        FieldShape::Ngp(shape) => Box::new(ngp::GpuNgpField::new(context, shape, capacity_rows)?),
+        FieldShape::Nerf(shape) => {
+            Box::new(nerf::GpuNerfField::new(context, shape, capacity_rows)?)
+        }
+    })
+}
 
 /// A field on the `gpu` engine, as a model driver records it: a forward
 /// pass that keeps its activations, the backward pass of that forward

@@ -39,8 +39,8 @@ impl GpuModel {
                 clock.mark(ctx, encoder, stage);
             }
         };
-        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
-        for (li, level) in self.recipe.levels.iter().enumerate() {
+        let frustums = self.core.recipe.samples == SampleShape::ConicalFrustums;
+        for (li, level) in self.core.recipe.levels.iter().enumerate() {
             let (before, rest) = levels.split_at_mut(li);
             let lb = &mut rest[0];
             let per_ray = lb.per_ray;
@@ -122,7 +122,7 @@ impl GpuModel {
             // The paper's levels composite every sample (no transmittance
             // cut), as the cpu's fixed-count levels.
             let min_transmittance = 0.0;
-            if li + 1 < self.recipe.levels.len() {
+            if li + 1 < self.core.recipe.levels.len() {
                 s.composite.record_weights(
                     ctx,
                     encoder,
@@ -197,7 +197,7 @@ impl GpuModel {
     pub(super) fn run_fixed(&mut self, batch: &RayBatch, step: u32, optimise: bool) -> StepStats {
         let ctx = &self.context;
         let rays = batch.len();
-        let levels = self.recipe.levels.len();
+        let levels = self.core.recipe.levels.len();
         let per_chunk = self.rays_per_chunk;
         let chunks = rays.div_ceil(per_chunk);
         let losses = zeroed_storage_buffer::<f32>(ctx, "chunk losses", chunks * levels);
@@ -255,8 +255,8 @@ impl GpuModel {
             self.adam.record_step_layout(
                 ctx,
                 &mut encoder,
-                &self.recipe.optimiser,
-                &self.layout,
+                &self.core.recipe.optimiser,
+                &self.core.layout,
                 &self.params,
                 &self.gradients,
             );
@@ -272,7 +272,7 @@ impl GpuModel {
         // losses per chunk's share.
         let mut sum = LevelLossSum::default();
         for (chunk, &share) in shares.iter().enumerate() {
-            for (li, level) in self.recipe.levels.iter().enumerate() {
+            for (li, level) in self.core.recipe.levels.iter().enumerate() {
                 sum.add(
                     li,
                     level.loss_weight,

@@ -22,11 +22,11 @@ impl GpuModel {
     pub(super) fn run_marched(&mut self, batch: &RayBatch, step: u32, optimise: bool) -> StepStats {
         let ctx = &self.context;
         let grid = self.grid.as_ref().expect("a marched recipe has a grid");
-        let level = self.recipe.levels[0];
+        let level = self.core.recipe.levels[0];
         let rays = batch.len();
         let mut guard = self.work.lock().unwrap_or_else(|e| e.into_inner());
         let work = &mut *guard;
-        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+        let frustums = self.core.recipe.samples == SampleShape::ConicalFrustums;
         let field = &mut work.fields[level.field];
         let unit_cube = field.coordinates() == Coordinates::UnitCube;
         let compact = sigma_first(
@@ -117,7 +117,7 @@ impl GpuModel {
                     directions: &marched.rays.directions,
                 },
                 &MarchParams {
-                    config: self.recipe.march,
+                    config: self.core.recipe.march,
                     mapping: grid.mapping,
                     jitter_seed: Some(mix_seed(self.seed, step)),
                     sample_budget: grid.samples,
@@ -157,7 +157,7 @@ impl GpuModel {
                         },
                         rays,
                     ),
-                    self.recipe.march.min_transmittance,
+                    self.core.recipe.march.min_transmittance,
                     &CompositeOutputBuffers {
                         rgb: &marched.rays.rgb,
                         opacity: &marched.rays.opacity,
@@ -254,8 +254,8 @@ impl GpuModel {
         work.clock.mark(ctx, &mut encoder, Stage::NetworksForward);
         // As the cpu model: the recipe's λ spread over the batch's rays,
         // distances in the unit cube's units.
-        let distortion = (self.recipe.distortion > 0.0 && kept > 0).then(|| Distortion {
-            weight_per_ray: self.recipe.distortion / kept as f32,
+        let distortion = (self.core.recipe.distortion > 0.0 && kept > 0).then(|| Distortion {
+            weight_per_ray: self.core.recipe.distortion / kept as f32,
             distance_scale: grid.mapping.diagonal_scale(),
         });
         CompositeAndLoss {
@@ -274,7 +274,7 @@ impl GpuModel {
                 ray_offsets: offsets,
             },
             kept,
-            self.recipe.march.min_transmittance,
+            self.core.recipe.march.min_transmittance,
             self.loss,
             level.loss_weight,
             distortion,
@@ -309,8 +309,8 @@ impl GpuModel {
             self.adam.record_step_layout(
                 ctx,
                 &mut encoder,
-                &self.recipe.optimiser,
-                &self.layout,
+                &self.core.recipe.optimiser,
+                &self.core.layout,
                 &self.params,
                 &self.gradients,
             );
@@ -321,7 +321,7 @@ impl GpuModel {
         ctx.queue.submit([encoder.finish()]);
         let StepResults { loss, times } = work.readback.finish(ctx, &work.clock, previous);
         drop(guard);
-        self.batch_sizer.record(kept, samples);
+        self.core.batch_sizer.record(kept, samples);
         // The share of samples used, for the next step's choice: this
         // step's, σ first; the last forward-first step's, counted after its
         // compositing and read with this step's counters.
@@ -367,7 +367,7 @@ impl GpuModel {
         let n = report.samples;
         let mut guard = self.work.lock().unwrap_or_else(|e| e.into_inner());
         let work = &mut *guard;
-        let field = &mut work.fields[self.recipe.levels[0].field];
+        let field = &mut work.fields[self.core.recipe.levels[0].field];
         let positions = if field.coordinates() == Coordinates::UnitCube {
             storage_buffer(ctx, "grid update positions", grid.grid.update_positions())
         } else {
@@ -446,10 +446,10 @@ impl GpuModel {
     ) {
         let ctx = &self.context;
         let grid = self.grid.as_ref().expect("a marched recipe has a grid");
-        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+        let frustums = self.core.recipe.samples == SampleShape::ConicalFrustums;
         let mut guard = self.work();
         let work = &mut *guard;
-        let field = &mut work.fields[self.recipe.levels[0].field];
+        let field = &mut work.fields[self.core.recipe.levels[0].field];
         let unit_cube = field.coordinates() == Coordinates::UnitCube;
         let (mut world, mut variances) = (Vec::new(), Vec::new());
         if unit_cube {

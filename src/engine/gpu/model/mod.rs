@@ -58,7 +58,7 @@ use super::adam::GpuAdam;
 use super::compact::{CompactedSamples, GpuCompaction, MarchedInputs};
 use super::composite::{CompositeOutputBuffers, GpuComposite};
 use super::context::{GpuContext, GpuError};
-use super::fields::GpuField;
+use super::fields::{GpuField, fields_for};
 use super::frustum::{FrustumRays, FrustumSamples, GpuFrustums, MarchedIntervals};
 use super::kernel::{
     MapRequest, read_buffer, read_mapped, staging_buffer, storage_buffer, zeroed_storage_buffer,
@@ -71,10 +71,10 @@ use super::step::{
     CompositeAndLoss, RayBuffers, SampleBuffers, SampleGradientBuffers, StepReadback, StepResults,
 };
 use super::timing::{StageClock, StageTiming};
+use crate::engine::build::ModelRequest;
 use crate::engine::crop::{crop_densities, crop_ray_bounds};
-use crate::engine::shared::batch_sizer::BatchSizer;
 use crate::engine::shared::driver::{
-    ModelIdentity, RAYS_PER_CHUNK, check_sampling, chunk_jitter_seed, grid_cell_variance,
+    DriverCore, RAYS_PER_CHUNK, check_sampling, chunk_jitter_seed, grid_cell_variance,
     grid_sample_inputs, ray_bounds, sigma_first, to_world,
 };
 use crate::engine::shared::march::{GridSamples, MarchParams, mix_seed, render_through_grid};
@@ -83,7 +83,6 @@ use crate::engine::shared::state::{ModelHeader, ModelState};
 use crate::field::common::Coordinates;
 use crate::field::common::{BatchSize, Recipe, SampleShape, SamplerKind};
 use crate::field::ngp::LossKind;
-use crate::field::params::ParamLayout;
 use crate::model::batch::RayBatch;
 use crate::model::checkpoint::Checkpoint;
 use crate::model::pixels::{render_pixels, to_image};
@@ -326,16 +325,12 @@ struct Stages {
 /// A model on the `gpu` engine built from a recipe and its fields.
 pub struct GpuModel {
     context: GpuContext,
-    identity: ModelIdentity,
-    recipe: Recipe,
+    /// Identity, recipe, layout and batch, as the cpu driver holds them.
+    core: DriverCore,
     /// The sampler of each fixed-count level (none for a recipe that
     /// marches through the occupancy grid).
     samplers: Vec<Box<dyn LevelSampler>>,
     stages: Stages,
-    ranges: Vec<Range<usize>>,
-    /// How Adam treats each part of the parameters (the cpu model's
-    /// layout: sparse hash tables, weight decay on network weights).
-    layout: ParamLayout,
     param_count: usize,
     /// Every field's parameters, one after the other (the cpu's layout).
     params: wgpu::Buffer,
@@ -343,8 +338,6 @@ pub struct GpuModel {
     gradients: wgpu::Buffer,
     adam: GpuAdam,
     work: Mutex<Work>,
-    batch_sizer: BatchSizer,
-    batch_size: BatchSize,
     bounds: Aabb,
     loss: LossKind,
     seed: u64,
@@ -367,32 +360,53 @@ pub struct GpuModel {
 }
 
 impl GpuModel {
-    /// A model of `recipe` for `scene`, starting from `params` (laid out as
-    /// `ranges`, field after field: the cpu model's initial parameters for
-    /// the same seed). `make_field(i, capacity)` builds field `i` for
-    /// passes of up to `capacity` samples. `batch_size` replaces the
-    /// recipe's batch.
-    #[allow(clippy::too_many_arguments)]
+    /// The model `request` asks for, on the `gpu` engine with the
+    /// context's device: the same initial parameters, layout and
+    /// checkpoints as on the `cpu` engine. Where the recipe's batch is in
+    /// samples and the settings name none, the model's batch for this
+    /// engine (its row's `gpu_batch_samples`).
+    pub fn build(
+        context: GpuContext,
+        request: &ModelRequest,
+        scene: &Scene,
+    ) -> Result<Self, String> {
+        let plan = request.plan(scene, request.kind.spec().gpu_batch_samples);
+        let shape = plan.shape;
+        let settings = &request.settings;
+        Self::new(
+            context,
+            plan.core,
+            plan.params,
+            |context, _, capacity| fields_for(context, &shape, capacity),
+            scene,
+            settings.seed,
+            settings.loss,
+        )
+    }
+
+    /// A model of `core`'s recipe for `scene`, starting from `params` (laid
+    /// out as its ranges, field after field: the cpu model's initial
+    /// parameters for the same seed). `make_field(i, capacity)` builds
+    /// field `i` for passes of up to `capacity` samples.
     pub fn new(
         context: GpuContext,
-        identity: ModelIdentity,
-        recipe: Recipe,
+        core: DriverCore,
         params: Vec<f32>,
-        ranges: Vec<Range<usize>>,
-        layout: ParamLayout,
         mut make_field: impl FnMut(&GpuContext, usize, usize) -> Result<Box<dyn GpuField>, GpuError>,
         scene: &Scene,
         seed: u64,
         loss: LossKind,
-        batch_size: Option<BatchSize>,
     ) -> Result<Self, String> {
-        let plan = plan(&recipe)?;
+        let recipe = &core.recipe;
+        let ranges = &core.ranges;
+        let layout = &core.layout;
+        let batch_size = core.batch_size;
+        let plan = plan(recipe)?;
         let marches = matches!(plan, Plan::Marched);
         let (samplers, per_ray): (Vec<_>, Vec<_>) = match plan {
             Plan::Fixed(levels) => levels.into_iter().unzip(),
             Plan::Marched => (Vec::new(), Vec::new()),
         };
-        let batch_size = batch_size.unwrap_or(recipe.batch);
         // A marched batch is sized in samples; its buffers hold that many.
         let marched_samples = match (marches, batch_size) {
             (true, BatchSize::Samples(samples)) => Some(samples.max(1)),
@@ -510,26 +524,12 @@ impl GpuModel {
             composite: GpuComposite::new(ctx).map_err(gpu)?,
             loss: GpuLoss::new(ctx).map_err(gpu)?,
         };
-        // As the cpu model: the header's samples per ray comes from here.
-        let batch_sizer = BatchSizer::new(match batch_size {
-            BatchSize::Samples(samples) => samples,
-            BatchSize::Rays(rays) => rays,
-        });
         let mapping = scene.unit_cube;
-        let grid = match marched_samples {
-            None => None,
-            Some(samples) => {
-                // As `CpuModel::new`: the grid stores σ · (Instant-NGP's
-                // smallest step) whatever step the recipe marches with.
-                let mut grid = OccupancyGrid::new(
-                    recipe.occupancy,
-                    crate::field::ngp::OccupancyConfig::cascades(mapping.aabb_scale),
-                    crate::field::ngp::MarchConfig::PAPER.step / mapping.scale,
-                );
-                grid.chunk = samples;
+        let grid = match (marched_samples, core.occupancy_grid(&mapping)) {
+            (Some(samples), Some(grid)) => {
                 work.marched = Some(MarchedBuffers::new(
                     ctx,
-                    batch_sizer.max_rays,
+                    core.batch_sizer.max_rays,
                     samples,
                     frustums,
                 ));
@@ -555,18 +555,15 @@ impl GpuModel {
                     forward_first_samples: None,
                 })
             }
+            _ => None,
         };
         Ok(Self {
             adam: GpuAdam::new(ctx, param_count).map_err(gpu)?,
             params: storage_buffer(ctx, "model params", &params),
             gradients: f("model gradients", param_count),
             param_count,
-            ranges,
-            layout,
             stages,
             work: Mutex::new(work),
-            batch_sizer,
-            batch_size,
             bounds: scene.bounds,
             loss,
             seed,
@@ -580,8 +577,7 @@ impl GpuModel {
                 .transpose()
                 .map_err(gpu)?,
             render_buffers: Mutex::new(None),
-            identity,
-            recipe,
+            core,
             samplers,
             context,
         })
@@ -606,7 +602,7 @@ impl GpuModel {
     /// cut in their forward pass); the choice is saved with a checkpoint.
     fn chooses_pass_order(&self) -> bool {
         self.grid.is_some()
-            && self.work().fields[self.recipe.levels[0].field].may_find_cut_in_forward()
+            && self.work().fields[self.core.recipe.levels[0].field].may_find_cut_in_forward()
     }
 
     /// Marched steps choose σ first or forward first as if the last step
@@ -660,7 +656,7 @@ impl GpuModel {
 
     /// Where each field sits in the parameters.
     pub fn parameter_ranges(&self) -> &[Range<usize>] {
-        &self.ranges
+        &self.core.ranges
     }
 
     /// Evaluates `batch` and leaves the gradient of the loss in the
@@ -674,7 +670,7 @@ impl GpuModel {
     /// The side of the box the first level's field's encoding spans, where
     /// its checkpoint must match it.
     fn grid_extent(&self) -> Option<f32> {
-        self.work().fields[self.recipe.levels[0].field].grid_extent()
+        self.work().fields[self.core.recipe.levels[0].field].grid_extent()
     }
 
     fn work(&self) -> std::sync::MutexGuard<'_, Work> {
@@ -696,7 +692,7 @@ impl GpuModel {
     ) {
         let (mut near, mut far) = (Vec::new(), Vec::new());
         ray_bounds(
-            self.recipe.bounds,
+            self.core.recipe.bounds,
             &self.bounds,
             origins,
             directions,
@@ -770,7 +766,17 @@ impl RadianceModel for GpuModel {
         Some(self)
     }
 
-    crate::engine::shared::driver::answers_of_a_driver!("gpu");
+    fn describe(&self) -> String {
+        self.core.describe("gpu")
+    }
+
+    fn rays_for_next_batch(&self) -> usize {
+        self.core.rays_for_next_batch()
+    }
+
+    fn centre_crop(&self, step: u32) -> Option<f32> {
+        self.core.centre_crop(step)
+    }
 
     fn step(&mut self, batch: &RayBatch, step: u32) -> StepStats {
         self.work().clock.reset();
@@ -803,7 +809,7 @@ impl RadianceModel for GpuModel {
                 origins,
                 directions,
                 view.background,
-                &self.recipe.march,
+                &self.core.recipe.march,
                 grid.samples,
                 |samples, sigma, rgb| {
                     self.radiance(samples, origins, directions, radii, sigma, rgb);
@@ -886,13 +892,13 @@ impl RadianceModel for GpuModel {
         let adam = self.adam.read_state(&self.context);
         ModelState {
             header: ModelHeader {
-                model: self.identity.key.into(),
+                model: self.core.identity.key.into(),
                 loss: self.loss,
                 seed: self.seed,
                 adam_step: adam.step,
-                samples_per_ray: self.batch_sizer.samples_per_ray(),
+                samples_per_ray: self.core.batch_sizer.samples_per_ray(),
                 param_count: self.param_count,
-                sampling: self.identity.sampling.map(Into::into),
+                sampling: self.core.identity.sampling.map(Into::into),
                 used_fraction: self
                     .chooses_pass_order()
                     .then(|| self.grid.as_ref().map(|g| g.used_fraction))
@@ -909,11 +915,11 @@ impl RadianceModel for GpuModel {
     fn load(&mut self, checkpoint: &Checkpoint) -> Result<(), String> {
         let state = ModelState::from_checkpoint(
             checkpoint,
-            self.identity.key,
+            self.core.identity.key,
             self.param_count,
             self.grid.as_ref().map(|g| g.grid.values().len()),
         )?;
-        check_sampling(&state.header, &self.identity)?;
+        check_sampling(&state.header, &self.core.identity)?;
         if let Some(extent) = self.grid_extent() {
             state.header.check_grid_extent(extent)?;
         }
@@ -937,7 +943,7 @@ impl RadianceModel for GpuModel {
                 bytemuck::cast_slice(grid.grid.bitfield()),
             );
         }
-        self.batch_sizer
+        self.core.batch_sizer
             .set_samples_per_ray(state.header.samples_per_ray);
         self.loss = state.header.loss;
         self.seed = state.header.seed;

@@ -17,8 +17,8 @@ impl GpuModel {
         mut colour: Option<(&[Vec3], &mut [f32])>,
     ) {
         let ctx = &self.context;
-        let level = *self.recipe.levels.last().expect("a recipe has levels");
-        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+        let level = *self.core.recipe.levels.last().expect("a recipe has levels");
+        let frustums = self.core.recipe.samples == SampleShape::ConicalFrustums;
         // A cube of side s as a Gaussian of the same variance per axis,
         // s²/12 (that of a uniform distribution over the side).
         let variance = footprint * footprint / 12.0;

@@ -54,12 +54,12 @@ impl GpuModel {
         // Which rays cross the box: the cpu's own test, so both engines
         // march the same rays (the walk kernel repeats it on the device for
         // the entry point).
-        let config = self.recipe.march;
+        let config = self.core.recipe.march;
         let marcher = Marcher::new(&grid.grid, &config, &grid.mapping);
         let mut active: Vec<u32> = Vec::with_capacity(pixels);
         let mut origins = Vec::with_capacity(3 * pixels);
         let mut directions = Vec::with_capacity(3 * pixels);
-        let frustums = self.recipe.samples == SampleShape::ConicalFrustums;
+        let frustums = self.core.recipe.samples == SampleShape::ConicalFrustums;
         let radii: Vec<f32> = if frustums {
             rays.iter().map(|ray| ray.radius()).collect()
         } else {
@@ -98,7 +98,7 @@ impl GpuModel {
 
         let mut guard = self.work();
         let work = &mut *guard;
-        let field = &mut work.fields[self.recipe.levels[0].field];
+        let field = &mut work.fields[self.core.recipe.levels[0].field];
         let unit_cube = field.coordinates() == Coordinates::UnitCube;
         let marched = work.marched.as_ref().expect("a marched recipe has buffers");
         let out = &marched.out;

@@ -1,0 +1,184 @@
+//! The composition root: a model asked for by kind, settings and, for
+//! tests, a shape or recipe of its own, built on the chosen engine. Each
+//! engine has one `fields_for` that turns a [`FieldShape`] into its fields
+//! (the only place an engine tells the kinds of field apart); everything
+//! else a model needs (its recipe, its paper shape, its name) is its row
+//! of [`crate::field::MODELS`].
+
+use super::EngineChoice;
+use super::EngineKind;
+use super::cpu::model::CpuModel;
+use super::gpu::GpuContext;
+use super::gpu::model::GpuModel;
+use super::shared::driver::{DriverCore, ModelIdentity};
+use crate::field::ModelKind;
+use crate::field::common::{BatchSize, Recipe};
+use crate::field::mlp::Precision;
+use crate::field::nerf::Sampling;
+use crate::field::ngp::LossKind;
+use crate::field::shape::FieldShape;
+use crate::model::RadianceModel;
+use crate::scene::Scene;
+
+/// Settings every model takes.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ModelSettings {
+    pub seed: u64,
+    pub loss: LossKind,
+    /// Samples per training batch; `None` keeps the model's paper default
+    /// (2^18 for Instant-NGP). The viewer asks for fewer on the cpu engine,
+    /// so a step, and the wait of a command behind it, stays short.
+    pub batch_samples: Option<usize>,
+    /// The sampler, for models with a choice (NeRF's and Mip-NeRF's
+    /// paper sampler or the occupancy grid); the others ignore it.
+    pub sampling: Sampling,
+    /// How the cpu engine computes the networks' products (the gpu engine
+    /// computes in f32).
+    pub precision: Precision,
+}
+
+impl ModelSettings {
+    /// The model's defaults for `seed`: its paper's loss and batch, its
+    /// default sampler, f32 products.
+    pub fn of(kind: ModelKind, seed: u64) -> Self {
+        Self {
+            seed,
+            loss: kind.default_loss(),
+            batch_samples: None,
+            sampling: kind.spec().samplings[0],
+            precision: Precision::F32,
+        }
+    }
+}
+
+/// A model to build: its kind and settings, and where a test or the viewer
+/// wants other parts than the paper's, the shape of its fields or its
+/// recipe.
+#[derive(Debug, Clone)]
+pub struct ModelRequest {
+    pub kind: ModelKind,
+    pub settings: ModelSettings,
+    /// The fields' shape; `None` takes the model's for the scene.
+    pub shape: Option<FieldShape>,
+    /// The stages' recipe; `None` takes the model's for the scene and the
+    /// settings' sampler.
+    pub recipe: Option<Recipe>,
+}
+
+impl ModelRequest {
+    pub fn new(kind: ModelKind, settings: ModelSettings) -> Self {
+        Self {
+            kind,
+            settings,
+            shape: None,
+            recipe: None,
+        }
+    }
+
+    /// The same model with fields of `shape` (tests use small ones).
+    pub fn with_shape(mut self, shape: impl Into<FieldShape>) -> Self {
+        self.shape = Some(shape.into());
+        self
+    }
+
+    /// The same model with another recipe (tests use a coarser occupancy
+    /// grid, or other levels).
+    pub fn with_recipe(mut self, recipe: Recipe) -> Self {
+        self.recipe = Some(recipe);
+        self
+    }
+
+    /// What both engines' drivers start from, with the fields' shape and
+    /// their initial parameters. `engine_batch` is the batch in samples the
+    /// engine takes where the recipe's batch is in samples and the settings
+    /// name none.
+    pub(crate) fn plan(&self, scene: &Scene, engine_batch: Option<usize>) -> ModelPlan {
+        let spec = self.kind.spec();
+        let settings = &self.settings;
+        let recipe = self
+            .recipe
+            .clone()
+            .unwrap_or_else(|| (spec.recipe)(scene, settings.sampling));
+        let shape = self.shape.clone().unwrap_or_else(|| (spec.shape)(scene));
+        let (params, ranges) = shape.model_params(recipe.fields, settings.seed);
+        let layout = shape.model_layout(recipe.fields);
+        let identity = ModelIdentity {
+            name: spec.name,
+            key: spec.key,
+            sampling: (spec.samplings.len() > 1).then(|| settings.sampling.name()),
+        };
+        let batch = batch_of(&recipe, settings.batch_samples.or(engine_batch));
+        ModelPlan {
+            core: DriverCore::new(identity, recipe, layout, ranges, batch),
+            shape,
+            params,
+        }
+    }
+}
+
+/// A model's parts before an engine builds it.
+pub(crate) struct ModelPlan {
+    pub core: DriverCore,
+    pub shape: FieldShape,
+    pub params: Vec<f32>,
+}
+
+/// The batch that `samples` per step ask for, in the recipe's unit: about
+/// that many samples per step with either kind of sampler (with fixed
+/// counts per ray, each level evaluates its own samples, and importance
+/// samples join the previous level's). `None` keeps the recipe's.
+fn batch_of(recipe: &Recipe, samples: Option<usize>) -> Option<BatchSize> {
+    let samples = samples?;
+    Some(match recipe.batch {
+        BatchSize::Samples(_) => BatchSize::Samples(samples),
+        BatchSize::Rays(_) => {
+            let mut per_ray = 0;
+            let mut level_samples = 0;
+            for level in &recipe.levels {
+                level_samples = level.sampler.samples_evaluated(level_samples);
+                per_ray += level_samples;
+            }
+            BatchSize::Rays((samples / per_ray.max(1)).max(1))
+        }
+    })
+}
+
+/// Why a model could not be built.
+#[derive(Debug, thiserror::Error)]
+pub enum BuildError {
+    #[error("the gpu engine was chosen without a gpu context")]
+    NoGpuContext,
+    #[error("building {model} on the gpu engine: {problem}")]
+    Gpu {
+        model: &'static str,
+        problem: String,
+    },
+}
+
+/// A fresh model on the chosen engine.
+pub fn build(
+    request: &ModelRequest,
+    engine: EngineChoice,
+    scene: &Scene,
+) -> Result<Box<dyn RadianceModel>, BuildError> {
+    match engine.kind {
+        EngineKind::Cpu => Ok(Box::new(CpuModel::build(request, scene))),
+        EngineKind::Gpu => {
+            let context = engine.gpu.ok_or(BuildError::NoGpuContext)?;
+            build_gpu(context, request, scene).map(|m| Box::new(m) as Box<dyn RadianceModel>)
+        }
+    }
+}
+
+/// A fresh model on the `gpu` engine with the context's device (tests
+/// that look inside the driver take it so).
+pub fn build_gpu(
+    context: GpuContext,
+    request: &ModelRequest,
+    scene: &Scene,
+) -> Result<GpuModel, BuildError> {
+    GpuModel::build(context, request, scene).map_err(|problem| BuildError::Gpu {
+        model: request.kind.name(),
+        problem,
+    })
+}
