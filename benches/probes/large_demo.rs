@@ -5,7 +5,10 @@
 use std::sync::Arc;
 use std::time::Instant;
 
+use zrak::engine::build::ModelRequest;
+use zrak::engine::build::ModelSettings;
 use zrak::engine::cpu::model::CpuModel;
+use zrak::field::ModelKind;
 use zrak::field::ngp::LossKind;
 use zrak::scene::Scene;
 use zrak::scene::demo::{self, DemoConfig};
@@ -57,12 +60,17 @@ pub fn large_demo_figures() {
         val_views: 5,
         test_views: 1,
     }));
-    let model = zrak::train::cpu_ngp_with_shape(
+    let model = CpuModel::build(
+        &ModelRequest::new(
+            ModelKind::Ngp,
+            ModelSettings {
+                loss: LossKind::Huber,
+                batch_samples: Some(1 << 18),
+                ..ModelSettings::of(ModelKind::Ngp, 0)
+            },
+        )
+        .with_shape(zrak::engine::cpu::fields::ngp::NgpShape::for_scene(&scene)),
         &scene,
-        zrak::engine::cpu::fields::ngp::NgpShape::for_scene(&scene),
-        0,
-        LossKind::Huber,
-        Some(1 << 18),
     );
     let mut trainer = Trainer::new(Box::new(model), scene.clone(), 0);
     let mut window = (0usize, 0usize, 0u32, 0f64);
@@ -107,12 +115,17 @@ fn model_of_run(scene: &Scene) -> CpuModel {
     let mut checkpoint = Checkpoint::load(&run.join("checkpoint.zrak")).expect("checkpoint");
     // A run's checkpoint holds the trainer's state beside the model's.
     checkpoint.header = checkpoint.header["model"].clone();
-    let mut model = zrak::train::cpu_ngp_with_shape(
+    let mut model = CpuModel::build(
+        &ModelRequest::new(
+            ModelKind::Ngp,
+            ModelSettings {
+                loss: LossKind::Huber,
+                batch_samples: Some(1 << 18),
+                ..ModelSettings::of(ModelKind::Ngp, 0)
+            },
+        )
+        .with_shape(zrak::engine::cpu::fields::ngp::NgpShape::for_scene(scene)),
         scene,
-        zrak::engine::cpu::fields::ngp::NgpShape::for_scene(scene),
-        0,
-        LossKind::Huber,
-        Some(1 << 18),
     );
     model
         .load(&checkpoint)

@@ -12,6 +12,7 @@ use std::sync::Arc;
 
 use wgpu::Features;
 
+use crate::engine::build::{ModelRequest, ModelSettings, build};
 use crate::engine::cpu::dense::Precision;
 use crate::engine::gpu::GpuContext;
 use crate::engine::gpu::render::{read_texture_rgba8, render_target};
@@ -24,7 +25,6 @@ use crate::model::checkpoint::Checkpoint;
 use crate::render::{RenderMode, render_pixels, to_image};
 use crate::rng::Pcg32;
 use crate::scene::demo::{self, DemoConfig};
-use crate::engine::build::{ModelRequest, ModelSettings, build};
 
 /// The features the engine uses or could use, with what each is for.
 const FEATURES: [(Features, &str); 7] = [

@@ -6,6 +6,7 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::Args;
+use zrak::engine::build::{ModelRequest, ModelSettings, build};
 use zrak::engine::cpu::dense::{Precision, backend_for};
 use zrak::engine::{EngineKind, choose_engine};
 use zrak::field::ModelKind;
@@ -14,7 +15,6 @@ use zrak::interrupt::{self, note, say};
 use zrak::render::RenderMode;
 use zrak::scene::{Camera, Scene};
 use zrak::train::trainer::Trainer;
-use zrak::engine::build::{ModelRequest, ModelSettings, build};
 
 use super::{KernelsLine, load_scene};
 

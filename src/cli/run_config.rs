@@ -7,6 +7,7 @@ use std::sync::Arc;
 
 use anyhow::{Context, bail};
 use serde::{Deserialize, Serialize};
+use zrak::engine::build::{ModelRequest, ModelSettings, build};
 use zrak::engine::cpu::dense::Precision;
 use zrak::engine::{EngineChoice, EngineKind, choose_engine};
 use zrak::field::ModelKind;
@@ -18,7 +19,6 @@ use zrak::train::run::{
     MAX_RUN_JSON_BYTES, RUN_JSON_MARKER, RunFolder, SAVED_BY_COMMAND_LINE, load_checkpoint,
 };
 use zrak::train::trainer::Trainer;
-use zrak::engine::build::{ModelRequest, ModelSettings, build};
 
 use super::load_scene;
 

@@ -188,9 +188,7 @@ pub const MODELS: &[ModelSpec] = &[
         default_loss: ngp::LossKind::L2,
         samplings: &[nerf::Sampling::Occupancy, nerf::Sampling::Paper],
         colour: [0x5c, 0xc0, 0x6a],
-        recipe: |scene, sampling| {
-            mipnerf::recipe(sampling, scene.format == SceneFormat::Blender)
-        },
+        recipe: |scene, sampling| mipnerf::recipe(sampling, scene.format == SceneFormat::Blender),
         shape: |_| nerf::NerfShape::mipnerf().into(),
         gpu_batch_samples: Some(nerf::GPU_OCCUPANCY_SAMPLES_PER_BATCH),
         viewer_batch: ViewerBatch {

@@ -12,9 +12,9 @@ use super::common::{
     BatchSize, Level, LrSchedule, OptimiserConfig, RayBounds, SampleShape, SamplerKind,
 };
 use super::encoding::FrequencyEncoding;
-use super::params::{ParamLayout, Update};
 use super::mlp::{Activation, MlpLayout, Precision};
 use super::ngp::{MarchConfig, OccupancyConfig};
+use super::params::{ParamLayout, Update};
 
 /// Frequencies of the position encoding γ(x): 2⁰ … 2⁹ (paper, section 5.1:
 /// L = 10; reference `multires` 10).

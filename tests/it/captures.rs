@@ -7,6 +7,8 @@
 use std::sync::Arc;
 use std::time::Instant;
 
+use zrak::engine::cpu::model::CpuModel;
+use zrak::field::ModelKind;
 use zrak::field::ngp::LossKind;
 use zrak::scene::demo::{self, DemoConfig};
 use zrak::scene::{Lens, Scene};
@@ -48,13 +50,11 @@ fn train_and_score(scene: Scene, held_out: &Scene) -> f64 {
     let scene = Arc::new(scene);
     let mut recipe = zrak::field::ngp::recipe(scene.unit_cube.aabb_scale);
     recipe.occupancy.resolution = env_or("ZRAK_CAPTURES_GRID", 64u32);
-    let model = zrak::train::cpu_ngp_with_recipe(
+    let model = CpuModel::build(
+        &crate::common::request(ModelKind::Ngp, 0, LossKind::Huber, Some(batch))
+            .with_shape(zrak::engine::cpu::fields::ngp::NgpShape::for_scene(&scene))
+            .with_recipe(recipe),
         &scene,
-        zrak::engine::cpu::fields::ngp::NgpShape::for_scene(&scene),
-        recipe,
-        0,
-        LossKind::Huber,
-        Some(batch),
     );
     let mut trainer = Trainer::new(Box::new(model), scene.clone(), 0);
     let started = Instant::now();

@@ -3,8 +3,10 @@
 
 use crate::common;
 
+use zrak::engine::build::build_gpu;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::kernel::{Kernel, groups_for, read_buffer, storage_buffer, uniform_buffer};
+use zrak::field::ModelKind;
 
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -108,8 +110,12 @@ fn an_existing_device_is_used_when_it_has_what_the_engine_needs() {
         val_views: 1,
         test_views: 1,
     });
-    zrak::train::gpu_ngp(context, &scene, 1, LossKind::Huber, 1024)
-        .expect("every kernel compiles and binds on the shared device");
+    build_gpu(
+        context,
+        &crate::common::request(ModelKind::Ngp, 1, LossKind::Huber, Some(1024)),
+        &scene,
+    )
+    .expect("every kernel compiles and binds on the shared device");
 
     let (device, queue) = pollster::block_on(adapter.request_device(&Default::default()))
         .expect("default limits are always granted");

@@ -28,6 +28,9 @@ use std::time::Instant;
 
 use glam::Vec3;
 use zrak::engine::EngineKind;
+use zrak::engine::build::ModelRequest;
+use zrak::engine::build::ModelSettings;
+use zrak::engine::build::build_gpu;
 use zrak::engine::cpu::dense::Precision;
 use zrak::engine::cpu::fields::nerf::NerfShape;
 use zrak::engine::cpu::fields::ngp::NgpShape;
@@ -35,16 +38,13 @@ use zrak::engine::cpu::hash_grid::HashGridLayout;
 use zrak::engine::cpu::model::CpuModel;
 use zrak::engine::cpu::occupancy::GridGeometry;
 use zrak::engine::gpu::model::GpuModel;
+use zrak::field::ModelKind;
 use zrak::field::nerf::Sampling;
 use zrak::field::ngp::{HashGridConfig, LossKind, OccupancyConfig};
 use zrak::scene::Scene;
 use zrak::train::batch::RayBatch;
 use zrak::train::checkpoint::Checkpoint;
 use zrak::train::model::{RadianceModel, RenderedPixel};
-use zrak::train::{
-    ModelSettings, cpu_mipnerf_with_shape, cpu_nerf_with_shape, gpu_mipnerf_with_shape,
-    gpu_nerf_with_shape,
-};
 
 use common::{NerfKind, small_nerf_shape};
 
@@ -264,12 +264,15 @@ fn rows() -> Vec<Row> {
             name: "Instant-NGP (cpu)",
             engine: Cpu,
             build: |scene| {
-                Box::new(zrak::train::cpu_ngp_with_shape(
+                Box::new(CpuModel::build(
+                    &crate::common::request(
+                        ModelKind::Ngp,
+                        SEED,
+                        LossKind::Huber,
+                        Some(BATCH_SAMPLES),
+                    )
+                    .with_shape(small_ngp_shape(scene)),
                     scene,
-                    small_ngp_shape(scene),
-                    SEED,
-                    LossKind::Huber,
-                    Some(BATCH_SAMPLES),
                 ))
             },
             layout: ngp_layout,
@@ -279,10 +282,10 @@ fn rows() -> Vec<Row> {
             engine: Cpu,
             build: |scene| {
                 let shape = small_nerf_shape(NerfKind::Nerf);
-                Box::new(cpu_nerf_with_shape(
+                Box::new(CpuModel::build(
+                    &ModelRequest::new(ModelKind::Nerf, settings(Sampling::Occupancy))
+                        .with_shape(shape),
                     scene,
-                    &settings(Sampling::Occupancy),
-                    &shape,
                 ))
             },
             layout: nerf_layout,
@@ -292,10 +295,10 @@ fn rows() -> Vec<Row> {
             engine: Cpu,
             build: |scene| {
                 let shape = small_nerf_shape(NerfKind::Nerf);
-                Box::new(cpu_nerf_with_shape(
+                Box::new(CpuModel::build(
+                    &ModelRequest::new(ModelKind::Nerf, settings(Sampling::Paper))
+                        .with_shape(shape),
                     scene,
-                    &settings(Sampling::Paper),
-                    &shape,
                 ))
             },
             layout: nerf_layout,
@@ -305,10 +308,10 @@ fn rows() -> Vec<Row> {
             engine: Cpu,
             build: |scene| {
                 let shape = small_nerf_shape(NerfKind::MipNerf);
-                Box::new(cpu_mipnerf_with_shape(
+                Box::new(CpuModel::build(
+                    &ModelRequest::new(ModelKind::MipNerf, settings(Sampling::Occupancy))
+                        .with_shape(shape),
                     scene,
-                    &settings(Sampling::Occupancy),
-                    &shape,
                 ))
             },
             layout: mipnerf_layout,
@@ -318,10 +321,10 @@ fn rows() -> Vec<Row> {
             engine: Cpu,
             build: |scene| {
                 let shape = small_nerf_shape(NerfKind::MipNerf);
-                Box::new(cpu_mipnerf_with_shape(
+                Box::new(CpuModel::build(
+                    &ModelRequest::new(ModelKind::MipNerf, settings(Sampling::Paper))
+                        .with_shape(shape),
                     scene,
-                    &settings(Sampling::Paper),
-                    &shape,
                 ))
             },
             layout: mipnerf_layout,
@@ -332,13 +335,11 @@ fn rows() -> Vec<Row> {
             name: "Instant-NGP, mixed precision (cpu)",
             engine: Cpu,
             build: |scene| {
-                Box::new(zrak::train::cpu_ngp_with_shape(
-                    scene,
-                    small_ngp_shape(scene).with_precision(Precision::Mixed),
-                    SEED,
-                    LossKind::Huber,
-                    Some(BATCH_SAMPLES),
-                ))
+                let mut request =
+                    common::request(ModelKind::Ngp, SEED, LossKind::Huber, Some(BATCH_SAMPLES))
+                        .with_shape(small_ngp_shape(scene));
+                request.settings.precision = Precision::Mixed;
+                Box::new(CpuModel::build(&request, scene))
             },
             layout: ngp_layout,
         },
@@ -351,7 +352,10 @@ fn rows() -> Vec<Row> {
                     precision: Precision::Mixed,
                     ..settings(Sampling::Occupancy)
                 };
-                Box::new(cpu_nerf_with_shape(scene, &settings, &shape))
+                Box::new(CpuModel::build(
+                    &ModelRequest::new(ModelKind::Nerf, settings).with_shape(shape),
+                    scene,
+                ))
             },
             layout: nerf_layout,
         },
@@ -364,7 +368,10 @@ fn rows() -> Vec<Row> {
                     precision: Precision::Mixed,
                     ..settings(Sampling::Paper)
                 };
-                Box::new(cpu_mipnerf_with_shape(scene, &settings, &shape))
+                Box::new(CpuModel::build(
+                    &ModelRequest::new(ModelKind::MipNerf, settings).with_shape(shape),
+                    scene,
+                ))
             },
             layout: mipnerf_layout,
         },
@@ -373,13 +380,16 @@ fn rows() -> Vec<Row> {
             engine: Gpu,
             build: |scene| {
                 Box::new(
-                    zrak::train::gpu_ngp_with_shape(
+                    build_gpu(
                         common::gpu_context(),
+                        &crate::common::request(
+                            ModelKind::Ngp,
+                            SEED,
+                            LossKind::Huber,
+                            Some(BATCH_SAMPLES),
+                        )
+                        .with_shape(small_ngp_shape(scene)),
                         scene,
-                        small_ngp_shape(scene),
-                        SEED,
-                        LossKind::Huber,
-                        Some(BATCH_SAMPLES),
                     )
                     .expect("gpu model"),
                 )
@@ -393,8 +403,12 @@ fn rows() -> Vec<Row> {
                 let shape = small_nerf_shape(NerfKind::Nerf);
                 let settings = settings(Sampling::Occupancy);
                 Box::new(
-                    gpu_nerf_with_shape(common::gpu_context(), scene, &settings, &shape)
-                        .expect("gpu model"),
+                    build_gpu(
+                        common::gpu_context(),
+                        &ModelRequest::new(ModelKind::Nerf, settings).with_shape(shape),
+                        scene,
+                    )
+                    .expect("gpu model"),
                 )
             },
             layout: nerf_layout,
@@ -406,8 +420,12 @@ fn rows() -> Vec<Row> {
                 let shape = small_nerf_shape(NerfKind::Nerf);
                 let settings = settings(Sampling::Paper);
                 Box::new(
-                    gpu_nerf_with_shape(common::gpu_context(), scene, &settings, &shape)
-                        .expect("gpu model"),
+                    build_gpu(
+                        common::gpu_context(),
+                        &ModelRequest::new(ModelKind::Nerf, settings).with_shape(shape),
+                        scene,
+                    )
+                    .expect("gpu model"),
                 )
             },
             layout: nerf_layout,
@@ -419,8 +437,12 @@ fn rows() -> Vec<Row> {
                 let shape = small_nerf_shape(NerfKind::MipNerf);
                 let settings = settings(Sampling::Occupancy);
                 Box::new(
-                    gpu_mipnerf_with_shape(common::gpu_context(), scene, &settings, &shape)
-                        .expect("gpu model"),
+                    build_gpu(
+                        common::gpu_context(),
+                        &ModelRequest::new(ModelKind::MipNerf, settings).with_shape(shape),
+                        scene,
+                    )
+                    .expect("gpu model"),
                 )
             },
             layout: mipnerf_layout,
@@ -432,8 +454,12 @@ fn rows() -> Vec<Row> {
                 let shape = small_nerf_shape(NerfKind::MipNerf);
                 let settings = settings(Sampling::Paper);
                 Box::new(
-                    gpu_mipnerf_with_shape(common::gpu_context(), scene, &settings, &shape)
-                        .expect("gpu model"),
+                    build_gpu(
+                        common::gpu_context(),
+                        &ModelRequest::new(ModelKind::MipNerf, settings).with_shape(shape),
+                        scene,
+                    )
+                    .expect("gpu model"),
                 )
             },
             layout: mipnerf_layout,

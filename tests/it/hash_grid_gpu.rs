@@ -15,7 +15,7 @@
 //! of absolute terms (the condition-free scale of a sum; against the sum
 //! itself, cancellation could make any tolerance fail or pass by luck).
 
-use zrak::engine::cpu::hash_grid::{HashGridLayout, encode, encode_backward, init_params};
+use zrak::engine::cpu::hash_grid::{HashGridLayout, encode, encode_backward};
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::hash_grid::GpuHashGrid;
 use zrak::engine::gpu::kernel::{read_buffer, storage_buffer, zeroed_storage_buffer};
@@ -125,7 +125,7 @@ fn backward_over_a_large_scenes_box_matches_cpu() {
 fn check_forward(layout: &HashGridLayout, positions: &[[f32; 3]]) {
     let context = context();
     let grid = GpuHashGrid::new(&context, layout, true).expect("the kernels compile");
-    let params = init_params(layout, 1);
+    let params = layout.init_params(1);
     let width = layout.output_width();
 
     let gpu = grid.encode_once(&context, &params, positions);
@@ -234,7 +234,7 @@ fn dispatches_share_one_encoder() {
     let context = context();
     let layout = contended_layout();
     let grid = GpuHashGrid::new(&context, &layout, false).expect("the kernels compile");
-    let params = init_params(&layout, 9);
+    let params = layout.init_params(9);
     let width = layout.output_width();
     let positions = positions(&layout, 800, 10);
     let small = 100;
@@ -323,7 +323,7 @@ fn large_batches_fold_into_more_dispatch_dimensions() {
         extent: 1.0,
     });
     let grid = GpuHashGrid::new(&context, &layout, true).expect("the kernels compile");
-    let params = init_params(&layout, 3);
+    let params = layout.init_params(3);
     let count = 65535 * 64 + 1000;
     let mut rng = Pcg32::new(8, 1);
     let positions: Vec<[f32; 3]> = (0..count)

@@ -9,9 +9,12 @@ use std::sync::Arc;
 
 use common::{NerfKind, batch, small_nerf_shape};
 use glam::Vec3;
+use zrak::engine::build::ModelRequest;
+use zrak::engine::build::ModelSettings;
 use zrak::engine::cpu::fields::nerf::NerfField;
 use zrak::engine::cpu::fields::{Field, Gradient};
 use zrak::engine::cpu::model::CpuModel;
+use zrak::field::ModelKind;
 use zrak::field::nerf::Sampling;
 use zrak::field::ngp::LossKind;
 use zrak::rng::Pcg32;
@@ -19,7 +22,6 @@ use zrak::scene::Scene;
 use zrak::train::checkpoint::Checkpoint;
 use zrak::train::model::RadianceModel;
 use zrak::train::trainer::Trainer;
-use zrak::train::{ModelSettings, cpu_mipnerf_with_shape, cpu_nerf_with_shape};
 
 fn small_scene() -> Arc<Scene> {
     common::small_scene(24)
@@ -36,8 +38,14 @@ fn model_of(scene: &Scene, kind: NerfKind, sampling: Sampling) -> CpuModel {
         precision: zrak::engine::cpu::dense::Precision::F32,
     };
     match kind {
-        NerfKind::Nerf => cpu_nerf_with_shape(scene, &settings, &small_nerf_shape(kind)),
-        NerfKind::MipNerf => cpu_mipnerf_with_shape(scene, &settings, &small_nerf_shape(kind)),
+        NerfKind::Nerf => CpuModel::build(
+            &ModelRequest::new(ModelKind::Nerf, settings).with_shape(small_nerf_shape(kind)),
+            scene,
+        ),
+        NerfKind::MipNerf => CpuModel::build(
+            &ModelRequest::new(ModelKind::MipNerf, settings).with_shape(small_nerf_shape(kind)),
+            scene,
+        ),
     }
 }
 
@@ -68,7 +76,7 @@ fn field_gradient_matches_finite_differences() {
 fn check_field_gradient(kind: NerfKind) {
     let mut field = NerfField::new(small_nerf_shape(kind));
     let mut rng = Pcg32::new(17, 0);
-    let mut params = field.init_params(5);
+    let mut params = small_nerf_shape(kind).init_params(5);
     // Biases away from zero, so every layer's bias gradient is exercised
     // and few ReLUs sit at their kink.
     for p in params.iter_mut() {
@@ -343,12 +351,10 @@ fn checkpoint_of_the_other_sampler_or_model_is_refused() {
         error.contains("parameters") || error.contains("sampling"),
         "{error}"
     );
-    let ngp = zrak::train::cpu_ngp_with_shape(
+    let ngp = CpuModel::build(
+        &crate::common::request(ModelKind::Ngp, 1, LossKind::L2, Some(1 << 12))
+            .with_shape(zrak::engine::cpu::fields::ngp::NgpShape::for_scene(&scene)),
         &scene,
-        zrak::engine::cpu::fields::ngp::NgpShape::for_scene(&scene),
-        1,
-        LossKind::L2,
-        Some(1 << 12),
     );
     let error = model(&scene, Sampling::Occupancy)
         .load(&ngp.save())

@@ -405,7 +405,7 @@ fn uniform(rng: &mut Pcg32, lo: f32, hi: f32) -> f32 {
 /// the sign of σ_raw and leave σ = 0 everywhere or the ReLU density's
 /// derivative untested.
 fn params_with_biases(shape: &NerfShape, seed: u64) -> Vec<f32> {
-    let mut params = NerfField::new(shape.clone()).init_params(seed);
+    let mut params = shape.init_params(seed);
     let mut rng = Pcg32::new(seed, 5);
     let mut start = 0;
     for layout in [&shape.trunk_a, &shape.trunk_b, &shape.colour] {

@@ -33,12 +33,15 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use glam::{Quat, Vec3};
+use zrak::engine::build::ModelSettings;
+use zrak::engine::build::{ModelRequest, build_gpu};
 use zrak::engine::cpu::fields::nerf::{DensityActivation, NerfShape};
 use zrak::engine::cpu::frequency::FrequencyEncoding;
 use zrak::engine::cpu::model::CpuModel;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::model::GpuModel;
 use zrak::engine::gpu::render::{read_texture_rgba8, render_target};
+use zrak::field::ModelKind;
 use zrak::field::common::Recipe;
 use zrak::field::mipnerf;
 use zrak::field::nerf::Sampling;
@@ -50,10 +53,6 @@ use zrak::scene::crop::CropBox;
 use zrak::scene::demo::{self, DemoConfig};
 use zrak::train::batch::{RayBatch, TrainingBackground, sample_rays};
 use zrak::train::model::{RadianceModel, RenderedPixel};
-use zrak::train::{
-    ModelSettings, cpu_model_of_nerf_fields, gpu_model_of_nerf_fields, mipnerf_identity,
-    mipnerf_recipe, nerf_identity, nerf_recipe,
-};
 
 const SEED: u64 = 3;
 
@@ -126,17 +125,17 @@ impl Model {
         settings: &ModelSettings,
         change: impl FnOnce(&mut Recipe),
     ) -> (CpuModel, GpuModel) {
-        let (mut recipe, identity) = match self {
-            Model::Nerf => (nerf_recipe(scene, settings), nerf_identity(settings)),
-            Model::MipNerf => (mipnerf_recipe(scene, settings), mipnerf_identity(settings)),
+        let kind = match self {
+            Model::Nerf => ModelKind::Nerf,
+            Model::MipNerf => ModelKind::MipNerf,
         };
+        let mut recipe = (kind.spec().recipe)(scene, settings.sampling);
         change(&mut recipe);
-        let shape = self.shape();
-        let cpu =
-            cpu_model_of_nerf_fields(identity.clone(), recipe.clone(), scene, settings, &shape);
-        let mut gpu =
-            gpu_model_of_nerf_fields(context(), identity, recipe, scene, settings, &shape)
-                .expect("gpu model");
+        let request = ModelRequest::new(kind, *settings)
+            .with_shape(self.shape())
+            .with_recipe(recipe);
+        let cpu = CpuModel::build(&request, scene);
+        let mut gpu = build_gpu(context(), &request, scene).expect("gpu model");
         // Each step's own loss and the cpu's order of grid updates, to
         // compare step by step.
         gpu.set_read_back_late(false);

@@ -6,18 +6,17 @@
 use std::sync::Arc;
 use std::time::Instant;
 
+use zrak::engine::build::ModelRequest;
+use zrak::engine::build::ModelSettings;
 use zrak::engine::cpu::dense::Precision;
-use zrak::engine::cpu::fields::nerf::NerfShape;
+use zrak::engine::cpu::model::CpuModel;
+use zrak::field::ModelKind;
 use zrak::field::nerf::Sampling;
 use zrak::field::ngp::LossKind;
 use zrak::scene::Scene;
 use zrak::scene::demo::{self, DemoConfig};
 use zrak::train::eval::{mean_colour_psnr, mean_psnr};
 use zrak::train::trainer::Trainer;
-use zrak::train::{
-    ModelSettings, cpu_model_of_nerf_fields, mipnerf_identity, mipnerf_recipe, nerf_identity,
-    nerf_recipe,
-};
 
 fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
     std::env::var(name)
@@ -58,24 +57,20 @@ fn demo_trainer(
         sampling: Sampling::Occupancy,
         precision,
     };
-    let (identity, mut recipe, shape) = match kind {
-        Kind::Nerf => (
-            nerf_identity(&settings),
-            nerf_recipe(&scene, &settings),
-            NerfShape::paper(),
-        ),
-        Kind::MipNerf => (
-            mipnerf_identity(&settings),
-            mipnerf_recipe(&scene, &settings),
-            NerfShape::mipnerf(),
-        ),
+    let model_kind = match kind {
+        Kind::Nerf => ModelKind::Nerf,
+        Kind::MipNerf => ModelKind::MipNerf,
     };
+    let mut recipe = (model_kind.spec().recipe)(&scene, settings.sampling);
     // The batch is 1/4 of the shipped 2^14 samples and the occupancy grid
     // gets 1/8 of its cells (32³ instead of 64³): an update then costs no
     // more of a step than it does in a real run. With 64³ cells the
     // grid's density queries took more than half of this test's time.
     recipe.occupancy.resolution = env_or("ZRAK_NERF_E2E_GRID", 32u32);
-    let model = cpu_model_of_nerf_fields(identity, recipe, &scene, &settings, &shape);
+    let model = CpuModel::build(
+        &ModelRequest::new(model_kind, settings).with_recipe(recipe),
+        &scene,
+    );
     let trainer = Trainer::new(Box::new(model), scene.clone(), 0);
     (scene, trainer)
 }

@@ -9,6 +9,7 @@ use std::sync::Arc;
 
 use common::batch;
 use zrak::engine::cpu::model::CpuModel;
+use zrak::field::ModelKind;
 use zrak::field::ngp::LossKind;
 use zrak::scene::Scene;
 use zrak::scene::demo::{self, DemoConfig};
@@ -21,12 +22,10 @@ fn small_scene() -> Arc<Scene> {
 }
 
 fn model(scene: &Scene) -> CpuModel {
-    zrak::train::cpu_ngp_with_shape(
+    CpuModel::build(
+        &crate::common::request(ModelKind::Ngp, 3, LossKind::Huber, Some(1 << 13))
+            .with_shape(zrak::engine::cpu::fields::ngp::NgpShape::for_scene(scene)),
         scene,
-        zrak::engine::cpu::fields::ngp::NgpShape::for_scene(scene),
-        3,
-        LossKind::Huber,
-        Some(1 << 13),
     )
 }
 
@@ -90,13 +89,11 @@ fn chained_gradient_matches_finite_differences() {
 fn model_with_coarse_grid(scene: &Scene) -> CpuModel {
     let mut recipe = zrak::field::ngp::recipe(scene.unit_cube.aabb_scale);
     recipe.occupancy.resolution = 32;
-    zrak::train::cpu_ngp_with_recipe(
+    CpuModel::build(
+        &crate::common::request(ModelKind::Ngp, 3, LossKind::Huber, Some(1 << 13))
+            .with_shape(zrak::engine::cpu::fields::ngp::NgpShape::for_scene(scene))
+            .with_recipe(recipe),
         scene,
-        zrak::engine::cpu::fields::ngp::NgpShape::for_scene(scene),
-        recipe,
-        3,
-        LossKind::Huber,
-        Some(1 << 13),
     )
 }
 

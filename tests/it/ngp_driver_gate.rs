@@ -22,6 +22,8 @@ use crate::common::gate_record::{Fixture, GateRecord};
 use std::sync::Arc;
 
 use zrak::engine::cpu::fields::ngp::NgpShape;
+use zrak::engine::cpu::model::CpuModel;
+use zrak::field::ModelKind;
 use zrak::field::ngp::LossKind;
 use zrak::scene::Scene;
 use zrak::train::checkpoint::Checkpoint;
@@ -108,12 +110,10 @@ fn record_of(model: Box<dyn RadianceModel>, scene: &Arc<Scene>) -> (GateRecord, 
 
 /// Instant-NGP through the generic driver, as the gate trains it.
 fn new_driver(scene: &Scene, seed: u64, loss: LossKind) -> zrak::engine::cpu::model::CpuModel {
-    zrak::train::cpu_ngp_with_shape(
+    CpuModel::build(
+        &crate::common::request(ModelKind::Ngp, seed, loss, Some(BATCH_SAMPLES))
+            .with_shape(NgpShape::for_scene(scene)),
         scene,
-        NgpShape::for_scene(scene),
-        seed,
-        loss,
-        Some(BATCH_SAMPLES),
     )
 }
 

@@ -10,10 +10,12 @@ use std::time::Instant;
 
 use common::{batch, relative, relative_norm};
 use glam::Vec3;
+use zrak::engine::build::build_gpu;
 use zrak::engine::cpu::fields::ngp::NgpShape;
 use zrak::engine::cpu::model::CpuModel;
 use zrak::engine::gpu::model::GpuModel;
 use zrak::engine::gpu::timing::StageTiming;
+use zrak::field::ModelKind;
 use zrak::field::common::Recipe;
 use zrak::field::ngp::LossKind;
 use zrak::scene::Scene;
@@ -43,23 +45,19 @@ fn models_with_coarse_grid(scene: &Scene) -> (CpuModel, GpuModel) {
 }
 
 fn models_of_shape(scene: &Scene, shape: NgpShape, recipe: Recipe) -> (CpuModel, GpuModel) {
-    let cpu = zrak::train::cpu_ngp_with_recipe(
+    let cpu = CpuModel::build(
+        &crate::common::request(ModelKind::Ngp, SEED, LossKind::Huber, Some(BATCH_SAMPLES))
+            .with_shape(shape.clone())
+            .with_recipe(recipe.clone()),
         scene,
-        shape.clone(),
-        recipe.clone(),
-        SEED,
-        LossKind::Huber,
-        Some(BATCH_SAMPLES),
     );
     let context = common::gpu_context();
-    let mut gpu = zrak::train::gpu_ngp_with_recipe(
+    let mut gpu = build_gpu(
         context,
+        &crate::common::request(ModelKind::Ngp, SEED, LossKind::Huber, Some(BATCH_SAMPLES))
+            .with_shape(shape)
+            .with_recipe(recipe),
         scene,
-        shape,
-        recipe,
-        SEED,
-        LossKind::Huber,
-        Some(BATCH_SAMPLES),
     )
     .expect("gpu model");
     // Each step's own loss and the cpu's order of grid updates, to compare
@@ -303,22 +301,18 @@ fn occupancy_update_matches_the_cpu_engine() {
     let mut recipe = zrak::field::ngp::recipe(scene.unit_cube.aabb_scale);
     recipe.occupancy.resolution = 32;
     let shape = || zrak::engine::cpu::fields::ngp::NgpShape::for_scene(&scene);
-    let mut cpu = zrak::train::cpu_ngp_with_recipe(
+    let mut cpu = CpuModel::build(
+        &crate::common::request(ModelKind::Ngp, SEED, LossKind::Huber, Some(BATCH_SAMPLES))
+            .with_shape(shape())
+            .with_recipe(recipe.clone()),
         &scene,
-        shape(),
-        recipe.clone(),
-        SEED,
-        LossKind::Huber,
-        Some(BATCH_SAMPLES),
     );
-    let mut gpu = zrak::train::gpu_ngp_with_recipe(
+    let mut gpu = build_gpu(
         common::gpu_context(),
+        &crate::common::request(ModelKind::Ngp, SEED, LossKind::Huber, Some(BATCH_SAMPLES))
+            .with_shape(shape())
+            .with_recipe(recipe),
         &scene,
-        shape(),
-        recipe,
-        SEED,
-        LossKind::Huber,
-        Some(BATCH_SAMPLES),
     )
     .expect("gpu model");
     gpu.set_read_back_late(false);

@@ -25,10 +25,12 @@ use crate::common::gate_record::{Fixture, GateRecord};
 
 use std::sync::Arc;
 
+use zrak::engine::build::build_gpu;
 use zrak::engine::cpu::fields::ngp::NgpShape;
 use zrak::engine::cpu::hash_grid::HashGridLayout;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::render::{read_texture_rgba8, render_target};
+use zrak::field::ModelKind;
 use zrak::field::ngp::HashGridConfig;
 use zrak::field::ngp::LossKind;
 use zrak::model::RenderMode;
@@ -70,13 +72,11 @@ fn shared(context: &GpuContext) -> GpuContext {
 
 fn new_driver(scene: &Scene, context: &GpuContext) -> Box<dyn RadianceModel> {
     Box::new(
-        zrak::train::gpu_ngp_with_shape(
+        build_gpu(
             shared(context),
+            &crate::common::request(ModelKind::Ngp, SEED, LossKind::Huber, Some(BATCH_SAMPLES))
+                .with_shape(small_shape(scene)),
             scene,
-            small_shape(scene),
-            SEED,
-            LossKind::Huber,
-            Some(BATCH_SAMPLES),
         )
         .expect("the new driver"),
     )

@@ -6,7 +6,8 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use zrak::engine::cpu::dense::Precision;
-use zrak::engine::cpu::fields::ngp::NgpShape;
+use zrak::engine::cpu::model::CpuModel;
+use zrak::field::ModelKind;
 use zrak::field::ngp::LossKind;
 use zrak::scene::Scene;
 use zrak::train::eval::{mean_colour_psnr, mean_psnr};
@@ -69,8 +70,10 @@ fn train_and_score(
         );
         return trained;
     }
-    let shape = NgpShape::for_scene(scene).with_precision(precision);
-    let model = zrak::train::cpu_ngp_with_recipe(scene, shape, recipe, seed, loss, Some(batch));
+    let mut request =
+        crate::common::request(ModelKind::Ngp, seed, loss, Some(batch)).with_recipe(recipe);
+    request.settings.precision = precision;
+    let model = CpuModel::build(&request, scene);
     let mut trainer = Trainer::new(Box::new(model), scene.clone(), seed);
     let mut last_loss = 0.0;
     while trainer.step < steps {

@@ -7,10 +7,12 @@ use std::sync::{Arc, Mutex};
 
 use glam::{Quat, Vec3};
 
+use zrak::engine::build::build_gpu;
 use zrak::engine::cpu::model::CpuModel;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::model::GpuModel;
 use zrak::engine::gpu::render::{read_texture_rgba8, render_target};
+use zrak::field::ModelKind;
 use zrak::field::ngp::LossKind;
 use zrak::model::TextureRender;
 use zrak::model::checkpoint::Checkpoint;
@@ -66,19 +68,21 @@ fn trained_models(scene: &Scene, batch_samples: usize) -> (impl RadianceModel, G
         train(&mut cpu, scene);
     }
     let context = GpuContext::new().expect("lavapipe or a GPU");
-    let mut gpu = zrak::train::gpu_ngp(context, scene, SEED, LossKind::Huber, batch_samples)
-        .expect("gpu model");
+    let mut gpu = build_gpu(
+        context,
+        &crate::common::request(ModelKind::Ngp, SEED, LossKind::Huber, Some(batch_samples)),
+        scene,
+    )
+    .expect("gpu model");
     gpu.load(&cpu.save()).expect("the cpu checkpoint loads");
     (cpu, gpu)
 }
 
 fn untrained_cpu_model(scene: &Scene) -> CpuModel {
-    zrak::train::cpu_ngp_with_shape(
+    CpuModel::build(
+        &crate::common::request(ModelKind::Ngp, SEED, LossKind::Huber, Some(1 << 12))
+            .with_shape(zrak::engine::cpu::fields::ngp::NgpShape::for_scene(scene)),
         scene,
-        zrak::engine::cpu::fields::ngp::NgpShape::for_scene(scene),
-        SEED,
-        LossKind::Huber,
-        Some(1 << 12),
     )
 }
 
@@ -260,7 +264,12 @@ fn a_wrong_target_is_refused_with_what_is_wrong() {
     let _cores = crate::common::shared();
     let scene = scene();
     let context = GpuContext::new().expect("lavapipe or a GPU");
-    let gpu = zrak::train::gpu_ngp(context, &scene, SEED, LossKind::Huber, 1 << 10).unwrap();
+    let gpu = build_gpu(
+        context,
+        &crate::common::request(ModelKind::Ngp, SEED, LossKind::Huber, Some(1 << 10)),
+        &scene,
+    )
+    .unwrap();
     let camera = scene.val[0].camera;
     let small = render_target(&gpu.context().device, 8, 8);
     let message = gpu
@@ -268,12 +277,10 @@ fn a_wrong_target_is_refused_with_what_is_wrong() {
         .unwrap_err()
         .to_string();
     assert!(message.contains("8×8"), "{message}");
-    let cpu: &dyn RadianceModel = &zrak::train::cpu_ngp_with_shape(
+    let cpu: &dyn RadianceModel = &CpuModel::build(
+        &crate::common::request(ModelKind::Ngp, 1, LossKind::Huber, Some(1024))
+            .with_shape(zrak::engine::cpu::fields::ngp::NgpShape::for_scene(&scene)),
         &scene,
-        zrak::engine::cpu::fields::ngp::NgpShape::for_scene(&scene),
-        1,
-        LossKind::Huber,
-        Some(1024),
     );
     assert!(cpu.texture_render().is_none());
 }

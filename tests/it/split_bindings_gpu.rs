@@ -11,14 +11,16 @@
 
 use std::sync::Arc;
 
+use zrak::engine::build::build_gpu;
 use zrak::engine::cpu::adam::Adam;
 use zrak::engine::cpu::dense::{Activation, MlpLayout};
-use zrak::engine::cpu::hash_grid::{HashGridLayout, init_params};
+use zrak::engine::cpu::hash_grid::HashGridLayout;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::adam::GpuAdam;
 use zrak::engine::gpu::dense::GpuDense;
 use zrak::engine::gpu::hash_grid::GpuHashGrid;
 use zrak::engine::gpu::kernel::{read_buffer, rows_per_piece, storage_buffer};
+use zrak::field::ModelKind;
 use zrak::field::ngp::{HashGridConfig, LossKind, OptimiserConfig};
 use zrak::rng::Pcg32;
 use zrak::scene::Scene;
@@ -113,7 +115,8 @@ fn hash_grid_split_by_levels_and_samples_matches_whole() {
     let positions: Vec<[f32; 3]> = (0..count)
         .map(|_| [rng.next_f32(), rng.next_f32(), rng.next_f32()])
         .collect();
-    let table = init_params(&layout, 9)
+    let table = layout
+        .init_params(9)
         .iter()
         .map(|v| v * 1e4)
         .collect::<Vec<f32>>();
@@ -244,8 +247,12 @@ fn instant_ngp_step_with_split_bindings_matches_the_unsplit_step() {
         &mut batch,
     );
     let run = |context: GpuContext| {
-        let mut model = zrak::train::gpu_ngp(context, &scene, 5, LossKind::Huber, batch_samples)
-            .expect("gpu model");
+        let mut model = build_gpu(
+            context,
+            &crate::common::request(ModelKind::Ngp, 5, LossKind::Huber, Some(batch_samples)),
+            &scene,
+        )
+        .expect("gpu model");
         let stats = model.forward_backward(&batch, 0);
         (stats, model.gradients())
     };

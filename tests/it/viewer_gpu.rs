@@ -14,6 +14,9 @@ use std::time::{Duration, Instant};
 
 use zrak::app::protocol::{Command, Event, GpuFrame, RenderRequest, RenderedFrame, SceneSource};
 use zrak::app::worker::{TrainingWorker, WorkerOptions};
+use zrak::engine::build::ModelRequest;
+use zrak::engine::build::build_gpu;
+use zrak::engine::build::{ModelSettings, build};
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::render::read_texture_rgba8;
 use zrak::engine::{EngineChoice, EngineKind};
@@ -26,7 +29,6 @@ use zrak::scene::{Camera, Scene};
 use zrak::train::checkpoint::Checkpoint;
 use zrak::train::model::RenderedPixel;
 use zrak::train::trainer::Trainer;
-use zrak::train::{ModelSettings, build_model};
 
 const SEED: u64 = 5;
 
@@ -77,7 +79,8 @@ fn pretrained_checkpoint(scene: &Arc<Scene>, path: &Path) {
         gpu: None,
         reason: String::new(),
     };
-    let model = build_model(ModelKind::Ngp, cpu, scene, &settings()).expect("cpu model");
+    let model =
+        build(&ModelRequest::new(ModelKind::Ngp, settings()), cpu, scene).expect("cpu model");
     let mut trainer = Trainer::new(model, scene.clone(), SEED);
     for _ in 0..PRETRAIN_STEPS {
         trainer.step();
@@ -102,7 +105,8 @@ fn read_back_render(
         gpu: Some(context),
         reason: String::new(),
     };
-    let model = build_model(ModelKind::Ngp, gpu, scene, &settings()).expect("gpu model");
+    let model =
+        build(&ModelRequest::new(ModelKind::Ngp, settings()), gpu, scene).expect("gpu model");
     let mut trainer = Trainer::new(model, scene.clone(), SEED);
     trainer
         .restore(&Checkpoint::load(checkpoint).expect("reads"))
@@ -308,8 +312,12 @@ fn a_level_drawn_in_bands_is_the_level_drawn_whole() {
         reason: String::new(),
     };
     let ngp = {
-        let model = build_model(ModelKind::Ngp, gpu(share(&context)), &scene, &settings())
-            .expect("gpu model");
+        let model = build(
+            &ModelRequest::new(ModelKind::Ngp, settings()),
+            gpu(share(&context)),
+            &scene,
+        )
+        .expect("gpu model");
         let mut trainer = Trainer::new(model, scene.clone(), SEED);
         trainer
             .restore(&Checkpoint::load(&checkpoint).expect("reads"))
@@ -333,8 +341,12 @@ fn a_level_drawn_in_bands_is_the_level_drawn_whole() {
             8,
             zrak::engine::cpu::fields::nerf::DensityActivation::Relu,
         );
-        let model = zrak::train::gpu_nerf_with_shape(share(&context), &scene, &settings(), &shape)
-            .expect("gpu nerf");
+        let model = build_gpu(
+            share(&context),
+            &ModelRequest::new(ModelKind::Nerf, settings()).with_shape(shape),
+            &scene,
+        )
+        .expect("gpu nerf");
         let mut trainer = Trainer::new(Box::new(model), scene.clone(), SEED);
         for _ in 0..3 {
             trainer.step();

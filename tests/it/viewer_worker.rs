@@ -9,7 +9,6 @@
 
 use crate::common;
 
-use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -555,13 +554,13 @@ fn models_in_turn_train_in_order_at_equal_shares_of_training_time() {
     // first Instant-NGP step), so a step is bounded instead by the
     // training time between the two reports that bracket it.
     let mut ends: Vec<(ModelKind, f64, f64)> = Vec::new();
-    let mut last_seconds: HashMap<ModelKind, f64> = HashMap::new();
+    let mut last_seconds = [None::<f64>; ModelKind::ALL.len()];
     wait_for(&worker, |e| {
         let Event::Stats(stats) = e else {
             return None;
         };
-        let since = last_seconds
-            .insert(stats.model, stats.train_seconds)
+        let since = last_seconds[stats.model as usize]
+            .replace(stats.train_seconds)
             .map_or(stats.train_seconds, |before| stats.train_seconds - before);
         match ends.last_mut() {
             Some(last) if last.0 == stats.model => {

@@ -14,7 +14,9 @@ use crate::app::protocol::{
 };
 use crate::app::worker::{TrainingWorker, WorkerOptions};
 use crate::engine::EngineKind;
+use crate::engine::build::ModelRequest;
 use crate::engine::cpu::dense::Precision;
+use crate::engine::cpu::model::CpuModel;
 use crate::field::ModelKind;
 use crate::mesh::extract::{MeshSettings, extract_mesh, sample_density};
 use crate::mesh::points::{PointSettings, extract_points, stride_for};
@@ -218,7 +220,7 @@ fn the_viewers_mesh_and_points_are_the_commands_and_an_existing_file_stays() {
     // The command's function on the same model (the saved checkpoint),
     // settings and box.
     let scene = Arc::new(demo::build(&small_demo()));
-    let settings = crate::train::ModelSettings {
+    let settings = crate::engine::build::ModelSettings {
         seed,
         loss: ModelKind::Ngp.default_loss(),
         batch_samples,
@@ -226,7 +228,10 @@ fn the_viewers_mesh_and_points_are_the_commands_and_an_existing_file_stays() {
         precision: Precision::F32,
     };
     let mut trainer = Trainer::new(
-        Box::new(crate::train::cpu_ngp(&scene, &settings)),
+        Box::new(CpuModel::build(
+            &ModelRequest::new(ModelKind::Ngp, settings),
+            &scene,
+        )),
         scene.clone(),
         seed,
     );

@@ -19,6 +19,7 @@ use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
+use crate::engine::build::{ModelRequest, ModelSettings, build};
 use crate::engine::cpu::dense::{Precision, backend_for};
 use crate::engine::cpu::fields::nerf::NerfShape;
 use crate::engine::gpu::GpuContext;
@@ -27,6 +28,7 @@ use crate::engine::{EngineChoice, EngineKind, choose_engine};
 use crate::field::ModelKind;
 use crate::field::nerf::Sampling;
 use crate::field::ngp::LossKind;
+use crate::field::shape::FieldShape;
 use crate::metrics::WHITE;
 use crate::metrics::psnr::psnr_from_mse;
 use crate::render::export::{ExportSettings, TurntableExport};
@@ -36,8 +38,6 @@ use crate::train::checkpoint::Checkpoint;
 use crate::train::eval::{pixel_grid, spread_views};
 use crate::train::model::{RadianceModel, RayColumns, RenderedPixel, Stage, StageTimes, StepStats};
 use crate::train::trainer::Trainer;
-use crate::engine::build::{ModelRequest, ModelSettings, build};
-use crate::field::shape::FieldShape;
 
 use super::progressive::{ChunkPacer, LevelRender, draw_band_to_texture, level_camera};
 use super::protocol::{

@@ -8,13 +8,16 @@
 
 use std::sync::{Arc, Mutex};
 
+use zrak::engine::build::ModelRequest;
+use zrak::engine::build::ModelSettings;
 use zrak::engine::cpu::dense::Precision;
+use zrak::engine::cpu::model::CpuModel;
+use zrak::field::ModelKind;
 use zrak::field::nerf::Sampling;
 use zrak::field::ngp::LossKind;
 use zrak::model::checkpoint::Checkpoint;
 use zrak::scene::Scene;
 use zrak::scene::demo::{self, DemoConfig};
-use zrak::train::ModelSettings;
 use zrak::train::trainer::Trainer;
 
 /// The steps trained once and shared: the learning test's run.
@@ -50,15 +53,18 @@ pub fn trained(steps: u32) -> Trainer {
         "the shared model has {SHARED_STEPS} steps"
     );
     let scene = demo_scene(SIZE);
-    let model = zrak::train::cpu_ngp(
+    let model = CpuModel::build(
+        &ModelRequest::new(
+            ModelKind::Ngp,
+            ModelSettings {
+                seed: SEED,
+                loss: LOSS,
+                batch_samples: Some(BATCH_SAMPLES),
+                sampling: Sampling::Occupancy,
+                precision: Precision::F32,
+            },
+        ),
         &scene,
-        &ModelSettings {
-            seed: SEED,
-            loss: LOSS,
-            batch_samples: Some(BATCH_SAMPLES),
-            sampling: Sampling::Occupancy,
-            precision: Precision::F32,
-        },
     );
     let mut trainer = Trainer::new(Box::new(model), scene, SEED);
     {

@@ -253,3 +253,23 @@ pub fn shared() -> RwLockReadGuard<'static, ()> {
 pub fn alone() -> RwLockWriteGuard<'static, ()> {
     CORES.write().unwrap_or_else(|e| e.into_inner())
 }
+
+/// A request for a model of `kind` with a test's seed, loss and batch,
+/// its other settings the model's defaults (f32 products, its default
+/// sampler).
+pub fn request(
+    kind: zrak::field::ModelKind,
+    seed: u64,
+    loss: zrak::field::ngp::LossKind,
+    batch_samples: Option<usize>,
+) -> zrak::engine::build::ModelRequest {
+    use zrak::engine::build::{ModelRequest, ModelSettings};
+    ModelRequest::new(
+        kind,
+        ModelSettings {
+            loss,
+            batch_samples,
+            ..ModelSettings::of(kind, seed)
+        },
+    )
+}

@@ -1,6 +1,6 @@
 use super::*;
-use crate::rng::splitmix64;
 use crate::field::ngp::HashGridConfig;
+use crate::rng::splitmix64;
 
 /// A small deterministic stream of uniforms in [0, 1) for tests.
 struct Uniforms(u64);
@@ -218,7 +218,8 @@ fn naive_encode(layout: &HashGridLayout, params: &[f64], p: [f64; 3]) -> Vec<f64
 #[test]
 fn encoding_matches_a_plain_transcription_of_the_paper() {
     let layout = HashGridLayout::new(&HashGridConfig::paper(1.0));
-    let params: Vec<f64> = layout.init_params(12)
+    let params: Vec<f64> = layout
+        .init_params(12)
         .iter()
         .map(|&p| p as f64 * 1e4)
         .collect();
@@ -402,7 +403,8 @@ fn gradients_match_central_differences_on_the_paper_grid() {
     let d_out: Vec<f64> = (0..positions.len() * layout.output_width())
         .map(|_| u.symmetric())
         .collect();
-    let mut params: Vec<f64> = layout.init_params(2)
+    let mut params: Vec<f64> = layout
+        .init_params(2)
         .iter()
         .map(|&p| p as f64 * 1e4)
         .collect();
@@ -544,7 +546,8 @@ fn backward_is_the_transpose_of_forward() {
     let d_out: Vec<f64> = (0..positions.len() * layout.output_width())
         .map(|_| u.symmetric())
         .collect();
-    let params: Vec<f64> = layout.init_params(4)
+    let params: Vec<f64> = layout
+        .init_params(4)
         .iter()
         .map(|&p| p as f64 * 1e4)
         .collect();

@@ -34,7 +34,9 @@ impl CpuModel {
             &mut b.march,
             &mut b.marched,
         );
-        self.core.batch_sizer.record(marched.rays_kept, marched.samples);
+        self.core
+            .batch_sizer
+            .record(marched.rays_kept, marched.samples);
         let kept = marched.rays_kept;
         let s = marched.samples;
         let field = &self.fields[level.field];

@@ -35,8 +35,7 @@ use super::fields::{Coordinates, Field, Gradient, gather_rows, set_len};
 use super::frustum::frustum_gaussians;
 use super::loss::loss_and_gradient;
 use super::march::{
-    GridSamples, MarchParams, MarchWorkspace, MarchedSamples, march, mix_seed,
-    render_through_grid,
+    GridSamples, MarchParams, MarchWorkspace, MarchedSamples, march, mix_seed, render_through_grid,
 };
 use super::occupancy::OccupancyGrid;
 use super::sampling;
@@ -56,11 +55,11 @@ mod fixed;
 mod marched;
 mod samplers;
 
-use fixed::*;
-use samplers::{LevelSampler, level_sampler};
 use super::fields::fields_for;
 use crate::engine::build::ModelRequest;
 use crate::engine::shared::driver::*;
+use fixed::*;
+use samplers::{LevelSampler, level_sampler};
 
 /// Buffers of one level of a step, reused between steps.
 #[derive(Default)]
@@ -154,7 +153,14 @@ impl CpuModel {
         let shape = plan.shape.with_precision(request.settings.precision);
         let fields = fields_for(&shape, plan.core.recipe.fields);
         let settings = &request.settings;
-        Self::new(plan.core, plan.params, fields, scene, settings.seed, settings.loss)
+        Self::new(
+            plan.core,
+            plan.params,
+            fields,
+            scene,
+            settings.seed,
+            settings.loss,
+        )
     }
 
     /// A fresh model of `core`'s recipe from `params` (laid out as its
@@ -173,7 +179,11 @@ impl CpuModel {
             recipe.levels.iter().all(|l| l.field < fields.len()),
             "a level names a missing field"
         );
-        assert_eq!(params.len(), core.layout.len(), "the initial parameters' count");
+        assert_eq!(
+            params.len(),
+            core.layout.len(),
+            "the initial parameters' count"
+        );
         let marches = core.marches();
         // Fixed-count levels: one sampler each (none when marching).
         let samplers: Vec<Box<dyn LevelSampler>> = if marches {
@@ -303,7 +313,8 @@ impl CpuModel {
     /// Whether the share of samples used orders the next marched step's
     /// passes (see [`Self::marched_step`]).
     fn chooses_pass_order(&self) -> bool {
-        self.grid.is_some() && self.fields[self.core.recipe.levels[0].field].may_find_cut_in_forward()
+        self.grid.is_some()
+            && self.fields[self.core.recipe.levels[0].field].may_find_cut_in_forward()
     }
 
     /// The side of the box the first field's encoding spans, where its
@@ -314,7 +325,8 @@ impl CpuModel {
 
     /// Multiply-adds per sample of each level's field, forward.
     pub fn macs_per_sample(&self) -> Vec<usize> {
-        self.core.recipe
+        self.core
+            .recipe
             .levels
             .iter()
             .map(|l| self.fields[l.field].macs_per_sample())
@@ -602,7 +614,8 @@ impl RadianceModel for CpuModel {
             grid.values_mut().copy_from_slice(values);
             grid.build_bitfield();
         }
-        self.core.batch_sizer
+        self.core
+            .batch_sizer
             .set_samples_per_ray(state.header.samples_per_ray);
         self.used_fraction = state.header.used_fraction.unwrap_or(1.0);
         self.loss = state.header.loss;

@@ -943,7 +943,8 @@ impl RadianceModel for GpuModel {
                 bytemuck::cast_slice(grid.grid.bitfield()),
             );
         }
-        self.core.batch_sizer
+        self.core
+            .batch_sizer
             .set_samples_per_ray(state.header.samples_per_ray);
         self.loss = state.header.loss;
         self.seed = state.header.seed;
