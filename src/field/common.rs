@@ -1,7 +1,88 @@
 //! Settings of stages that every model uses, with each model's values in
 //! its own file (`ngp.rs`, `nerf.rs`, `mipnerf.rs`).
 
-use super::ngp::{MarchConfig, OccupancyConfig};
+/// Loss on pixel colours (`--loss huber|l2` on the command line).
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
+)]
+pub enum LossKind {
+    /// Huber with δ = 0.1: instant-ngp's default for NeRF (config "loss").
+    Huber,
+    L2,
+}
+
+/// Huber's δ (config "loss": Huber; tiny-cuda-nn's default, also used by
+/// JNeRF's port).
+pub const HUBER_DELTA: f32 = 0.1;
+
+/// Where a model with a choice of samplers (NeRF, Mip-NeRF) puts its
+/// samples.
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum Sampling {
+    /// The paper's: 64 stratified samples for a coarse network, 128 more
+    /// from its weights for a fine network, on every ray.
+    Paper,
+    /// Instant-NGP's occupancy grid (zrak's default): samples only in
+    /// occupied cells, at a fixed step, until the ray is opaque; one network.
+    Occupancy,
+}
+
+impl Sampling {
+    pub fn name(self) -> &'static str {
+        match self {
+            Sampling::Paper => "paper",
+            Sampling::Occupancy => "occupancy",
+        }
+    }
+}
+
+/// How rays march through the occupancy grid (Instant-NGP, appendix E.1;
+/// each model's values in its own file).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MarchConfig {
+    /// Step length in unit-cube coordinates: √3 / 1024 (testbed:
+    /// MIN_CONE_STEPSIZE for the Blender scenes, cone angle 0).
+    pub step: f32,
+    /// At most this many samples per ray (testbed: NERF_STEPS()).
+    pub max_steps: u32,
+    /// Stop marching once transmittance falls below this (testbed: 1e-4).
+    pub min_transmittance: f32,
+    /// For scenes with aabb_scale > 1, the step grows to this fraction of
+    /// the distance from the camera (testbed: `cone_angle_constant` 1/256,
+    /// used when aabb_scale > 1; Blender scenes keep the fixed step). See
+    /// `engine::shared::march::Lattice`.
+    pub cone_angle: f32,
+}
+
+/// The occupancy grid's settings (Instant-NGP, appendix E.2; each model's
+/// values in its own file).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OccupancyConfig {
+    /// Cells per side of each cascade.
+    pub resolution: u32,
+    /// EMA decay of the stored density per update.
+    pub decay: f32,
+    /// A cell is occupied where its optical thickness (σ · smallest step)
+    /// exceeds min(this, mean over the grid) (testbed:
+    /// NERF_MIN_OPTICAL_THICKNESS).
+    pub min_optical_thickness: f32,
+    /// Steps between grid updates.
+    pub update_interval: u32,
+    /// During the first this many steps every cell is updated; afterwards
+    /// a random quarter plus a quarter drawn from occupied cells.
+    pub warmup_steps: u32,
+}
+
+impl OccupancyConfig {
+    /// Cascades needed to cover aabb_scale: each doubles the extent
+    /// (paper, appendix E.2: K = 1 + ceil(log2(aabb_scale))).
+    pub fn cascades(aabb_scale: f32) -> u32 {
+        1 + aabb_scale.max(1.0).log2().ceil() as u32
+    }
+}
 
 /// Where the positions a field is given live.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -7,10 +7,63 @@
 //! `frequency`, `sh` and their `engine::gpu` twins), which document the
 //! formulas and the output layouts.
 
-use crate::field::ngp::HashGridConfig;
 use crate::rng::splitmix64;
 
 // The multiresolution hash grid.
+
+/// A multiresolution hash encoding's settings (Müller et al. 2022,
+/// section 3 and table 1; Instant-NGP's values are in `ngp.rs`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HashGridConfig {
+    /// L, the number of resolution levels.
+    pub levels: u32,
+    /// F, features per table entry.
+    pub features_per_level: u32,
+    /// log2 of T, the entries per level.
+    pub log2_table_size: u32,
+    /// N_min, the coarsest grid resolution.
+    pub base_resolution: u32,
+    /// N_max, the finest grid resolution.
+    pub finest_resolution: u32,
+    /// Entries start uniform in ±this (paper, section 4: U(−1e-4, 1e-4)).
+    pub init_range: f32,
+    /// Side of the cube the grid spans, centred on the unit cube's centre:
+    /// the scene's box (side aabb_scale). Positions are mapped from it onto
+    /// the grid's [0, 1]³, as the testbed's `warp_position` maps its aabb,
+    /// so N_max = 2048 · aabb_scale across the box is 2048 per unit-cube
+    /// length on every scene.
+    pub extent: f32,
+}
+
+impl HashGridConfig {
+    /// How a unit-cube position x reaches the grid: (x − box_min) ·
+    /// inverse_extent, returned as (box_min, inverse_extent) in f64 for each
+    /// engine to round to its own precision ((0, 1) for the unit cube, which
+    /// leaves x as it is).
+    pub fn box_mapping(&self) -> (f64, f64) {
+        let extent = self.extent as f64;
+        (0.5 - 0.5 * extent, 1.0 / extent)
+    }
+
+    /// b = exp((ln N_max − ln N_min) / (L − 1)) (paper, eq. 3).
+    pub fn growth_factor(&self) -> f64 {
+        if self.levels <= 1 {
+            return 1.0;
+        }
+        (((self.finest_resolution as f64).ln() - (self.base_resolution as f64).ln())
+            / (self.levels - 1) as f64)
+            .exp()
+    }
+
+    /// Encoded width: L · F.
+    pub fn output_width(&self) -> usize {
+        (self.levels * self.features_per_level) as usize
+    }
+
+    pub fn table_size(&self) -> usize {
+        1 << self.log2_table_size
+    }
+}
 
 /// Feature counts the stage is compiled for (tiny-cuda-nn supports the same
 /// set); the paper uses F = 2.

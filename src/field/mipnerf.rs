@@ -14,7 +14,8 @@
 use super::common::{
     BatchSize, Level, LrSchedule, OptimiserConfig, RayBounds, Recipe, SampleShape, SamplerKind,
 };
-use super::nerf::{self, Sampling};
+use super::encoding::FrequencyEncoding;
+use super::nerf::{self, NerfShape, Sampling};
 
 /// Frequencies of the integrated position encoding: 2⁰ … 2¹⁵ (reference
 /// `min_deg_point` 0, `max_deg_point` 16). No raw input: the reference's
@@ -126,5 +127,31 @@ pub fn recipe(sampling: Sampling, blender_scene: bool) -> Recipe {
         // No distortion loss in the paper.
         distortion: 0.0,
         centre_crop: None,
+    }
+}
+
+impl NerfShape {
+    /// Mip-NeRF's field: NeRF's networks on the integrated encoding of
+    /// each frustum's Gaussian, σ = softplus(raw − 1), colour widened by
+    /// 0.001 (the constants above).
+    pub fn mipnerf() -> Self {
+        Self::new(
+            FrequencyEncoding {
+                frequencies: POSITION_FREQUENCIES,
+                include_input: false,
+            },
+            FrequencyEncoding {
+                frequencies: DIRECTION_FREQUENCIES,
+                include_input: true,
+            },
+            nerf::TRUNK_WIDTH,
+            nerf::TRUNK_LAYERS,
+            nerf::SKIP_AFTER_LAYERS,
+            nerf::COLOUR_HIDDEN_WIDTH,
+            nerf::DensityActivation::ShiftedSoftplus {
+                shift: -DENSITY_BIAS,
+            },
+        )
+        .with_colour_padding(RGB_PADDING)
     }
 }

@@ -16,10 +16,40 @@
 
 use num_traits::Float;
 
-use crate::field::ngp::{DENSITY_EXP_CLAMP, HashGridConfig, NetworkConfig};
 use crate::rng::Pcg32;
 
 /// An element-wise activation.
+/// σ = exp(x) with x clamped, so a large raw output can neither overflow
+/// nor send a huge gradient back (testbed: `network_to_density`, "Exponential"
+/// activation; the clamp is zrak's). exp(15) ≈ 3.3e6 is far denser than any
+/// surface needs at step √3/1024.
+pub const DENSITY_EXP_CLAMP: f32 = 15.0;
+
+/// The sizes of a density network followed by a colour network on its
+/// features and the view direction's spherical harmonics (Instant-NGP's
+/// tiny MLPs; its values are in `ngp.rs`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NetworkConfig {
+    /// Density network: 32 → 64 → 16, ReLU hidden layer (one hidden layer).
+    pub density_hidden_width: usize,
+    pub density_hidden_layers: usize,
+    /// The density network's output: the first is log-density, all 16 feed
+    /// the colour network (paper, section 5.4).
+    pub density_output_width: usize,
+    /// Colour network: 16 + 16 → 64 → 64 → 3, two hidden layers, sigmoid.
+    pub colour_hidden_width: usize,
+    pub colour_hidden_layers: usize,
+    /// Spherical-harmonics degree of the view direction encoding (config
+    /// "dir_encoding": SphericalHarmonics, degree 4 → 16 coefficients).
+    pub sh_degree: u32,
+}
+
+impl NetworkConfig {
+    pub fn sh_coefficients(&self) -> usize {
+        (self.sh_degree * self.sh_degree) as usize
+    }
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Activation {
     None,
@@ -151,32 +181,6 @@ impl MlpLayout {
         self.precision = precision;
         self
     }
-    /// Instant-NGP's density network: hash features → hidden ReLU layers →
-    /// the density output (linear; the first output is log-density, the
-    /// caller applies the exponential). No biases, as in tiny-cuda-nn's
-    /// fully fused MLP.
-    pub fn ngp_density(network: &NetworkConfig, grid: &HashGridConfig) -> Self {
-        let mut widths = vec![grid.output_width()];
-        widths.extend(std::iter::repeat_n(
-            network.density_hidden_width,
-            network.density_hidden_layers,
-        ));
-        widths.push(network.density_output_width);
-        Self::new(widths, Activation::Relu, Activation::None, false)
-    }
-
-    /// Instant-NGP's colour network: density outputs and spherical
-    /// harmonics → hidden ReLU layers → RGB through a sigmoid; no biases.
-    pub fn ngp_colour(network: &NetworkConfig) -> Self {
-        let mut widths = vec![network.density_output_width + network.sh_coefficients()];
-        widths.extend(std::iter::repeat_n(
-            network.colour_hidden_width,
-            network.colour_hidden_layers,
-        ));
-        widths.push(3);
-        Self::new(widths, Activation::Relu, Activation::Sigmoid, false)
-    }
-
     pub fn layers(&self) -> usize {
         self.widths.len() - 1
     }

@@ -7,13 +7,14 @@
 //! the colour branch and σ's activation, also Mip-NeRF's), which both
 //! engines build their NeRF field from.
 
-pub use super::common::Recipe;
+// Former paths, deleted with the other compatibility re-exports.
 use super::common::{
-    BatchSize, Level, LrSchedule, OptimiserConfig, RayBounds, SampleShape, SamplerKind,
+    BatchSize, Level, LrSchedule, MarchConfig, OccupancyConfig, OptimiserConfig, RayBounds,
+    SampleShape, SamplerKind,
 };
+pub use super::common::{Recipe, Sampling};
 use super::encoding::FrequencyEncoding;
 use super::mlp::{Activation, MlpLayout, Precision};
-use super::ngp::{MarchConfig, OccupancyConfig};
 use super::params::{ParamLayout, Update};
 
 /// Frequencies of the position encoding γ(x): 2⁰ … 2⁹ (paper, section 5.1:
@@ -79,29 +80,6 @@ pub const OPTIMISER: OptimiserConfig = OptimiserConfig {
         steps: 500_000,
     },
 };
-
-/// Where NeRF puts its samples.
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
-)]
-#[serde(rename_all = "lowercase")]
-pub enum Sampling {
-    /// The paper's: 64 stratified samples for a coarse network, 128 more
-    /// from its weights for a fine network, on every ray.
-    Paper,
-    /// Instant-NGP's occupancy grid (zrak's default): samples only in
-    /// occupied cells, at a fixed step, until the ray is opaque; one network.
-    Occupancy,
-}
-
-impl Sampling {
-    pub fn name(self) -> &'static str {
-        match self {
-            Sampling::Paper => "paper",
-            Sampling::Occupancy => "occupancy",
-        }
-    }
-}
 
 /// Marching for NeRF's occupancy sampler: twice Instant-NGP's step (2√3/1024
 /// of the unit cube, 0.010 world units on a Blender scene). NeRF's
@@ -295,31 +273,6 @@ impl NerfShape {
             COLOUR_HIDDEN_WIDTH,
             DensityActivation::Relu,
         )
-    }
-
-    /// Mip-NeRF's field: NeRF's networks on the integrated encoding of
-    /// each frustum's Gaussian, σ = softplus(raw − 1), colour widened by
-    /// 0.001 (constants in [`crate::field::mipnerf`]).
-    pub fn mipnerf() -> Self {
-        use crate::field::mipnerf as mip;
-        Self::new(
-            FrequencyEncoding {
-                frequencies: mip::POSITION_FREQUENCIES,
-                include_input: false,
-            },
-            FrequencyEncoding {
-                frequencies: mip::DIRECTION_FREQUENCIES,
-                include_input: true,
-            },
-            TRUNK_WIDTH,
-            TRUNK_LAYERS,
-            SKIP_AFTER_LAYERS,
-            COLOUR_HIDDEN_WIDTH,
-            DensityActivation::ShiftedSoftplus {
-                shift: -mip::DENSITY_BIAS,
-            },
-        )
-        .with_colour_padding(mip::RGB_PADDING)
     }
 
     /// Where each network's parameters sit: trunk A, trunk B, colour.

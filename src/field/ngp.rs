@@ -8,33 +8,17 @@
 
 use std::ops::Range;
 
+// Former paths, deleted with the other compatibility re-exports.
+pub use super::common::{
+    HUBER_DELTA, LossKind, LrSchedule, MarchConfig, OccupancyConfig, OptimiserConfig,
+};
+pub use super::encoding::HashGridConfig;
+pub use super::mlp::{DENSITY_EXP_CLAMP, NetworkConfig};
+
 use super::encoding::HashGridLayout;
-use super::mlp::{MlpLayout, Precision};
+use super::mlp::{Activation, MlpLayout, Precision};
 use super::params::{ParamLayout, Update};
 use crate::scene::{Scene, UnitCubeMapping};
-
-/// Multiresolution hash encoding (paper, section 3 and table 1).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct HashGridConfig {
-    /// L, the number of resolution levels.
-    pub levels: u32,
-    /// F, features per table entry.
-    pub features_per_level: u32,
-    /// log2 of T, the entries per level.
-    pub log2_table_size: u32,
-    /// N_min, the coarsest grid resolution.
-    pub base_resolution: u32,
-    /// N_max, the finest grid resolution.
-    pub finest_resolution: u32,
-    /// Entries start uniform in ±this (paper, section 4: U(−1e-4, 1e-4)).
-    pub init_range: f32,
-    /// Side of the cube the grid spans, centred on the unit cube's centre:
-    /// the scene's box (side aabb_scale). Positions are mapped from it onto
-    /// the grid's [0, 1]³, as the testbed's `warp_position` maps its aabb,
-    /// so N_max = 2048 · aabb_scale across the box is 2048 per unit-cube
-    /// length on every scene.
-    pub extent: f32,
-}
 
 impl HashGridConfig {
     /// Table 1 of the paper for NeRF: L = 16, F = 2, T = 2^19, N_min = 16,
@@ -50,53 +34,9 @@ impl HashGridConfig {
             extent: aabb_scale,
         }
     }
-
-    /// How a unit-cube position x reaches the grid: (x − box_min) ·
-    /// inverse_extent, returned as (box_min, inverse_extent) in f64 for each
-    /// engine to round to its own precision ((0, 1) for the unit cube, which
-    /// leaves x as it is).
-    pub fn box_mapping(&self) -> (f64, f64) {
-        let extent = self.extent as f64;
-        (0.5 - 0.5 * extent, 1.0 / extent)
-    }
-
-    /// b = exp((ln N_max − ln N_min) / (L − 1)) (paper, eq. 3).
-    pub fn growth_factor(&self) -> f64 {
-        if self.levels <= 1 {
-            return 1.0;
-        }
-        (((self.finest_resolution as f64).ln() - (self.base_resolution as f64).ln())
-            / (self.levels - 1) as f64)
-            .exp()
-    }
-
-    /// Encoded width: L · F.
-    pub fn output_width(&self) -> usize {
-        (self.levels * self.features_per_level) as usize
-    }
-
-    pub fn table_size(&self) -> usize {
-        1 << self.log2_table_size
-    }
 }
 
 /// The tiny MLPs (paper, section 5.4; config "network" and "rgb_network").
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct NetworkConfig {
-    /// Density network: 32 → 64 → 16, ReLU hidden layer (one hidden layer).
-    pub density_hidden_width: usize,
-    pub density_hidden_layers: usize,
-    /// The density network's output: the first is log-density, all 16 feed
-    /// the colour network (paper, section 5.4).
-    pub density_output_width: usize,
-    /// Colour network: 16 + 16 → 64 → 64 → 3, two hidden layers, sigmoid.
-    pub colour_hidden_width: usize,
-    pub colour_hidden_layers: usize,
-    /// Spherical-harmonics degree of the view direction encoding (config
-    /// "dir_encoding": SphericalHarmonics, degree 4 → 16 coefficients).
-    pub sh_degree: u32,
-}
-
 impl NetworkConfig {
     pub const PAPER: Self = Self {
         density_hidden_width: 64,
@@ -106,36 +46,9 @@ impl NetworkConfig {
         colour_hidden_layers: 2,
         sh_degree: 4,
     };
-
-    pub fn sh_coefficients(&self) -> usize {
-        (self.sh_degree * self.sh_degree) as usize
-    }
 }
-
-/// σ = exp(x) with x clamped, so a large raw output can neither overflow
-/// nor send a huge gradient back (testbed: `network_to_density`, "Exponential"
-/// activation; the clamp is zrak's). exp(15) ≈ 3.3e6 is far denser than any
-/// surface needs at step √3/1024.
-pub const DENSITY_EXP_CLAMP: f32 = 15.0;
 
 /// Occupancy grid (paper, appendix E.2; testbed).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct OccupancyConfig {
-    /// Cells per side of each cascade.
-    pub resolution: u32,
-    /// EMA decay of the stored density per update.
-    pub decay: f32,
-    /// A cell is occupied where its optical thickness (σ · smallest step)
-    /// exceeds min(this, mean over the grid) (testbed:
-    /// NERF_MIN_OPTICAL_THICKNESS).
-    pub min_optical_thickness: f32,
-    /// Steps between grid updates.
-    pub update_interval: u32,
-    /// During the first this many steps every cell is updated; afterwards
-    /// a random quarter plus a quarter drawn from occupied cells.
-    pub warmup_steps: u32,
-}
-
 impl OccupancyConfig {
     pub const PAPER: Self = Self {
         resolution: 128,
@@ -144,31 +57,9 @@ impl OccupancyConfig {
         update_interval: 16,
         warmup_steps: 256,
     };
-
-    /// Cascades needed to cover aabb_scale: each doubles the extent
-    /// (paper, appendix E.2: K = 1 + ceil(log2(aabb_scale))).
-    pub fn cascades(aabb_scale: f32) -> u32 {
-        1 + aabb_scale.max(1.0).log2().ceil() as u32
-    }
 }
 
 /// Ray marching (paper, appendix E.1; testbed).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct MarchConfig {
-    /// Step length in unit-cube coordinates: √3 / 1024 (testbed:
-    /// MIN_CONE_STEPSIZE for the Blender scenes, cone angle 0).
-    pub step: f32,
-    /// At most this many samples per ray (testbed: NERF_STEPS()).
-    pub max_steps: u32,
-    /// Stop marching once transmittance falls below this (testbed: 1e-4).
-    pub min_transmittance: f32,
-    /// For scenes with aabb_scale > 1, the step grows to this fraction of
-    /// the distance from the camera (testbed: `cone_angle_constant` 1/256,
-    /// used when aabb_scale > 1; Blender scenes keep the fixed step). See
-    /// `engine::shared::march::Lattice`.
-    pub cone_angle: f32,
-}
-
 impl MarchConfig {
     pub const PAPER: Self = Self {
         step: 1.732_050_8 / 1024.0,
@@ -228,22 +119,7 @@ pub fn distortion_weight(aabb_scale: f32) -> f32 {
     })
 }
 
-/// Loss on pixel colours (`--loss huber|l2` on the command line).
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize,
-)]
-pub enum LossKind {
-    /// Huber with δ = 0.1: instant-ngp's default for NeRF (config "loss").
-    Huber,
-    L2,
-}
-
-/// Huber's δ (config "loss": Huber; tiny-cuda-nn's default, also used by
-/// JNeRF's port).
-pub const HUBER_DELTA: f32 = 0.1;
-
 /// The optimiser (config "optimizer": Ema → ExponentialDecay → Adam).
-pub use super::common::{LrSchedule, OptimiserConfig};
 
 impl OptimiserConfig {
     pub const PAPER: Self = Self {
@@ -288,6 +164,34 @@ pub fn recipe(aabb_scale: f32) -> super::common::Recipe {
         distortion: distortion_weight(aabb_scale),
         // instant-ngp samples rays from whole images from the start.
         centre_crop: None,
+    }
+}
+
+impl MlpLayout {
+    /// Instant-NGP's density network: hash features → hidden ReLU layers →
+    /// the density output (linear; the first output is log-density, the
+    /// caller applies the exponential). No biases, as in tiny-cuda-nn's
+    /// fully fused MLP.
+    pub fn ngp_density(network: &NetworkConfig, grid: &HashGridConfig) -> Self {
+        let mut widths = vec![grid.output_width()];
+        widths.extend(std::iter::repeat_n(
+            network.density_hidden_width,
+            network.density_hidden_layers,
+        ));
+        widths.push(network.density_output_width);
+        Self::new(widths, Activation::Relu, Activation::None, false)
+    }
+
+    /// Instant-NGP's colour network: density outputs and spherical
+    /// harmonics → hidden ReLU layers → RGB through a sigmoid; no biases.
+    pub fn ngp_colour(network: &NetworkConfig) -> Self {
+        let mut widths = vec![network.density_output_width + network.sh_coefficients()];
+        widths.extend(std::iter::repeat_n(
+            network.colour_hidden_width,
+            network.colour_hidden_layers,
+        ));
+        widths.push(3);
+        Self::new(widths, Activation::Relu, Activation::Sigmoid, false)
     }
 }
 
