@@ -5,9 +5,9 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use zrak::engine::build::ModelRequest;
-use zrak::engine::build::ModelSettings;
 use zrak::engine::cpu::model::CpuModel;
+use zrak::engine::request::ModelRequest;
+use zrak::engine::request::ModelSettings;
 use zrak::field::ModelKind;
 use zrak::field::ngp::LossKind;
 use zrak::scene::Scene;

@@ -12,10 +12,11 @@ use std::sync::Arc;
 
 use wgpu::Features;
 
-use crate::engine::build::{ModelRequest, ModelSettings, build};
+use crate::engine::build;
 use crate::engine::cpu::dense::Precision;
 use crate::engine::gpu::GpuContext;
 use crate::engine::gpu::render::{read_texture_rgba8, render_target};
+use crate::engine::request::{ModelRequest, ModelSettings};
 use crate::engine::{EngineChoice, EngineKind};
 use crate::field::ModelKind;
 use crate::field::nerf::Sampling;

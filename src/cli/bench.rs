@@ -6,8 +6,9 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::Args;
-use zrak::engine::build::{ModelRequest, ModelSettings, build};
+use zrak::engine::build;
 use zrak::engine::cpu::dense::{Precision, backend_for};
+use zrak::engine::request::{ModelRequest, ModelSettings};
 use zrak::engine::{EngineKind, choose_engine};
 use zrak::field::ModelKind;
 use zrak::field::nerf::Sampling;

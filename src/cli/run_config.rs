@@ -7,8 +7,9 @@ use std::sync::Arc;
 
 use anyhow::{Context, bail};
 use serde::{Deserialize, Serialize};
-use zrak::engine::build::{ModelRequest, ModelSettings, build};
+use zrak::engine::build;
 use zrak::engine::cpu::dense::Precision;
+use zrak::engine::request::{ModelRequest, ModelSettings};
 use zrak::engine::{EngineChoice, EngineKind, choose_engine};
 use zrak::field::ModelKind;
 use zrak::field::nerf::Sampling;

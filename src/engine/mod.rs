@@ -1,13 +1,17 @@
 //! How fields are computed: the `cpu` engine (Rust, rayon), which is also the
 //! reference for tests, and the `gpu` engine (wgpu).
 
-pub mod build;
 pub mod cpu;
 pub mod crop;
 pub mod gpu;
+pub mod request;
 pub mod shared;
 
 use gpu::GpuContext;
+use request::{BuildError, ModelRequest};
+
+use crate::model::RadianceModel;
+use crate::scene::Scene;
 
 /// Which engine computes a model.
 #[derive(
@@ -52,6 +56,37 @@ impl EngineChoice {
             reason: self.reason.clone(),
         })
     }
+}
+
+/// The composition root: a fresh model of `request` on the chosen engine.
+/// Each engine has one `fields_for` that turns the request's
+/// [`crate::field::shape::FieldShape`] into its fields, the only place an
+/// engine tells the kinds of field apart.
+pub fn build(
+    request: &ModelRequest,
+    engine: EngineChoice,
+    scene: &Scene,
+) -> Result<Box<dyn RadianceModel>, BuildError> {
+    match engine.kind {
+        EngineKind::Cpu => Ok(Box::new(cpu::model::CpuModel::build(request, scene))),
+        EngineKind::Gpu => {
+            let context = engine.gpu.ok_or(BuildError::NoGpuContext)?;
+            build_gpu(context, request, scene).map(|m| Box::new(m) as Box<dyn RadianceModel>)
+        }
+    }
+}
+
+/// A fresh model on the `gpu` engine with the context's device (tests
+/// that look inside the driver take it so).
+pub fn build_gpu(
+    context: GpuContext,
+    request: &ModelRequest,
+    scene: &Scene,
+) -> Result<gpu::model::GpuModel, BuildError> {
+    gpu::model::GpuModel::build(context, request, scene).map_err(|problem| BuildError::Gpu {
+        model: request.kind.name(),
+        problem,
+    })
 }
 
 /// Chooses an engine: `requested` when given; otherwise `gpu` on a real GPU

@@ -120,7 +120,6 @@ pub fn distortion_weight(aabb_scale: f32) -> f32 {
 }
 
 /// The optimiser (config "optimizer": Ema → ExponentialDecay → Adam).
-
 impl OptimiserConfig {
     pub const PAPER: Self = Self {
         learning_rate: 1e-2,

@@ -3,7 +3,7 @@
 
 use crate::common;
 
-use zrak::engine::build::build_gpu;
+use zrak::engine::build_gpu;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::kernel::{Kernel, groups_for, read_buffer, storage_buffer, uniform_buffer};
 use zrak::field::ModelKind;

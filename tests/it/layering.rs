@@ -397,3 +397,256 @@ fn the_cpu_engine_check_sees_paths_and_groups_and_skips_test_modules() {
     assert!(kept.contains("mod mirror;"), "{kept}");
     assert!(kept.contains("crate::engine::gpu::march::x();"), "{kept}");
 }
+
+/// The module a file of `src/` holds, as its path from the crate root:
+/// `src/engine/cpu/march.rs` and `src/engine/cpu/march/mod.rs` are both
+/// `engine::cpu::march`.
+fn module_path(src: &Path, file: &Path) -> Vec<String> {
+    let relative = file.strip_prefix(src).unwrap().with_extension("");
+    let mut path: Vec<String> = relative
+        .components()
+        .map(|c| c.as_os_str().to_string_lossy().into_owned())
+        .collect();
+    if path.last().is_some_and(|last| last == "mod") {
+        path.pop();
+    }
+    path
+}
+
+/// The identifiers of a path from `at` on (`a::b::c`), up to the first
+/// character that continues no path.
+fn path_at(text: &str, at: usize) -> Vec<String> {
+    let mut segments = Vec::new();
+    let mut at = at;
+    loop {
+        let name = identifier_at(text, at);
+        if name.is_empty() {
+            break;
+        }
+        segments.push(name.to_string());
+        at += name.len();
+        if !text[at..].starts_with("::") {
+            break;
+        }
+        at += 2;
+    }
+    segments
+}
+
+/// Every module path that `text` (a file of module `here`) names, from
+/// `crate::` or `zrak::` or relative to its own module (`super::`,
+/// `self::`); a `use` group names each of its entries.
+fn paths_named(text: &str, here: &[String]) -> Vec<Vec<String>> {
+    let mut named = Vec::new();
+    for root in ["crate::", "zrak::", "super::", "self::"] {
+        let mut from = 0;
+        while let Some(found) = text[from..].find(root) {
+            let start = from + found;
+            from = start + root.len();
+            let boundary = text[..start]
+                .chars()
+                .next_back()
+                .is_none_or(|c| !(c.is_alphanumeric() || c == '_' || c == ':'));
+            if !boundary {
+                continue;
+            }
+            // The module the path starts from.
+            let mut base: Vec<String> = match root {
+                "crate::" | "zrak::" => Vec::new(),
+                "self::" => here.to_vec(),
+                _ => here[..here.len().saturating_sub(1)].to_vec(),
+            };
+            let mut at = from;
+            while text[at..].starts_with("super::") {
+                base.pop();
+                at += "super::".len();
+            }
+            let prefix = path_at(text, at);
+            let mut after = at + prefix.iter().map(|s| s.len() + 2).sum::<usize>();
+            base.extend(prefix);
+            if after > text.len() || !text[after.min(text.len())..].starts_with('{') {
+                named.push(base);
+                continue;
+            }
+            // A group: each entry at the first depth.
+            after += 1;
+            let mut depth = 1;
+            let mut expecting = true;
+            for (offset, c) in text[after..].char_indices() {
+                match c {
+                    '{' => depth += 1,
+                    '}' => {
+                        depth -= 1;
+                        if depth == 0 {
+                            break;
+                        }
+                    }
+                    ',' if depth == 1 => expecting = true,
+                    c if expecting && depth == 1 && (c.is_alphanumeric() || c == '_') => {
+                        let mut entry = base.clone();
+                        entry.extend(path_at(text, after + offset));
+                        named.push(entry);
+                        expecting = false;
+                    }
+                    _ => {}
+                }
+            }
+        }
+    }
+    named
+}
+
+/// Inside every module folder of `src/`, which of its parts import which:
+/// for each folder, edges between its children (files and folders, and
+/// `mod` for the folder's own `mod.rs` and the items it defines). Test
+/// files and `#[cfg(test)]` modules are left out.
+fn imports_inside_modules(src: &Path) -> BTreeMap<String, BTreeMap<String, Vec<String>>> {
+    let tests = test_module_files(src);
+    let mut files = Vec::new();
+    rust_files(src, &mut files);
+    let mut edges: BTreeMap<String, BTreeMap<String, Vec<String>>> = BTreeMap::new();
+    for file in files.iter().filter(|f| !tests.contains(f)) {
+        let here = module_path(src, file);
+        if here.is_empty() || matches!(here[0].as_str(), "lib" | "main") {
+            continue;
+        }
+        let text = without_test_modules(&without_comments(&std::fs::read_to_string(file).unwrap()));
+        for target in paths_named(&text, &here) {
+            let common = here.iter().zip(&target).take_while(|(a, b)| a == b).count();
+            // Between top-level modules the layers rule.
+            if common == 0 {
+                continue;
+            }
+            let folder = src.join(here[..common].join("/"));
+            if !folder.is_dir() {
+                continue;
+            }
+            let part = |path: &[String]| -> String {
+                match path.get(common) {
+                    Some(name)
+                        if folder.join(format!("{name}.rs")).is_file()
+                            || folder.join(name).join("mod.rs").is_file() =>
+                    {
+                        name.clone()
+                    }
+                    _ => "mod".to_string(),
+                }
+            };
+            let (from, to) = (part(&here), part(&target));
+            if from != to {
+                let targets = edges
+                    .entry(here[..common].join("::"))
+                    .or_default()
+                    .entry(from)
+                    .or_default();
+                if !targets.contains(&to) {
+                    targets.push(to);
+                }
+            }
+        }
+    }
+    edges
+}
+
+/// The circles of a graph: each set of two or more nodes that reach each
+/// other, as a sorted list.
+fn circles(edges: &BTreeMap<String, Vec<String>>) -> Vec<Vec<String>> {
+    let reaches = |from: &String| {
+        let mut seen = vec![from.clone()];
+        let mut todo = vec![from.clone()];
+        while let Some(node) = todo.pop() {
+            for next in edges.get(&node).into_iter().flatten() {
+                if !seen.contains(next) {
+                    seen.push(next.clone());
+                    todo.push(next.clone());
+                }
+            }
+        }
+        seen
+    };
+    let mut found: Vec<Vec<String>> = Vec::new();
+    for node in edges.keys() {
+        let forward = reaches(node);
+        let mut circle: Vec<String> = forward
+            .iter()
+            .filter(|other| reaches(other).contains(node))
+            .cloned()
+            .collect();
+        circle.sort();
+        if circle.len() > 1 && !found.contains(&circle) {
+            found.push(circle);
+        }
+    }
+    found
+}
+
+/// Inside a module, parts import one way too: `field`'s generic files
+/// (params, common, encoding, mlp) sit below the models' files, `mod.rs`
+/// on top; `engine`'s shared stages below both engines. A circle (two
+/// parts that reach each other through their imports) fails.
+#[test]
+fn no_module_has_a_circle_of_imports_inside_it() {
+    let _cores = crate::common::shared();
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let edges = imports_inside_modules(&src);
+    assert!(
+        edges.get("field").is_some_and(|e| e.contains_key("ngp")),
+        "the reader found no import inside field: {edges:?}"
+    );
+    let mut problems = Vec::new();
+    for (folder, graph) in &edges {
+        for circle in circles(graph) {
+            let links: Vec<String> = circle
+                .iter()
+                .flat_map(|from| {
+                    graph[from]
+                        .iter()
+                        .filter(|to| circle.contains(to))
+                        .map(move |to| format!("{from} -> {to}"))
+                })
+                .collect();
+            problems.push(format!("src/{folder}: {}", links.join(", ")));
+        }
+    }
+    assert!(
+        problems.is_empty(),
+        "circles of imports:\n{}",
+        problems.join("\n")
+    );
+}
+
+#[test]
+fn the_circle_reader_resolves_relative_paths_and_groups() {
+    let _cores = crate::common::shared();
+    let here: Vec<String> = ["engine", "cpu", "model"].map(String::from).to_vec();
+    let text = "use super::march::{MarchParams, march};\n\
+                use crate::engine::{shared::driver::X, gpu};\n\
+                use self::fixed::*; super::super::shared::Y;";
+    let named: Vec<String> = paths_named(text, &here)
+        .into_iter()
+        .map(|p| p.join("::"))
+        .collect();
+    for expected in [
+        "engine::cpu::march::MarchParams",
+        "engine::cpu::march::march",
+        "engine::shared::driver::X",
+        "engine::gpu",
+        "engine::cpu::model::fixed",
+        "engine::shared::Y",
+    ] {
+        assert!(
+            named.contains(&expected.to_string()),
+            "{expected}: {named:?}"
+        );
+    }
+    let graph: BTreeMap<String, Vec<String>> = [
+        ("a", vec!["b"]),
+        ("b", vec!["c"]),
+        ("c", vec!["a"]),
+        ("d", vec!["a"]),
+    ]
+    .into_iter()
+    .map(|(k, v)| (k.to_string(), v.into_iter().map(String::from).collect()))
+    .collect();
+    assert_eq!(circles(&graph), vec![vec!["a", "b", "c"]]);
+}

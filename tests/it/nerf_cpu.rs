@@ -9,11 +9,11 @@ use std::sync::Arc;
 
 use common::{NerfKind, batch, small_nerf_shape};
 use glam::Vec3;
-use zrak::engine::build::ModelRequest;
-use zrak::engine::build::ModelSettings;
 use zrak::engine::cpu::fields::nerf::NerfField;
 use zrak::engine::cpu::fields::{Field, Gradient};
 use zrak::engine::cpu::model::CpuModel;
+use zrak::engine::request::ModelRequest;
+use zrak::engine::request::ModelSettings;
 use zrak::field::ModelKind;
 use zrak::field::nerf::Sampling;
 use zrak::field::ngp::LossKind;

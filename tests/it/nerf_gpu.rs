@@ -33,14 +33,15 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use glam::{Quat, Vec3};
-use zrak::engine::build::ModelSettings;
-use zrak::engine::build::{ModelRequest, build_gpu};
+use zrak::engine::build_gpu;
 use zrak::engine::cpu::fields::nerf::{DensityActivation, NerfShape};
 use zrak::engine::cpu::frequency::FrequencyEncoding;
 use zrak::engine::cpu::model::CpuModel;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::model::GpuModel;
 use zrak::engine::gpu::render::{read_texture_rgba8, render_target};
+use zrak::engine::request::ModelRequest;
+use zrak::engine::request::ModelSettings;
 use zrak::field::ModelKind;
 use zrak::field::common::Recipe;
 use zrak::field::mipnerf;

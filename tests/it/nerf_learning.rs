@@ -6,10 +6,10 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use zrak::engine::build::ModelRequest;
-use zrak::engine::build::ModelSettings;
 use zrak::engine::cpu::dense::Precision;
 use zrak::engine::cpu::model::CpuModel;
+use zrak::engine::request::ModelRequest;
+use zrak::engine::request::ModelSettings;
 use zrak::field::ModelKind;
 use zrak::field::nerf::Sampling;
 use zrak::field::ngp::LossKind;

@@ -10,7 +10,7 @@ use std::time::Instant;
 
 use common::{batch, relative, relative_norm};
 use glam::Vec3;
-use zrak::engine::build::build_gpu;
+use zrak::engine::build_gpu;
 use zrak::engine::cpu::fields::ngp::NgpShape;
 use zrak::engine::cpu::model::CpuModel;
 use zrak::engine::gpu::model::GpuModel;

@@ -25,7 +25,7 @@ use crate::common::gate_record::{Fixture, GateRecord};
 
 use std::sync::Arc;
 
-use zrak::engine::build::build_gpu;
+use zrak::engine::build_gpu;
 use zrak::engine::cpu::fields::ngp::NgpShape;
 use zrak::engine::cpu::hash_grid::HashGridLayout;
 use zrak::engine::gpu::GpuContext;

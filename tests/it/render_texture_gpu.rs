@@ -7,7 +7,7 @@ use std::sync::{Arc, Mutex};
 
 use glam::{Quat, Vec3};
 
-use zrak::engine::build::build_gpu;
+use zrak::engine::build_gpu;
 use zrak::engine::cpu::model::CpuModel;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::model::GpuModel;

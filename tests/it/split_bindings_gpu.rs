@@ -11,7 +11,7 @@
 
 use std::sync::Arc;
 
-use zrak::engine::build::build_gpu;
+use zrak::engine::build_gpu;
 use zrak::engine::cpu::adam::Adam;
 use zrak::engine::cpu::dense::{Activation, MlpLayout};
 use zrak::engine::cpu::hash_grid::HashGridLayout;

@@ -14,11 +14,12 @@ use std::time::{Duration, Instant};
 
 use zrak::app::protocol::{Command, Event, GpuFrame, RenderRequest, RenderedFrame, SceneSource};
 use zrak::app::worker::{TrainingWorker, WorkerOptions};
-use zrak::engine::build::ModelRequest;
-use zrak::engine::build::build_gpu;
-use zrak::engine::build::{ModelSettings, build};
+use zrak::engine::build;
+use zrak::engine::build_gpu;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::render::read_texture_rgba8;
+use zrak::engine::request::ModelRequest;
+use zrak::engine::request::ModelSettings;
 use zrak::engine::{EngineChoice, EngineKind};
 use zrak::field::ModelKind;
 use zrak::field::ngp::LossKind;

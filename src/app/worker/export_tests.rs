@@ -14,9 +14,9 @@ use crate::app::protocol::{
 };
 use crate::app::worker::{TrainingWorker, WorkerOptions};
 use crate::engine::EngineKind;
-use crate::engine::build::ModelRequest;
 use crate::engine::cpu::dense::Precision;
 use crate::engine::cpu::model::CpuModel;
+use crate::engine::request::ModelRequest;
 use crate::field::ModelKind;
 use crate::mesh::extract::{MeshSettings, extract_mesh, sample_density};
 use crate::mesh::points::{PointSettings, extract_points, stride_for};
@@ -220,7 +220,7 @@ fn the_viewers_mesh_and_points_are_the_commands_and_an_existing_file_stays() {
     // The command's function on the same model (the saved checkpoint),
     // settings and box.
     let scene = Arc::new(demo::build(&small_demo()));
-    let settings = crate::engine::build::ModelSettings {
+    let settings = crate::engine::request::ModelSettings {
         seed,
         loss: ModelKind::Ngp.default_loss(),
         batch_samples,

@@ -19,11 +19,12 @@ use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use crate::engine::build::{ModelRequest, ModelSettings, build};
+use crate::engine::build;
 use crate::engine::cpu::dense::{Precision, backend_for};
 use crate::engine::cpu::fields::nerf::NerfShape;
 use crate::engine::gpu::GpuContext;
 use crate::engine::gpu::render::render_target;
+use crate::engine::request::{ModelRequest, ModelSettings};
 use crate::engine::{EngineChoice, EngineKind, choose_engine};
 use crate::field::ModelKind;
 use crate::field::nerf::Sampling;

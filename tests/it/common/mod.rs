@@ -262,8 +262,8 @@ pub fn request(
     seed: u64,
     loss: zrak::field::ngp::LossKind,
     batch_samples: Option<usize>,
-) -> zrak::engine::build::ModelRequest {
-    use zrak::engine::build::{ModelRequest, ModelSettings};
+) -> zrak::engine::request::ModelRequest {
+    use zrak::engine::request::{ModelRequest, ModelSettings};
     ModelRequest::new(
         kind,
         ModelSettings {

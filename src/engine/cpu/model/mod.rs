@@ -56,7 +56,7 @@ mod marched;
 mod samplers;
 
 use super::fields::fields_for;
-use crate::engine::build::ModelRequest;
+use crate::engine::request::ModelRequest;
 use crate::engine::shared::driver::*;
 use fixed::*;
 use samplers::{LevelSampler, level_sampler};

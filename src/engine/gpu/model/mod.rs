@@ -71,8 +71,8 @@ use super::step::{
     CompositeAndLoss, RayBuffers, SampleBuffers, SampleGradientBuffers, StepReadback, StepResults,
 };
 use super::timing::{StageClock, StageTiming};
-use crate::engine::build::ModelRequest;
 use crate::engine::crop::{crop_densities, crop_ray_bounds};
+use crate::engine::request::ModelRequest;
 use crate::engine::shared::driver::{
     DriverCore, RAYS_PER_CHUNK, check_sampling, chunk_jitter_seed, grid_cell_variance,
     grid_sample_inputs, ray_bounds, sigma_first, to_world,

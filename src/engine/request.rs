@@ -1,15 +1,9 @@
-//! The composition root: a model asked for by kind, settings and, for
-//! tests, a shape or recipe of its own, built on the chosen engine. Each
-//! engine has one `fields_for` that turns a [`FieldShape`] into its fields
-//! (the only place an engine tells the kinds of field apart); everything
-//! else a model needs (its recipe, its paper shape, its name) is its row
-//! of [`crate::field::MODELS`].
+//! What a model is asked for with: its kind, its settings and, for tests
+//! and the viewer, a shape or recipe of its own; and what both engines'
+//! drivers start from ([`ModelRequest::plan`]). Everything a model needs
+//! beyond its fields (its recipe, its paper shape, its name) is its row of
+//! [`crate::field::MODELS`]; [`crate::engine::build`] builds it.
 
-use super::EngineChoice;
-use super::EngineKind;
-use super::cpu::model::CpuModel;
-use super::gpu::GpuContext;
-use super::gpu::model::GpuModel;
 use super::shared::driver::{DriverCore, ModelIdentity};
 use crate::field::ModelKind;
 use crate::field::common::{BatchSize, Recipe};
@@ -17,7 +11,6 @@ use crate::field::mlp::Precision;
 use crate::field::nerf::Sampling;
 use crate::field::ngp::LossKind;
 use crate::field::shape::FieldShape;
-use crate::model::RadianceModel;
 use crate::scene::Scene;
 
 /// Settings every model takes.
@@ -153,32 +146,4 @@ pub enum BuildError {
         model: &'static str,
         problem: String,
     },
-}
-
-/// A fresh model on the chosen engine.
-pub fn build(
-    request: &ModelRequest,
-    engine: EngineChoice,
-    scene: &Scene,
-) -> Result<Box<dyn RadianceModel>, BuildError> {
-    match engine.kind {
-        EngineKind::Cpu => Ok(Box::new(CpuModel::build(request, scene))),
-        EngineKind::Gpu => {
-            let context = engine.gpu.ok_or(BuildError::NoGpuContext)?;
-            build_gpu(context, request, scene).map(|m| Box::new(m) as Box<dyn RadianceModel>)
-        }
-    }
-}
-
-/// A fresh model on the `gpu` engine with the context's device (tests
-/// that look inside the driver take it so).
-pub fn build_gpu(
-    context: GpuContext,
-    request: &ModelRequest,
-    scene: &Scene,
-) -> Result<GpuModel, BuildError> {
-    GpuModel::build(context, request, scene).map_err(|problem| BuildError::Gpu {
-        model: request.kind.name(),
-        problem,
-    })
 }
