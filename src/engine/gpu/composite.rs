@@ -9,7 +9,7 @@ use super::context::{GpuContext, GpuError};
 use super::kernel::{Kernel, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer};
 use crate::engine::shared::composite::{Distortion, RayBatch};
 
-const VOLUME_COMMON: &str = include_str!("../../../shaders/volume_common.wgsl");
+pub(crate) const VOLUME_COMMON: &str = include_str!("../../../shaders/volume_common.wgsl");
 
 /// Threads per workgroup in the compositing kernels.
 const WORKGROUP: u32 = 64;

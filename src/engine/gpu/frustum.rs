@@ -29,7 +29,7 @@
 
 use super::context::{GpuContext, GpuError};
 use super::kernel::{Kernel, float_range};
-use super::march::source;
+use super::march::{CPU_ARITHMETIC, source};
 use super::sampling::{COMMON, GpuSampling, SampleUniforms};
 
 const FRUSTUM_COMMON: &str = include_str!("../../../shaders/frustum_common.wgsl");
@@ -81,7 +81,7 @@ impl GpuFrustums {
             Kernel::new(
                 context,
                 name,
-                &source(&[COMMON, FRUSTUM_COMMON, entry]),
+                &source(&[COMMON, CPU_ARITHMETIC, FRUSTUM_COMMON, entry]),
                 "main",
             )
         };

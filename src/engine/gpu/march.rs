@@ -74,8 +74,11 @@ pub(crate) fn source(parts: &[&str]) -> String {
     parts.concat()
 }
 
-const MARCH_PARAMS: &str = include_str!("../../../shaders/march_params.wgsl");
-const MARCH_COMMON: &str = include_str!("../../../shaders/march_common.wgsl");
+pub(crate) const MARCH_PARAMS: &str = include_str!("../../../shaders/march_params.wgsl");
+pub(crate) const MARCH_COMMON: &str = include_str!("../../../shaders/march_common.wgsl");
+/// `unfused` and `mix32`, the cpu's arithmetic to the bit, for the march
+/// and the sampling kernels.
+pub(crate) const CPU_ARITHMETIC: &str = include_str!("../../../shaders/cpu_arithmetic.wgsl");
 
 /// Where a march leaves its samples on the GPU, sized for `ray_count` rays
 /// and at most `capacity` samples.
@@ -167,7 +170,7 @@ impl GpuMarch {
             Kernel::new(
                 context,
                 name,
-                &source(&[MARCH_PARAMS, MARCH_COMMON, entry]),
+                &source(&[MARCH_PARAMS, CPU_ARITHMETIC, MARCH_COMMON, entry]),
                 "main",
             )
         };

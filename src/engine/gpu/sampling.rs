@@ -18,7 +18,7 @@
 
 use super::context::{GpuContext, GpuError};
 use super::kernel::{Kernel, float_range, pieces, rows_per_piece, uniform_buffer};
-use super::march::{dispatch_grid, source};
+use super::march::{CPU_ARITHMETIC, dispatch_grid, source};
 use crate::engine::shared::sampling::stratified_step;
 
 /// Threads per workgroup of every sampling kernel.
@@ -70,8 +70,14 @@ pub struct GpuSampling {
 
 impl GpuSampling {
     pub fn new(context: &GpuContext) -> Result<Self, GpuError> {
-        let kernel =
-            |name: &str, entry: &str| Kernel::new(context, name, &source(&[COMMON, entry]), "main");
+        let kernel = |name: &str, entry: &str| {
+            Kernel::new(
+                context,
+                name,
+                &source(&[COMMON, CPU_ARITHMETIC, entry]),
+                "main",
+            )
+        };
         Ok(Self {
             stratified: kernel(
                 "sample_stratified",
