@@ -252,7 +252,7 @@ fn prefix_sum_over_many_blocks() {
 fn compaction_keeps_each_rays_samples_before_its_cut_in_order() {
     let _cores = crate::common::shared();
     use zrak::engine::gpu::compact::{CompactedSamples, GpuCompaction, MarchedInputs};
-    use zrak::engine::gpu::kernel::{read_buffer, storage_buffer};
+    use zrak::engine::gpu::kernel::{Recorder, read_buffer, storage_buffer};
 
     let context = crate::common::gpu_context();
     let rays = 700;
@@ -288,10 +288,9 @@ fn compaction_keeps_each_rays_samples_before_its_cut_in_order() {
         buffer(&t, "t"),
         buffer(&sigma, "sigma"),
     ];
-    let mut encoder = context.device.create_command_encoder(&Default::default());
+    let mut rec = Recorder::new(&context);
     compaction.record(
-        &context,
-        &mut encoder,
+        &mut rec,
         &march,
         rays,
         MarchedInputs {
@@ -306,7 +305,7 @@ fn compaction_keeps_each_rays_samples_before_its_cut_in_order() {
         },
         &out,
     );
-    context.queue.submit([encoder.finish()]);
+    rec.submit();
 
     // The same on the host.
     let kept: Vec<usize> = (0..rays)
