@@ -2,7 +2,7 @@
 // (Barron et al. 2021, section 3.1 and appendix A; reference mip.py
 // `conical_frustum_to_gaussian`, `lift_gaussian`) and why this stable form
 // is used are in src/engine/cpu/frustum.rs. Prepended (after
-// sample_common.wgsl, whose `unfused` keeps each product rounded before the
+// sample_common.wgsl and cpu_arithmetic.wgsl, whose `unfused` keeps each product rounded before the
 // sum it feeds, as the cpu rounds it) to the frustum kernels. Every
 // operation is the cpu's, in the cpu's order, so the two engines differ
 // only where WGSL's division is allowed to (2.5 ulp).

@@ -27,21 +27,10 @@ struct RayMarch {
     whole_ray: bool,
 }
 
-fn unfused(x: f32) -> f32 {
-    return bitcast<f32>(bitcast<u32>(x) ^ params.zero);
-}
+// `unfused` and `mix32` come from cpu_arithmetic.wgsl.
 
 fn is_finite(v: vec3<f32>) -> bool {
     return all(abs(v) <= vec3<f32>(3.4028235e38));
-}
-
-fn mix32(x0: u32) -> u32 {
-    var x = x0;
-    x ^= x >> 16u;
-    x *= 0x85ebca6bu;
-    x ^= x >> 13u;
-    x *= 0xc2b2ae35u;
-    return x ^ (x >> 16u);
 }
 
 fn ray_jitter(ray: u32) -> f32 {

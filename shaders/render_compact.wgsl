@@ -2,16 +2,7 @@
 // round's list. Their order varies from run to run (an atomic counter); no
 // ray's result depends on it.
 
-struct RayState {
-    k: u32,
-    emitted: u32,
-    done: u32,
-    optical_depth: f32,
-    depth: f32,
-    r: f32,
-    g: f32,
-    b: f32,
-}
+// `RayState` comes from ray_state.wgsl.
 
 struct Params {
     count: u32,

@@ -6,16 +6,7 @@
 // (`use_crop` 1), samples outside it have no density, as
 // `engine::crop::crop_densities` sets them on the cpu.
 
-struct RayState {
-    k: u32,
-    emitted: u32,
-    done: u32,
-    optical_depth: f32,
-    depth: f32,
-    r: f32,
-    g: f32,
-    b: f32,
-}
+// `RayState` comes from ray_state.wgsl.
 
 struct Params {
     count: u32,
@@ -62,14 +53,7 @@ fn inside_crop(s: u32) -> bool {
     return all(abs(local) <= params.crop_half.xyz);
 }
 
-// 1 − e^{−τ}, as in composite_forward.wgsl (which explains the series).
-fn one_minus_exp_neg(tau: f32) -> f32 {
-    if (tau < 0.25) {
-        return tau * (1.0 - tau / 2.0 * (1.0 - tau / 3.0 * (1.0 - tau / 4.0 * (1.0 - tau / 5.0
-            * (1.0 - tau / 6.0 * (1.0 - tau / 7.0 * (1.0 - tau / 8.0)))))));
-    }
-    return 1.0 - exp(-tau);
-}
+// one_minus_exp_neg comes from volume_common.wgsl.
 
 @compute @workgroup_size(64)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {

@@ -3,16 +3,7 @@
 // `render::to_image`'s mapping (depth: near white, far black, pixels of
 // opacity ≤ 0.5 black).
 
-struct RayState {
-    k: u32,
-    emitted: u32,
-    done: u32,
-    optical_depth: f32,
-    depth: f32,
-    r: f32,
-    g: f32,
-    b: f32,
-}
+// `RayState` comes from ray_state.wgsl.
 
 struct Params {
     width: u32,

@@ -6,19 +6,7 @@
 // the same samples. `ray_count` is the rays of this round, `max_samples`
 // the cap per ray over all rounds.
 
-struct RayState {
-    // The next lattice index to look at.
-    k: u32,
-    // Samples composited so far.
-    emitted: u32,
-    // 1 once the ray needs no more samples.
-    done: u32,
-    optical_depth: f32,
-    depth: f32,
-    r: f32,
-    g: f32,
-    b: f32,
-}
+// `RayState` comes from ray_state.wgsl.
 
 @group(0) @binding(0) var<uniform> params: MarchParams;
 @group(0) @binding(1) var<storage, read> bitfield: array<u32>;

@@ -31,20 +31,7 @@ struct SampleParams {
 
 @group(0) @binding(0) var<uniform> params: SampleParams;
 
-fn unfused(x: f32) -> f32 {
-    return bitcast<f32>(bitcast<u32>(x) ^ params.zero);
-}
-
-// The murmur3 32-bit finaliser, as `engine::cpu::march::mix32` and
-// march_common.wgsl.
-fn mix32(x0: u32) -> u32 {
-    var x = x0;
-    x ^= x >> 16u;
-    x *= 0x85ebca6bu;
-    x ^= x >> 13u;
-    x *= 0xc2b2ae35u;
-    return x ^ (x >> 16u);
-}
+// `unfused` and `mix32` come from cpu_arithmetic.wgsl.
 
 // `engine::cpu::sampling::uniform` (a WGSL function cannot be called
 // `uniform`, an address space): 24 bits, exact in f32, in [0, 1).

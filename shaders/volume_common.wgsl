@@ -1,6 +1,7 @@
 // Volume-rendering helpers shared by the compositing kernels
-// (composite_forward, composite_backward, composite_weights), prepended to
-// each by `engine::gpu::composite`.
+// (composite_forward, composite_backward, composite_weights, prepended to
+// each by `engine::gpu::composite`; render_composite, by
+// `engine::gpu::render`).
 
 // 1 − e^{−τ} for τ ≥ 0. WGSL has no expm1, and 1 − exp(−τ) loses all
 // digits as τ → 0 (τ = 1e-6 would be 6% off), so small τ use the Taylor

@@ -24,8 +24,10 @@ fn random(rng: &mut Pcg32, n: usize, scale: f32) -> Vec<f32> {
 /// slow, which is why software adapters get the cpu engine). Run with
 /// `cargo bench --bench probes -- dense_throughput`.
 pub fn dense_throughput() {
-    use zrak::engine::gpu::dense::GpuMlpWorkspace;
-    use zrak::engine::gpu::kernel::{read_buffer, storage_buffer, zeroed_storage_buffer};
+    use zrak::engine::gpu::dense::{GpuMlpWorkspace, MlpGradients};
+    use zrak::engine::gpu::kernel::{
+        FloatsAt, Recorder, read_buffer, storage_buffer, zeroed_storage_buffer,
+    };
     let context = GpuContext::new().expect("an adapter exists");
     eprintln!("adapter: {}", context.describe());
     let dense = GpuDense::new(&context).unwrap();
@@ -53,22 +55,18 @@ pub fn dense_throughput() {
         let workspace = GpuMlpWorkspace::new(&context, &layout, rows);
         let run = |backward: bool| {
             let start = std::time::Instant::now();
-            let mut encoder = context.device.create_command_encoder(&Default::default());
-            dense.record_forward(&context, &mut encoder, &params, &input, &workspace, rows);
+            let mut rec = Recorder::new(&context);
+            let network = FloatsAt::start(&params);
+            dense.record_forward(&mut rec, network, &input, &workspace, rows);
             if backward {
-                dense.record_backward(
-                    &context,
-                    &mut encoder,
-                    &params,
-                    &input,
-                    &workspace,
-                    &d_output,
-                    &d_params,
-                    Some(&d_input),
-                    rows,
-                );
+                let gradients = MlpGradients {
+                    output: &d_output,
+                    params: &d_params,
+                    input: Some(&d_input),
+                };
+                dense.record_backward(&mut rec, network, &input, &workspace, gradients, rows);
             }
-            context.queue.submit([encoder.finish()]);
+            rec.submit();
             let _: Vec<f32> = read_buffer(&context, &d_params, 1);
             start.elapsed().as_secs_f64()
         };

@@ -3,7 +3,7 @@
 use zrak::engine::cpu::adam::Adam;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::adam::GpuAdam;
-use zrak::engine::gpu::kernel::{read_buffer, storage_buffer};
+use zrak::engine::gpu::kernel::{Recorder, read_buffer, storage_buffer};
 use zrak::field::ngp::OptimiserConfig;
 use zrak::rng::Pcg32;
 
@@ -59,7 +59,7 @@ fn compare(
     let mut cpu = Adam::new(n);
     let mut gpu = GpuAdam::new(context, n).expect("the kernel compiles");
     let gpu_params = storage_buffer(context, "params", &initial);
-    let mut encoder = context.device.create_command_encoder(&Default::default());
+    let mut rec = Recorder::new(context);
     let mut gradient_buffers = Vec::new();
     for step in 0..steps {
         let g = gradients(n, step);
@@ -67,15 +67,14 @@ fn compare(
         // All steps in one submission, as a training loop would chain them.
         gradient_buffers.push(storage_buffer(context, "gradients", &g));
         gpu.record_step(
-            context,
-            &mut encoder,
+            &mut rec,
             &PAPER,
             network.clone(),
             &gpu_params,
             gradient_buffers.last().unwrap(),
         );
     }
-    context.queue.submit([encoder.finish()]);
+    rec.submit();
     let params: Vec<f32> = read_buffer(context, &gpu_params, n);
     let state = gpu.read_state(context);
     assert_eq!(state.step, cpu.step);
@@ -186,16 +185,9 @@ fn adam_resumes_from_a_cpu_state() {
     let buffer = storage_buffer(&context, "params", &params);
     let g = gradients(n, 3);
     let g_buffer = storage_buffer(&context, "gradients", &g);
-    let mut encoder = context.device.create_command_encoder(&Default::default());
-    gpu.record_step(
-        &context,
-        &mut encoder,
-        &PAPER,
-        network.clone(),
-        &buffer,
-        &g_buffer,
-    );
-    context.queue.submit([encoder.finish()]);
+    let mut rec = Recorder::new(&context);
+    gpu.record_step(&mut rec, &PAPER, network.clone(), &buffer, &g_buffer);
+    rec.submit();
     let before = params.clone();
     cpu.step(&PAPER, network, &mut params, &g);
     let gpu_params: Vec<f32> = read_buffer(&context, &buffer, n);
@@ -235,17 +227,10 @@ fn adam_covers_instant_ngp_sized_parameter_sets() {
     let mut gpu = GpuAdam::new(&context, n).expect("the kernel compiles");
     let params = storage_buffer(&context, "params", &initial);
     let gradients = storage_buffer(&context, "gradients", &g);
-    let mut encoder = context.device.create_command_encoder(&Default::default());
+    let mut rec = Recorder::new(&context);
     let start = std::time::Instant::now();
-    gpu.record_step(
-        &context,
-        &mut encoder,
-        &PAPER,
-        0..network,
-        &params,
-        &gradients,
-    );
-    context.queue.submit([encoder.finish()]);
+    gpu.record_step(&mut rec, &PAPER, 0..network, &params, &gradients);
+    rec.submit();
     let result: Vec<f32> = read_buffer(&context, &params, n);
     eprintln!(
         "gpu adam over {n} parameters (with read-back): {:?}",

@@ -12,7 +12,7 @@ use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::composite::{
     CompositeGradientBuffers, CompositeOutputBuffers, GpuComposite, RayBatchBuffers,
 };
-use zrak::engine::gpu::kernel::{read_buffer, storage_buffer, zeroed_storage_buffer};
+use zrak::engine::gpu::kernel::{Recorder, read_buffer, storage_buffer, zeroed_storage_buffer};
 use zrak::engine::gpu::loss::{GpuLoss, LossBuffers};
 use zrak::field::ngp::{LossKind, MarchConfig};
 use zrak::rng::Pcg32;
@@ -500,10 +500,9 @@ fn forward_loss_backward_chain_in_one_submission() {
         background: &background,
         ray_count: rays,
     };
-    let mut encoder = context.device.create_command_encoder(&Default::default());
+    let mut rec = Recorder::new(&context);
     composite.record_forward(
-        &context,
-        &mut encoder,
+        &mut rec,
         &buffers,
         CUT,
         &CompositeOutputBuffers {
@@ -514,8 +513,7 @@ fn forward_loss_backward_chain_in_one_submission() {
         },
     );
     loss.record(
-        &context,
-        &mut encoder,
+        &mut rec,
         LossKind::Huber,
         &LossBuffers {
             predicted: &out_rgb,
@@ -527,8 +525,7 @@ fn forward_loss_backward_chain_in_one_submission() {
         },
     );
     composite.record_backward(
-        &context,
-        &mut encoder,
+        &mut rec,
         &buffers,
         CUT,
         &d_rgb,
@@ -539,7 +536,7 @@ fn forward_loss_backward_chain_in_one_submission() {
             background: &d_background,
         },
     );
-    context.queue.submit([encoder.finish()]);
+    rec.submit();
     let gpu_rgb: Vec<f32> = read_buffer(&context, &out_rgb, 3 * rays);
     let gpu_d_rgb: Vec<f32> = read_buffer(&context, &d_rgb, 3 * rays);
     let gpu_loss = read_buffer::<f32>(&context, &total, 1)[0];

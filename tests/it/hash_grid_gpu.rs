@@ -18,7 +18,7 @@
 use zrak::engine::cpu::hash_grid::{HashGridLayout, encode, encode_backward};
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::hash_grid::GpuHashGrid;
-use zrak::engine::gpu::kernel::{read_buffer, storage_buffer, zeroed_storage_buffer};
+use zrak::engine::gpu::kernel::{Recorder, read_buffer, storage_buffer, zeroed_storage_buffer};
 use zrak::field::ngp::HashGridConfig;
 use zrak::rng::Pcg32;
 
@@ -246,18 +246,16 @@ fn dispatches_share_one_encoder() {
     let encoded_all =
         zeroed_storage_buffer::<f32>(&context, "encoded all", positions.len() * width);
     let d_params = zeroed_storage_buffer::<f32>(&context, "d_params", layout.param_count());
-    let mut encoder = context.device.create_command_encoder(&Default::default());
+    let mut rec = Recorder::new(&context);
     grid.record_encode(
-        &context,
-        &mut encoder,
+        &mut rec,
         &params_buffer,
         &positions_buffer,
         &encoded_small,
         small,
     );
     grid.record_encode(
-        &context,
-        &mut encoder,
+        &mut rec,
         &params_buffer,
         &positions_buffer,
         &encoded_all,
@@ -267,14 +265,13 @@ fn dispatches_share_one_encoder() {
     // as well, but ones make the cpu reference independent of the forward.
     let ones = storage_buffer(&context, "ones", &vec![1.0f32; positions.len() * width]);
     grid.record_backward(
-        &context,
-        &mut encoder,
+        &mut rec,
         &positions_buffer,
         &ones,
         &d_params,
         positions.len(),
     );
-    context.queue.submit([encoder.finish()]);
+    rec.submit();
 
     let mut cpu = vec![0.0; positions.len() * width];
     encode(&layout, &params, &positions, &mut cpu);

@@ -1,13 +1,13 @@
-//! The gpu march and occupancy grid against the cpu engine on lavapipe:
-//! the same samples (the kernels repeat the cpu's arithmetic operation for
-//! operation, with fused multiply-adds prevented), the same offsets, the
-//! same grid update and bitfield.
+//! The gpu march against the cpu engine on lavapipe: the same samples
+//! (the kernels repeat the cpu's arithmetic operation for operation, with
+//! fused multiply-adds prevented) and the same offsets. The gpu driver
+//! updates its occupancy grid with the cpu engine's code on the host
+//! (`ngp_gpu::occupancy_update_matches_the_cpu_engine`).
 
 use zrak::engine::cpu::march::{MarchParams, MarchStats, MarchWorkspace, MarchedSamples, march};
-use zrak::engine::cpu::occupancy::{OccupancyGrid, UNTRAINED, mix64};
+use zrak::engine::cpu::occupancy::{OccupancyGrid, mix64};
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::march::GpuMarch;
-use zrak::engine::gpu::occupancy::GpuOccupancy;
 use zrak::field::ngp::{MarchConfig, OccupancyConfig};
 use zrak::scene::UnitCubeMapping;
 
@@ -243,112 +243,6 @@ fn prefix_sum_over_many_blocks() {
     assert_same_samples(&cpu, &marched, "150 000 rays");
 }
 
-#[test]
-fn bitfield_matches_cpu() {
-    let _cores = crate::common::shared();
-    let context = GpuContext::new().expect("lavapipe or a GPU");
-    let gpu = GpuOccupancy::new(&context).unwrap();
-    for (cascades, scale, seed) in [(1, 0.03, 1u64), (2, 0.01, 2), (1, 0.004, 3)] {
-        let mut grid =
-            OccupancyGrid::new(OccupancyConfig::PAPER, cascades, MarchConfig::PAPER.step);
-        // Values uniform in [0, scale), a few untrained.
-        for (i, v) in grid.values_mut().iter_mut().enumerate() {
-            let u = uniform(seed ^ mix64(i as u64));
-            *v = if u < 0.001 {
-                UNTRAINED
-            } else {
-                scale * uniform(seed.wrapping_add(7) ^ mix64(i as u64))
-            };
-        }
-        grid.build_bitfield();
-        let (bits, threshold) = gpu.build_bitfield(&context, &grid);
-        // The GPU sums in f32 in a tree, the cpu in f64: the means agree to
-        // a few ulps of f32 (relative 1e-5 is generous).
-        assert!(
-            (threshold - grid.threshold()).abs() <= 1e-5 * grid.threshold(),
-            "threshold gpu {threshold} cpu {}",
-            grid.threshold()
-        );
-        let mut differing = 0;
-        for (i, &v) in grid.values().iter().enumerate() {
-            let (a, b) = (
-                (grid.bitfield()[i / 32] >> (i % 32)) & 1,
-                (bits[i / 32] >> (i % 32)) & 1,
-            );
-            if a != b {
-                // Only a cell whose value lies between the two thresholds
-                // may differ.
-                assert!(
-                    (v - grid.threshold()).abs() <= 1e-5 * grid.threshold(),
-                    "cell {i}: {v}"
-                );
-                differing += 1;
-            }
-        }
-        if grid.threshold() == 0.01 {
-            // mean ≥ 0.01: both thresholds are the constant, bits equal.
-            assert_eq!(differing, 0);
-            assert_eq!(bits, grid.bitfield());
-        }
-        assert!(differing <= 10, "{differing}");
-        let occupied: u32 = bits.iter().map(|w| w.count_ones()).sum();
-        eprintln!(
-            "{cascades} cascades: threshold {threshold}, {occupied} occupied of {}, {differing} differ",
-            grid.values().len()
-        );
-    }
-}
-
-#[test]
-fn grid_update_matches_cpu() {
-    let _cores = crate::common::shared();
-    let context = GpuContext::new().expect("lavapipe or a GPU");
-    let gpu = GpuOccupancy::new(&context).unwrap();
-    let mut grid = OccupancyGrid::new(OccupancyConfig::PAPER, 2, MarchConfig::PAPER.step);
-    // Start from a mix of sampled cells and untrained ones.
-    for (i, v) in grid.values_mut().iter_mut().enumerate() {
-        *v = if uniform(mix64(i as u64)) < 0.2 {
-            UNTRAINED
-        } else {
-            0.03 * uniform(i as u64)
-        };
-    }
-    grid.build_bitfield();
-    // A warm-up update (every cell) and a later one (a quarter plus a
-    // quarter from occupied cells, so some cells are drawn several times
-    // and the compare-and-swap has to take the largest).
-    for (step, seed) in [(0u32, 4u64), (1000, 5)] {
-        let report = grid.plan_update(step, seed);
-        assert_eq!(report.full, step == 0);
-        // Densities spread over a few decades, with some broken ones.
-        let sigma: Vec<f32> = (0..report.samples)
-            .map(|i| match i % 97 {
-                0 => f32::NAN,
-                1 => -3.0,
-                2 => f32::INFINITY,
-                _ => 10f32.powf(4.0 * uniform(seed ^ mix64(i as u64)) - 2.0),
-            })
-            .collect();
-        let (values, bits, threshold) = gpu.apply_update(&context, &grid, &sigma);
-        grid.apply_update(&sigma);
-        // The same operations on the same floats, and max does not depend
-        // on the order the samples land in: the values agree to the bit.
-        assert!(values == grid.values(), "step {step}: values differ");
-        assert!((threshold - grid.threshold()).abs() <= 1e-5 * grid.threshold());
-        let differing = bits
-            .iter()
-            .zip(grid.bitfield())
-            .map(|(a, b)| (a ^ b).count_ones())
-            .sum::<u32>();
-        assert!(differing <= 10, "step {step}: {differing} bits differ");
-        eprintln!(
-            "update at step {step}: {} samples, threshold {threshold}, {:.1}% occupied, {differing} bits differ",
-            report.samples,
-            100.0 * grid.occupancy_fraction()
-        );
-    }
-}
-
 /// σ-first compaction: rays whose samples before the cut are counted keep
 /// those samples, rays in order and samples in order within each ray; empty
 /// rays, rays that keep nothing and rays that keep everything among them,
@@ -358,7 +252,7 @@ fn grid_update_matches_cpu() {
 fn compaction_keeps_each_rays_samples_before_its_cut_in_order() {
     let _cores = crate::common::shared();
     use zrak::engine::gpu::compact::{CompactedSamples, GpuCompaction, MarchedInputs};
-    use zrak::engine::gpu::kernel::{read_buffer, storage_buffer};
+    use zrak::engine::gpu::kernel::{Recorder, read_buffer, storage_buffer};
 
     let context = crate::common::gpu_context();
     let rays = 700;
@@ -394,10 +288,9 @@ fn compaction_keeps_each_rays_samples_before_its_cut_in_order() {
         buffer(&t, "t"),
         buffer(&sigma, "sigma"),
     ];
-    let mut encoder = context.device.create_command_encoder(&Default::default());
+    let mut rec = Recorder::new(&context);
     compaction.record(
-        &context,
-        &mut encoder,
+        &mut rec,
         &march,
         rays,
         MarchedInputs {
@@ -412,7 +305,7 @@ fn compaction_keeps_each_rays_samples_before_its_cut_in_order() {
         },
         &out,
     );
-    context.queue.submit([encoder.finish()]);
+    rec.submit();
 
     // The same on the host.
     let kept: Vec<usize> = (0..rays)

@@ -51,7 +51,8 @@ use zrak::engine::cpu::fields::{Field, Gradient};
 use zrak::engine::cpu::frequency::{FrequencyEncoding, encode};
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::fields::nerf::GpuNerfField;
-use zrak::engine::gpu::kernel::{read_buffer, storage_buffer};
+use zrak::engine::gpu::fields::{FieldInputs, FieldOutputs};
+use zrak::engine::gpu::kernel::{Recorder, read_buffer, storage_buffer};
 use zrak::rng::Pcg32;
 
 /// f32's unit roundoff.
@@ -516,9 +517,11 @@ fn check_parity(shape: &NerfShape, rows: usize, seed: u64) {
     let (g_sigma, g_rgb, g_grad) = gpu.forward_backward_once(
         &context,
         &params,
-        &positions,
-        None,
-        &directions,
+        FieldInputs {
+            positions: &positions,
+            variances: None,
+            directions: &directions,
+        },
         &d_sigma,
         &d_rgb,
     );
@@ -610,9 +613,11 @@ fn backward_accumulates() {
     let (_, _, once) = gpu.forward_backward_once(
         &context,
         &params,
-        &positions,
-        None,
-        &directions,
+        FieldInputs {
+            positions: &positions,
+            variances: None,
+            directions: &directions,
+        },
         &d_sigma,
         &d_rgb,
     );
@@ -630,10 +635,19 @@ fn backward_accumulates() {
     );
     let start: Vec<f32> = (0..params.len()).map(|i| (i % 7) as f32).collect();
     let gradients = buffer("gradients", &start);
-    let mut encoder = context.device.create_command_encoder(&Default::default());
-    gpu.record_forward(&context, &mut encoder, &p, &x, None, &d, rows, &sigma, &rgb);
-    gpu.record_backward(&context, &mut encoder, &p, &ds, &dc, rows, &gradients);
-    context.queue.submit([encoder.finish()]);
+    let mut rec = Recorder::new(&context);
+    let inputs = FieldInputs {
+        positions: &x,
+        variances: None,
+        directions: &d,
+    };
+    let outputs = FieldOutputs {
+        sigma: &sigma,
+        rgb: &rgb,
+    };
+    gpu.record_forward(&mut rec, &p, inputs, rows, outputs);
+    gpu.record_backward(&mut rec, &p, &ds, &dc, rows, &gradients);
+    rec.submit();
     let accumulated: Vec<f32> = read_buffer(&context, &gradients, params.len());
     for i in 0..params.len() {
         // One rounding of start + once.
@@ -660,9 +674,11 @@ fn split_bindings_give_the_same_bits() {
         gpu.forward_backward_once(
             context,
             &params,
-            &positions,
-            None,
-            &directions,
+            FieldInputs {
+                positions: &positions,
+                variances: None,
+                directions: &directions,
+            },
             &d_sigma,
             &d_rgb,
         )

@@ -18,9 +18,9 @@ use zrak::engine::cpu::fields::ngp::{NgpField, NgpShape};
 use zrak::engine::cpu::fields::{Field, Gradient};
 use zrak::engine::cpu::hash_grid::HashGridLayout;
 use zrak::engine::gpu::GpuContext;
-use zrak::engine::gpu::fields::GpuField;
 use zrak::engine::gpu::fields::ngp::GpuNgpField;
-use zrak::engine::gpu::kernel::{read_buffer, storage_buffer, zeroed_storage_buffer};
+use zrak::engine::gpu::fields::{FieldInputs, FieldOutputs, GpuField};
+use zrak::engine::gpu::kernel::{Recorder, read_buffer, storage_buffer, zeroed_storage_buffer};
 use zrak::field::ngp::HashGridConfig;
 use zrak::rng::Pcg32;
 
@@ -63,16 +63,13 @@ struct Outputs {
     gradient: Vec<f32>,
 }
 
-/// The gpu field's outputs with its parameters at f32 `offset` of a
-/// larger buffer (the gradient read back from the same offset).
-#[allow(clippy::too_many_arguments)]
+/// The gpu field's outputs at `inputs` with its parameters at f32 `offset`
+/// of a larger buffer (the gradient read back from the same offset).
 fn gpu_outputs(
     context: &GpuContext,
     shape: &NgpShape,
-    params: &[f32],
-    offset: usize,
-    positions: &[f32],
-    directions: &[f32],
+    (params, offset): (&[f32], usize),
+    inputs: FieldInputs<[f32]>,
     d_sigma: &[f32],
     d_rgb: &[f32],
 ) -> Outputs {
@@ -83,37 +80,28 @@ fn gpu_outputs(
     all.extend_from_slice(params);
     let params_buffer = storage_buffer(context, "params", &all);
     let gradients = zeroed_storage_buffer::<f32>(context, "gradients", all.len());
-    let positions = storage_buffer(context, "positions", positions);
-    let directions = storage_buffer(context, "directions", directions);
+    let positions = storage_buffer(context, "positions", inputs.positions);
+    let directions = storage_buffer(context, "directions", inputs.directions);
+    let inputs = FieldInputs {
+        positions: &positions,
+        variances: None,
+        directions: &directions,
+    };
     let d_sigma = storage_buffer(context, "d sigma", d_sigma);
     let d_rgb = storage_buffer(context, "d rgb", d_rgb);
     let sigma = zeroed_storage_buffer::<f32>(context, "sigma", ROWS);
     let rgb = zeroed_storage_buffer::<f32>(context, "rgb", 3 * ROWS);
     let density = zeroed_storage_buffer::<f32>(context, "density", ROWS);
 
-    let mut encoder = context.device.create_command_encoder(&Default::default());
-    encoder.clear_buffer(&gradients, 0, None);
-    field.record_forward(
-        context,
-        &mut encoder,
-        &params_buffer,
-        &positions,
-        None,
-        &directions,
-        ROWS,
-        &sigma,
-        &rgb,
-    );
-    field.record_backward(
-        context,
-        &mut encoder,
-        &params_buffer,
-        &d_sigma,
-        &d_rgb,
-        ROWS,
-        &gradients,
-    );
-    context.queue.submit([encoder.finish()]);
+    let mut rec = Recorder::new(context);
+    rec.encoder.clear_buffer(&gradients, 0, None);
+    let outputs = FieldOutputs {
+        sigma: &sigma,
+        rgb: &rgb,
+    };
+    field.record_forward(&mut rec, &params_buffer, inputs, ROWS, outputs);
+    field.record_backward(&mut rec, &params_buffer, &d_sigma, &d_rgb, ROWS, &gradients);
+    rec.submit();
     let (sigma, rgb) = (
         read_buffer(context, &sigma, ROWS),
         read_buffer(context, &rgb, 3 * ROWS),
@@ -124,17 +112,9 @@ fn gpu_outputs(
         "the gradient reached parameters before the field's"
     );
 
-    let mut encoder = context.device.create_command_encoder(&Default::default());
-    field.record_density(
-        context,
-        &mut encoder,
-        &params_buffer,
-        &positions,
-        None,
-        ROWS,
-        &density,
-    );
-    context.queue.submit([encoder.finish()]);
+    let mut rec = Recorder::new(context);
+    field.record_density(&mut rec, &params_buffer, &positions, None, ROWS, &density);
+    rec.submit();
     Outputs {
         sigma,
         rgb,
@@ -185,13 +165,16 @@ fn gpu_ngp_field_matches_the_cpu_field() {
     let context = common::gpu_context();
     // 0, and an offset past other parameters that binding offsets allow.
     for offset in [0, 256] {
+        let inputs = FieldInputs {
+            positions: &positions[..],
+            variances: None,
+            directions: &directions[..],
+        };
         let gpu = gpu_outputs(
             &context,
             &shape,
-            &params,
-            offset,
-            &positions,
-            &directions,
+            (&params, offset),
+            inputs,
             &d_sigma,
             &d_rgb,
         );

@@ -11,9 +11,11 @@ use zrak::engine::cpu::sampling::{
     blur_weights, intervals_to_far, merge_sorted, sample_pdf, stratified,
 };
 use zrak::engine::gpu::GpuContext;
-use zrak::engine::gpu::frustum::{FrustumRays, FrustumSamples, GpuFrustums, MarchedIntervals};
-use zrak::engine::gpu::kernel::{read_buffer, storage_buffer, zeroed_storage_buffer};
-use zrak::engine::gpu::sampling::GpuSampling;
+use zrak::engine::gpu::frustum::{
+    FrustumRays, FrustumSamples, Gaussians, GpuFrustums, MarchedIntervals,
+};
+use zrak::engine::gpu::kernel::{Recorder, read_buffer, storage_buffer, zeroed_storage_buffer};
+use zrak::engine::gpu::sampling::{GpuSampling, Pdf, RayBounds, SortedRows};
 use zrak::rng::Pcg32;
 
 /// The context and kernels, or `None` (and a note) on a machine without an
@@ -30,17 +32,17 @@ fn setup() -> Option<(GpuContext, GpuSampling)> {
     Some((context, sampling))
 }
 
-/// Records `record` into an encoder, submits it, reads `count` floats of
+/// Records `record` into a recorder, submits it, reads `count` floats of
 /// the buffer it returns.
 fn run(
     context: &GpuContext,
     count: usize,
-    record: impl FnOnce(&mut wgpu::CommandEncoder, &wgpu::Buffer),
+    record: impl FnOnce(&mut Recorder, &wgpu::Buffer),
 ) -> Vec<f32> {
     let out = zeroed_storage_buffer::<f32>(context, "out", count);
-    let mut encoder = context.device.create_command_encoder(&Default::default());
-    record(&mut encoder, &out);
-    context.queue.submit([encoder.finish()]);
+    let mut rec = Recorder::new(context);
+    record(&mut rec, &out);
+    rec.submit();
     read_buffer(context, &out, count)
 }
 
@@ -78,12 +80,13 @@ fn stratified_matches_cpu_bit_for_bit() {
     let far_buffer = storage_buffer(&context, "far", &far);
     for n in [1, 2, 64, 129] {
         for jitter in [None, Some(0), Some(12345)] {
-            let gpu = run(&context, rays * n, |encoder, out| {
+            let gpu = run(&context, rays * n, |rec, out| {
                 sampling.record_stratified(
-                    &context,
-                    encoder,
-                    &near_buffer,
-                    &far_buffer,
+                    rec,
+                    RayBounds {
+                        near: &near_buffer,
+                        far: &far_buffer,
+                    },
                     rays,
                     n,
                     jitter,
@@ -156,15 +159,16 @@ fn sample_pdf_matches_cpu_within_ulps_of_the_bin_width() {
     for count in [1, 128] {
         for padding in [0.0, 1e-5, 0.01] {
             for jitter in [None, Some(99)] {
-                let gpu = run(&context, rays * count, |encoder, out| {
+                let gpu = run(&context, rays * count, |rec, out| {
                     sampling.record_sample_pdf(
-                        &context,
-                        encoder,
-                        &edges_buffer,
-                        &weights_buffer,
+                        rec,
+                        Pdf {
+                            edges: &edges_buffer,
+                            weights: &weights_buffer,
+                            bins,
+                            padding,
+                        },
                         rays,
-                        bins,
-                        padding,
                         count,
                         jitter,
                         out,
@@ -228,8 +232,16 @@ fn merge_blur_and_intervals_match_cpu_bit_for_bit() {
     sample_pdf(&edges, &weights, na - 1, 1e-5, nb, Some(2), &mut b);
     let buffer = |label: &str, data: &[f32]| storage_buffer(&context, label, data);
     let (a_buffer, b_buffer) = (buffer("a", &a), buffer("b", &b));
-    let gpu = run(&context, rays * (na + nb), |encoder, out| {
-        sampling.record_merge_sorted(&context, encoder, &a_buffer, na, &b_buffer, nb, rays, out)
+    let gpu = run(&context, rays * (na + nb), |rec, out| {
+        let a = SortedRows {
+            values: &a_buffer,
+            per_ray: na,
+        };
+        let b = SortedRows {
+            values: &b_buffer,
+            per_ray: nb,
+        };
+        sampling.record_merge_sorted(rec, a, b, rays, out)
     });
     let mut merged = vec![0.0; rays * (na + nb)];
     merge_sorted(&a, na, &b, nb, &mut merged);
@@ -241,8 +253,8 @@ fn merge_blur_and_intervals_match_cpu_bit_for_bit() {
         .map(|&w| if w.is_finite() { w } else { 0.5 })
         .collect();
     let weights_buffer = buffer("weights", &finite);
-    let gpu = run(&context, rays * bins, |encoder, out| {
-        sampling.record_blur_weights(&context, encoder, &weights_buffer, rays, bins, out)
+    let gpu = run(&context, rays * bins, |rec, out| {
+        sampling.record_blur_weights(rec, &weights_buffer, rays, bins, out)
     });
     let mut blurred = vec![0.0; rays * bins];
     blur_weights(&finite, bins, &mut blurred);
@@ -250,8 +262,8 @@ fn merge_blur_and_intervals_match_cpu_bit_for_bit() {
 
     let n = na + nb;
     let (t_buffer, far_buffer) = (buffer("t", &merged), buffer("far", &far));
-    let gpu = run(&context, rays * n, |encoder, out| {
-        sampling.record_intervals_to_far(&context, encoder, &t_buffer, &far_buffer, rays, n, out)
+    let gpu = run(&context, rays * n, |rec, out| {
+        sampling.record_intervals_to_far(rec, &t_buffer, &far_buffer, rays, n, out)
     });
     let mut dt = vec![0.0; rays * n];
     intervals_to_far(&merged, &far, n, &mut dt);
@@ -334,7 +346,6 @@ fn assert_close(gpu: &[f32], cpu: &[f32], tolerance: impl Fn(usize) -> f32, what
 
 /// Means within 1e-6 of |o| + |d|·t₁ of their ray, variances within 4e-6 of
 /// themselves (see the tolerance above); returns the bit-equal count.
-#[allow(clippy::too_many_arguments)]
 fn check_gaussians(
     (gpu_means, gpu_variances): (&[f32], &[f32]),
     (cpu_means, cpu_variances): (&[f32], &[f32]),
@@ -433,10 +444,9 @@ fn frustums_between_edges_match_cpu() {
             .iter()
             .map(|w| zeroed_storage_buffer::<f32>(context, "frustum out", w * s))
             .collect();
-        let mut encoder = context.device.create_command_encoder(&Default::default());
+        let mut rec = Recorder::new(context);
         frustums.record_edges(
-            context,
-            &mut encoder,
+            &mut rec,
             FrustumRays {
                 origins: &o,
                 directions: &d,
@@ -453,7 +463,7 @@ fn frustums_between_edges_match_cpu() {
                 directions: &out[4],
             },
         );
-        context.queue.submit([encoder.finish()]);
+        rec.submit();
         let read: Vec<Vec<f32>> = out
             .iter()
             .zip([1, 1, 3, 3, 3])
@@ -545,10 +555,9 @@ fn frustums_of_marched_steps_match_cpu() {
     let (t_buffer, dt_buffer) = (buffer("t", &t), buffer("dt", &dt));
     let means_out = zeroed_storage_buffer::<f32>(&context, "means", 3 * s);
     let variances_out = zeroed_storage_buffer::<f32>(&context, "variances", 3 * s);
-    let mut encoder = context.device.create_command_encoder(&Default::default());
+    let mut rec = Recorder::new(&context);
     frustums.record_marched(
-        &context,
-        &mut encoder,
+        &mut rec,
         FrustumRays {
             origins: &o,
             directions: &d,
@@ -561,10 +570,12 @@ fn frustums_of_marched_steps_match_cpu() {
             samples: s,
         },
         rays,
-        &means_out,
-        &variances_out,
+        Gaussians {
+            means: &means_out,
+            variances: &variances_out,
+        },
     );
-    context.queue.submit([encoder.finish()]);
+    rec.submit();
     let equal = check_gaussians(
         (
             &read_buffer(&context, &means_out, 3 * s),

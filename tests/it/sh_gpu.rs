@@ -2,7 +2,7 @@
 
 use zrak::engine::cpu::sh::{sh_coefficients, sh_encode};
 use zrak::engine::gpu::GpuContext;
-use zrak::engine::gpu::kernel::{read_buffer, storage_buffer};
+use zrak::engine::gpu::kernel::{Columns, Recorder, read_buffer, storage_buffer};
 use zrak::engine::gpu::sh::GpuSh;
 use zrak::rng::Pcg32;
 
@@ -72,9 +72,15 @@ fn sh_encoding_writes_into_a_wider_matrix() {
     let matrix: Vec<f32> = (0..rows * stride).map(|i| -(i as f32)).collect();
     let input = storage_buffer(&context, "directions", &dirs);
     let output = storage_buffer(&context, "matrix", &matrix);
-    let mut encoder = context.device.create_command_encoder(&Default::default());
-    sh.record_encode(&context, &mut encoder, 4, &input, &output, rows, stride, 16);
-    context.queue.submit([encoder.finish()]);
+    let mut rec = Recorder::new(&context);
+    let columns = Columns {
+        buffer: &output,
+        stride,
+        start: 16,
+        width: sh_coefficients(4),
+    };
+    sh.record_encode(&mut rec, 4, &input, rows, columns);
+    rec.submit();
     let gpu: Vec<f32> = read_buffer(&context, &output, rows * stride);
     let mut cpu = matrix.clone();
     sh_encode(4, &dirs, rows, &mut cpu[16..], stride);

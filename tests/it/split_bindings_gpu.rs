@@ -19,7 +19,7 @@ use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::adam::GpuAdam;
 use zrak::engine::gpu::dense::GpuDense;
 use zrak::engine::gpu::hash_grid::GpuHashGrid;
-use zrak::engine::gpu::kernel::{read_buffer, rows_per_piece, storage_buffer};
+use zrak::engine::gpu::kernel::{Recorder, read_buffer, rows_per_piece, storage_buffer};
 use zrak::field::ModelKind;
 use zrak::field::ngp::{HashGridConfig, LossKind, OptimiserConfig};
 use zrak::rng::Pcg32;
@@ -187,16 +187,15 @@ fn adam_split_into_pieces_is_bit_exact() {
         let params_buffer = storage_buffer(context, "params", &params);
         let gradient_buffer = storage_buffer(context, "gradients", &gradients);
         for _ in 0..2 {
-            let mut encoder = context.device.create_command_encoder(&Default::default());
+            let mut rec = Recorder::new(context);
             adam.record_step(
-                context,
-                &mut encoder,
+                &mut rec,
                 &config,
                 network.clone(),
                 &params_buffer,
                 &gradient_buffer,
             );
-            context.queue.submit([encoder.finish()]);
+            rec.submit();
         }
         let state = adam.read_state(context);
         (read_buffer::<f32>(context, &params_buffer, count), state)

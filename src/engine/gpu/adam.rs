@@ -7,7 +7,8 @@ use std::ops::Range;
 use super::composite::grid;
 use super::context::{GpuContext, GpuError};
 use super::kernel::{
-    Kernel, float_range, pieces, read_buffer, rows_per_piece, storage_buffer, uniform_buffer,
+    Kernel, Recorder, float_range, pieces, read_buffer, rows_per_piece, storage_buffer,
+    uniform_buffer,
 };
 use crate::engine::shared::adam::Adam;
 use crate::field::ngp::OptimiserConfig;
@@ -97,8 +98,7 @@ impl GpuAdam {
     /// in [`Adam::step`].
     pub fn record_step(
         &mut self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         config: &OptimiserConfig,
         network_weights: Range<usize>,
         params: &wgpu::Buffer,
@@ -108,8 +108,7 @@ impl GpuAdam {
         let learning_rate = config.learning_rate_at(self.step);
         self.step += 1;
         self.record_span(
-            context,
-            encoder,
+            rec,
             (config, learning_rate, config.l2_weights),
             0..self.count,
             network_weights,
@@ -123,8 +122,7 @@ impl GpuAdam {
     /// and agree on weight decay (every model's layout), else one per part.
     pub fn record_step_layout(
         &mut self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         config: &OptimiserConfig,
         layout: &ParamLayout,
         params: &wgpu::Buffer,
@@ -136,8 +134,7 @@ impl GpuAdam {
         let decay = |l2: bool| if l2 { config.l2_weights } else { 0.0 };
         if let Some((dense, l2)) = layout.single_dense_span() {
             self.record_span(
-                context,
-                encoder,
+                rec,
                 (config, learning_rate, decay(l2)),
                 0..self.count,
                 dense,
@@ -151,8 +148,7 @@ impl GpuAdam {
                 Update::Sparse => (part.range.start..part.range.start, false),
             };
             self.record_span(
-                context,
-                encoder,
+                rec,
                 (config, learning_rate, decay(l2)),
                 part.range.clone(),
                 dense,
@@ -166,13 +162,13 @@ impl GpuAdam {
     /// `learning_rate`.
     fn record_span(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         (config, learning_rate, l2): (&OptimiserConfig, f32, f32),
         span: Range<usize>,
         network_weights: Range<usize>,
         (params, gradients): (&wgpu::Buffer, &wgpu::Buffer),
     ) {
+        let context = rec.context;
         // Every array is bound a piece at a time when it exceeds the
         // storage-binding limit (or the span starts inside the buffer);
         // each element's update is independent.
@@ -198,8 +194,7 @@ impl GpuAdam {
             let uniform = uniform_buffer(context, "adam params", &uniform);
             let range = |buffer| float_range(buffer, piece.start, piece.len());
             self.kernel.record_bindings(
-                context,
-                encoder,
+                rec,
                 &[
                     uniform.as_entire_buffer_binding(),
                     range(params),

@@ -13,7 +13,7 @@
 //! goes into the same submission as the march and adds no wait.
 
 use super::context::{GpuContext, GpuError};
-use super::kernel::{Kernel, uniform_buffer, zeroed_storage_buffer};
+use super::kernel::{Kernel, Recorder, uniform_buffer, zeroed_storage_buffer};
 use super::march::{GpuMarch, PrefixSum, block_sums_len, dispatch_grid, source};
 
 /// Threads per workgroup of the gathers.
@@ -131,8 +131,7 @@ impl GpuCompaction {
     /// `out.counters[0]`.
     pub fn record_count(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         march: &GpuMarch,
         used: &wgpu::Buffer,
         rays: usize,
@@ -140,8 +139,7 @@ impl GpuCompaction {
     ) {
         assert!(rays <= out.rays, "{rays} rays exceed {}", out.rays);
         march.record_prefix_sum(
-            context,
-            encoder,
+            rec,
             PrefixSum {
                 counts: used,
                 offsets: &out.ray_offsets,
@@ -157,14 +155,14 @@ impl GpuCompaction {
     /// then the gathers.
     pub fn record(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         march: &GpuMarch,
         rays: usize,
         from: MarchedInputs,
         out: &CompactedSamples,
     ) {
-        self.record_count(context, encoder, march, from.samples_used, rays, out);
+        let context = rec.context;
+        self.record_count(rec, march, from.samples_used, rays, out);
         if rays == 0 {
             return;
         }
@@ -181,8 +179,7 @@ impl GpuCompaction {
         // placeholders, never read.
         let variances = from.variances.unwrap_or(&out.no_variances);
         self.vectors.record(
-            context,
-            encoder,
+            rec,
             &[
                 head.as_slice(),
                 &[
@@ -198,8 +195,7 @@ impl GpuCompaction {
             groups,
         );
         self.scalars.record(
-            context,
-            encoder,
+            rec,
             &[
                 head.as_slice(),
                 &[from.dt, from.t, from.sigma, &out.dt, &out.t, &out.sigma],

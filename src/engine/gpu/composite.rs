@@ -6,10 +6,12 @@
 //! `shaders/volume_common.wgsl` is prepended to each kernel.
 
 use super::context::{GpuContext, GpuError};
-use super::kernel::{Kernel, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer};
+use super::kernel::{
+    Kernel, Recorder, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer,
+};
 use crate::engine::shared::composite::{Distortion, RayBatch};
 
-const VOLUME_COMMON: &str = include_str!("../../../shaders/volume_common.wgsl");
+pub(crate) const VOLUME_COMMON: &str = include_str!("../../../shaders/volume_common.wgsl");
 
 /// Threads per workgroup in the compositing kernels.
 const WORKGROUP: u32 = 64;
@@ -134,16 +136,15 @@ impl GpuComposite {
     /// [`crate::engine::cpu::composite_batch::sample_weights`].
     pub fn record_weights(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         batch: &RayBatchBuffers,
         min_transmittance: f32,
         weights: &wgpu::Buffer,
     ) {
+        let context = rec.context;
         let (uniform, groups) = Self::params(context, batch.ray_count, min_transmittance);
         self.weights.record(
-            context,
-            encoder,
+            rec,
             &[
                 &uniform,
                 batch.density,
@@ -166,15 +167,14 @@ impl GpuComposite {
         let uploaded = Upload::new(context, batch);
         let samples = batch.sample_count();
         let weights = zeroed_storage_buffer::<f32>(context, "composite weights", samples);
-        let mut encoder = context.device.create_command_encoder(&Default::default());
+        let mut rec = Recorder::new(context);
         self.record_weights(
-            context,
-            &mut encoder,
+            &mut rec,
             &uploaded.buffers(batch.ray_count()),
             min_transmittance,
             &weights,
         );
-        context.queue.submit([encoder.finish()]);
+        rec.submit();
         read_buffer(context, &weights, samples)
     }
 
@@ -208,16 +208,15 @@ impl GpuComposite {
     /// per ray.
     pub fn record_forward(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         batch: &RayBatchBuffers,
         min_transmittance: f32,
         out: &CompositeOutputBuffers,
     ) {
+        let context = rec.context;
         let (uniform, groups) = Self::params(context, batch.ray_count, min_transmittance);
         self.forward.record(
-            context,
-            encoder,
+            rec,
             &[
                 &uniform,
                 batch.density,
@@ -238,22 +237,20 @@ impl GpuComposite {
     /// Records the backward pass for ∂L/∂rgb per ray (R × 3 in `d_rgb`),
     /// with the distortion loss if asked.
     /// Every sample of every ray is written (zero after a ray's cut).
-    #[allow(clippy::too_many_arguments)]
     pub fn record_backward(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         batch: &RayBatchBuffers,
         min_transmittance: f32,
         d_rgb: &wgpu::Buffer,
         distortion: Option<Distortion<f32>>,
         gradients: &CompositeGradientBuffers,
     ) {
+        let context = rec.context;
         let (uniform, groups) =
             Self::params_with(context, batch.ray_count, min_transmittance, distortion);
         self.backward.record(
-            context,
-            encoder,
+            rec,
             &[
                 &uniform,
                 batch.density,
@@ -285,10 +282,9 @@ impl GpuComposite {
         let opacity = zeroed_storage_buffer::<f32>(context, "composite opacity", rays);
         let depth = zeroed_storage_buffer::<f32>(context, "composite depth", rays);
         let samples_used = zeroed_storage_buffer::<u32>(context, "composite samples used", rays);
-        let mut encoder = context.device.create_command_encoder(&Default::default());
+        let mut rec = Recorder::new(context);
         self.record_forward(
-            context,
-            &mut encoder,
+            &mut rec,
             &uploaded.buffers(rays),
             min_transmittance,
             &CompositeOutputBuffers {
@@ -298,7 +294,7 @@ impl GpuComposite {
                 samples_used: &samples_used,
             },
         );
-        context.queue.submit([encoder.finish()]);
+        rec.submit();
         ForwardResult {
             rgb: read_buffer(context, &rgb, 3 * rays),
             opacity: read_buffer(context, &opacity, rays),
@@ -325,10 +321,9 @@ impl GpuComposite {
         let density = zeroed_storage_buffer::<f32>(context, "composite d_density", samples);
         let rgb = zeroed_storage_buffer::<f32>(context, "composite d_colour", 3 * samples);
         let background = zeroed_storage_buffer::<f32>(context, "composite d_background", 3 * rays);
-        let mut encoder = context.device.create_command_encoder(&Default::default());
+        let mut rec = Recorder::new(context);
         self.record_backward(
-            context,
-            &mut encoder,
+            &mut rec,
             &uploaded.buffers(rays),
             min_transmittance,
             &d_rgb,
@@ -339,7 +334,7 @@ impl GpuComposite {
                 background: &background,
             },
         );
-        context.queue.submit([encoder.finish()]);
+        rec.submit();
         BackwardResult {
             density: read_buffer(context, &density, samples),
             rgb: read_buffer(context, &rgb, 3 * samples),

@@ -19,10 +19,10 @@
 //! of 64 rows, so 256-byte aligned).
 //!
 //! A network's parameters may sit at an offset inside a larger flat buffer
-//! (a model's `[network A | network B | …]`): the `_at` entry points take
-//! that offset in f32s and add it to the layer's weight and bias offsets in
-//! the uniform, so nothing is copied and the parameter gradients land at
-//! the same offset of the gradient buffer. Backward, each piece writes its
+//! (a model's `[network A | network B | …]`): the `record_*` functions take
+//! that offset in f32s ([`FloatsAt`]) and add it to the layer's weight and
+//! bias offsets in the uniform, so nothing is copied and the parameter
+//! gradients land at the same offset of the gradient buffer. Backward, each piece writes its
 //! weight-gradient partial sums after the previous piece's (pieces start
 //! on chunk boundaries) and one reduction adds them all in chunk order:
 //! the gradients are bit for bit those of the unsplit batch. The partials
@@ -30,8 +30,8 @@
 
 use super::context::{GpuContext, GpuError};
 use super::kernel::{
-    Kernel, float_range, groups_for, pieces, read_buffer, rows_per_piece, storage_buffer,
-    uniform_buffer, zeroed_storage_buffer,
+    FloatsAt, Kernel, Recorder, float_range, groups_for, pieces, read_buffer, rows_per_piece,
+    storage_buffer, uniform_buffer, zeroed_storage_buffer,
 };
 use crate::field::mlp::{Activation, MlpLayout};
 use crate::field::ngp::DENSITY_EXP_CLAMP;
@@ -174,6 +174,17 @@ impl GpuMlpWorkspace {
     }
 }
 
+/// The gradients of a network's backward pass: the one given, of its
+/// `output` (rows × output width); the parameters' (`params`, added to at
+/// the parameters' offset); and its `input`'s (rows × input width), written
+/// when asked for.
+#[derive(Debug, Clone, Copy)]
+pub struct MlpGradients<'a> {
+    pub output: &'a wgpu::Buffer,
+    pub params: &'a wgpu::Buffer,
+    pub input: Option<&'a wgpu::Buffer>,
+}
+
 impl GpuDense {
     pub fn new(context: &GpuContext) -> Result<Self, GpuError> {
         let kernel = |name: &str, source: &str| {
@@ -233,69 +244,18 @@ impl GpuDense {
         [groups_for(columns, BLOCK as u32), tiles.div_ceil(z), z]
     }
 
-    /// Records layer `layer` forward: `output` = act(`input` Wᵀ + b), the
-    /// network's parameters starting at f32 `params_offset` of `params`.
-    #[allow(clippy::too_many_arguments)]
-    pub fn record_layer_forward(
-        &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
-        layout: &MlpLayout,
-        layer: usize,
-        params: &wgpu::Buffer,
-        params_offset: usize,
-        input: &wgpu::Buffer,
-        output: &wgpu::Buffer,
-        rows: usize,
-    ) {
-        let (in_w, out_w) = (layout.widths[layer], layout.widths[layer + 1]);
-        for piece in pieces(rows, rows_per_piece(context, in_w.max(out_w), 1)) {
-            let uniform = uniform_buffer(
-                context,
-                "dense layer",
-                &Self::uniform(layout, layer, piece.len(), (0, 0), params_offset),
-            );
-            self.forward.record_bindings(
-                context,
-                encoder,
-                &[
-                    uniform.as_entire_buffer_binding(),
-                    params.as_entire_buffer_binding(),
-                    float_range(input, in_w * piece.start, in_w * piece.len()),
-                    float_range(output, out_w * piece.start, out_w * piece.len()),
-                ],
-                Self::row_groups(out_w, piece.len()),
-            );
-        }
-    }
-
-    /// Records the forward pass of every layer; each layer's output lands in
+    /// Records the forward pass of every layer, the network's parameters
+    /// at `params`; each layer's output lands in
     /// `workspace.activations(l)`, the network's in `workspace.output()`.
     pub fn record_forward(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
-        params: &wgpu::Buffer,
+        rec: &mut Recorder,
+        params: FloatsAt,
         input: &wgpu::Buffer,
         workspace: &GpuMlpWorkspace,
         rows: usize,
     ) {
-        self.record_forward_at(context, encoder, params, 0, input, workspace, rows);
-    }
-
-    /// As [`Self::record_forward`], the network's parameters starting at
-    /// f32 `params_offset` of `params`.
-    #[allow(clippy::too_many_arguments)]
-    pub fn record_forward_at(
-        &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
-        params: &wgpu::Buffer,
-        params_offset: usize,
-        input: &wgpu::Buffer,
-        workspace: &GpuMlpWorkspace,
-        rows: usize,
-    ) {
+        let context = rec.context;
         assert!(
             rows <= workspace.capacity,
             "{rows} rows exceed the workspace's {}",
@@ -308,58 +268,52 @@ impl GpuDense {
             } else {
                 &workspace.activations[layer - 1]
             };
-            self.record_layer_forward(
-                context,
-                encoder,
-                layout,
-                layer,
-                params,
-                params_offset,
-                x,
-                &workspace.activations[layer],
-                rows,
-            );
+            let y = &workspace.activations[layer];
+            // Layer `layer`: y = act(x Wᵀ + b).
+            let (in_w, out_w) = (layout.widths[layer], layout.widths[layer + 1]);
+            for piece in pieces(rows, rows_per_piece(context, in_w.max(out_w), 1)) {
+                let uniform = uniform_buffer(
+                    context,
+                    "dense layer",
+                    &Self::uniform(layout, layer, piece.len(), (0, 0), params.offset),
+                );
+                self.forward.record_bindings(
+                    rec,
+                    &[
+                        uniform.as_entire_buffer_binding(),
+                        params.buffer.as_entire_buffer_binding(),
+                        float_range(x, in_w * piece.start, in_w * piece.len()),
+                        float_range(y, out_w * piece.start, out_w * piece.len()),
+                    ],
+                    Self::row_groups(out_w, piece.len()),
+                );
+            }
         }
     }
 
     /// Records the backward pass of the last recorded forward pass on the
-    /// same `input`: accumulates (`+=`) parameter gradients into `d_params`
-    /// and writes the input gradient into `d_input` when given.
-    #[allow(clippy::too_many_arguments)]
+    /// same `input` and `params`: accumulates (`+=`) parameter gradients
+    /// into `gradients.params` (at the parameters' offset) and writes the
+    /// input gradient into `gradients.input` when given.
     pub fn record_backward(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
-        params: &wgpu::Buffer,
+        rec: &mut Recorder,
+        params: FloatsAt,
         input: &wgpu::Buffer,
         workspace: &GpuMlpWorkspace,
-        d_output: &wgpu::Buffer,
-        d_params: &wgpu::Buffer,
-        d_input: Option<&wgpu::Buffer>,
+        gradients: MlpGradients,
         rows: usize,
     ) {
-        self.record_backward_at(
-            context, encoder, params, 0, input, workspace, d_output, d_params, d_input, rows,
-        );
-    }
-
-    /// As [`Self::record_backward`], the network's parameters starting at
-    /// f32 `params_offset` of `params`, and its gradients at the same offset
-    /// of `d_params`.
-    #[allow(clippy::too_many_arguments)]
-    pub fn record_backward_at(
-        &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
-        params: &wgpu::Buffer,
-        params_offset: usize,
-        input: &wgpu::Buffer,
-        workspace: &GpuMlpWorkspace,
-        d_output: &wgpu::Buffer,
-        d_params: &wgpu::Buffer,
-        d_input: Option<&wgpu::Buffer>,
-        rows: usize,
-    ) {
+        let context = rec.context;
+        let FloatsAt {
+            buffer: params,
+            offset: params_offset,
+        } = params;
+        let MlpGradients {
+            output: d_output,
+            params: d_params,
+            input: d_input,
+        } = gradients;
         assert!(
             rows <= workspace.capacity,
             "{rows} rows exceed the workspace's {}",
@@ -396,8 +350,7 @@ impl GpuDense {
                 let uniform = piece_uniform(&piece);
                 let bound = uniform_buffer(context, "dense layer", &uniform);
                 self.backward_weights.record_bindings(
-                    context,
-                    encoder,
+                    rec,
                     &[
                         bound.as_entire_buffer_binding(),
                         float_range(d_y, out_w * piece.start, out_w * piece.len()),
@@ -419,8 +372,7 @@ impl GpuDense {
                 &Self::uniform(layout, layer, rows, (rows_per_chunk, chunks), params_offset),
             );
             self.reduce.record(
-                context,
-                encoder,
+                rec,
                 &[&uniform, &workspace.partials, d_params],
                 [groups_for(out_w * columns, 64), 1, 1],
             );
@@ -433,8 +385,7 @@ impl GpuDense {
                 for piece in pieces(rows, per) {
                     let uniform = uniform_buffer(context, "dense layer", &piece_uniform(&piece));
                     self.backward_input.record_bindings(
-                        context,
-                        encoder,
+                        rec,
                         &[
                             uniform.as_entire_buffer_binding(),
                             params.as_entire_buffer_binding(),
@@ -463,16 +414,15 @@ impl GpuDense {
         let workspace = GpuMlpWorkspace::new(context, layout, rows);
         let params_buffer = storage_buffer(context, "params", params);
         let input_buffer = storage_buffer(context, "input", &input[..rows * layout.input_width()]);
-        let mut encoder = context.device.create_command_encoder(&Default::default());
+        let mut rec = Recorder::new(context);
         self.record_forward(
-            context,
-            &mut encoder,
-            &params_buffer,
+            &mut rec,
+            FloatsAt::start(&params_buffer),
             &input_buffer,
             &workspace,
             rows,
         );
-        context.queue.submit([encoder.finish()]);
+        rec.submit();
         (0..layout.layers())
             .map(|l| {
                 read_buffer(
@@ -505,28 +455,28 @@ impl GpuDense {
         );
         let d_params = zeroed_storage_buffer::<f32>(context, "d_params", params.len());
         let d_input = zeroed_storage_buffer::<f32>(context, "d_input", rows * layout.input_width());
-        let mut encoder = context.device.create_command_encoder(&Default::default());
-        encoder.clear_buffer(&d_params, 0, None);
+        let mut rec = Recorder::new(context);
+        rec.encoder.clear_buffer(&d_params, 0, None);
         self.record_forward(
-            context,
-            &mut encoder,
-            &params_buffer,
+            &mut rec,
+            FloatsAt::start(&params_buffer),
             &input_buffer,
             &workspace,
             rows,
         );
         self.record_backward(
-            context,
-            &mut encoder,
-            &params_buffer,
+            &mut rec,
+            FloatsAt::start(&params_buffer),
             &input_buffer,
             &workspace,
-            &d_output_buffer,
-            &d_params,
-            Some(&d_input),
+            MlpGradients {
+                output: &d_output_buffer,
+                params: &d_params,
+                input: Some(&d_input),
+            },
             rows,
         );
-        context.queue.submit([encoder.finish()]);
+        rec.submit();
         let outputs = (0..layout.layers())
             .map(|l| {
                 read_buffer(

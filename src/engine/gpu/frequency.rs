@@ -4,8 +4,8 @@
 
 use super::context::{GpuContext, GpuError};
 use super::kernel::{
-    Kernel, float_range, pieces, read_buffer, rows_per_piece, storage_buffer, uniform_buffer,
-    zeroed_storage_buffer,
+    Kernel, Recorder, float_range, pieces, read_buffer, rows_per_piece, storage_buffer,
+    uniform_buffer, zeroed_storage_buffer,
 };
 use crate::field::encoding::{FrequencyEncoding, MAX_FREQUENCIES};
 
@@ -47,17 +47,16 @@ impl GpuFrequency {
     /// Records the encoding of `rows` points (`inputs`, rows × 3) into `out`
     /// (rows × [`FrequencyEncoding::output_width`]), damped by `variance`
     /// (rows × 3) when one is given.
-    #[allow(clippy::too_many_arguments)]
     pub fn record(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         encoding: &FrequencyEncoding,
         inputs: &wgpu::Buffer,
         variance: Option<&wgpu::Buffer>,
         rows: u32,
         out: &wgpu::Buffer,
     ) {
+        let context = rec.context;
         assert!(
             encoding.frequencies <= MAX_FREQUENCIES,
             "{} frequencies, at most {MAX_FREQUENCIES} supported",
@@ -92,7 +91,7 @@ impl GpuFrequency {
                 }
                 None => &self.plain,
             };
-            kernel.record_bindings(context, encoder, &bindings, [groups.div_ceil(y), y, 1]);
+            kernel.record_bindings(rec, &bindings, [groups.div_ceil(y), y, 1]);
         }
     }
 
@@ -114,17 +113,16 @@ impl GpuFrequency {
             storage_buffer(context, "frequency variance", v)
         });
         let out = zeroed_storage_buffer::<f32>(context, "frequency encoding", rows * width);
-        let mut encoder = context.device.create_command_encoder(&Default::default());
+        let mut rec = Recorder::new(context);
         self.record(
-            context,
-            &mut encoder,
+            &mut rec,
             encoding,
             &input,
             variance.as_ref(),
             rows as u32,
             &out,
         );
-        context.queue.submit([encoder.finish()]);
+        rec.submit();
         read_buffer(context, &out, rows * width)
     }
 }

@@ -28,8 +28,8 @@
 //! lavapipe, bit for bit: see `tests/it/sampling_gpu.rs`).
 
 use super::context::{GpuContext, GpuError};
-use super::kernel::{Kernel, float_range};
-use super::march::source;
+use super::kernel::{Kernel, Recorder, float_range};
+use super::march::{CPU_ARITHMETIC, source};
 use super::sampling::{COMMON, GpuSampling, SampleUniforms};
 
 const FRUSTUM_COMMON: &str = include_str!("../../../shaders/frustum_common.wgsl");
@@ -68,6 +68,23 @@ pub struct MarchedIntervals<'a> {
     pub samples: usize,
 }
 
+/// The Gaussians of S frustums: means and covariance diagonals, S × 3
+/// each (the field's inputs).
+#[derive(Debug, Clone, Copy)]
+pub struct Gaussians<'a> {
+    pub means: &'a wgpu::Buffer,
+    pub variances: &'a wgpu::Buffer,
+}
+
+/// A round of the render walk's samples: `per_ray` slots per ray of the
+/// round, each slot's distance `t` and step `dt` (world units).
+#[derive(Debug, Clone, Copy)]
+pub struct WalkedIntervals<'a> {
+    pub t: &'a wgpu::Buffer,
+    pub dt: &'a wgpu::Buffer,
+    pub per_ray: usize,
+}
+
 /// The compiled frustum kernels.
 pub struct GpuFrustums {
     edges: Kernel,
@@ -81,7 +98,7 @@ impl GpuFrustums {
             Kernel::new(
                 context,
                 name,
-                &source(&[COMMON, FRUSTUM_COMMON, entry]),
+                &source(&[COMMON, CPU_ARITHMETIC, FRUSTUM_COMMON, entry]),
                 "main",
             )
         };
@@ -106,11 +123,9 @@ impl GpuFrustums {
     /// `out`, as [`crate::engine::cpu::frustum::frustum_gaussians`] over
     /// the cpu model's fixed-count level. Rays beyond one storage binding go
     /// a piece at a time.
-    #[allow(clippy::too_many_arguments)]
     pub fn record_edges(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         on: FrustumRays,
         edges: &wgpu::Buffer,
         rays: usize,
@@ -125,7 +140,7 @@ impl GpuFrustums {
             samples: n as u32,
             ..Default::default()
         };
-        GpuSampling::record_rays(context, encoder, &self.edges, rays, 3 * n, template, |p| {
+        GpuSampling::record_rays(rec, &self.edges, rays, 3 * n, template, |p| {
             let per = |buffer, width: usize| float_range(buffer, width * p.start, width * p.len());
             vec![
                 per(on.origins, 3),
@@ -142,26 +157,23 @@ impl GpuFrustums {
     }
 
     /// Records the Gaussians of the frustums the first `rays` rays' marched
-    /// samples stand for, into `means` and `variances` (S × 3 each, S =
-    /// `marched.samples`). The per-sample arrays are bound whole (the
-    /// model sizes its batch to one binding); the rays a piece at a time.
-    #[allow(clippy::too_many_arguments)]
+    /// samples stand for, into `out` (S = `marched.samples`). The
+    /// per-sample arrays are bound whole (the model sizes its batch to one
+    /// binding); the rays a piece at a time.
     pub fn record_marched(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         on: FrustumRays,
         marched: MarchedIntervals,
         rays: usize,
-        means: &wgpu::Buffer,
-        variances: &wgpu::Buffer,
+        out: Gaussians,
     ) {
         let s = marched.samples;
         if rays == 0 || s == 0 {
             return;
         }
         let template = SampleUniforms::default();
-        GpuSampling::record_rays(context, encoder, &self.marched, rays, 3, template, |p| {
+        GpuSampling::record_rays(rec, &self.marched, rays, 3, template, |p| {
             vec![
                 float_range(on.origins, 3 * p.start, 3 * p.len()),
                 float_range(on.directions, 3 * p.start, 3 * p.len()),
@@ -170,8 +182,8 @@ impl GpuFrustums {
                 float_range(marched.ray_offsets, p.start, p.len() + 1),
                 float_range(marched.t, 0, s),
                 float_range(marched.dt, 0, s),
-                float_range(means, 0, 3 * s),
-                float_range(variances, 0, 3 * s),
+                float_range(out.means, 0, 3 * s),
+                float_range(out.variances, 0, 3 * s),
             ]
         });
     }
@@ -179,22 +191,18 @@ impl GpuFrustums {
     /// Records the Gaussians of the frustums a round of the render walk's
     /// samples stand for: `round_rays` rays of `on` (the view's), listed by
     /// index in `ray_list`, ray i of the round at slots i·`per_ray`.. of
-    /// `t` and `dt`; into `means` and `variances` (3 per slot), as
+    /// `walked`; into `out` (3 per slot each), as
     /// [`crate::engine::shared::driver::grid_sample_gaussians`] on the host.
-    #[allow(clippy::too_many_arguments)]
     pub fn record_walked(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         on: FrustumRays,
         ray_list: wgpu::BufferBinding,
         round_rays: usize,
-        per_ray: usize,
-        t: &wgpu::Buffer,
-        dt: &wgpu::Buffer,
-        means: &wgpu::Buffer,
-        variances: &wgpu::Buffer,
+        walked: WalkedIntervals,
+        out: Gaussians,
     ) {
+        let per_ray = walked.per_ray;
         let slots = round_rays * per_ray;
         if slots == 0 {
             return;
@@ -205,16 +213,16 @@ impl GpuFrustums {
         };
         // Each slot is one invocation; every binding is whole, so a piece
         // of slots finds its own through `ray_base`.
-        GpuSampling::record_rays(context, encoder, &self.walked, slots, 3, template, |_| {
+        GpuSampling::record_rays(rec, &self.walked, slots, 3, template, |_| {
             vec![
                 on.origins.as_entire_buffer_binding(),
                 on.directions.as_entire_buffer_binding(),
                 on.radii.as_entire_buffer_binding(),
                 ray_list.clone(),
-                float_range(t, 0, slots),
-                float_range(dt, 0, slots),
-                float_range(means, 0, 3 * slots),
-                float_range(variances, 0, 3 * slots),
+                float_range(walked.t, 0, slots),
+                float_range(walked.dt, 0, slots),
+                float_range(out.means, 0, 3 * slots),
+                float_range(out.variances, 0, 3 * slots),
             ]
         });
     }

@@ -12,8 +12,8 @@ use super::context::{GpuContext, GpuError};
 use std::ops::Range;
 
 use super::kernel::{
-    Kernel, float_range, pieces, read_buffer, rows_per_piece, storage_buffer, uniform_buffer,
-    zeroed_storage_buffer,
+    FloatsAt, Kernel, Recorder, float_range, pieces, read_buffer, rows_per_piece, storage_buffer,
+    uniform_buffer, zeroed_storage_buffer,
 };
 use crate::field::encoding::{HashGridLayout, LevelLayout};
 
@@ -103,6 +103,15 @@ struct Level {
     offset: u32,
     dense: u32,
     mask: u32,
+}
+
+/// Which pass [`GpuHashGrid::record_pieces`] records: the encoding (the
+/// table bound third) or the backward pass (the table's gradient bound
+/// fifth).
+#[derive(Debug, Clone, Copy)]
+enum Pass {
+    Encode,
+    Backward,
 }
 
 /// The compiled hash-grid kernels for one layout.
@@ -199,23 +208,24 @@ impl GpuHashGrid {
         self.param_count
     }
 
-    /// Records `kernel` over `count` samples: one dispatch per piece of
+    /// Records `pass` over `count` samples: one dispatch per piece of
     /// samples and group of levels, binding the uniform, the levels, the
-    /// table range of the group (`table`, from f32 `table_offset`) and the
-    /// piece's rows of positions and of the per-sample matrix (`rows`,
-    /// count × L·F).
-    #[allow(clippy::too_many_arguments)]
+    /// table range of the group (of `table`) and the piece's rows of
+    /// positions and of the per-sample matrix (`rows`, count × L·F).
     fn record_pieces(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
-        kernel: &Kernel,
-        (table, table_offset): (&wgpu::Buffer, usize),
+        rec: &mut Recorder,
+        pass: Pass,
+        table: FloatsAt,
         positions: &wgpu::Buffer,
         rows: &wgpu::Buffer,
         count: usize,
-        table_binding: usize,
     ) {
+        let context = rec.context;
+        let (kernel, table_binding) = match pass {
+            Pass::Encode => (&self.encode, 2),
+            Pass::Backward => (&self.backward, 4),
+        };
         let width = self.width as usize;
         let per = rows_per_piece(context, width.max(3), 1);
         for piece in pieces(count, per) {
@@ -246,14 +256,9 @@ impl GpuHashGrid {
                 ];
                 bindings.insert(
                     table_binding,
-                    float_range(table, table_offset + group.base, group.len),
+                    float_range(table.buffer, table.offset + group.base, group.len),
                 );
-                kernel.record_bindings(
-                    context,
-                    encoder,
-                    &bindings,
-                    [x, group.levels.len() as u32, z],
-                );
+                kernel.record_bindings(rec, &bindings, [x, group.levels.len() as u32, z]);
             }
         }
     }
@@ -262,37 +267,26 @@ impl GpuHashGrid {
     /// `encoded` (count × L·F f32), reading the table from `params`.
     pub fn record_encode(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         params: &wgpu::Buffer,
         positions: &wgpu::Buffer,
         encoded: &wgpu::Buffer,
         count: usize,
     ) {
-        self.record_encode_at(context, encoder, (params, 0), positions, encoded, count);
+        self.record_encode_at(rec, FloatsAt::start(params), positions, encoded, count);
     }
 
-    /// As [`Self::record_encode`], the table starting at f32 `offset` of
-    /// `params` (a multiple of [`Self::offset_alignment`]).
+    /// As [`Self::record_encode`], the table at `table` (its offset a
+    /// multiple of [`Self::offset_alignment`]).
     pub fn record_encode_at(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
-        (params, offset): (&wgpu::Buffer, usize),
+        rec: &mut Recorder,
+        table: FloatsAt,
         positions: &wgpu::Buffer,
         encoded: &wgpu::Buffer,
         count: usize,
     ) {
-        self.record_pieces(
-            context,
-            encoder,
-            &self.encode,
-            (params, offset),
-            positions,
-            encoded,
-            count,
-            2,
-        );
+        self.record_pieces(rec, Pass::Encode, table, positions, encoded, count);
     }
 
     /// The f32s a table's offset in its buffer must be a multiple of: the
@@ -306,37 +300,26 @@ impl GpuHashGrid {
     /// first (`encoder.clear_buffer`) for a fresh gradient.
     pub fn record_backward(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         positions: &wgpu::Buffer,
         d_encoded: &wgpu::Buffer,
         d_params: &wgpu::Buffer,
         count: usize,
     ) {
-        self.record_backward_at(context, encoder, positions, d_encoded, (d_params, 0), count);
+        self.record_backward_at(rec, positions, d_encoded, FloatsAt::start(d_params), count);
     }
 
-    /// As [`Self::record_backward`], the table's gradient starting at f32
-    /// `offset` of `d_params` (a multiple of [`Self::offset_alignment`]).
+    /// As [`Self::record_backward`], the table's gradient at `d_table`
+    /// (its offset a multiple of [`Self::offset_alignment`]).
     pub fn record_backward_at(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         positions: &wgpu::Buffer,
         d_encoded: &wgpu::Buffer,
-        (d_params, offset): (&wgpu::Buffer, usize),
+        d_table: FloatsAt,
         count: usize,
     ) {
-        self.record_pieces(
-            context,
-            encoder,
-            &self.backward,
-            (d_params, offset),
-            positions,
-            d_encoded,
-            count,
-            4,
-        );
+        self.record_pieces(rec, Pass::Backward, d_table, positions, d_encoded, count);
     }
 
     /// Uploads, encodes and reads back positions.len() × L·F features (for
@@ -353,9 +336,9 @@ impl GpuHashGrid {
         let params = storage_buffer(context, "hash params", params);
         let positions = storage_buffer(context, "positions", positions);
         let encoded = zeroed_storage_buffer::<f32>(context, "encoded", outputs);
-        let mut encoder = context.device.create_command_encoder(&Default::default());
-        self.record_encode(context, &mut encoder, &params, &positions, &encoded, count);
-        context.queue.submit([encoder.finish()]);
+        let mut rec = Recorder::new(context);
+        self.record_encode(&mut rec, &params, &positions, &encoded, count);
+        rec.submit();
         read_buffer(context, &encoded, outputs)
     }
 
@@ -376,18 +359,11 @@ impl GpuHashGrid {
         let positions = storage_buffer(context, "positions", positions);
         let d_encoded = storage_buffer(context, "d_encoded", d_encoded);
         let d_params = zeroed_storage_buffer::<f32>(context, "d_params", self.param_count);
-        let mut encoder = context.device.create_command_encoder(&Default::default());
+        let mut rec = Recorder::new(context);
         // wgpu zero-initialises new buffers already; clearing states it.
-        encoder.clear_buffer(&d_params, 0, None);
-        self.record_backward(
-            context,
-            &mut encoder,
-            &positions,
-            &d_encoded,
-            &d_params,
-            count,
-        );
-        context.queue.submit([encoder.finish()]);
+        rec.encoder.clear_buffer(&d_params, 0, None);
+        self.record_backward(&mut rec, &positions, &d_encoded, &d_params, count);
+        rec.submit();
         read_buffer(context, &d_params, self.param_count)
     }
 }

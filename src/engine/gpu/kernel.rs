@@ -6,6 +6,40 @@ use wgpu::util::DeviceExt;
 
 use super::context::{GpuContext, GpuError};
 
+/// Where a stage records its work: the device it runs on and the command
+/// encoder its dispatches and copies go into, submitted together by
+/// [`Recorder::submit`]. Every `record_*` function of the engine takes one.
+pub struct Recorder<'a> {
+    pub context: &'a GpuContext,
+    pub encoder: wgpu::CommandEncoder,
+}
+
+impl<'a> Recorder<'a> {
+    /// A recorder with a fresh encoder on `context`'s device.
+    pub fn new(context: &'a GpuContext) -> Self {
+        Self {
+            context,
+            encoder: context.device.create_command_encoder(&Default::default()),
+        }
+    }
+
+    /// Submits what was recorded so far and goes on in a fresh encoder.
+    pub fn submit_so_far(&mut self) {
+        let recorded = std::mem::replace(
+            &mut self.encoder,
+            self.context
+                .device
+                .create_command_encoder(&Default::default()),
+        );
+        self.context.queue.submit([recorded.finish()]);
+    }
+
+    /// Submits what was recorded.
+    pub fn submit(self) {
+        self.context.queue.submit([self.encoder.finish()]);
+    }
+}
+
 /// A compiled compute pipeline. Bindings are taken in order: binding `i` of
 /// group 0 is the `i`-th buffer passed to [`Kernel::dispatch`].
 pub struct Kernel {
@@ -49,19 +83,13 @@ impl Kernel {
     }
 
     /// Records one dispatch of `workgroups` with `buffers` bound in order to
-    /// group 0, into `encoder`.
-    pub fn record(
-        &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
-        buffers: &[&wgpu::Buffer],
-        workgroups: [u32; 3],
-    ) {
+    /// group 0.
+    pub fn record(&self, rec: &mut Recorder, buffers: &[&wgpu::Buffer], workgroups: [u32; 3]) {
         let bindings: Vec<wgpu::BufferBinding> = buffers
             .iter()
             .map(|buffer| buffer.as_entire_buffer_binding())
             .collect();
-        self.record_bindings(context, encoder, &bindings, workgroups);
+        self.record_bindings(rec, &bindings, workgroups);
     }
 
     /// As [`Kernel::record`], with each binding a range of a buffer (see
@@ -69,8 +97,7 @@ impl Kernel {
     /// binding limit are processed a piece at a time.
     pub fn record_bindings(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         bindings: &[wgpu::BufferBinding],
         workgroups: [u32; 3],
     ) {
@@ -78,18 +105,18 @@ impl Kernel {
             .iter()
             .map(|binding| wgpu::BindingResource::Buffer(binding.clone()))
             .collect();
-        self.record_resources(context, encoder, &resources, workgroups);
+        self.record_resources(rec, &resources, workgroups);
     }
 
     /// As [`Kernel::record`], with any resources (buffer ranges, texture
     /// views) bound in order.
     pub fn record_resources(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         resources: &[wgpu::BindingResource],
         workgroups: [u32; 3],
     ) {
+        let context = rec.context;
         let layout = self.pipeline.get_bind_group_layout(0);
         let entries: Vec<wgpu::BindGroupEntry> = resources
             .iter()
@@ -106,10 +133,12 @@ impl Kernel {
                 layout: &layout,
                 entries: &entries,
             });
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some(&self.name),
-            timestamp_writes: None,
-        });
+        let mut pass = rec
+            .encoder
+            .begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some(&self.name),
+                timestamp_writes: None,
+            });
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, &bind_group, &[]);
         pass.dispatch_workgroups(workgroups[0], workgroups[1], workgroups[2]);
@@ -118,9 +147,48 @@ impl Kernel {
 
     /// Records, submits and waits for one dispatch.
     pub fn dispatch(&self, context: &GpuContext, buffers: &[&wgpu::Buffer], workgroups: [u32; 3]) {
-        let mut encoder = context.device.create_command_encoder(&Default::default());
-        self.record(context, &mut encoder, buffers, workgroups);
-        context.queue.submit([encoder.finish()]);
+        let mut rec = Recorder::new(context);
+        self.record(&mut rec, buffers, workgroups);
+        rec.submit();
+    }
+}
+
+/// The f32s of `buffer` from element `offset` on: a network's or a hash
+/// table's parameters (or their gradients, at the same offset) inside a
+/// model's flat buffer of every field's.
+#[derive(Debug, Clone, Copy)]
+pub struct FloatsAt<'a> {
+    pub buffer: &'a wgpu::Buffer,
+    pub offset: usize,
+}
+
+impl<'a> FloatsAt<'a> {
+    /// The whole of `buffer`, from its first f32.
+    pub fn start(buffer: &'a wgpu::Buffer) -> Self {
+        Self { buffer, offset: 0 }
+    }
+}
+
+/// `width` columns from column `start` of a row-major matrix of `stride`
+/// f32s a row: where an encoding writes into a network's input matrix, or
+/// what a concatenation reads.
+#[derive(Debug, Clone, Copy)]
+pub struct Columns<'a> {
+    pub buffer: &'a wgpu::Buffer,
+    pub stride: usize,
+    pub start: usize,
+    pub width: usize,
+}
+
+impl<'a> Columns<'a> {
+    /// Every column of a matrix `width` wide.
+    pub fn all(buffer: &'a wgpu::Buffer, width: usize) -> Self {
+        Self {
+            buffer,
+            stride: width,
+            start: 0,
+            width,
+        }
     }
 }
 

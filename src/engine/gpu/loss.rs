@@ -4,7 +4,9 @@
 
 use super::composite::grid;
 use super::context::{GpuContext, GpuError};
-use super::kernel::{Kernel, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer};
+use super::kernel::{
+    Kernel, Recorder, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer,
+};
 use crate::field::ngp::{HUBER_DELTA, LossKind};
 
 /// Threads per workgroup in loss_gradient.wgsl.
@@ -70,14 +72,8 @@ impl GpuLoss {
     }
 
     /// Records the gradient, the per-ray losses and their sum.
-    pub fn record(
-        &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
-        kind: LossKind,
-        buffers: &LossBuffers,
-    ) {
-        self.record_weighted(context, encoder, kind, buffers, 1.0);
+    pub fn record(&self, rec: &mut Recorder, kind: LossKind, buffers: &LossBuffers) {
+        self.record_weighted(rec, kind, buffers, 1.0);
     }
 
     /// As [`Self::record`], the gradient multiplied by `gradient_weight`
@@ -85,12 +81,12 @@ impl GpuLoss {
     /// the loss values stay the plain mean.
     pub fn record_weighted(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         kind: LossKind,
         buffers: &LossBuffers,
         gradient_weight: f32,
     ) {
+        let context = rec.context;
         let rays = buffers.ray_count;
         let (groups, row_stride) = grid(rays, WORKGROUP);
         let params = GradientParams {
@@ -111,8 +107,7 @@ impl GpuLoss {
         };
         let uniform = uniform_buffer(context, "loss params", &params);
         self.gradient.record(
-            context,
-            encoder,
+            rec,
             &[
                 &uniform,
                 buffers.predicted,
@@ -128,8 +123,7 @@ impl GpuLoss {
         };
         let sum_uniform = uniform_buffer(context, "loss sum params", &sum_params);
         self.sum.record(
-            context,
-            encoder,
+            rec,
             &[&sum_uniform, buffers.ray_loss, buffers.total],
             [1, 1, 1],
         );
@@ -151,10 +145,9 @@ impl GpuLoss {
         let gradient = zeroed_storage_buffer::<f32>(context, "loss gradient", 3 * rays);
         let ray_loss = zeroed_storage_buffer::<f32>(context, "loss per ray", rays);
         let total = zeroed_storage_buffer::<f32>(context, "loss total", 1);
-        let mut encoder = context.device.create_command_encoder(&Default::default());
+        let mut rec = Recorder::new(context);
         self.record(
-            context,
-            &mut encoder,
+            &mut rec,
             kind,
             &LossBuffers {
                 predicted: &predicted_buffer,
@@ -165,7 +158,7 @@ impl GpuLoss {
                 ray_count: rays,
             },
         );
-        context.queue.submit([encoder.finish()]);
+        rec.submit();
         (
             read_buffer::<f32>(context, &total, 1)[0],
             read_buffer(context, &gradient, 3 * rays),

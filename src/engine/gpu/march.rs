@@ -15,7 +15,9 @@
 //! each sample carries its own step.
 
 use super::context::{GpuContext, GpuError};
-use super::kernel::{Kernel, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer};
+use super::kernel::{
+    Kernel, Recorder, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer,
+};
 use crate::engine::shared::march::{
     MarchParams, MarchStats, MarchedSamples, cone_for, skip_margin,
 };
@@ -74,8 +76,11 @@ pub(crate) fn source(parts: &[&str]) -> String {
     parts.concat()
 }
 
-const MARCH_PARAMS: &str = include_str!("../../../shaders/march_params.wgsl");
-const MARCH_COMMON: &str = include_str!("../../../shaders/march_common.wgsl");
+pub(crate) const MARCH_PARAMS: &str = include_str!("../../../shaders/march_params.wgsl");
+pub(crate) const MARCH_COMMON: &str = include_str!("../../../shaders/march_common.wgsl");
+/// `unfused` and `mix32`, the cpu's arithmetic to the bit, for the march
+/// and the sampling kernels.
+pub(crate) const CPU_ARITHMETIC: &str = include_str!("../../../shaders/cpu_arithmetic.wgsl");
 
 /// Where a march leaves its samples on the GPU, sized for `ray_count` rays
 /// and at most `capacity` samples.
@@ -167,7 +172,7 @@ impl GpuMarch {
             Kernel::new(
                 context,
                 name,
-                &source(&[MARCH_PARAMS, MARCH_COMMON, entry]),
+                &source(&[MARCH_PARAMS, CPU_ARITHMETIC, MARCH_COMMON, entry]),
                 "main",
             )
         };
@@ -248,16 +253,16 @@ impl GpuMarch {
         }
     }
 
-    /// Records the whole march of `out.ray_count` rays into `encoder`.
+    /// Records the whole march of `out.ray_count` rays into `rec`.
     pub fn record(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         grid: GpuGrid,
         rays: GpuRays,
         params: &MarchParams,
         out: &GpuMarchBuffers,
     ) {
+        let context = rec.context;
         let GpuRays {
             origins,
             directions,
@@ -270,16 +275,14 @@ impl GpuMarch {
         );
         let uniform = uniform_buffer(context, "march params", &uniforms);
         let (groups, _) = dispatch_grid(ray_count + 1, WORKGROUP);
-        encoder.clear_buffer(&out.counters, 0, None);
+        rec.encoder.clear_buffer(&out.counters, 0, None);
         self.count.record(
-            context,
-            encoder,
+            rec,
             &[&uniform, grid.bitfield, origins, directions, &out.counts],
             groups,
         );
         self.record_scan(
-            context,
-            encoder,
+            rec,
             (&uniform, &uniforms),
             PrefixSum {
                 counts: &out.counts,
@@ -288,15 +291,10 @@ impl GpuMarch {
                 counters: &out.counters,
             },
         );
-        self.clamp.record(
-            context,
-            encoder,
-            &[&uniform, &out.counters, &out.ray_offsets],
-            groups,
-        );
+        self.clamp
+            .record(rec, &[&uniform, &out.counters, &out.ray_offsets], groups);
         self.write.record(
-            context,
-            encoder,
+            rec,
             &[
                 &uniform,
                 grid.bitfield,
@@ -317,13 +315,8 @@ impl GpuMarch {
     /// to `counters[0]` (cleared here; `counters[1]` gets the number of
     /// rays): the march's scan with no sample budget, for counts made
     /// elsewhere (the samples before each ray's cut).
-    pub fn record_prefix_sum(
-        &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
-        sum: PrefixSum,
-        ray_count: usize,
-    ) {
+    pub fn record_prefix_sum(&self, rec: &mut Recorder, sum: PrefixSum, ray_count: usize) {
+        let context = rec.context;
         let element_count = ray_count + 1;
         let uniforms = MarchUniforms {
             ray_count: ray_count as u32,
@@ -338,30 +331,27 @@ impl GpuMarch {
             "too many rays for one prefix sum: {ray_count}"
         );
         let uniform = uniform_buffer(context, "prefix sum params", &uniforms);
-        encoder.clear_buffer(sum.counters, 0, None);
-        self.record_scan(context, encoder, (&uniform, &uniforms), sum);
+        rec.encoder.clear_buffer(sum.counters, 0, None);
+        self.record_scan(rec, (&uniform, &uniforms), sum);
     }
 
     /// The three passes of the scan, with the march's uniforms.
     fn record_scan(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         (uniform, uniforms): (&wgpu::Buffer, &MarchUniforms),
         sum: PrefixSum,
     ) {
         let (groups, _) = dispatch_grid(uniforms.element_count as usize, WORKGROUP);
         self.scan_blocks.record(
-            context,
-            encoder,
+            rec,
             &[uniform, sum.counts, sum.offsets, sum.block_sums],
             [uniforms.block_count, 1, 1],
         );
         self.scan_sums
-            .record(context, encoder, &[uniform, sum.block_sums], [1, 1, 1]);
+            .record(rec, &[uniform, sum.block_sums], [1, 1, 1]);
         self.scan_add.record(
-            context,
-            encoder,
+            rec,
             &[uniform, sum.block_sums, sum.offsets, sum.counters],
             groups,
         );
@@ -384,7 +374,7 @@ impl GpuMarch {
         let origins = storage_buffer(context, "ray origins", origins);
         let directions = storage_buffer(context, "ray directions", directions);
         let out = GpuMarchBuffers::new(context, ray_count, capacity);
-        let mut encoder = context.device.create_command_encoder(&Default::default());
+        let mut rec = Recorder::new(context);
         let gpu_grid = GpuGrid {
             geometry: grid.geometry(),
             bitfield: &bitfield,
@@ -393,8 +383,8 @@ impl GpuMarch {
             origins: &origins,
             directions: &directions,
         };
-        self.record(context, &mut encoder, gpu_grid, rays, params, &out);
-        context.queue.submit([encoder.finish()]);
+        self.record(&mut rec, gpu_grid, rays, params, &out);
+        rec.submit();
         let counters: Vec<u32> = read_buffer(context, &out.counters, 2);
         let samples = counters[0] as usize;
         let marched = MarchedSamples {

@@ -17,7 +17,6 @@ pub mod march;
 #[cfg(test)]
 pub(crate) mod mirror;
 pub mod model;
-pub mod occupancy;
 pub mod render;
 pub mod sampling;
 pub mod sh;

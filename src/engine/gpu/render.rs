@@ -13,14 +13,15 @@
 //! (4 while many rays are active, up to 64 when few are), and the samples
 //! are the cpu's, so the pixels are the cpu's up to rounding.
 
+use super::composite::VOLUME_COMMON;
 use super::context::{GpuContext, GpuError};
 use super::kernel::{Kernel, zeroed_storage_buffer};
-use super::march::source;
+use super::march::{CPU_ARITHMETIC, MARCH_COMMON, MARCH_PARAMS, source};
 use crate::scene::UnitCubeMapping;
 use crate::scene::crop::CropBox;
 
-const MARCH_PARAMS: &str = include_str!("../../../shaders/march_params.wgsl");
-const MARCH_COMMON: &str = include_str!("../../../shaders/march_common.wgsl");
+/// `RayState`, prepended to every render kernel.
+const RAY_STATE: &str = include_str!("../../../shaders/ray_state.wgsl");
 
 /// Rays of a round start at multiples of this in the list of active rays
 /// (so the list's sub-range bindings are 256-byte aligned).
@@ -117,7 +118,9 @@ impl RenderKernels {
                 "render_walk",
                 &source(&[
                     MARCH_PARAMS,
+                    CPU_ARITHMETIC,
                     MARCH_COMMON,
+                    RAY_STATE,
                     include_str!("../../../shaders/render_walk.wgsl"),
                 ]),
                 "main",
@@ -125,19 +128,29 @@ impl RenderKernels {
             composite: Kernel::new(
                 context,
                 "render_composite",
-                include_str!("../../../shaders/render_composite.wgsl"),
+                &source(&[
+                    RAY_STATE,
+                    VOLUME_COMMON,
+                    include_str!("../../../shaders/render_composite.wgsl"),
+                ]),
                 "main",
             )?,
             compact: Kernel::new(
                 context,
                 "render_compact",
-                include_str!("../../../shaders/render_compact.wgsl"),
+                &source(&[
+                    RAY_STATE,
+                    include_str!("../../../shaders/render_compact.wgsl"),
+                ]),
                 "main",
             )?,
             image: Kernel::new(
                 context,
                 "render_image",
-                include_str!("../../../shaders/render_image.wgsl"),
+                &source(&[
+                    RAY_STATE,
+                    include_str!("../../../shaders/render_image.wgsl"),
+                ]),
                 "main",
             )?,
         })
@@ -319,6 +332,29 @@ mod uniform_mirrors {
             CompactUniforms,
             [count, row_stride]
         );
+    }
+    /// `RayState` is no uniform, but the host sizes its buffer:
+    /// [`STATE_WORDS`] words per pixel.
+    #[test]
+    fn state_words_hold_a_ray_state() {
+        #[repr(C)]
+        struct RayState {
+            k: u32,
+            emitted: u32,
+            done: u32,
+            optical_depth: f32,
+            depth: f32,
+            r: f32,
+            g: f32,
+            b: f32,
+        }
+        assert_mirrors!(
+            RAY_STATE,
+            "RayState",
+            RayState,
+            [k, emitted, done, optical_depth, depth, r, g, b]
+        );
+        assert_eq!(std::mem::size_of::<RayState>(), 4 * STATE_WORDS);
     }
     #[test]
     fn imageuniforms_of_render_image_mirror_the_shader() {

@@ -17,8 +17,9 @@
 //! Rays beyond one storage binding go a piece at a time.
 
 use super::context::{GpuContext, GpuError};
-use super::kernel::{Kernel, float_range, pieces, rows_per_piece, uniform_buffer};
-use super::march::{dispatch_grid, source};
+use super::kernel::{Kernel, Recorder, float_range, pieces, rows_per_piece, uniform_buffer};
+use super::march::GpuRays;
+use super::march::{CPU_ARITHMETIC, dispatch_grid, source};
 use crate::engine::shared::sampling::stratified_step;
 
 /// Threads per workgroup of every sampling kernel.
@@ -56,6 +57,45 @@ struct ToWorldUniforms {
     _pad1: u32,
 }
 
+/// Each ray's bounds: R distances each, where its samples start and end.
+#[derive(Debug, Clone, Copy)]
+pub struct RayBounds<'a> {
+    pub near: &'a wgpu::Buffer,
+    pub far: &'a wgpu::Buffer,
+}
+
+/// A piecewise-constant pdf per ray: `bins` bins between R × (`bins` + 1)
+/// sorted `edges`, weighted by R × `bins` `weights`, each raised by
+/// `padding`.
+#[derive(Debug, Clone, Copy)]
+pub struct Pdf<'a> {
+    pub edges: &'a wgpu::Buffer,
+    pub weights: &'a wgpu::Buffer,
+    pub bins: usize,
+    pub padding: f32,
+}
+
+/// R rows of `per_ray` values each, sorted within each row.
+#[derive(Debug, Clone, Copy)]
+pub struct SortedRows<'a> {
+    pub values: &'a wgpu::Buffer,
+    pub per_ray: usize,
+}
+
+/// A level's samples and their compositing weights, R × M each.
+#[derive(Debug, Clone, Copy)]
+pub struct WeightedSamples<'a> {
+    pub t: &'a wgpu::Buffer,
+    pub weights: &'a wgpu::Buffer,
+}
+
+/// Points along rays, R × N × 3 each: positions and unit directions.
+#[derive(Debug, Clone, Copy)]
+pub struct SamplePoints<'a> {
+    pub positions: &'a wgpu::Buffer,
+    pub directions: &'a wgpu::Buffer,
+}
+
 /// The compiled sampling kernels.
 pub struct GpuSampling {
     stratified: Kernel,
@@ -70,8 +110,14 @@ pub struct GpuSampling {
 
 impl GpuSampling {
     pub fn new(context: &GpuContext) -> Result<Self, GpuError> {
-        let kernel =
-            |name: &str, entry: &str| Kernel::new(context, name, &source(&[COMMON, entry]), "main");
+        let kernel = |name: &str, entry: &str| {
+            Kernel::new(
+                context,
+                name,
+                &source(&[COMMON, CPU_ARITHMETIC, entry]),
+                "main",
+            )
+        };
         Ok(Self {
             stratified: kernel(
                 "sample_stratified",
@@ -116,14 +162,14 @@ impl GpuSampling {
     /// device's storage-binding limit. `bind` gives the piece's storage
     /// bindings, after the uniform.
     pub(crate) fn record_rays<'a>(
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         kernel: &Kernel,
         rays: usize,
         widest: usize,
         template: SampleUniforms,
         bind: impl Fn(&std::ops::Range<usize>) -> Vec<wgpu::BufferBinding<'a>>,
     ) {
+        let context = rec.context;
         for piece in pieces(rays, rows_per_piece(context, widest, 1)) {
             let (groups, row_stride) = dispatch_grid(piece.len(), WORKGROUP);
             let params = SampleUniforms {
@@ -135,19 +181,16 @@ impl GpuSampling {
             let uniform = uniform_buffer(context, &kernel.name, &params);
             let mut bindings = vec![uniform.as_entire_buffer_binding()];
             bindings.extend(bind(&piece));
-            kernel.record_bindings(context, encoder, &bindings, groups);
+            kernel.record_bindings(rec, &bindings, groups);
         }
     }
 
-    /// Records [`crate::engine::cpu::sampling::stratified`]: `near`, `far`
-    /// (R each) to `t_out` (R × N).
-    #[allow(clippy::too_many_arguments)]
+    /// Records [`crate::engine::cpu::sampling::stratified`]: `bounds` to
+    /// `t_out` (R × N).
     pub fn record_stratified(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
-        near: &wgpu::Buffer,
-        far: &wgpu::Buffer,
+        rec: &mut Recorder,
+        bounds: RayBounds,
         rays: usize,
         samples_per_ray: usize,
         jitter: Option<u32>,
@@ -164,31 +207,32 @@ impl GpuSampling {
             step: stratified_step(n),
             ..Default::default()
         };
-        Self::record_rays(context, encoder, &self.stratified, rays, n, template, |p| {
+        Self::record_rays(rec, &self.stratified, rays, n, template, |p| {
             vec![
-                float_range(near, p.start, p.len()),
-                float_range(far, p.start, p.len()),
+                float_range(bounds.near, p.start, p.len()),
+                float_range(bounds.far, p.start, p.len()),
                 float_range(t_out, n * p.start, n * p.len()),
             ]
         });
     }
 
-    /// Records [`crate::engine::cpu::sampling::sample_pdf`]: `edges`
-    /// (R × (B + 1)) and `weights` (R × B) to `out` (R × count).
-    #[allow(clippy::too_many_arguments)]
+    /// Records [`crate::engine::cpu::sampling::sample_pdf`]: `count` draws
+    /// from `pdf` to `out` (R × count).
     pub fn record_sample_pdf(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
-        edges: &wgpu::Buffer,
-        weights: &wgpu::Buffer,
+        rec: &mut Recorder,
+        pdf: Pdf,
         rays: usize,
-        bins: usize,
-        padding: f32,
         count: usize,
         jitter: Option<u32>,
         out: &wgpu::Buffer,
     ) {
+        let Pdf {
+            edges,
+            weights,
+            bins,
+            padding,
+        } = pdf;
         assert!(bins > 0, "a pdf needs at least one bin");
         assert!(
             padding.is_finite() && padding >= 0.0,
@@ -207,7 +251,7 @@ impl GpuSampling {
             ..Default::default()
         };
         let widest = count.max(bins + 1);
-        Self::record_rays(context, encoder, &self.pdf, rays, widest, template, |p| {
+        Self::record_rays(rec, &self.pdf, rays, widest, template, |p| {
             vec![
                 float_range(edges, (bins + 1) * p.start, (bins + 1) * p.len()),
                 float_range(weights, bins * p.start, bins * p.len()),
@@ -218,18 +262,15 @@ impl GpuSampling {
 
     /// Records [`crate::engine::cpu::sampling::merge_sorted`]: `a` (R × Na)
     /// and `b` (R × Nb) to `out` (R × (Na + Nb)).
-    #[allow(clippy::too_many_arguments)]
     pub fn record_merge_sorted(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
-        a: &wgpu::Buffer,
-        na: usize,
-        b: &wgpu::Buffer,
-        nb: usize,
+        rec: &mut Recorder,
+        a: SortedRows,
+        b: SortedRows,
         rays: usize,
         out: &wgpu::Buffer,
     ) {
+        let (na, nb) = (a.per_ray, b.per_ray);
         let n = na + nb;
         if n == 0 || rays == 0 {
             return;
@@ -239,10 +280,10 @@ impl GpuSampling {
             bins: nb as u32,
             ..Default::default()
         };
-        Self::record_rays(context, encoder, &self.merge, rays, n, template, |p| {
+        Self::record_rays(rec, &self.merge, rays, n, template, |p| {
             vec![
-                float_range(a, na * p.start, na * p.len()),
-                float_range(b, nb * p.start, nb * p.len()),
+                float_range(a.values, na * p.start, na * p.len()),
+                float_range(b.values, nb * p.start, nb * p.len()),
                 float_range(out, n * p.start, n * p.len()),
             ]
         });
@@ -252,8 +293,7 @@ impl GpuSampling {
     /// R × B.
     pub fn record_blur_weights(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         weights: &wgpu::Buffer,
         rays: usize,
         bins: usize,
@@ -266,7 +306,7 @@ impl GpuSampling {
             samples: bins as u32,
             ..Default::default()
         };
-        Self::record_rays(context, encoder, &self.blur, rays, bins, template, |p| {
+        Self::record_rays(rec, &self.blur, rays, bins, template, |p| {
             vec![
                 float_range(weights, bins * p.start, bins * p.len()),
                 float_range(out, bins * p.start, bins * p.len()),
@@ -276,11 +316,9 @@ impl GpuSampling {
 
     /// Records [`crate::engine::cpu::sampling::intervals_to_far`]: `t`
     /// (R × N) and `far` (R) to `dt_out` (R × N).
-    #[allow(clippy::too_many_arguments)]
     pub fn record_intervals_to_far(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         t: &wgpu::Buffer,
         far: &wgpu::Buffer,
         rays: usize,
@@ -295,7 +333,7 @@ impl GpuSampling {
             samples: n as u32,
             ..Default::default()
         };
-        Self::record_rays(context, encoder, &self.intervals, rays, n, template, |p| {
+        Self::record_rays(rec, &self.intervals, rays, n, template, |p| {
             vec![
                 float_range(t, n * p.start, n * p.len()),
                 float_range(far, p.start, p.len()),
@@ -304,22 +342,17 @@ impl GpuSampling {
         });
     }
 
-    /// Records the positions o + t·d and directions (R × N × 3 each) of
-    /// `samples_per_ray` samples at distances `t` (R × N) along rays
-    /// `origins`, `directions` (R × 3), as the cpu model's
-    /// `points_along_rays`.
-    #[allow(clippy::too_many_arguments)]
+    /// Records the positions o + t·d and directions of `samples_per_ray`
+    /// samples at distances `t` (R × N) along `on` (R rays), as the cpu
+    /// model's `points_along_rays`.
     pub fn record_points(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
-        origins: &wgpu::Buffer,
-        directions: &wgpu::Buffer,
+        rec: &mut Recorder,
+        on: GpuRays,
         t: &wgpu::Buffer,
         rays: usize,
         samples_per_ray: usize,
-        positions_out: &wgpu::Buffer,
-        directions_out: &wgpu::Buffer,
+        out: SamplePoints,
     ) {
         let n = samples_per_ray;
         if n == 0 || rays == 0 {
@@ -329,30 +362,27 @@ impl GpuSampling {
             samples: n as u32,
             ..Default::default()
         };
-        Self::record_rays(context, encoder, &self.points, rays, 3 * n, template, |p| {
+        Self::record_rays(rec, &self.points, rays, 3 * n, template, |p| {
             vec![
-                float_range(origins, 3 * p.start, 3 * p.len()),
-                float_range(directions, 3 * p.start, 3 * p.len()),
+                float_range(on.origins, 3 * p.start, 3 * p.len()),
+                float_range(on.directions, 3 * p.start, 3 * p.len()),
                 float_range(t, n * p.start, n * p.len()),
-                float_range(positions_out, 3 * n * p.start, 3 * n * p.len()),
-                float_range(directions_out, 3 * n * p.start, 3 * n * p.len()),
+                float_range(out.positions, 3 * n * p.start, 3 * n * p.len()),
+                float_range(out.directions, 3 * n * p.start, 3 * n * p.len()),
             ]
         });
     }
 
     /// Records the bins of NeRF's importance sampling from the previous
-    /// level's `samples_per_ray` (M ≥ 3) sorted samples `t` and their
-    /// `weights` (R × M each): `edges_out` (R × (M − 1)) are the midpoints
-    /// between samples, `bin_weights_out` (R × (M − 2)) the weights of the
-    /// interior samples, as the cpu model's `importance_samples` gives
+    /// level's `samples_per_ray` (M ≥ 3) sorted samples and their weights
+    /// (`previous`): `edges_out` (R × (M − 1)) are the midpoints between
+    /// samples, `bin_weights_out` (R × (M − 2)) the weights of the interior
+    /// samples, as the cpu model's `importance_samples` gives
     /// [`crate::engine::cpu::sampling::sample_pdf`].
-    #[allow(clippy::too_many_arguments)]
     pub fn record_importance_bins(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
-        t: &wgpu::Buffer,
-        weights: &wgpu::Buffer,
+        rec: &mut Recorder,
+        previous: WeightedSamples,
         rays: usize,
         samples_per_ray: usize,
         edges_out: &wgpu::Buffer,
@@ -367,10 +397,10 @@ impl GpuSampling {
             samples: m as u32,
             ..Default::default()
         };
-        Self::record_rays(context, encoder, &self.bins, rays, m, template, |p| {
+        Self::record_rays(rec, &self.bins, rays, m, template, |p| {
             vec![
-                float_range(t, m * p.start, m * p.len()),
-                float_range(weights, m * p.start, m * p.len()),
+                float_range(previous.t, m * p.start, m * p.len()),
+                float_range(previous.weights, m * p.start, m * p.len()),
                 float_range(edges_out, (m - 1) * p.start, (m - 1) * p.len()),
                 float_range(bin_weights_out, (m - 2) * p.start, (m - 2) * p.len()),
             ]
@@ -381,8 +411,7 @@ impl GpuSampling {
     /// under `mapping`, as the cpu model's `to_world`.
     pub fn record_to_world(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         mapping: &crate::scene::UnitCubeMapping,
         unit: &wgpu::Buffer,
         count: usize,
@@ -391,6 +420,7 @@ impl GpuSampling {
         if count == 0 {
             return;
         }
+        let context = rec.context;
         for piece in pieces(count, rows_per_piece(context, 3, 1)) {
             let (groups, row_stride) = dispatch_grid(piece.len(), WORKGROUP);
             let uniform = ToWorldUniforms {
@@ -403,8 +433,7 @@ impl GpuSampling {
             };
             let uniform = uniform_buffer(context, "sample to world", &uniform);
             self.to_world.record_bindings(
-                context,
-                encoder,
+                rec,
                 &[
                     uniform.as_entire_buffer_binding(),
                     float_range(unit, 3 * piece.start, 3 * piece.len()),

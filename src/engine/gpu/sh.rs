@@ -3,8 +3,8 @@
 
 use super::context::{GpuContext, GpuError};
 use super::kernel::{
-    Kernel, float_range, pieces, read_buffer, rows_per_piece, storage_buffer, uniform_buffer,
-    zeroed_storage_buffer,
+    Columns, Kernel, Recorder, float_range, pieces, read_buffer, rows_per_piece, storage_buffer,
+    uniform_buffer, zeroed_storage_buffer,
 };
 use crate::field::encoding::{SH_MAX_DEGREE, sh_coefficients};
 
@@ -40,28 +40,29 @@ impl GpuSh {
     }
 
     /// Records the encoding of `rows` unit directions (rows × 3): row r's
-    /// `degree²` coefficients go to `output[r·stride + offset ..]`, so they
-    /// can be written straight into the colour network's input matrix.
-    #[allow(clippy::too_many_arguments)]
+    /// `degree²` coefficients go to the `out` columns of row r, so they can
+    /// be written straight into the colour network's input matrix.
     pub fn record_encode(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         degree: u32,
         directions: &wgpu::Buffer,
-        output: &wgpu::Buffer,
         rows: usize,
-        stride: usize,
-        offset: usize,
+        out: Columns,
     ) {
+        let context = rec.context;
+        let Columns {
+            buffer: output,
+            stride,
+            start: offset,
+            width,
+        } = out;
         assert!(
             (1..=SH_MAX_DEGREE).contains(&degree),
             "degree {degree} not in 1..={SH_MAX_DEGREE}"
         );
-        assert!(
-            offset + sh_coefficients(degree) <= stride,
-            "coefficients overrun the row"
-        );
+        assert_eq!(width, sh_coefficients(degree), "degree² columns");
+        assert!(offset + width <= stride, "coefficients overrun the row");
         // Rows beyond one storage binding go a piece at a time.
         for piece in pieces(rows, rows_per_piece(context, stride.max(3), 1)) {
             let params = Params {
@@ -74,8 +75,7 @@ impl GpuSh {
             let groups = (piece.len() as u32).div_ceil(WORKGROUP).max(1);
             let y = groups.div_ceil(MAX_GROUPS_PER_DIMENSION);
             self.kernel.record_bindings(
-                context,
-                encoder,
+                rec,
                 &[
                     uniform.as_entire_buffer_binding(),
                     float_range(directions, 3 * piece.start, 3 * piece.len()),
@@ -98,9 +98,9 @@ impl GpuSh {
         let n = sh_coefficients(degree);
         let input = storage_buffer(context, "directions", &directions[..3 * rows]);
         let output = zeroed_storage_buffer::<f32>(context, "sh", rows * n);
-        let mut encoder = context.device.create_command_encoder(&Default::default());
-        self.record_encode(context, &mut encoder, degree, &input, &output, rows, n, 0);
-        context.queue.submit([encoder.finish()]);
+        let mut rec = Recorder::new(context);
+        self.record_encode(&mut rec, degree, &input, rows, Columns::all(&output, n));
+        rec.submit();
         read_buffer(context, &output, rows * n)
     }
 }

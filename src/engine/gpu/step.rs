@@ -10,7 +10,7 @@ use super::composite::{
     CompositeGradientBuffers, CompositeOutputBuffers, GpuComposite, RayBatchBuffers,
 };
 use super::context::GpuContext;
-use super::kernel::{MapRequest, staging_buffer, zeroed_storage_buffer};
+use super::kernel::{MapRequest, Recorder, staging_buffer, zeroed_storage_buffer};
 use super::loss::{GpuLoss, LossBuffers};
 use super::timing::{PendingTimes, StageClock};
 use crate::engine::shared::composite::Distortion;
@@ -177,6 +177,18 @@ pub struct SampleGradientBuffers<'a> {
     pub rgb: &'a wgpu::Buffer,
 }
 
+/// How a level is composited and scored: compositing stops where the
+/// transmittance falls below `min_transmittance`; the loss is `loss`, its
+/// gradient scaled by `gradient_weight`; with the distortion loss if
+/// asked.
+#[derive(Debug, Clone, Copy)]
+pub struct LevelLoss {
+    pub min_transmittance: f32,
+    pub loss: LossKind,
+    pub gradient_weight: f32,
+    pub distortion: Option<Distortion<f32>>,
+}
+
 /// The compositing and loss kernels.
 pub struct CompositeAndLoss<'a> {
     pub composite: &'a GpuComposite,
@@ -187,27 +199,27 @@ impl CompositeAndLoss<'_> {
     /// Records compositing of `ray_count` rays from `samples` over the
     /// rays' backgrounds (into `rays.rgb`, `opacity`, `depth`,
     /// `samples_used`), the loss against `rays.targets` (its mean into
-    /// `rays.loss_total`, its gradient times `gradient_weight` into
-    /// `rays.d_rgb`), and compositing's backward pass into `gradients`
-    /// (with the distortion loss if asked).
-    #[allow(clippy::too_many_arguments)]
+    /// `rays.loss_total`, its gradient times the level's weight into
+    /// `rays.d_rgb`), and compositing's backward pass into `gradients`,
+    /// as `level` says.
     pub fn record(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         rays: &RayBuffers,
         samples: SampleBuffers,
         ray_count: usize,
-        min_transmittance: f32,
-        loss: LossKind,
-        gradient_weight: f32,
-        distortion: Option<Distortion<f32>>,
+        level: LevelLoss,
         gradients: SampleGradientBuffers,
     ) {
+        let LevelLoss {
+            min_transmittance,
+            loss,
+            gradient_weight,
+            distortion,
+        } = level;
         let batch = rays.batch(samples, ray_count);
         self.composite.record_forward(
-            context,
-            encoder,
+            rec,
             &batch,
             min_transmittance,
             &CompositeOutputBuffers {
@@ -218,8 +230,7 @@ impl CompositeAndLoss<'_> {
             },
         );
         self.loss.record_weighted(
-            context,
-            encoder,
+            rec,
             loss,
             &LossBuffers {
                 predicted: &rays.rgb,
@@ -232,8 +243,7 @@ impl CompositeAndLoss<'_> {
             gradient_weight,
         );
         self.composite.record_backward(
-            context,
-            encoder,
+            rec,
             &batch,
             min_transmittance,
             &rays.d_rgb,
@@ -309,14 +319,10 @@ impl StepReadback {
 
     /// Records the step's loss copy and the clock's resolve, last in the
     /// step's final encoder.
-    pub fn record(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        clock: &StageClock,
-        loss_total: &wgpu::Buffer,
-    ) {
-        clock.resolve(encoder);
-        encoder.copy_buffer_to_buffer(loss_total, 0, &self.loss_staging, 0, 4);
+    pub fn record(&self, rec: &mut Recorder, clock: &StageClock, loss_total: &wgpu::Buffer) {
+        clock.resolve(rec);
+        rec.encoder
+            .copy_buffer_to_buffer(loss_total, 0, &self.loss_staging, 0, 4);
     }
 
     /// After submitting the encoder holding [`Self::record`]: the results

@@ -21,7 +21,7 @@ use std::time::Instant;
 use wgpu::Features;
 
 use super::context::GpuContext;
-use super::kernel::MapRequest;
+use super::kernel::{MapRequest, Recorder};
 pub use crate::model::Stage;
 use crate::model::StageTimes;
 
@@ -132,21 +132,16 @@ impl StageClock {
     /// Starts a new interval without counting the time since the last
     /// boundary (the first boundary of a submission: the gap before it is
     /// host time between submissions).
-    pub fn restart(&mut self, context: &GpuContext, encoder: &mut wgpu::CommandEncoder) {
-        self.boundary(context, encoder, None);
+    pub fn restart(&mut self, rec: &mut Recorder) {
+        self.boundary(rec, None);
     }
 
     /// Ends the interval since the last boundary and counts it to `stage`.
-    pub fn mark(&mut self, context: &GpuContext, encoder: &mut wgpu::CommandEncoder, stage: Stage) {
-        self.boundary(context, encoder, Some(stage));
+    pub fn mark(&mut self, rec: &mut Recorder, stage: Stage) {
+        self.boundary(rec, Some(stage));
     }
 
-    fn boundary(
-        &mut self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
-        stage: Option<Stage>,
-    ) {
+    fn boundary(&mut self, rec: &mut Recorder, stage: Option<Stage>) {
         match &self.queries {
             Some(queries) => {
                 if self.marks >= MAX_MARKS {
@@ -155,23 +150,20 @@ impl StageClock {
                 if self.marks > 0 {
                     self.intervals.push(stage);
                 }
-                encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-                    label: Some("stage boundary"),
-                    timestamp_writes: Some(wgpu::ComputePassTimestampWrites {
-                        query_set: &queries.set,
-                        beginning_of_pass_write_index: None,
-                        end_of_pass_write_index: Some(self.marks),
-                    }),
-                });
+                rec.encoder
+                    .begin_compute_pass(&wgpu::ComputePassDescriptor {
+                        label: Some("stage boundary"),
+                        timestamp_writes: Some(wgpu::ComputePassTimestampWrites {
+                            query_set: &queries.set,
+                            beginning_of_pass_write_index: None,
+                            end_of_pass_write_index: Some(self.marks),
+                        }),
+                    });
                 self.marks += 1;
             }
             None => {
-                let recorded = std::mem::replace(
-                    encoder,
-                    context.device.create_command_encoder(&Default::default()),
-                );
-                context.queue.submit([recorded.finish()]);
-                context
+                rec.submit_so_far();
+                rec.context
                     .device
                     .poll(wgpu::PollType::wait_indefinitely())
                     .expect("waiting for the GPU");
@@ -186,12 +178,13 @@ impl StageClock {
 
     /// Records the resolve and copy of this step's timestamps; call once,
     /// in the step's last encoder, after its last boundary.
-    pub fn resolve(&self, encoder: &mut wgpu::CommandEncoder) {
+    pub fn resolve(&self, rec: &mut Recorder) {
         if let Some(queries) = &self.queries
             && self.marks > 0
         {
-            encoder.resolve_query_set(&queries.set, 0..self.marks, &queries.resolved, 0);
-            encoder.copy_buffer_to_buffer(
+            rec.encoder
+                .resolve_query_set(&queries.set, 0..self.marks, &queries.resolved, 0);
+            rec.encoder.copy_buffer_to_buffer(
                 &queries.resolved,
                 0,
                 &queries.staging,

@@ -8,6 +8,7 @@ pub mod nerf;
 pub mod ngp;
 
 use super::context::{GpuContext, GpuError};
+use super::kernel::Recorder;
 use crate::field::common::Coordinates;
 use crate::field::shape::FieldShape;
 
@@ -25,6 +26,33 @@ pub fn fields_for(
             Box::new(nerf::GpuNerfField::new(context, shape, capacity_rows)?)
         }
     })
+}
+
+/// A field's samples: `positions` and unit `directions` (rows × 3 each),
+/// and, where given, `variances` (rows × 3) that make each sample a
+/// Gaussian with that diagonal covariance around its position (Mip-NeRF's
+/// frustums). On the device (`B` a buffer), or on the host (`[f32]`) for
+/// the helpers that upload them.
+#[derive(Debug)]
+pub struct FieldInputs<'a, B: ?Sized = wgpu::Buffer> {
+    pub positions: &'a B,
+    pub variances: Option<&'a B>,
+    pub directions: &'a B,
+}
+
+impl<B: ?Sized> Clone for FieldInputs<'_, B> {
+    fn clone(&self) -> Self {
+        *self
+    }
+}
+
+impl<B: ?Sized> Copy for FieldInputs<'_, B> {}
+
+/// Where a field's forward pass writes: σ (rows) and colour (rows × 3).
+#[derive(Debug, Clone, Copy)]
+pub struct FieldOutputs<'a> {
+    pub sigma: &'a wgpu::Buffer,
+    pub rgb: &'a wgpu::Buffer,
 }
 
 /// A field on the `gpu` engine, as a model driver records it: a forward
@@ -56,31 +84,22 @@ pub trait GpuField: Send {
         None
     }
 
-    /// Records σ (`rows`) and colour (`rows` × 3) at `rows` samples.
-    /// `variances` (rows × 3), where given, make each sample a Gaussian with
-    /// that diagonal covariance around its position (Mip-NeRF's frustums),
-    /// as the cpu's [`crate::engine::cpu::fields::Field::forward`].
-    #[allow(clippy::too_many_arguments)]
+    /// Records σ and colour at `rows` samples `inputs` into `out`, as the
+    /// cpu's [`crate::engine::cpu::fields::Field::forward`].
     fn record_forward(
         &mut self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         params: &wgpu::Buffer,
-        positions: &wgpu::Buffer,
-        variances: Option<&wgpu::Buffer>,
-        directions: &wgpu::Buffer,
+        inputs: FieldInputs,
         rows: usize,
-        sigma_out: &wgpu::Buffer,
-        rgb_out: &wgpu::Buffer,
+        out: FieldOutputs,
     );
 
     /// Records the backward pass of the last forward pass, adding (+=)
     /// the parameter gradient into `gradients`.
-    #[allow(clippy::too_many_arguments)]
     fn record_backward(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         params: &wgpu::Buffer,
         d_sigma: &wgpu::Buffer,
         d_rgb: &wgpu::Buffer,
@@ -89,12 +108,10 @@ pub trait GpuField: Send {
     );
 
     /// Records σ alone at `rows` positions (with `variances` as in
-    /// [`GpuField::record_forward`]).
-    #[allow(clippy::too_many_arguments)]
+    /// [`FieldInputs`]).
     fn record_density(
         &mut self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         params: &wgpu::Buffer,
         positions: &wgpu::Buffer,
         variances: Option<&wgpu::Buffer>,

@@ -19,7 +19,7 @@
 //! The parameters are one flat buffer `[A | B | C]`, each network's
 //! `MlpLayout` in the cpu engine's layout; the dense kernels read each
 //! network at its offset in that buffer and accumulate its gradients at the
-//! same offset of the gradient buffer ([`GpuDense::record_forward_at`]), so
+//! same offset of the gradient buffer ([`GpuDense::record_forward`]), so
 //! nothing is copied in or out. The small kernels between the networks are
 //! `shaders/nerf_concat.wgsl` (row-wise concatenation of column ranges) and
 //! `shaders/nerf_density*.wgsl` (σ's activation and its backward).
@@ -30,11 +30,12 @@
 use std::ops::Range;
 
 use crate::engine::gpu::context::{GpuContext, GpuError};
-use crate::engine::gpu::dense::{GpuDense, GpuMlpWorkspace};
+use crate::engine::gpu::dense::{GpuDense, GpuMlpWorkspace, MlpGradients};
+use crate::engine::gpu::fields::{FieldInputs, FieldOutputs};
 use crate::engine::gpu::frequency::GpuFrequency;
 use crate::engine::gpu::kernel::{
-    Kernel, float_range, pieces, read_buffer, rows_per_piece, storage_buffer, uniform_buffer,
-    zeroed_storage_buffer,
+    Columns, FloatsAt, Kernel, Recorder, float_range, pieces, read_buffer, rows_per_piece,
+    storage_buffer, uniform_buffer, zeroed_storage_buffer,
 };
 use crate::engine::gpu::march::dispatch_grid;
 use crate::field::nerf::{DensityActivation, NerfShape};
@@ -82,28 +83,6 @@ struct DensityUniform {
     activation: u32,
     shift: f32,
     _pad: u32,
-}
-
-/// Columns `start .. start + width` of a row-major matrix `stride` floats
-/// wide.
-#[derive(Clone, Copy)]
-struct Columns<'a> {
-    buffer: &'a wgpu::Buffer,
-    stride: usize,
-    start: usize,
-    width: usize,
-}
-
-impl<'a> Columns<'a> {
-    /// Every column of a matrix `width` wide.
-    fn all(buffer: &'a wgpu::Buffer, width: usize) -> Self {
-        Self {
-            buffer,
-            stride: width,
-            start: 0,
-            width,
-        }
-    }
 }
 
 /// The compiled kernels a NeRF field records.
@@ -275,13 +254,13 @@ impl GpuNerfField {
     /// Records `output` = [left columns | right columns] for `rows` rows.
     fn record_concat<'a>(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         left: Columns<'a>,
         right: Columns<'a>,
         output: &wgpu::Buffer,
         rows: usize,
     ) {
+        let context = rec.context;
         let out_w = left.width + right.width;
         let widest = left.stride.max(right.stride).max(out_w);
         for piece in pieces(rows, rows_per_piece(context, widest, 1)) {
@@ -301,8 +280,7 @@ impl GpuNerfField {
                 float_range(m.buffer, m.stride * piece.start, m.stride * piece.len())
             };
             self.kernels.concat.record_bindings(
-                context,
-                encoder,
+                rec,
                 &[
                     uniform.as_entire_buffer_binding(),
                     bind(&left),
@@ -337,20 +315,14 @@ impl GpuNerfField {
     }
 
     /// Records σ = activation(σ_raw) from trunk B's output.
-    fn record_sigma(
-        &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
-        sigma_out: &wgpu::Buffer,
-        rows: usize,
-    ) {
+    fn record_sigma(&self, rec: &mut Recorder, sigma_out: &wgpu::Buffer, rows: usize) {
+        let context = rec.context;
         let raw_w = self.width() + 1;
         for piece in pieces(rows, rows_per_piece(context, raw_w, 1)) {
             let (groups, uniform) = self.density_uniform(piece.len(), piece.len());
             let uniform = uniform_buffer(context, "nerf density", &uniform);
             self.kernels.density.record_bindings(
-                context,
-                encoder,
+                rec,
                 &[
                     uniform.as_entire_buffer_binding(),
                     float_range(self.b.output(), raw_w * piece.start, raw_w * piece.len()),
@@ -366,8 +338,7 @@ impl GpuNerfField {
     /// trunk B's output [σ_raw | feature] is then in `b.output()`.
     fn record_trunk(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         params: &wgpu::Buffer,
         positions: &wgpu::Buffer,
         variances: Option<&wgpu::Buffer>,
@@ -377,71 +348,72 @@ impl GpuNerfField {
         let [ra, rb, _] = self.ranges();
         let (width, enc) = (self.width(), self.shape.position.output_width());
         k.frequency.record(
-            context,
-            encoder,
+            rec,
             &self.shape.position,
             positions,
             variances,
             rows as u32,
             &self.encoded_position,
         );
-        k.dense.record_forward_at(
-            context,
-            encoder,
-            params,
-            ra.start,
+        k.dense.record_forward(
+            rec,
+            FloatsAt {
+                buffer: params,
+                offset: ra.start,
+            },
             &self.encoded_position,
             &self.a,
             rows,
         );
         // The skip: h first, then γ(x), as the cpu field orders it.
         self.record_concat(
-            context,
-            encoder,
+            rec,
             Columns::all(self.a.output(), width),
             Columns::all(&self.encoded_position, enc),
             &self.trunk_b_in,
             rows,
         );
-        k.dense.record_forward_at(
-            context,
-            encoder,
-            params,
-            rb.start,
+        k.dense.record_forward(
+            rec,
+            FloatsAt {
+                buffer: params,
+                offset: rb.start,
+            },
             &self.trunk_b_in,
             &self.b,
             rows,
         );
     }
 
-    /// Records the forward pass over `rows` samples: σ into `sigma_out`
-    /// (rows) and colour into `rgb_out` (rows × 3), from `params` (the
-    /// field's flat parameters `[A | B | C]`, as the cpu field), `positions`
-    /// and unit `directions` (rows × 3 f32 each), and, for Gaussians
-    /// (Mip-NeRF's frustums), their covariance diagonals `variances`
-    /// (rows × 3). Keeps the activations for [`Self::record_backward`].
-    #[allow(clippy::too_many_arguments)]
+    /// Records the forward pass over `rows` samples `inputs` (Gaussians,
+    /// Mip-NeRF's frustums, where they have variances): σ and colour into
+    /// `out`, from `params` (the field's flat parameters `[A | B | C]`, as
+    /// the cpu field). Keeps the activations for [`Self::record_backward`].
     pub fn record_forward(
         &mut self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         params: &wgpu::Buffer,
-        positions: &wgpu::Buffer,
-        variances: Option<&wgpu::Buffer>,
-        directions: &wgpu::Buffer,
+        inputs: FieldInputs,
         rows: usize,
-        sigma_out: &wgpu::Buffer,
-        rgb_out: &wgpu::Buffer,
+        out: FieldOutputs,
     ) {
+        let FieldInputs {
+            positions,
+            variances,
+            directions,
+        } = inputs;
+        let FieldOutputs {
+            sigma: sigma_out,
+            rgb: rgb_out,
+        } = out;
         self.check_rows(rows);
-        self.record_trunk(context, encoder, params, positions, variances, rows);
-        self.record_sigma(context, encoder, sigma_out, rows);
+        self.record_trunk(rec, params, positions, variances, rows);
+        self.record_sigma(rec, sigma_out, rows);
         let [_, _, rc] = self.ranges();
         let (width, enc_dir) = (self.width(), self.shape.direction.output_width());
         let k = &self.kernels;
         k.frequency.record(
-            context,
-            encoder,
+            rec,
             &self.shape.direction,
             directions,
             None,
@@ -450,8 +422,7 @@ impl GpuNerfField {
         );
         // The colour input: trunk B's output without its σ column, then γ(d).
         self.record_concat(
-            context,
-            encoder,
+            rec,
             Columns {
                 buffer: self.b.output(),
                 stride: width + 1,
@@ -462,11 +433,12 @@ impl GpuNerfField {
             &self.colour_in,
             rows,
         );
-        k.dense.record_forward_at(
-            context,
-            encoder,
-            params,
-            rc.start,
+        k.dense.record_forward(
+            rec,
+            FloatsAt {
+                buffer: params,
+                offset: rc.start,
+            },
             &self.colour_in,
             &self.c,
             rows,
@@ -476,9 +448,10 @@ impl GpuNerfField {
         // copy, 12 bytes a row, widened when the shape says so.
         let padding = self.shape.colour_padding;
         if padding != 0.0 {
-            self.record_padding(context, encoder, self.c.output(), rgb_out, rows, padding);
+            self.record_padding(rec, self.c.output(), rgb_out, rows, padding);
         } else if rows > 0 {
-            encoder.copy_buffer_to_buffer(self.c.output(), 0, rgb_out, 0, 12 * rows as u64);
+            rec.encoder
+                .copy_buffer_to_buffer(self.c.output(), 0, rgb_out, 0, 12 * rows as u64);
         }
         self.forward_rows = Some(rows);
     }
@@ -488,13 +461,13 @@ impl GpuNerfField {
     /// scale rounded as the cpu rounds it.
     fn record_padding(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         x: &wgpu::Buffer,
         out: &wgpu::Buffer,
         rows: usize,
         offset: f32,
     ) {
+        let context = rec.context;
         let scale = 1.0 + 2.0 * self.shape.colour_padding;
         for piece in pieces(rows, rows_per_piece(context, 3, 1)) {
             let (groups, row_stride) = dispatch_grid(3 * piece.len(), WORKGROUP);
@@ -508,8 +481,7 @@ impl GpuNerfField {
             };
             let uniform = uniform_buffer(context, "nerf colour padding", &uniform);
             self.kernels.colour_padding.record_bindings(
-                context,
-                encoder,
+                rec,
                 &[
                     uniform.as_entire_buffer_binding(),
                     float_range(x, 3 * piece.start, 3 * piece.len()),
@@ -526,17 +498,16 @@ impl GpuNerfField {
     /// `gradients` (the field's layout `[A | B | C]`), as the cpu field's
     /// `backward` does; clear it first for a plain gradient. Positions and
     /// directions get no gradient.
-    #[allow(clippy::too_many_arguments)]
     pub fn record_backward(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         params: &wgpu::Buffer,
         d_sigma: &wgpu::Buffer,
         d_rgb: &wgpu::Buffer,
         rows: usize,
         gradients: &wgpu::Buffer,
     ) {
+        let context = rec.context;
         assert_eq!(
             self.forward_rows,
             Some(rows),
@@ -547,7 +518,7 @@ impl GpuNerfField {
         let k = &self.kernels;
         // Through the colour's widening: a constant factor.
         let d_rgb = if self.shape.colour_padding != 0.0 {
-            self.record_padding(context, encoder, d_rgb, &self.d_colour, rows, 0.0);
+            self.record_padding(rec, d_rgb, &self.d_colour, rows, 0.0);
             &self.d_colour
         } else {
             d_rgb
@@ -556,16 +527,19 @@ impl GpuNerfField {
         // nothing uses (γ(d) has no parameters): 27 of 283 columns in the
         // paper's shape, computed rather than adding a column-range option
         // to the dense kernels.
-        k.dense.record_backward_at(
-            context,
-            encoder,
-            params,
-            rc.start,
+        k.dense.record_backward(
+            rec,
+            FloatsAt {
+                buffer: params,
+                offset: rc.start,
+            },
             &self.colour_in,
             &self.c,
-            d_rgb,
-            gradients,
-            Some(&self.d_colour_in),
+            MlpGradients {
+                output: d_rgb,
+                params: gradients,
+                input: Some(&self.d_colour_in),
+            },
             rows,
         );
         // [∂L/∂σ_raw | ∂L/∂feature] for trunk B's output.
@@ -576,8 +550,7 @@ impl GpuNerfField {
             let uniform = uniform_buffer(context, "nerf density backward", &uniform);
             let bind = |buffer, w: usize| float_range(buffer, w * piece.start, w * piece.len());
             k.density_backward.record_bindings(
-                context,
-                encoder,
+                rec,
                 &[
                     uniform.as_entire_buffer_binding(),
                     bind(self.b.output(), raw_w),
@@ -588,24 +561,26 @@ impl GpuNerfField {
                 groups,
             );
         }
-        k.dense.record_backward_at(
-            context,
-            encoder,
-            params,
-            rb.start,
+        k.dense.record_backward(
+            rec,
+            FloatsAt {
+                buffer: params,
+                offset: rb.start,
+            },
             &self.trunk_b_in,
             &self.b,
-            &self.d_trunk_b_out,
-            gradients,
-            Some(&self.d_trunk_b_in),
+            MlpGradients {
+                output: &self.d_trunk_b_out,
+                params: gradients,
+                input: Some(&self.d_trunk_b_in),
+            },
             rows,
         );
         // The skip's gradient: trunk A's output is the first `width` columns
         // of trunk B's input; the γ(x) columns are dropped (no parameters).
         // The same buffer is bound as the (empty) right-hand side.
         self.record_concat(
-            context,
-            encoder,
+            rec,
             Columns {
                 buffer: &self.d_trunk_b_in,
                 stride: width + enc,
@@ -621,16 +596,19 @@ impl GpuNerfField {
             &self.d_trunk_a_out,
             rows,
         );
-        k.dense.record_backward_at(
-            context,
-            encoder,
-            params,
-            ra.start,
+        k.dense.record_backward(
+            rec,
+            FloatsAt {
+                buffer: params,
+                offset: ra.start,
+            },
             &self.encoded_position,
             &self.a,
-            &self.d_trunk_a_out,
-            gradients,
-            None,
+            MlpGradients {
+                output: &self.d_trunk_a_out,
+                params: gradients,
+                input: None,
+            },
             rows,
         );
     }
@@ -640,11 +618,9 @@ impl GpuNerfField {
     /// first output is used (its last layer is about a quarter of B in
     /// the paper's shape). Overwrites the activations a forward pass kept:
     /// record it outside a forward/backward pair.
-    #[allow(clippy::too_many_arguments)]
     pub fn record_density(
         &mut self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         params: &wgpu::Buffer,
         positions: &wgpu::Buffer,
         variances: Option<&wgpu::Buffer>,
@@ -653,8 +629,8 @@ impl GpuNerfField {
     ) {
         self.check_rows(rows);
         self.forward_rows = None;
-        self.record_trunk(context, encoder, params, positions, variances, rows);
-        self.record_sigma(context, encoder, sigma_out, rows);
+        self.record_trunk(rec, params, positions, variances, rows);
+        self.record_sigma(rec, sigma_out, rows);
     }
 
     /// Uploads, runs the forward pass and reads back (σ, rgb) (for tests
@@ -663,25 +639,19 @@ impl GpuNerfField {
         &mut self,
         context: &GpuContext,
         params: &[f32],
-        positions: &[f32],
-        variances: Option<&[f32]>,
-        directions: &[f32],
+        inputs: FieldInputs<[f32]>,
     ) -> (Vec<f32>, Vec<f32>) {
-        let rows = positions.len() / 3;
-        let buffers = self.upload(context, params, positions, variances, directions);
-        let mut encoder = context.device.create_command_encoder(&Default::default());
+        let rows = inputs.positions.len() / 3;
+        let buffers = self.upload(context, params, inputs);
+        let mut rec = Recorder::new(context);
         self.record_forward(
-            context,
-            &mut encoder,
+            &mut rec,
             &buffers.params,
-            &buffers.positions,
-            buffers.variances.as_ref(),
-            &buffers.directions,
+            buffers.inputs(),
             rows,
-            &buffers.sigma,
-            &buffers.rgb,
+            buffers.outputs(),
         );
-        context.queue.submit([encoder.finish()]);
+        rec.submit();
         (
             read_buffer(context, &buffers.sigma, rows),
             read_buffer(context, &buffers.rgb, 3 * rows),
@@ -690,49 +660,41 @@ impl GpuNerfField {
 
     /// Uploads, runs forward and backward (into a cleared gradient), and
     /// reads back (σ, rgb, parameter gradient).
-    #[allow(clippy::too_many_arguments)]
     pub fn forward_backward_once(
         &mut self,
         context: &GpuContext,
         params: &[f32],
-        positions: &[f32],
-        variances: Option<&[f32]>,
-        directions: &[f32],
+        inputs: FieldInputs<[f32]>,
         d_sigma: &[f32],
         d_rgb: &[f32],
     ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
-        let rows = positions.len() / 3;
+        let rows = inputs.positions.len() / 3;
         assert!(
             d_sigma.len() == rows && d_rgb.len() == 3 * rows,
             "gradients of {rows} samples"
         );
-        let buffers = self.upload(context, params, positions, variances, directions);
+        let buffers = self.upload(context, params, inputs);
         let d_sigma = storage_buffer(context, "nerf d sigma", d_sigma);
         let d_rgb = storage_buffer(context, "nerf d rgb", d_rgb);
         let gradients = zeroed_storage_buffer::<f32>(context, "nerf gradients", params.len());
-        let mut encoder = context.device.create_command_encoder(&Default::default());
-        encoder.clear_buffer(&gradients, 0, None);
+        let mut rec = Recorder::new(context);
+        rec.encoder.clear_buffer(&gradients, 0, None);
         self.record_forward(
-            context,
-            &mut encoder,
+            &mut rec,
             &buffers.params,
-            &buffers.positions,
-            buffers.variances.as_ref(),
-            &buffers.directions,
+            buffers.inputs(),
             rows,
-            &buffers.sigma,
-            &buffers.rgb,
+            buffers.outputs(),
         );
         self.record_backward(
-            context,
-            &mut encoder,
+            &mut rec,
             &buffers.params,
             &d_sigma,
             &d_rgb,
             rows,
             &gradients,
         );
-        context.queue.submit([encoder.finish()]);
+        rec.submit();
         (
             read_buffer(context, &buffers.sigma, rows),
             read_buffer(context, &buffers.rgb, 3 * rows),
@@ -749,18 +711,22 @@ impl GpuNerfField {
         variances: Option<&[f32]>,
     ) -> Vec<f32> {
         let rows = positions.len() / 3;
-        let buffers = self.upload(context, params, positions, variances, &[]);
-        let mut encoder = context.device.create_command_encoder(&Default::default());
+        let inputs = FieldInputs {
+            positions,
+            variances,
+            directions: &[],
+        };
+        let buffers = self.upload(context, params, inputs);
+        let mut rec = Recorder::new(context);
         self.record_density(
-            context,
-            &mut encoder,
+            &mut rec,
             &buffers.params,
             &buffers.positions,
             buffers.variances.as_ref(),
             rows,
             &buffers.sigma,
         );
-        context.queue.submit([encoder.finish()]);
+        rec.submit();
         read_buffer(context, &buffers.sigma, rows)
     }
 
@@ -768,10 +734,13 @@ impl GpuNerfField {
         &self,
         context: &GpuContext,
         params: &[f32],
-        positions: &[f32],
-        variances: Option<&[f32]>,
-        directions: &[f32],
+        inputs: FieldInputs<[f32]>,
     ) -> OnceBuffers {
+        let FieldInputs {
+            positions,
+            variances,
+            directions,
+        } = inputs;
         let rows = positions.len() / 3;
         assert_eq!(positions.len(), 3 * rows, "positions are not rows of 3");
         assert!(
@@ -813,50 +782,37 @@ impl super::GpuField for GpuNerfField {
 
     fn record_forward(
         &mut self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         params: &wgpu::Buffer,
-        positions: &wgpu::Buffer,
-        variances: Option<&wgpu::Buffer>,
-        directions: &wgpu::Buffer,
+        inputs: FieldInputs,
         rows: usize,
-        sigma_out: &wgpu::Buffer,
-        rgb_out: &wgpu::Buffer,
+        out: FieldOutputs,
     ) {
-        GpuNerfField::record_forward(
-            self, context, encoder, params, positions, variances, directions, rows, sigma_out,
-            rgb_out,
-        )
+        GpuNerfField::record_forward(self, rec, params, inputs, rows, out)
     }
 
     fn record_backward(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         params: &wgpu::Buffer,
         d_sigma: &wgpu::Buffer,
         d_rgb: &wgpu::Buffer,
         rows: usize,
         gradients: &wgpu::Buffer,
     ) {
-        GpuNerfField::record_backward(
-            self, context, encoder, params, d_sigma, d_rgb, rows, gradients,
-        )
+        GpuNerfField::record_backward(self, rec, params, d_sigma, d_rgb, rows, gradients)
     }
 
     fn record_density(
         &mut self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         params: &wgpu::Buffer,
         positions: &wgpu::Buffer,
         variances: Option<&wgpu::Buffer>,
         rows: usize,
         sigma_out: &wgpu::Buffer,
     ) {
-        GpuNerfField::record_density(
-            self, context, encoder, params, positions, variances, rows, sigma_out,
-        )
+        GpuNerfField::record_density(self, rec, params, positions, variances, rows, sigma_out)
     }
 
     fn macs_per_sample(&self) -> usize {
@@ -894,6 +850,23 @@ struct OnceBuffers {
     directions: wgpu::Buffer,
     sigma: wgpu::Buffer,
     rgb: wgpu::Buffer,
+}
+
+impl OnceBuffers {
+    fn inputs(&self) -> FieldInputs<'_> {
+        FieldInputs {
+            positions: &self.positions,
+            variances: self.variances.as_ref(),
+            directions: &self.directions,
+        }
+    }
+
+    fn outputs(&self) -> FieldOutputs<'_> {
+        FieldOutputs {
+            sigma: &self.sigma,
+            rgb: &self.rgb,
+        }
+    }
 }
 
 /// The uniforms as the shaders declare them (`engine::gpu::mirror`).

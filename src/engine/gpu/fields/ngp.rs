@@ -14,15 +14,17 @@
 //! cube's, as marched.
 
 use crate::engine::gpu::context::{GpuContext, GpuError};
-use crate::engine::gpu::dense::{GpuDense, GpuMlpWorkspace};
-use crate::engine::gpu::fields::GpuField;
+use crate::engine::gpu::dense::{GpuDense, GpuMlpWorkspace, MlpGradients};
+use crate::engine::gpu::fields::{FieldInputs, FieldOutputs, GpuField};
 use crate::engine::gpu::hash_grid::GpuHashGrid;
 use crate::engine::gpu::kernel::{
-    Kernel, float_range, pieces, rows_per_piece, uniform_buffer, zeroed_storage_buffer,
+    Columns, FloatsAt, Kernel, Recorder, float_range, pieces, rows_per_piece, uniform_buffer,
+    zeroed_storage_buffer,
 };
 use crate::engine::gpu::march::dispatch_grid;
 use crate::engine::gpu::sh::GpuSh;
 use crate::field::common::Coordinates;
+use crate::field::encoding::sh_coefficients;
 use crate::field::ngp::DENSITY_EXP_CLAMP;
 use crate::field::ngp::NgpShape;
 
@@ -130,12 +132,12 @@ impl GpuNgpField {
     /// binding.
     fn record_activation(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         count: usize,
         sigma: &wgpu::Buffer,
         d_sigma: Option<&wgpu::Buffer>,
     ) {
+        let context = rec.context;
         let density_width = self.shape.density.output_width();
         let colour_width = self.shape.colour.input_width();
         let per = rows_per_piece(context, density_width.max(colour_width), 1);
@@ -155,8 +157,7 @@ impl GpuNgpField {
             };
             match d_sigma {
                 Some(d_sigma) => self.activate_backward.record_bindings(
-                    context,
-                    encoder,
+                    rec,
                     &[
                         uniform.as_entire_buffer_binding(),
                         rows(self.density.output(), density_width),
@@ -168,8 +169,7 @@ impl GpuNgpField {
                     groups,
                 ),
                 None => self.activate.record_bindings(
-                    context,
-                    encoder,
+                    rec,
                     &[
                         uniform.as_entire_buffer_binding(),
                         rows(self.density.output(), density_width),
@@ -186,8 +186,7 @@ impl GpuNgpField {
     /// σ into `sigma_out`, the raw outputs into the colour input.
     fn record_density_network(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         params: &wgpu::Buffer,
         positions: &wgpu::Buffer,
         rows: usize,
@@ -195,23 +194,26 @@ impl GpuNgpField {
     ) {
         assert!(rows <= self.capacity, "{rows} rows of {}", self.capacity);
         self.hash.record_encode_at(
-            context,
-            encoder,
-            (params, self.param_offset),
+            rec,
+            FloatsAt {
+                buffer: params,
+                offset: self.param_offset,
+            },
             positions,
             &self.encoded,
             rows,
         );
-        self.dense.record_forward_at(
-            context,
-            encoder,
-            params,
-            self.density_offset(),
+        self.dense.record_forward(
+            rec,
+            FloatsAt {
+                buffer: params,
+                offset: self.density_offset(),
+            },
             &self.encoded,
             &self.density,
             rows,
         );
-        self.record_activation(context, encoder, rows, sigma_out, None);
+        self.record_activation(rec, rows, sigma_out, None);
     }
 }
 
@@ -245,48 +247,52 @@ impl GpuField for GpuNgpField {
 
     fn record_forward(
         &mut self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         params: &wgpu::Buffer,
-        positions: &wgpu::Buffer,
-        _variances: Option<&wgpu::Buffer>,
-        directions: &wgpu::Buffer,
+        inputs: FieldInputs,
         rows: usize,
-        sigma_out: &wgpu::Buffer,
-        rgb_out: &wgpu::Buffer,
+        out: FieldOutputs,
     ) {
-        self.record_density_network(context, encoder, params, positions, rows, sigma_out);
-        let density_width = self.shape.density.output_width();
+        self.record_density_network(rec, params, inputs.positions, rows, out.sigma);
+        let sh_degree = self.shape.network.sh_degree;
         self.sh.record_encode(
-            context,
-            encoder,
-            self.shape.network.sh_degree,
-            directions,
-            &self.colour_input,
+            rec,
+            sh_degree,
+            inputs.directions,
             rows,
-            self.shape.colour.input_width(),
-            density_width,
+            Columns {
+                buffer: &self.colour_input,
+                stride: self.shape.colour.input_width(),
+                start: self.shape.density.output_width(),
+                width: sh_coefficients(sh_degree),
+            },
         );
-        self.dense.record_forward_at(
-            context,
-            encoder,
-            params,
-            self.colour_offset(),
+        self.dense.record_forward(
+            rec,
+            FloatsAt {
+                buffer: params,
+                offset: self.colour_offset(),
+            },
             &self.colour_input,
             &self.colour,
             rows,
         );
         // The colours where the driver reads them (a copy, not a dispatch).
         if rows > 0 {
-            encoder.copy_buffer_to_buffer(self.colour.output(), 0, rgb_out, 0, 12 * rows as u64);
+            rec.encoder.copy_buffer_to_buffer(
+                self.colour.output(),
+                0,
+                out.rgb,
+                0,
+                12 * rows as u64,
+            );
         }
-        self.forward_inputs = Some((positions.clone(), sigma_out.clone()));
+        self.forward_inputs = Some((inputs.positions.clone(), out.sigma.clone()));
     }
 
     fn record_backward(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         params: &wgpu::Buffer,
         d_sigma: &wgpu::Buffer,
         d_rgb: &wgpu::Buffer,
@@ -299,52 +305,59 @@ impl GpuField for GpuNgpField {
             .expect("a forward pass before the backward pass");
         // The networks' gradients land at their parameters' offsets of the
         // flat gradient buffer.
-        self.dense.record_backward_at(
-            context,
-            encoder,
-            params,
-            self.colour_offset(),
+        self.dense.record_backward(
+            rec,
+            FloatsAt {
+                buffer: params,
+                offset: self.colour_offset(),
+            },
             &self.colour_input,
             &self.colour,
-            d_rgb,
-            gradients,
-            Some(&self.d_colour_input),
+            MlpGradients {
+                output: d_rgb,
+                params: gradients,
+                input: Some(&self.d_colour_input),
+            },
             rows,
         );
-        self.record_activation(context, encoder, rows, sigma, Some(d_sigma));
-        self.dense.record_backward_at(
-            context,
-            encoder,
-            params,
-            self.density_offset(),
+        self.record_activation(rec, rows, sigma, Some(d_sigma));
+        self.dense.record_backward(
+            rec,
+            FloatsAt {
+                buffer: params,
+                offset: self.density_offset(),
+            },
             &self.encoded,
             &self.density,
-            &self.d_density_out,
-            gradients,
-            Some(&self.d_encoded),
+            MlpGradients {
+                output: &self.d_density_out,
+                params: gradients,
+                input: Some(&self.d_encoded),
+            },
             rows,
         );
         self.hash.record_backward_at(
-            context,
-            encoder,
+            rec,
             positions,
             &self.d_encoded,
-            (gradients, self.param_offset),
+            FloatsAt {
+                buffer: gradients,
+                offset: self.param_offset,
+            },
             rows,
         );
     }
 
     fn record_density(
         &mut self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         params: &wgpu::Buffer,
         positions: &wgpu::Buffer,
         _variances: Option<&wgpu::Buffer>,
         rows: usize,
         sigma_out: &wgpu::Buffer,
     ) {
-        self.record_density_network(context, encoder, params, positions, rows, sigma_out);
+        self.record_density_network(rec, params, positions, rows, sigma_out);
         // The activations now hold this pass, not a forward pass.
         self.forward_inputs = None;
     }

@@ -3,6 +3,9 @@
 //! step with the paper samplers' fixed samples per ray.
 
 use super::*;
+use crate::engine::gpu::fields::{FieldInputs, FieldOutputs};
+use crate::engine::gpu::sampling::{RayBounds, SamplePoints};
+use crate::engine::gpu::step::LevelLoss;
 use crate::model::LevelLossSum;
 
 impl GpuModel {
@@ -14,13 +17,12 @@ impl GpuModel {
     pub(super) fn record_levels(
         &self,
         work: &mut Work,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         count: usize,
         jitter: impl Fn(usize) -> Option<u32>,
         purpose: &Purpose,
         timed: bool,
     ) {
-        let ctx = &self.context;
         let s = &self.stages;
         let Work {
             fields,
@@ -34,9 +36,9 @@ impl GpuModel {
             clock,
             ..
         } = work;
-        let mut mark = |encoder: &mut wgpu::CommandEncoder, stage| {
+        let mut mark = |rec: &mut Recorder, stage| {
             if timed {
-                clock.mark(ctx, encoder, stage);
+                clock.mark(rec, stage);
             }
         };
         let frustums = self.core.recipe.samples == SampleShape::ConicalFrustums;
@@ -46,13 +48,11 @@ impl GpuModel {
             let per_ray = lb.per_ray;
             let rows = count * per_ray;
             self.samplers[li].record(
-                ctx,
-                encoder,
+                rec,
                 &s.sampling,
                 LevelSampling {
                     rays: count,
-                    near,
-                    far,
+                    bounds: RayBounds { near, far },
                     previous: before.last(),
                     edges,
                     bin_weights,
@@ -63,8 +63,7 @@ impl GpuModel {
             );
             if frustums {
                 s.frustums.record_edges(
-                    ctx,
-                    encoder,
+                    rec,
                     FrustumRays {
                         origins: &rays.origins,
                         directions: &rays.directions,
@@ -83,34 +82,40 @@ impl GpuModel {
                 );
             } else {
                 s.sampling
-                    .record_intervals_to_far(ctx, encoder, &lb.t, far, count, per_ray, &lb.dt);
+                    .record_intervals_to_far(rec, &lb.t, far, count, per_ray, &lb.dt);
                 s.sampling.record_points(
-                    ctx,
-                    encoder,
-                    &rays.origins,
-                    &rays.directions,
+                    rec,
+                    GpuRays {
+                        origins: &rays.origins,
+                        directions: &rays.directions,
+                    },
                     &lb.t,
                     count,
                     per_ray,
-                    &lb.positions,
-                    &lb.directions,
+                    SamplePoints {
+                        positions: &lb.positions,
+                        directions: &lb.directions,
+                    },
                 );
             }
-            mark(encoder, Stage::March);
+            mark(rec, Stage::March);
 
             let field = &mut fields[level.field];
             field.record_forward(
-                ctx,
-                encoder,
+                rec,
                 &self.params,
-                &lb.positions,
-                frustums.then_some(&lb.variances),
-                &lb.directions,
+                FieldInputs {
+                    positions: &lb.positions,
+                    variances: frustums.then_some(&lb.variances),
+                    directions: &lb.directions,
+                },
                 rows,
-                &lb.sigma,
-                &lb.rgb,
+                FieldOutputs {
+                    sigma: &lb.sigma,
+                    rgb: &lb.rgb,
+                },
             );
-            mark(encoder, Stage::NetworksForward);
+            mark(rec, Stage::NetworksForward);
 
             let samples = SampleBuffers {
                 sigma: &lb.sigma,
@@ -124,8 +129,7 @@ impl GpuModel {
             let min_transmittance = 0.0;
             if li + 1 < self.core.recipe.levels.len() {
                 s.composite.record_weights(
-                    ctx,
-                    encoder,
+                    rec,
                     &rays.batch(samples, count),
                     min_transmittance,
                     &lb.weights,
@@ -142,43 +146,42 @@ impl GpuModel {
                         loss: &s.loss,
                     }
                     .record(
-                        ctx,
-                        encoder,
+                        rec,
                         rays,
                         samples,
                         count,
-                        min_transmittance,
-                        self.loss,
-                        level.loss_weight * share,
-                        None,
+                        LevelLoss {
+                            min_transmittance,
+                            loss: self.loss,
+                            gradient_weight: level.loss_weight * share,
+                            distortion: None,
+                        },
                         SampleGradientBuffers {
                             sigma: &lb.d_sigma,
                             rgb: &lb.d_rgb,
                         },
                     );
-                    encoder.copy_buffer_to_buffer(
+                    rec.encoder.copy_buffer_to_buffer(
                         &rays.loss_total,
                         0,
                         losses,
                         4 * (first_slot + li) as u64,
                         4,
                     );
-                    mark(encoder, Stage::Composite);
+                    mark(rec, Stage::Composite);
                     field.record_backward(
-                        ctx,
-                        encoder,
+                        rec,
                         &self.params,
                         &lb.d_sigma,
                         &lb.d_rgb,
                         rows,
                         &self.gradients,
                     );
-                    mark(encoder, Stage::NetworksBackward);
+                    mark(rec, Stage::NetworksBackward);
                 }
                 Purpose::Inference => {
                     s.composite.record_forward(
-                        ctx,
-                        encoder,
+                        rec,
                         &rays.batch(samples, count),
                         min_transmittance,
                         &CompositeOutputBuffers {
@@ -211,8 +214,8 @@ impl GpuModel {
         work.clock.reset();
         let mut samples = 0usize;
         let mut shares = Vec::with_capacity(chunks);
-        let mut encoder = ctx.device.create_command_encoder(&Default::default());
-        encoder.clear_buffer(&self.gradients, 0, None);
+        let mut rec = Recorder::new(ctx);
+        rec.encoder.clear_buffer(&self.gradients, 0, None);
         for chunk in 0..chunks {
             let start = chunk * per_chunk;
             let end = (start + per_chunk).min(rays);
@@ -228,10 +231,10 @@ impl GpuModel {
                 &directions[3 * start..3 * end],
                 None,
             );
-            work.clock.restart(ctx, &mut encoder);
+            work.clock.restart(&mut rec);
             self.record_levels(
                 work,
-                &mut encoder,
+                &mut rec,
                 count,
                 |level| Some(chunk_jitter_seed(step_seed, chunk, level)),
                 &Purpose::Training {
@@ -244,26 +247,21 @@ impl GpuModel {
             samples += work.levels.iter().map(|l| count * l.per_ray).sum::<usize>();
             // One submission per chunk: the next chunk's rays are written
             // into the same buffers before the following submission.
-            let recorded = std::mem::replace(
-                &mut encoder,
-                ctx.device.create_command_encoder(&Default::default()),
-            );
-            ctx.queue.submit([recorded.finish()]);
+            rec.submit_so_far();
         }
-        work.clock.restart(ctx, &mut encoder);
+        work.clock.restart(&mut rec);
         if optimise {
             self.adam.record_step_layout(
-                ctx,
-                &mut encoder,
+                &mut rec,
                 &self.core.recipe.optimiser,
                 &self.core.layout,
                 &self.params,
                 &self.gradients,
             );
         }
-        work.clock.mark(ctx, &mut encoder, Stage::Optimiser);
-        work.clock.resolve(&mut encoder);
-        ctx.queue.submit([encoder.finish()]);
+        work.clock.mark(&mut rec, Stage::Optimiser);
+        work.clock.resolve(&mut rec);
+        rec.submit();
         let values: Vec<f32> = read_buffer(ctx, &losses, chunks * levels);
         let times = work.clock.read(ctx);
         drop(guard);

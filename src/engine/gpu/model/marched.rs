@@ -3,6 +3,9 @@
 //! marched samples for rendering.
 
 use super::*;
+use crate::engine::gpu::fields::{FieldInputs, FieldOutputs};
+use crate::engine::gpu::frustum::Gaussians;
+use crate::engine::gpu::step::LevelLoss;
 use crate::engine::shared::composite::Distortion;
 
 impl GpuModel {
@@ -48,13 +51,12 @@ impl GpuModel {
         let s = &self.stages;
         // The field's inputs from the march's samples: unit-cube positions
         // as marched, world positions, or each step's frustum.
-        let record_inputs = |encoder: &mut wgpu::CommandEncoder, samples: usize, rays: usize| {
+        let record_inputs = |rec: &mut Recorder, samples: usize, rays: usize| {
             if frustums {
                 // Each marched sample stands for the frustum of its step,
                 // centred on it; its Gaussian's mean replaces the point.
                 s.frustums.record_marched(
-                    ctx,
-                    encoder,
+                    rec,
                     FrustumRays {
                         origins: &marched.rays.origins,
                         directions: &marched.rays.directions,
@@ -67,13 +69,14 @@ impl GpuModel {
                         samples,
                     },
                     rays,
-                    &marched.world,
-                    &marched.variances,
+                    Gaussians {
+                        means: &marched.world,
+                        variances: &marched.variances,
+                    },
                 );
             } else if !unit_cube {
                 s.sampling.record_to_world(
-                    ctx,
-                    encoder,
+                    rec,
                     &grid.mapping,
                     &marched.out.positions,
                     samples,
@@ -93,12 +96,12 @@ impl GpuModel {
         let (samples, kept, used, counters) = if rays == 0 {
             (0, 0, 0, None)
         } else {
-            let mut encoder = ctx.device.create_command_encoder(&Default::default());
-            work.clock.restart(ctx, &mut encoder);
+            let mut rec = Recorder::new(ctx);
+            work.clock.restart(&mut rec);
             // The samples the last forward-first step used, counted after
             // its compositing (before this step's compaction reuses the
             // counter).
-            encoder.copy_buffer_to_buffer(
+            rec.encoder.copy_buffer_to_buffer(
                 &marched.compacted.counters,
                 0,
                 &grid.counters_staging,
@@ -106,8 +109,7 @@ impl GpuModel {
                 4,
             );
             grid.march.record(
-                ctx,
-                &mut encoder,
+                &mut rec,
                 GpuGrid {
                     geometry: grid.grid.geometry(),
                     bitfield: &grid.bitfield,
@@ -130,11 +132,10 @@ impl GpuModel {
                 // (rays past the budget have empty ranges, slots past the
                 // samples are never read), which the batch sizer keeps
                 // close to the samples marched.
-                record_inputs(&mut encoder, grid.samples, rays);
-                work.clock.mark(ctx, &mut encoder, Stage::March);
+                record_inputs(&mut rec, grid.samples, rays);
+                work.clock.mark(&mut rec, Stage::March);
                 field.record_density(
-                    ctx,
-                    &mut encoder,
+                    &mut rec,
                     &self.params,
                     positions,
                     variances,
@@ -145,8 +146,7 @@ impl GpuModel {
                 // arithmetic over the σ pass (its colours are not read
                 // back; compositing runs again on the kept samples).
                 s.composite.record_forward(
-                    ctx,
-                    &mut encoder,
+                    &mut rec,
                     &marched.rays.batch(
                         SampleBuffers {
                             sigma: &marched.sigma,
@@ -166,8 +166,7 @@ impl GpuModel {
                     },
                 );
                 grid.compaction.record(
-                    ctx,
-                    &mut encoder,
+                    &mut rec,
                     &grid.march,
                     rays,
                     MarchedInputs {
@@ -182,19 +181,25 @@ impl GpuModel {
                     },
                     &marched.compacted,
                 );
-                work.clock.mark(ctx, &mut encoder, Stage::NetworksForward);
+                work.clock.mark(&mut rec, Stage::NetworksForward);
             } else {
-                work.clock.mark(ctx, &mut encoder, Stage::March);
+                work.clock.mark(&mut rec, Stage::March);
             }
-            encoder.copy_buffer_to_buffer(&marched.out.counters, 0, &grid.counters_staging, 0, 8);
-            encoder.copy_buffer_to_buffer(
+            rec.encoder.copy_buffer_to_buffer(
+                &marched.out.counters,
+                0,
+                &grid.counters_staging,
+                0,
+                8,
+            );
+            rec.encoder.copy_buffer_to_buffer(
                 &marched.compacted.counters,
                 0,
                 &grid.counters_staging,
                 8,
                 4,
             );
-            ctx.queue.submit([encoder.finish()]);
+            rec.submit();
             let counters: Vec<u32> = read_mapped(ctx, &grid.counters_staging, 4);
             let (samples, kept) = (counters[0] as usize, counters[1] as usize);
             let used = if compact {
@@ -207,9 +212,9 @@ impl GpuModel {
         let previous = work.readback.take_previous(ctx);
 
         // Submission 2: field, compositing, loss, backward, Adam.
-        let mut encoder = ctx.device.create_command_encoder(&Default::default());
-        work.clock.restart(ctx, &mut encoder);
-        encoder.clear_buffer(&self.gradients, 0, None);
+        let mut rec = Recorder::new(ctx);
+        work.clock.restart(&mut rec);
+        rec.encoder.clear_buffer(&self.gradients, 0, None);
         // The samples the field, compositing and the backward pass see: the
         // compacted ones (σ from the σ pass, as the cut was found with it),
         // or all marched ones.
@@ -226,8 +231,8 @@ impl GpuModel {
                     &c.ray_offsets,
                 )
             } else {
-                record_inputs(&mut encoder, samples, kept);
-                work.clock.mark(ctx, &mut encoder, Stage::March);
+                record_inputs(&mut rec, samples, kept);
+                work.clock.mark(&mut rec, Stage::March);
                 (
                     positions,
                     variances,
@@ -241,17 +246,20 @@ impl GpuModel {
         // σ first, the forward pass's own σ goes to the march's σ buffer,
         // unused.
         field.record_forward(
-            ctx,
-            &mut encoder,
+            &mut rec,
             &self.params,
-            field_positions,
-            field_variances,
-            directions,
+            FieldInputs {
+                positions: field_positions,
+                variances: field_variances,
+                directions,
+            },
             used,
-            &marched.sigma,
-            &marched.rgb,
+            FieldOutputs {
+                sigma: &marched.sigma,
+                rgb: &marched.rgb,
+            },
         );
-        work.clock.mark(ctx, &mut encoder, Stage::NetworksForward);
+        work.clock.mark(&mut rec, Stage::NetworksForward);
         // As the cpu model: the recipe's λ spread over the batch's rays,
         // distances in the unit cube's units.
         let distortion = (self.core.recipe.distortion > 0.0 && kept > 0).then(|| Distortion {
@@ -263,8 +271,7 @@ impl GpuModel {
             loss: &s.loss,
         }
         .record(
-            ctx,
-            &mut encoder,
+            &mut rec,
             &marched.rays,
             SampleBuffers {
                 sigma: sample_sigma,
@@ -274,10 +281,12 @@ impl GpuModel {
                 ray_offsets: offsets,
             },
             kept,
-            self.core.recipe.march.min_transmittance,
-            self.loss,
-            level.loss_weight,
-            distortion,
+            LevelLoss {
+                min_transmittance: self.core.recipe.march.min_transmittance,
+                loss: self.loss,
+                gradient_weight: level.loss_weight,
+                distortion,
+            },
             SampleGradientBuffers {
                 sigma: &marched.d_sigma,
                 rgb: &marched.d_rgb,
@@ -286,39 +295,36 @@ impl GpuModel {
         if !compact && kept > 0 {
             // The samples this step used, for the next step's choice.
             grid.compaction.record_count(
-                ctx,
-                &mut encoder,
+                &mut rec,
                 &grid.march,
                 &marched.rays.samples_used,
                 kept,
                 &marched.compacted,
             );
         }
-        work.clock.mark(ctx, &mut encoder, Stage::Composite);
+        work.clock.mark(&mut rec, Stage::Composite);
         field.record_backward(
-            ctx,
-            &mut encoder,
+            &mut rec,
             &self.params,
             &marched.d_sigma,
             &marched.d_rgb,
             used,
             &self.gradients,
         );
-        work.clock.mark(ctx, &mut encoder, Stage::NetworksBackward);
+        work.clock.mark(&mut rec, Stage::NetworksBackward);
         if optimise {
             self.adam.record_step_layout(
-                ctx,
-                &mut encoder,
+                &mut rec,
                 &self.core.recipe.optimiser,
                 &self.core.layout,
                 &self.params,
                 &self.gradients,
             );
         }
-        work.clock.mark(ctx, &mut encoder, Stage::Optimiser);
+        work.clock.mark(&mut rec, Stage::Optimiser);
         work.readback
-            .record(&mut encoder, &work.clock, &marched.rays.loss_total);
-        ctx.queue.submit([encoder.finish()]);
+            .record(&mut rec, &work.clock, &marched.rays.loss_total);
+        rec.submit();
         let StepResults { loss, times } = work.readback.finish(ctx, &work.clock, previous);
         drop(guard);
         self.core.batch_sizer.record(kept, samples);
@@ -377,14 +383,14 @@ impl GpuModel {
         };
         let all_sigma = zeroed_storage_buffer::<f32>(ctx, "grid update sigma", n);
         let marched = work.marched.as_ref().expect("a marched recipe has buffers");
-        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        let mut rec = Recorder::new(ctx);
         let late = work.readback.is_late();
         if late {
-            work.clock.restart(ctx, &mut encoder);
+            work.clock.restart(&mut rec);
         }
         for start in (0..n).step_by(grid.samples) {
             let count = grid.samples.min(n - start);
-            encoder.copy_buffer_to_buffer(
+            rec.encoder.copy_buffer_to_buffer(
                 &positions,
                 12 * start as u64,
                 &marched.world,
@@ -392,15 +398,14 @@ impl GpuModel {
                 12 * count as u64,
             );
             field.record_density(
-                ctx,
-                &mut encoder,
+                &mut rec,
                 &self.params,
                 &marched.world,
                 grid.cell_variances.as_ref(),
                 count,
                 &marched.sigma,
             );
-            encoder.copy_buffer_to_buffer(
+            rec.encoder.copy_buffer_to_buffer(
                 &marched.sigma,
                 0,
                 &all_sigma,
@@ -409,14 +414,15 @@ impl GpuModel {
             );
         }
         if late {
-            work.clock.mark(ctx, &mut encoder, Stage::GridUpdate);
+            work.clock.mark(&mut rec, Stage::GridUpdate);
             let staging = staging_buffer(ctx, "grid update read-back", 4 * n as u64);
-            encoder.copy_buffer_to_buffer(&all_sigma, 0, &staging, 0, 4 * n as u64);
-            ctx.queue.submit([encoder.finish()]);
+            rec.encoder
+                .copy_buffer_to_buffer(&all_sigma, 0, &staging, 0, 4 * n as u64);
+            rec.submit();
             self.pending_grid = Some(MapRequest::new(&staging, 4 * n as u64));
             return;
         }
-        ctx.queue.submit([encoder.finish()]);
+        rec.submit();
         let sigma: Vec<f32> = read_buffer(ctx, &all_sigma, n);
         grid.apply(ctx, &sigma);
     }
@@ -490,19 +496,22 @@ impl GpuModel {
                     bytemuck::cast_slice(&variances[rows]),
                 );
             }
-            let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            let mut rec = Recorder::new(ctx);
             field.record_forward(
-                ctx,
-                &mut encoder,
+                &mut rec,
                 &self.params,
-                &marched.world,
-                frustums.then_some(&marched.variances),
-                &marched.out.directions,
+                FieldInputs {
+                    positions: &marched.world,
+                    variances: frustums.then_some(&marched.variances),
+                    directions: &marched.out.directions,
+                },
                 count,
-                &marched.sigma,
-                &marched.rgb,
+                FieldOutputs {
+                    sigma: &marched.sigma,
+                    rgb: &marched.rgb,
+                },
             );
-            ctx.queue.submit([encoder.finish()]);
+            rec.submit();
             sigma.copy_from_slice(&read_buffer::<f32>(ctx, &marched.sigma, count));
             rgb.copy_from_slice(&read_buffer::<f32>(ctx, &marched.rgb, 3 * count));
         }

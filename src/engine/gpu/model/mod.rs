@@ -61,7 +61,8 @@ use super::context::{GpuContext, GpuError};
 use super::fields::{GpuField, fields_for};
 use super::frustum::{FrustumRays, FrustumSamples, GpuFrustums, MarchedIntervals};
 use super::kernel::{
-    MapRequest, read_buffer, read_mapped, staging_buffer, storage_buffer, zeroed_storage_buffer,
+    MapRequest, Recorder, read_buffer, read_mapped, staging_buffer, storage_buffer,
+    zeroed_storage_buffer,
 };
 use super::loss::GpuLoss;
 use super::march::{GpuGrid, GpuMarch, GpuMarchBuffers, GpuRays};
@@ -848,16 +849,9 @@ impl RadianceModel for GpuModel {
             work.rays
                 .upload_radii(ctx, radii.get(start..end).unwrap_or(&[]), count);
             self.upload_bounds(work, o, d, self.crop.as_ref());
-            let mut encoder = ctx.device.create_command_encoder(&Default::default());
-            self.record_levels(
-                work,
-                &mut encoder,
-                count,
-                |_| None,
-                &Purpose::Inference,
-                false,
-            );
-            ctx.queue.submit([encoder.finish()]);
+            let mut rec = Recorder::new(ctx);
+            self.record_levels(work, &mut rec, count, |_| None, &Purpose::Inference, false);
+            rec.submit();
             let rgb: Vec<f32> = read_buffer(ctx, &work.rays.rgb, 3 * count);
             let opacity: Vec<f32> = read_buffer(ctx, &work.rays.opacity, count);
             let depth: Vec<f32> = read_buffer(ctx, &work.rays.depth, count);

@@ -4,6 +4,7 @@
 //! occupancy grid marks empty (where rendering never looks).
 
 use super::*;
+use crate::engine::gpu::fields::{FieldInputs, FieldOutputs};
 
 impl GpuModel {
     /// σ of the last level's field at world `positions`, and with
@@ -56,27 +57,29 @@ impl GpuModel {
                 );
             }
             let variances = frustums.then_some(&variance_buffer);
-            let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            let mut rec = Recorder::new(ctx);
             match colour.as_ref() {
                 Some((directions, _)) => {
                     let rows = &directions[chunk * i..chunk * i + n];
                     let flat: Vec<f32> = rows.iter().flat_map(|d| d.to_array()).collect();
                     queue.write_buffer(&direction_buffer, 0, bytemuck::cast_slice(&flat));
                     field.record_forward(
-                        ctx,
-                        &mut encoder,
+                        &mut rec,
                         &self.params,
-                        &point_buffer,
-                        variances,
-                        &direction_buffer,
+                        FieldInputs {
+                            positions: &point_buffer,
+                            variances,
+                            directions: &direction_buffer,
+                        },
                         n,
-                        &sigma_buffer,
-                        &rgb_buffer,
+                        FieldOutputs {
+                            sigma: &sigma_buffer,
+                            rgb: &rgb_buffer,
+                        },
                     );
                 }
                 None => field.record_density(
-                    ctx,
-                    &mut encoder,
+                    &mut rec,
                     &self.params,
                     &point_buffer,
                     variances,
@@ -84,7 +87,7 @@ impl GpuModel {
                     &sigma_buffer,
                 ),
             }
-            queue.submit([encoder.finish()]);
+            rec.submit();
             sigma.copy_from_slice(&read_buffer::<f32>(ctx, &sigma_buffer, n));
             if let Some((_, rgb)) = colour.as_mut() {
                 rgb[3 * chunk * i..3 * (chunk * i + n)].copy_from_slice(&read_buffer::<f32>(

@@ -10,16 +10,15 @@
 //! or from the level before.
 
 use super::LevelBuffers;
-use crate::engine::gpu::context::GpuContext;
-use crate::engine::gpu::sampling::GpuSampling;
+use crate::engine::gpu::kernel::Recorder;
+use crate::engine::gpu::sampling::{GpuSampling, Pdf, RayBounds, SortedRows, WeightedSamples};
 use crate::field::common::{SampleShape, SamplerKind};
 
 /// What a level's sampler reads and writes on the device, for a chunk of
 /// `rays` rays.
 pub(super) struct LevelSampling<'a> {
     pub(super) rays: usize,
-    pub(super) near: &'a wgpu::Buffer,
-    pub(super) far: &'a wgpu::Buffer,
+    pub(super) bounds: RayBounds<'a>,
     /// The level before, with its weights (none for a first level).
     pub(super) previous: Option<&'a LevelBuffers>,
     /// Scratch: importance sampling's bin edges, bin weights (or
@@ -55,8 +54,7 @@ pub(super) trait LevelSampler: Send + Sync {
     /// deterministic positions).
     fn record(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         sampling: &GpuSampling,
         level: LevelSampling,
         jitter: Option<u32>,
@@ -103,17 +101,14 @@ impl LevelSampler for Stratified {
 
     fn record(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         sampling: &GpuSampling,
         level: LevelSampling,
         jitter: Option<u32>,
     ) {
         sampling.record_stratified(
-            context,
-            encoder,
-            level.near,
-            level.far,
+            rec,
+            level.bounds,
             level.rays,
             self.count + self.frustums as usize,
             jitter,
@@ -154,8 +149,7 @@ impl LevelSampler for Importance {
 
     fn record(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         sampling: &GpuSampling,
         level: LevelSampling,
         jitter: Option<u32>,
@@ -163,34 +157,39 @@ impl LevelSampler for Importance {
         let previous = level.previous.expect("checked by samples_per_ray");
         let m = previous.per_ray;
         sampling.record_importance_bins(
-            context,
-            encoder,
-            &previous.t,
-            &previous.weights,
+            rec,
+            WeightedSamples {
+                t: &previous.t,
+                weights: &previous.weights,
+            },
             level.rays,
             m,
             level.edges,
             level.bin_weights,
         );
         sampling.record_sample_pdf(
-            context,
-            encoder,
-            level.edges,
-            level.bin_weights,
+            rec,
+            Pdf {
+                edges: level.edges,
+                weights: level.bin_weights,
+                bins: m - 2,
+                padding: self.padding,
+            },
             level.rays,
-            m - 2,
-            self.padding,
             self.count,
             jitter,
             level.fine_t,
         );
         sampling.record_merge_sorted(
-            context,
-            encoder,
-            &previous.t,
-            m,
-            level.fine_t,
-            self.count,
+            rec,
+            SortedRows {
+                values: &previous.t,
+                per_ray: m,
+            },
+            SortedRows {
+                values: level.fine_t,
+                per_ray: self.count,
+            },
             level.rays,
             &level.out.t,
         );
@@ -222,30 +221,23 @@ impl LevelSampler for Resample {
 
     fn record(
         &self,
-        context: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
+        rec: &mut Recorder,
         sampling: &GpuSampling,
         level: LevelSampling,
         jitter: Option<u32>,
     ) {
         let previous = level.previous.expect("checked by samples_per_ray");
         let m = previous.per_ray;
-        sampling.record_blur_weights(
-            context,
-            encoder,
-            &previous.weights,
-            level.rays,
-            m,
-            level.bin_weights,
-        );
+        sampling.record_blur_weights(rec, &previous.weights, level.rays, m, level.bin_weights);
         sampling.record_sample_pdf(
-            context,
-            encoder,
-            &previous.edges,
-            level.bin_weights,
+            rec,
+            Pdf {
+                edges: &previous.edges,
+                weights: level.bin_weights,
+                bins: m,
+                padding: self.padding,
+            },
             level.rays,
-            m,
-            self.padding,
             self.count + 1,
             jitter,
             &level.out.edges,

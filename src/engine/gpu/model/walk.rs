@@ -9,6 +9,8 @@
 //! frustums gets the Gaussian of each sample's step on its pixel's cone.
 
 use super::*;
+use crate::engine::gpu::fields::{FieldInputs, FieldOutputs};
+use crate::engine::gpu::frustum::{Gaussians, WalkedIntervals};
 use crate::engine::gpu::kernel::{float_range, uniform_buffer};
 use crate::engine::gpu::march::dispatch_grid;
 use crate::engine::gpu::render::{
@@ -102,8 +104,8 @@ impl GpuModel {
         let unit_cube = field.coordinates() == Coordinates::UnitCube;
         let marched = work.marched.as_ref().expect("a marched recipe has buffers");
         let out = &marched.out;
-        let mut encoder = ctx.device.create_command_encoder(&Default::default());
-        encoder.clear_buffer(&buffers.states, 0, None);
+        let mut rec = Recorder::new(ctx);
+        rec.encoder.clear_buffer(&buffers.states, 0, None);
         let march = MarchParams {
             config,
             ..MarchParams::rendering(grid.mapping)
@@ -137,8 +139,7 @@ impl GpuModel {
                 );
                 let walk = uniform_buffer(ctx, "render walk", &walk);
                 kernels.walk.record_bindings(
-                    ctx,
-                    &mut encoder,
+                    &mut rec,
                     &[
                         walk.as_entire_buffer_binding(),
                         grid.bitfield.as_entire_buffer_binding(),
@@ -157,8 +158,7 @@ impl GpuModel {
                 let samples = n * per_ray;
                 if frustums {
                     self.stages.frustums.record_walked(
-                        ctx,
-                        &mut encoder,
+                        &mut rec,
                         FrustumRays {
                             origins: &buffers.origins,
                             directions: &buffers.directions,
@@ -166,16 +166,19 @@ impl GpuModel {
                         },
                         float_range(list, start, n),
                         n,
-                        per_ray,
-                        &out.t,
-                        &out.dt,
-                        &marched.world,
-                        &marched.variances,
+                        WalkedIntervals {
+                            t: &out.t,
+                            dt: &out.dt,
+                            per_ray,
+                        },
+                        Gaussians {
+                            means: &marched.world,
+                            variances: &marched.variances,
+                        },
                     );
                 } else if !unit_cube {
                     self.stages.sampling.record_to_world(
-                        ctx,
-                        &mut encoder,
+                        &mut rec,
                         &grid.mapping,
                         &out.positions,
                         samples,
@@ -183,19 +186,22 @@ impl GpuModel {
                     );
                 }
                 field.record_forward(
-                    ctx,
-                    &mut encoder,
+                    &mut rec,
                     &self.params,
-                    if unit_cube {
-                        &out.positions
-                    } else {
-                        &marched.world
+                    FieldInputs {
+                        positions: if unit_cube {
+                            &out.positions
+                        } else {
+                            &marched.world
+                        },
+                        variances: frustums.then_some(&marched.variances),
+                        directions: &out.directions,
                     },
-                    frustums.then_some(&marched.variances),
-                    &out.directions,
                     samples,
-                    &marched.sigma,
-                    &marched.rgb,
+                    FieldOutputs {
+                        sigma: &marched.sigma,
+                        rgb: &marched.rgb,
+                    },
                 );
                 let (groups, row_stride) = dispatch_grid(n, WORKGROUP);
                 let composite = CompositeUniforms {
@@ -209,8 +215,7 @@ impl GpuModel {
                 .with_crop(self.crop.as_ref(), &grid.mapping);
                 let composite = uniform_buffer(ctx, "render composite", &composite);
                 kernels.composite.record_bindings(
-                    ctx,
-                    &mut encoder,
+                    &mut rec,
                     &[
                         composite.as_entire_buffer_binding(),
                         float_range(list, start, n),
@@ -232,10 +237,9 @@ impl GpuModel {
                 _pad: [0; 2],
             };
             let compact = uniform_buffer(ctx, "render compact", &compact);
-            encoder.clear_buffer(&buffers.counter, 0, None);
+            rec.encoder.clear_buffer(&buffers.counter, 0, None);
             kernels.compact.record(
-                ctx,
-                &mut encoder,
+                &mut rec,
                 &[
                     &compact,
                     list,
@@ -245,12 +249,9 @@ impl GpuModel {
                 ],
                 groups,
             );
-            encoder.copy_buffer_to_buffer(&buffers.counter, 0, &buffers.counter_staging, 0, 4);
-            let finished = std::mem::replace(
-                &mut encoder,
-                ctx.device.create_command_encoder(&Default::default()),
-            );
-            queue.submit([finished.finish()]);
+            rec.encoder
+                .copy_buffer_to_buffer(&buffers.counter, 0, &buffers.counter_staging, 0, 4);
+            rec.submit_so_far();
             count = read_mapped::<u32>(ctx, &buffers.counter_staging, 1)[0] as usize;
             current = 1 - current;
         }
@@ -273,8 +274,7 @@ impl GpuModel {
         let image = uniform_buffer(ctx, "render image", &image);
         let view = target.create_view(&Default::default());
         kernels.image.record_resources(
-            ctx,
-            &mut encoder,
+            &mut rec,
             &[
                 image.as_entire_binding(),
                 buffers.states.as_entire_binding(),
@@ -282,7 +282,7 @@ impl GpuModel {
             ],
             [width.div_ceil(8), height.div_ceil(8), 1],
         );
-        queue.submit([encoder.finish()]);
+        rec.submit();
         Ok(())
     }
 }
