@@ -221,6 +221,32 @@ impl Backend {
         }
     }
 
+    /// Whether this processor has the instructions these kernels are
+    /// compiled for (see `dispatch`), which makes running them sound;
+    /// `ZRAK_CPU_KERNELS` ([`crate::isa`]) chooses among those that do.
+    pub fn runs_here(self) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        {
+            let avx2 = is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma");
+            let avx512 =
+                avx2 && is_x86_feature_detected!("avx512f") && is_x86_feature_detected!("avx512vl");
+            let bf16 = avx512
+                && is_x86_feature_detected!("avx512bw")
+                && is_x86_feature_detected!("avx512bf16");
+            match self {
+                Backend::AmxBf16 => bf16 && bf16::amx::available(),
+                Backend::Avx512Bf16 => bf16,
+                Backend::Avx512 => avx512,
+                Backend::Avx2 => avx2,
+                Backend::Portable => true,
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            self == Backend::Portable
+        }
+    }
+
     /// The multiple the mixed-precision kernels pad the weights' bf16
     /// pairs to (rows and row stride).
     fn pair_alignment(self) -> usize {
@@ -493,6 +519,7 @@ fn forward_with(
     workspace: &mut MlpWorkspace,
     output: &mut [f32],
 ) {
+    assert!(backend.runs_here(), "{backend:?} kernels on this processor");
     check_sizes(layout, params, input, rows, output.len());
     workspace.check(layout, rows);
     if backend.precision() == Precision::Mixed {
@@ -520,9 +547,12 @@ fn forward_with(
         || vec![0.0f32; scratch_floats(max_width)],
         |scratch, t| {
             let range = t * FORWARD_CHUNK..((t + 1) * FORWARD_CHUNK).min(rows);
-            // SAFETY: tasks write disjoint row ranges of the activations
-            // and output, whose sizes were checked above; the scratch is
-            // the task's own.
+            // SAFETY: `backend` runs here (asserted above). The job points
+            // into `input`, `params` and the workspace's buffers, whose
+            // sizes were checked above for `rows` rows and this layout
+            // (`net` packed the weights the backend reads); tasks write
+            // disjoint row ranges of the activations and output, and the
+            // scratch, `scratch_floats(max_width)` long, is the task's own.
             unsafe { dispatch::forward(backend, &job, range, scratch.as_mut_ptr()) }
         },
     );
@@ -537,6 +567,7 @@ fn inference_with(
     output: &mut [f32],
     out_columns: usize,
 ) {
+    assert!(backend.runs_here(), "{backend:?} kernels on this processor");
     // Sized for the leading columns: the full width stands in for the check.
     let output_rows = output.len() / out_columns;
     check_sizes(
@@ -568,7 +599,11 @@ fn inference_with(
         || vec![0.0f32; scratch_len],
         |scratch, t| {
             let range = t * FORWARD_CHUNK..((t + 1) * FORWARD_CHUNK).min(rows);
-            // SAFETY: disjoint output rows per task; scratch is the task's own.
+            // SAFETY: `backend` runs here (asserted above); `input`,
+            // `params` and `output` hold `rows` rows of this layout
+            // (checked above) and `net` packed the weights the backend
+            // reads; tasks write disjoint output rows, and the scratch,
+            // `scratch_len` long, is the task's own.
             unsafe { dispatch::inference(backend, &job, range, scratch.as_mut_ptr()) }
         },
     );
@@ -595,6 +630,7 @@ fn backward_with(
     d_params: &mut [f32],
     d_input: Option<(&mut [f32], Range<usize>)>,
 ) {
+    assert!(backend.runs_here(), "{backend:?} kernels on this processor");
     check_sizes(layout, params, input, rows, d_output.len());
     workspace.check(layout, rows);
     assert_eq!(d_params.len(), params.len(), "gradient count");
@@ -638,7 +674,11 @@ fn backward_with(
     let scratch = SendPtr(workspace.scratch.as_mut_ptr());
     (0..chunks).into_par_iter().for_each(|c| {
         let range = c * chunk_rows..((c + 1) * chunk_rows).min(rows);
-        // SAFETY: chunk c owns partial c, scratch c and the d_input rows of
+        // SAFETY: `backend` runs here (asserted above) and every buffer
+        // the job points into holds `rows` rows of this layout (checked
+        // above; the activations are the forward pass's). c < chunks ≤
+        // MAX_CHUNKS, the number of partials and scratches the workspace
+        // holds; chunk c owns partial c, scratch c and the d_input rows of
         // its range.
         unsafe {
             let partial = partials.get().add(c * n_params);
@@ -669,7 +709,10 @@ fn backward_with(
 /// are disjoint.
 #[derive(Clone, Copy)]
 struct SendPtr(*mut f32);
+// SAFETY: a SendPtr is an address; dereferencing it is unsafe, and each
+// dereference says why no other thread accesses the same floats.
 unsafe impl Send for SendPtr {}
+// SAFETY: as for Send: sharing the address reads nothing through it.
 unsafe impl Sync for SendPtr {}
 impl SendPtr {
     fn get(self) -> *mut f32 {
@@ -726,6 +769,8 @@ struct ForwardJob<'a> {
     activations: Vec<SendPtr>,
     output: SendPtr,
 }
+// SAFETY: `input` is read only, and the tasks that share a job write
+// disjoint rows of the activations and output (forward_with).
 unsafe impl Sync for ForwardJob<'_> {}
 
 struct InferenceJob<'a> {
@@ -737,6 +782,8 @@ struct InferenceJob<'a> {
     /// out_columns in `output`).
     out_columns: usize,
 }
+// SAFETY: `input` is read only, and the tasks that share a job write
+// disjoint rows of the output (inference_with).
 unsafe impl Sync for InferenceJob<'_> {}
 
 struct BackwardJob<'a> {
@@ -751,6 +798,8 @@ struct BackwardJob<'a> {
     n_params: usize,
     max_width: usize,
 }
+// SAFETY: everything but `d_input` is read only, and the tasks that share
+// a job write disjoint rows of `d_input` (backward_with).
 unsafe impl Sync for BackwardJob<'_> {}
 
 /// What a tile does with its accumulators.
@@ -787,6 +836,16 @@ struct Gemm {
 }
 
 /// A vector instruction set, as the kernels see it.
+///
+/// # Safety
+/// Every method is unsafe for one reason: it may be called only where the
+/// implementation's instruction set is enabled, that is from code inlined
+/// into one of [`dispatch`]'s entry points compiled for it and reached
+/// only for a [`Backend`] that [`Backend::runs_here`]. A method that takes
+/// a pointer also needs it valid, for reads (`load`) or writes (`store`),
+/// for the first lanes its mask selects; the other lanes are not touched.
+/// `stream_copy` needs `n` floats readable at `src` and writable at `dst`,
+/// the two not overlapping.
 trait Lanes {
     type V: Copy;
     type M: Copy;
@@ -809,6 +868,8 @@ trait Lanes {
     /// Copies n floats with stores that bypass the caches where the
     /// instruction set has them.
     unsafe fn stream_copy(dst: *mut f32, src: *const f32, n: usize) {
+        // SAFETY: `n` floats are readable at `src` and writable at `dst`,
+        // the two not overlapping (the trait's contract).
         unsafe { std::ptr::copy_nonoverlapping(src, dst, n) }
     }
     /// Orders streaming stores before what follows (the end of a task).

@@ -109,9 +109,21 @@ struct TileGemm {
     out: Destination,
 }
 
+/// `g`'s product on the tile registers.
+///
+/// # Safety
+/// [`available`] must have returned true, AVX-512F (for the epilogue) be
+/// enabled, `g.pairs` be a multiple of [`TILE`], the words [`TileGemm`]
+/// names readable (rows of `a` up to m rounded up to 16, columns of `b`
+/// up to n rounded up to 32, over all `pairs`), and `g.out` as
+/// [`epilogue`] needs it for rows below m and columns below n.
 #[inline(always)]
 unsafe fn tile_gemm(g: &TileGemm) {
     debug_assert!(g.pairs.is_multiple_of(TILE));
+    // SAFETY: this process may use the tile registers (`available`), so
+    // `ldtilecfg` of a valid palette-1 configuration (TILE_CONFIG, 64
+    // bytes, 64-byte aligned) and `tilerelease` are sound; every block
+    // lies within m and n, as `block` requires.
     unsafe {
         asm!("ldtilecfg [{}]", in(reg) &TILE_CONFIG, options(nostack, readonly));
         // Column panels outside, rows inside: a panel of B (32 columns of
@@ -142,6 +154,10 @@ struct Stored([f32; 4 * TILE * TILE]);
 
 /// One block of `rows` ≤ 16·MR rows and `cols` ≤ 16·NC columns at
 /// (i0, j0): f32 tile r·2 + c holds rows i0 + 16r…, columns j0 + 16c….
+///
+/// # Safety
+/// As [`tile_gemm`]'s, with the tile configuration loaded, rows
+/// `i0..i0 + rows` within m and columns `j0..j0 + cols` within n.
 #[inline(always)]
 unsafe fn block<const MR: usize, const NC: usize>(
     g: &TileGemm,
@@ -152,6 +168,15 @@ unsafe fn block<const MR: usize, const NC: usize>(
 ) {
     let a_row_bytes = 4 * g.a_stride;
     let b_row_bytes = 4 * g.b_stride;
+    // SAFETY: the tiles are configured as 16 rows of 64 bytes. The A loads
+    // read 16 words of rows i0..i0 + 16·MR (within m rounded up to 16, as
+    // MR = 2 only when rows > 16), the B loads 16 words of columns
+    // j0..j0 + 16·NC (within n rounded up to 32) of 16 pair rows, at
+    // pairs below g.pairs: all readable by the contract. The stores write
+    // 16 rows of 64 bytes at 128-byte row strides inside `stored` (32 × 32
+    // floats), and the epilogue reads back only rows < rows and columns
+    // the masks select, which those stores wrote, and writes rows and
+    // columns of the block, within the contract.
     unsafe {
         asm!("tilezero tmm0", options(nostack, nomem));
         if NC == 2 {
@@ -228,6 +253,10 @@ unsafe fn block<const MR: usize, const NC: usize>(
 /// Each of `rows` rows of `cols` floats (row stride `cols`) as ⌈cols/2⌉
 /// bf16 pair words, then zero words up to `stride`, the row stride of
 /// `dst`.
+///
+/// # Safety
+/// AVX512-BF16 (with AVX-512F) must be enabled, `src` readable for the
+/// rows, `dst` writable for `rows` rows of `stride ≥ ⌈cols/2⌉` words.
 #[inline(always)]
 unsafe fn rows_to_padded_pairs(
     src: *const f32,
@@ -236,6 +265,8 @@ unsafe fn rows_to_padded_pairs(
     dst: *mut u32,
     stride: usize,
 ) {
+    // SAFETY: rows_to_pairs writes words below ⌈cols/2⌉ of each row, the
+    // zeros the rest of the row up to `stride`: within the contract.
     unsafe {
         super::kernels::rows_to_pairs(src, rows, cols, cols, dst, stride);
         let words = cols.div_ceil(2);
@@ -278,8 +309,13 @@ static TRANSPOSE_ROUNDS: [[[u32; 16]; 2]; 4] = {
 };
 
 /// Transposes 16 rows of 16 words in place.
+///
+/// # Safety
+/// AVX-512F must be enabled.
 #[inline(always)]
 unsafe fn transpose(rows: &mut [__m512i; TILE]) {
+    // SAFETY: AVX-512F is enabled (the contract); the loads read the 64
+    // bytes of a round's index vector.
     unsafe {
         for (r, round) in TRANSPOSE_ROUNDS.iter().enumerate() {
             let s = 8 >> r;
@@ -300,6 +336,11 @@ unsafe fn transpose(rows: &mut [__m512i; TILE]) {
 /// `cols`), word (c, p) of `dst` (row stride `pairs`, a multiple of 16;
 /// ⌈cols/16⌉·16 rows) holds G[2p, c] and G[2p + 1, c], zero past the
 /// last row or column.
+///
+/// # Safety
+/// AVX512-BF16 (with AVX-512F and BW) must be enabled, `src` readable for
+/// `rows` rows of `cols` floats, `pairs` ≥ ⌈rows/2⌉ a multiple of 16, and
+/// `dst` writable for ⌈cols/16⌉·16 rows of `pairs` words.
 #[inline(always)]
 unsafe fn transposed_row_pairs(
     src: *const f32,
@@ -308,6 +349,10 @@ unsafe fn transposed_row_pairs(
     dst: *mut u32,
     pairs: usize,
 ) {
+    // SAFETY: the masked loads read columns c0 + t < cols of rows
+    // 2p + 1 < rows or 2p < rows; the stores write 16 words at
+    // (c0 + t)·pairs + p0, with c0 + t < ⌈cols/16⌉·16 and p0 + 16 ≤ pairs;
+    // `transmute` reinterprets 64 bytes of plain data.
     unsafe {
         let zip = _mm512_loadu_si512(PAIR_ZIP.as_ptr().cast());
         let used = rows.div_ceil(2);
@@ -345,6 +390,12 @@ unsafe fn transposed_row_pairs(
 /// The forward and input-gradient products: `nb` rows of `width` floats
 /// at `a`, as padded pairs in `pairs`, times `n` columns of the weights'
 /// pair rows at `weights` (row stride `stride`).
+///
+/// # Safety
+/// [`tile_gemm`]'s, with the weights packed as [`super::PairedWeights`]
+/// packs them for the tiles (16-aligned rows and stride, zero slack past
+/// the end) and `pairs` the scratch [`super::super::scratch_floats`] sets
+/// aside for them.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
 unsafe fn rows_times_paired_weights(
@@ -358,6 +409,10 @@ unsafe fn rows_times_paired_weights(
     pairs: *mut u32,
 ) {
     let k = padded_pairs(width);
+    // SAFETY: up to BLOCK rows (nb rounded up to 16, as the A tiles read)
+    // of k = ⌈width/2⌉ rounded up to 16 words fit the scratch's
+    // 2 · BLOCK · (max-width + 16) words; the weights hold k pair rows of
+    // `stride` ≥ n words and slack for the last tile's columns.
     unsafe {
         rows_to_padded_pairs(a, nb, width, pairs, k);
         tile_gemm(&TileGemm {
@@ -388,6 +443,7 @@ impl Products for AmxProducts {
         out: Destination,
         pairs: *mut u32,
     ) {
+        // SAFETY: the trait's contract, with Wᵀ packed for the tiles.
         unsafe {
             rows_times_paired_weights(
                 a,
@@ -413,6 +469,11 @@ impl Products for AmxProducts {
     ) {
         let k = padded_pairs(nb);
         let used = nb.div_ceil(2);
+        // SAFETY: A (outw rounded up to 16 rows of k ≤ 32 words) and B (k
+        // rows of inw words and 32 words of slack) fit the pairs' scratch,
+        // 2 · BLOCK · (max-width + 16) words (scratch_floats); the tile
+        // loads read A's rows below outw rounded up to 16 and B's columns
+        // below inw rounded up to 32, inside the slack; dW is outw × inw.
         unsafe {
             // A: Gᵀ's pairs, outw (rounded up to 16) rows of k words; B:
             // X's pairs of rows, k rows of inw words, zero rows past the
@@ -453,6 +514,8 @@ impl Products for AmxProducts {
         out: Destination,
         pairs: *mut u32,
     ) {
+        // SAFETY: the trait's contract, with W packed for the tiles;
+        // columns first..first + n are within its inw.
         unsafe {
             rows_times_paired_weights(
                 g,
@@ -478,6 +541,9 @@ pub(in super::super) unsafe fn tile_chains(iterations: usize, seed: f32) -> (f64
     let a = [super::pair(seed, 0.25); TILE * TILE];
     let b = [super::pair(1e-3, -1e-3); TILE * TILE];
     let mut stored = Stored([0.0; 4 * TILE * TILE]);
+    // SAFETY: this process may use the tile registers (the contract); the
+    // loads read 16 rows of 64 bytes of `a` and `b` (256 words each), the
+    // store writes 16 rows of 64 bytes into `stored` (4 KiB).
     unsafe {
         asm!("ldtilecfg [{}]", in(reg) &TILE_CONFIG, options(nostack, readonly));
         asm!(
@@ -509,3 +575,4 @@ pub(in super::super) unsafe fn tile_chains(iterations: usize, seed: f32) -> (f64
     let flop = (4 * 2 * TILE * TILE * 2 * TILE * iterations) as f64;
     (flop, stored.0[..TILE * TILE].iter().sum())
 }
+
