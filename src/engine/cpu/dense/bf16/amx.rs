@@ -576,3 +576,217 @@ pub(in super::super) unsafe fn tile_chains(iterations: usize, seed: f32) -> (f64
     (flop, stored.0[..TILE * TILE].iter().sum())
 }
 
+#[cfg(test)]
+mod tests {
+    use std::io::Write;
+
+    use super::super::super::Backend;
+    use super::super::round_to_bf16;
+    use super::*;
+    use crate::rng::Pcg32;
+
+    /// True where `backend` runs; otherwise says by name, on the terminal
+    /// (past the test harness's capture), that the test was skipped.
+    fn runs_here(backend: Backend, needs: &str, test: &str) -> bool {
+        if backend.runs_here() {
+            return true;
+        }
+        let _ = writeln!(
+            std::io::stderr(),
+            "SKIPPED {test}: {needs}, which this processor (or its kernel) lacks"
+        );
+        false
+    }
+
+    fn random(seed: u64, n: usize) -> Vec<f32> {
+        let mut rng = Pcg32::new(seed, 13);
+        (0..n).map(|_| 2.0 * rng.next_f32() - 1.0).collect()
+    }
+
+    /// A pair of quiet NaNs: what the operands hold past the product's
+    /// rows and columns, which the tiles compute and must throw away.
+    const NAN_PAIR: u32 = 0x7fc0_7fc0;
+
+    /// `tile_gemm` with the instructions its epilogue and conversions are
+    /// compiled for, as the `amxbf16` entry points enable them.
+    ///
+    /// # Safety
+    /// [`tile_gemm`]'s.
+    #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512bf16,avx2,fma")]
+    unsafe fn product(g: &TileGemm) {
+        // SAFETY: the caller keeps tile_gemm's contract; the instructions
+        // it inlines are enabled here.
+        unsafe { tile_gemm(g) }
+    }
+
+    /// The tile product `C = A · B` of f32 matrices given as bf16 pairs,
+    /// stored (`C = A · B`) and accumulated onto ones (`C = 1 + A · B`),
+    /// against references from the f32 operands in f64:
+    ///
+    /// - the exact sum of the bf16-rounded operands' products: `tdpbf16ps`
+    ///   multiplies bf16 values exactly (8 × 8 significant bits fit f32's
+    ///   24) and sums in f32, so each output is within
+    ///   (terms + 2) · 2⁻²⁴ · Σ|a·b| of it, whatever the order of the sum;
+    /// - the product of the f32 operands themselves: rounding to bf16
+    ///   moves each operand by at most 2⁻⁸ of itself, so each product by
+    ///   at most (2 · 2⁻⁸ + 2⁻¹⁶)|a·b|, and each output by that much of
+    ///   Σ|a·b| on top of the summation's error.
+    ///
+    /// A wrong row, column, pair or tile is off by the order of Σ|a·b|.
+    /// The shapes cover every block shape (one or two row and column
+    /// tiles), rows and columns past a tile's edge, reductions of one pair
+    /// to several tiles, and odd widths (a zero half in the last pair).
+    #[test]
+    fn tile_products_match_f32_products_within_bf16_rounding() {
+        if !runs_here(
+            Backend::AmxBf16,
+            "the tile kernels need AMX-BF16, AMX-TILE, the kernel's permission to use the tile data, and AVX512-BF16",
+            "tile_products_match_f32_products_within_bf16_rounding",
+        ) {
+            return;
+        }
+        let shapes = [
+            (1, 1, 1),
+            (16, 16, 32),
+            (17, 33, 33),
+            (32, 32, 64),
+            (33, 17, 31),
+            (64, 70, 257),
+            (45, 256, 320),
+            (5, 3, 2),
+        ];
+        for (case, &(m, n, width)) in shapes.iter().enumerate() {
+            let a = random(10 + case as u64, m * width);
+            let b = random(20 + case as u64, width * n);
+            // A: m rows (then NaN rows up to a multiple of 16) of `pairs`
+            // words; B: `pairs` rows of n words (then NaN columns up to
+            // the stride, a multiple of 16, and 32 words of NaN slack).
+            let pairs = padded_pairs(width);
+            let value = |x: &[f32], at: usize, within: bool| if within { x[at] } else { 0.0 };
+            let rows = m.next_multiple_of(TILE);
+            let mut a_words = vec![NAN_PAIR; rows * pairs];
+            for i in 0..m {
+                for p in 0..pairs {
+                    let c = 2 * p;
+                    a_words[i * pairs + p] = super::super::pair(
+                        value(&a, i * width + c, c < width),
+                        value(&a, i * width + c + 1, c + 1 < width),
+                    );
+                }
+            }
+            let stride = n.next_multiple_of(TILE);
+            let mut b_words = vec![NAN_PAIR; pairs * stride + 2 * TILE];
+            for p in 0..pairs {
+                for j in 0..n {
+                    let r = 2 * p;
+                    b_words[p * stride + j] = super::super::pair(
+                        value(&b, r * n + j, r < width),
+                        value(&b, (r + 1) * n + j, r + 1 < width),
+                    );
+                }
+            }
+            for epi in [Epi::Store, Epi::Accumulate] {
+                let start = if matches!(epi, Epi::Store) { 0.0 } else { 1.0 };
+                let mut c = vec![start; m * n];
+                let g = TileGemm {
+                    m,
+                    n,
+                    pairs,
+                    a: a_words.as_ptr(),
+                    a_stride: pairs,
+                    b: b_words.as_ptr(),
+                    b_stride: stride,
+                    out: Destination {
+                        c: c.as_mut_ptr(),
+                        c_m: n,
+                        epi,
+                    },
+                };
+                // SAFETY: the tile kernels run here (checked above); A has
+                // m rounded up to 16 rows of `pairs` (a multiple of 16)
+                // words, B `pairs` rows of n rounded up to 16 words and 32
+                // words of slack, and C is m × n.
+                unsafe { product(&g) };
+                for i in 0..m {
+                    for j in 0..n {
+                        let (mut exact, mut rounded, mut magnitude) = (0f64, 0f64, 0f64);
+                        for k in 0..width {
+                            let (x, y) = (a[i * width + k], b[k * n + j]);
+                            exact += x as f64 * y as f64;
+                            rounded += round_to_bf16(x) as f64 * round_to_bf16(y) as f64;
+                            magnitude += (x as f64 * y as f64).abs();
+                        }
+                        let got = c[i * n + j] as f64 - start as f64;
+                        let summation =
+                            (width + 2) as f64 * 2f64.powi(-24) * (magnitude + start as f64);
+                        let rounding = (2.0 * 2f64.powi(-8) + 2f64.powi(-16)) * magnitude;
+                        assert!(
+                            (got - rounded).abs() <= summation,
+                            "{m}×{width}·{width}×{n} {}: C[{i}, {j}] = {got}, the rounded \
+                             operands' sum {rounded}",
+                            if start == 0.0 {
+                                "stored"
+                            } else {
+                                "accumulated"
+                            },
+                        );
+                        assert!(
+                            (got - exact).abs() <= rounding + summation,
+                            "{m}×{width}·{width}×{n}: C[{i}, {j}] = {got}, the f32 \
+                             operands' sum {exact}, beyond bf16 rounding's {rounding}",
+                        );
+                    }
+                }
+            }
+        }
+    }
+
+    /// `transposed_row_pairs` against the words written out one by one:
+    /// word (c, p) holds G[2p, c] (low half) and G[2p + 1, c], zero past
+    /// the last row, and the rows past the last column are zero too. Exact:
+    /// both round the same f32 values to bf16. Runs wherever AVX512-BF16
+    /// does (the transpose is vector code, not tiles).
+    #[test]
+    fn transposed_row_pairs_are_the_pairs_of_each_column() {
+        if !runs_here(
+            Backend::Avx512Bf16,
+            "the transpose of the tile kernels' weight gradient needs AVX512-BF16",
+            "transposed_row_pairs_are_the_pairs_of_each_column",
+        ) {
+            return;
+        }
+        #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512bf16,avx2,fma")]
+        unsafe fn transpose_here(g: &[f32], rows: usize, cols: usize, dst: &mut [u32]) {
+            let pairs = padded_pairs(rows);
+            assert_eq!(g.len(), rows * cols);
+            assert_eq!(dst.len(), cols.next_multiple_of(TILE) * pairs);
+            // SAFETY: the instructions are enabled here (the caller checked
+            // the processor has them); `g` holds rows × cols floats and
+            // `dst` ⌈cols/16⌉·16 rows of `pairs` words (asserted above).
+            unsafe { transposed_row_pairs(g.as_ptr(), rows, cols, dst.as_mut_ptr(), pairs) }
+        }
+        for (case, &(rows, cols)) in [(1, 1), (2, 16), (3, 17), (31, 64), (64, 16), (64, 257)]
+            .iter()
+            .enumerate()
+        {
+            let g = random(30 + case as u64, rows * cols);
+            let pairs = padded_pairs(rows);
+            let mut got = vec![NAN_PAIR; cols.next_multiple_of(TILE) * pairs];
+            // SAFETY: the processor has AVX512-BF16 (checked above).
+            unsafe { transpose_here(&g, rows, cols, &mut got) };
+            for c in 0..cols.next_multiple_of(TILE) {
+                for p in 0..pairs {
+                    let at = |r: usize| {
+                        if r < rows && c < cols {
+                            g[r * cols + c]
+                        } else {
+                            0.0
+                        }
+                    };
+                    let want = super::super::pair(at(2 * p), at(2 * p + 1));
+                    assert_eq!(got[c * pairs + p], want, "{rows} × {cols}: word ({c}, {p})");
+                }
+            }
+        }
+    }
+}
