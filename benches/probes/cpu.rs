@@ -9,8 +9,8 @@ use zrak::engine::cpu::composite_batch::{
     CompositeGradients, CompositeOutputs, RayBatch, composite_backward, composite_forward,
 };
 use zrak::engine::cpu::dense::{
-    Activation, MlpLayout, MlpWorkspace, backend, measure_peak_gflops, mlp_backward, mlp_forward,
-    mlp_inference,
+    Activation, InputGradient, MlpGradients, MlpLayout, MlpWorkspace, backend, measure_peak_gflops,
+    mlp_backward, mlp_forward, mlp_inference,
 };
 use zrak::engine::cpu::hash_grid::{
     HashGridLayout, encode_backward_with_scratch, encode_with_scratch, init_params,
@@ -111,9 +111,11 @@ pub fn cpu_dense_throughput() {
                 &input,
                 rows,
                 &mut ws,
-                &d_out,
-                &mut d_params,
-                Some(&mut d_input),
+                MlpGradients {
+                    output: &d_out,
+                    params: &mut d_params,
+                    input: Some(InputGradient::every_column(&mut d_input, layout)),
+                },
             )
         });
         let flop = 2.0 * (layout.macs_per_row() * rows) as f64;

@@ -771,9 +771,14 @@ mod tests {
                     &input,
                     rows,
                     &mut ws,
-                    &d_out,
-                    &mut d_params,
-                    Some((&mut d_input, 0..i)),
+                    MlpGradients {
+                        output: &d_out,
+                        params: &mut d_params,
+                        input: Some(InputGradient {
+                            values: &mut d_input,
+                            columns: 0..i,
+                        }),
+                    },
                 );
                 let g: Vec<f32> = d_out
                     .iter()
@@ -884,9 +889,11 @@ mod tests {
                 &input,
                 rows,
                 &mut ws,
-                &d_out,
-                &mut d_params,
-                Some(&mut d_input),
+                MlpGradients {
+                    output: &d_out,
+                    params: &mut d_params,
+                    input: Some(InputGradient::every_column(&mut d_input, &layout)),
+                },
             );
 
             let to64 = |x: &[f32]| x.iter().map(|&v| v as f64).collect::<Vec<_>>();

@@ -338,50 +338,47 @@ pub fn mlp_forward(
     );
 }
 
-/// Backward pass of the last [`mlp_forward`] on the same `input`:
-/// accumulates (`+=`) the parameter gradients into `d_params` and, when
-/// asked, writes (`=`) the gradient with respect to the input into
-/// `d_input` (rows × in). `d_output` is rows × out.
-#[allow(clippy::too_many_arguments)]
+/// The gradients of a backward pass: the one it starts from, with respect
+/// to the network's output, and those it writes.
+pub struct MlpGradients<'a> {
+    /// With respect to the output, rows × out.
+    pub output: &'a [f32],
+    /// With respect to the parameters, accumulated (`+=`).
+    pub params: &'a mut [f32],
+    /// With respect to the input, written (`=`) where wanted.
+    pub input: Option<InputGradient<'a>>,
+}
+
+/// Where a backward pass writes the gradient with respect to its input.
+pub struct InputGradient<'a> {
+    /// rows × `columns.len()`.
+    pub values: &'a mut [f32],
+    /// The input columns whose gradient is written. The colour network
+    /// needs the gradient of its density-feature columns but not of its
+    /// direction encoding, and skipping those saves their share of the
+    /// last product.
+    pub columns: Range<usize>,
+}
+
+impl<'a> InputGradient<'a> {
+    /// The gradient of every input column of `layout`: rows × in.
+    pub fn every_column(values: &'a mut [f32], layout: &MlpLayout) -> Self {
+        Self {
+            values,
+            columns: 0..layout.input_width(),
+        }
+    }
+}
+
+/// Backward pass of the last [`mlp_forward`] on the same `input`, from
+/// and into `gradients`.
 pub fn mlp_backward(
     layout: &MlpLayout,
     params: &[f32],
     input: &[f32],
     rows: usize,
     workspace: &mut MlpWorkspace,
-    d_output: &[f32],
-    d_params: &mut [f32],
-    d_input: Option<&mut [f32]>,
-) {
-    let columns = 0..layout.input_width();
-    backward_with(
-        layout.kernels(),
-        layout,
-        params,
-        input,
-        rows,
-        workspace,
-        d_output,
-        d_params,
-        d_input.map(|d| (d, columns)),
-    );
-}
-
-/// [`mlp_backward`] with the input gradient of only some input columns:
-/// `d_input` is rows × `columns.len()`. The colour network needs the
-/// gradient of its density-feature columns but not of its direction
-/// encoding, and skipping those saves their share of the last product.
-#[allow(clippy::too_many_arguments)]
-pub fn mlp_backward_columns(
-    layout: &MlpLayout,
-    params: &[f32],
-    input: &[f32],
-    rows: usize,
-    workspace: &mut MlpWorkspace,
-    d_output: &[f32],
-    d_params: &mut [f32],
-    d_input: &mut [f32],
-    columns: Range<usize>,
+    gradients: MlpGradients,
 ) {
     backward_with(
         layout.kernels(),
@@ -390,9 +387,7 @@ pub fn mlp_backward_columns(
         input,
         rows,
         workspace,
-        d_output,
-        d_params,
-        Some((d_input, columns)),
+        gradients,
     );
 }
 
@@ -618,7 +613,6 @@ fn backward_chunks(rows: usize) -> (usize, usize) {
     (rows.div_ceil(chunk_rows).max(1), chunk_rows)
 }
 
-#[allow(clippy::too_many_arguments)]
 fn backward_with(
     backend: Backend,
     layout: &MlpLayout,
@@ -626,22 +620,25 @@ fn backward_with(
     input: &[f32],
     rows: usize,
     workspace: &mut MlpWorkspace,
-    d_output: &[f32],
-    d_params: &mut [f32],
-    d_input: Option<(&mut [f32], Range<usize>)>,
+    gradients: MlpGradients,
 ) {
     assert!(backend.runs_here(), "{backend:?} kernels on this processor");
+    let MlpGradients {
+        output: d_output,
+        params: d_params,
+        input: d_input,
+    } = gradients;
     check_sizes(layout, params, input, rows, d_output.len());
     workspace.check(layout, rows);
     assert_eq!(d_params.len(), params.len(), "gradient count");
-    if let Some((d, columns)) = &d_input {
+    if let Some(InputGradient { values, columns }) = &d_input {
         assert!(
             columns.start < columns.end && columns.end <= layout.input_width(),
             "input columns {columns:?} of {}",
             layout.input_width()
         );
         assert!(
-            d.len() >= rows * columns.len(),
+            values.len() >= rows * columns.len(),
             "d_input holds fewer than {rows} rows"
         );
     }
@@ -665,8 +662,8 @@ fn backward_with(
         input: input.as_ptr(),
         activations: workspace.activations.iter().map(|a| a.as_ptr()).collect(),
         d_output: d_output.as_ptr(),
-        d_input_columns: d_input.as_ref().map_or(0..0, |(_, c)| c.clone()),
-        d_input: SendPtr(d_input.map_or(std::ptr::null_mut(), |(d, _)| d.as_mut_ptr())),
+        d_input_columns: d_input.as_ref().map_or(0..0, |d| d.columns.clone()),
+        d_input: SendPtr(d_input.map_or(std::ptr::null_mut(), |d| d.values.as_mut_ptr())),
         n_params,
         max_width,
     };

@@ -58,7 +58,6 @@ pub(super) trait Products {
     );
 
     /// `c = epi(G W[:, first..first + n])` for `nb` rows of `g` (nb × out).
-    #[allow(clippy::too_many_arguments)]
     unsafe fn input_gradient(
         layer: &Layer,
         g: *const f32,

@@ -255,9 +255,11 @@ fn kernels_match_the_reference_on_every_backend() {
                 &input,
                 rows,
                 &mut ws,
-                &d_out,
-                &mut d_params,
-                Some((&mut d_input, 0..layout.input_width())),
+                MlpGradients {
+                    output: &d_out,
+                    params: &mut d_params,
+                    input: Some(InputGradient::every_column(&mut d_input, layout)),
+                },
             );
 
             let (p64, x64) = (to_f64(&params), to_f64(&input));
@@ -327,7 +329,16 @@ fn backward_is_deterministic_and_skips_unwanted_input_gradient() {
     mlp_forward(&layout, &params, &input, rows, &mut ws, &mut out);
     let mut first = vec![0.0; params.len()];
     mlp_backward(
-        &layout, &params, &input, rows, &mut ws, &d_out, &mut first, None,
+        &layout,
+        &params,
+        &input,
+        rows,
+        &mut ws,
+        MlpGradients {
+            output: &d_out,
+            params: &mut first,
+            input: None,
+        },
     );
     // On a pool of one thread, the summation order must be the same.
     let pool = rayon::ThreadPoolBuilder::new()
@@ -337,7 +348,16 @@ fn backward_is_deterministic_and_skips_unwanted_input_gradient() {
     let second = pool.install(|| {
         let mut d = vec![0.0; params.len()];
         mlp_backward(
-            &layout, &params, &input, rows, &mut ws, &d_out, &mut d, None,
+            &layout,
+            &params,
+            &input,
+            rows,
+            &mut ws,
+            MlpGradients {
+                output: &d_out,
+                params: &mut d,
+                input: None,
+            },
         );
         d
     });
@@ -355,22 +375,28 @@ fn backward_is_deterministic_and_skips_unwanted_input_gradient() {
         &input,
         rows,
         &mut ws,
-        &d_out,
-        &mut d_full,
-        Some(&mut full),
+        MlpGradients {
+            output: &d_out,
+            params: &mut d_full,
+            input: Some(InputGradient::every_column(&mut full, &layout)),
+        },
     );
     let mut part = vec![0.0; rows * 16];
     let mut d_part = vec![0.0; params.len()];
-    mlp_backward_columns(
+    mlp_backward(
         &layout,
         &params,
         &input,
         rows,
         &mut ws,
-        &d_out,
-        &mut d_part,
-        &mut part,
-        3..19,
+        MlpGradients {
+            output: &d_out,
+            params: &mut d_part,
+            input: Some(InputGradient {
+                values: &mut part,
+                columns: 3..19,
+            }),
+        },
     );
     assert_eq!(d_part, d_full);
     for r in 0..rows {

@@ -468,19 +468,23 @@ fn rendering_with_early_stop_matches_full_compositing() {
     let mut evaluated = 0;
     march_and_composite(
         &grid,
+        GridRendering {
+            mapping: &BLENDER,
+            config: &MarchConfig::PAPER,
+            background,
+            chunk_samples: 1000,
+        },
         &origins,
         &directions,
-        &BLENDER,
-        &MarchConfig::PAPER,
-        background,
-        1000,
         |samples: &GridSamples, s: &mut [f32], c: &mut [f32]| {
             evaluated += s.len();
             field(samples.positions, samples.directions, s, c)
         },
-        &mut colour,
-        &mut depth,
-        &mut opacity,
+        CompositedRays {
+            colour: &mut colour,
+            depth: &mut depth,
+            opacity: &mut opacity,
+        },
     );
 
     // Reference: every sample, composited by the reference stage.

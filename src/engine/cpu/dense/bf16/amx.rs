@@ -387,23 +387,28 @@ unsafe fn transposed_row_pairs(
     }
 }
 
+/// Weights as rows of bf16 pair words, `stride` words apart.
+#[derive(Clone, Copy)]
+struct PairRows {
+    words: *const u32,
+    stride: usize,
+}
+
 /// The forward and input-gradient products: `nb` rows of `width` floats
 /// at `a`, as padded pairs in `pairs`, times `n` columns of the weights'
-/// pair rows at `weights` (row stride `stride`).
+/// pair rows.
 ///
 /// # Safety
 /// [`tile_gemm`]'s, with the weights packed as [`super::PairedWeights`]
 /// packs them for the tiles (16-aligned rows and stride, zero slack past
 /// the end) and `pairs` the scratch [`super::super::scratch_floats`] sets
 /// aside for them.
-#[allow(clippy::too_many_arguments)]
 #[inline(always)]
 unsafe fn rows_times_paired_weights(
     a: *const f32,
     nb: usize,
     width: usize,
-    weights: *const u32,
-    stride: usize,
+    weights: PairRows,
     n: usize,
     out: Destination,
     pairs: *mut u32,
@@ -412,7 +417,7 @@ unsafe fn rows_times_paired_weights(
     // SAFETY: up to BLOCK rows (nb rounded up to 16, as the A tiles read)
     // of k = ⌈width/2⌉ rounded up to 16 words fit the scratch's
     // 2 · BLOCK · (max-width + 16) words; the weights hold k pair rows of
-    // `stride` ≥ n words and slack for the last tile's columns.
+    // `weights.stride` ≥ n words and slack for the last tile's columns.
     unsafe {
         rows_to_padded_pairs(a, nb, width, pairs, k);
         tile_gemm(&TileGemm {
@@ -421,8 +426,8 @@ unsafe fn rows_times_paired_weights(
             pairs: k,
             a: pairs,
             a_stride: k,
-            b: weights,
-            b_stride: stride,
+            b: weights.words,
+            b_stride: weights.stride,
             out,
         });
     }
@@ -449,8 +454,10 @@ impl Products for AmxProducts {
                 a,
                 nb,
                 layer.inw,
-                layer.wt_pairs,
-                layer.wt_pairs_stride,
+                PairRows {
+                    words: layer.wt_pairs,
+                    stride: layer.wt_pairs_stride,
+                },
                 n,
                 out,
                 pairs,
@@ -521,8 +528,10 @@ impl Products for AmxProducts {
                 g,
                 nb,
                 layer.outw,
-                layer.w_pairs.add(first),
-                layer.w_pairs_stride,
+                PairRows {
+                    words: layer.w_pairs.add(first),
+                    stride: layer.w_pairs_stride,
+                },
                 n,
                 out,
                 pairs,
