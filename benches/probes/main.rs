@@ -8,6 +8,7 @@
 #[path = "../../tests/it/common/march.rs"]
 mod march;
 
+mod cpu;
 mod gpu;
 mod large_demo;
 
@@ -37,6 +38,31 @@ const PROBES: &[(&str, &str, fn())] = &[
         "dense_throughput",
         "GFLOP/s of the gpu dense layers (Instant-NGP's networks) on this adapter",
         gpu::dense_throughput,
+    ),
+    (
+        "cpu_dense_throughput",
+        "GFLOP/s of the cpu dense layers (Instant-NGP's networks, NeRF's trunk), 2^18 rows",
+        cpu::cpu_dense_throughput,
+    ),
+    (
+        "cpu_hash_grid_throughput",
+        "samples per second of the cpu hash grid, forward and backward, 2^18 samples",
+        cpu::cpu_hash_grid_throughput,
+    ),
+    (
+        "cpu_march_throughput",
+        "samples per second of the cpu march on a lego-like grid, 2^18 samples a batch",
+        cpu::cpu_march_throughput,
+    ),
+    (
+        "cpu_composite_throughput",
+        "samples per second of cpu compositing, forward and backward, 2^18 samples",
+        cpu::cpu_composite_throughput,
+    ),
+    (
+        "cpu_adam_throughput",
+        "parameters per second of the optimiser on Instant-NGP's parameter count",
+        cpu::cpu_adam_throughput,
     ),
     (
         "gpu_march_throughput",

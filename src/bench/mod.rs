@@ -278,7 +278,9 @@ pub fn dense_throughput(
     repeats: usize,
     precision: crate::engine::cpu::dense::Precision,
 ) -> Vec<DenseFigures> {
-    use crate::engine::cpu::dense::{MlpWorkspace, mlp_backward, mlp_forward};
+    use crate::engine::cpu::dense::{
+        InputGradient, MlpGradients, MlpWorkspace, mlp_backward, mlp_forward,
+    };
     use crate::engine::cpu::fields::nerf::NerfShape;
     use crate::rng::Pcg32;
     let shape = NerfShape::paper().with_precision(precision);
@@ -315,9 +317,11 @@ pub fn dense_throughput(
                     &input,
                     rows,
                     &mut workspace,
-                    &d_output,
-                    &mut d_params,
-                    Some(&mut d_input),
+                    MlpGradients {
+                        output: &d_output,
+                        params: &mut d_params,
+                        input: Some(InputGradient::every_column(&mut d_input, layout)),
+                    },
                 );
                 let b = clock.elapsed().as_secs_f64();
                 if run > 0 {

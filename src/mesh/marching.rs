@@ -291,7 +291,6 @@ fn triangulate(mesh: &mut Mesh, polygon: &[u32], keys: &[usize]) {
 
 /// The mesh's vertex on cube edge `key` (`lower corner · 3 + axis`) of the
 /// cube whose lowest node is `cube`, added at its first use.
-#[allow(clippy::too_many_arguments)]
 fn vertex_id(
     grid: &ScalarGrid,
     mesh: &mut Mesh,

@@ -2,7 +2,8 @@
 //! output, the parameter gradients and the input gradient.
 
 use zrak::engine::cpu::dense::{
-    Activation, MlpLayout, MlpWorkspace, mlp_backward, mlp_forward, reference_forward,
+    Activation, InputGradient, MlpGradients, MlpLayout, MlpWorkspace, mlp_backward, mlp_forward,
+    reference_forward,
 };
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::dense::GpuDense;
@@ -141,9 +142,11 @@ fn dense_layers_match_cpu() {
             &input,
             rows,
             &mut workspace,
-            &d_output,
-            &mut d_params,
-            Some(&mut d_input),
+            MlpGradients {
+                output: &d_output,
+                params: &mut d_params,
+                input: Some(InputGradient::every_column(&mut d_input, layout)),
+            },
         );
 
         let (outputs, gpu_d_params, gpu_d_input) =

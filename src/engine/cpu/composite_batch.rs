@@ -362,25 +362,29 @@ pub fn composite_backward<F: Float + Send + Sync>(
         d_rgb,
         distortion,
         0..rays,
-        &mut gradients.density[first..samples],
-        &mut gradients.rgb[3 * first..3 * samples],
-        background,
+        CompositeGradients {
+            density: &mut gradients.density[first..samples],
+            rgb: &mut gradients.rgb[3 * first..3 * samples],
+            background,
+        },
     );
 }
 
-/// As [`forward_block`]: `d_density` and `d_colour` cover exactly the
-/// samples of `rays`, `d_background` exactly the rays.
-#[allow(clippy::too_many_arguments)]
+/// As [`forward_block`]: the gradients' density and colour cover exactly
+/// the samples of `rays`, their background exactly the rays.
 fn backward_block<F: Float + Send + Sync>(
     batch: &RayBatch<F>,
     min_transmittance: F,
     d_rgb: &[F],
     distortion: Option<Distortion<F>>,
     rays: Range<usize>,
-    d_density: &mut [F],
-    d_colour: &mut [F],
-    d_background: Option<&mut [F]>,
+    gradients: CompositeGradients<F>,
 ) {
+    let CompositeGradients {
+        density: d_density,
+        rgb: d_colour,
+        background: d_background,
+    } = gradients;
     let block = batch.samples_of(&rays);
     if rays.len() > 1 && block.len() > LEAF_SAMPLES {
         let mid = rays.start + rays.len() / 2;
@@ -402,9 +406,11 @@ fn backward_block<F: Float + Send + Sync>(
                     d_rgb,
                     distortion,
                     rays.start..mid,
-                    density_a,
-                    colour_a,
-                    background_a,
+                    CompositeGradients {
+                        density: density_a,
+                        rgb: colour_a,
+                        background: background_a,
+                    },
                 )
             },
             || {
@@ -414,9 +420,11 @@ fn backward_block<F: Float + Send + Sync>(
                     d_rgb,
                     distortion,
                     mid..rays.end,
-                    density_b,
-                    colour_b,
-                    background_b,
+                    CompositeGradients {
+                        density: density_b,
+                        rgb: colour_b,
+                        background: background_b,
+                    },
                 )
             },
         );

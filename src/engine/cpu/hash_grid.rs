@@ -718,11 +718,21 @@ mod x86_gather {
         }
     }
 
+    /// The two features of a full group of samples, each the sum over the
+    /// eight corners' weights times entries, into `out`.
+    ///
+    /// # Safety
+    /// Every index of `corners` must name a pair of floats inside `table`
+    /// (index < entries), and `out` must be writable for 32 floats.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx512bw,avx2,fma")]
     unsafe fn gather_group(table: *const f32, corners: &Corners<f32>, out: *mut f32) {
         use std::arch::x86_64::*;
         const _: () = assert!(GROUP == 16);
+        // SAFETY: the instructions are enabled on this function; the
+        // unaligned loads read the 16 indices and weights of a corner
+        // (GROUP = 16), the gathers 8-byte pairs at indices inside
+        // `table`, and the stores write `out`'s 32 floats: the contract.
         unsafe {
             // Lane j of the low (high) half takes weight j / 2 (8 + j / 2):
             // each weight is repeated for the two features of its sample.

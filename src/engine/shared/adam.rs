@@ -47,8 +47,10 @@ const CHUNK: usize = 1 << 14;
 /// Parameters handled together in the sparse path: one cache line of
 /// gradients. A block without gradient is skipped after reading it; a block
 /// with any is updated without branches (keeping the old values where the
-/// gradient is zero), which the compiler vectorises.
-const BLOCK: usize = 16;
+/// gradient is zero), which the compiler vectorises. Public for the
+/// throughput probe (`benches/probes/cpu.rs`), which empties whole blocks.
+#[doc(hidden)]
+pub const BLOCK: usize = 16;
 
 /// The optimiser's state: what a checkpoint stores.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -741,60 +743,6 @@ mod tests {
                 update_blocks::<false>(&hyper, s2);
             }
             assert_eq!((p1, m1, v1, a1, b1), (p2, m2, v2, a2, b2));
-        }
-    }
-
-    /// Prints the optimiser's throughput on instant-ngp's parameter count:
-    /// `cargo test --release --lib adam::tests::throughput -- --ignored --nocapture`.
-    #[test]
-    #[ignore]
-    fn throughput() {
-        let hash = 16 * (1 << 19) * 2;
-        let network = 10_240;
-        let n = hash + network;
-        let mut params = vec![0.0f32; n];
-        let r = sequence(1, 4096);
-        let dense: Vec<f32> = (0..n).map(|i| (r[i % 4096] - 0.5) as f32).collect();
-        // About what a batch touches at the fine levels: a quarter of the
-        // hash entries.
-        let sparse: Vec<f32> = (0..n)
-            .map(|i| {
-                if i < network || i % 4 == 0 {
-                    dense[i]
-                } else {
-                    0.0
-                }
-            })
-            .collect();
-        // Half the cache lines of the hash tables without any gradient (the
-        // fine levels away from surfaces), skipped after one read.
-        let blocks: Vec<f32> = (0..n)
-            .map(|i| {
-                if i < network || (i / BLOCK).is_multiple_of(2) {
-                    dense[i]
-                } else {
-                    0.0
-                }
-            })
-            .collect();
-        let mut adam = Adam::new(n);
-        for (name, gradients) in [
-            ("dense", &dense),
-            ("1/4 of hash entries", &sparse),
-            ("1/2 of hash blocks", &blocks),
-        ] {
-            adam.step(&PAPER, 0..network, &mut params, gradients);
-            let steps = 10;
-            let start = std::time::Instant::now();
-            for _ in 0..steps {
-                adam.step(&PAPER, 0..network, &mut params, gradients);
-            }
-            let seconds = start.elapsed().as_secs_f64() / steps as f64;
-            println!(
-                "adam ({name}): {n} params in {:.2} ms, {:.0} Mparams/s",
-                seconds * 1e3,
-                n as f64 / seconds / 1e6
-            );
         }
     }
 }

@@ -178,7 +178,7 @@ mod kernels {
     use std::arch::x86_64::*;
 
     use super::super::x86::Avx512;
-    use super::super::{Destination, Epi, Lanes, Layer, Products, epilogue};
+    use super::super::{Destination, Epi, Layer, Products, epilogue};
 
     /// `c[i, j] ⊕= Σ_p a(i, p) · b(p, j)` for i < m, j < n, p < pairs,
     /// where a(i, p) at `a[i·a_m + p·a_k]` and b(p, j) at `b[p·b_k + j]`
@@ -205,11 +205,21 @@ mod kernels {
     /// nothing more.
     const PANEL: usize = 32;
 
+    /// `g`'s product, panel by panel.
+    ///
+    /// # Safety
+    /// AVX512-BF16 (with AVX-512F, VL and BW) must be enabled, and for
+    /// i < m, p < pairs and j < n: the word `a[i·a_m + p·a_k]` readable,
+    /// `b[p·b_k + j]` readable, and `g.out` as [`epilogue`] needs it for
+    /// rows below m and columns below n. The panels and tiles below rely
+    /// on the same for their part of `g`.
     #[inline(always)]
     unsafe fn pair_gemm(g: &PairGemm) {
         let mut j0 = 0;
         while j0 < g.n {
             let nj = (g.n - j0).min(PANEL);
+            // SAFETY: columns j0..j0 + nj are within n, nj ≤ 16 · NV, and
+            // the caller keeps the rest of the contract.
             unsafe {
                 match nj.div_ceil(16) {
                     1 => panel::<1, 8>(g, j0, nj),
@@ -220,17 +230,22 @@ mod kernels {
         }
     }
 
+    /// # Safety
+    /// As [`pair_gemm`]'s, with `j0 + nj ≤ g.n` and `nj ≤ 16 · NV`.
     #[inline(always)]
     unsafe fn panel<const NV: usize, const MR: usize>(g: &PairGemm, j0: usize, nj: usize) {
         let mut masks = [0u16; NV];
         for (v, m) in masks.iter_mut().enumerate() {
-            *m = unsafe { Avx512::mask(nj - v * 16) };
+            *m = mask(nj - v * 16);
         }
         let mut i = 0;
         while i + MR <= g.m {
+            // SAFETY: rows i..i + MR are within m, the masks select the
+            // panel's nj columns, and the caller keeps the rest.
             unsafe { tile::<MR, NV>(g, i, j0, nj, &masks) };
             i += MR;
         }
+        // SAFETY: as above, for the last m − i < MR rows.
         unsafe {
             match g.m - i {
                 0 => {}
@@ -246,6 +261,9 @@ mod kernels {
         }
     }
 
+    /// # Safety
+    /// As [`pair_gemm`]'s, with rows `i0..i0 + R` within m, columns
+    /// `j0..j0 + nj` within n, and `masks[v]` selecting those of vector v.
     #[inline(always)]
     unsafe fn tile<const R: usize, const NV: usize>(
         g: &PairGemm,
@@ -254,6 +272,10 @@ mod kernels {
         nj: usize,
         masks: &[__mmask16; NV],
     ) {
+        // SAFETY: the loads read a's words of rows i0 + r < m and b's
+        // columns the masks select, at pairs p < g.pairs; the epilogue
+        // writes the same rows and columns of `g.out`: all within this
+        // function's contract.
         unsafe {
             let mut acc = [[_mm512_setzero_ps(); NV]; R];
             let mut a = g.a.add(i0 * g.a_m);
@@ -301,6 +323,10 @@ mod kernels {
     /// Each of `rows` rows of `cols` floats (row stride `stride`) as
     /// ⌈cols/2⌉ words of consecutive bf16 pairs (row stride
     /// `dst_stride`), an odd row's last word padded with zero.
+    ///
+    /// # Safety
+    /// AVX512-BF16 (with AVX-512F) must be enabled, the rows' floats
+    /// readable and their words writable.
     #[inline(always)]
     pub(super) unsafe fn rows_to_pairs(
         src: *const f32,
@@ -310,6 +336,9 @@ mod kernels {
         dst: *mut u32,
         dst_stride: usize,
     ) {
+        // SAFETY: the masked loads read columns j + t < cols of row r, the
+        // masked store writes words below ⌈cols/2⌉ of row r; within the
+        // contract.
         unsafe {
             for r in 0..rows {
                 let s = src.add(r * stride);
@@ -351,6 +380,11 @@ mod kernels {
     /// Rows 2p and 2p + 1 of `rows` rows of `cols` floats (row stride
     /// `stride`) as one row of `cols` words: word (p, c) holds the two
     /// rows' column c, the second zero past the last row.
+    ///
+    /// # Safety
+    /// AVX512-BF16 (with AVX-512F and BW) must be enabled, the rows'
+    /// floats readable and ⌈rows/2⌉ rows of `cols` words writable at
+    /// `dst`.
     #[inline(always)]
     pub(super) unsafe fn interleave_row_pairs(
         src: *const f32,
@@ -359,6 +393,9 @@ mod kernels {
         stride: usize,
         dst: *mut u32,
     ) {
+        // SAFETY: PAIR_ZIP is 64 bytes; the masked loads read columns
+        // c + t < cols of rows 2p and (when it exists) 2p + 1 < rows, the
+        // masked store the same columns of word row p < ⌈rows/2⌉.
         unsafe {
             let zip = _mm512_loadu_si512(PAIR_ZIP.as_ptr().cast());
             for p in 0..rows.div_ceil(2) {
@@ -399,6 +436,10 @@ mod kernels {
             pairs: *mut u32,
         ) {
             let k = layer.inw.div_ceil(2);
+            // SAFETY: the block's nb ≤ BLOCK rows as pairs, nb × ⌈inw/2⌉
+            // words, fit the pairs' scratch; the weights are Wᵀ's pairs,
+            // ⌈inw/2⌉ rows of outw ≥ n words, `wt_pairs_stride` apart (the
+            // trait's contract).
             unsafe {
                 rows_to_pairs(a, nb, layer.inw, layer.inw, pairs, k);
                 pair_gemm(&PairGemm {
@@ -425,6 +466,9 @@ mod kernels {
             pairs: *mut u32,
         ) {
             let k = nb.div_ceil(2);
+            // SAFETY: G's and X's pairs of rows, ⌈nb/2⌉ × (outw + inw)
+            // words, fit the pairs' scratch (scratch_floats); dW is outw ×
+            // inw (the trait's contract).
             unsafe {
                 let g_pairs = pairs;
                 let x_pairs = pairs.add(k * layer.outw);
@@ -459,6 +503,10 @@ mod kernels {
             pairs: *mut u32,
         ) {
             let k = layer.outw.div_ceil(2);
+            // SAFETY: G's nb ≤ BLOCK rows as pairs fit the pairs' scratch;
+            // the weights are W's pairs, ⌈outw/2⌉ rows of inw words
+            // `w_pairs_stride` apart, of which columns first..first + n
+            // ≤ inw are read (the trait's contract).
             unsafe {
                 rows_to_pairs(g, nb, layer.outw, layer.outw, pairs, k);
                 pair_gemm(&PairGemm {
@@ -723,9 +771,14 @@ mod tests {
                     &input,
                     rows,
                     &mut ws,
-                    &d_out,
-                    &mut d_params,
-                    Some((&mut d_input, 0..i)),
+                    MlpGradients {
+                        output: &d_out,
+                        params: &mut d_params,
+                        input: Some(InputGradient {
+                            values: &mut d_input,
+                            columns: 0..i,
+                        }),
+                    },
                 );
                 let g: Vec<f32> = d_out
                     .iter()
@@ -836,9 +889,11 @@ mod tests {
                 &input,
                 rows,
                 &mut ws,
-                &d_out,
-                &mut d_params,
-                Some(&mut d_input),
+                MlpGradients {
+                    output: &d_out,
+                    params: &mut d_params,
+                    input: Some(InputGradient::every_column(&mut d_input, &layout)),
+                },
             );
 
             let to64 = |x: &[f32]| x.iter().map(|&v| v as f64).collect::<Vec<_>>();

@@ -26,11 +26,15 @@ impl Lanes for Portable {
     #[inline(always)]
     unsafe fn load(p: *const f32, m: usize) -> [f32; 8] {
         let mut v = [0.0; 8];
-        if m == 8 {
-            unsafe { std::ptr::copy_nonoverlapping(p, v.as_mut_ptr(), 8) };
-        } else {
-            for (j, x) in v.iter_mut().enumerate().take(m) {
-                *x = unsafe { *p.add(j) };
+        // SAFETY: `p` is readable for the first m ≤ 8 lanes (the `Lanes`
+        // contract), and these read no more.
+        unsafe {
+            if m == 8 {
+                std::ptr::copy_nonoverlapping(p, v.as_mut_ptr(), 8);
+            } else {
+                for (j, x) in v.iter_mut().enumerate().take(m) {
+                    *x = *p.add(j);
+                }
             }
         }
         v
@@ -38,6 +42,8 @@ impl Lanes for Portable {
     #[inline(always)]
     unsafe fn store(p: *mut f32, v: [f32; 8], m: usize) {
         for (j, x) in v.iter().enumerate().take(m) {
+            // SAFETY: j < m, and `p` is writable for the first m lanes (the
+            // `Lanes` contract).
             unsafe { *p.add(j) = *x };
         }
     }
@@ -77,32 +83,53 @@ macro_rules! with_tile_rows {
     };
 }
 
+/// `g`'s product, tile by tile.
+///
+/// # Safety
+/// `L`'s instruction set must be enabled (the [`Lanes`] contract), and the
+/// memory `g` describes valid: for i < m, p < k and j < n, `a` readable
+/// at `i·a_m + p·a_k`, `b` at `p·b_k + j`, `c` writable (and, to
+/// accumulate, readable) at `i·c_m + j`, a forward bias readable at j and
+/// a backward `y` at `i·y_m + j`. The tiles below, each a part of `g`,
+/// rely on the same.
 #[inline(always)]
 pub(super) unsafe fn gemm<L: Lanes>(g: &Gemm) {
     let panel = L::N * L::NV_MAX;
     let mut j0 = 0;
     while j0 < g.n {
         let nj = (g.n - j0).min(panel);
+        // SAFETY: columns j0..j0 + nj are within n, and the caller keeps
+        // the rest of the contract.
         unsafe { with_tile_rows!(nj.div_ceil(L::N), panel_rows, g, j0, nj) };
         j0 += panel;
     }
 }
 
+/// The tiles of columns `j0..j0 + nj` (nj ≤ NV vectors), MR rows at a
+/// time, then the remaining rows.
+///
+/// # Safety
+/// As [`gemm`]'s, with `j0 + nj ≤ g.n` and `nj ≤ NV · L::N`.
 #[inline(always)]
 pub(super) unsafe fn panel_rows<L: Lanes, const NV: usize, const MR: usize>(
     g: &Gemm,
     j0: usize,
     nj: usize,
 ) {
+    // SAFETY: `L`'s instructions are enabled (this function's contract).
     let mut masks = [unsafe { L::mask(0) }; NV];
     for (v, m) in masks.iter_mut().enumerate() {
+        // SAFETY: as above; v · N < nj, since NV = ⌈nj / N⌉.
         *m = unsafe { L::mask(nj - v * L::N) };
     }
     let mut i = 0;
     while i + MR <= g.m {
+        // SAFETY: rows i..i + MR are within m, the masks cover exactly the
+        // panel's nj columns, and the caller keeps the rest of the contract.
         unsafe { tile::<L, MR, NV>(g, i, j0, nj, &masks) };
         i += MR;
     }
+    // SAFETY: as above, for the last m − i < MR rows.
     unsafe {
         match g.m - i {
             0 => {}
@@ -118,6 +145,12 @@ pub(super) unsafe fn panel_rows<L: Lanes, const NV: usize, const MR: usize>(
     }
 }
 
+/// Rows `i0..i0 + R` by columns `j0..j0 + nj` of `g`'s product, held in
+/// R × NV vector registers through the reduction.
+///
+/// # Safety
+/// As [`gemm`]'s, with the rows within m, the columns within n, and
+/// `masks[v]` selecting the lanes of columns j0 + v·N… below j0 + nj.
 #[inline(always)]
 pub(super) unsafe fn tile<L: Lanes, const R: usize, const NV: usize>(
     g: &Gemm,
@@ -126,6 +159,9 @@ pub(super) unsafe fn tile<L: Lanes, const R: usize, const NV: usize>(
     nj: usize,
     masks: &[L::M; NV],
 ) {
+    // SAFETY: every load reads a's rows i0 + r < m at reduction steps
+    // p < k, and b's columns the masks select (below n) at those steps;
+    // the epilogue's contract is part of this function's.
     unsafe {
         let mut acc = [[L::zero(); NV]; R];
         let mut a = g.a.add(i0 * g.a_m);
@@ -161,6 +197,15 @@ pub(super) struct Destination {
     pub(super) epi: Epi,
 }
 
+/// Writes a tile's accumulators to rows `i0..i0 + R`, columns
+/// `j0..j0 + nj` of `g.c`, through `g.epi`.
+///
+/// # Safety
+/// `L`'s instructions must be enabled, `g.c` writable (and, to
+/// accumulate, readable) at `(i0 + r)·c_m + j` for r < R and j < j0 + nj,
+/// with `masks[v]` selecting the lanes of columns j0 + v·N… below
+/// j0 + nj; a forward bias readable at those columns, a backward `y` at
+/// `(i0 + r)·y_m + j`.
 #[inline(always)]
 pub(super) unsafe fn epilogue<L: Lanes, const R: usize, const NV: usize>(
     g: Destination,
@@ -170,6 +215,9 @@ pub(super) unsafe fn epilogue<L: Lanes, const R: usize, const NV: usize>(
     masks: &[L::M; NV],
     acc: &[[L::V; NV]; R],
 ) {
+    // SAFETY: every access is at a row below i0 + R and, vector by vector,
+    // at the columns the masks select, or, in the scalar loops, at columns
+    // j0..j0 + nj: all inside this function's contract.
     unsafe {
         for (r, acc_r) in acc.iter().enumerate() {
             let c = g.c.add((i0 + r) * g.c_m + j0);
@@ -238,6 +286,11 @@ pub(super) const NARROW_COLUMNS: usize = 4;
 /// faster.
 /// The sum runs in a different order than the tile's, so outputs differ
 /// from a tile's in the last bits.
+///
+/// # Safety
+/// `L`'s instructions must be enabled; `x` readable for `nb` rows of
+/// `layer.inw`, `c` writable for `nb` rows of `n`, n ≤ `layer.outw`, and
+/// the layer's W (and bias, where not null) readable.
 #[inline(always)]
 pub(super) unsafe fn narrow_layer<L: Lanes>(
     layer: &Layer,
@@ -248,6 +301,9 @@ pub(super) unsafe fn narrow_layer<L: Lanes>(
     c: *mut f32,
 ) {
     let k = layer.inw;
+    // SAFETY: rows r < nb of x and c, W's rows j < n ≤ outw, and within a
+    // row the lanes `mask(k − i)` selects, all below k: inside this
+    // function's contract.
     unsafe {
         for r in 0..nb {
             let row = x.add(r * k);

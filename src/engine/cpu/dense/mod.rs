@@ -221,6 +221,32 @@ impl Backend {
         }
     }
 
+    /// Whether this processor has the instructions these kernels are
+    /// compiled for (see `dispatch`), which makes running them sound;
+    /// `ZRAK_CPU_KERNELS` ([`crate::isa`]) chooses among those that do.
+    pub fn runs_here(self) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        {
+            let avx2 = is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma");
+            let avx512 =
+                avx2 && is_x86_feature_detected!("avx512f") && is_x86_feature_detected!("avx512vl");
+            let bf16 = avx512
+                && is_x86_feature_detected!("avx512bw")
+                && is_x86_feature_detected!("avx512bf16");
+            match self {
+                Backend::AmxBf16 => bf16 && bf16::amx::available(),
+                Backend::Avx512Bf16 => bf16,
+                Backend::Avx512 => avx512,
+                Backend::Avx2 => avx2,
+                Backend::Portable => true,
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            self == Backend::Portable
+        }
+    }
+
     /// The multiple the mixed-precision kernels pad the weights' bf16
     /// pairs to (rows and row stride).
     fn pair_alignment(self) -> usize {
@@ -312,50 +338,47 @@ pub fn mlp_forward(
     );
 }
 
-/// Backward pass of the last [`mlp_forward`] on the same `input`:
-/// accumulates (`+=`) the parameter gradients into `d_params` and, when
-/// asked, writes (`=`) the gradient with respect to the input into
-/// `d_input` (rows × in). `d_output` is rows × out.
-#[allow(clippy::too_many_arguments)]
+/// The gradients of a backward pass: the one it starts from, with respect
+/// to the network's output, and those it writes.
+pub struct MlpGradients<'a> {
+    /// With respect to the output, rows × out.
+    pub output: &'a [f32],
+    /// With respect to the parameters, accumulated (`+=`).
+    pub params: &'a mut [f32],
+    /// With respect to the input, written (`=`) where wanted.
+    pub input: Option<InputGradient<'a>>,
+}
+
+/// Where a backward pass writes the gradient with respect to its input.
+pub struct InputGradient<'a> {
+    /// rows × `columns.len()`.
+    pub values: &'a mut [f32],
+    /// The input columns whose gradient is written. The colour network
+    /// needs the gradient of its density-feature columns but not of its
+    /// direction encoding, and skipping those saves their share of the
+    /// last product.
+    pub columns: Range<usize>,
+}
+
+impl<'a> InputGradient<'a> {
+    /// The gradient of every input column of `layout`: rows × in.
+    pub fn every_column(values: &'a mut [f32], layout: &MlpLayout) -> Self {
+        Self {
+            values,
+            columns: 0..layout.input_width(),
+        }
+    }
+}
+
+/// Backward pass of the last [`mlp_forward`] on the same `input`, from
+/// and into `gradients`.
 pub fn mlp_backward(
     layout: &MlpLayout,
     params: &[f32],
     input: &[f32],
     rows: usize,
     workspace: &mut MlpWorkspace,
-    d_output: &[f32],
-    d_params: &mut [f32],
-    d_input: Option<&mut [f32]>,
-) {
-    let columns = 0..layout.input_width();
-    backward_with(
-        layout.kernels(),
-        layout,
-        params,
-        input,
-        rows,
-        workspace,
-        d_output,
-        d_params,
-        d_input.map(|d| (d, columns)),
-    );
-}
-
-/// [`mlp_backward`] with the input gradient of only some input columns:
-/// `d_input` is rows × `columns.len()`. The colour network needs the
-/// gradient of its density-feature columns but not of its direction
-/// encoding, and skipping those saves their share of the last product.
-#[allow(clippy::too_many_arguments)]
-pub fn mlp_backward_columns(
-    layout: &MlpLayout,
-    params: &[f32],
-    input: &[f32],
-    rows: usize,
-    workspace: &mut MlpWorkspace,
-    d_output: &[f32],
-    d_params: &mut [f32],
-    d_input: &mut [f32],
-    columns: Range<usize>,
+    gradients: MlpGradients,
 ) {
     backward_with(
         layout.kernels(),
@@ -364,9 +387,7 @@ pub fn mlp_backward_columns(
         input,
         rows,
         workspace,
-        d_output,
-        d_params,
-        Some((d_input, columns)),
+        gradients,
     );
 }
 
@@ -493,6 +514,7 @@ fn forward_with(
     workspace: &mut MlpWorkspace,
     output: &mut [f32],
 ) {
+    assert!(backend.runs_here(), "{backend:?} kernels on this processor");
     check_sizes(layout, params, input, rows, output.len());
     workspace.check(layout, rows);
     if backend.precision() == Precision::Mixed {
@@ -520,9 +542,12 @@ fn forward_with(
         || vec![0.0f32; scratch_floats(max_width)],
         |scratch, t| {
             let range = t * FORWARD_CHUNK..((t + 1) * FORWARD_CHUNK).min(rows);
-            // SAFETY: tasks write disjoint row ranges of the activations
-            // and output, whose sizes were checked above; the scratch is
-            // the task's own.
+            // SAFETY: `backend` runs here (asserted above). The job points
+            // into `input`, `params` and the workspace's buffers, whose
+            // sizes were checked above for `rows` rows and this layout
+            // (`net` packed the weights the backend reads); tasks write
+            // disjoint row ranges of the activations and output, and the
+            // scratch, `scratch_floats(max_width)` long, is the task's own.
             unsafe { dispatch::forward(backend, &job, range, scratch.as_mut_ptr()) }
         },
     );
@@ -537,6 +562,7 @@ fn inference_with(
     output: &mut [f32],
     out_columns: usize,
 ) {
+    assert!(backend.runs_here(), "{backend:?} kernels on this processor");
     // Sized for the leading columns: the full width stands in for the check.
     let output_rows = output.len() / out_columns;
     check_sizes(
@@ -568,7 +594,11 @@ fn inference_with(
         || vec![0.0f32; scratch_len],
         |scratch, t| {
             let range = t * FORWARD_CHUNK..((t + 1) * FORWARD_CHUNK).min(rows);
-            // SAFETY: disjoint output rows per task; scratch is the task's own.
+            // SAFETY: `backend` runs here (asserted above); `input`,
+            // `params` and `output` hold `rows` rows of this layout
+            // (checked above) and `net` packed the weights the backend
+            // reads; tasks write disjoint output rows, and the scratch,
+            // `scratch_len` long, is the task's own.
             unsafe { dispatch::inference(backend, &job, range, scratch.as_mut_ptr()) }
         },
     );
@@ -583,7 +613,6 @@ fn backward_chunks(rows: usize) -> (usize, usize) {
     (rows.div_ceil(chunk_rows).max(1), chunk_rows)
 }
 
-#[allow(clippy::too_many_arguments)]
 fn backward_with(
     backend: Backend,
     layout: &MlpLayout,
@@ -591,21 +620,25 @@ fn backward_with(
     input: &[f32],
     rows: usize,
     workspace: &mut MlpWorkspace,
-    d_output: &[f32],
-    d_params: &mut [f32],
-    d_input: Option<(&mut [f32], Range<usize>)>,
+    gradients: MlpGradients,
 ) {
+    assert!(backend.runs_here(), "{backend:?} kernels on this processor");
+    let MlpGradients {
+        output: d_output,
+        params: d_params,
+        input: d_input,
+    } = gradients;
     check_sizes(layout, params, input, rows, d_output.len());
     workspace.check(layout, rows);
     assert_eq!(d_params.len(), params.len(), "gradient count");
-    if let Some((d, columns)) = &d_input {
+    if let Some(InputGradient { values, columns }) = &d_input {
         assert!(
             columns.start < columns.end && columns.end <= layout.input_width(),
             "input columns {columns:?} of {}",
             layout.input_width()
         );
         assert!(
-            d.len() >= rows * columns.len(),
+            values.len() >= rows * columns.len(),
             "d_input holds fewer than {rows} rows"
         );
     }
@@ -629,8 +662,8 @@ fn backward_with(
         input: input.as_ptr(),
         activations: workspace.activations.iter().map(|a| a.as_ptr()).collect(),
         d_output: d_output.as_ptr(),
-        d_input_columns: d_input.as_ref().map_or(0..0, |(_, c)| c.clone()),
-        d_input: SendPtr(d_input.map_or(std::ptr::null_mut(), |(d, _)| d.as_mut_ptr())),
+        d_input_columns: d_input.as_ref().map_or(0..0, |d| d.columns.clone()),
+        d_input: SendPtr(d_input.map_or(std::ptr::null_mut(), |d| d.values.as_mut_ptr())),
         n_params,
         max_width,
     };
@@ -638,7 +671,11 @@ fn backward_with(
     let scratch = SendPtr(workspace.scratch.as_mut_ptr());
     (0..chunks).into_par_iter().for_each(|c| {
         let range = c * chunk_rows..((c + 1) * chunk_rows).min(rows);
-        // SAFETY: chunk c owns partial c, scratch c and the d_input rows of
+        // SAFETY: `backend` runs here (asserted above) and every buffer
+        // the job points into holds `rows` rows of this layout (checked
+        // above; the activations are the forward pass's). c < chunks ≤
+        // MAX_CHUNKS, the number of partials and scratches the workspace
+        // holds; chunk c owns partial c, scratch c and the d_input rows of
         // its range.
         unsafe {
             let partial = partials.get().add(c * n_params);
@@ -669,7 +706,10 @@ fn backward_with(
 /// are disjoint.
 #[derive(Clone, Copy)]
 struct SendPtr(*mut f32);
+// SAFETY: a SendPtr is an address; dereferencing it is unsafe, and each
+// dereference says why no other thread accesses the same floats.
 unsafe impl Send for SendPtr {}
+// SAFETY: as for Send: sharing the address reads nothing through it.
 unsafe impl Sync for SendPtr {}
 impl SendPtr {
     fn get(self) -> *mut f32 {
@@ -726,6 +766,8 @@ struct ForwardJob<'a> {
     activations: Vec<SendPtr>,
     output: SendPtr,
 }
+// SAFETY: `input` is read only, and the tasks that share a job write
+// disjoint rows of the activations and output (forward_with).
 unsafe impl Sync for ForwardJob<'_> {}
 
 struct InferenceJob<'a> {
@@ -737,6 +779,8 @@ struct InferenceJob<'a> {
     /// out_columns in `output`).
     out_columns: usize,
 }
+// SAFETY: `input` is read only, and the tasks that share a job write
+// disjoint rows of the output (inference_with).
 unsafe impl Sync for InferenceJob<'_> {}
 
 struct BackwardJob<'a> {
@@ -751,6 +795,8 @@ struct BackwardJob<'a> {
     n_params: usize,
     max_width: usize,
 }
+// SAFETY: everything but `d_input` is read only, and the tasks that share
+// a job write disjoint rows of `d_input` (backward_with).
 unsafe impl Sync for BackwardJob<'_> {}
 
 /// What a tile does with its accumulators.
@@ -787,6 +833,16 @@ struct Gemm {
 }
 
 /// A vector instruction set, as the kernels see it.
+///
+/// # Safety
+/// Every method is unsafe for one reason: it may be called only where the
+/// implementation's instruction set is enabled, that is from code inlined
+/// into one of [`dispatch`]'s entry points compiled for it and reached
+/// only for a [`Backend`] that [`Backend::runs_here`]. A method that takes
+/// a pointer also needs it valid, for reads (`load`) or writes (`store`),
+/// for the first lanes its mask selects; the other lanes are not touched.
+/// `stream_copy` needs `n` floats readable at `src` and writable at `dst`,
+/// the two not overlapping.
 trait Lanes {
     type V: Copy;
     type M: Copy;
@@ -809,6 +865,8 @@ trait Lanes {
     /// Copies n floats with stores that bypass the caches where the
     /// instruction set has them.
     unsafe fn stream_copy(dst: *mut f32, src: *const f32, n: usize) {
+        // SAFETY: `n` floats are readable at `src` and writable at `dst`,
+        // the two not overlapping (the trait's contract).
         unsafe { std::ptr::copy_nonoverlapping(src, dst, n) }
     }
     /// Orders streaming stores before what follows (the end of a task).

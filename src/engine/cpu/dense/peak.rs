@@ -20,6 +20,7 @@ pub fn measure_peak_gflops() -> f64 {
     let b: Vec<f32> = (0..n * n).map(|_| rng.next_f32() - 0.5).collect();
     let mut c = vec![0.0f32; n * n];
     let backend = backend();
+    assert!(backend.runs_here(), "{backend:?} kernels on this processor");
     let mut run = || {
         let start = std::time::Instant::now();
         let cp = SendPtr(c.as_mut_ptr());
@@ -33,11 +34,14 @@ pub fn measure_peak_gflops() -> f64 {
                 a_k: 1,
                 b: b.as_ptr(),
                 b_k: n,
-                // SAFETY: each task writes its own BLOCK rows of c.
+                // SAFETY: t < n / BLOCK, so the offset is inside c (n × n).
                 c: unsafe { cp.get().add(t * BLOCK * n) },
                 c_m: n,
                 epi: Epi::Store,
             };
+            // SAFETY: `backend` runs here (asserted above); a, b and c are
+            // n × n, and the task reads BLOCK rows of a and all of b and
+            // writes its own BLOCK rows of c, which no other task touches.
             unsafe { dispatch::gemm(backend, &g) }
         });
         start.elapsed().as_secs_f64()
@@ -75,16 +79,20 @@ pub fn arithmetic_peak_gflops(kernels: Backend) -> f64 {
 /// Runs `iterations` rounds of independent multiply-add chains and returns
 /// the FLOP done and a value that depends on every chain.
 fn chains(kernels: Backend, iterations: usize, seed: f32) -> (f64, f32) {
+    assert!(kernels.runs_here(), "{kernels:?} kernels on this processor");
     match kernels {
         #[cfg(target_arch = "x86_64")]
-        // SAFETY: a Backend is only ever one this processor supports.
+        // SAFETY: the processor has AMX-BF16 and this process may use the
+        // tile registers (runs_here, asserted above, asked `available`).
         Backend::AmxBf16 => unsafe { super::bf16::amx::tile_chains(iterations, seed) },
         #[cfg(target_arch = "x86_64")]
-        // SAFETY: as above.
+        // SAFETY: the processor has AVX512-BF16 (asserted above).
         Backend::Avx512Bf16 => unsafe { x86::bf16_chains(iterations, seed) },
         #[cfg(target_arch = "x86_64")]
+        // SAFETY: the processor has AVX-512F (asserted above).
         Backend::Avx512 => unsafe { x86::avx512_chains(iterations, seed) },
         #[cfg(target_arch = "x86_64")]
+        // SAFETY: the processor has AVX2 and FMA (asserted above).
         Backend::Avx2 => unsafe { x86::avx2_chains(iterations, seed) },
         _ => {
             let mut acc = [seed; 16];
@@ -131,6 +139,7 @@ mod x86 {
         let mut lanes = [0f32; 8];
         let mut sum = 0.0;
         for x in acc {
+            // SAFETY: `lanes` holds the 8 floats stored.
             unsafe { _mm256_storeu_ps(lanes.as_mut_ptr(), x) };
             sum += lanes.iter().sum::<f32>();
         }

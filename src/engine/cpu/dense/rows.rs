@@ -7,6 +7,11 @@ use super::*;
 /// Where a block's layers go: a trait with methods inlined into the kernels
 /// rather than closures, which are compiled without the kernels' vector
 /// extensions (their streaming stores became out-of-line calls).
+///
+/// # Safety
+/// Called only by [`forward_block`] on the block the sink was made for,
+/// within its caller's contract (the [`dispatch`] module's): the sink's
+/// pointers hold that block's rows.
 pub(super) trait BlockSink {
     /// Where layer `l` writes its block.
     unsafe fn destination(&self, l: usize) -> *mut f32;
@@ -17,6 +22,14 @@ pub(super) trait BlockSink {
 /// How a layer's three products are computed: in f32 on lanes `L`
 /// ([`F32Products`]) or from bf16 pairs ([`bf16::Bf16Products`]). The
 /// block loops above and below are written once over this.
+///
+/// # Safety
+/// Every method needs the instructions of its implementation (and of `L`)
+/// enabled, the layer's weights in the form it reads (Wᵀ, W, or their
+/// bf16 pairs as [`bf16::PairedWeights`] packs them for the backend), the
+/// operands readable and the destination writable for the rows and
+/// columns it names, and `pairs` writable for the scratch that
+/// [`scratch_floats`] sets aside for them.
 pub(super) trait Products {
     /// The lanes of everything but the products (narrow layers, copies).
     type L: Lanes;
@@ -45,7 +58,6 @@ pub(super) trait Products {
     );
 
     /// `c = epi(G W[:, first..first + n])` for `nb` rows of `g` (nb × out).
-    #[allow(clippy::too_many_arguments)]
     unsafe fn input_gradient(
         layer: &Layer,
         g: *const f32,
@@ -72,6 +84,8 @@ impl<L: Lanes> Products for F32Products<L> {
         out: Destination,
         _: *mut u32,
     ) {
+        // SAFETY: nb rows of `a` (layer.inw wide) and n ≤ outw columns of
+        // Wᵀ (outw wide), written through `out`: the trait's contract.
         unsafe {
             gemm::<L>(&Gemm {
                 m: nb,
@@ -99,6 +113,8 @@ impl<L: Lanes> Products for F32Products<L> {
         _: *mut u32,
     ) {
         // Rows of dW are outputs; the reduction runs over the block's rows.
+        // SAFETY: G is nb × outw, X nb × inw, dW outw × inw (the trait's
+        // contract).
         unsafe {
             gemm::<L>(&Gemm {
                 m: layer.outw,
@@ -126,6 +142,8 @@ impl<L: Lanes> Products for F32Products<L> {
         out: Destination,
         _: *mut u32,
     ) {
+        // SAFETY: nb rows of G (outw wide); W's columns first..first + n
+        // are within its inw (the trait's contract), in rows inw apart.
         unsafe {
             gemm::<L>(&Gemm {
                 m: nb,
@@ -148,6 +166,10 @@ impl<L: Lanes> Products for F32Products<L> {
 /// `sink.destination(l)` with row stride equal to its width, except the
 /// last layer, which computes and writes only its first `last_columns`
 /// outputs.
+///
+/// # Safety
+/// The [`dispatch`] module's contract, for a block of `nb` ≤ [`BLOCK`]
+/// rows at `x`, with `sink` made for it and `pairs` the task's scratch.
 #[inline(always)]
 pub(super) unsafe fn forward_block<P: Products>(
     net: &Net,
@@ -159,26 +181,33 @@ pub(super) unsafe fn forward_block<P: Products>(
 ) {
     let mut a = x;
     let last = net.layers.len() - 1;
-    for (l, layer) in net.layers.iter().enumerate() {
-        let c = unsafe { sink.destination(l) };
-        let n = if l == last { last_columns } else { layer.outw };
-        if n <= NARROW_COLUMNS {
-            unsafe { narrow_layer::<P::L>(layer, a, nb, n, net.act(l), c) };
-            unsafe { sink.after(l, c) };
+    // SAFETY: each layer reads the nb rows the layer before it wrote (or
+    // x's), and writes nb rows of n ≤ outw columns where the sink says,
+    // which holds a layer's block (the sink's contract); the products and
+    // the narrow layer get what their contracts ask, within this
+    // function's.
+    unsafe {
+        for (l, layer) in net.layers.iter().enumerate() {
+            let c = sink.destination(l);
+            let n = if l == last { last_columns } else { layer.outw };
+            if n <= NARROW_COLUMNS {
+                narrow_layer::<P::L>(layer, a, nb, n, net.act(l), c);
+                sink.after(l, c);
+                a = c;
+                continue;
+            }
+            let out = Destination {
+                c,
+                c_m: n,
+                epi: Epi::Forward {
+                    bias: layer.bias,
+                    act: net.act(l),
+                },
+            };
+            P::forward(layer, a, nb, n, out, pairs);
+            sink.after(l, c);
             a = c;
-            continue;
         }
-        let out = Destination {
-            c,
-            c_m: n,
-            epi: Epi::Forward {
-                bias: layer.bias,
-                act: net.act(l),
-            },
-        };
-        unsafe { P::forward(layer, a, nb, n, out, pairs) };
-        unsafe { sink.after(l, c) };
-        a = c;
     }
 }
 
@@ -187,6 +216,9 @@ pub(super) unsafe fn forward_block<P: Products>(
 /// the workspace with non-temporal stores. The workspace is far larger than
 /// the caches and is only read again by the backward pass, so writing around
 /// the caches saves the read-for-ownership of every line.
+///
+/// # Safety
+/// The [`dispatch`] module's contract.
 #[inline(always)]
 pub(super) unsafe fn forward_rows<P: Products>(
     job: &ForwardJob,
@@ -198,24 +230,30 @@ pub(super) unsafe fn forward_rows<P: Products>(
     let last = net.layers.len() - 1;
     let out_w = net.layers[last].outw;
     let half = BLOCK * job.max_width;
-    let pairs = unsafe { scratch.add(2 * half) }.cast::<u32>();
-    let mut r0 = rows.start;
-    while r0 < rows.end {
-        let nb = (rows.end - r0).min(BLOCK);
-        let sink = TrainingSink::<P::L> {
-            job,
-            scratch,
-            half,
-            r0,
-            nb,
-            last,
-            out_w,
-            lanes: std::marker::PhantomData,
-        };
-        unsafe { forward_block::<P>(net, job.input.add(r0 * in_w), nb, out_w, &sink, pairs) };
-        r0 += nb;
+    // SAFETY: the scratch holds two blocks of `half` floats, then the
+    // pairs (scratch_floats); each block of rows r0..r0 + nb lies within
+    // `rows`, which the job's input, activations and output hold (the
+    // module's contract), and its sink writes only that block's rows.
+    unsafe {
+        let pairs = scratch.add(2 * half).cast::<u32>();
+        let mut r0 = rows.start;
+        while r0 < rows.end {
+            let nb = (rows.end - r0).min(BLOCK);
+            let sink = TrainingSink::<P::L> {
+                job,
+                scratch,
+                half,
+                r0,
+                nb,
+                last,
+                out_w,
+                lanes: std::marker::PhantomData,
+            };
+            forward_block::<P>(net, job.input.add(r0 * in_w), nb, out_w, &sink, pairs);
+            r0 += nb;
+        }
+        P::L::store_fence();
     }
-    unsafe { P::L::store_fence() };
 }
 
 /// The training forward pass's blocks: computed in the scratch, streamed
@@ -234,6 +272,8 @@ pub(super) struct TrainingSink<'a, L> {
 impl<L: Lanes> BlockSink for TrainingSink<'_, L> {
     #[inline(always)]
     unsafe fn destination(&self, l: usize) -> *mut f32 {
+        // SAFETY: the scratch starts with two halves of BLOCK × max-width
+        // floats (scratch_floats), which layers alternate between.
         unsafe { self.scratch.add((l % 2) * self.half) }
     }
 
@@ -241,6 +281,10 @@ impl<L: Lanes> BlockSink for TrainingSink<'_, L> {
     unsafe fn after(&self, l: usize, block: *const f32) {
         let (job, r0, nb) = (self.job, self.r0, self.nb);
         let w = job.net.layers[l].outw;
+        // SAFETY: rows r0..r0 + nb of layer l's activations (and of the
+        // output) belong to this task's rows, which they hold (the
+        // dispatch module's contract); the block is in the scratch, apart
+        // from both.
         unsafe {
             L::stream_copy(job.activations[l].get().add(r0 * w), block, nb * w);
             if l == self.last {
@@ -269,6 +313,9 @@ impl BlockSink for InferenceSink {
         if l == self.last {
             self.output
         } else {
+            // SAFETY: the scratch starts with two halves of BLOCK ×
+            // max-width floats (scratch_floats), which layers alternate
+            // between.
             unsafe { self.scratch.add((l % 2) * self.half) }
         }
     }
@@ -277,6 +324,8 @@ impl BlockSink for InferenceSink {
     unsafe fn after(&self, _: usize, _: *const f32) {}
 }
 
+/// # Safety
+/// The [`dispatch`] module's contract.
 #[inline(always)]
 pub(super) unsafe fn inference_rows<P: Products>(
     job: &InferenceJob,
@@ -288,21 +337,29 @@ pub(super) unsafe fn inference_rows<P: Products>(
     let last = net.layers.len() - 1;
     let out_w = job.out_columns;
     let half = BLOCK * job.max_width;
-    let pairs = unsafe { scratch.add(2 * half) }.cast::<u32>();
-    let mut r0 = rows.start;
-    while r0 < rows.end {
-        let nb = (rows.end - r0).min(BLOCK);
-        let sink = InferenceSink {
-            output: unsafe { job.output.get().add(r0 * out_w) },
-            scratch,
-            half,
-            last,
-        };
-        unsafe { forward_block::<P>(net, job.input.add(r0 * in_w), nb, out_w, &sink, pairs) };
-        r0 += nb;
+    // SAFETY: the scratch holds two blocks of `half` floats, then the
+    // pairs (scratch_floats); each block of rows r0..r0 + nb lies within
+    // `rows`, which the job's input and output hold (the module's
+    // contract).
+    unsafe {
+        let pairs = scratch.add(2 * half).cast::<u32>();
+        let mut r0 = rows.start;
+        while r0 < rows.end {
+            let nb = (rows.end - r0).min(BLOCK);
+            let sink = InferenceSink {
+                output: job.output.get().add(r0 * out_w),
+                scratch,
+                half,
+                last,
+            };
+            forward_block::<P>(net, job.input.add(r0 * in_w), nb, out_w, &sink, pairs);
+            r0 += nb;
+        }
     }
 }
 
+/// # Safety
+/// The [`dispatch`] module's contract.
 #[inline(always)]
 pub(super) unsafe fn backward_rows<P: Products>(
     job: &BackwardJob,
@@ -316,8 +373,15 @@ pub(super) unsafe fn backward_rows<P: Products>(
     let out_w = layers[last].outw;
     let in_w = layers[0].inw;
     let half = BLOCK * job.max_width;
-    let pairs = unsafe { scratch.add(2 * half) }.cast::<u32>();
+    // SAFETY: `partial` holds the parameter count, the scratch two blocks
+    // of `half` floats and then the pairs (scratch_floats), and every
+    // block r0..r0 + nb lies within `rows`, which the job's input,
+    // activations, output gradient and input gradient hold (the module's
+    // contract). Within a block, G is read from one scratch half (or
+    // d_output) while the other is written, and each product gets the
+    // rows and columns of the layer it names.
     unsafe {
+        let pairs = scratch.add(2 * half).cast::<u32>();
         std::ptr::write_bytes(partial, 0, job.n_params);
         let mut r0 = rows.start;
         while r0 < rows.end {

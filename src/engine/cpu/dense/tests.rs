@@ -255,9 +255,11 @@ fn kernels_match_the_reference_on_every_backend() {
                 &input,
                 rows,
                 &mut ws,
-                &d_out,
-                &mut d_params,
-                Some((&mut d_input, 0..layout.input_width())),
+                MlpGradients {
+                    output: &d_out,
+                    params: &mut d_params,
+                    input: Some(InputGradient::every_column(&mut d_input, layout)),
+                },
             );
 
             let (p64, x64) = (to_f64(&params), to_f64(&input));
@@ -327,7 +329,16 @@ fn backward_is_deterministic_and_skips_unwanted_input_gradient() {
     mlp_forward(&layout, &params, &input, rows, &mut ws, &mut out);
     let mut first = vec![0.0; params.len()];
     mlp_backward(
-        &layout, &params, &input, rows, &mut ws, &d_out, &mut first, None,
+        &layout,
+        &params,
+        &input,
+        rows,
+        &mut ws,
+        MlpGradients {
+            output: &d_out,
+            params: &mut first,
+            input: None,
+        },
     );
     // On a pool of one thread, the summation order must be the same.
     let pool = rayon::ThreadPoolBuilder::new()
@@ -337,7 +348,16 @@ fn backward_is_deterministic_and_skips_unwanted_input_gradient() {
     let second = pool.install(|| {
         let mut d = vec![0.0; params.len()];
         mlp_backward(
-            &layout, &params, &input, rows, &mut ws, &d_out, &mut d, None,
+            &layout,
+            &params,
+            &input,
+            rows,
+            &mut ws,
+            MlpGradients {
+                output: &d_out,
+                params: &mut d,
+                input: None,
+            },
         );
         d
     });
@@ -355,22 +375,28 @@ fn backward_is_deterministic_and_skips_unwanted_input_gradient() {
         &input,
         rows,
         &mut ws,
-        &d_out,
-        &mut d_full,
-        Some(&mut full),
+        MlpGradients {
+            output: &d_out,
+            params: &mut d_full,
+            input: Some(InputGradient::every_column(&mut full, &layout)),
+        },
     );
     let mut part = vec![0.0; rows * 16];
     let mut d_part = vec![0.0; params.len()];
-    mlp_backward_columns(
+    mlp_backward(
         &layout,
         &params,
         &input,
         rows,
         &mut ws,
-        &d_out,
-        &mut d_part,
-        &mut part,
-        3..19,
+        MlpGradients {
+            output: &d_out,
+            params: &mut d_part,
+            input: Some(InputGradient {
+                values: &mut part,
+                columns: 3..19,
+            }),
+        },
     );
     assert_eq!(d_part, d_full);
     for r in 0..rows {
@@ -414,110 +440,4 @@ fn activations_and_their_derivatives() {
             );
         }
     }
-}
-
-/// User + system CPU seconds of this process so far (Linux; 0 elsewhere).
-fn process_cpu_seconds() -> f64 {
-    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
-    // Fields after the parenthesised command name; utime and stime are
-    // the 14th and 15th fields overall, in clock ticks of 1/100 s.
-    let rest = stat.rsplit(')').next().unwrap_or("");
-    let f: Vec<&str> = rest.split_whitespace().collect();
-    let field = |i: usize| f.get(i).and_then(|x| x.parse::<f64>().ok()).unwrap_or(0.0);
-    (field(11) + field(12)) / 100.0
-}
-
-/// GFLOP/s of the Instant-NGP networks at 2^18 rows. Run with
-/// `cargo test --release --lib dense::tests::throughput -- --ignored --nocapture`.
-#[test]
-#[ignore]
-fn throughput() {
-    let rows = crate::field::ngp::SAMPLES_PER_BATCH;
-    let ngp = NetworkConfig::PAPER;
-    eprintln!(
-        "backend {:?}, threads {}",
-        backend(),
-        rayon::current_num_threads()
-    );
-    eprintln!("peak (1024³ SGEMM): {:.0} GFLOP/s", measure_peak_gflops());
-    let layouts = [
-        (
-            "density",
-            MlpLayout::ngp_density(&ngp, &HashGridConfig::paper(1.0)),
-        ),
-        ("colour", MlpLayout::ngp_colour(&ngp)),
-        ("nerf 8×256", {
-            let mut w = vec![63];
-            w.extend([256; 8]);
-            w.push(4);
-            MlpLayout::new(w, Activation::Relu, Activation::None, true)
-        }),
-    ];
-    let mut total = [0.0f64; 3];
-    for (name, layout) in &layouts {
-        let params = layout.init_params(1);
-        let input = random(1, rows * layout.input_width(), 1.0);
-        let d_out = random(2, rows * layout.output_width(), 1.0);
-        let mut ws = MlpWorkspace::new(layout, rows);
-        let mut out = vec![0.0; rows * layout.output_width()];
-        let mut d_params = vec![0.0; params.len()];
-        let mut d_input = vec![0.0; input.len()];
-        // Wall time and this process's CPU time (the machine is shared:
-        // CPU seconds show what the kernels do per core-second even when
-        // other processes take cores away).
-        let median = |f: &mut dyn FnMut()| {
-            f();
-            let mut t: Vec<(f64, f64)> = (0..7)
-                .map(|_| {
-                    let (s, c) = (std::time::Instant::now(), process_cpu_seconds());
-                    f();
-                    (s.elapsed().as_secs_f64(), process_cpu_seconds() - c)
-                })
-                .collect();
-            t.sort_by(|a, b| a.0.total_cmp(&b.0));
-            let cpu = t.iter().map(|x| x.1).sum::<f64>() / t.len() as f64;
-            (t[3].0, cpu)
-        };
-        let (fwd, fwd_cpu) =
-            median(&mut || mlp_forward(layout, &params, &input, rows, &mut ws, &mut out));
-        let (inf, inf_cpu) = median(&mut || mlp_inference(layout, &params, &input, rows, &mut out));
-        let (bwd, bwd_cpu) = median(&mut || {
-            mlp_backward(
-                layout,
-                &params,
-                &input,
-                rows,
-                &mut ws,
-                &d_out,
-                &mut d_params,
-                Some(&mut d_input),
-            )
-        });
-        let flop = 2.0 * (layout.macs_per_row() * rows) as f64;
-        eprintln!(
-            "{name:>11}: forward {:.1} ms ({:.0} GFLOP/s; {:.0} per CPU-second), inference {:.1} ms ({:.0} GFLOP/s; {:.0} per CPU-second), \
-             backward {:.1} ms ({:.0} GFLOP/s; {:.0} per CPU-second)",
-            fwd * 1e3,
-            flop / fwd / 1e9,
-            flop / fwd_cpu / 1e9,
-            inf * 1e3,
-            flop / inf / 1e9,
-            flop / inf_cpu / 1e9,
-            bwd * 1e3,
-            2.0 * flop / bwd / 1e9,
-            2.0 * flop / bwd_cpu / 1e9,
-        );
-        if name != &"nerf 8×256" {
-            total[0] += fwd;
-            total[1] += bwd;
-            total[2] += flop * 3.0;
-        }
-    }
-    let step = total[0] + total[1];
-    eprintln!(
-        "NGP networks forward+backward: {:.1} ms per 2^18 samples = {:.1} M samples/s ({:.0} GFLOP/s)",
-        step * 1e3,
-        rows as f64 / step / 1e6,
-        total[2] / step / 1e9
-    );
 }

@@ -24,7 +24,7 @@ use rayon::prelude::*;
 
 use super::{Field, Gradient, set_len};
 use crate::engine::cpu::dense::{
-    MlpWorkspace, mlp_backward, mlp_backward_columns, mlp_forward, mlp_inference,
+    InputGradient, MlpGradients, MlpWorkspace, mlp_backward, mlp_forward, mlp_inference,
     mlp_inference_leading,
 };
 use crate::engine::cpu::frequency;
@@ -337,16 +337,20 @@ impl Field for NerfField {
         // Colour network; the input gradient of its feature columns only
         // (the direction encoding has no parameters).
         set_len(&mut k.d_feature, n * width);
-        mlp_backward_columns(
+        mlp_backward(
             &s.colour,
             &params[rc],
             &k.colour_in,
             n,
             &mut self.c,
-            d_rgb,
-            grad_c,
-            &mut k.d_feature,
-            0..width,
+            MlpGradients {
+                output: d_rgb,
+                params: grad_c,
+                input: Some(InputGradient {
+                    values: &mut k.d_feature,
+                    columns: 0..width,
+                }),
+            },
         );
         // [dσ_raw | d feature] for trunk B's output.
         set_len(&mut k.d_trunk_b_out, n * (width + 1));
@@ -368,16 +372,20 @@ impl Field for NerfField {
                 }
             });
         set_len(&mut k.d_trunk_a_out, n * width);
-        mlp_backward_columns(
+        mlp_backward(
             &s.trunk_b,
             &params[rb],
             &k.trunk_b_in,
             n,
             &mut self.b,
-            &k.d_trunk_b_out,
-            grad_b,
-            &mut k.d_trunk_a_out,
-            0..width,
+            MlpGradients {
+                output: &k.d_trunk_b_out,
+                params: grad_b,
+                input: Some(InputGradient {
+                    values: &mut k.d_trunk_a_out,
+                    columns: 0..width,
+                }),
+            },
         );
         mlp_backward(
             &s.trunk_a,
@@ -385,9 +393,11 @@ impl Field for NerfField {
             &k.encoded_position,
             n,
             &mut self.a,
-            &k.d_trunk_a_out,
-            grad_a,
-            None,
+            MlpGradients {
+                output: &k.d_trunk_a_out,
+                params: grad_a,
+                input: None,
+            },
         );
     }
 

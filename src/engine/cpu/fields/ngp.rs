@@ -26,7 +26,7 @@ use rayon::prelude::*;
 
 use super::{Coordinates, Field, Gradient, gather_rows, set_len};
 use crate::engine::cpu::dense::{
-    Backend, MlpWorkspace, mlp_backward, mlp_backward_columns, mlp_forward, mlp_inference,
+    Backend, InputGradient, MlpGradients, MlpWorkspace, mlp_backward, mlp_forward, mlp_inference,
     mlp_inference_leading,
 };
 use crate::engine::cpu::hash_grid;
@@ -381,16 +381,20 @@ impl Field for NgpField {
         // The colour network's input gradient is wanted for its density
         // features only (the first columns), not for the direction encoding.
         set_len(&mut self.d_density_out, u * density_width);
-        mlp_backward_columns(
+        mlp_backward(
             &shape.colour,
             &params[shape.colour_range()],
             &self.colour_input,
             u,
             &mut self.colour_workspace,
-            d_rgb,
-            colour_grad,
-            &mut self.d_density_out,
-            0..density_width,
+            MlpGradients {
+                output: d_rgb,
+                params: colour_grad,
+                input: Some(InputGradient {
+                    values: &mut self.d_density_out,
+                    columns: 0..density_width,
+                }),
+            },
         );
         for ((d_out, &d_sigma), &sigma) in self
             .d_density_out
@@ -411,9 +415,14 @@ impl Field for NgpField {
             &self.encoded,
             u,
             &mut self.density_workspace,
-            &self.d_density_out,
-            density_grad,
-            Some(&mut self.d_encoded),
+            MlpGradients {
+                output: &self.d_density_out,
+                params: density_grad,
+                input: Some(InputGradient::every_column(
+                    &mut self.d_encoded,
+                    &shape.density,
+                )),
+            },
         );
         let positions = bytemuck::cast_slice(&self.positions);
         match mode {

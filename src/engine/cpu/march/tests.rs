@@ -468,19 +468,23 @@ fn rendering_with_early_stop_matches_full_compositing() {
     let mut evaluated = 0;
     march_and_composite(
         &grid,
+        GridRendering {
+            mapping: &BLENDER,
+            config: &MarchConfig::PAPER,
+            background,
+            chunk_samples: 1000,
+        },
         &origins,
         &directions,
-        &BLENDER,
-        &MarchConfig::PAPER,
-        background,
-        1000,
         |samples: &GridSamples, s: &mut [f32], c: &mut [f32]| {
             evaluated += s.len();
             field(samples.positions, samples.directions, s, c)
         },
-        &mut colour,
-        &mut depth,
-        &mut opacity,
+        CompositedRays {
+            colour: &mut colour,
+            depth: &mut depth,
+            opacity: &mut opacity,
+        },
     );
 
     // Reference: every sample, composited by the reference stage.
@@ -562,88 +566,4 @@ fn batch_sizer_converges_to_the_target() {
         sizer.record(sizer.rays(), 0);
     }
     assert_eq!(sizer.rays(), SAMPLES_PER_BATCH);
-}
-
-/// User + system time of this process from /proc (Linux), in seconds:
-/// what the march costs whatever else shares the machine.
-fn process_cpu_seconds() -> f64 {
-    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
-    let fields: Vec<&str> = stat
-        .rsplit(')')
-        .next()
-        .unwrap_or("")
-        .split_whitespace()
-        .collect();
-    let ticks = |i: usize| {
-        fields
-            .get(i)
-            .and_then(|f| f.parse::<f64>().ok())
-            .unwrap_or(0.0)
-    };
-    // utime and stime are fields 14 and 15 of the line, 12 and 13 after
-    // the command name; clock ticks are 1/100 s on Linux.
-    (ticks(11) + ticks(12)) / 100.0
-}
-
-/// Throughput of the cpu march on a lego-like grid (a ball of radius
-/// 0.35 occupied), 2^18 samples per batch. Run with
-/// `cargo test --release --lib march_throughput -- --ignored --nocapture`.
-#[test]
-#[ignore]
-fn march_throughput() {
-    let grid = grid_with(1, |_, centre| centre.distance(Vec3::splat(0.5)) < 0.35);
-    println!("occupancy {:.1}%", 100.0 * grid.occupancy_fraction());
-    let mut sizer = BatchSizer::paper();
-    let mut workspace = MarchWorkspace::default();
-    let mut out = MarchedSamples::default();
-    let (origins, directions) = random_rays(1 << 18, 77);
-    for _ in 0..10 {
-        let rays = sizer.rays();
-        let stats = march(
-            &grid,
-            &origins[..3 * rays],
-            &directions[..3 * rays],
-            &MarchParams::training(BLENDER, 1),
-            &mut workspace,
-            &mut out,
-        );
-        sizer.record(rays, stats.samples);
-    }
-    let rays = sizer.rays();
-    // The machine is shared: the fastest of many batches is the figure
-    // least disturbed by other work.
-    let mut run = |label: &str| {
-        let mut best = f64::INFINITY;
-        let mut samples = 0;
-        let cpu_before = process_cpu_seconds();
-        for i in 0..60 {
-            let started = std::time::Instant::now();
-            samples = march(
-                &grid,
-                &origins[..3 * rays],
-                &directions[..3 * rays],
-                &MarchParams::training(BLENDER, i),
-                &mut workspace,
-                &mut out,
-            )
-            .samples;
-            best = best.min(started.elapsed().as_secs_f64());
-        }
-        let cpu = process_cpu_seconds() - cpu_before;
-        println!(
-            "{label}: {rays} rays, {samples} samples ({:.1}/ray), {:.2} ms per batch: {:.2} M rays/s, \
-             {:.1} M samples/s; {:.1} M samples per cpu-second",
-            samples as f64 / rays as f64,
-            1e3 * best,
-            rays as f64 / best / 1e6,
-            samples as f64 / best / 1e6,
-            60.0 * samples as f64 / cpu / 1e6,
-        );
-    };
-    rayon::ThreadPoolBuilder::new()
-        .num_threads(1)
-        .build()
-        .unwrap()
-        .install(|| run("1 thread"));
-    run(&format!("{} threads", rayon::current_num_threads()));
 }

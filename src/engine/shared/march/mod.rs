@@ -50,7 +50,9 @@ mod lattice;
 mod render;
 
 pub use lattice::{Cone, Lattice, Marcher, cone_for};
-pub use render::{GridSamples, march_and_composite, mix_seed, render_through_grid};
+pub use render::{
+    CompositedRays, GridRendering, GridSamples, march_and_composite, mix_seed, render_through_grid,
+};
 
 /// What a batch march needs besides the grid and the rays.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -18,9 +18,32 @@ pub struct GridSamples<'a> {
     pub dt: &'a [f32],
 }
 
+/// How [`march_and_composite`] renders rays through the grid.
+#[derive(Clone, Copy)]
+pub struct GridRendering<'a> {
+    /// From the scene's world to the grid's unit cube.
+    pub mapping: &'a UnitCubeMapping,
+    /// The step, and where a ray stops: `min_transmittance`, `max_steps`.
+    pub config: &'a MarchConfig,
+    /// Seen through what transmittance a ray has left.
+    pub background: [f32; 3],
+    /// About how many samples the field evaluates in a round.
+    pub chunk_samples: usize,
+}
+
+/// Where [`march_and_composite`] writes, per ray of R.
+pub struct CompositedRays<'a> {
+    /// R × 3.
+    pub colour: &'a mut [f32],
+    /// R, expected depth in world units.
+    pub depth: &'a mut [f32],
+    /// R.
+    pub opacity: &'a mut [f32],
+}
+
 /// Renders R rays through a field with early termination: densities and
-/// colours are evaluated in rounds of about `chunk_samples` samples; each
-/// ray stops once its transmittance falls below
+/// colours are evaluated in rounds of about `rendering.chunk_samples`
+/// samples; each ray stops once its transmittance falls below
 /// `config.min_transmittance`, after `config.max_steps` samples, or when
 /// it leaves the box. Compositing as in [`crate::engine::cpu::composite::composite`]
 /// (wᵢ = Tᵢ(1 − e^(−σᵢδᵢ)), expected depth Σwᵢtᵢ, background weighted by the
@@ -28,24 +51,28 @@ pub struct GridSamples<'a> {
 /// marching everything and compositing it.
 ///
 /// `field(samples, density n, rgb n×3)` fills the last two for a round of
-/// n [`GridSamples`]. Outputs: `colour` R × 3, `depth` R, `opacity` R (world units for
-/// depth).
-#[allow(clippy::too_many_arguments)]
+/// n [`GridSamples`].
 pub fn march_and_composite<F>(
     grid: &OccupancyGrid,
+    rendering: GridRendering,
     origins: &[f32],
     directions: &[f32],
-    mapping: &UnitCubeMapping,
-    config: &MarchConfig,
-    background: [f32; 3],
-    chunk_samples: usize,
     mut field: F,
-    colour: &mut [f32],
-    depth: &mut [f32],
-    opacity: &mut [f32],
+    out: CompositedRays,
 ) where
     F: FnMut(&GridSamples, &mut [f32], &mut [f32]),
 {
+    let GridRendering {
+        mapping,
+        config,
+        background,
+        chunk_samples,
+    } = rendering;
+    let CompositedRays {
+        colour,
+        depth,
+        opacity,
+    } = out;
     let ray_count = origins.len() / 3;
     assert_eq!(directions.len(), 3 * ray_count);
     assert!(
@@ -225,16 +252,20 @@ pub fn render_through_grid(
     let mut opacity = vec![0f32; n];
     march_and_composite(
         grid,
+        GridRendering {
+            mapping,
+            config,
+            background,
+            chunk_samples,
+        },
         &origins,
         &directions,
-        mapping,
-        config,
-        background,
-        chunk_samples,
         field,
-        &mut colour,
-        &mut depth,
-        &mut opacity,
+        CompositedRays {
+            colour: &mut colour,
+            depth: &mut depth,
+            opacity: &mut opacity,
+        },
     );
     for (i, pixel) in out.iter_mut().enumerate().take(n) {
         *pixel = RenderedPixel {

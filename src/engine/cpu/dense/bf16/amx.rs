@@ -109,9 +109,21 @@ struct TileGemm {
     out: Destination,
 }
 
+/// `g`'s product on the tile registers.
+///
+/// # Safety
+/// [`available`] must have returned true, AVX-512F (for the epilogue) be
+/// enabled, `g.pairs` be a multiple of [`TILE`], the words [`TileGemm`]
+/// names readable (rows of `a` up to m rounded up to 16, columns of `b`
+/// up to n rounded up to 32, over all `pairs`), and `g.out` as
+/// [`epilogue`] needs it for rows below m and columns below n.
 #[inline(always)]
 unsafe fn tile_gemm(g: &TileGemm) {
     debug_assert!(g.pairs.is_multiple_of(TILE));
+    // SAFETY: this process may use the tile registers (`available`), so
+    // `ldtilecfg` of a valid palette-1 configuration (TILE_CONFIG, 64
+    // bytes, 64-byte aligned) and `tilerelease` are sound; every block
+    // lies within m and n, as `block` requires.
     unsafe {
         asm!("ldtilecfg [{}]", in(reg) &TILE_CONFIG, options(nostack, readonly));
         // Column panels outside, rows inside: a panel of B (32 columns of
@@ -142,6 +154,10 @@ struct Stored([f32; 4 * TILE * TILE]);
 
 /// One block of `rows` ≤ 16·MR rows and `cols` ≤ 16·NC columns at
 /// (i0, j0): f32 tile r·2 + c holds rows i0 + 16r…, columns j0 + 16c….
+///
+/// # Safety
+/// As [`tile_gemm`]'s, with the tile configuration loaded, rows
+/// `i0..i0 + rows` within m and columns `j0..j0 + cols` within n.
 #[inline(always)]
 unsafe fn block<const MR: usize, const NC: usize>(
     g: &TileGemm,
@@ -152,6 +168,15 @@ unsafe fn block<const MR: usize, const NC: usize>(
 ) {
     let a_row_bytes = 4 * g.a_stride;
     let b_row_bytes = 4 * g.b_stride;
+    // SAFETY: the tiles are configured as 16 rows of 64 bytes. The A loads
+    // read 16 words of rows i0..i0 + 16·MR (within m rounded up to 16, as
+    // MR = 2 only when rows > 16), the B loads 16 words of columns
+    // j0..j0 + 16·NC (within n rounded up to 32) of 16 pair rows, at
+    // pairs below g.pairs: all readable by the contract. The stores write
+    // 16 rows of 64 bytes at 128-byte row strides inside `stored` (32 × 32
+    // floats), and the epilogue reads back only rows < rows and columns
+    // the masks select, which those stores wrote, and writes rows and
+    // columns of the block, within the contract.
     unsafe {
         asm!("tilezero tmm0", options(nostack, nomem));
         if NC == 2 {
@@ -228,6 +253,10 @@ unsafe fn block<const MR: usize, const NC: usize>(
 /// Each of `rows` rows of `cols` floats (row stride `cols`) as ⌈cols/2⌉
 /// bf16 pair words, then zero words up to `stride`, the row stride of
 /// `dst`.
+///
+/// # Safety
+/// AVX512-BF16 (with AVX-512F) must be enabled, `src` readable for the
+/// rows, `dst` writable for `rows` rows of `stride ≥ ⌈cols/2⌉` words.
 #[inline(always)]
 unsafe fn rows_to_padded_pairs(
     src: *const f32,
@@ -236,6 +265,8 @@ unsafe fn rows_to_padded_pairs(
     dst: *mut u32,
     stride: usize,
 ) {
+    // SAFETY: rows_to_pairs writes words below ⌈cols/2⌉ of each row, the
+    // zeros the rest of the row up to `stride`: within the contract.
     unsafe {
         super::kernels::rows_to_pairs(src, rows, cols, cols, dst, stride);
         let words = cols.div_ceil(2);
@@ -278,8 +309,13 @@ static TRANSPOSE_ROUNDS: [[[u32; 16]; 2]; 4] = {
 };
 
 /// Transposes 16 rows of 16 words in place.
+///
+/// # Safety
+/// AVX-512F must be enabled.
 #[inline(always)]
 unsafe fn transpose(rows: &mut [__m512i; TILE]) {
+    // SAFETY: AVX-512F is enabled (the contract); the loads read the 64
+    // bytes of a round's index vector.
     unsafe {
         for (r, round) in TRANSPOSE_ROUNDS.iter().enumerate() {
             let s = 8 >> r;
@@ -300,6 +336,11 @@ unsafe fn transpose(rows: &mut [__m512i; TILE]) {
 /// `cols`), word (c, p) of `dst` (row stride `pairs`, a multiple of 16;
 /// ⌈cols/16⌉·16 rows) holds G[2p, c] and G[2p + 1, c], zero past the
 /// last row or column.
+///
+/// # Safety
+/// AVX512-BF16 (with AVX-512F and BW) must be enabled, `src` readable for
+/// `rows` rows of `cols` floats, `pairs` ≥ ⌈rows/2⌉ a multiple of 16, and
+/// `dst` writable for ⌈cols/16⌉·16 rows of `pairs` words.
 #[inline(always)]
 unsafe fn transposed_row_pairs(
     src: *const f32,
@@ -308,6 +349,10 @@ unsafe fn transposed_row_pairs(
     dst: *mut u32,
     pairs: usize,
 ) {
+    // SAFETY: the masked loads read columns c0 + t < cols of rows
+    // 2p + 1 < rows or 2p < rows; the stores write 16 words at
+    // (c0 + t)·pairs + p0, with c0 + t < ⌈cols/16⌉·16 and p0 + 16 ≤ pairs;
+    // `transmute` reinterprets 64 bytes of plain data.
     unsafe {
         let zip = _mm512_loadu_si512(PAIR_ZIP.as_ptr().cast());
         let used = rows.div_ceil(2);
@@ -342,22 +387,37 @@ unsafe fn transposed_row_pairs(
     }
 }
 
+/// Weights as rows of bf16 pair words, `stride` words apart.
+#[derive(Clone, Copy)]
+struct PairRows {
+    words: *const u32,
+    stride: usize,
+}
+
 /// The forward and input-gradient products: `nb` rows of `width` floats
 /// at `a`, as padded pairs in `pairs`, times `n` columns of the weights'
-/// pair rows at `weights` (row stride `stride`).
-#[allow(clippy::too_many_arguments)]
+/// pair rows.
+///
+/// # Safety
+/// [`tile_gemm`]'s, with the weights packed as [`super::PairedWeights`]
+/// packs them for the tiles (16-aligned rows and stride, zero slack past
+/// the end) and `pairs` the scratch [`super::super::scratch_floats`] sets
+/// aside for them.
 #[inline(always)]
 unsafe fn rows_times_paired_weights(
     a: *const f32,
     nb: usize,
     width: usize,
-    weights: *const u32,
-    stride: usize,
+    weights: PairRows,
     n: usize,
     out: Destination,
     pairs: *mut u32,
 ) {
     let k = padded_pairs(width);
+    // SAFETY: up to BLOCK rows (nb rounded up to 16, as the A tiles read)
+    // of k = ⌈width/2⌉ rounded up to 16 words fit the scratch's
+    // 2 · BLOCK · (max-width + 16) words; the weights hold k pair rows of
+    // `weights.stride` ≥ n words and slack for the last tile's columns.
     unsafe {
         rows_to_padded_pairs(a, nb, width, pairs, k);
         tile_gemm(&TileGemm {
@@ -366,8 +426,8 @@ unsafe fn rows_times_paired_weights(
             pairs: k,
             a: pairs,
             a_stride: k,
-            b: weights,
-            b_stride: stride,
+            b: weights.words,
+            b_stride: weights.stride,
             out,
         });
     }
@@ -388,13 +448,16 @@ impl Products for AmxProducts {
         out: Destination,
         pairs: *mut u32,
     ) {
+        // SAFETY: the trait's contract, with Wᵀ packed for the tiles.
         unsafe {
             rows_times_paired_weights(
                 a,
                 nb,
                 layer.inw,
-                layer.wt_pairs,
-                layer.wt_pairs_stride,
+                PairRows {
+                    words: layer.wt_pairs,
+                    stride: layer.wt_pairs_stride,
+                },
                 n,
                 out,
                 pairs,
@@ -413,6 +476,11 @@ impl Products for AmxProducts {
     ) {
         let k = padded_pairs(nb);
         let used = nb.div_ceil(2);
+        // SAFETY: A (outw rounded up to 16 rows of k ≤ 32 words) and B (k
+        // rows of inw words and 32 words of slack) fit the pairs' scratch,
+        // 2 · BLOCK · (max-width + 16) words (scratch_floats); the tile
+        // loads read A's rows below outw rounded up to 16 and B's columns
+        // below inw rounded up to 32, inside the slack; dW is outw × inw.
         unsafe {
             // A: Gᵀ's pairs, outw (rounded up to 16) rows of k words; B:
             // X's pairs of rows, k rows of inw words, zero rows past the
@@ -453,13 +521,17 @@ impl Products for AmxProducts {
         out: Destination,
         pairs: *mut u32,
     ) {
+        // SAFETY: the trait's contract, with W packed for the tiles;
+        // columns first..first + n are within its inw.
         unsafe {
             rows_times_paired_weights(
                 g,
                 nb,
                 layer.outw,
-                layer.w_pairs.add(first),
-                layer.w_pairs_stride,
+                PairRows {
+                    words: layer.w_pairs.add(first),
+                    stride: layer.w_pairs_stride,
+                },
                 n,
                 out,
                 pairs,
@@ -478,6 +550,9 @@ pub(in super::super) unsafe fn tile_chains(iterations: usize, seed: f32) -> (f64
     let a = [super::pair(seed, 0.25); TILE * TILE];
     let b = [super::pair(1e-3, -1e-3); TILE * TILE];
     let mut stored = Stored([0.0; 4 * TILE * TILE]);
+    // SAFETY: this process may use the tile registers (the contract); the
+    // loads read 16 rows of 64 bytes of `a` and `b` (256 words each), the
+    // store writes 16 rows of 64 bytes into `stored` (4 KiB).
     unsafe {
         asm!("ldtilecfg [{}]", in(reg) &TILE_CONFIG, options(nostack, readonly));
         asm!(
@@ -508,4 +583,219 @@ pub(in super::super) unsafe fn tile_chains(iterations: usize, seed: f32) -> (f64
     // multiply-add.
     let flop = (4 * 2 * TILE * TILE * 2 * TILE * iterations) as f64;
     (flop, stored.0[..TILE * TILE].iter().sum())
+}
+
+#[cfg(test)]
+mod tests {
+    use std::io::Write;
+
+    use super::super::super::Backend;
+    use super::super::round_to_bf16;
+    use super::*;
+    use crate::rng::Pcg32;
+
+    /// True where `backend` runs; otherwise says by name, on the terminal
+    /// (past the test harness's capture), that the test was skipped.
+    fn runs_here(backend: Backend, needs: &str, test: &str) -> bool {
+        if backend.runs_here() {
+            return true;
+        }
+        let _ = writeln!(
+            std::io::stderr(),
+            "SKIPPED {test}: {needs}, which this processor (or its kernel) lacks"
+        );
+        false
+    }
+
+    fn random(seed: u64, n: usize) -> Vec<f32> {
+        let mut rng = Pcg32::new(seed, 13);
+        (0..n).map(|_| 2.0 * rng.next_f32() - 1.0).collect()
+    }
+
+    /// A pair of quiet NaNs: what the operands hold past the product's
+    /// rows and columns, which the tiles compute and must throw away.
+    const NAN_PAIR: u32 = 0x7fc0_7fc0;
+
+    /// `tile_gemm` with the instructions its epilogue and conversions are
+    /// compiled for, as the `amxbf16` entry points enable them.
+    ///
+    /// # Safety
+    /// [`tile_gemm`]'s.
+    #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512bf16,avx2,fma")]
+    unsafe fn product(g: &TileGemm) {
+        // SAFETY: the caller keeps tile_gemm's contract; the instructions
+        // it inlines are enabled here.
+        unsafe { tile_gemm(g) }
+    }
+
+    /// The tile product `C = A · B` of f32 matrices given as bf16 pairs,
+    /// stored (`C = A · B`) and accumulated onto ones (`C = 1 + A · B`),
+    /// against references from the f32 operands in f64:
+    ///
+    /// - the exact sum of the bf16-rounded operands' products: `tdpbf16ps`
+    ///   multiplies bf16 values exactly (8 × 8 significant bits fit f32's
+    ///   24) and sums in f32, so each output is within
+    ///   (terms + 2) · 2⁻²⁴ · Σ|a·b| of it, whatever the order of the sum;
+    /// - the product of the f32 operands themselves: rounding to bf16
+    ///   moves each operand by at most 2⁻⁸ of itself, so each product by
+    ///   at most (2 · 2⁻⁸ + 2⁻¹⁶)|a·b|, and each output by that much of
+    ///   Σ|a·b| on top of the summation's error.
+    ///
+    /// A wrong row, column, pair or tile is off by the order of Σ|a·b|.
+    /// The shapes cover every block shape (one or two row and column
+    /// tiles), rows and columns past a tile's edge, reductions of one pair
+    /// to several tiles, and odd widths (a zero half in the last pair).
+    #[test]
+    fn tile_products_match_f32_products_within_bf16_rounding() {
+        if !runs_here(
+            Backend::AmxBf16,
+            "the tile kernels need AMX-BF16, AMX-TILE, the kernel's permission to use the tile data, and AVX512-BF16",
+            "tile_products_match_f32_products_within_bf16_rounding",
+        ) {
+            return;
+        }
+        let shapes = [
+            (1, 1, 1),
+            (16, 16, 32),
+            (17, 33, 33),
+            (32, 32, 64),
+            (33, 17, 31),
+            (64, 70, 257),
+            (45, 256, 320),
+            (5, 3, 2),
+        ];
+        for (case, &(m, n, width)) in shapes.iter().enumerate() {
+            let a = random(10 + case as u64, m * width);
+            let b = random(20 + case as u64, width * n);
+            // A: m rows (then NaN rows up to a multiple of 16) of `pairs`
+            // words; B: `pairs` rows of n words (then NaN columns up to
+            // the stride, a multiple of 16, and 32 words of NaN slack).
+            let pairs = padded_pairs(width);
+            let value = |x: &[f32], at: usize, within: bool| if within { x[at] } else { 0.0 };
+            let rows = m.next_multiple_of(TILE);
+            let mut a_words = vec![NAN_PAIR; rows * pairs];
+            for i in 0..m {
+                for p in 0..pairs {
+                    let c = 2 * p;
+                    a_words[i * pairs + p] = super::super::pair(
+                        value(&a, i * width + c, c < width),
+                        value(&a, i * width + c + 1, c + 1 < width),
+                    );
+                }
+            }
+            let stride = n.next_multiple_of(TILE);
+            let mut b_words = vec![NAN_PAIR; pairs * stride + 2 * TILE];
+            for p in 0..pairs {
+                for j in 0..n {
+                    let r = 2 * p;
+                    b_words[p * stride + j] = super::super::pair(
+                        value(&b, r * n + j, r < width),
+                        value(&b, (r + 1) * n + j, r + 1 < width),
+                    );
+                }
+            }
+            for epi in [Epi::Store, Epi::Accumulate] {
+                let start = if matches!(epi, Epi::Store) { 0.0 } else { 1.0 };
+                let mut c = vec![start; m * n];
+                let g = TileGemm {
+                    m,
+                    n,
+                    pairs,
+                    a: a_words.as_ptr(),
+                    a_stride: pairs,
+                    b: b_words.as_ptr(),
+                    b_stride: stride,
+                    out: Destination {
+                        c: c.as_mut_ptr(),
+                        c_m: n,
+                        epi,
+                    },
+                };
+                // SAFETY: the tile kernels run here (checked above); A has
+                // m rounded up to 16 rows of `pairs` (a multiple of 16)
+                // words, B `pairs` rows of n rounded up to 16 words and 32
+                // words of slack, and C is m × n.
+                unsafe { product(&g) };
+                for i in 0..m {
+                    for j in 0..n {
+                        let (mut exact, mut rounded, mut magnitude) = (0f64, 0f64, 0f64);
+                        for k in 0..width {
+                            let (x, y) = (a[i * width + k], b[k * n + j]);
+                            exact += x as f64 * y as f64;
+                            rounded += round_to_bf16(x) as f64 * round_to_bf16(y) as f64;
+                            magnitude += (x as f64 * y as f64).abs();
+                        }
+                        let got = c[i * n + j] as f64 - start as f64;
+                        let summation =
+                            (width + 2) as f64 * 2f64.powi(-24) * (magnitude + start as f64);
+                        let rounding = (2.0 * 2f64.powi(-8) + 2f64.powi(-16)) * magnitude;
+                        assert!(
+                            (got - rounded).abs() <= summation,
+                            "{m}×{width}·{width}×{n} {}: C[{i}, {j}] = {got}, the rounded \
+                             operands' sum {rounded}",
+                            if start == 0.0 {
+                                "stored"
+                            } else {
+                                "accumulated"
+                            },
+                        );
+                        assert!(
+                            (got - exact).abs() <= rounding + summation,
+                            "{m}×{width}·{width}×{n}: C[{i}, {j}] = {got}, the f32 \
+                             operands' sum {exact}, beyond bf16 rounding's {rounding}",
+                        );
+                    }
+                }
+            }
+        }
+    }
+
+    /// `transposed_row_pairs` against the words written out one by one:
+    /// word (c, p) holds G[2p, c] (low half) and G[2p + 1, c], zero past
+    /// the last row, and the rows past the last column are zero too. Exact:
+    /// both round the same f32 values to bf16. Runs wherever AVX512-BF16
+    /// does (the transpose is vector code, not tiles).
+    #[test]
+    fn transposed_row_pairs_are_the_pairs_of_each_column() {
+        if !runs_here(
+            Backend::Avx512Bf16,
+            "the transpose of the tile kernels' weight gradient needs AVX512-BF16",
+            "transposed_row_pairs_are_the_pairs_of_each_column",
+        ) {
+            return;
+        }
+        #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx512bf16,avx2,fma")]
+        unsafe fn transpose_here(g: &[f32], rows: usize, cols: usize, dst: &mut [u32]) {
+            let pairs = padded_pairs(rows);
+            assert_eq!(g.len(), rows * cols);
+            assert_eq!(dst.len(), cols.next_multiple_of(TILE) * pairs);
+            // SAFETY: the instructions are enabled here (the caller checked
+            // the processor has them); `g` holds rows × cols floats and
+            // `dst` ⌈cols/16⌉·16 rows of `pairs` words (asserted above).
+            unsafe { transposed_row_pairs(g.as_ptr(), rows, cols, dst.as_mut_ptr(), pairs) }
+        }
+        for (case, &(rows, cols)) in [(1, 1), (2, 16), (3, 17), (31, 64), (64, 16), (64, 257)]
+            .iter()
+            .enumerate()
+        {
+            let g = random(30 + case as u64, rows * cols);
+            let pairs = padded_pairs(rows);
+            let mut got = vec![NAN_PAIR; cols.next_multiple_of(TILE) * pairs];
+            // SAFETY: the processor has AVX512-BF16 (checked above).
+            unsafe { transpose_here(&g, rows, cols, &mut got) };
+            for c in 0..cols.next_multiple_of(TILE) {
+                for p in 0..pairs {
+                    let at = |r: usize| {
+                        if r < rows && c < cols {
+                            g[r * cols + c]
+                        } else {
+                            0.0
+                        }
+                    };
+                    let want = super::super::pair(at(2 * p), at(2 * p + 1));
+                    assert_eq!(got[c * pairs + p], want, "{rows} × {cols}: word ({c}, {p})");
+                }
+            }
+        }
+    }
 }
