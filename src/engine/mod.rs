@@ -60,7 +60,7 @@ impl EngineChoice {
 
 /// The composition root: a fresh model of `request` on the chosen engine.
 /// Each engine has one `fields_for` that turns the request's
-/// [`crate::field::shape::FieldShape`] into its fields, the only place an
+/// [`crate::field::FieldShape`] into its fields, the only place an
 /// engine tells the kinds of field apart.
 pub fn build(
     request: &ModelRequest,

@@ -6,8 +6,8 @@
 pub mod nerf;
 pub mod ngp;
 
+use crate::field::FieldShape;
 use crate::field::params::ParamLayout;
-use crate::field::shape::FieldShape;
 
 // Where a field's positions live is a property of the field on either
 // engine: declared beside the recipe.

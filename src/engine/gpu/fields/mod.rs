@@ -9,8 +9,8 @@ pub mod ngp;
 
 use super::context::{GpuContext, GpuError};
 use super::kernel::Recorder;
+use crate::field::FieldShape;
 use crate::field::common::Coordinates;
-use crate::field::shape::FieldShape;
 
 /// One field of `shape` on the `gpu` engine, for passes of up to
 /// `capacity_rows` samples (its initial parameters come from the shape,
