@@ -246,7 +246,7 @@ impl RunFolder {
         let checkpoint = dir.join(CHECKPOINT_FILE);
         match crate::files::check_regular_file(&checkpoint) {
             Ok(()) => {}
-            Err(problem) if problem == "not found" => {
+            Err(crate::files::Unreadable::NotFound) => {
                 return Err(format!(
                     "{}: no checkpoint to resume from (no {CHECKPOINT_FILE} in the folder)",
                     dir.display()
