@@ -51,33 +51,61 @@ pub fn write_bytes_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> 
     write_atomically(path, |out| out.write_all(bytes))
 }
 
-/// What is wrong with `path` when it cannot be read as a file, in words
-/// that name the real problem rather than "not found": a folder, a named
-/// pipe, a symbolic link that points nowhere or at itself.
+/// Why a path cannot be read as a file, in words that name the real
+/// problem rather than "not found": a folder, a named pipe, a symbolic
+/// link that points nowhere or at itself. `Display` gives the words that
+/// follow the path in a message.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum Unreadable {
+    /// Nothing is at the path.
+    #[error("not found")]
+    NotFound,
+    /// A symbolic link that points nowhere, loops, or leads to something
+    /// that is not a file.
+    #[error("{0}")]
+    Link(String),
+    /// Anything else: a folder, a pipe, a device, no permission.
+    #[error("{0}")]
+    Other(String),
+}
+
+/// What is wrong with `path` when it cannot be read as a file: see
+/// [`Unreadable`].
 pub fn describe_unreadable(path: &Path, error: &std::io::Error) -> String {
+    unreadable(path, error).to_string()
+}
+
+/// Why `path` cannot be read as a file, by kind: see [`Unreadable`].
+pub fn unreadable(path: &Path, error: &std::io::Error) -> Unreadable {
     match std::fs::symlink_metadata(path) {
         Err(_) => match error.kind() {
-            std::io::ErrorKind::PermissionDenied => format!("permission denied ({error})"),
-            _ => "not found".into(),
-        },
-        Ok(meta) if meta.file_type().is_symlink() => match std::fs::metadata(path) {
-            Ok(target) => special_file(&target).map_or_else(
-                || format!("cannot read through the symbolic link: {error}"),
-                |what| format!("a symbolic link to {what}"),
-            ),
-            Err(e) if is_link_loop(&e) => {
-                "a symbolic link that loops (it leads back to itself)".into()
+            std::io::ErrorKind::PermissionDenied => {
+                Unreadable::Other(format!("permission denied ({error})"))
             }
-            Err(_) => match std::fs::read_link(path) {
-                Ok(target) => format!(
-                    "a dangling symbolic link (it points to {}, which does not exist)",
-                    target.display()
-                ),
-                Err(_) => "a dangling symbolic link".into(),
-            },
+            _ => Unreadable::NotFound,
         },
-        Ok(meta) if meta.is_dir() => "a folder, not a file".into(),
-        Ok(meta) => special_file(&meta).map_or_else(|| error.to_string(), str::to_string),
+        Ok(meta) if meta.file_type().is_symlink() => {
+            Unreadable::Link(match std::fs::metadata(path) {
+                Ok(target) => special_file(&target).map_or_else(
+                    || format!("cannot read through the symbolic link: {error}"),
+                    |what| format!("a symbolic link to {what}"),
+                ),
+                Err(e) if is_link_loop(&e) => {
+                    "a symbolic link that loops (it leads back to itself)".into()
+                }
+                Err(_) => match std::fs::read_link(path) {
+                    Ok(target) => format!(
+                        "a dangling symbolic link (it points to {}, which does not exist)",
+                        target.display()
+                    ),
+                    Err(_) => "a dangling symbolic link".into(),
+                },
+            })
+        }
+        Ok(meta) if meta.is_dir() => Unreadable::Other("a folder, not a file".into()),
+        Ok(meta) => {
+            Unreadable::Other(special_file(&meta).map_or_else(|| error.to_string(), str::to_string))
+        }
     }
 }
 
@@ -117,16 +145,16 @@ fn is_link_loop(error: &std::io::Error) -> bool {
 
 /// Checks that `path` is a regular file (through any links) before it is
 /// opened: a named pipe would block the reader forever, and a folder or a
-/// broken link deserves its own words. The error is the description
-/// ("not found", "a folder, not a file", …).
-pub fn check_regular_file(path: &Path) -> Result<(), String> {
+/// broken link deserves its own words. The error says which, and shows
+/// as the description ("not found", "a folder, not a file", …).
+pub fn check_regular_file(path: &Path) -> Result<(), Unreadable> {
     match std::fs::metadata(path) {
         Ok(meta) if meta.is_file() => Ok(()),
-        Ok(_) => Err(describe_unreadable(
+        Ok(_) => Err(unreadable(
             path,
             &std::io::Error::other("not a regular file"),
         )),
-        Err(e) => Err(describe_unreadable(path, &e)),
+        Err(e) => Err(unreadable(path, &e)),
     }
 }
 
@@ -137,7 +165,7 @@ pub fn check_regular_file(path: &Path) -> Result<(), String> {
 /// check and the open is still caught. The error is the description ("not
 /// found", "a named pipe (FIFO), not a file", …), as
 /// [`check_regular_file`]'s.
-pub fn open_regular(path: &Path) -> Result<(File, u64), String> {
+pub fn open_regular(path: &Path) -> Result<(File, u64), Unreadable> {
     let mut options = std::fs::OpenOptions::new();
     options.read(true);
     #[cfg(unix)]
@@ -145,12 +173,10 @@ pub fn open_regular(path: &Path) -> Result<(File, u64), String> {
         use std::os::unix::fs::OpenOptionsExt;
         options.custom_flags(libc::O_NONBLOCK);
     }
-    let file = options
-        .open(path)
-        .map_err(|e| describe_unreadable(path, &e))?;
-    let meta = file.metadata().map_err(|e| describe_unreadable(path, &e))?;
+    let file = options.open(path).map_err(|e| unreadable(path, &e))?;
+    let meta = file.metadata().map_err(|e| unreadable(path, &e))?;
     if !meta.is_file() {
-        return Err(describe_unreadable(
+        return Err(unreadable(
             path,
             &std::io::Error::other("not a regular file"),
         ));
@@ -166,7 +192,7 @@ pub fn open_regular(path: &Path) -> Result<(File, u64), String> {
 /// camera path can be").
 pub fn read_regular_bounded(path: &Path, max_bytes: u64, what: &str) -> Result<Vec<u8>, String> {
     use std::io::Read;
-    let (file, length) = open_regular(path)?;
+    let (file, length) = open_regular(path).map_err(|e| e.to_string())?;
     if length > max_bytes {
         return Err(format!(
             "{}, more than the {} {what} can be",
@@ -259,14 +285,10 @@ pub fn describe_not_a_folder(path: &Path) -> String {
         Ok(meta) if meta.is_dir() => "a folder".into(),
         Ok(meta) if meta.is_file() => "not a folder (it is a file)".into(),
         Ok(_) => describe_unreadable(path, &std::io::Error::other("not a folder")),
-        Err(e) => {
-            let problem = describe_unreadable(path, &e);
-            if problem == "not found" {
-                "folder not found".into()
-            } else {
-                problem
-            }
-        }
+        Err(e) => match unreadable(path, &e) {
+            Unreadable::NotFound => "folder not found".into(),
+            problem => problem.to_string(),
+        },
     }
 }
 
@@ -548,6 +570,17 @@ mod tests {
         std::os::unix::fs::symlink(d.join("loop"), d.join("loop")).unwrap();
         let text = describe_unreadable(&d.join("loop"), &error);
         assert!(text.contains("loops"), "{text}");
+        // By kind, for the callers that decide on it.
+        assert_eq!(unreadable(&d.join("none"), &error), Unreadable::NotFound);
+        assert!(matches!(
+            unreadable(&d.join("dangling"), &error),
+            Unreadable::Link(_)
+        ));
+        assert!(matches!(
+            unreadable(&d.join("loop"), &error),
+            Unreadable::Link(_)
+        ));
+        assert!(matches!(unreadable(d, &error), Unreadable::Other(_)));
         let fifo = d.join("fifo");
         let name = std::ffi::CString::new(fifo.to_str().unwrap()).unwrap();
         // SAFETY: a valid NUL-terminated path.

@@ -33,15 +33,33 @@ pub struct Checkpoint {
     pub tensors: Vec<(String, Vec<f32>)>,
 }
 
-/// A checkpoint could not be read or written.
+/// A checkpoint could not be read or written, by the kind a caller decides
+/// on; each names the file and what is wrong.
 #[derive(Debug, thiserror::Error)]
 pub enum CheckpointError {
+    /// The file cannot be read or written: not there, a folder or a pipe,
+    /// a full disk, too little memory for its tensors.
     #[error("{path}: {problem}")]
     Io { path: PathBuf, problem: String },
+    /// Not a checkpoint this zrak reads: other magic bytes, a format
+    /// version from elsewhere, a header that is not zrak's.
     #[error("{path}: not a zrak checkpoint ({problem})")]
     Format { path: PathBuf, problem: String },
+    /// A zrak checkpoint cut off before its end (a copy or a write that did
+    /// not finish).
+    #[error("{path}: not a zrak checkpoint ({problem})")]
+    Truncated { path: PathBuf, problem: String },
+    /// A zrak checkpoint whose bytes changed after it was written: a
+    /// checksum that fails, a table that contradicts itself.
     #[error("{path}: the checkpoint is damaged: {problem}")]
     Damaged { path: PathBuf, problem: String },
+    /// A checkpoint whose table is not that of the model it is loaded for
+    /// (another model, or the same model in another configuration): a
+    /// tensor the model does not have, or one of another length. The
+    /// `problem` is the whole message after the path.
+    #[error("{path}: {problem}")]
+    OtherModel { path: PathBuf, problem: String },
+    /// A model holding a value that is not finite: it had diverged.
     #[error("{path}: {problem}")]
     NonFinite { path: PathBuf, problem: String },
 }
@@ -464,8 +482,24 @@ impl Reader {
         }
     }
 
+    fn truncated(&self, problem: &str) -> CheckpointError {
+        CheckpointError::Truncated {
+            path: self.path.clone(),
+            problem: problem.to_string(),
+        }
+    }
+
     fn damaged(&self, problem: String) -> CheckpointError {
         CheckpointError::Damaged {
+            path: self.path.clone(),
+            problem,
+        }
+    }
+
+    /// A table unlike the model's; `problem` is the whole message after
+    /// the path.
+    fn other_model(&self, problem: String) -> CheckpointError {
+        CheckpointError::OtherModel {
             path: self.path.clone(),
             problem,
         }
@@ -510,7 +544,7 @@ impl Reader {
         reader
             .input
             .read_exact(&mut word)
-            .map_err(|_| reader.format("file too short"))?;
+            .map_err(|_| reader.truncated("file too short"))?;
         reader.version = u32::from_le_bytes(word);
         if !(1..=FORMAT_VERSION).contains(&reader.version) {
             return Err(reader.format(&format!(
@@ -526,18 +560,22 @@ impl Reader {
         let mut long = [0u8; 8];
         self.input
             .read_exact(&mut long)
-            .map_err(|_| self.format("file too short"))?;
+            .map_err(|_| self.truncated("file too short"))?;
         let header_length = u64::from_le_bytes(long);
         if header_length > self.remaining.min(64 << 20) {
-            return Err(self.format(&format!(
-                "header length {header_length} is more than the file holds"
-            )));
+            let problem = format!("header length {header_length} is more than the file holds");
+            // A length zrak writes, in a file that ends too soon: cut off.
+            return Err(if header_length <= 64 << 20 {
+                self.truncated(&problem)
+            } else {
+                self.format(&problem)
+            });
         }
         self.remaining -= header_length;
         let mut header = vec![0u8; header_length as usize];
         self.input
             .read_exact(&mut header)
-            .map_err(|_| self.format("truncated header"))?;
+            .map_err(|_| self.truncated("truncated header"))?;
         if self.version == 1 {
             let stored: StoredHeaderV1 = serde_json::from_slice(&header)
                 .map_err(|e| self.format(&format!("bad header: {e}")))?;
@@ -557,7 +595,7 @@ impl Reader {
         let mut word = [0u8; 4];
         self.input
             .read_exact(&mut word)
-            .map_err(|_| self.format("truncated header"))?;
+            .map_err(|_| self.truncated("truncated header"))?;
         self.remaining = self.remaining.saturating_sub(4);
         let stored_crc = u32::from_le_bytes(word);
         let crc = crate::crc32c::crc32c(&header);
@@ -584,8 +622,9 @@ impl Reader {
         for entry in tensors {
             let name = entry.name.as_str();
             let Some((_, values)) = needed.iter().find(|(n, _)| n == name) else {
-                return Err(self.format(&format!(
-                    "it holds a tensor `{name}` that this run's model does not have (it has {})",
+                return Err(self.other_model(format!(
+                    "not a zrak checkpoint (it holds a tensor `{name}` that this run's model \
+                     does not have (it has {}))",
                     needed
                         .iter()
                         .map(|(n, _)| format!("`{n}`"))
@@ -594,9 +633,10 @@ impl Reader {
                 )));
             };
             if entry.values != *values {
-                return Err(self.damaged(format!(
-                    "tensor `{name}` is listed with {} values where this run's model has {values} \
-                     (the file is damaged, or holds another model than run.json names)",
+                return Err(self.other_model(format!(
+                    "the checkpoint is damaged: tensor `{name}` is listed with {} values where \
+                     this run's model has {values} (the file is damaged, or holds another model \
+                     than run.json names)",
                     entry.values
                 )));
             }
@@ -635,14 +675,14 @@ impl Reader {
             )));
         };
         if bytes > self.remaining {
-            return Err(self.format(&format!(
+            return Err(self.truncated(&format!(
                 "truncated in tensor `{name}` ({} values, {} bytes left)",
                 entry.values, self.remaining
             )));
         }
         self.remaining -= bytes;
         let path = self.path.clone();
-        let truncated = |_| CheckpointError::Format {
+        let truncated = |_| CheckpointError::Truncated {
             path: path.clone(),
             problem: format!("truncated in tensor `{name}`"),
         };
@@ -908,7 +948,20 @@ mod tests {
         // Another length than the model's.
         let mut needs = sample_needs();
         needs[0].1 = 5;
-        let error = Checkpoint::load_for(&path, &needs).unwrap_err().to_string();
+        let error = Checkpoint::load_for(&path, &needs).unwrap_err();
+        assert!(
+            matches!(error, CheckpointError::OtherModel { .. }),
+            "{error:?}"
+        );
+        let error = error.to_string();
+        assert!(
+            error.ends_with(
+                "checkpoint.zrak: the checkpoint is damaged: tensor `weights` is listed with 4 \
+                 values where this run's model has 5 (the file is damaged, or holds another \
+                 model than run.json names)"
+            ),
+            "{error}"
+        );
         assert!(
             error.contains("checkpoint.zrak")
                 && error.contains(
@@ -917,11 +970,17 @@ mod tests {
             "{error}"
         );
         // A tensor the model does not have.
-        let error = Checkpoint::load_for(&path, &sample_needs()[..1])
-            .unwrap_err()
-            .to_string();
+        let error = Checkpoint::load_for(&path, &sample_needs()[..1]).unwrap_err();
         assert!(
-            error.contains("a tensor `empty` that this run's model does not have"),
+            matches!(error, CheckpointError::OtherModel { .. }),
+            "{error:?}"
+        );
+        let error = error.to_string();
+        assert!(
+            error.ends_with(
+                "checkpoint.zrak: not a zrak checkpoint (it holds a tensor `empty` that this \
+                 run's model does not have (it has `weights`))"
+            ),
             "{error}"
         );
         // A file longer than such a checkpoint can be (a hole after it).
@@ -932,9 +991,12 @@ mod tests {
             .unwrap()
             .set_len(length + (1 << 30))
             .unwrap();
-        let error = Checkpoint::load_for(&path, &sample_needs())
-            .unwrap_err()
-            .to_string();
+        let error = Checkpoint::load_for(&path, &sample_needs()).unwrap_err();
+        assert!(
+            matches!(error, CheckpointError::Damaged { .. }),
+            "{error:?}"
+        );
+        let error = error.to_string();
         assert!(
             error.contains("where a checkpoint of this run's model is at most"),
             "{error}"
@@ -1019,10 +1081,27 @@ mod tests {
         sample().save(&path).unwrap();
         let bytes = std::fs::read(&path).unwrap();
         std::fs::write(&path, &bytes[..bytes.len() - 3]).unwrap();
-        let error = Checkpoint::load(&path).unwrap_err().to_string();
-        assert!(error.contains("truncated in tensor `weights`"), "{error}");
+        let error = Checkpoint::load(&path).unwrap_err();
+        assert!(
+            matches!(error, CheckpointError::Truncated { .. }),
+            "{error:?}"
+        );
+        let error = error.to_string();
+        assert!(
+            error.contains("checkpoint.zrak: not a zrak checkpoint (truncated in tensor `weights`"),
+            "{error}"
+        );
+        // Cut within the header.
+        std::fs::write(&path, &bytes[..30]).unwrap();
+        let error = Checkpoint::load(&path).unwrap_err();
+        assert!(
+            matches!(error, CheckpointError::Truncated { .. }),
+            "{error:?}"
+        );
         std::fs::write(&path, b"PNG and other things").unwrap();
-        let error = Checkpoint::load(&path).unwrap_err().to_string();
+        let error = Checkpoint::load(&path).unwrap_err();
+        assert!(matches!(error, CheckpointError::Format { .. }), "{error:?}");
+        let error = error.to_string();
         assert!(error.contains("not a zrak checkpoint"), "{error}");
     }
 }

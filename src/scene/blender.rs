@@ -3,7 +3,7 @@
 //! each holding `camera_angle_x` and a list of `frames` with a `file_path`
 //! and a camera-to-world `transform_matrix` (Mildenhall et al. 2020).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use super::camera::{Camera, Intrinsics};
 use super::error::{SceneError, SceneResult};
@@ -40,10 +40,12 @@ struct SplitFile {
 pub fn load(folder: &Path, options: LoadOptions) -> SceneResult<Scene> {
     super::pose::check_downscale(folder, options.downscale)?;
     if !folder.is_dir() {
-        return Err(SceneError::new(
-            folder,
-            crate::files::describe_not_a_folder(folder),
-        ));
+        let problem = crate::files::describe_not_a_folder(folder);
+        return Err(if crate::files::exists_at_all(folder) {
+            SceneError::unreadable(folder, problem)
+        } else {
+            SceneError::not_found(folder, problem)
+        });
     }
     let mut files = Vec::new();
     for split in Split::ALL {
@@ -56,7 +58,7 @@ pub fn load(folder: &Path, options: LoadOptions) -> SceneResult<Scene> {
         }
     }
     if files.is_empty() {
-        return Err(SceneError::new(
+        return Err(SceneError::not_a_scene(
             folder,
             "no transforms_train.json, transforms_val.json or transforms_test.json in this folder",
         ));
@@ -143,14 +145,18 @@ fn read_split_file(folder: &Path, path: &Path, split: Split) -> SceneResult<Spli
         .iter()
         .enumerate()
         .map(|(index, value)| {
-            read_frame(folder, value)
-                .map(|(image_path, camera_to_world)| FrameSource {
-                    json_path: path.to_path_buf(),
-                    index,
-                    image_path,
-                    camera_to_world,
-                })
-                .map_err(|problem| SceneError::in_frame(path, index, problem))
+            let (file_path, camera_to_world) =
+                read_frame(value).map_err(|problem| SceneError::in_frame(path, index, problem))?;
+            let image_path = resolve_image_path(folder, file_path).map_err(|e| {
+                let problem = e.problem().to_string();
+                e.in_frame_of(path, index, problem)
+            })?;
+            Ok(FrameSource {
+                json_path: path.to_path_buf(),
+                index,
+                image_path,
+                camera_to_world,
+            })
         })
         .collect::<SceneResult<Vec<_>>>()?;
     Ok(SplitFile {
@@ -160,15 +166,15 @@ fn read_split_file(folder: &Path, path: &Path, split: Split) -> SceneResult<Spli
     })
 }
 
-fn read_frame(folder: &Path, value: &serde_json::Value) -> Result<(PathBuf, glam::Mat4), String> {
+/// A frame's `file_path` (resolved by the caller, last) and pose.
+fn read_frame(value: &serde_json::Value) -> Result<(&str, glam::Mat4), String> {
     let frame = frame_object(value)?;
     let file_path = required_str(frame, "file_path")?;
     let matrix = frame
         .get("transform_matrix")
         .ok_or_else(|| super::pose::missing_key("transform_matrix"))?;
     let camera_to_world = parse_transform_matrix(matrix)?;
-    let image_path = resolve_image_path(folder, file_path)?;
-    Ok((image_path, camera_to_world))
+    Ok((file_path, camera_to_world))
 }
 
 #[cfg(test)]

@@ -4,46 +4,192 @@
 use std::fmt;
 use std::path::{Path, PathBuf};
 
-/// A scene could not be loaded. The message names the file and the problem.
+/// A scene could not be loaded: the kind of problem, for a caller that
+/// decides on it, with the file (or folder) at fault, the index of the frame
+/// within its JSON file when one frame is at fault, and what is wrong in
+/// plain words. Every kind shows as `PATH: PROBLEM` or
+/// `PATH: frame N: PROBLEM`.
 #[derive(Debug, Clone, PartialEq)]
-pub struct SceneError {
-    /// The file (or folder) at fault.
-    pub path: PathBuf,
-    /// The index of the frame within its JSON file, when one frame is at fault.
-    pub frame: Option<usize>,
-    /// What is wrong, in plain words.
-    pub problem: String,
+pub enum SceneError {
+    /// Nothing is at the path: the scene's folder, a JSON file or an image
+    /// a JSON file lists.
+    NotFound {
+        path: PathBuf,
+        frame: Option<usize>,
+        problem: String,
+    },
+    /// A folder holding none of the scene formats zrak reads.
+    NotAScene {
+        path: PathBuf,
+        frame: Option<usize>,
+        problem: String,
+    },
+    /// Something is at the path but cannot be read: a folder where a file
+    /// belongs, a named pipe, a link that leads nowhere, no permission, an
+    /// error while reading.
+    Unreadable {
+        path: PathBuf,
+        frame: Option<usize>,
+        problem: String,
+    },
+    /// An image that needs more memory to decode than this process has.
+    TooLarge {
+        path: PathBuf,
+        frame: Option<usize>,
+        problem: String,
+    },
+    /// The file was read and what it holds is wrong: malformed JSON, a
+    /// field missing or out of range, a pose that is no pose, an image that
+    /// does not decode.
+    Invalid {
+        path: PathBuf,
+        frame: Option<usize>,
+        problem: String,
+    },
 }
 
 impl SceneError {
+    /// A problem with what `path` holds ([`SceneError::Invalid`]).
     pub fn new(path: impl AsRef<Path>, problem: impl Into<String>) -> Self {
-        Self {
+        Self::Invalid {
             path: path.as_ref().to_path_buf(),
             frame: None,
             problem: problem.into(),
         }
     }
 
+    /// A problem with frame `frame` of the JSON file `path`
+    /// ([`SceneError::Invalid`]).
     pub fn in_frame(path: impl AsRef<Path>, frame: usize, problem: impl Into<String>) -> Self {
-        Self {
+        Self::Invalid {
             path: path.as_ref().to_path_buf(),
             frame: Some(frame),
             problem: problem.into(),
+        }
+    }
+
+    /// Nothing at `path` ([`SceneError::NotFound`]).
+    pub fn not_found(path: impl AsRef<Path>, problem: impl Into<String>) -> Self {
+        Self::NotFound {
+            path: path.as_ref().to_path_buf(),
+            frame: None,
+            problem: problem.into(),
+        }
+    }
+
+    /// A folder of no scene format ([`SceneError::NotAScene`]).
+    pub fn not_a_scene(path: impl AsRef<Path>, problem: impl Into<String>) -> Self {
+        Self::NotAScene {
+            path: path.as_ref().to_path_buf(),
+            frame: None,
+            problem: problem.into(),
+        }
+    }
+
+    /// `path` cannot be read ([`SceneError::Unreadable`]).
+    pub fn unreadable(path: impl AsRef<Path>, problem: impl Into<String>) -> Self {
+        Self::Unreadable {
+            path: path.as_ref().to_path_buf(),
+            frame: None,
+            problem: problem.into(),
+        }
+    }
+
+    /// `path` needs more memory than there is ([`SceneError::TooLarge`]).
+    pub fn too_large(path: impl AsRef<Path>, problem: impl Into<String>) -> Self {
+        Self::TooLarge {
+            path: path.as_ref().to_path_buf(),
+            frame: None,
+            problem: problem.into(),
+        }
+    }
+
+    /// The file (or folder) at fault.
+    pub fn path(&self) -> &Path {
+        self.parts().0
+    }
+
+    /// The index of the frame within its JSON file, when one frame is at
+    /// fault.
+    pub fn frame(&self) -> Option<usize> {
+        self.parts().1
+    }
+
+    /// What is wrong, in plain words.
+    pub fn problem(&self) -> &str {
+        self.parts().2
+    }
+
+    /// The same kind of error, told of frame `frame` of the JSON file
+    /// `path` with `problem`: an image's error as the frame listing it.
+    pub fn in_frame_of(self, path: impl AsRef<Path>, frame: usize, problem: String) -> Self {
+        let (path, frame) = (path.as_ref().to_path_buf(), Some(frame));
+        match self {
+            Self::NotFound { .. } => Self::NotFound {
+                path,
+                frame,
+                problem,
+            },
+            Self::NotAScene { .. } => Self::NotAScene {
+                path,
+                frame,
+                problem,
+            },
+            Self::Unreadable { .. } => Self::Unreadable {
+                path,
+                frame,
+                problem,
+            },
+            Self::TooLarge { .. } => Self::TooLarge {
+                path,
+                frame,
+                problem,
+            },
+            Self::Invalid { .. } => Self::Invalid {
+                path,
+                frame,
+                problem,
+            },
+        }
+    }
+
+    fn parts(&self) -> (&Path, Option<usize>, &str) {
+        match self {
+            Self::NotFound {
+                path,
+                frame,
+                problem,
+            }
+            | Self::NotAScene {
+                path,
+                frame,
+                problem,
+            }
+            | Self::Unreadable {
+                path,
+                frame,
+                problem,
+            }
+            | Self::TooLarge {
+                path,
+                frame,
+                problem,
+            }
+            | Self::Invalid {
+                path,
+                frame,
+                problem,
+            } => (path, *frame, problem),
         }
     }
 }
 
 impl fmt::Display for SceneError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self.frame {
-            Some(frame) => write!(
-                f,
-                "{}: frame {}: {}",
-                shown(&self.path),
-                frame,
-                self.problem
-            ),
-            None => write!(f, "{}: {}", shown(&self.path), self.problem),
+        let (path, frame, problem) = self.parts();
+        match frame {
+            Some(frame) => write!(f, "{}: frame {}: {}", shown(path), frame, problem),
+            None => write!(f, "{}: {}", shown(path), problem),
         }
     }
 }

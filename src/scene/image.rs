@@ -157,19 +157,16 @@ pub fn load_image(path: &Path) -> SceneResult<LoadedImage> {
 pub fn load_image_sharing(path: &Path, decodes_at_once: usize) -> SceneResult<LoadedImage> {
     // Opened as a regular file only, without blocking: a named pipe or a
     // device named like an image is refused, not read forever.
-    let (file, file_length) = crate::files::open_regular(path).map_err(|problem| {
-        SceneError::new(
-            path,
-            if problem == "not found" {
-                "image file not found".to_string()
-            } else {
-                format!("the image file is {problem}")
-            },
-        )
-    })?;
+    let (file, file_length) =
+        crate::files::open_regular(path).map_err(|problem| match problem {
+            crate::files::Unreadable::NotFound => {
+                SceneError::not_found(path, "image file not found")
+            }
+            problem => SceneError::unreadable(path, format!("the image file is {problem}")),
+        })?;
     let mut reader = image::ImageReader::new(std::io::BufReader::new(file))
         .with_guessed_format()
-        .map_err(|e| SceneError::new(path, format!("cannot read image: {e}")))?;
+        .map_err(|e| SceneError::unreadable(path, format!("cannot read image: {e}")))?;
     let budget = MemoryBudget::now(decodes_at_once);
     // The JPEG decoder reads the whole file into memory before its header.
     let is_jpeg = reader.format() == Some(image::ImageFormat::Jpeg);
@@ -187,7 +184,7 @@ pub fn load_image_sharing(path: &Path, decodes_at_once: usize) -> SceneResult<Lo
     // saying how to turn them; the intrinsics COLMAP and other tools
     // estimate are for the turned image, as every viewer shows it.
     let decode_error = |e: image::ImageError| match e {
-        image::ImageError::Limits(limit) => SceneError::new(
+        image::ImageError::Limits(limit) => SceneError::too_large(
             path,
             format!(
                 "cannot decode image: {limit} ({})",
@@ -293,7 +290,7 @@ impl MemoryBudget {
             ),
             None => format!("a {needed_words} file, which the JPEG decoder reads whole"),
         };
-        Err(SceneError::new(
+        Err(SceneError::too_large(
             path,
             format!(
                 "{what}, more than the {}; make the image smaller (zrak decodes each image at \

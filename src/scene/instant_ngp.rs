@@ -11,7 +11,7 @@
 //! `val_filenames`, `test_filenames`. Every camera key may be given at the
 //! top level, per frame, or both. Equirectangular cameras are refused.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use glam::{Mat4, Vec3};
 use serde_json::Value;
@@ -90,8 +90,12 @@ pub fn load(path: &Path, options: LoadOptions) -> SceneResult<Scene> {
             None if index % VAL_EVERY == 0 => Split::Val,
             None => Split::Train,
         };
-        let (image_path, camera_to_world, camera) = read_frame(&folder, value, &shared)
+        let (file_path, camera_to_world, camera) = read_frame(value, &shared)
             .map_err(|problem| SceneError::in_frame(&json_path, index, problem))?;
+        let image_path = resolve_image_path(&folder, file_path).map_err(|e| {
+            let problem = e.problem().to_string();
+            e.in_frame_of(&json_path, index, problem)
+        })?;
         splits.push(split);
         sources.push(FrameSource {
             json_path: json_path.clone(),
@@ -190,13 +194,13 @@ fn explicit_splits(
     Ok(Some(assigned))
 }
 
-/// Reads one frame's image path, pose and camera (its own fields over the
-/// shared ones), checking all but what needs the image.
-fn read_frame(
-    folder: &Path,
-    value: &Value,
+/// Reads one frame's `file_path` (resolved by the caller, last), pose and
+/// camera (its own fields over the shared ones), checking all but what
+/// needs the image.
+fn read_frame<'a>(
+    value: &'a Value,
     shared: &CameraFields,
-) -> Result<(PathBuf, Mat4, CameraFields), String> {
+) -> Result<(&'a str, Mat4, CameraFields), String> {
     let frame = frame_object(value)?;
     let file_path = required_str(frame, "file_path")?;
     let matrix = frame
@@ -209,8 +213,7 @@ fn read_frame(
             "missing key `fl_x` (or `camera_angle_x`): the focal length is not given".into(),
         );
     }
-    let image_path = resolve_image_path(folder, file_path)?;
-    Ok((image_path, camera_to_world, camera))
+    Ok((file_path, camera_to_world, camera))
 }
 
 /// A focal length as the file gives it: in pixels, or as a field of view

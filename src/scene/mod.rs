@@ -401,10 +401,12 @@ impl Scene {
             };
         }
         if !path.is_dir() {
-            return Err(SceneError::new(
-                path,
-                crate::files::describe_not_a_folder(path),
-            ));
+            let problem = crate::files::describe_not_a_folder(path);
+            return Err(if crate::files::exists_at_all(path) {
+                SceneError::unreadable(path, problem)
+            } else {
+                SceneError::not_found(path, problem)
+            });
         }
         if blender::is_blender_folder(path) {
             blender::load(path, options)
@@ -413,7 +415,7 @@ impl Scene {
         } else if colmap::is_colmap_folder(path) {
             colmap::load(path, options)
         } else {
-            Err(SceneError::new(
+            Err(SceneError::not_a_scene(
                 path,
                 "not a scene folder: it holds none of transforms_train.json, \
                  transforms_val.json, transforms_test.json, transforms.json or a COLMAP \

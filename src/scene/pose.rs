@@ -12,6 +12,7 @@ use serde_json::{Map, Value};
 
 use super::error::{SceneError, SceneResult, shown};
 use super::image::{ImageRgba8, load_image_sharing};
+use crate::files::Unreadable;
 
 /// How far `RᵀR` may stray from the identity. NeRF-synthetic rotations are
 /// orthonormal to about 1e-7 and COLMAP-derived ones to about 1e-6; a
@@ -28,23 +29,21 @@ pub type JsonObject = Map<String, Value>;
 /// Reads and parses a JSON file. A missing file, an unreadable one and
 /// malformed JSON (reported with line and column) are errors naming the file.
 pub fn read_json(path: &Path) -> SceneResult<Value> {
-    crate::files::check_regular_file(path).map_err(|problem| {
-        if problem == "not found" {
-            SceneError::new(path, "file not found")
-        } else if problem.contains("symbolic link") {
-            SceneError::new(
-                path,
-                format!(
-                    "cannot read it: it is {problem}; replace the link with the JSON file \
-                     itself, or remove it"
-                ),
-            )
-        } else {
-            SceneError::new(path, format!("cannot read it: it is {problem}"))
+    crate::files::check_regular_file(path).map_err(|problem| match problem {
+        Unreadable::NotFound => SceneError::not_found(path, "file not found"),
+        Unreadable::Link(link) => SceneError::unreadable(
+            path,
+            format!(
+                "cannot read it: it is {link}; replace the link with the JSON file itself, or \
+                 remove it"
+            ),
+        ),
+        Unreadable::Other(problem) => {
+            SceneError::unreadable(path, format!("cannot read it: it is {problem}"))
         }
     })?;
-    let bytes =
-        std::fs::read(path).map_err(|e| SceneError::new(path, format!("cannot read file: {e}")))?;
+    let bytes = std::fs::read(path)
+        .map_err(|e| SceneError::unreadable(path, format!("cannot read file: {e}")))?;
     let text = json_text(&bytes).map_err(|problem| SceneError::new(path, problem))?;
     serde_json::from_slice(&text).map_err(|e| SceneError::new(path, malformed_json(&e, &text)))
 }
@@ -298,12 +297,17 @@ pub fn check_rigid(m: &[[f64; 4]; 4]) -> Result<(), String> {
 /// extension of its own. A name that leads to something other than a file
 /// (a folder, a named pipe, a device such as `/dev/stdin`) is refused by
 /// what it is; a missing one says so, naming any file there whose name
-/// differs only in how its accents are written.
-pub fn resolve_image_path(folder: &Path, file_path: &str) -> Result<PathBuf, String> {
+/// differs only in how its accents are written. The error names the image
+/// path and is of its kind ([`SceneError::NotFound`] for a missing one); a
+/// loader tells it of the frame (see [`SceneError::in_frame_of`]).
+pub fn resolve_image_path(folder: &Path, file_path: &str) -> SceneResult<PathBuf> {
     if let Some(at) = file_path.find('\0') {
-        return Err(format!(
-            "`file_path` {file_path:?} holds a NUL character (\\0) at byte {at}, which no file \
-             name can hold: write the image's path there"
+        return Err(SceneError::new(
+            folder,
+            format!(
+                "`file_path` {file_path:?} holds a NUL character (\\0) at byte {at}, which no \
+                 file name can hold: write the image's path there"
+            ),
         ));
     }
     let relative = file_path.strip_prefix("./").unwrap_or(file_path);
@@ -312,14 +316,20 @@ pub fn resolve_image_path(folder: &Path, file_path: &str) -> Result<PathBuf, Str
         return Ok(as_written);
     }
     if crate::files::exists_at_all(&as_written) {
-        return Err(not_an_image_file(file_path, &as_written));
+        return Err(SceneError::unreadable(
+            &as_written,
+            not_an_image_file(file_path, &as_written),
+        ));
     }
     let has_image_extension = as_written
         .extension()
         .and_then(|e| e.to_str())
         .is_some_and(|e| ["png", "jpg", "jpeg"].contains(&e.to_ascii_lowercase().as_str()));
     if has_image_extension {
-        return Err(image_not_found(&as_written, None));
+        return Err(SceneError::not_found(
+            &as_written,
+            image_not_found(&as_written, None),
+        ));
     }
     let mut with_png = as_written.clone().into_os_string();
     with_png.push(".png");
@@ -327,9 +337,15 @@ pub fn resolve_image_path(folder: &Path, file_path: &str) -> Result<PathBuf, Str
     if with_png.is_file() {
         Ok(with_png)
     } else if crate::files::exists_at_all(&with_png) {
-        Err(not_an_image_file(file_path, &with_png))
+        Err(SceneError::unreadable(
+            &with_png,
+            not_an_image_file(file_path, &with_png),
+        ))
     } else {
-        Err(image_not_found(&with_png, Some(&as_written)))
+        Err(SceneError::not_found(
+            &with_png,
+            image_not_found(&with_png, Some(&as_written)),
+        ))
     }
 }
 
@@ -466,8 +482,12 @@ fn decode_one(
 ) -> SceneResult<DecodedImage> {
     let image_error =
         |problem: &str| source.error(format!("image {}: {problem}", shown(&source.image_path)));
-    let loaded = load_image_sharing(&source.image_path, decodes_at_once)
-        .map_err(|e| image_error(&e.problem))?;
+    // Told of the frame that lists the image, of the image's own kind (not
+    // found, too large, …).
+    let loaded = load_image_sharing(&source.image_path, decodes_at_once).map_err(|e| {
+        let problem = format!("image {}: {}", shown(&source.image_path), e.problem());
+        e.in_frame_of(&source.json_path, source.index, problem)
+    })?;
     let (width, height) = (loaded.image.width, loaded.image.height);
     if width / downscale == 0 || height / downscale == 0 {
         return Err(image_error(&format!(
@@ -684,8 +704,9 @@ mod tests {
             );
         }
         let e = resolve_image_path(dir.path(), "./train/r_1").unwrap_err();
-        assert_mentions(&e, &["not found", "r_1.png"]);
+        assert!(matches!(e, SceneError::NotFound { .. }), "{e:?}");
+        assert_mentions(e.problem(), &["not found", "r_1.png"]);
         let e = resolve_image_path(dir.path(), "train/r_1.jpg").unwrap_err();
-        assert_mentions(&e, &["not found", "r_1.jpg"]);
+        assert_mentions(e.problem(), &["not found", "r_1.jpg"]);
     }
 }

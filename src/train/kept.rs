@@ -97,7 +97,7 @@ pub fn remove(base: &Path, folder: &Path) -> Result<(), String> {
             base.display()
         ));
     }
-    let lock = RunFolder::create(folder)?;
+    let lock = RunFolder::create(folder).map_err(|e| e.to_string())?;
     std::fs::remove_dir_all(folder)
         .map_err(|e| format!("{}: cannot remove: {e}", folder.display()))?;
     drop(lock);

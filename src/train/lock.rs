@@ -11,6 +11,8 @@ use std::fs::{File, OpenOptions, TryLockError};
 use std::io::{Read, Seek, Write};
 use std::path::{Path, PathBuf};
 
+use super::run::RunFolderError;
+
 /// The lock file inside a run folder.
 pub const LOCK_FILE: &str = ".zrak.lock";
 
@@ -25,7 +27,7 @@ pub struct RunLock {
 impl RunLock {
     /// Takes the lock on `dir` (which must exist), or says which process
     /// holds it.
-    pub fn acquire(dir: &Path) -> Result<Self, String> {
+    pub fn acquire(dir: &Path) -> Result<Self, RunFolderError> {
         let path = dir.join(LOCK_FILE);
         // Never through a link: a run folder downloaded or left in a shared
         // `/tmp` could point its lock at any of the user's files, which the
@@ -38,7 +40,11 @@ impl RunLock {
                 .write(true)
                 .create(true)
                 .truncate(false),
-        )?;
+        )
+        .map_err(|message| RunFolderError::Unusable {
+            path: path.clone(),
+            message,
+        })?;
         match file.try_lock() {
             Ok(()) => {}
             Err(TryLockError::WouldBlock) => {
@@ -49,17 +55,16 @@ impl RunLock {
                     Ok(pid) => format!("another zrak (process {pid})"),
                     Err(_) => "another zrak".into(),
                 };
-                return Err(format!(
-                    "{}: {holder} is using this run folder; wait for it to finish or stop it \
-                     (two processes writing one run would corrupt it)",
-                    dir.display()
-                ));
+                return Err(RunFolderError::Locked {
+                    path: dir.to_path_buf(),
+                    holder,
+                });
             }
             Err(TryLockError::Error(error)) => {
-                return Err(format!(
-                    "{}: cannot lock the run folder: {error}",
-                    dir.display()
-                ));
+                return Err(RunFolderError::Unusable {
+                    path: dir.to_path_buf(),
+                    message: format!("{}: cannot lock the run folder: {error}", dir.display()),
+                });
             }
         }
         // Ours now: record who holds it.
@@ -69,7 +74,10 @@ impl RunLock {
             writeln!(file, "{}", std::process::id())?;
             file.flush()
         })();
-        record.map_err(|e| format!("{}: cannot write the run's lock file: {e}", path.display()))?;
+        record.map_err(|e| RunFolderError::Unusable {
+            path: path.clone(),
+            message: format!("{}: cannot write the run's lock file: {e}", path.display()),
+        })?;
         Ok(Self { path, _file: file })
     }
 
@@ -89,8 +97,17 @@ mod tests {
         // The lock belongs to the open file, so a second open in the same
         // process conflicts as another process would.
         let error = RunLock::acquire(dir.path()).unwrap_err();
+        assert_eq!(
+            error,
+            RunFolderError::Locked {
+                path: dir.path().to_path_buf(),
+                holder: format!("another zrak (process {})", std::process::id()),
+            }
+        );
         assert!(
-            error.contains(&format!("process {}", std::process::id())),
+            error
+                .to_string()
+                .contains(&format!("process {}", std::process::id())),
             "{error}"
         );
         drop(first);
@@ -107,6 +124,11 @@ mod tests {
         std::fs::create_dir(&run).unwrap();
         std::os::unix::fs::symlink(&target, run.join(LOCK_FILE)).unwrap();
         let error = RunLock::acquire(&run).unwrap_err();
+        assert!(
+            matches!(error, RunFolderError::Unusable { .. }),
+            "{error:?}"
+        );
+        let error = error.to_string();
         assert!(
             error.contains(LOCK_FILE)
                 && error.contains("symbolic link")

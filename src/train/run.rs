@@ -75,6 +75,49 @@ pub struct MovedAside {
     pub was_run: bool,
 }
 
+/// A run folder cannot be used as asked, by the kind a caller decides on;
+/// each names the folder and shows as the message the command line prints.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RunFolderError {
+    /// No folder at the path (nothing, or something else) to resume or
+    /// read.
+    #[error("{}: no such run folder ({problem})", path.display())]
+    NotFound { path: PathBuf, problem: String },
+    /// A folder without a checkpoint to resume from.
+    #[error("{}: no checkpoint to resume from (no {CHECKPOINT_FILE} in the folder)", path.display())]
+    NoCheckpoint { path: PathBuf },
+    /// Another process holds the folder's lock: `holder` says which
+    /// ("another zrak (process 12)").
+    #[error(
+        "{}: {holder} is using this run folder; wait for it to finish or stop it (two \
+         processes writing one run would corrupt it)",
+        path.display()
+    )]
+    Locked { path: PathBuf, holder: String },
+    /// A new run's folder that already holds a run or other files (see
+    /// [`OutFolder`]); `message` names the ways on.
+    #[error("{message}")]
+    Occupied {
+        path: PathBuf,
+        found: OutFolder,
+        message: String,
+    },
+    /// Anything else: not a folder, cannot be created, written, locked or
+    /// moved aside, a checkpoint or log that is no regular file. `message`
+    /// is the whole message, naming the file at fault.
+    #[error("{message}")]
+    Unusable { path: PathBuf, message: String },
+}
+
+impl RunFolderError {
+    fn unusable(path: &Path, message: String) -> Self {
+        Self::Unusable {
+            path: path.to_path_buf(),
+            message,
+        }
+    }
+}
+
 /// How often to log, evaluate and checkpoint.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Schedule {
@@ -134,22 +177,29 @@ impl RunFolder {
     /// so a bad `--out` fails at once instead of after the first checkpoint,
     /// and takes its lock. A run already there is kept (the caller resumes
     /// it); see [`Self::create_new`] for a folder that must not hold one.
-    pub fn create(dir: &Path) -> Result<Self, String> {
+    pub fn create(dir: &Path) -> Result<Self, RunFolderError> {
         std::fs::create_dir_all(dir).map_err(|e| {
-            format!(
-                "{}: cannot create the run folder: {}",
-                dir.display(),
-                if e.kind() == std::io::ErrorKind::AlreadyExists || dir.exists() {
-                    crate::files::describe_not_a_folder(dir)
-                } else {
-                    e.to_string()
-                }
+            RunFolderError::unusable(
+                dir,
+                format!(
+                    "{}: cannot create the run folder: {}",
+                    dir.display(),
+                    if e.kind() == std::io::ErrorKind::AlreadyExists || dir.exists() {
+                        crate::files::describe_not_a_folder(dir)
+                    } else {
+                        e.to_string()
+                    }
+                ),
             )
         })?;
         // Created new (never through a link a stranger left at the name).
         let probe = crate::files::temporary_beside(&dir.join("write-test"));
-        std::fs::File::create_new(&probe)
-            .map_err(|e| format!("{}: the run folder is not writable: {e}", dir.display()))?;
+        std::fs::File::create_new(&probe).map_err(|e| {
+            RunFolderError::unusable(
+                dir,
+                format!("{}: the run folder is not writable: {e}", dir.display()),
+            )
+        })?;
         let _ = std::fs::remove_file(probe);
         let lock = RunLock::acquire(dir)?;
         Ok(Self {
@@ -162,7 +212,10 @@ impl RunFolder {
     /// files, is refused, naming the ways on (see [`Self::check_out`]),
     /// unless `replace`: then the whole folder is renamed aside (never
     /// deleted) and where it went is returned beside the new folder.
-    pub fn create_new(dir: &Path, replace: bool) -> Result<(Self, Option<MovedAside>), String> {
+    pub fn create_new(
+        dir: &Path,
+        replace: bool,
+    ) -> Result<(Self, Option<MovedAside>), RunFolderError> {
         let found = Self::out_folder(dir);
         if let Some(refusal) = refusal_of_out(dir, &found, replace) {
             return Err(refusal);
@@ -177,13 +230,17 @@ impl RunFolder {
         let old_lock = crate::files::exists_at_all(&dir.join(super::lock::LOCK_FILE))
             .then(|| RunLock::acquire(dir))
             .transpose()?;
-        let aside = free_name_beside(dir)?;
+        let aside =
+            free_name_beside(dir).map_err(|message| RunFolderError::unusable(dir, message))?;
         std::fs::rename(dir, &aside).map_err(|e| {
-            format!(
-                "{}: cannot move the old {} aside to {}: {e}",
-                dir.display(),
-                if was_run { "run" } else { "folder" },
-                aside.display()
+            RunFolderError::unusable(
+                dir,
+                format!(
+                    "{}: cannot move the old {} aside to {}: {e}",
+                    dir.display(),
+                    if was_run { "run" } else { "folder" },
+                    aside.display()
+                ),
             )
         })?;
         drop(old_lock);
@@ -226,19 +283,18 @@ impl RunFolder {
     /// Refuses `dir` as a new run's folder when it is not a folder, and,
     /// unless `replace`, when it holds a run or other files: each refusal
     /// names what is there and the ways on.
-    pub fn check_out(dir: &Path, replace: bool) -> Result<(), String> {
+    pub fn check_out(dir: &Path, replace: bool) -> Result<(), RunFolderError> {
         refusal_of_out(dir, &Self::out_folder(dir), replace).map_or(Ok(()), Err)
     }
 
     /// A run folder to continue: it must hold a checkpoint, and no other
     /// process may be writing it.
-    pub fn resume(dir: &Path) -> Result<Self, String> {
+    pub fn resume(dir: &Path) -> Result<Self, RunFolderError> {
         if !dir.is_dir() {
-            return Err(format!(
-                "{}: no such run folder ({})",
-                dir.display(),
-                crate::files::describe_not_a_folder(dir)
-            ));
+            return Err(RunFolderError::NotFound {
+                path: dir.to_path_buf(),
+                problem: crate::files::describe_not_a_folder(dir),
+            });
         }
         // Checked before the lock, so a folder that is no run gets no
         // lock file; by their kind only (nothing is opened), so a named
@@ -246,27 +302,31 @@ impl RunFolder {
         let checkpoint = dir.join(CHECKPOINT_FILE);
         match crate::files::check_regular_file(&checkpoint) {
             Ok(()) => {}
-            Err(problem) if problem == "not found" => {
-                return Err(format!(
-                    "{}: no checkpoint to resume from (no {CHECKPOINT_FILE} in the folder)",
-                    dir.display()
-                ));
+            Err(crate::files::Unreadable::NotFound) => {
+                return Err(RunFolderError::NoCheckpoint {
+                    path: dir.to_path_buf(),
+                });
             }
             Err(problem) => {
-                return Err(format!(
-                    "{}: cannot resume from it: {problem}",
-                    checkpoint.display()
+                return Err(RunFolderError::unusable(
+                    &checkpoint,
+                    format!("{}: cannot resume from it: {problem}", checkpoint.display()),
                 ));
             }
         }
         // The log is appended to: never through a link, never to a pipe.
         let log = dir.join(METRICS_FILE);
         if crate::files::exists_at_all(&log) {
-            MetricsLog::check_not_a_link(&log)?;
+            MetricsLog::check_not_a_link(&log)
+                .map_err(|message| RunFolderError::unusable(&log, message))?;
             crate::files::check_regular_file(&log).map_err(|problem| {
-                format!(
-                    "{}: cannot continue the run's log: {problem}; move it away and resume again",
-                    log.display()
+                RunFolderError::unusable(
+                    &log,
+                    format!(
+                        "{}: cannot continue the run's log: {problem}; move it away and resume \
+                         again",
+                        log.display()
+                    ),
                 )
             })?;
         }
@@ -285,13 +345,12 @@ impl RunFolder {
     }
 
     /// An existing run folder, for reading (eval and render): no lock.
-    pub fn open(dir: &Path) -> Result<Self, String> {
+    pub fn open(dir: &Path) -> Result<Self, RunFolderError> {
         if !dir.is_dir() {
-            return Err(format!(
-                "{}: no such run folder ({})",
-                dir.display(),
-                crate::files::describe_not_a_folder(dir)
-            ));
+            return Err(RunFolderError::NotFound {
+                path: dir.to_path_buf(),
+                problem: crate::files::describe_not_a_folder(dir),
+            });
         }
         Ok(Self {
             dir: dir.to_path_buf(),
@@ -511,9 +570,9 @@ pub fn is_zrak_run_json(path: &Path) -> bool {
 
 /// Why `dir` (where `found` is) cannot be a new run's folder, if it
 /// cannot: see [`RunFolder::check_out`].
-fn refusal_of_out(dir: &Path, found: &OutFolder, replace: bool) -> Option<String> {
+fn refusal_of_out(dir: &Path, found: &OutFolder, replace: bool) -> Option<RunFolderError> {
     let shown = dir.display();
-    let refusal = match found {
+    let message = match found {
         OutFolder::Free => return None,
         OutFolder::NotAFolder(what) if what == "a file" => format!(
             "{shown} is a file, not a folder: --out names the folder a run is written to; \
@@ -550,7 +609,14 @@ fn refusal_of_out(dir: &Path, found: &OutFolder, replace: bool) -> Option<String
             }
         ),
     };
-    Some(refusal)
+    Some(match found {
+        OutFolder::Run { .. } | OutFolder::Other { .. } => RunFolderError::Occupied {
+            path: dir.to_path_buf(),
+            found: found.clone(),
+            message,
+        },
+        _ => RunFolderError::unusable(dir, message),
+    })
 }
 
 /// What the run in `dir` is, from its checkpoint's header, as " (step N,
@@ -723,6 +789,54 @@ mod tests {
     }
 
     #[test]
+    fn resuming_says_what_is_missing_by_kind() {
+        let dir = tempfile::tempdir().unwrap();
+        let gone = dir.path().join("gone");
+        let error = RunFolder::resume(&gone).err().unwrap();
+        assert_eq!(
+            error,
+            RunFolderError::NotFound {
+                path: gone.clone(),
+                problem: "folder not found".into()
+            }
+        );
+        assert_eq!(
+            error.to_string(),
+            format!("{}: no such run folder (folder not found)", gone.display())
+        );
+        let error = RunFolder::resume(dir.path()).err().unwrap();
+        assert_eq!(
+            error.to_string(),
+            format!(
+                "{}: no checkpoint to resume from (no checkpoint.zrak in the folder)",
+                dir.path().display()
+            )
+        );
+        assert_eq!(
+            error,
+            RunFolderError::NoCheckpoint {
+                path: dir.path().to_path_buf()
+            }
+        );
+        // No lock file is made in a folder that is no run.
+        assert!(!crate::files::exists_at_all(
+            &dir.path().join(super::super::lock::LOCK_FILE)
+        ));
+        std::fs::create_dir(dir.path().join(CHECKPOINT_FILE)).unwrap();
+        let error = RunFolder::resume(dir.path()).err().unwrap();
+        assert!(
+            matches!(error, RunFolderError::Unusable { .. }),
+            "{error:?}"
+        );
+        assert!(
+            error
+                .to_string()
+                .ends_with("checkpoint.zrak: cannot resume from it: a folder, not a file"),
+            "{error}"
+        );
+    }
+
+    #[test]
     fn a_folder_holding_a_run_is_refused_or_moved_aside_never_deleted() {
         let dir = tempfile::tempdir().unwrap();
         let run_dir = dir.path().join("run");
@@ -730,9 +844,26 @@ mod tests {
         train_to(&mut trainer(u32::MAX, u32::MAX), 2, &folder).unwrap();
         // Held by `folder` (this process): even --force must not move it.
         let error = RunFolder::create_new(&run_dir, true).err().unwrap();
-        assert!(error.contains("is using this run folder"), "{error}");
+        assert!(matches!(error, RunFolderError::Locked { .. }), "{error:?}");
+        assert!(
+            error.to_string().contains("is using this run folder"),
+            "{error}"
+        );
         drop(folder);
         let error = RunFolder::create_new(&run_dir, false).err().unwrap();
+        assert!(
+            matches!(
+                error,
+                RunFolderError::Occupied {
+                    found: OutFolder::Run {
+                        has_checkpoint: true
+                    },
+                    ..
+                }
+            ),
+            "{error:?}"
+        );
+        let error = error.to_string();
         assert!(
             error.contains("already holds a run (step 2)")
                 && error.contains("--resume")

@@ -372,7 +372,7 @@ fn check_load(folder: &Path) -> Result<bool, TestCaseError> {
         Err(error) => {
             let message = error.to_string();
             prop_assert!(
-                !error.problem.is_empty() && message.contains(&*error.path.to_string_lossy()),
+                !error.problem().is_empty() && message.contains(&*error.path().to_string_lossy()),
                 "an error without a file or a problem: {message:?}"
             );
             Ok(false)

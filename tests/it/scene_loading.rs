@@ -3,7 +3,7 @@
 use std::path::Path;
 
 use serde_json::{Value, json};
-use zrak::scene::{ImageRgba8, LoadOptions, Scene, SceneFormat};
+use zrak::scene::{ImageRgba8, LoadOptions, Scene, SceneError, SceneFormat};
 
 fn write_png(path: &Path) {
     std::fs::create_dir_all(path.parent().unwrap()).unwrap();
@@ -84,6 +84,8 @@ fn folder_without_scene_files() {
         e.contains("transforms_train.json") && e.contains("transforms.json"),
         "{e}"
     );
+    let e = Scene::load(dir.path(), LoadOptions::default()).unwrap_err();
+    assert!(matches!(e, SceneError::NotAScene { .. }), "{e:?}");
 }
 
 #[test]
@@ -92,6 +94,61 @@ fn missing_folder() {
     let dir = tempfile::tempdir().unwrap();
     let e = Scene::load(&dir.path().join("gone"), LoadOptions::default()).unwrap_err();
     assert!(e.to_string().contains("gone: folder not found"), "{e}");
+    assert!(matches!(e, SceneError::NotFound { .. }), "{e:?}");
+}
+
+/// The kinds a caller decides on: nothing there, something unreadable
+/// there, and a file that was read and is wrong; each naming the file.
+#[test]
+fn errors_say_their_kind() {
+    let _cores = crate::common::shared();
+    let dir = tempfile::tempdir().unwrap();
+    let options = LoadOptions::default();
+    let json = dir.path().join("transforms.json");
+    let e = Scene::load(&json, options).unwrap_err();
+    assert_eq!(e.path(), json);
+    assert_eq!(
+        e.to_string(),
+        format!("{}: folder not found", json.display())
+    );
+    assert!(
+        matches!(e, SceneError::NotFound { frame: None, .. }),
+        "{e:?}"
+    );
+
+    // A folder named transforms.json: there, but no file.
+    std::fs::create_dir(&json).unwrap();
+    let e = Scene::load(dir.path(), options).unwrap_err();
+    assert!(matches!(e, SceneError::Unreadable { .. }), "{e:?}");
+    assert!(
+        e.to_string()
+            .ends_with("cannot read it: it is a folder, not a file"),
+        "{e}"
+    );
+    std::fs::remove_dir(&json).unwrap();
+
+    std::fs::write(&json, "{\"frames\": [").unwrap();
+    let e = Scene::load(dir.path(), options).unwrap_err();
+    assert!(
+        matches!(e, SceneError::Invalid { frame: None, .. }),
+        "{e:?}"
+    );
+    assert!(e.problem().starts_with("malformed JSON at line 1"), "{e}");
+
+    // An image a frame lists that is not there: the image's kind, told of
+    // the frame.
+    write_instant_ngp(dir.path());
+    std::fs::remove_file(dir.path().join("images/b.png")).unwrap();
+    let e = Scene::load(dir.path(), options).unwrap_err();
+    assert_eq!((e.path(), e.frame()), (json.as_path(), Some(1)));
+    assert!(matches!(e, SceneError::NotFound { .. }), "{e:?}");
+    assert_eq!(
+        e.problem(),
+        format!(
+            "image file not found: {}",
+            dir.path().join("images/b.png").display()
+        )
+    );
 }
 
 #[test]

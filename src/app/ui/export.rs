@@ -227,7 +227,7 @@ impl ExportDialog {
             }
             Err(error) => {
                 self.path_loaded = None;
-                self.path_error = Some(error);
+                self.path_error = Some(error.to_string());
             }
         }
     }

@@ -173,7 +173,9 @@ pub fn save_path(state: &ViewerUi, file: &Path) -> Result<String, String> {
 /// its baked frames when it has none); what to tell the user.
 pub fn load_path(state: &mut ViewerUi, file: &Path) -> Result<String, String> {
     let to_original = scene_transform(state)?;
-    let loaded = CameraPathFile::load(file)?.moved_into(to_original);
+    let loaded = CameraPathFile::load(file)
+        .map_err(|e| e.to_string())?
+        .moved_into(to_original);
     let editor = &mut state.path_editor;
     let text = match &loaded.path {
         Some(path) => {

@@ -266,7 +266,7 @@ pub fn read_frame(path: &Path) -> Result<image::RgbaImage, String> {
     if !metadata.file_type().is_file() {
         return Err("not a regular file".into());
     }
-    let (file, _) = crate::files::open_regular(path)?;
+    let (file, _) = crate::files::open_regular(path).map_err(|e| e.to_string())?;
     let mut reader = image::ImageReader::new(BufReader::new(file))
         .with_guessed_format()
         .map_err(|e| e.to_string())?;

@@ -35,7 +35,7 @@
 //! writes NaN and ±Infinity for non-finite floats, which are not JSON: the
 //! reader reads them as such so that it can name the field that holds one.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use glam::{DMat3, DMat4};
 use serde_json::{Map, Value, json};
@@ -298,16 +298,25 @@ impl CameraPathFile {
     }
 
     /// Reads a camera path file; errors name the file and the field.
-    pub fn load(path: &Path) -> Result<CameraPathFile, String> {
+    pub fn load(path: &Path) -> Result<CameraPathFile, CameraPathError> {
+        let error = |kind: fn(PathBuf, String) -> CameraPathError, problem: String| {
+            kind(path.to_path_buf(), problem)
+        };
         let bytes = crate::files::read_regular_bounded(path, MAX_FILE_BYTES, "a camera path")
-            .map_err(|problem| format!("{}: {problem}", path.display()))?;
+            .map_err(|problem| {
+                if crate::files::exists_at_all(path) {
+                    error(CameraPathError::unreadable, problem)
+                } else {
+                    error(CameraPathError::not_found, problem)
+                }
+            })?;
         let text = String::from_utf8(bytes).map_err(|_| {
-            format!(
-                "{}: not UTF-8 text (a camera path is a JSON file)",
-                path.display()
+            error(
+                CameraPathError::invalid,
+                "not UTF-8 text (a camera path is a JSON file)".into(),
             )
         })?;
-        Self::parse(&text).map_err(|problem| format!("{}: {problem}", path.display()))
+        Self::parse(&text).map_err(|problem| error(CameraPathError::invalid, problem))
     }
 
     /// Parses a camera path from JSON text (a UTF-8 byte order mark before
@@ -341,6 +350,37 @@ impl CameraPathFile {
             ));
         };
         from_object(&top)
+    }
+}
+
+/// A camera path file could not be read, by the kind a caller decides on;
+/// each names the file and what is wrong, and shows as `PATH: PROBLEM`.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CameraPathError {
+    /// Nothing is at the path.
+    #[error("{}: {problem}", path.display())]
+    NotFound { path: PathBuf, problem: String },
+    /// Something is there that cannot be read as a camera path: a folder,
+    /// a named pipe, a file too large to be one, an error while reading.
+    #[error("{}: {problem}", path.display())]
+    Unreadable { path: PathBuf, problem: String },
+    /// The file was read and is not a camera path zrak takes: not UTF-8,
+    /// malformed JSON, a field or keyframe missing or out of range.
+    #[error("{}: {problem}", path.display())]
+    Invalid { path: PathBuf, problem: String },
+}
+
+impl CameraPathError {
+    fn not_found(path: PathBuf, problem: String) -> Self {
+        Self::NotFound { path, problem }
+    }
+
+    fn unreadable(path: PathBuf, problem: String) -> Self {
+        Self::Unreadable { path, problem }
+    }
+
+    fn invalid(path: PathBuf, problem: String) -> Self {
+        Self::Invalid { path, problem }
     }
 }
 
@@ -1069,6 +1109,50 @@ mod tests {
     #[test]
     fn a_missing_file_is_named() {
         let e = CameraPathFile::load(Path::new("/nonexistent/camera_path.json")).unwrap_err();
-        assert_eq!(e, "/nonexistent/camera_path.json: not found");
+        assert_eq!(
+            e,
+            CameraPathError::NotFound {
+                path: "/nonexistent/camera_path.json".into(),
+                problem: "not found".into()
+            }
+        );
+        assert_eq!(e.to_string(), "/nonexistent/camera_path.json: not found");
+    }
+
+    #[test]
+    fn load_errors_say_their_kind() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("camera_path.json");
+        // A keyframe whose field of view is out of range: read, and wrong.
+        let mut value = sample_file().to_json();
+        value["keyframes"][1]["fov"] = json!(200.0);
+        std::fs::write(&path, value.to_string()).unwrap();
+        let e = CameraPathFile::load(&path).unwrap_err();
+        assert!(matches!(e, CameraPathError::Invalid { .. }), "{e:?}");
+        assert!(
+            e.to_string()
+                .starts_with(&format!("{}: `keyframes[1].fov` must be", path.display())),
+            "{e}"
+        );
+        std::fs::write(&path, [0xff, 0xfe, 0x00]).unwrap();
+        let e = CameraPathFile::load(&path).unwrap_err();
+        assert_eq!(
+            e,
+            CameraPathError::Invalid {
+                path: path.clone(),
+                problem: "not UTF-8 text (a camera path is a JSON file)".into()
+            }
+        );
+        // A folder of that name: there, but no file.
+        std::fs::remove_file(&path).unwrap();
+        std::fs::create_dir(&path).unwrap();
+        let e = CameraPathFile::load(&path).unwrap_err();
+        assert_eq!(
+            e,
+            CameraPathError::Unreadable {
+                path: path.clone(),
+                problem: "a folder, not a file".into()
+            }
+        );
     }
 }

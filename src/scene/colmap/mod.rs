@@ -293,14 +293,14 @@ pub fn read_model(folder: &Path) -> SceneResult<ColmapModel> {
         }
     };
     let missing = |stem: &str| {
-        SceneError::new(
+        SceneError::not_a_scene(
             folder,
             format!("no {stem}.bin or {stem}.txt: not a COLMAP sparse model"),
         )
     };
     let (cameras_path, binary) = pick("cameras").ok_or_else(|| missing("cameras"))?;
     let bytes_or_text = |path: &Path| {
-        std::fs::read(path).map_err(|e| SceneError::new(path, format!("cannot read: {e}")))
+        std::fs::read(path).map_err(|e| SceneError::unreadable(path, format!("cannot read: {e}")))
     };
     let data = bytes_or_text(&cameras_path)?;
     let cameras = if binary {

@@ -356,7 +356,11 @@ fn write_into_unwritable_place_names_the_path() {
         test_views: 1,
     };
     let error = write(&config, &target).unwrap_err();
-    assert!(error.path.starts_with(&target), "{}", error.path.display());
+    assert!(
+        error.path().starts_with(&target),
+        "{}",
+        error.path().display()
+    );
     let message = error.to_string();
     assert!(message.contains(&target.display().to_string()), "{message}");
     assert!(message.contains("cannot create folder"), "{message}");
