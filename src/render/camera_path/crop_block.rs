@@ -78,17 +78,6 @@ impl PathCrop {
     }
 }
 
-impl super::nerfstudio::CameraPathFile {
-    /// Sets the crop box the file carries (`None`: `"crop": null`), in the
-    /// frame of its poses; a background colour it had is kept.
-    pub fn set_crop(&mut self, crop: Option<CropBox>) {
-        self.crop = crop.map(|crop| PathCrop {
-            crop,
-            background: self.crop.map_or(DEFAULT_BACKGROUND, |c| c.background),
-        });
-    }
-}
-
 /// The `crop` field of a camera path: `null` when absent or null.
 pub fn crop_to_json(crop: Option<&PathCrop>) -> Value {
     crop.map_or(Value::Null, PathCrop::to_json)
@@ -179,7 +168,24 @@ fn triple(object: &Map<String, Value>, key: &str) -> Result<Option<[f64; 3]>, St
 }
 
 fn number(value: &Value, name: &str) -> Result<f64, String> {
-    super::nerfstudio::finite(value, name)
+    finite(value, name)
+}
+
+/// A finite number at `field`.
+pub(super) fn finite(value: &Value, field: &str) -> Result<f64, String> {
+    match value {
+        Value::Number(n) => n
+            .as_f64()
+            .filter(|x| x.is_finite())
+            .ok_or_else(|| format!("`{field}` = {n} is not a finite number")),
+        Value::String(s) if ["NaN", "Infinity", "-Infinity"].contains(&s.as_str()) => Err(format!(
+            "`{field}` is {s}: every number in a camera path must be finite"
+        )),
+        other => Err(format!(
+            "`{field}` must be a number, found {}",
+            describe_value(other)
+        )),
+    }
 }
 
 #[cfg(test)]

@@ -40,7 +40,7 @@ use std::path::{Path, PathBuf};
 use glam::{DMat3, DMat4};
 use serde_json::{Map, Value, json};
 
-use super::crop_block::{PathCrop, crop_to_json, parse_crop};
+use super::crop_block::{PathCrop, crop_to_json, finite, parse_crop};
 use super::{CameraPath, FOV_RANGE_DEGREES, Keyframe, PathSample};
 use crate::scene::pose::{check_rigid, describe};
 use crate::scene::{Scene, SceneFormat};
@@ -384,6 +384,19 @@ impl CameraPathError {
     }
 }
 
+impl CameraPathFile {
+    /// Sets the crop box the file carries (`None`: `"crop": null`), in the
+    /// frame of its poses; a background colour it had is kept.
+    pub fn set_crop(&mut self, crop: Option<crate::scene::crop::CropBox>) {
+        self.crop = crop.map(|crop| PathCrop {
+            crop,
+            background: self
+                .crop
+                .map_or(super::crop_block::DEFAULT_BACKGROUND, |c| c.background),
+        });
+    }
+}
+
 /// The text with Python's bare `NaN`, `Infinity` and `-Infinity` (outside
 /// strings) put in quotes, so that the JSON parses and the reader can say
 /// which field holds one.
@@ -422,23 +435,6 @@ fn quote_non_finite(text: &str) -> String {
         rest = &rest[c.len_utf8()..];
     }
     out
-}
-
-/// A finite number at `field`.
-pub(super) fn finite(value: &Value, field: &str) -> Result<f64, String> {
-    match value {
-        Value::Number(n) => n
-            .as_f64()
-            .filter(|x| x.is_finite())
-            .ok_or_else(|| format!("`{field}` = {n} is not a finite number")),
-        Value::String(s) if ["NaN", "Infinity", "-Infinity"].contains(&s.as_str()) => Err(format!(
-            "`{field}` is {s}: every number in a camera path must be finite"
-        )),
-        other => Err(format!(
-            "`{field}` must be a number, found {}",
-            describe(other)
-        )),
-    }
 }
 
 fn field<'a>(object: &'a Map<String, Value>, key: &str, name: &str) -> Result<&'a Value, String> {
