@@ -11,7 +11,7 @@ use std::fs::{File, OpenOptions, TryLockError};
 use std::io::{Read, Seek, Write};
 use std::path::{Path, PathBuf};
 
-use super::run::RunFolderError;
+use super::folder_error::RunFolderError;
 
 /// The lock file inside a run folder.
 pub const LOCK_FILE: &str = ".zrak.lock";

@@ -2,6 +2,7 @@
 //! evaluation, checkpoints and events.
 
 pub mod eval;
+pub mod folder_error;
 pub mod kept;
 pub mod lock;
 pub mod log;

@@ -1,6 +1,7 @@
 //! A training run on disk: the loop with its limits, `metrics.jsonl`,
 //! periodic evaluation on held-out views, and checkpoints.
 
+use super::folder_error::{OutFolder, RunFolderError};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
@@ -50,72 +51,12 @@ pub const RUN_JSON_MARKER: &str = "saved_by";
 /// What the command line writes in [`RUN_JSON_MARKER`].
 pub const SAVED_BY_COMMAND_LINE: &str = "zrak";
 
-/// What is at a path given as a new run's folder.
-#[derive(Debug, Clone, PartialEq)]
-pub enum OutFolder {
-    /// Nothing, or an empty folder (a lone lock file left by a refused
-    /// start counts as empty).
-    Free,
-    /// A zrak run: a checkpoint, or a `run.json` zrak wrote (a run stopped
-    /// before its first checkpoint).
-    Run { has_checkpoint: bool },
-    /// A folder holding other files: a few of their names and how many
-    /// there are.
-    Other { names: Vec<String>, count: usize },
-    /// Not a folder (a file, a link that loops or points nowhere, a
-    /// pipe): what it is.
-    NotAFolder(String),
-}
-
 /// A run moved aside by [`RunFolder::create_new`]: where to, and whether
 /// it was a zrak run (else a folder of other files).
 #[derive(Debug, Clone, PartialEq)]
 pub struct MovedAside {
     pub to: PathBuf,
     pub was_run: bool,
-}
-
-/// A run folder cannot be used as asked, by the kind a caller decides on;
-/// each names the folder and shows as the message the command line prints.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum RunFolderError {
-    /// No folder at the path (nothing, or something else) to resume or
-    /// read.
-    #[error("{}: no such run folder ({problem})", path.display())]
-    NotFound { path: PathBuf, problem: String },
-    /// A folder without a checkpoint to resume from.
-    #[error("{}: no checkpoint to resume from (no {CHECKPOINT_FILE} in the folder)", path.display())]
-    NoCheckpoint { path: PathBuf },
-    /// Another process holds the folder's lock: `holder` says which
-    /// ("another zrak (process 12)").
-    #[error(
-        "{}: {holder} is using this run folder; wait for it to finish or stop it (two \
-         processes writing one run would corrupt it)",
-        path.display()
-    )]
-    Locked { path: PathBuf, holder: String },
-    /// A new run's folder that already holds a run or other files (see
-    /// [`OutFolder`]); `message` names the ways on.
-    #[error("{message}")]
-    Occupied {
-        path: PathBuf,
-        found: OutFolder,
-        message: String,
-    },
-    /// Anything else: not a folder, cannot be created, written, locked or
-    /// moved aside, a checkpoint or log that is no regular file. `message`
-    /// is the whole message, naming the file at fault.
-    #[error("{message}")]
-    Unusable { path: PathBuf, message: String },
-}
-
-impl RunFolderError {
-    fn unusable(path: &Path, message: String) -> Self {
-        Self::Unusable {
-            path: path.to_path_buf(),
-            message,
-        }
-    }
 }
 
 /// How often to log, evaluate and checkpoint.
@@ -305,6 +246,7 @@ impl RunFolder {
             Err(crate::files::Unreadable::NotFound) => {
                 return Err(RunFolderError::NoCheckpoint {
                     path: dir.to_path_buf(),
+                    file: CHECKPOINT_FILE,
                 });
             }
             Err(problem) => {
@@ -815,7 +757,8 @@ mod tests {
         assert_eq!(
             error,
             RunFolderError::NoCheckpoint {
-                path: dir.path().to_path_buf()
+                path: dir.path().to_path_buf(),
+                file: CHECKPOINT_FILE,
             }
         );
         // No lock file is made in a folder that is no run.
