@@ -1,8 +1,6 @@
 //! How many rays a training batch takes, so that it holds about the
 //! target number of samples as the samples per ray change.
 
-use crate::field::ngp::SAMPLES_PER_BATCH;
-
 /// Chooses how many rays the next training batch takes so that it holds
 /// about `target_samples` samples (instant-ngp measures batches in samples:
 /// 2^18, paper section 5.4).
@@ -27,13 +25,10 @@ pub struct BatchSizer {
 }
 
 impl BatchSizer {
-    /// 2^18 samples; the testbed starts at 2^12 rays, rounds to multiples of
-    /// 256 rays (BATCH_SIZE_GRANULARITY) and caps at 2^18 rays, one sample
-    /// per ray. The smoothing 0.8 averages over about 5 steps.
-    pub fn paper() -> Self {
-        Self::new(SAMPLES_PER_BATCH)
-    }
-
+    /// Batches of about `target_samples` samples, as instant-ngp's testbed
+    /// sizes them: it starts at 2^12 rays, rounds to multiples of 256 rays
+    /// (BATCH_SIZE_GRANULARITY) and caps at one sample per ray. The
+    /// smoothing 0.8 averages over about 5 steps.
     pub fn new(target_samples: usize) -> Self {
         Self {
             target_samples,

@@ -34,6 +34,10 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use crate::field::ngp::{MarchConfig, OccupancyConfig};
+
+/// Density evaluations per call of the density function unless the driver
+/// sets its batch's size: 2^18, Instant-NGP's batch (paper, section 5.4).
+const DEFAULT_CHUNK: usize = 1 << 18;
 use crate::scene::UnitCubeMapping;
 
 /// The stored value of a cell that no update has sampled yet. Real values are
@@ -243,7 +247,7 @@ impl OccupancyGrid {
             bitfield: vec![0; geometry.bitfield_words()],
             threshold: config.min_optical_thickness,
             occupied: 0,
-            chunk: crate::field::ngp::SAMPLES_PER_BATCH,
+            chunk: DEFAULT_CHUNK,
             sample_cells: Vec::new(),
             sample_positions: Vec::new(),
             sample_density: Vec::new(),

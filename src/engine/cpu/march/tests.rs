@@ -5,7 +5,8 @@ use crate::engine::cpu::composite::{RaySamples, composite};
 use crate::engine::shared::occupancy::mix64;
 use crate::field::ngp::MarchConfig;
 use crate::field::ngp::OccupancyConfig;
-use crate::field::ngp::SAMPLES_PER_BATCH;
+/// Instant-NGP's batch (paper, section 5.4), which the sizer is tested at.
+const SAMPLES_PER_BATCH: usize = 1 << 18;
 use crate::scene::{Aabb, UnitCubeMapping};
 
 const BLENDER: UnitCubeMapping = UnitCubeMapping::BLENDER;
@@ -533,7 +534,7 @@ fn rendering_with_early_stop_matches_full_compositing() {
 
 #[test]
 fn batch_sizer_converges_to_the_target() {
-    let mut sizer = BatchSizer::paper();
+    let mut sizer = BatchSizer::new(SAMPLES_PER_BATCH);
     assert_eq!(sizer.rays(), 4096);
     // A scene where rays average `mean` samples (uniform 0..2·mean):
     // after ~30 steps (0.8^30 ≈ 1e-3 of the start left) batches hold

@@ -9,8 +9,8 @@
 //! recipe of [`crate::field::nerf`]; Mip-NeRF is the same driver and field
 //! with the recipe of [`crate::field::mipnerf`] (one field for both
 //! levels); Instant-NGP is this driver with
-//! [`super::fields::ngp::GpuNgpField`] (unit-cube positions) and the recipe
-//! of [`crate::field::ngp`].
+//! [`super::fields::ngp::GpuNgpField`] (unit-cube positions) and
+//! Instant-NGP's recipe.
 //!
 //! A recipe of conical frustums ([`SampleShape::ConicalFrustums`]) places
 //! interval edges instead of points: stratified edges, or edges resampled
