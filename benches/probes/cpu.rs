@@ -257,7 +257,7 @@ pub fn cpu_march_throughput() {
     }
     grid.build_bitfield();
     println!("occupancy {:.1}%", 100.0 * grid.occupancy_fraction());
-    let mut sizer = BatchSizer::new(zrak::field::ngp::SAMPLES_PER_BATCH);
+    let mut sizer = BatchSizer::new(SAMPLES_PER_BATCH);
     let mut workspace = MarchWorkspace::default();
     let mut out = MarchedSamples::default();
     let (origins, directions) = random_rays(1 << 18, 77);
