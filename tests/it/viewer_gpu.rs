@@ -12,8 +12,6 @@ use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use zrak::app::protocol::{Command, Event, GpuFrame, RenderRequest, RenderedFrame, SceneSource};
-use zrak::app::worker::{TrainingWorker, WorkerOptions};
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::render::read_texture_rgba8;
 use zrak::engine::{EngineChoice, EngineKind};
@@ -23,6 +21,10 @@ use zrak::metrics::WHITE;
 use zrak::render::{RenderMode, render_pixels, to_image};
 use zrak::scene::demo::{self, DemoConfig};
 use zrak::scene::{Camera, Scene};
+use zrak::session::protocol::{
+    Command, Event, GpuFrame, RenderRequest, RenderedFrame, SceneSource,
+};
+use zrak::session::worker::{TrainingWorker, WorkerOptions};
 use zrak::train::checkpoint::Checkpoint;
 use zrak::train::model::RenderedPixel;
 use zrak::train::trainer::Trainer;
@@ -293,8 +295,8 @@ fn the_gpu_engine_draws_the_view_into_a_texture_on_the_shared_device() {
 #[test]
 fn a_level_drawn_in_bands_is_the_level_drawn_whole() {
     let _cores = crate::common::shared();
-    use zrak::app::progressive::draw_band_to_texture;
     use zrak::engine::gpu::render::render_target;
+    use zrak::session::progressive::draw_band_to_texture;
     let config = demo_config();
     let scene = Arc::new(demo::build(&config));
     let folder = std::env::temp_dir().join(format!("zrak-viewer-bands-{}", std::process::id()));

@@ -14,8 +14,6 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use glam::Vec3;
-use zrak::app::protocol::{Command, Event, InTurn, RenderRequest, RenderedFrame, SceneSource};
-use zrak::app::worker::{TrainingWorker, WorkerOptions};
 use zrak::engine::EngineKind;
 use zrak::field::ModelKind;
 use zrak::field::nerf::Sampling;
@@ -25,6 +23,8 @@ use zrak::render::export::ExportSettings;
 use zrak::render::path::Turntable;
 use zrak::scene::demo::{self, CAMERA_ANGLE_X, DemoConfig};
 use zrak::scene::{Camera, Intrinsics};
+use zrak::session::protocol::{Command, Event, InTurn, RenderRequest, RenderedFrame, SceneSource};
+use zrak::session::worker::{TrainingWorker, WorkerOptions};
 
 /// Generous: on a loaded machine a step can take a second.
 const PATIENCE: Duration = Duration::from_secs(60);
@@ -555,13 +555,13 @@ fn models_in_turn_train_in_order_at_equal_shares_of_training_time() {
     // first Instant-NGP step), so a step is bounded instead by the
     // training time between the two reports that bracket it.
     let mut ends: Vec<(ModelKind, f64, f64)> = Vec::new();
-    let mut last_seconds: HashMap<ModelKind, f64> = HashMap::new();
+    let mut last_seconds: HashMap<&str, f64> = HashMap::new();
     wait_for(&worker, |e| {
         let Event::Stats(stats) = e else {
             return None;
         };
         let since = last_seconds
-            .insert(stats.model, stats.train_seconds)
+            .insert(stats.model.key(), stats.train_seconds)
             .map_or(stats.train_seconds, |before| stats.train_seconds - before);
         match ends.last_mut() {
             Some(last) if last.0 == stats.model => {
@@ -694,7 +694,7 @@ struct Watched {
     /// Render seconds of levels not yet finished, by downscale.
     level_in_progress: Vec<(u32, f64)>,
     /// Where the thread's time went, over the traces received.
-    time: zrak::app::schedule::ScheduleTrace,
+    time: zrak::session::schedule::ScheduleTrace,
 }
 
 impl Watched {
@@ -702,7 +702,7 @@ impl Watched {
     /// level in progress until a level of it finishes. A trace that holds
     /// the end of one level and the start of the next charges both to the
     /// first, which only lengthens the measured cost.
-    fn add_trace(&mut self, trace: &zrak::app::schedule::ScheduleTrace) {
+    fn add_trace(&mut self, trace: &zrak::session::schedule::ScheduleTrace) {
         self.time.merge(trace);
         for level in &trace.rendering {
             let index = match self
@@ -827,7 +827,9 @@ fn the_picture_keeps_up_while_training_keeps_its_share(
     options: WorkerOptions,
     view: u32,
 ) {
-    use zrak::app::schedule::{DEFAULT_TRAINING_SHARE, lag_bound_seconds, settle_bound_seconds};
+    use zrak::session::schedule::{
+        DEFAULT_TRAINING_SHARE, lag_bound_seconds, settle_bound_seconds,
+    };
     let worker = TrainingWorker::spawn_with(SceneSource::Demo, Some(engine), model, options);
     wait_for(&worker, |event| match event {
         Event::Engine { kind, .. } => {
@@ -997,7 +999,7 @@ fn the_picture_keeps_up_while_training_keeps_its_share(
         });
     // The trace that holds the full level's last band comes within a
     // trace interval.
-    let trace_wait = zrak::app::schedule::TRACE_INTERVAL.as_secs_f64() + 0.5;
+    let trace_wait = zrak::session::schedule::TRACE_INTERVAL.as_secs_f64() + 0.5;
     watch(
         &worker,
         7,
@@ -1037,7 +1039,7 @@ fn the_picture_keeps_up_while_training_keeps_its_share(
 #[test]
 fn a_resting_picture_reaches_full_resolution_when_a_level_takes_several_budgets() {
     let _alone = common::alone();
-    use zrak::app::schedule::{DEFAULT_TRAINING_SHARE, refresh_budget, settle_bound_seconds};
+    use zrak::session::schedule::{DEFAULT_TRAINING_SHARE, refresh_budget, settle_bound_seconds};
     let worker = TrainingWorker::spawn_with(
         SceneSource::Demo,
         Some(EngineKind::Cpu),
@@ -1069,7 +1071,7 @@ fn a_resting_picture_reaches_full_resolution_when_a_level_takes_several_budgets(
         .find(|f| f.downscale == 1 && f.complete)
         .unwrap_or_else(|| panic!("no full-resolution frame: {:?}", run.frames));
     // The trace of the full level's last band.
-    let trace_wait = zrak::app::schedule::TRACE_INTERVAL.as_secs_f64() + 0.5;
+    let trace_wait = zrak::session::schedule::TRACE_INTERVAL.as_secs_f64() + 0.5;
     watch(&worker, 1, Instant::now(), trace_wait, |_| false, &mut run);
     worker.shutdown();
     let full_level = run

@@ -11,13 +11,13 @@ use egui::RichText;
 
 use super::panels::ERROR_COLOUR;
 use super::{Notice, ViewerUi};
-use crate::app::protocol::{CameraPathExport, Command, MeshExport, PointsExport};
 use crate::mesh::MinComponent;
 use crate::mesh::extract::{MAX_RESOLUTION, default_threshold};
 use crate::render::RenderMode;
 use crate::render::camera_path::nerfstudio::CameraPathFile;
 use crate::render::export::ExportSettings;
 use crate::render::path::Turntable;
+use crate::session::protocol::{CameraPathExport, Command, MeshExport, PointsExport};
 
 /// What the window exports.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]

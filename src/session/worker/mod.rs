@@ -140,8 +140,8 @@ pub struct WorkerOptions {
     /// Held-out views per evaluation.
     pub val_views: usize,
     pub repaint: Option<RepaintCallback>,
-    /// A device made elsewhere (the viewer's, from eframe) for the gpu
-    /// engine, instead of one of its own; the automatic choice still takes
+    /// A device made elsewhere (the window's own) for the gpu engine,
+    /// instead of one of its own; the automatic choice still takes
     /// the cpu engine when it is a software adapter. When the gpu engine
     /// trains on it, the view is drawn into textures on this device and
     /// sent as [`Event::GpuFrame`] (the window draws them without a copy
@@ -366,7 +366,7 @@ fn share_context(context: &GpuContext) -> Result<GpuContext, String> {
 }
 
 /// The engine to train on: as [`choose_engine`], but on `device` when the
-/// viewer made one (eframe's), so the engine can draw into its textures.
+/// window made one, so the engine can draw into its textures.
 fn choose_engine_on(
     requested: Option<EngineKind>,
     device: Option<GpuContext>,
@@ -382,7 +382,8 @@ fn choose_engine_on(
             gpu: Some(context),
         },
         // The same rule as `choose_engine`: a software adapter trains far
-        // slower than the cpu engine (DESIGN.md).
+        // slower than the cpu engine (docs/design.md, "Two engines, one
+        // contract").
         None if context.is_software() => EngineChoice {
             kind: EngineKind::Cpu,
             reason: format!(

@@ -3,12 +3,12 @@
 //! training view's rays. The same functions as `zrak export mesh|points`.
 
 use super::*;
-use crate::app::protocol::{MeshExport, PointsExport};
 use crate::mesh::extract::{
     DensitySampler, MAX_RESOLUTION, MeshSettings, default_threshold, grid_dims, mesh_bytes,
 };
 use crate::mesh::points::{PointSettings, points_of_view, stride_for};
 use crate::mesh::{MeshFormat, points_to_ply};
+use crate::session::protocol::{MeshExport, PointsExport};
 use glam::Vec3;
 
 /// A mesh being extracted.

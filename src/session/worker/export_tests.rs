@@ -8,11 +8,6 @@ use std::time::{Duration, Instant};
 
 use glam::{DMat4, DVec3, Vec3};
 
-use crate::app::protocol::{
-    CameraPathExport, Command, Event, MeshExport, PointsExport, RenderRequest, RenderedFrame,
-    SceneSource,
-};
-use crate::app::worker::{TrainingWorker, WorkerOptions};
 use crate::engine::EngineKind;
 use crate::engine::cpu::dense::Precision;
 use crate::field::ModelKind;
@@ -25,6 +20,11 @@ use crate::render::camera_path::{CameraPath, Keyframe, look_at};
 use crate::scene::crop::CropBox;
 use crate::scene::demo::{self, CAMERA_ANGLE_X, DemoConfig};
 use crate::scene::{Camera, Intrinsics};
+use crate::session::protocol::{
+    CameraPathExport, Command, Event, MeshExport, PointsExport, RenderRequest, RenderedFrame,
+    SceneSource,
+};
+use crate::session::worker::{TrainingWorker, WorkerOptions};
 use crate::train::checkpoint::Checkpoint;
 use crate::train::trainer::Trainer;
 

@@ -8,10 +8,10 @@
 
 use super::export_mesh::{MeshJob, PointsJob};
 use super::*;
-use crate::app::protocol::{CameraPathExport, MeshExport, PointsExport};
 use crate::render::camera_path::export::{PathRender, PathRenderSettings};
 use crate::render::camera_path::frames::RenderSource;
 use crate::render::camera_path::nerfstudio::scene_to_original;
+use crate::session::protocol::{CameraPathExport, MeshExport, PointsExport};
 
 /// What the window asked to export (one at a time: its size does not
 /// matter).

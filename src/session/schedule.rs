@@ -26,7 +26,7 @@
 
 use std::time::Duration;
 
-/// The default training share ([`crate::app::protocol::Balance`]).
+/// The default training share ([`crate::session::protocol::Balance`]).
 pub const DEFAULT_TRAINING_SHARE: f64 = 0.7;
 
 /// Render seconds between two sends of a slow redraw of a resting view at
