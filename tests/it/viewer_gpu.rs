@@ -296,7 +296,7 @@ fn the_gpu_engine_draws_the_view_into_a_texture_on_the_shared_device() {
 fn a_level_drawn_in_bands_is_the_level_drawn_whole() {
     let _cores = crate::common::shared();
     use zrak::engine::gpu::render::render_target;
-    use zrak::session::progressive::draw_band_to_texture;
+    use zrak::session::progressive::{Band, draw_band_to_texture};
     let config = demo_config();
     let scene = Arc::new(demo::build(&config));
     let folder = std::env::temp_dir().join(format!("zrak-viewer-bands-{}", std::process::id()));
@@ -357,7 +357,13 @@ fn a_level_drawn_in_bands_is_the_level_drawn_whole() {
             while first < height {
                 let rows = 5.min(height - first);
                 let band = render_target(&context.device, width, rows);
-                draw_band_to_texture(gpu, &context, &camera, first, mode, WHITE, &band, &banded)
+                let rows_drawn = Band {
+                    camera: &camera,
+                    first,
+                    mode,
+                    background: WHITE,
+                };
+                draw_band_to_texture(gpu, &context, rows_drawn, &band, &banded)
                     .expect("a band fits");
                 first += rows;
             }
@@ -384,13 +390,16 @@ fn a_level_drawn_in_bands_is_the_level_drawn_whole() {
         }
         // A band that does not fit the view is refused, not drawn.
         let band = render_target(&context.device, width, 5);
+        let past_the_bottom = Band {
+            camera: &camera,
+            first: height - 2,
+            mode: RenderMode::Rgb,
+            background: WHITE,
+        };
         let error = draw_band_to_texture(
             gpu,
             &context,
-            &camera,
-            height - 2,
-            RenderMode::Rgb,
-            WHITE,
+            past_the_bottom,
             &band,
             &render_target(&context.device, width, height),
         )
