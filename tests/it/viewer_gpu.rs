@@ -10,8 +10,9 @@
 
 use std::path::Path;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
+use crate::common::worker::wait_for;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::render::read_texture_rgba8;
 use zrak::engine::{EngineChoice, EngineKind};
@@ -38,9 +39,6 @@ const BATCH_SAMPLES: usize = 1 << 12;
 /// Cpu steps before the checkpoint: enough for the field to show the demo
 /// scene's shapes (an untrained field renders a nearly flat grey).
 const PRETRAIN_STEPS: usize = 60;
-
-/// Generous for lavapipe on a shared two-core machine.
-const PATIENCE: Duration = Duration::from_secs(50);
 
 fn demo_config() -> DemoConfig {
     DemoConfig {
@@ -110,28 +108,6 @@ fn read_back_render(
         .restore(&Checkpoint::load(checkpoint).expect("reads"))
         .expect("restores");
     render_pixels(trainer.model.as_ref(), camera, WHITE)
-}
-
-/// Events until `pick` returns a value; panics with what was seen when
-/// none does within [`PATIENCE`].
-fn wait_for<T>(worker: &TrainingWorker, mut pick: impl FnMut(&Event) -> Option<T>) -> T {
-    let deadline = Instant::now() + PATIENCE;
-    let mut seen = Vec::new();
-    while let Some(left) = deadline.checked_duration_since(Instant::now()) {
-        let Some(event) = worker.recv_timeout(left) else {
-            break;
-        };
-        if let Some(value) = pick(&event) {
-            return value;
-        }
-        seen.push(match &event {
-            Event::Frame(f) => format!("Frame(gen {}, 1/{})", f.generation, f.downscale),
-            Event::GpuFrame(f) => format!("GpuFrame(gen {}, 1/{})", f.generation, f.downscale),
-            Event::SceneLoaded(_) => "SceneLoaded".to_string(),
-            other => format!("{other:?}"),
-        });
-    }
-    panic!("the awaited event did not come; seen: {seen:?}");
 }
 
 fn request(

@@ -162,7 +162,3 @@ fn path_settings(
         source,
     })
 }
-
-#[cfg(test)]
-#[path = "export_tests.rs"]
-mod tests;

@@ -17,7 +17,7 @@
 //! (`scene.rs`), the models and their turns (`training.rs`), the view and
 //! its share of the time (`view.rs`), the export and the held-out
 //! evaluation (`jobs.rs`, `export_jobs.rs`), and the trace of where the
-//! time went (`trace.rs`). [`Worker`] keeps the channels and routes each
+//! time went (`trace.rs`). `Worker` keeps the channels and routes each
 //! command to the parts it concerns; saving and loading checkpoints, which
 //! concern most of them, are its own (`saving.rs`).
 
