@@ -1,7 +1,7 @@
 //! The Export window: a turntable, a camera path (PNG frames or an MP4
 //! video), a mesh or a point cloud of the active model, each with progress
 //! and cancel. The training thread does the work a unit at a time (see
-//! `app/worker/export_jobs.rs`), with the same functions as the commands.
+//! `session/worker/export_jobs.rs`), with the same functions as the commands.
 //! Mesh, points and renders keep to the crop box when one is on.
 
 use eframe::egui;
