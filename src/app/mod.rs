@@ -1,11 +1,5 @@
-//! The eframe viewer: viewport, camera controls, panels, plots, and the
-//! training thread it talks to.
+//! The eframe viewer: viewport, camera controls, panels and plots, drawn
+//! from what the training thread of [`crate::session`] sends.
 
-pub mod camera;
-pub mod path_state;
-pub mod progressive;
-pub mod protocol;
-pub mod schedule;
 pub mod ui;
 pub mod viewer;
-pub mod worker;

@@ -12,14 +12,14 @@ use anyhow::Context as _;
 use eframe::egui_wgpu::{WgpuConfiguration, WgpuSetup, WgpuSetupCreateNew};
 use eframe::wgpu;
 
-use super::protocol::{Command, SceneSource};
 use super::ui::{NativeTextures, ViewerUi, describe_source};
-use super::worker::{TrainingWorker, WorkerOptions};
 use crate::engine::EngineKind;
 use crate::engine::cpu::dense::Precision;
 use crate::engine::gpu::GpuContext;
 use crate::field::ModelKind;
 use crate::field::nerf::Sampling;
+use crate::session::protocol::{Command, SceneSource};
+use crate::session::worker::{TrainingWorker, WorkerOptions};
 
 /// What `zrak view` was asked to do.
 #[derive(Debug, Clone)]
@@ -87,7 +87,8 @@ const SCREENSHOT_GRACE: Duration = Duration::from_secs(10);
 
 /// eframe's wgpu setup asking for the adapter's own limits: egui-wgpu's
 /// default asks `Limits::default()`, which caps storage buffers and
-/// workgroup memory below what the adapter offers (DESIGN.md). The device
+/// workgroup memory below what the adapter offers (docs/design.md, the
+/// lavapipe facts under "Two engines, one contract"). The device
 /// is the gpu engine's own ([`GpuContext::device_descriptor`]: its
 /// features too), so the training thread can share it and draw the view
 /// into textures the window shows.
@@ -240,7 +241,7 @@ impl ViewerApp {
                 gpu_device,
                 sampling: options.sampling,
                 precision: options.precision,
-                autosave: super::worker::default_autosave_folder(),
+                autosave: crate::session::worker::default_autosave_folder(),
                 kept_runs: options.kept_runs,
                 ..WorkerOptions::default()
             },
@@ -276,7 +277,7 @@ impl ViewerApp {
         }
         ui.set_resting_redraw(resting_redraw);
         if let Some(file) = &options.camera_path {
-            ui.open_camera_path(crate::app::path_state::PendingLoad {
+            ui.open_camera_path(crate::session::path_state::PendingLoad {
                 file: file.clone(),
                 time: options.path_time,
                 play: options.path_play,
@@ -489,7 +490,7 @@ fn summary(values: &[f64]) -> serde_json::Value {
 }
 
 /// The training thread's schedule over the session, in seconds.
-fn schedule_json(trace: &crate::app::protocol::ScheduleTrace) -> serde_json::Value {
+fn schedule_json(trace: &crate::session::protocol::ScheduleTrace) -> serde_json::Value {
     serde_json::json!({
         "wall_seconds": trace.wall_seconds,
         "training_seconds": trace.training_seconds,

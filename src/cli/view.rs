@@ -4,7 +4,6 @@
 use std::path::PathBuf;
 
 use clap::{Args, FromArgMatches};
-use zrak::app::protocol::SceneSource;
 use zrak::app::ui::ExportKind;
 use zrak::app::viewer::ViewerOptions;
 use zrak::engine::EngineKind;
@@ -12,6 +11,7 @@ use zrak::engine::cpu::dense::Precision;
 use zrak::field::ModelKind;
 use zrak::field::nerf::Sampling;
 use zrak::scene::crop::CropArg;
+use zrak::session::protocol::SceneSource;
 
 #[derive(Args, Debug)]
 pub struct ViewArgs {

@@ -21,6 +21,7 @@ const LAYERS: &[&[&str]] = &[
     &["train"],
     &["render", "mesh"],
     &["bench"],
+    &["session"],
     &["app"],
     &["cli"],
 ];
@@ -649,4 +650,63 @@ fn the_circle_reader_resolves_relative_paths_and_groups() {
     .map(|(k, v)| (k.to_string(), v.into_iter().map(String::from).collect()))
     .collect();
     assert_eq!(circles(&graph), vec![vec!["a", "b", "c"]]);
+}
+
+/// Whether code (comments removed) names the GUI toolkit.
+fn names_the_gui_toolkit(code: &str) -> bool {
+    code.contains("egui") || code.contains("eframe")
+}
+
+/// Whether a file only declares modules (a folder's `mod.rs`).
+fn only_declares_modules(code: &str) -> bool {
+    code.lines()
+        .map(str::trim)
+        .filter(|line| !line.is_empty())
+        .all(|line| line.starts_with("pub mod ") || line.starts_with("mod "))
+}
+
+/// zrak issue 44: `session/` is the viewer without its window, so it names
+/// neither egui nor eframe; what of the viewer needs neither lives there,
+/// so every file of `app/` names one of them.
+#[test]
+fn the_session_knows_no_gui_toolkit_and_the_app_is_only_the_gui() {
+    let _cores = crate::common::shared();
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut problems = Vec::new();
+    let mut checked = 0;
+    for (folder, wants_toolkit) in [("session", false), ("app", true)] {
+        let mut files = Vec::new();
+        rust_files(&src.join(folder), &mut files);
+        for file in files {
+            checked += 1;
+            let code = without_comments(&std::fs::read_to_string(&file).unwrap());
+            if only_declares_modules(&code) || names_the_gui_toolkit(&code) == wants_toolkit {
+                continue;
+            }
+            problems.push(if wants_toolkit {
+                format!(
+                    "{} names neither egui nor eframe: it belongs in src/session",
+                    file.display()
+                )
+            } else {
+                format!(
+                    "{} names egui or eframe: the GUI belongs in src/app",
+                    file.display()
+                )
+            });
+        }
+    }
+    assert!(checked > 15, "only {checked} files read");
+    assert!(problems.is_empty(), "{}", problems.join("\n"));
+}
+
+#[test]
+fn the_toolkit_check_reads_code_and_knows_a_folders_module_list() {
+    let _cores = crate::common::shared();
+    let code = without_comments("//! The eframe viewer.\npub mod ui;\n\npub mod viewer;\n");
+    assert!(only_declares_modules(&code));
+    assert!(!names_the_gui_toolkit(&code));
+    let code = without_comments("use eframe::egui;\npub mod ui;\n");
+    assert!(!only_declares_modules(&code));
+    assert!(names_the_gui_toolkit(&code));
 }

@@ -42,6 +42,7 @@ mod scene_bounds;
 mod scene_loading;
 mod sh_gpu;
 mod split_bindings_gpu;
+mod viewer_exports;
 mod viewer_gpu;
 mod viewer_ui;
 mod viewer_window;

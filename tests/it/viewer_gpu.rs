@@ -10,10 +10,9 @@
 
 use std::path::Path;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
-use zrak::app::protocol::{Command, Event, GpuFrame, RenderRequest, RenderedFrame, SceneSource};
-use zrak::app::worker::{TrainingWorker, WorkerOptions};
+use crate::common::worker::wait_for;
 use zrak::engine::build;
 use zrak::engine::build_gpu;
 use zrak::engine::gpu::GpuContext;
@@ -27,6 +26,10 @@ use zrak::metrics::WHITE;
 use zrak::render::{RenderMode, render_pixels, to_image};
 use zrak::scene::demo::{self, DemoConfig};
 use zrak::scene::{Camera, Scene};
+use zrak::session::protocol::{
+    Command, Event, GpuFrame, RenderRequest, RenderedFrame, SceneSource,
+};
+use zrak::session::worker::{TrainingWorker, WorkerOptions};
 use zrak::train::checkpoint::Checkpoint;
 use zrak::train::model::RenderedPixel;
 use zrak::train::trainer::Trainer;
@@ -39,9 +42,6 @@ const BATCH_SAMPLES: usize = 1 << 12;
 /// Cpu steps before the checkpoint: enough for the field to show the demo
 /// scene's shapes (an untrained field renders a nearly flat grey).
 const PRETRAIN_STEPS: usize = 60;
-
-/// Generous for lavapipe on a shared two-core machine.
-const PATIENCE: Duration = Duration::from_secs(50);
 
 fn demo_config() -> DemoConfig {
     DemoConfig {
@@ -113,28 +113,6 @@ fn read_back_render(
         .restore(&Checkpoint::load(checkpoint).expect("reads"))
         .expect("restores");
     render_pixels(trainer.model.as_ref(), camera, WHITE)
-}
-
-/// Events until `pick` returns a value; panics with what was seen when
-/// none does within [`PATIENCE`].
-fn wait_for<T>(worker: &TrainingWorker, mut pick: impl FnMut(&Event) -> Option<T>) -> T {
-    let deadline = Instant::now() + PATIENCE;
-    let mut seen = Vec::new();
-    while let Some(left) = deadline.checked_duration_since(Instant::now()) {
-        let Some(event) = worker.recv_timeout(left) else {
-            break;
-        };
-        if let Some(value) = pick(&event) {
-            return value;
-        }
-        seen.push(match &event {
-            Event::Frame(f) => format!("Frame(gen {}, 1/{})", f.generation, f.downscale),
-            Event::GpuFrame(f) => format!("GpuFrame(gen {}, 1/{})", f.generation, f.downscale),
-            Event::SceneLoaded(_) => "SceneLoaded".to_string(),
-            other => format!("{other:?}"),
-        });
-    }
-    panic!("the awaited event did not come; seen: {seen:?}");
 }
 
 fn request(
@@ -298,8 +276,8 @@ fn the_gpu_engine_draws_the_view_into_a_texture_on_the_shared_device() {
 #[test]
 fn a_level_drawn_in_bands_is_the_level_drawn_whole() {
     let _cores = crate::common::shared();
-    use zrak::app::progressive::draw_band_to_texture;
     use zrak::engine::gpu::render::render_target;
+    use zrak::session::progressive::{Band, draw_band_to_texture};
     let config = demo_config();
     let scene = Arc::new(demo::build(&config));
     let folder = std::env::temp_dir().join(format!("zrak-viewer-bands-{}", std::process::id()));
@@ -368,7 +346,13 @@ fn a_level_drawn_in_bands_is_the_level_drawn_whole() {
             while first < height {
                 let rows = 5.min(height - first);
                 let band = render_target(&context.device, width, rows);
-                draw_band_to_texture(gpu, &context, &camera, first, mode, WHITE, &band, &banded)
+                let rows_drawn = Band {
+                    camera: &camera,
+                    first,
+                    mode,
+                    background: WHITE,
+                };
+                draw_band_to_texture(gpu, &context, rows_drawn, &band, &banded)
                     .expect("a band fits");
                 first += rows;
             }
@@ -395,13 +379,16 @@ fn a_level_drawn_in_bands_is_the_level_drawn_whole() {
         }
         // A band that does not fit the view is refused, not drawn.
         let band = render_target(&context.device, width, 5);
+        let past_the_bottom = Band {
+            camera: &camera,
+            first: height - 2,
+            mode: RenderMode::Rgb,
+            background: WHITE,
+        };
         let error = draw_band_to_texture(
             gpu,
             &context,
-            &camera,
-            height - 2,
-            RenderMode::Rgb,
-            WHITE,
+            past_the_bottom,
             &band,
             &render_target(&context.device, width, height),
         )

@@ -6,15 +6,17 @@
 //! read while steps go on, the progressive levels a render budget picks)
 //! run alone; those that check only what is answered, however long it
 //! takes within [`PATIENCE`], run beside other tests.
+//!
+//! [`PATIENCE`]: common::worker::PATIENCE
 
 use crate::common;
+use crate::common::worker::{
+    camera, frames_until_full, options, render, small_demo, spawn, stats_step, step_once, wait_for,
+};
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use glam::Vec3;
-use zrak::app::protocol::{Command, Event, InTurn, RenderRequest, RenderedFrame, SceneSource};
-use zrak::app::worker::{TrainingWorker, WorkerOptions};
 use zrak::engine::EngineKind;
 use zrak::field::ModelKind;
 use zrak::field::nerf::Sampling;
@@ -22,111 +24,9 @@ use zrak::field::ngp::LossKind;
 use zrak::render::RenderMode;
 use zrak::render::export::ExportSettings;
 use zrak::render::path::Turntable;
-use zrak::scene::demo::{self, CAMERA_ANGLE_X, DemoConfig};
-use zrak::scene::{Camera, Intrinsics};
-
-/// Generous: on a loaded machine a step can take a second.
-const PATIENCE: Duration = Duration::from_secs(60);
-
-fn small_demo() -> DemoConfig {
-    DemoConfig {
-        size: 32,
-        train_views: 12,
-        val_views: 2,
-        test_views: 1,
-    }
-}
-
-fn options() -> WorkerOptions {
-    WorkerOptions {
-        demo: small_demo(),
-        batch_samples: Some(1 << 12),
-        ..WorkerOptions::default()
-    }
-}
-
-fn spawn(options: WorkerOptions) -> TrainingWorker {
-    TrainingWorker::spawn_with(
-        SceneSource::Demo,
-        Some(EngineKind::Cpu),
-        ModelKind::Ngp,
-        options,
-    )
-}
-
-/// Events until `pick` returns a value; panics with what was seen when
-/// none does within [`PATIENCE`].
-fn wait_for<T>(worker: &TrainingWorker, mut pick: impl FnMut(&Event) -> Option<T>) -> T {
-    let deadline = Instant::now() + PATIENCE;
-    let mut seen = Vec::new();
-    while let Some(left) = deadline.checked_duration_since(Instant::now()) {
-        let Some(event) = worker.recv_timeout(left) else {
-            break;
-        };
-        if let Some(value) = pick(&event) {
-            return value;
-        }
-        seen.push(summary(&event));
-    }
-    panic!("the awaited event did not come; seen: {seen:?}");
-}
-
-fn summary(event: &Event) -> String {
-    match event {
-        Event::Frame(f) => format!(
-            "Frame(gen {}, 1/{}, {}×{}, step {})",
-            f.generation, f.downscale, f.width, f.height, f.step
-        ),
-        Event::Stats(s) => format!("Stats(step {}, loss {})", s.step, s.loss),
-        Event::SceneLoaded(info) => format!("SceneLoaded({})", info.scene.name),
-        other => format!("{other:?}"),
-    }
-}
-
-fn stats_step(event: &Event) -> Option<u32> {
-    match event {
-        Event::Stats(stats) => Some(stats.step),
-        _ => None,
-    }
-}
-
-fn step_once(worker: &TrainingWorker) -> u32 {
-    worker.send(Command::StepOnce);
-    wait_for(worker, stats_step)
-}
-
-fn camera(size: u32, azimuth: f32) -> Camera {
-    let eye = 4.0 * Vec3::new(azimuth.cos(), azimuth.sin(), 0.6).normalize();
-    Camera::look_at(
-        Intrinsics::from_fov_x(size, size, CAMERA_ANGLE_X),
-        eye,
-        Vec3::ZERO,
-        Vec3::Z,
-    )
-}
-
-fn render(worker: &TrainingWorker, generation: u64, camera: Camera) {
-    worker.send(Command::Render(RenderRequest {
-        generation,
-        camera,
-        mode: RenderMode::Rgb,
-        moving: false,
-        needs_pixels: false,
-    }));
-}
-
-/// Frames of `generation` up to its full-resolution one.
-fn frames_until_full(worker: &TrainingWorker, generation: u64) -> Vec<RenderedFrame> {
-    let mut frames = Vec::new();
-    wait_for(worker, |event| match event {
-        Event::Frame(frame) if frame.generation == generation => {
-            frames.push(frame.clone());
-            (frame.downscale == 1 && frame.complete).then_some(())
-        }
-        _ => None,
-    });
-    frames
-}
+use zrak::scene::demo::{self, DemoConfig};
+use zrak::session::protocol::{Command, Event, InTurn, RenderRequest, SceneSource};
+use zrak::session::worker::{TrainingWorker, WorkerOptions};
 
 #[test]
 fn training_reports_stats_with_a_finite_loss_and_honest_psnrs() {
@@ -693,7 +593,7 @@ struct Watched {
     /// Render seconds of levels not yet finished, by downscale.
     level_in_progress: Vec<(u32, f64)>,
     /// Where the thread's time went, over the traces received.
-    time: zrak::app::schedule::ScheduleTrace,
+    time: zrak::session::schedule::ScheduleTrace,
 }
 
 impl Watched {
@@ -701,7 +601,7 @@ impl Watched {
     /// level in progress until a level of it finishes. A trace that holds
     /// the end of one level and the start of the next charges both to the
     /// first, which only lengthens the measured cost.
-    fn add_trace(&mut self, trace: &zrak::app::schedule::ScheduleTrace) {
+    fn add_trace(&mut self, trace: &zrak::session::schedule::ScheduleTrace) {
         self.time.merge(trace);
         for level in &trace.rendering {
             let index = match self
@@ -826,7 +726,9 @@ fn the_picture_keeps_up_while_training_keeps_its_share(
     options: WorkerOptions,
     view: u32,
 ) {
-    use zrak::app::schedule::{DEFAULT_TRAINING_SHARE, lag_bound_seconds, settle_bound_seconds};
+    use zrak::session::schedule::{
+        DEFAULT_TRAINING_SHARE, lag_bound_seconds, settle_bound_seconds,
+    };
     let worker = TrainingWorker::spawn_with(SceneSource::Demo, Some(engine), model, options);
     wait_for(&worker, |event| match event {
         Event::Engine { kind, .. } => {
@@ -996,7 +898,7 @@ fn the_picture_keeps_up_while_training_keeps_its_share(
         });
     // The trace that holds the full level's last band comes within a
     // trace interval.
-    let trace_wait = zrak::app::schedule::TRACE_INTERVAL.as_secs_f64() + 0.5;
+    let trace_wait = zrak::session::schedule::TRACE_INTERVAL.as_secs_f64() + 0.5;
     watch(
         &worker,
         7,
@@ -1036,7 +938,7 @@ fn the_picture_keeps_up_while_training_keeps_its_share(
 #[test]
 fn a_resting_picture_reaches_full_resolution_when_a_level_takes_several_budgets() {
     let _alone = common::alone();
-    use zrak::app::schedule::{DEFAULT_TRAINING_SHARE, refresh_budget, settle_bound_seconds};
+    use zrak::session::schedule::{DEFAULT_TRAINING_SHARE, refresh_budget, settle_bound_seconds};
     let worker = TrainingWorker::spawn_with(
         SceneSource::Demo,
         Some(EngineKind::Cpu),
@@ -1068,7 +970,7 @@ fn a_resting_picture_reaches_full_resolution_when_a_level_takes_several_budgets(
         .find(|f| f.downscale == 1 && f.complete)
         .unwrap_or_else(|| panic!("no full-resolution frame: {:?}", run.frames));
     // The trace of the full level's last band.
-    let trace_wait = zrak::app::schedule::TRACE_INTERVAL.as_secs_f64() + 0.5;
+    let trace_wait = zrak::session::schedule::TRACE_INTERVAL.as_secs_f64() + 0.5;
     watch(&worker, 1, Instant::now(), trace_wait, |_| false, &mut run);
     worker.shutdown();
     let full_level = run

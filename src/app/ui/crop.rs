@@ -9,9 +9,9 @@ use egui::RichText;
 use glam::{EulerRot, Quat, Vec3};
 
 use super::ViewerUi;
-use crate::app::protocol::Command;
 use crate::scene::bounds::Aabb;
 use crate::scene::crop::CropBox;
+use crate::session::protocol::Command;
 
 /// What the crop box window holds.
 #[derive(Debug, Clone, PartialEq)]

@@ -1,7 +1,7 @@
 //! The Export window: a turntable, a camera path (PNG frames or an MP4
 //! video), a mesh or a point cloud of the active model, each with progress
 //! and cancel. The training thread does the work a unit at a time (see
-//! `app/worker/export_jobs.rs`), with the same functions as the commands.
+//! `session/worker/export_jobs.rs`), with the same functions as the commands.
 //! Mesh, points and renders keep to the crop box when one is on.
 
 use eframe::egui;
@@ -11,13 +11,13 @@ use egui::RichText;
 
 use super::panels::ERROR_COLOUR;
 use super::{Notice, ViewerUi};
-use crate::app::protocol::{CameraPathExport, Command, MeshExport, PointsExport};
 use crate::mesh::MinComponent;
 use crate::mesh::extract::{MAX_RESOLUTION, default_threshold};
 use crate::render::RenderMode;
 use crate::render::camera_path::nerfstudio::CameraPathFile;
 use crate::render::export::ExportSettings;
 use crate::render::path::Turntable;
+use crate::session::protocol::{CameraPathExport, Command, MeshExport, PointsExport};
 
 /// What the window exports.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]

@@ -20,15 +20,15 @@ use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use crate::app::camera::ViewCamera;
-use crate::app::path_state::PathEditor;
-use crate::app::protocol::{
-    Balance, Command, Event, InTurn, SceneInfo, SceneSource, ScheduleTrace, TrainingStats,
-};
-use crate::app::worker::TrainingWorker;
 use crate::engine::EngineKind;
 use crate::field::ModelKind;
 use crate::render::RenderMode;
+use crate::session::camera::ViewCamera;
+use crate::session::path_state::PathEditor;
+use crate::session::protocol::{
+    Balance, Command, Event, InTurn, SceneInfo, SceneSource, ScheduleTrace, TrainingStats,
+};
+use crate::session::worker::TrainingWorker;
 
 pub use crop::CropPanel;
 pub use export::{ExportDialog, ExportKind};
@@ -67,7 +67,7 @@ impl TrainingLink for TrainingWorker {
 /// renderer (`viewer.rs`); a UI without one (the kittest tests, whose
 /// thread never shares a device) drops such frames.
 ///
-/// [`GpuFrame`]: crate::app::protocol::GpuFrame
+/// [`GpuFrame`]: crate::session::protocol::GpuFrame
 pub trait NativeTextures {
     /// An egui id showing `texture`: `previous` re-pointed at it when
     /// given (so ids are reused, not leaked), else a new one.
@@ -767,8 +767,8 @@ impl ViewerUi {
 
 /// The newest frame of a batch of events, either kind.
 enum NewFrame {
-    Pixels(crate::app::protocol::RenderedFrame),
-    Texture(crate::app::protocol::GpuFrame),
+    Pixels(crate::session::protocol::RenderedFrame),
+    Texture(crate::session::protocol::GpuFrame),
 }
 
 /// "the demo scene" or the folder's path.

@@ -8,10 +8,10 @@ use egui::{Color32, RichText};
 
 use super::viewport::{self, CompareMode, CompareWith};
 use super::{PlotAxis, ViewerUi, describe_source, plots};
-use crate::app::camera::Navigation;
-use crate::app::protocol::{Balance, Command, SceneSource};
 use crate::field::ModelKind;
 use crate::render::RenderMode;
+use crate::session::camera::Navigation;
+use crate::session::protocol::{Balance, Command, SceneSource};
 
 /// The colour of error text.
 pub(super) const ERROR_COLOUR: Color32 = Color32::from_rgb(0xff, 0x70, 0x60);
@@ -85,7 +85,7 @@ pub fn menu_bar(state: &mut ViewerUi, ui: &mut egui::Ui) {
 /// a click loads its checkpoint, "Remove" deletes its folder.
 fn recent_runs_menu(state: &mut ViewerUi, ui: &mut egui::Ui) {
     use crate::train::kept;
-    let Some(base) = crate::app::worker::default_autosave_folder() else {
+    let Some(base) = crate::session::worker::default_autosave_folder() else {
         ui.label("No data folder ($XDG_DATA_HOME or $HOME is unset)");
         return;
     };

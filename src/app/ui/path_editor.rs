@@ -2,7 +2,7 @@
 //! the training cameras, their list and per-keyframe settings, the path's
 //! settings, a timeline to scrub and play along, and nerfstudio's
 //! `camera_path.json` saved and loaded. The state and its edits live in
-//! [`crate::app::path_state`]; this file draws them and moves the
+//! [`crate::session::path_state`]; this file draws them and moves the
 //! viewport camera along the path.
 
 use eframe::egui;
@@ -12,9 +12,9 @@ use std::time::Instant;
 use egui::{Color32, RichText, Sense, Stroke};
 
 use super::ViewerUi;
-use crate::app::path_state::{PathEditor, PendingLoad, keyframes_from_baked};
 use crate::render::camera_path::nerfstudio::{CameraPathFile, scene_to_original};
 use crate::render::camera_path::{CameraPath, FOV_RANGE_DEGREES, Keyframe};
+use crate::session::path_state::{PathEditor, PendingLoad, keyframes_from_baked};
 
 /// The colour of error text (as the side panel's).
 const ERROR_COLOUR: Color32 = Color32::from_rgb(0xff, 0x70, 0x60);
@@ -772,9 +772,9 @@ fn files(state: &mut ViewerUi, ui: &mut egui::Ui) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::app::protocol::{Event, SceneInfo, SceneSource};
     use crate::field::ModelKind;
     use crate::scene::demo::{DemoConfig, build};
+    use crate::session::protocol::{Event, SceneInfo, SceneSource};
     use std::sync::Arc;
     use std::time::Duration;
 

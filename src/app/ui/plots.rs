@@ -6,12 +6,12 @@ use std::path::{Path, PathBuf};
 use eframe::egui;
 use egui_plot::{Legend, Line, Plot, PlotPoints, Points};
 
-use crate::app::protocol::TrainingStats;
 use crate::bench::plot::{Series, SeriesStyle, write_psnr_plot};
 use crate::bench::table::{
     DEFAULT_TARGETS_DB, Table, format_mib, format_psnr, format_seconds, time_to_reach,
 };
 use crate::field::ModelKind;
+use crate::session::protocol::TrainingStats;
 
 /// Points kept per model before older ones are thinned: enough for a smooth
 /// curve at any window width, few enough to draw every frame.

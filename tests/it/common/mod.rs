@@ -8,6 +8,7 @@
 pub mod demo_ngp;
 pub mod gate_record;
 pub mod march;
+pub mod worker;
 
 use std::path::PathBuf;
 use std::process::{Child, Output};

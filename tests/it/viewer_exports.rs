@@ -1,128 +1,32 @@
 //! The viewer's crop box and exports on the training thread: a cpu-engine
 //! worker on a small demo scene, checked by value (what it renders, the
-//! files it writes, what a cancel leaves).
+//! files it writes, what a cancel leaves). They check only what is
+//! answered, so they run beside other tests.
 
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex, MutexGuard};
-use std::time::{Duration, Instant};
+use std::sync::Arc;
+use std::time::Instant;
 
 use glam::{DMat4, DVec3, Vec3};
+use zrak::engine::cpu::dense::Precision;
+use zrak::field::ModelKind;
+use zrak::mesh::extract::{MeshSettings, extract_mesh, sample_density};
+use zrak::mesh::points::{PointSettings, extract_points, stride_for};
+use zrak::mesh::points_to_ply;
+use zrak::render::RenderMode;
+use zrak::render::camera_path::nerfstudio::CameraPathFile;
+use zrak::render::camera_path::{CameraPath, Keyframe, look_at};
+use zrak::scene::crop::CropBox;
+use zrak::scene::demo::{self, DemoConfig};
+use zrak::session::protocol::{CameraPathExport, Command, Event, MeshExport, PointsExport};
+use zrak::session::worker::{TrainingWorker, WorkerOptions};
+use zrak::train::checkpoint::Checkpoint;
+use zrak::train::trainer::Trainer;
 
-use crate::app::protocol::{
-    CameraPathExport, Command, Event, MeshExport, PointsExport, RenderRequest, RenderedFrame,
-    SceneSource,
+use crate::common;
+use crate::common::worker::{
+    camera, frames_until_full, options, render, small_demo, spawn, step_once, wait_for,
 };
-use crate::app::worker::{TrainingWorker, WorkerOptions};
-use crate::engine::EngineKind;
-use crate::engine::cpu::dense::Precision;
-use crate::engine::cpu::model::CpuModel;
-use crate::engine::request::ModelRequest;
-use crate::field::ModelKind;
-use crate::mesh::extract::{MeshSettings, extract_mesh, sample_density};
-use crate::mesh::points::{PointSettings, extract_points, stride_for};
-use crate::mesh::points_to_ply;
-use crate::render::RenderMode;
-use crate::render::camera_path::nerfstudio::CameraPathFile;
-use crate::render::camera_path::{CameraPath, Keyframe, look_at};
-use crate::scene::crop::CropBox;
-use crate::scene::demo::{self, CAMERA_ANGLE_X, DemoConfig};
-use crate::scene::{Camera, Intrinsics};
-use crate::train::checkpoint::Checkpoint;
-use crate::train::trainer::Trainer;
-
-/// One worker at a time: the machine's cores are few.
-fn one_at_a_time() -> MutexGuard<'static, ()> {
-    static LOCK: Mutex<()> = Mutex::new(());
-    LOCK.lock().unwrap_or_else(|e| e.into_inner())
-}
-
-/// Generous: on a loaded machine a step can take a second.
-const PATIENCE: Duration = Duration::from_secs(120);
-
-fn small_demo() -> DemoConfig {
-    DemoConfig {
-        size: 32,
-        train_views: 12,
-        val_views: 2,
-        test_views: 1,
-    }
-}
-
-fn options() -> WorkerOptions {
-    WorkerOptions {
-        demo: small_demo(),
-        batch_samples: Some(1 << 12),
-        // No run kept on closing: tests leave the user's folder alone.
-        autosave: None,
-        ..WorkerOptions::default()
-    }
-}
-
-fn spawn(options: WorkerOptions) -> TrainingWorker {
-    TrainingWorker::spawn_with(
-        SceneSource::Demo,
-        Some(EngineKind::Cpu),
-        ModelKind::Ngp,
-        options,
-    )
-}
-
-/// Events until `pick` returns a value; panics with what was seen when
-/// none does within [`PATIENCE`].
-fn wait_for<T>(worker: &TrainingWorker, mut pick: impl FnMut(&Event) -> Option<T>) -> T {
-    let deadline = Instant::now() + PATIENCE;
-    let mut seen = Vec::new();
-    while let Some(left) = deadline.checked_duration_since(Instant::now()) {
-        let Some(event) = worker.recv_timeout(left) else {
-            break;
-        };
-        if let Some(value) = pick(&event) {
-            return value;
-        }
-        if !matches!(event, Event::Frame(_) | Event::Schedule(_)) {
-            seen.push(format!("{event:?}").chars().take(120).collect::<String>());
-        }
-    }
-    panic!("the awaited event did not come; seen: {seen:?}");
-}
-
-fn step_once(worker: &TrainingWorker) {
-    worker.send(Command::StepOnce);
-    wait_for(worker, |e| matches!(e, Event::Stats(_)).then_some(()));
-}
-
-fn camera(size: u32, azimuth: f32) -> Camera {
-    let eye = 4.0 * Vec3::new(azimuth.cos(), azimuth.sin(), 0.6).normalize();
-    Camera::look_at(
-        Intrinsics::from_fov_x(size, size, CAMERA_ANGLE_X),
-        eye,
-        Vec3::ZERO,
-        Vec3::Z,
-    )
-}
-
-fn render(worker: &TrainingWorker, generation: u64, camera: Camera) {
-    worker.send(Command::Render(RenderRequest {
-        generation,
-        camera,
-        mode: RenderMode::Rgb,
-        moving: false,
-        needs_pixels: true,
-    }));
-}
-
-/// Frames of `generation` up to its full-resolution one.
-fn frames_until_full(worker: &TrainingWorker, generation: u64) -> Vec<RenderedFrame> {
-    let mut frames = Vec::new();
-    wait_for(worker, |event| match event {
-        Event::Frame(frame) if frame.generation == generation => {
-            frames.push(frame.clone());
-            (frame.downscale == 1).then_some(())
-        }
-        _ => None,
-    });
-    frames
-}
 
 fn save(worker: &TrainingWorker, path: &Path) {
     worker.send(Command::SaveCheckpoint(path.to_path_buf()));
@@ -160,7 +64,7 @@ fn crop_answer(worker: &TrainingWorker) -> (Option<CropBox>, Option<String>) {
 
 #[test]
 fn a_crop_box_that_holds_nothing_renders_only_background() {
-    let _serial = one_at_a_time();
+    let _cores = common::shared();
     let worker = spawn(options());
     for _ in 0..20 {
         step_once(&worker);
@@ -201,7 +105,7 @@ fn a_crop_box_that_holds_nothing_renders_only_background() {
 
 #[test]
 fn the_viewers_mesh_and_points_are_the_commands_and_an_existing_file_stays() {
-    let _serial = one_at_a_time();
+    let _cores = common::shared();
     let dir = tempfile::tempdir().unwrap();
     let options = WorkerOptions {
         precision: Precision::F32,
@@ -220,7 +124,7 @@ fn the_viewers_mesh_and_points_are_the_commands_and_an_existing_file_stays() {
     // The command's function on the same model (the saved checkpoint),
     // settings and box.
     let scene = Arc::new(demo::build(&small_demo()));
-    let settings = crate::engine::request::ModelSettings {
+    let settings = zrak::engine::request::ModelSettings {
         seed,
         loss: ModelKind::Ngp.default_loss(),
         batch_samples,
@@ -228,8 +132,8 @@ fn the_viewers_mesh_and_points_are_the_commands_and_an_existing_file_stays() {
         precision: Precision::F32,
     };
     let mut trainer = Trainer::new(
-        Box::new(CpuModel::build(
-            &ModelRequest::new(ModelKind::Ngp, settings),
+        Box::new(zrak::engine::cpu::model::CpuModel::build(
+            &zrak::engine::request::ModelRequest::new(ModelKind::Ngp, settings),
             &scene,
         )),
         scene.clone(),
@@ -356,7 +260,7 @@ fn two_keyframe_path(frames_per_second: f64) -> CameraPathFile {
 
 #[test]
 fn cancelled_exports_leave_their_frames_and_no_half_written_file() {
-    let _serial = one_at_a_time();
+    let _cores = common::shared();
     let dir = tempfile::tempdir().unwrap();
     let worker = spawn(options());
     let cancel_after = |done_at_least: usize| {
@@ -431,7 +335,7 @@ fn cancelled_exports_leave_their_frames_and_no_half_written_file() {
 
 #[test]
 fn a_runs_crop_box_is_saved_beside_its_checkpoint_and_comes_back_with_it() {
-    let _serial = one_at_a_time();
+    let _cores = common::shared();
     let dir = tempfile::tempdir().unwrap();
     let worker = spawn(options());
     step_once(&worker);
@@ -445,7 +349,7 @@ fn a_runs_crop_box_is_saved_beside_its_checkpoint_and_comes_back_with_it() {
     // A run folder: the checkpoint is checkpoint.zrak.
     let run = dir.path().join("run");
     std::fs::create_dir(&run).unwrap();
-    let checkpoint = run.join(crate::train::run::CHECKPOINT_FILE);
+    let checkpoint = run.join(zrak::train::run::CHECKPOINT_FILE);
     save(&worker, &checkpoint);
     assert_eq!(CropBox::load_from_run(&run), Ok(Some(crop)));
     // A checkpoint anywhere else leaves its folder alone.
@@ -461,12 +365,12 @@ fn a_runs_crop_box_is_saved_beside_its_checkpoint_and_comes_back_with_it() {
 
 /// The figure in the notes: the viewer's mesh export of the demo scene
 /// (128 × 128 views, 100 of them) at resolution 128 after 300 steps of
-/// Instant-NGP on the cpu engine. Run with `cargo test --release --lib --
+/// Instant-NGP on the cpu engine. Run with `cargo test --release --test it --
 /// --ignored viewer_mesh_export_of_the_demo`.
 #[test]
 #[ignore = "a measurement, minutes long"]
 fn viewer_mesh_export_of_the_demo() {
-    let _serial = one_at_a_time();
+    let _cores = common::shared();
     let dir = tempfile::tempdir().unwrap();
     let worker = spawn(WorkerOptions {
         demo: DemoConfig::default(),

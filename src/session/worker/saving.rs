@@ -1,18 +1,26 @@
 //! What the worker writes: checkpoints (saved, loaded, and kept on close)
 //! and the crop box beside them.
 
-use super::*;
+use std::path::Path;
+
+use crate::field::ModelKind;
+use crate::field::ngp::LossKind;
+use crate::scene::crop::CropBox;
+use crate::session::protocol::{Event, SceneSource};
+use crate::train::checkpoint::Checkpoint;
+
+use super::{UiGone, Worker};
 
 impl Worker {
     pub(super) fn save_checkpoint(&mut self, path: &Path) -> Result<(), UiGone> {
-        let Some(slot) = self.slot(self.active) else {
+        let Some(slot) = self.training.shown() else {
             return self.send(Event::Error(format!(
                 "{}: no model to save (the {} model was not built)",
                 path.display(),
-                self.active.name()
+                self.training.active.name()
             )));
         };
-        let scene = match &self.source {
+        let scene = match &self.scene.source {
             SceneSource::Demo => "demo".to_string(),
             SceneSource::Folder(folder) => folder.display().to_string(),
         };
@@ -26,11 +34,11 @@ impl Worker {
         let step = slot.trainer.step;
         match checkpoint.save(path) {
             Ok(()) => {
-                if let Some(slot) = self.slot_mut(self.active) {
+                if let Some(slot) = self.training.shown_mut() {
                     slot.saved_step = step;
                 }
                 if let Some(run) = run_folder_of(path)
-                    && let Err(e) = CropBox::save_to_run(self.crop.as_ref(), run)
+                    && let Err(e) = CropBox::save_to_run(self.scene.crop.as_ref(), run)
                 {
                     self.send(Event::Error(e))?;
                 }
@@ -59,7 +67,7 @@ impl Worker {
         if self.options.kept_runs == 0 {
             return;
         }
-        let scene_key = match &self.source {
+        let scene_key = match &self.scene.source {
             SceneSource::Demo => "demo".to_string(),
             SceneSource::Folder(folder) => std::fs::canonicalize(folder)
                 .unwrap_or_else(|_| folder.clone())
@@ -69,13 +77,14 @@ impl Worker {
         let stamp = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| d.as_secs());
-        for slot in &self.slots {
+        for slot in self.training.slots() {
             if slot.trainer.step <= slot.saved_step {
                 continue;
             }
             // Only plain characters of the scene's name: it may be any
             // folder's name, the run folder's must be a safe one.
             let scene_name: String = self
+                .scene
                 .scene
                 .name
                 .chars()
@@ -114,7 +123,7 @@ impl Worker {
                         .save(&folder.join(crate::train::run::CHECKPOINT_FILE))
                         .map_err(|e| e.to_string())
                 })
-                .and_then(|()| CropBox::save_to_run(self.crop.as_ref(), &folder));
+                .and_then(|()| CropBox::save_to_run(self.scene.crop.as_ref(), &folder));
             match saved {
                 Ok(()) => crate::interrupt::note(&format!(
                     "zrak view: kept {} at step {} in {}; continue it with \
@@ -144,8 +153,8 @@ impl Worker {
     pub(super) fn load_checkpoint(&mut self, path: &Path) -> Result<(), UiGone> {
         match self.restore_checkpoint(path) {
             Ok((kind, step)) => {
-                if kind != self.active {
-                    self.active = kind;
+                if kind != self.training.active {
+                    self.training.active = kind;
                     self.send(Event::ModelSelected(kind))?;
                 }
                 // A run's crop box comes back with it.
@@ -154,9 +163,7 @@ impl Worker {
                     Some(Err(e)) => self.send(Event::Error(e))?,
                     _ => {}
                 }
-                if let Some(view) = self.view.as_mut() {
-                    view.restart();
-                }
+                self.viewing.restart();
                 self.send(Event::CheckpointLoaded {
                     path: path.to_path_buf(),
                     model: kind,
@@ -183,8 +190,8 @@ impl Worker {
                     model_header["model"]
                 )
             })?;
-        let loss: LossKind = serde_json::from_value(model_header["loss"].clone())
-            .unwrap_or(self.options.loss.unwrap_or(kind.default_loss()));
+        let loss: LossKind =
+            serde_json::from_value(model_header["loss"].clone()).unwrap_or(self.loss_of(kind));
         let mut trainer = self.build_trainer(kind)?;
         let needed = crate::train::run::tensors_needed(trainer.model.as_ref());
         let checkpoint = Checkpoint::load_for(path, &needed).map_err(|e| e.to_string())?;
@@ -194,13 +201,10 @@ impl Worker {
             .restore(&checkpoint)
             .map_err(|e| format!("{}: {e}", path.display()))?;
         let step = trainer.step;
-        self.val_job = None;
+        self.jobs.evaluation = None;
         let slot = self.new_slot(kind, trainer, loss);
-        match self.slot_mut(kind) {
-            Some(existing) => *existing = slot,
-            None => self.slots.push(slot),
-        }
-        self.rebase_turns();
+        self.training.install(slot);
+        self.training.rebase_turns();
         Ok((kind, step))
     }
 }

@@ -53,37 +53,50 @@ pub fn band_camera(camera: &Camera, first: u32, rows: u32) -> Camera {
     )
 }
 
-/// Draws rows `first .. first + band.height()` of `camera`'s view into
-/// `target` (`camera`'s size) through `band` (a texture that many rows
-/// high, usable as a copy source): the band's camera
-/// ([`band_camera`]) drawn with the engine's ordinary texture render, then
-/// copied into place, so that a level slower than a unit of the training
-/// thread's work is drawn a band at a time.
-#[allow(clippy::too_many_arguments)]
+/// Which rows of which view a band draws, and over what.
+#[derive(Debug, Clone, Copy)]
+pub struct Band<'a> {
+    /// The whole view the band is part of.
+    pub camera: &'a Camera,
+    /// The band's first row in the view.
+    pub first: u32,
+    pub mode: RenderMode,
+    pub background: [f32; 3],
+}
+
+/// Draws rows `band.first .. band.first + through.height()` of
+/// `band.camera`'s view into `target` (the camera's size) through
+/// `through` (a texture that many rows high, usable as a copy source): the
+/// band's camera ([`band_camera`]) drawn with the engine's ordinary texture
+/// render, then copied into place, so that a level slower than a unit of
+/// the training thread's work is drawn a band at a time.
 pub fn draw_band_to_texture(
     gpu: &dyn TextureRender,
     context: &GpuContext,
-    camera: &Camera,
-    first: u32,
-    mode: RenderMode,
-    background: [f32; 3],
-    band: &wgpu::Texture,
+    band: Band<'_>,
+    through: &wgpu::Texture,
     target: &wgpu::Texture,
 ) -> Result<(), String> {
-    let rows = band.height();
+    let Band {
+        camera,
+        first,
+        mode,
+        background,
+    } = band;
+    let rows = through.height();
     let k = camera.intrinsics;
-    if band.width() != k.width || first.checked_add(rows).is_none_or(|end| end > k.height) {
+    if through.width() != k.width || first.checked_add(rows).is_none_or(|end| end > k.height) {
         return Err(format!(
             "a band of {}×{rows} pixels at row {first} does not fit a {}×{} view",
-            band.width(),
+            through.width(),
             k.width,
             k.height
         ));
     }
-    gpu.render_to_texture(&band_camera(camera, first, rows), mode, background, band)?;
+    gpu.render_to_texture(&band_camera(camera, first, rows), mode, background, through)?;
     let mut encoder = context.device.create_command_encoder(&Default::default());
     encoder.copy_texture_to_texture(
-        band.as_image_copy(),
+        through.as_image_copy(),
         wgpu::TexelCopyTextureInfo {
             texture: target,
             mip_level: 0,

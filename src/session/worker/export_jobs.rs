@@ -6,12 +6,20 @@
 //! as its command (`zrak render --turntable|--camera-path`, `zrak export
 //! mesh|points`), so both make the same files.
 
-use super::export_mesh::{MeshJob, PointsJob};
-use super::*;
-use crate::app::protocol::{CameraPathExport, MeshExport, PointsExport};
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use crate::field::ModelKind;
+use crate::model::RadianceModel;
 use crate::render::camera_path::export::{PathRender, PathRenderSettings};
 use crate::render::camera_path::frames::RenderSource;
 use crate::render::camera_path::nerfstudio::scene_to_original;
+use crate::render::export::{ExportSettings, TurntableExport};
+use crate::scene::Scene;
+use crate::scene::crop::CropBox;
+use crate::session::protocol::{CameraPathExport, MeshExport, PointsExport};
+
+use super::export_mesh::{MeshJob, PointsJob};
 
 /// What the window asked to export (one at a time: its size does not
 /// matter).
@@ -69,6 +77,11 @@ impl ExportJob {
             }
         };
         Ok(ExportJob { model, work })
+    }
+
+    /// The model it exports.
+    pub(super) fn model(&self) -> ModelKind {
+        self.model
     }
 
     /// (units done, units in all).
@@ -149,87 +162,3 @@ fn path_settings(
         source,
     })
 }
-
-impl Worker {
-    pub(super) fn start_export(&mut self, order: ExportOrder) -> Result<(), UiGone> {
-        if self.export.is_some() {
-            return self.send(Event::Error(
-                "an export is already running; cancel it first".into(),
-            ));
-        }
-        let step = self.slot(self.active).map_or(0, |slot| slot.trainer.step);
-        match ExportJob::start(&self.scene, order, self.active, self.crop, step) {
-            Ok(job) => {
-                let (done, total) = job.progress();
-                self.export = Some(job);
-                self.send(Event::ExportProgress { done, total })
-            }
-            Err(e) => self.send(Event::ExportFinished(Err(e))),
-        }
-    }
-
-    /// Does one unit of the export; training waits while an export runs.
-    pub(super) fn export_unit(&mut self) -> Result<(), UiGone> {
-        let Some(mut job) = self.export.take() else {
-            return Ok(());
-        };
-        let Some(slot) = self.slot(job.model) else {
-            return self.send(Event::ExportFinished(Err(format!(
-                "the export stopped: the {} model is gone",
-                job.model.name()
-            ))));
-        };
-        let model = slot.trainer.model.as_ref();
-        match job.step(model) {
-            Ok(more) => {
-                let (done, total) = job.progress();
-                self.send(Event::ExportProgress { done, total })?;
-                if more {
-                    self.export = Some(job);
-                    Ok(())
-                } else {
-                    let finished = job.finish(model);
-                    self.send(Event::ExportFinished(finished))
-                }
-            }
-            Err(e) => self.send(Event::ExportFinished(Err(e))),
-        }
-    }
-
-    /// Sets the crop box on every model (and on those built later); a
-    /// model that refuses it (the gpu engine may) keeps rendering the whole
-    /// scene, and the refusal goes to the window.
-    pub(super) fn set_crop(&mut self, crop: Option<CropBox>) -> Result<(), UiGone> {
-        let crop = match crop.map(|c| c.check().map(|()| c)).transpose() {
-            Ok(crop) => crop,
-            Err(problem) => {
-                return self.send(Event::CropSet {
-                    crop: self.crop,
-                    refused: Some(problem),
-                });
-            }
-        };
-        let refused = self
-            .slots
-            .iter_mut()
-            .find_map(|slot| slot.trainer.model.set_crop(crop).err());
-        if refused.is_some() {
-            // Every model back to the whole scene, so that they agree.
-            for slot in &mut self.slots {
-                let _ = slot.trainer.model.set_crop(None);
-            }
-        }
-        self.crop = if refused.is_some() { None } else { crop };
-        if let Some(view) = self.view.as_mut() {
-            view.restart();
-        }
-        self.send(Event::CropSet {
-            crop: self.crop,
-            refused,
-        })
-    }
-}
-
-#[cfg(test)]
-#[path = "export_tests.rs"]
-mod tests;

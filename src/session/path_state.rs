@@ -7,9 +7,9 @@
 
 use std::path::PathBuf;
 
-use crate::app::camera::ViewCamera;
 use crate::render::camera_path::nerfstudio::CameraPathFile;
 use crate::render::camera_path::{CameraPath, Keyframe};
+use crate::session::camera::ViewCamera;
 
 /// Frame rate a new path is exported at: nerfstudio's viewer's default.
 pub const DEFAULT_FPS: f64 = 30.0;

@@ -2,14 +2,21 @@
 //! the density grid (then marching cubes, colours and the file), or a
 //! training view's rays. The same functions as `zrak export mesh|points`.
 
-use super::*;
-use crate::app::protocol::{MeshExport, PointsExport};
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use glam::Vec3;
+
+use crate::field::ModelKind;
 use crate::mesh::extract::{
     DensitySampler, MAX_RESOLUTION, MeshSettings, default_threshold, grid_dims, mesh_bytes,
 };
 use crate::mesh::points::{PointSettings, points_of_view, stride_for};
 use crate::mesh::{MeshFormat, points_to_ply};
-use glam::Vec3;
+use crate::model::RadianceModel;
+use crate::scene::Scene;
+use crate::scene::crop::CropBox;
+use crate::session::protocol::{MeshExport, PointsExport};
 
 /// A mesh being extracted.
 pub(super) struct MeshJob {

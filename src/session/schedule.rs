@@ -26,7 +26,7 @@
 
 use std::time::Duration;
 
-/// The default training share ([`crate::app::protocol::Balance`]).
+/// The default training share ([`crate::session::protocol::Balance`]).
 pub const DEFAULT_TRAINING_SHARE: f64 = 0.7;
 
 /// Render seconds between two sends of a slow redraw of a resting view at
@@ -474,6 +474,47 @@ mod tests {
             }
             let got = training / (training + other);
             assert!((got - share).abs() < 0.01, "share {share}: {got}");
+        }
+    }
+
+    #[test]
+    fn a_resting_views_redraws_keep_within_the_lag_bound_for_given_step_times() {
+        // The thread's choice while the camera rests, as the worker makes
+        // it (a training step when the ledger says training is due, else a
+        // chunk of the view), with steps and chunks of given lengths: once
+        // under way, each redraw of a level that takes `redraw` render
+        // seconds is done within half the lag bound (which allows for the
+        // redraw on screen and the one in progress).
+        for (share, step, chunk, redraw) in [
+            (0.7, 0.3, 0.04, 1.0),
+            (0.5, 0.05, 0.04, 3.0),
+            (0.2, 1.2, 0.04, 0.5),
+            (0.95, 0.02, 0.01, 0.2),
+        ] {
+            let mut ledger = Ledger::default();
+            let (mut wall, mut drawn) = (0.0, 0.0);
+            let mut finished: Vec<f64> = Vec::new();
+            while wall < 300.0 {
+                if ledger.training_due(share) {
+                    ledger.record_training(step);
+                    wall += step;
+                } else {
+                    ledger.record_other(chunk);
+                    wall += chunk;
+                    drawn += chunk;
+                    if drawn >= redraw - 1e-9 {
+                        drawn = 0.0;
+                        finished.push(wall);
+                    }
+                }
+            }
+            let longest = finished.windows(2).map(|w| w[1] - w[0]).fold(0.0, f64::max);
+            let bound = lag_bound_seconds(share, redraw, step) / 2.0;
+            assert!(finished.len() > 10, "share {share}: {finished:?}");
+            assert!(
+                longest <= bound,
+                "share {share}, steps of {step} s, redraws of {redraw} s: {longest} s > {bound} s"
+            );
         }
     }
 

@@ -2,14 +2,115 @@
 //! chunk (or band by band into textures on the gpu engine) between
 //! training steps, the first sized from the model's render cost, the rest
 //! refining to full resolution; a redraw slower than the refresh budget is
-//! sent band by band as it goes.
+//! sent band by band as it goes. [`Viewing`] owns the view, the share of
+//! the time it gets ([`Ledger`], [`Balance`]) and the textures it is drawn
+//! into.
 
-use super::*;
+use std::time::{Duration, Instant};
+
+use crate::engine::gpu::GpuContext;
+use crate::engine::gpu::render::render_target;
+use crate::field::ModelKind;
+use crate::metrics::WHITE;
+use crate::model::TextureRender;
+use crate::render::RenderMode;
+use crate::scene::Camera;
+use crate::session::progressive::{Band, LevelRender, draw_band_to_texture, level_camera};
+use crate::session::protocol::{Balance, Event, GpuFrame, RenderRequest, RenderedFrame};
+use crate::session::schedule::{
+    Ledger, ScheduleTrace, first_level, next_finer_level, refresh_budget,
+};
+
+use super::training::ModelSlot;
+use super::{Outbox, UiGone};
+
+/// A moving request counts as moving for this long after it arrived: the UI
+/// sends one per frame while the user drags, so a gap this long means the
+/// camera came to rest even if no resting request followed.
+const MOVING_GRACE: Duration = Duration::from_millis(300);
+
+/// The largest training share honoured while a view still refines: at 1.0
+/// the viewport would never sharpen.
+const MAX_TRAINING_SHARE: f32 = 0.95;
+
+/// Textures the gpu engine's view is drawn into, kept for reuse (levels of
+/// several sizes, two of each size that is shown).
+const MAX_KEPT_TEXTURES: usize = 8;
+
+/// The largest viewport side accepted (8K); anything above is a bad
+/// request, refused before it allocates gigabytes of pixels.
+const MAX_VIEWPORT_SIDE: u32 = 8_192;
+
+/// What the viewport asked for and how far it has been drawn.
+struct View {
+    request: RenderRequest,
+    received: Instant,
+    /// The level being drawn.
+    job: Option<LevelJob>,
+    /// The last finished level of this camera and model (re-sent when the
+    /// same camera is requested again).
+    shown: Option<Shown>,
+}
+
+/// A finished level on screen.
+struct Shown {
+    picture: Picture,
+    /// The model revision the level began from.
+    revision: u64,
+    downscale: u32,
+}
+
+/// A level of the view being drawn.
+struct LevelJob {
+    downscale: u32,
+    /// The model drawn, its step and training seconds when the level began.
+    model: ModelKind,
+    step: u32,
+    train_seconds: f64,
+    revision: u64,
+    /// Render seconds spent on it so far.
+    seconds: f64,
+    /// Whether it may be sent before its last row over the rest of the
+    /// picture on screen (a redraw of that level, or a finer level over it).
+    over_shown: bool,
+    /// Whether the rows not drawn yet hold the picture on screen (copied
+    /// when the level is first sent unfinished).
+    holds_shown_rest: bool,
+    /// Render seconds spent on it when it was last sent unfinished.
+    seconds_at_last_send: f64,
+    draw: LevelDraw,
+}
+
+enum LevelDraw {
+    /// Chunks of rays composited on the host, sent as pixels.
+    Pixels(LevelRender),
+    /// Bands of rows drawn by the gpu engine into a texture on the
+    /// window's device.
+    Texture(TextureLevel),
+}
+
+/// A level drawn into a texture band by band, so that a level slower
+/// than a unit of work (NeRF on lavapipe: seconds) never holds the thread.
+struct TextureLevel {
+    camera: Camera,
+    texture: wgpu::Texture,
+    /// Rows above this one are drawn.
+    next_row: u32,
+}
+
+/// A finished frame of the view, as sent.
+enum Picture {
+    /// Pixels read back to the CPU (the cpu engine, or a request that
+    /// needs the pixels).
+    Pixels(RenderedFrame),
+    /// A texture on the device shared with the window.
+    Texture(GpuFrame),
+}
 
 /// Textures the view is drawn into, kept for reuse: level sizes change
 /// with the camera and the model's cost, and bands come in a few sizes.
 #[derive(Default)]
-pub(super) struct TexturePool {
+struct TexturePool {
     /// Least recently used first.
     kept: Vec<wgpu::Texture>,
     /// The textures of the last two frames sent: the window may still
@@ -17,8 +118,32 @@ pub(super) struct TexturePool {
     sent: [Option<wgpu::Texture>; 2],
 }
 
+/// A view with something to draw, as the loop sees it when it picks its
+/// next unit of work.
+pub(super) struct Pending {
+    /// Nothing of this camera and model is on screen yet.
+    pub(super) first_level: bool,
+    /// While the camera moves: how long until it counts as resting.
+    pub(super) moving_for: Option<Duration>,
+}
+
+/// The view, its part of the thread's time, and the textures it is drawn
+/// into.
+pub(super) struct Viewing {
+    view: Option<View>,
+    /// Training's part of the time while the camera rests.
+    ledger: Ledger,
+    balance: Balance,
+    /// True when the engine trains on the window's own device
+    /// ([`super::WorkerOptions::gpu_device`]): the view is then drawn into
+    /// textures there.
+    textures_shared: bool,
+    /// Textures the view's levels and bands are drawn into.
+    textures: TexturePool,
+}
+
 impl View {
-    pub(super) fn moving(&self) -> bool {
+    fn moving(&self) -> bool {
         self.request.moving && self.received.elapsed() < MOVING_GRACE
     }
 
@@ -26,14 +151,14 @@ impl View {
     /// model, a reset, a loaded checkpoint), so neither the level in
     /// progress nor the refinement so far is of the model now shown. The
     /// window keeps the old picture until the first level comes.
-    pub(super) fn restart(&mut self) {
+    fn restart(&mut self) {
         self.job = None;
         self.shown = None;
     }
 }
 
 impl LevelJob {
-    pub(super) fn pixels(&self) -> usize {
+    fn pixels(&self) -> usize {
         match &self.draw {
             LevelDraw::Pixels(render) => render.width() as usize * render.height() as usize,
             LevelDraw::Texture(level) => {
@@ -42,15 +167,13 @@ impl LevelJob {
         }
     }
 
-    pub(super) fn is_done(&self) -> bool {
+    fn is_done(&self) -> bool {
         match &self.draw {
             LevelDraw::Pixels(render) => render.is_done(),
             LevelDraw::Texture(level) => level.next_row >= level.camera.intrinsics.height,
         }
     }
-}
 
-impl LevelJob {
     /// The level as it stands, as the answer to `request`: its pixels
     /// (those drawn, and below them what [`LevelRender::fill_rest_from`]
     /// put there) or its texture; `complete` once its last row is drawn.
@@ -95,7 +218,7 @@ impl Picture {
 
     /// Whether this picture answers `request` (of the same camera): pixels
     /// are shown in any mode, while a texture holds one mode's colours.
-    pub(super) fn answers(&self, request: &RenderRequest, draws_to_texture: bool) -> bool {
+    fn answers(&self, request: &RenderRequest, draws_to_texture: bool) -> bool {
         match self {
             Picture::Pixels(_) => !draws_to_texture,
             Picture::Texture(frame) => draws_to_texture && frame.mode == request.mode,
@@ -103,7 +226,7 @@ impl Picture {
     }
 
     /// The picture as the answer to `request`, as an event.
-    pub(super) fn resend(&mut self, request: &RenderRequest) -> Event {
+    fn resend(&mut self, request: &RenderRequest) -> Event {
         match self {
             Picture::Pixels(frame) => {
                 frame.generation = request.generation;
@@ -121,7 +244,7 @@ impl Picture {
 impl TexturePool {
     /// A `width × height` texture no frame the window may still show
     /// holds: a kept one, else a new one.
-    pub(super) fn take(&mut self, context: &GpuContext, width: u32, height: u32) -> wgpu::Texture {
+    fn take(&mut self, context: &GpuContext, width: u32, height: u32) -> wgpu::Texture {
         let sent = &self.sent;
         let free = self.kept.iter().position(|t| {
             (t.width(), t.height()) == (width, height) && !sent.iter().flatten().any(|s| s == t)
@@ -143,7 +266,7 @@ impl TexturePool {
     }
 
     /// `texture` went to the window in a frame.
-    pub(super) fn sent(&mut self, texture: &wgpu::Texture) {
+    fn sent(&mut self, texture: &wgpu::Texture) {
         self.sent = [Some(texture.clone()), self.sent[0].take()];
     }
 }
@@ -151,12 +274,12 @@ impl TexturePool {
 /// Draws up to `rows` more rows of `level` (at least one) and returns how
 /// many: the whole level at once when one band covers it, else through a
 /// texture of the band's size ([`draw_band_to_texture`]).
-pub(super) fn draw_band(
-    gpu: &dyn crate::train::model::TextureRender,
+fn draw_band(
+    gpu: &dyn TextureRender,
     context: &GpuContext,
     level: &mut TextureLevel,
     rows: u32,
-    mode: crate::render::RenderMode,
+    mode: RenderMode,
     textures: &mut TexturePool,
 ) -> Result<u32, String> {
     let k = level.camera.intrinsics;
@@ -168,10 +291,12 @@ pub(super) fn draw_band(
         draw_band_to_texture(
             gpu,
             context,
-            &level.camera,
-            level.next_row,
-            mode,
-            WHITE,
+            Band {
+                camera: &level.camera,
+                first: level.next_row,
+                mode,
+                background: WHITE,
+            },
             &band,
             &level.texture,
         )?;
@@ -217,7 +342,89 @@ fn copy_rest_of_level(context: &GpuContext, level: &TextureLevel, shown: &wgpu::
     true
 }
 
-impl Worker {
+impl Viewing {
+    /// No view yet; `textures_shared` when the engine trains on the
+    /// window's device.
+    pub(super) fn new(textures_shared: bool) -> Self {
+        Self {
+            view: None,
+            ledger: Ledger::default(),
+            balance: Balance::default(),
+            textures_shared,
+            textures: TexturePool::default(),
+        }
+    }
+
+    /// Training's share of the time while the view refines.
+    pub(super) fn training_share(&self) -> f64 {
+        self.balance.training_share.clamp(0.0, MAX_TRAINING_SHARE) as f64
+    }
+
+    /// Sets the balance the window asked for (a share that is not a
+    /// number gives the default).
+    pub(super) fn set_balance(&mut self, balance: Balance) {
+        let share = if balance.training_share.is_finite() {
+            balance.training_share.clamp(0.0, 1.0)
+        } else {
+            Balance::default().training_share
+        };
+        self.balance = Balance {
+            training_share: share,
+        };
+    }
+
+    /// Whether training is due for its share of the time.
+    pub(super) fn training_due(&self) -> bool {
+        self.ledger.training_due(self.training_share())
+    }
+
+    /// Whether the camera moves (then the ledger keeps no accounts).
+    pub(super) fn camera_moving(&self) -> bool {
+        self.view.as_ref().is_some_and(View::moving)
+    }
+
+    /// A training step of `seconds`, while the camera rests.
+    pub(super) fn record_training(&mut self, seconds: f64) {
+        if !self.camera_moving() {
+            self.ledger.record_training(seconds);
+        }
+    }
+
+    /// `seconds` of the view's kind of work (drawing, evaluating), while
+    /// the camera rests.
+    pub(super) fn record_other(&mut self, seconds: f64) {
+        if !self.camera_moving() {
+            self.ledger.record_other(seconds);
+        }
+    }
+
+    /// The model shown changed: the view starts again from a first level.
+    pub(super) fn restart(&mut self) {
+        if let Some(view) = self.view.as_mut() {
+            view.restart();
+        }
+    }
+
+    /// The camera belongs to a scene that is gone; the window sends a new
+    /// one.
+    pub(super) fn forget_camera(&mut self) {
+        self.view = None;
+    }
+
+    /// The view's work, if it has any, with `slot` the shown model's.
+    pub(super) fn pending(&self, slot: Option<&ModelSlot>) -> Option<Pending> {
+        let view = self.view.as_ref()?;
+        if view.job.is_none() && self.next_level(slot).is_none() {
+            return None;
+        }
+        Some(Pending {
+            first_level: view.shown.is_none(),
+            moving_for: view
+                .moving()
+                .then(|| MOVING_GRACE.saturating_sub(view.received.elapsed())),
+        })
+    }
+
     /// The level the view should draw next (its downscale), if any: a
     /// first level for a camera or model not yet shown; then, once the
     /// camera rests, finer levels up to full resolution, however long
@@ -226,9 +433,9 @@ impl Worker {
     /// has changed since the shown level began, that level again. A resting
     /// picture never gets coarser: a redraw slower than the refresh budget
     /// is shown band by band as it goes ([`Self::send_partial_if_due`]).
-    pub(super) fn next_level(&self) -> Option<u32> {
+    fn next_level(&self, slot: Option<&ModelSlot>) -> Option<u32> {
         let view = self.view.as_ref()?;
-        let slot = self.slot(self.active)?;
+        let slot = slot?;
         let k = view.request.camera.intrinsics;
         let Some(shown) = &view.shown else {
             let cost = slot.cost.seconds_per_pixel();
@@ -244,15 +451,21 @@ impl Worker {
         (shown.revision != slot.revision).then_some(shown.downscale)
     }
 
-    pub(super) fn set_view(&mut self, request: RenderRequest) -> Result<(), UiGone> {
+    /// Takes the window's camera; `slot` is the shown model's.
+    pub(super) fn set_view(
+        &mut self,
+        request: RenderRequest,
+        slot: Option<&ModelSlot>,
+        outbox: &Outbox,
+    ) -> Result<(), UiGone> {
         if let Err(problem) = check_camera(&request.camera) {
-            return self.send(Event::Error(format!(
+            return outbox.send(Event::Error(format!(
                 "render request {} refused: {problem}",
                 request.generation
             )));
         }
         let now = Instant::now();
-        let to_texture = self.draws_to_texture(&request);
+        let to_texture = self.draws_to_texture(&request, slot);
         let same_picture = self.view.as_ref().is_some_and(|v| {
             v.request.camera == request.camera
                 && v.shown
@@ -272,7 +485,7 @@ impl Worker {
             view.received = now;
             if let Some(shown) = view.shown.as_mut() {
                 let event = shown.picture.resend(&view.request);
-                return self.send(event);
+                return outbox.send(event);
             }
             return Ok(());
         }
@@ -288,25 +501,32 @@ impl Worker {
         Ok(())
     }
 
-    /// Draws the view: one chunk of rays or band of rows, or the whole
-    /// level it is on.
-    pub(super) fn render_unit(&mut self, whole_level: bool) -> Result<(), UiGone> {
-        if self.slot(self.active).is_none() {
+    /// Draws the view with the shown model's `slot`: one chunk of rays or
+    /// band of rows, or the whole level it is on.
+    pub(super) fn render_unit(
+        &mut self,
+        whole_level: bool,
+        slot: Option<&mut ModelSlot>,
+        gpu: Option<&GpuContext>,
+        trace: &mut ScheduleTrace,
+        outbox: &Outbox,
+    ) -> Result<(), UiGone> {
+        let Some(slot) = slot else {
             // No model to draw with (its build failed and was reported).
             self.view = None;
             return Ok(());
-        }
+        };
         if self.view.as_ref().is_some_and(|v| v.job.is_none()) {
-            let Some(downscale) = self.next_level() else {
+            let Some(downscale) = self.next_level(Some(slot)) else {
                 return Ok(());
             };
-            let job = self.start_level(downscale);
+            let job = self.start_level(downscale, slot, gpu);
             if let Some(view) = self.view.as_mut() {
                 view.job = Some(job);
             }
         }
         loop {
-            let drawn = self.draw_part()?;
+            let drawn = self.draw_part(slot, gpu, trace, outbox)?;
             let done = self
                 .view
                 .as_ref()
@@ -322,9 +542,9 @@ impl Worker {
             .and_then(|v| v.job.as_ref())
             .is_some_and(LevelJob::is_done);
         if finished {
-            return self.finish_level();
+            return self.finish_level(slot, trace, outbox);
         }
-        self.send_partial_if_due()
+        self.send_partial_if_due(gpu, outbox)
     }
 
     /// Sends a level as far as it has gone, once it has taken another
@@ -335,7 +555,11 @@ impl Worker {
     /// band instead of holding an old picture until its last row. The rest
     /// is copied from the picture on screen only then, so a level within
     /// the budget costs nothing more.
-    fn send_partial_if_due(&mut self) -> Result<(), UiGone> {
+    fn send_partial_if_due(
+        &mut self,
+        gpu: Option<&GpuContext>,
+        outbox: &Outbox,
+    ) -> Result<(), UiGone> {
         let budget = refresh_budget(self.training_share());
         let started = Instant::now();
         let Some(view) = self.view.as_mut() else {
@@ -353,12 +577,10 @@ impl Worker {
                 (LevelDraw::Pixels(render), Some(Picture::Pixels(frame))) => {
                     render.fill_rest_from(&frame.pixels, frame.width, frame.height)
                 }
-                (LevelDraw::Texture(level), Some(Picture::Texture(frame))) => {
-                    match self.engine.gpu.as_ref() {
-                        Some(context) => copy_rest_of_level(context, level, &frame.texture),
-                        None => false,
-                    }
-                }
+                (LevelDraw::Texture(level), Some(Picture::Texture(frame))) => match gpu {
+                    Some(context) => copy_rest_of_level(context, level, &frame.texture),
+                    None => false,
+                },
                 _ => false,
             };
             if !job.holds_shown_rest {
@@ -376,32 +598,31 @@ impl Worker {
         // The copy and the pixels sent are the view's time too.
         let seconds = started.elapsed().as_secs_f64();
         self.ledger.record_other(seconds);
-        self.outbox.send(event)
+        outbox.send(event)
     }
 
-    /// A level of the view at `downscale` of the active model's current
-    /// state: into a texture when the window shares the engine's device.
-    pub(super) fn start_level(&mut self, downscale: u32) -> LevelJob {
+    /// A level of the view at `downscale` of `slot`'s model as it is now:
+    /// into a texture when the window shares the engine's device.
+    fn start_level(
+        &mut self,
+        downscale: u32,
+        slot: &ModelSlot,
+        gpu: Option<&GpuContext>,
+    ) -> LevelJob {
         let view = self.view.as_ref().expect("a view to draw");
         let camera = level_camera(&view.request.camera, downscale);
-        let request_to_texture = self.draws_to_texture(&view.request);
+        let request_to_texture = self.draws_to_texture(&view.request, Some(slot));
         // A redraw of the level on screen, or on the cpu's pixels a finer
         // level over it (its rows not drawn yet show the coarser picture
         // enlarged), may be sent before its last row.
         let over_shown = view.shown.as_ref().is_some_and(|shown| {
             shown.downscale == downscale || matches!(shown.picture, Picture::Pixels(_))
         });
-        let slot = self.slot(self.active).expect("checked by the caller");
-        let (model, step, train_seconds, revision) = (
-            slot.kind,
-            slot.trainer.step,
-            slot.trainer.train_seconds,
-            slot.revision,
-        );
         let draw = if request_to_texture {
             let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
+            let context = gpu.expect("textures need the device");
             LevelDraw::Texture(TextureLevel {
-                texture: self.texture(width, height),
+                texture: self.textures.take(context, width, height),
                 camera,
                 next_row: 0,
             })
@@ -410,10 +631,10 @@ impl Worker {
         };
         LevelJob {
             downscale,
-            model,
-            step,
-            train_seconds,
-            revision,
+            model: slot.kind,
+            step: slot.trainer.step,
+            train_seconds: slot.trainer.train_seconds,
+            revision: slot.revision,
             seconds: 0.0,
             over_shown,
             holds_shown_rest: false,
@@ -424,12 +645,14 @@ impl Worker {
 
     /// Draws the next chunk or band of the level in progress; false when
     /// there was nothing to draw.
-    pub(super) fn draw_part(&mut self) -> Result<bool, UiGone> {
-        let active = self.active;
-        let (Some(slot), Some(view)) = (
-            self.slots.iter_mut().find(|s| s.kind == active),
-            self.view.as_mut(),
-        ) else {
+    fn draw_part(
+        &mut self,
+        slot: &mut ModelSlot,
+        gpu: Option<&GpuContext>,
+        trace: &mut ScheduleTrace,
+        outbox: &Outbox,
+    ) -> Result<bool, UiGone> {
+        let Some(view) = self.view.as_mut() else {
             return Ok(false);
         };
         let Some(job) = view.job.as_mut() else {
@@ -441,31 +664,28 @@ impl Worker {
                 render.render_chunk(slot.trainer.model.as_ref(), slot.pacer.chunk_rays(), WHITE),
                 None,
             ),
-            LevelDraw::Texture(level) => {
-                let context = self.engine.gpu.as_ref();
-                match (slot.trainer.model.texture_render(), context) {
-                    (Some(gpu), Some(context)) => {
-                        let width = level.camera.intrinsics.width.max(1);
-                        // Whole rows, as many as the chunk's rays; not
-                        // capped as chunks of pixels are (a real GPU draws
-                        // a whole level in one band).
-                        let rays = slot.pacer.uncapped_chunk_rays();
-                        let rows = u32::try_from(rays / width as usize).unwrap_or(u32::MAX);
-                        match draw_band(
-                            gpu,
-                            context,
-                            level,
-                            rows,
-                            view.request.mode,
-                            &mut self.textures,
-                        ) {
-                            Ok(drawn) => ((drawn * width) as usize, None),
-                            Err(error) => (0, Some(error)),
-                        }
+            LevelDraw::Texture(level) => match (slot.trainer.model.texture_render(), gpu) {
+                (Some(model), Some(context)) => {
+                    let width = level.camera.intrinsics.width.max(1);
+                    // Whole rows, as many as the chunk's rays; not capped as
+                    // chunks of pixels are (a real GPU draws a whole level in
+                    // one band).
+                    let rays = slot.pacer.uncapped_chunk_rays();
+                    let rows = u32::try_from(rays / width as usize).unwrap_or(u32::MAX);
+                    match draw_band(
+                        model,
+                        context,
+                        level,
+                        rows,
+                        view.request.mode,
+                        &mut self.textures,
+                    ) {
+                        Ok(drawn) => ((drawn * width) as usize, None),
+                        Err(error) => (0, Some(error)),
                     }
-                    _ => (0, Some("the model cannot draw into textures".to_string())),
                 }
-            }
+                _ => (0, Some("the model cannot draw into textures".to_string())),
+            },
         };
         let seconds = started.elapsed().as_secs_f64();
         if let Some(error) = failure {
@@ -474,7 +694,7 @@ impl Worker {
             self.textures_shared = false;
             job.draw = LevelDraw::Pixels(LevelRender::new(&view.request.camera, job.downscale));
             job.over_shown = false;
-            self.send(Event::Error(format!(
+            outbox.send(Event::Error(format!(
                 "drawing the view on the gpu failed ({error}); the view now comes \
                  through the CPU"
             )))?;
@@ -486,24 +706,25 @@ impl Worker {
         if !view.moving() {
             self.ledger.record_other(seconds);
         }
-        self.trace.add_rendering(downscale, seconds, false);
+        trace.add_rendering(downscale, seconds, false);
         Ok(true)
     }
 
     /// Sends the finished level and keeps it as what is shown.
-    pub(super) fn finish_level(&mut self) -> Result<(), UiGone> {
-        let active = self.active;
-        let (Some(slot), Some(view)) = (
-            self.slots.iter_mut().find(|s| s.kind == active),
-            self.view.as_mut(),
-        ) else {
+    fn finish_level(
+        &mut self,
+        slot: &mut ModelSlot,
+        trace: &mut ScheduleTrace,
+        outbox: &Outbox,
+    ) -> Result<(), UiGone> {
+        let Some(view) = self.view.as_mut() else {
             return Ok(());
         };
         let Some(job) = view.job.take() else {
             return Ok(());
         };
         slot.cost.record(job.pixels(), job.seconds);
-        self.trace.add_rendering(job.downscale, 0.0, true);
+        trace.add_rendering(job.downscale, 0.0, true);
         let picture = job.picture(&view.request, true);
         if let Picture::Texture(frame) = &picture {
             self.textures.sent(&frame.texture);
@@ -514,22 +735,15 @@ impl Worker {
             revision: job.revision,
             downscale: job.downscale,
         });
-        self.outbox.send(event)
+        outbox.send(event)
     }
 
-    /// Whether `request` is answered with a texture on the shared device.
-    pub(super) fn draws_to_texture(&self, request: &RenderRequest) -> bool {
+    /// Whether `request` is answered with a texture on the shared device,
+    /// `slot` being the shown model's.
+    fn draws_to_texture(&self, request: &RenderRequest, slot: Option<&ModelSlot>) -> bool {
         self.textures_shared
             && !request.needs_pixels
-            && self
-                .slot(self.active)
-                .is_some_and(|s| s.trainer.model.texture_render().is_some())
-    }
-
-    /// A `width × height` texture to draw a level into.
-    pub(super) fn texture(&mut self, width: u32, height: u32) -> wgpu::Texture {
-        let context = self.engine.gpu.as_ref().expect("textures need the device");
-        self.textures.take(context, width, height)
+            && slot.is_some_and(|s| s.trainer.model.texture_render().is_some())
     }
 }
 
@@ -561,3 +775,7 @@ fn check_camera(camera: &Camera) -> Result<(), String> {
     }
     Ok(())
 }
+
+#[cfg(test)]
+#[path = "view_tests.rs"]
+mod tests;

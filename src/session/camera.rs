@@ -47,8 +47,9 @@ const LOOK_RADIANS_PER_PIXEL: f32 = 0.003;
 /// where yaw would turn into roll.
 const PITCH_LIMIT_DEGREES: f32 = 89.0;
 
-/// Zoom: the distance shrinks by exp(-rate · scroll). egui reports about 50
-/// points per wheel notch, so one notch moves about 10% closer.
+/// Zoom: the distance shrinks by exp(-rate · scroll). The window's toolkit
+/// reports about 50 points per wheel notch, so one notch moves about 10%
+/// closer.
 const ZOOM_RATE_PER_SCROLL: f32 = 0.002;
 
 /// Nearest and farthest target distance, in scene sizes (the diagonal of the

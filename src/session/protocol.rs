@@ -275,7 +275,7 @@ pub enum Event {
     Schedule(ScheduleTrace),
     Frame(RenderedFrame),
     /// A frame on the GPU (only to a UI that shares its device with the
-    /// thread, see [`crate::app::worker::WorkerOptions::gpu_device`]).
+    /// thread, see [`crate::session::worker::WorkerOptions::gpu_device`]).
     GpuFrame(GpuFrame),
     CheckpointSaved(PathBuf),
     CheckpointLoaded {

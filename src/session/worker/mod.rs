@@ -12,8 +12,16 @@
 //! level whose render fits the budget, and the held-out evaluation takes a
 //! small share of its own. Where the time went is sent as
 //! [`Event::Schedule`] every second.
+//!
+//! The thread's state is in parts that own their data: the scene
+//! (`scene.rs`), the models and their turns (`training.rs`), the view and
+//! its share of the time (`view.rs`), the export and the held-out
+//! evaluation (`jobs.rs`, `export_jobs.rs`), and the trace of where the
+//! time went (`trace.rs`). `Worker` keeps the channels and routes each
+//! command to the parts it concerns; saving and loading checkpoints, which
+//! concern most of them, are its own (`saving.rs`).
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::mpsc::{self, Receiver, RecvTimeoutError, Sender, TryRecvError};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
@@ -23,77 +31,37 @@ use crate::engine::build;
 use crate::engine::cpu::dense::{Precision, backend_for};
 use crate::engine::cpu::fields::nerf::NerfShape;
 use crate::engine::gpu::GpuContext;
-use crate::engine::gpu::render::render_target;
 use crate::engine::request::{ModelRequest, ModelSettings};
 use crate::engine::{EngineChoice, EngineKind, choose_engine};
 use crate::field::FieldShape;
 use crate::field::ModelKind;
 use crate::field::nerf::Sampling;
 use crate::field::ngp::LossKind;
-use crate::metrics::WHITE;
-use crate::metrics::psnr::psnr_from_mse;
-use crate::render::export::{ExportSettings, TurntableExport};
+use crate::model::{RadianceModel, Stage};
+use crate::scene::Scene;
+use crate::scene::crop::CropBox;
 use crate::scene::demo::{self, DemoConfig};
-use crate::scene::{Camera, Frame, LoadOptions, Scene};
-use crate::train::checkpoint::Checkpoint;
-use crate::train::eval::{pixel_grid, spread_views};
-use crate::train::model::{RadianceModel, RayColumns, RenderedPixel, Stage, StageTimes, StepStats};
+use crate::session::protocol::{Command, Event, InTurn, SceneSource};
 use crate::train::trainer::Trainer;
-
-use super::progressive::{ChunkPacer, LevelRender, draw_band_to_texture, level_camera};
-use super::protocol::{
-    Balance, Command, Event, GpuFrame, InTurn, RenderRequest, RenderedFrame, SceneInfo,
-    SceneSource, TrainingStats,
-};
-use super::schedule::{
-    EVAL_SHARE, Ledger, MIN_EVAL_PIXELS, RenderCost, ScheduleTrace, TRACE_INTERVAL, first_level,
-    next_finer_level, refresh_budget,
-};
 
 mod export_jobs;
 mod export_mesh;
+mod jobs;
 mod saving;
+mod scene;
+mod trace;
 mod training;
 mod view;
 
-use crate::scene::crop::CropBox;
-use export_jobs::{ExportJob, ExportOrder};
+use export_jobs::ExportOrder;
+use jobs::{Evaluation, Jobs};
+use scene::{SceneState, load_scene};
+use trace::Trace;
 pub use training::Turns;
-use view::TexturePool;
+use training::{ModelSlot, Training};
+use view::Viewing;
 
 pub type RepaintCallback = Box<dyn Fn() + Send>;
-
-/// Stats go out at most this often (ten times a second), aggregated over
-/// the steps in between.
-const STATS_INTERVAL: Duration = Duration::from_millis(100);
-
-/// How long one chunk of rays should take: well under the ~100 ms a command
-/// may wait.
-const CHUNK_TARGET: Duration = Duration::from_millis(40);
-
-/// A moving request counts as moving for this long after it arrived: the UI
-/// sends one per frame while the user drags, so a gap this long means the
-/// camera came to rest even if no resting request followed.
-const MOVING_GRACE: Duration = Duration::from_millis(300);
-
-/// While the camera moves, training gets at most 1/(1 + this) of wall time:
-/// after a step of d seconds, the next waits d × this. A step cannot be
-/// interrupted, so a coarse frame may wait behind one (tens of ms with the
-/// viewer's cpu batch); waiting instead for a pause between requests would
-/// stop training for as long as the user drags.
-const MOVING_IDLE_PER_STEP: f64 = 3.0;
-
-/// The largest training share honoured while a view still refines: at 1.0
-/// the viewport would never sharpen.
-const MAX_TRAINING_SHARE: f32 = 0.95;
-
-/// Textures the gpu engine's view is drawn into, kept for reuse (levels of
-/// several sizes, two of each size that is shown).
-const MAX_KEPT_TEXTURES: usize = 8;
-
-/// The largest viewport side accepted (8K); anything above is a bad
-/// request, refused before it allocates gigabytes of pixels.
-const MAX_VIEWPORT_SIDE: u32 = 8_192;
 
 /// The viewer's training batch of `kind`, in samples, where the model's
 /// recipe would make a step too long to wait behind (its
@@ -142,8 +110,8 @@ pub struct WorkerOptions {
     /// Held-out views per evaluation.
     pub val_views: usize,
     pub repaint: Option<RepaintCallback>,
-    /// A device made elsewhere (the viewer's, from eframe) for the gpu
-    /// engine, instead of one of its own; the automatic choice still takes
+    /// A device made elsewhere (the window's own) for the gpu engine,
+    /// instead of one of its own; the automatic choice still takes
     /// the cpu engine when it is a software adapter. When the gpu engine
     /// trains on it, the view is drawn into textures on this device and
     /// sent as [`Event::GpuFrame`] (the window draws them without a copy
@@ -368,7 +336,7 @@ fn share_context(context: &GpuContext) -> Result<GpuContext, String> {
 }
 
 /// The engine to train on: as [`choose_engine`], but on `device` when the
-/// viewer made one (eframe's), so the engine can draw into its textures.
+/// window made one, so the engine can draw into its textures.
 fn choose_engine_on(
     requested: Option<EngineKind>,
     device: Option<GpuContext>,
@@ -384,7 +352,8 @@ fn choose_engine_on(
             gpu: Some(context),
         },
         // The same rule as `choose_engine`: a software adapter trains far
-        // slower than the cpu engine (DESIGN.md).
+        // slower than the cpu engine (docs/design.md, "Two engines, one
+        // contract").
         None if context.is_software() => EngineChoice {
             kind: EngineKind::Cpu,
             reason: format!(
@@ -399,138 +368,6 @@ fn choose_engine_on(
             gpu: Some(context),
         },
     })
-}
-
-/// Steps since the last stats event, to be reported as one.
-#[derive(Default)]
-struct StatsWindow {
-    steps: u32,
-    seconds: f64,
-    rays: usize,
-    samples: usize,
-    /// Samples before the rays' cuts, while every step of the window
-    /// reported them.
-    composited: Option<usize>,
-    /// Σ loss × rays, so the mean is over every ray of the window.
-    loss_times_rays: f64,
-    times: StageTimes,
-}
-
-/// One model's training on the current scene.
-struct ModelSlot {
-    kind: ModelKind,
-    trainer: Trainer,
-    /// The loss the model trains with (a loaded checkpoint brings its own).
-    loss: LossKind,
-    window: StatsWindow,
-    last_stats: Option<Instant>,
-    /// Training seconds at which the next held-out evaluation is due.
-    next_val_at: f64,
-    /// A held-out PSNR not yet reported.
-    pending_val: Option<f32>,
-    /// The last stats sent, re-sent with a held-out PSNR that completes
-    /// when no step was taken since.
-    last_report: Option<TrainingStats>,
-    /// Changes whenever the field does (step, reset, load), so the view
-    /// knows when what it shows is out of date.
-    revision: u64,
-    /// The step last saved or loaded (0 for a fresh model): a model past
-    /// it has training that only memory holds.
-    saved_step: u32,
-    /// Sizes the chunks of rays this model renders (its rays cost their
-    /// own: a NeRF ray ~50 of Instant-NGP's).
-    pacer: ChunkPacer,
-    /// What a pixel of this model costs to render, over whole levels.
-    cost: RenderCost,
-    /// What a pixel of the held-out evaluation costs: its views frame the
-    /// scene as the training views do, so more of their pixels cross it
-    /// than a viewport's.
-    eval_cost: RenderCost,
-}
-
-/// What the viewport asked for and how far it has been drawn.
-struct View {
-    request: RenderRequest,
-    received: Instant,
-    /// The level being drawn.
-    job: Option<LevelJob>,
-    /// The last finished level of this camera and model (re-sent when the
-    /// same camera is requested again).
-    shown: Option<Shown>,
-}
-
-/// A finished level on screen.
-struct Shown {
-    picture: Picture,
-    /// The model revision the level began from.
-    revision: u64,
-    downscale: u32,
-}
-
-/// A level of the view being drawn.
-struct LevelJob {
-    downscale: u32,
-    /// The model drawn, its step and training seconds when the level began.
-    model: ModelKind,
-    step: u32,
-    train_seconds: f64,
-    revision: u64,
-    /// Render seconds spent on it so far.
-    seconds: f64,
-    /// Whether it may be sent before its last row over the rest of the
-    /// picture on screen (a redraw of that level, or a finer level over it).
-    over_shown: bool,
-    /// Whether the rows not drawn yet hold the picture on screen (copied
-    /// when the level is first sent unfinished).
-    holds_shown_rest: bool,
-    /// Render seconds spent on it when it was last sent unfinished.
-    seconds_at_last_send: f64,
-    draw: LevelDraw,
-}
-
-enum LevelDraw {
-    /// Chunks of rays composited on the host, sent as pixels.
-    Pixels(LevelRender),
-    /// Bands of rows drawn by the gpu engine into a texture on the
-    /// window's device.
-    Texture(TextureLevel),
-}
-
-/// A level drawn into a texture band by band, so that a level slower
-/// than a unit of work (NeRF on lavapipe: seconds) never holds the thread.
-struct TextureLevel {
-    camera: Camera,
-    texture: wgpu::Texture,
-    /// Rows above this one are drawn.
-    next_row: u32,
-}
-
-/// A finished frame of the view, as sent.
-enum Picture {
-    /// Pixels read back to the CPU (the cpu engine, or a request that
-    /// needs the pixels).
-    Pixels(RenderedFrame),
-    /// A texture on the device shared with the window.
-    Texture(GpuFrame),
-}
-
-/// A held-out evaluation in progress: a grid of pixels spread over each
-/// held-out view, rendered in chunks like the view so that commands are
-/// not held up by a slow model, scored view by view (per-view PSNR, then
-/// the mean, as `train::eval::mean_psnr_sampled` scores for `zrak
-/// train`). Training waits until it is done, so the PSNR belongs to one
-/// step.
-struct ValJob {
-    model: ModelKind,
-    /// (held-out view, column, row) of every pixel to score, view by view.
-    pixels: Vec<(usize, u32, u32)>,
-    /// Pixels rendered so far.
-    done: usize,
-    /// Per view: Σ squared error over the three channels, and pixels.
-    squared: Vec<f64>,
-    counts: Vec<usize>,
-    /// Render seconds so far.
-    seconds: f64,
 }
 
 /// What the loop does next.
@@ -551,57 +388,24 @@ enum Flow {
     Stop,
 }
 
+/// How often the loop looks for a loaded scene when it has nothing else to
+/// do (it looks after every unit of work otherwise).
+const SCENE_POLL: Duration = Duration::from_millis(20);
+
+/// The thread's state: its inbox and outbox, what it was started with, and
+/// the parts that own the rest. The worker routes each command to the parts
+/// it concerns and picks the next unit of work.
 struct Worker {
     inbox: Receiver<Command>,
     outbox: Outbox,
     options: WorkerOptions,
     engine: Engine,
-    source: SceneSource,
-    scene: Arc<Scene>,
-    /// The held-out views of the scene, downscaled for quick evaluation.
-    val_frames: Vec<Frame>,
-    slots: Vec<ModelSlot>,
-    active: ModelKind,
-    /// When set, the models take turns at training instead of the active
-    /// model training alone.
-    turns: Option<Turns>,
-    running: bool,
-    balance: Balance,
-    view: Option<View>,
-    export: Option<ExportJob>,
-    /// What every model renders and exports (`None`: the whole scene).
-    crop: Option<CropBox>,
-    val_job: Option<ValJob>,
-    /// When the last training step ended and how long it took, to keep
-    /// training light while the camera moves.
-    last_step: Option<(Instant, f64)>,
-    next_revision: u64,
-    /// Training's part of the time while the camera rests.
-    ledger: Ledger,
-    /// Where the time went since `trace_started`, sent every
-    /// [`TRACE_INTERVAL`].
-    trace: ScheduleTrace,
-    trace_started: Instant,
-    /// True when the engine trains on the window's own device
-    /// ([`WorkerOptions::gpu_device`]): the view is then drawn into
-    /// textures there.
-    textures_shared: bool,
-    /// Textures the view's levels and bands are drawn into.
-    textures: TexturePool,
-    /// A scene being loaded on a thread of its own, so that reading and
-    /// decoding a large one never stalls training or rendering.
-    loading: Option<SceneLoad>,
+    scene: SceneState,
+    training: Training,
+    viewing: Viewing,
+    jobs: Jobs,
+    trace: Trace,
 }
-
-/// A scene load under way: what was asked for, and where the result comes.
-struct SceneLoad {
-    source: SceneSource,
-    result: Receiver<Result<Scene, String>>,
-}
-
-/// How often the loop looks for a loaded scene when it has nothing else to
-/// do (it looks after every unit of work otherwise).
-const SCENE_POLL: Duration = Duration::from_millis(20);
 
 impl Worker {
     fn start(
@@ -654,8 +458,7 @@ impl Worker {
                 (demo::build(&options.demo), SceneSource::Demo)
             }
         };
-        let scene = Arc::new(scene);
-        let val_frames = held_out_views(&scene, options.val_views);
+        let scene = SceneState::new(source, scene, options.val_views);
         // `choose_engine_on` keeps the given device only for the gpu engine.
         let textures_shared =
             display_device && engine.kind == EngineKind::Gpu && engine.gpu.is_some();
@@ -664,31 +467,13 @@ impl Worker {
             outbox,
             options,
             engine,
-            source,
             scene,
-            val_frames,
-            slots: Vec::new(),
-            active: model,
-            turns: None,
-            running: false,
-            balance: Balance::default(),
-            view: None,
-            export: None,
-            crop: None,
-            val_job: None,
-            last_step: None,
-            next_revision: 0,
-            ledger: Ledger::default(),
-            trace: ScheduleTrace::default(),
-            trace_started: Instant::now(),
-            textures_shared,
-            textures: TexturePool::default(),
-            loading: None,
+            training: Training::new(model),
+            viewing: Viewing::new(textures_shared),
+            jobs: Jobs::default(),
+            trace: Trace::new(Instant::now()),
         };
-        worker.send(Event::SceneLoaded(SceneInfo {
-            scene: worker.scene.clone(),
-            source: worker.source.clone(),
-        }))?;
+        worker.send(Event::SceneLoaded(worker.scene.info()))?;
         worker.ensure_slot(model)?;
         worker.send(Event::ModelSelected(model))?;
         worker.send(Event::Running(false))?;
@@ -721,23 +506,32 @@ impl Worker {
                     Err(TryRecvError::Disconnected) => return Ok(()),
                 }
             }
-            self.send_trace_if_due()?;
+            if let Some(trace) = self.trace.take_if_due(Instant::now()) {
+                self.send(Event::Schedule(trace))?;
+            }
             let mut work = self.next_work();
-            if let (Work::Wait(timeout), Some(_)) = (&mut work, &self.loading) {
+            if let Work::Wait(timeout) = &mut work
+                && self.scene.is_loading()
+            {
                 *timeout = Some(timeout.map_or(SCENE_POLL, |t| t.min(SCENE_POLL)));
             }
             if let Work::Wait(timeout) = &mut work
-                && !self.trace.only_idle()
+                && let Some(due) = self.trace.wake_within(Instant::now())
             {
                 // Wake to send what was done before the wait.
-                let due = TRACE_INTERVAL.saturating_sub(self.trace_started.elapsed());
                 *timeout = Some(timeout.map_or(due, |t| t.min(due)));
             }
             match work {
-                Work::Render { whole_level } => self.render_unit(whole_level)?,
-                Work::Export => self.export_unit()?,
+                Work::Render { whole_level } => self.viewing.render_unit(
+                    whole_level,
+                    self.training.shown_mut(),
+                    self.engine.gpu.as_ref(),
+                    &mut self.trace.time,
+                    &self.outbox,
+                )?,
+                Work::Export => self.jobs.export_unit(&self.training, &self.outbox)?,
                 Work::Evaluate => self.evaluate_unit()?,
-                Work::Train => self.train_unit()?,
+                Work::Train => self.train_step(false)?,
                 Work::Wait(timeout) => {
                     let waited = Instant::now();
                     let received = match timeout {
@@ -748,7 +542,7 @@ impl Worker {
                             Err(RecvTimeoutError::Disconnected) => return Ok(()),
                         },
                     };
-                    self.trace.idle_seconds += waited.elapsed().as_secs_f64();
+                    self.trace.time.idle_seconds += waited.elapsed().as_secs_f64();
                     if let Some(command) = received
                         && let Flow::Stop = self.handle(command)?
                     {
@@ -759,89 +553,50 @@ impl Worker {
         }
     }
 
-    /// Sends where the time went, once a [`TRACE_INTERVAL`] has passed
-    /// (nothing when the thread only waited).
-    fn send_trace_if_due(&mut self) -> Result<(), UiGone> {
-        let elapsed = self.trace_started.elapsed();
-        if elapsed < TRACE_INTERVAL {
-            return Ok(());
-        }
-        let mut trace = std::mem::take(&mut self.trace);
-        trace.wall_seconds = elapsed.as_secs_f64();
-        self.trace_started = Instant::now();
-        if trace.only_idle() {
-            return Ok(());
-        }
-        self.send(Event::Schedule(trace))
-    }
-
-    fn training_share(&self) -> f64 {
-        self.balance.training_share.clamp(0.0, MAX_TRAINING_SHARE) as f64
-    }
-
-    fn training_active(&self) -> bool {
-        self.running && self.export.is_none() && self.slot(self.trainee()).is_some()
-    }
-
-    /// The model that trains: the one whose turn it is, else the active one.
-    fn trainee(&self) -> ModelKind {
-        self.turns.as_ref().map_or(self.active, Turns::current)
-    }
-
     fn next_work(&mut self) -> Work {
-        let training = self.training_active();
-        let share = self.training_share();
+        let training = self.training.can_train() && !self.jobs.exporting();
+        let now = Instant::now();
         let mut wake_after: Option<Duration> = None;
         // While the camera moves, training still gets its share: a camera
         // that moves on every frame (a long drag, `--auto-orbit`) brings a
         // new coarse frame to render before the last one is done, and
         // letting every such frame go first stopped training altogether.
-        let step_due_while_moving = training
-            && self.last_step.is_none_or(|(ended, seconds)| {
-                ended.elapsed().as_secs_f64() >= seconds * MOVING_IDLE_PER_STEP
-            });
-        let view_has_work =
-            self.view.as_ref().is_some_and(|v| v.job.is_some()) || self.next_level().is_some();
+        let step_due_while_moving = training && self.training.step_due_while_moving(now);
         let mut refine = false;
-        if let Some(view) = self.view.as_ref()
-            && view_has_work
-        {
-            if view.shown.is_none() && !(view.moving() && step_due_while_moving) {
+        if let Some(view) = self.viewing.pending(self.training.shown()) {
+            let moving = view.moving_for.is_some();
+            if view.first_level && !(moving && step_due_while_moving) {
                 // A new camera (or model): its first level at once.
                 return Work::Render { whole_level: true };
             }
-            if view.moving() {
+            match view.moving_for {
                 // Refine only once the camera rests.
-                wake_after = Some(MOVING_GRACE.saturating_sub(view.received.elapsed()));
-            } else {
-                refine = true;
+                Some(grace_left) => wake_after = Some(grace_left),
+                None => refine = true,
             }
         }
-        if refine && !training && self.export.is_none() {
+        if refine && !training && !self.jobs.exporting() {
             return Work::Render { whole_level: false };
         }
-        if let Some(job) = &self.val_job {
-            if self.slot(job.model).is_some() && job.model == self.trainee() {
+        if let Some(job) = &self.jobs.evaluation {
+            if self.training.slot(job.model).is_some() && job.model == self.training.trainee() {
                 return Work::Evaluate;
             }
             // Its model no longer trains: evaluate again when due.
-            self.val_job = None;
+            self.jobs.evaluation = None;
         }
-        if refine && !self.ledger.training_due(share) {
+        if refine && !self.viewing.training_due() {
             return Work::Render { whole_level: false };
         }
-        if self.export.is_some() {
+        if self.jobs.exporting() {
             if refine {
                 return Work::Render { whole_level: false };
             }
             return Work::Export;
         }
         if training {
-            if self.view.as_ref().is_some_and(|v| v.moving()) {
-                let wait = self.last_step.map_or(Duration::ZERO, |(ended, seconds)| {
-                    Duration::from_secs_f64(seconds * MOVING_IDLE_PER_STEP)
-                        .saturating_sub(ended.elapsed())
-                });
+            if self.viewing.camera_moving() {
+                let wait = self.training.wait_while_moving(now);
                 if !wait.is_zero() {
                     return Work::Wait(Some(wake_after.map_or(wait, |w| w.min(wait))));
                 }
@@ -849,19 +604,6 @@ impl Worker {
             return Work::Train;
         }
         Work::Wait(wake_after)
-    }
-
-    fn slot(&self, kind: ModelKind) -> Option<&ModelSlot> {
-        self.slots.iter().find(|s| s.kind == kind)
-    }
-
-    fn slot_mut(&mut self, kind: ModelKind) -> Option<&mut ModelSlot> {
-        self.slots.iter_mut().find(|s| s.kind == kind)
-    }
-
-    fn revision(&mut self) -> u64 {
-        self.next_revision += 1;
-        self.next_revision
     }
 
     /// A fresh trainer of `kind` on the current scene and engine.
@@ -877,57 +619,44 @@ impl Worker {
             precision: self.options.precision,
         };
         let engine = self.engine.choice()?;
-        let model = build(&self.model_request(kind, settings), engine, &self.scene)
-            .map_err(|e| e.to_string())?;
-        // The crop box was checked with the models of this engine already.
-        let mut model = model;
-        let _ = model.set_crop(self.crop);
-        Ok(Trainer::new(model, self.scene.clone(), self.options.seed))
-    }
-
-    /// The request for a model of `kind`: tests give NeRF-shaped fields
-    /// ([`WorkerOptions::nerf_shape`]) a small shape of their own.
-    fn model_request(&self, kind: ModelKind, settings: ModelSettings) -> ModelRequest {
-        let request = ModelRequest::new(kind, settings);
-        match (&self.options.nerf_shape, (kind.spec().shape)(&self.scene)) {
-            (Some(shape), FieldShape::Nerf(_)) => request.with_shape(shape.clone()),
-            _ => request,
-        }
-    }
-
-    fn new_slot(&mut self, kind: ModelKind, trainer: Trainer, loss: LossKind) -> ModelSlot {
-        let saved_step = trainer.step;
-        ModelSlot {
+        let mut model = build_viewer_model(
             kind,
-            next_val_at: trainer.train_seconds + self.options.val_every_train_seconds,
-            trainer,
-            loss,
-            window: StatsWindow::default(),
-            last_stats: None,
-            pending_val: None,
-            last_report: None,
-            revision: self.revision(),
-            saved_step,
-            pacer: ChunkPacer::new(CHUNK_TARGET),
-            cost: RenderCost::default(),
-            eval_cost: RenderCost::default(),
-        }
+            engine,
+            &self.scene.scene,
+            &settings,
+            self.options.nerf_shape.as_ref(),
+        )?;
+        // The crop box was checked with the models of this engine already.
+        let _ = model.set_crop(self.scene.crop);
+        Ok(Trainer::new(
+            model,
+            self.scene.scene.clone(),
+            self.options.seed,
+        ))
+    }
+
+    /// A slot for a trainer of `kind` fresh from [`Self::build_trainer`]
+    /// or a checkpoint, trained with `loss`.
+    fn new_slot(&mut self, kind: ModelKind, trainer: Trainer, loss: LossKind) -> ModelSlot {
+        self.training
+            .new_slot(kind, trainer, loss, self.options.val_every_train_seconds)
+    }
+
+    /// The loss `kind` trains with when no checkpoint says otherwise.
+    fn loss_of(&self, kind: ModelKind) -> LossKind {
+        self.options.loss.unwrap_or(kind.default_loss())
     }
 
     /// Builds `kind`'s model on first use. Failure is reported and leaves
     /// no slot.
     fn ensure_slot(&mut self, kind: ModelKind) -> Result<(), UiGone> {
-        if self.slot(kind).is_some() {
+        if self.training.slot(kind).is_some() {
             return Ok(());
         }
         match self.build_trainer(kind) {
             Ok(trainer) => {
-                let slot = self.new_slot(
-                    kind,
-                    trainer,
-                    self.options.loss.unwrap_or(kind.default_loss()),
-                );
-                self.slots.push(slot);
+                let slot = self.new_slot(kind, trainer, self.loss_of(kind));
+                self.training.add(slot);
                 Ok(())
             }
             Err(e) => self.send(Event::Error(e)),
@@ -938,47 +667,39 @@ impl Worker {
         match command {
             Command::OpenScene(source) => self.open_scene(source)?,
             Command::Start => {
-                self.ensure_slot(self.trainee())?;
-                self.running = self.slot(self.trainee()).is_some();
-                self.send(Event::Running(self.running))?;
+                self.ensure_slot(self.training.trainee())?;
+                self.training.running = self.training.slot(self.training.trainee()).is_some();
+                self.send(Event::Running(self.training.running))?;
             }
             Command::Pause => {
-                self.running = false;
-                self.flush_stats(self.trainee())?;
+                self.training.running = false;
+                self.flush_stats(self.training.trainee())?;
                 self.send(Event::Running(false))?;
             }
             Command::StepOnce => {
-                self.ensure_slot(self.trainee())?;
-                if self.slot(self.trainee()).is_some() {
+                self.ensure_slot(self.training.trainee())?;
+                if self.training.slot(self.training.trainee()).is_some() {
                     self.train_step(true)?;
                 }
             }
             Command::TrainInTurn(settings) => self.set_turns(settings)?,
             Command::Reset => self.reset()?,
             Command::SelectModel(kind) => {
-                if kind != self.active {
-                    self.flush_stats(self.active)?;
+                if kind != self.training.active {
+                    self.flush_stats(self.training.active)?;
                 }
                 self.ensure_slot(kind)?;
-                if self.slot(kind).is_some() {
-                    self.active = kind;
-                    if let Some(view) = self.view.as_mut() {
-                        view.restart();
-                    }
+                if self.training.slot(kind).is_some() {
+                    self.training.active = kind;
+                    self.viewing.restart();
                 }
-                self.send(Event::ModelSelected(self.active))?;
+                self.send(Event::ModelSelected(self.training.active))?;
             }
-            Command::SetBalance(balance) => {
-                let share = if balance.training_share.is_finite() {
-                    balance.training_share.clamp(0.0, 1.0)
-                } else {
-                    Balance::default().training_share
-                };
-                self.balance = Balance {
-                    training_share: share,
-                };
+            Command::SetBalance(balance) => self.viewing.set_balance(balance),
+            Command::Render(request) => {
+                self.viewing
+                    .set_view(request, self.training.shown(), &self.outbox)?
             }
-            Command::Render(request) => self.set_view(request)?,
             Command::SaveCheckpoint(path) => self.save_checkpoint(&path)?,
             Command::LoadCheckpoint(path) => self.load_checkpoint(&path)?,
             Command::ExportTurntable(settings) => {
@@ -991,7 +712,7 @@ impl Worker {
             Command::ExportPoints(order) => self.start_export(ExportOrder::Points(order))?,
             Command::SetCrop(crop) => self.set_crop(crop)?,
             Command::CancelExport => {
-                if self.export.take().is_some() {
+                if self.jobs.stop_export() {
                     self.send(Event::ExportFinished(
                         Err("the export was cancelled".into()),
                     ))?;
@@ -1006,102 +727,216 @@ impl Worker {
     /// go on with the current scene until it has loaded. A later request
     /// replaces an unfinished one (whose result is then dropped).
     fn open_scene(&mut self, source: SceneSource) -> Result<(), UiGone> {
-        let (sender, receiver) = mpsc::channel();
-        let demo = self.options.demo;
-        let to_load = source.clone();
-        let spawned = std::thread::Builder::new()
-            .name("zrak-scene-loading".into())
-            .spawn(move || {
-                // The receiver may be gone (another scene was asked for).
-                let _ = sender.send(load_scene(&to_load, &demo));
-            });
-        match spawned {
-            Ok(_) => {
-                self.loading = Some(SceneLoad {
-                    source,
-                    result: receiver,
-                });
-                Ok(())
-            }
-            Err(e) => self.send(Event::SceneFailed {
-                source,
-                error: format!("cannot start loading the scene: {e}"),
-            }),
+        match self.scene.start_loading(source.clone(), self.options.demo) {
+            Ok(()) => Ok(()),
+            Err(error) => self.send(Event::SceneFailed { source, error }),
         }
     }
 
     /// Installs the scene being loaded, if it is ready.
     fn poll_scene_load(&mut self) -> Result<(), UiGone> {
-        let Some(load) = self.loading.take() else {
+        let Some((source, result)) = self.scene.poll_loaded() else {
             return Ok(());
         };
-        let result = match load.result.try_recv() {
-            Ok(result) => result,
-            Err(TryRecvError::Empty) => {
-                self.loading = Some(load);
-                return Ok(());
-            }
-            Err(TryRecvError::Disconnected) => {
-                Err("loading the scene stopped after an internal error".to_string())
-            }
-        };
-        let source = load.source;
         let scene = match result {
             Ok(scene) => scene,
             Err(error) => return self.send(Event::SceneFailed { source, error }),
         };
-        if self.export.take().is_some() {
+        if self.jobs.stop_export() {
             self.send(Event::ExportFinished(Err(
                 "the export stopped: another scene was opened".into(),
             )))?;
         }
-        self.scene = Arc::new(scene);
-        self.crop = None; // the old scene's box; the window clears its own
-        self.source = source;
-        self.val_frames = held_out_views(&self.scene, self.options.val_views);
-        self.slots.clear();
-        self.val_job = None;
-        if self.turns.take().is_some() {
+        self.scene.install(source, scene, self.options.val_views);
+        let had_turns = self.training.clear();
+        self.jobs.evaluation = None;
+        if had_turns {
             // The models of the old scene are gone; the user starts the
             // turns again on the new one.
             self.send(Event::InTurn(None))?;
         }
         // The camera belongs to the old scene; the UI sends a new one.
-        self.view = None;
-        self.send(Event::SceneLoaded(SceneInfo {
-            scene: self.scene.clone(),
-            source: self.source.clone(),
-        }))?;
-        self.ensure_slot(self.active)?;
-        if self.slot(self.active).is_none() && self.running {
-            self.running = false;
+        self.viewing.forget_camera();
+        self.send(Event::SceneLoaded(self.scene.info()))?;
+        self.ensure_slot(self.training.active)?;
+        if self.training.shown().is_none() && self.training.running {
+            self.training.running = false;
             self.send(Event::Running(false))?;
         }
         Ok(())
     }
 
     fn reset(&mut self) -> Result<(), UiGone> {
-        let kind = self.active;
+        let kind = self.training.active;
         let trainer = match self.build_trainer(kind) {
             Ok(trainer) => trainer,
             Err(e) => return self.send(Event::Error(e)),
         };
-        let slot = self.new_slot(
-            kind,
-            trainer,
-            self.options.loss.unwrap_or(kind.default_loss()),
-        );
-        match self.slot_mut(kind) {
-            Some(existing) => *existing = slot,
-            None => self.slots.push(slot),
+        let slot = self.new_slot(kind, trainer, self.loss_of(kind));
+        self.training.install(slot);
+        self.jobs.evaluation = None;
+        self.training.rebase_turns();
+        self.viewing.restart();
+        Ok(())
+    }
+
+    /// Starts or stops the models' taking turns. Models that cannot be
+    /// built are left out (and reported); fewer than two leave the active
+    /// model training alone.
+    fn set_turns(&mut self, settings: Option<InTurn>) -> Result<(), UiGone> {
+        self.flush_stats(self.training.trainee())?;
+        self.jobs.evaluation = None;
+        self.training.set_turns(None);
+        if let Some(settings) = settings {
+            let mut models = Vec::new();
+            for &kind in &settings.models {
+                self.ensure_slot(kind)?;
+                if self.training.slot(kind).is_some() && !models.contains(&kind) {
+                    models.push(kind);
+                }
+            }
+            if models.len() >= 2 {
+                self.training.set_turns(Some(InTurn {
+                    models,
+                    slice_seconds: settings.slice_seconds,
+                }));
+            } else {
+                self.send(Event::Error(
+                    "taking turns needs at least two models that can be built".into(),
+                ))?;
+            }
         }
-        self.val_job = None;
-        self.rebase_turns();
-        if let Some(view) = self.view.as_mut() {
-            view.restart();
+        self.send(Event::InTurn(self.training.turns()))
+    }
+
+    /// One step of the model that trains (the active one, or the one whose
+    /// turn it is); `report` sends its stats at once.
+    fn train_step(&mut self, report: bool) -> Result<(), UiGone> {
+        if let Some(ended) = self.training.pass_turn() {
+            // The stats of the model whose turn ended.
+            self.flush_stats(ended)?;
+        }
+        let started = Instant::now();
+        let can_evaluate = self.jobs.evaluation.is_none();
+        let Some(step) = self.training.step(
+            &self.scene.val_frames,
+            self.options.val_every_train_seconds,
+            can_evaluate,
+        ) else {
+            return Ok(());
+        };
+        if let Some(pixels) = step.evaluation_pixels {
+            self.jobs.evaluation =
+                Some(Evaluation::new(step.model, &self.scene.val_frames, pixels));
+        }
+        let seconds = started.elapsed().as_secs_f64();
+        self.training.stepped(seconds);
+        self.viewing.record_training(seconds);
+        let trace = &mut self.trace.time;
+        trace.training_seconds += seconds;
+        trace.grid_update_seconds += step.stats.times[Stage::GridUpdate];
+        trace.steps += 1;
+        if report || step.report_due {
+            self.flush_stats(step.model)?;
         }
         Ok(())
     }
+
+    /// Sends the stats of `kind`'s steps since the last report, if any.
+    fn flush_stats(&mut self, kind: ModelKind) -> Result<(), UiGone> {
+        match self
+            .training
+            .slot_mut(kind)
+            .and_then(ModelSlot::take_report)
+        {
+            Some(stats) => self.send(Event::Stats(stats)),
+            None => Ok(()),
+        }
+    }
+
+    /// Renders one chunk of the held-out evaluation; reports the mean PSNR
+    /// when the last pixel is scored.
+    fn evaluate_unit(&mut self) -> Result<(), UiGone> {
+        let Some(job) = self.jobs.evaluation.as_mut() else {
+            return Ok(());
+        };
+        let Some(slot) = self.training.slot_mut(job.model) else {
+            self.jobs.evaluation = None;
+            return Ok(());
+        };
+        let (seconds, done) = job.render_unit(slot, &self.scene.val_frames);
+        let kind = job.model;
+        // Evaluation is the view's kind of work in the balance.
+        self.viewing.record_other(seconds);
+        self.trace.time.evaluation_seconds += seconds;
+        if !done {
+            return Ok(());
+        }
+        self.trace.time.evaluations += 1;
+        self.jobs.evaluation = None;
+        self.flush_stats(kind)
+    }
+
+    fn start_export(&mut self, order: ExportOrder) -> Result<(), UiGone> {
+        let step = self.training.shown().map_or(0, |slot| slot.trainer.step);
+        let event = self.jobs.start_export(
+            &self.scene.scene,
+            order,
+            self.training.active,
+            self.scene.crop,
+            step,
+        );
+        self.send(event)
+    }
+
+    /// Sets the crop box on every model (and on those built later); a
+    /// model that refuses it (the gpu engine may) keeps rendering the whole
+    /// scene, and the refusal goes to the window.
+    fn set_crop(&mut self, crop: Option<CropBox>) -> Result<(), UiGone> {
+        let crop = match crop.map(|c| c.check().map(|()| c)).transpose() {
+            Ok(crop) => crop,
+            Err(problem) => {
+                return self.send(Event::CropSet {
+                    crop: self.scene.crop,
+                    refused: Some(problem),
+                });
+            }
+        };
+        let refused = self
+            .training
+            .slots_mut()
+            .iter_mut()
+            .find_map(|slot| slot.trainer.model.set_crop(crop).err());
+        if refused.is_some() {
+            // Every model back to the whole scene, so that they agree.
+            for slot in self.training.slots_mut() {
+                let _ = slot.trainer.model.set_crop(None);
+            }
+        }
+        self.scene.crop = if refused.is_some() { None } else { crop };
+        self.viewing.restart();
+        self.send(Event::CropSet {
+            crop: self.scene.crop,
+            refused,
+        })
+    }
+}
+
+/// A fresh model of `kind` on the worker's engine: tests give NeRF-shaped
+/// fields ([`WorkerOptions::nerf_shape`]) a small shape of their own.
+fn build_viewer_model(
+    kind: ModelKind,
+    engine: EngineChoice,
+    scene: &Scene,
+    settings: &ModelSettings,
+    nerf_shape: Option<&NerfShape>,
+) -> Result<Box<dyn RadianceModel>, String> {
+    let request = ModelRequest::new(kind, *settings);
+    let request = match (nerf_shape, (kind.spec().shape)(scene)) {
+        (Some(shape), FieldShape::Nerf(_)) => request.with_shape(shape.clone()),
+        _ => request,
+    };
+    build(&request, engine, scene).map_err(|e| e.to_string())
 }
 
 /// The engine in one line for the stats panel: the choice's reason (which
@@ -1117,36 +952,6 @@ fn describe_engine(choice: &EngineChoice, precision: Precision) -> String {
             precision.kernels_here().name()
         ),
     }
-}
-
-fn load_scene(source: &SceneSource, demo_config: &DemoConfig) -> Result<Scene, String> {
-    let scene = match source {
-        SceneSource::Demo => demo::build(demo_config),
-        SceneSource::Folder(path) => {
-            Scene::load(path, LoadOptions::default()).map_err(|e| e.to_string())?
-        }
-    };
-    if scene.train.is_empty() {
-        let place = match source {
-            SceneSource::Demo => PathBuf::from("demo"),
-            SceneSource::Folder(path) => path.clone(),
-        };
-        return Err(format!(
-            "{}: the scene has no training views to learn from",
-            place.display()
-        ));
-    }
-    Ok(scene)
-}
-
-/// Up to `count` held-out views (val, else test, else train), spread over
-/// the split as `zrak train` chooses them.
-fn held_out_views(scene: &Scene, count: usize) -> Vec<Frame> {
-    let frames = [&scene.val, &scene.test, &scene.train]
-        .into_iter()
-        .find(|frames| !frames.is_empty())
-        .map_or(&[][..], |frames| frames.as_slice());
-    spread_views(frames, count).into_iter().cloned().collect()
 }
 
 #[cfg(test)]
