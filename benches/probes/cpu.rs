@@ -4,22 +4,24 @@
 //! tests that assert.
 
 use glam::Vec3;
-use zrak::engine::cpu::adam::{self, Adam};
 use zrak::engine::cpu::composite_batch::{
-    CompositeGradients, CompositeOutputs, RayBatch, composite_backward, composite_forward,
+    CompositeGradients, CompositeOutputs, composite_backward, composite_forward,
 };
 use zrak::engine::cpu::dense::{
-    Activation, InputGradient, MlpGradients, MlpLayout, MlpWorkspace, backend, measure_peak_gflops,
-    mlp_backward, mlp_forward, mlp_inference,
+    InputGradient, MlpGradients, MlpWorkspace, backend, measure_peak_gflops, mlp_backward,
+    mlp_forward, mlp_inference,
 };
-use zrak::engine::cpu::hash_grid::{
-    HashGridLayout, encode_backward_with_scratch, encode_with_scratch,
-};
-use zrak::engine::cpu::march::{BatchSizer, MarchParams, MarchWorkspace, MarchedSamples, march};
-use zrak::engine::cpu::occupancy::OccupancyGrid;
-use zrak::field::ngp::{
-    HashGridConfig, MarchConfig, NetworkConfig, OptimiserConfig, SAMPLES_PER_BATCH,
-};
+use zrak::engine::cpu::hash_grid::{encode_backward_with_scratch, encode_with_scratch};
+use zrak::engine::cpu::march::{MarchWorkspace, march};
+use zrak::engine::shared::adam::Adam;
+use zrak::engine::shared::batch_sizer::BatchSizer;
+use zrak::engine::shared::composite::RayBatch;
+use zrak::engine::shared::march::{MarchParams, MarchedSamples};
+use zrak::engine::shared::occupancy::OccupancyGrid;
+use zrak::field::common::{MarchConfig, OptimiserConfig};
+use zrak::field::encoding::{HashGridConfig, HashGridLayout};
+use zrak::field::mlp::{Activation, MlpLayout, NetworkConfig};
+use zrak::field::ngp::SAMPLES_PER_BATCH;
 use zrak::rng::Pcg32;
 use zrak::scene::UnitCubeMapping;
 
@@ -419,7 +421,7 @@ pub fn cpu_adam_throughput() {
         .collect();
     let blocks: Vec<f32> = (0..n)
         .map(|i| {
-            if i < network || (i / adam::BLOCK).is_multiple_of(2) {
+            if i < network || (i / zrak::engine::shared::adam::BLOCK).is_multiple_of(2) {
                 dense[i]
             } else {
                 0.0

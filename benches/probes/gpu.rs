@@ -1,13 +1,14 @@
 //! Throughput of the gpu engine's dense layers and march on this adapter.
 
 use glam::Vec3;
-use zrak::engine::cpu::dense::MlpLayout;
-use zrak::engine::cpu::march::MarchParams;
-use zrak::engine::cpu::occupancy::OccupancyGrid;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::dense::GpuDense;
 use zrak::engine::gpu::march::GpuMarch;
-use zrak::field::ngp::{HashGridConfig, MarchConfig, NetworkConfig, OccupancyConfig};
+use zrak::engine::shared::march::MarchParams;
+use zrak::engine::shared::occupancy::OccupancyGrid;
+use zrak::field::common::{MarchConfig, OccupancyConfig};
+use zrak::field::encoding::HashGridConfig;
+use zrak::field::mlp::{MlpLayout, NetworkConfig};
 use zrak::rng::Pcg32;
 use zrak::scene::UnitCubeMapping;
 

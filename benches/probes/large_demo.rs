@@ -6,12 +6,13 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use zrak::engine::cpu::model::CpuModel;
-use zrak::engine::request::ModelRequest;
-use zrak::engine::request::ModelSettings;
+use zrak::engine::request::{ModelRequest, ModelSettings};
 use zrak::field::ModelKind;
-use zrak::field::ngp::LossKind;
+use zrak::field::common::LossKind;
 use zrak::scene::Scene;
-use zrak::scene::demo::{self, DemoConfig};
+use zrak::scene::demo::{
+    DemoConfig, {self},
+};
 use zrak::train::eval::score_view;
 use zrak::train::trainer::Trainer;
 
@@ -30,8 +31,8 @@ fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
 /// `grid` with `config`.
 fn samples_beyond_backdrop(
     scene: &Scene,
-    grid: &zrak::engine::cpu::occupancy::OccupancyGrid,
-    config: zrak::field::ngp::MarchConfig,
+    grid: &zrak::engine::shared::occupancy::OccupancyGrid,
+    config: zrak::field::common::MarchConfig,
     rays: usize,
 ) -> (f64, f64) {
     let marched = march_training_rays(scene, grid, config, rays);
@@ -69,7 +70,7 @@ pub fn large_demo_figures() {
                 ..ModelSettings::of(ModelKind::Ngp, 0)
             },
         )
-        .with_shape(zrak::engine::cpu::fields::ngp::NgpShape::for_scene(&scene)),
+        .with_shape(zrak::field::ngp::NgpShape::for_scene(&scene)),
         &scene,
     );
     let mut trainer = Trainer::new(Box::new(model), scene.clone(), 0);
@@ -109,8 +110,8 @@ pub fn large_demo_figures() {
 /// The Instant-NGP model of the run in `ZRAK_GRID_RUN` (a run of `zrak
 /// train` on the scene `zrak demo --large` writes), loaded for `scene`.
 fn model_of_run(scene: &Scene) -> CpuModel {
-    use zrak::train::checkpoint::Checkpoint;
-    use zrak::train::model::RadianceModel;
+    use zrak::model::RadianceModel;
+    use zrak::model::checkpoint::Checkpoint;
     let run = std::path::PathBuf::from(std::env::var("ZRAK_GRID_RUN").expect("ZRAK_GRID_RUN"));
     let mut checkpoint = Checkpoint::load(&run.join("checkpoint.zrak")).expect("checkpoint");
     // A run's checkpoint holds the trainer's state beside the model's.
@@ -124,7 +125,7 @@ fn model_of_run(scene: &Scene) -> CpuModel {
                 ..ModelSettings::of(ModelKind::Ngp, 0)
             },
         )
-        .with_shape(zrak::engine::cpu::fields::ngp::NgpShape::for_scene(scene)),
+        .with_shape(zrak::field::ngp::NgpShape::for_scene(scene)),
         scene,
     );
     model
@@ -139,7 +140,7 @@ fn model_of_run(scene: &Scene) -> CpuModel {
 /// scene `zrak demo --large` writes (`ZRAK_GRID_RUN=RUN cargo bench --bench
 /// probes -- large_demo_grid_by_cascade`).
 pub fn large_demo_grid_by_cascade() {
-    use zrak::field::ngp::MarchConfig;
+    use zrak::field::common::MarchConfig;
     let scene = demo::build_large(&DemoConfig::default());
     let model = model_of_run(&scene);
     let grid = model.occupancy().expect("Instant-NGP has a grid");
@@ -197,7 +198,7 @@ pub fn large_demo_occupied_cells_now() {
     const POINTS: usize = 16;
     let mut state = 1u64;
     let mut uniform = || {
-        state = zrak::engine::cpu::occupancy::mix64(state.wrapping_add(0x9E37_79B9_7F4A_7C15));
+        state = zrak::engine::shared::occupancy::mix64(state.wrapping_add(0x9E37_79B9_7F4A_7C15));
         (state >> 40) as f32 / (1u64 << 24) as f32
     };
     for cascade in 0..geometry.cascades {
@@ -306,7 +307,7 @@ pub fn large_demo_occupied_cells_now() {
 /// `ZRAK_GRID_RUN=RUN cargo bench --bench probes --
 /// large_demo_weight_by_distance`.
 pub fn large_demo_weight_by_distance() {
-    use zrak::field::ngp::MarchConfig;
+    use zrak::field::common::MarchConfig;
     let scene = demo::build_large(&DemoConfig::default());
     let model = model_of_run(&scene);
     let marched = march_training_rays(&scene, model.occupancy().unwrap(), MarchConfig::PAPER, 4000);

@@ -14,10 +14,10 @@ use eframe::wgpu;
 
 use super::ui::{NativeTextures, ViewerUi, describe_source};
 use crate::engine::EngineKind;
-use crate::engine::cpu::dense::Precision;
 use crate::engine::gpu::GpuContext;
 use crate::field::ModelKind;
-use crate::field::nerf::Sampling;
+use crate::field::common::Sampling;
+use crate::field::mlp::Precision;
 use crate::session::protocol::{Command, SceneSource};
 use crate::session::worker::{TrainingWorker, WorkerOptions};
 
@@ -490,7 +490,7 @@ fn summary(values: &[f64]) -> serde_json::Value {
 }
 
 /// The training thread's schedule over the session, in seconds.
-fn schedule_json(trace: &crate::session::protocol::ScheduleTrace) -> serde_json::Value {
+fn schedule_json(trace: &crate::session::schedule::ScheduleTrace) -> serde_json::Value {
     serde_json::json!({
         "wall_seconds": trace.wall_seconds,
         "training_seconds": trace.training_seconds,

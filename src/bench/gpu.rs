@@ -12,20 +12,21 @@ use std::sync::Arc;
 
 use wgpu::Features;
 
-use crate::engine::build;
-use crate::engine::cpu::dense::Precision;
 use crate::engine::gpu::GpuContext;
 use crate::engine::gpu::render::{read_texture_rgba8, render_target};
 use crate::engine::request::{ModelRequest, ModelSettings};
-use crate::engine::{EngineChoice, EngineKind};
+use crate::engine::{EngineChoice, EngineKind, build};
 use crate::field::ModelKind;
-use crate::field::nerf::Sampling;
-use crate::model::RadianceModel;
+use crate::field::common::Sampling;
+use crate::field::mlp::Precision;
 use crate::model::batch::{RayBatch, TrainingBackground, sample_rays};
 use crate::model::checkpoint::Checkpoint;
-use crate::render::{RenderMode, render_pixels, to_image};
+use crate::model::pixels::{render_pixels, to_image};
+use crate::model::{RadianceModel, RenderMode};
 use crate::rng::Pcg32;
-use crate::scene::demo::{self, DemoConfig};
+use crate::scene::demo::{
+    DemoConfig, {self},
+};
 
 /// The features the engine uses or could use, with what each is for.
 const FEATURES: [(Features, &str); 7] = [

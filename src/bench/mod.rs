@@ -12,7 +12,7 @@ pub mod table;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use crate::engine::gpu::context::{CounterReading, GpuCounters};
+use crate::engine::gpu::{CounterReading, GpuCounters};
 use crate::model::{Stage, StageTimes, StepStats};
 use crate::scene::Scene;
 use crate::train::trainer::Trainer;
@@ -276,12 +276,12 @@ pub struct DenseFigures {
 pub fn dense_throughput(
     rows: usize,
     repeats: usize,
-    precision: crate::engine::cpu::dense::Precision,
+    precision: crate::field::mlp::Precision,
 ) -> Vec<DenseFigures> {
     use crate::engine::cpu::dense::{
         InputGradient, MlpGradients, MlpWorkspace, mlp_backward, mlp_forward,
     };
-    use crate::engine::cpu::fields::nerf::NerfShape;
+    use crate::field::nerf::NerfShape;
     use crate::rng::Pcg32;
     let shape = NerfShape::paper().with_precision(precision);
     let networks = [

@@ -14,7 +14,7 @@ use std::sync::atomic::AtomicBool;
 use serde::{Deserialize, Serialize};
 
 use crate::field::ModelKind;
-use crate::field::nerf::Sampling;
+use crate::field::common::Sampling;
 use crate::metrics::psnr_from_mse;
 use crate::model::RadianceModel;
 use crate::scene::Frame;
@@ -255,7 +255,7 @@ impl Protocol {
                 self.eval_downscale, k.width, k.height
             ));
         }
-        let least = crate::metrics::ssim::SSIM_WINDOW as u32;
+        let least = crate::metrics::SSIM_WINDOW as u32;
         if let Some(small) = views
             .iter()
             .flat_map(|v| &v.parts)

@@ -7,7 +7,9 @@ use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 
-use super::plot::{self, Bars, Series, SeriesStyle};
+use super::plot::{
+    Bars, Series, SeriesStyle, {self},
+};
 use super::published::{PUBLISHED, blender_scene, figures};
 use super::quality::{CellRecord, CellSpec, MarkResult, Protocol, safe_name};
 use super::table::{
@@ -15,7 +17,7 @@ use super::table::{
     time_to_reach,
 };
 use crate::field::ModelKind;
-use crate::field::nerf::Sampling;
+use crate::field::common::Sampling;
 
 pub const RESULTS_JSON: &str = "results.json";
 pub const RESULTS_CSV: &str = "results.csv";

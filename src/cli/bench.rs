@@ -6,14 +6,16 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::Args;
-use zrak::engine::build;
-use zrak::engine::cpu::dense::{Precision, backend_for};
+use zrak::engine::cpu::dense::backend_for;
 use zrak::engine::request::{ModelRequest, ModelSettings};
-use zrak::engine::{EngineKind, choose_engine};
+use zrak::engine::{EngineKind, build, choose_engine};
 use zrak::field::ModelKind;
-use zrak::field::nerf::Sampling;
-use zrak::interrupt::{self, note, say};
-use zrak::render::RenderMode;
+use zrak::field::common::Sampling;
+use zrak::field::mlp::Precision;
+use zrak::interrupt::{
+    note, say, {self},
+};
+use zrak::model::RenderMode;
 use zrak::scene::{Camera, Scene};
 use zrak::train::trainer::Trainer;
 
@@ -278,7 +280,7 @@ pub fn bench_gpu(args: GpuBenchArgs) -> anyhow::Result<()> {
 /// Seconds for `model` to draw a 1280 × 720 view of `scene` into a
 /// texture on the device, the viewer's path (median of three), if it can.
 fn texture_render_seconds(
-    model: &dyn zrak::train::model::RadianceModel,
+    model: &dyn zrak::model::RadianceModel,
     context: &zrak::engine::gpu::GpuContext,
     scene: &Scene,
 ) -> Option<f64> {
@@ -286,7 +288,7 @@ fn texture_render_seconds(
     let frame = scene.val.first().or(scene.train.first())?;
     let (width, height) = (1280, 720);
     let camera = Camera::new(
-        zrak::scene::camera::Intrinsics::from_fov_x(width, height, frame.camera.intrinsics.fov_x()),
+        zrak::scene::Intrinsics::from_fov_x(width, height, frame.camera.intrinsics.fov_x()),
         frame.camera.camera_to_world,
     );
     let target = zrak::engine::gpu::render::render_target(&context.device, width, height);
@@ -397,7 +399,7 @@ mod tests {
 
     #[test]
     fn warm_up_passes_the_occupancy_grids_own_warm_up() {
-        let ngp_grid = zrak::field::ngp::OccupancyConfig::PAPER.warmup_steps as usize;
+        let ngp_grid = zrak::field::common::OccupancyConfig::PAPER.warmup_steps as usize;
         let nerf_grid = zrak::field::nerf::OCCUPANCY.warmup_steps as usize;
         assert_eq!(
             default_warmup(ModelKind::Ngp, Sampling::Occupancy, false),

@@ -5,7 +5,9 @@ use std::path::PathBuf;
 use anyhow::{Context, bail};
 use clap::Args;
 use zrak::engine::EngineKind;
-use zrak::interrupt::{self, note};
+use zrak::interrupt::{
+    note, {self},
+};
 use zrak::scene::{Frame, Split};
 use zrak::train::eval::{SplitScores, evaluate_split_until};
 use zrak::train::run::RunFolder;

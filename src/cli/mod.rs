@@ -31,7 +31,9 @@ pub mod view;
 
 use std::path::Path;
 
-use zrak::scene::demo::{self as demo_scene, DemoConfig};
+use zrak::scene::demo::{
+    DemoConfig, {self as demo_scene},
+};
 use zrak::scene::{LoadOptions, Scene};
 
 /// A scene argument as the commands take it: `demo` for the built-in demo

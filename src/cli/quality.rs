@@ -17,11 +17,13 @@ use zrak::bench::report::{
     CellResult, EngineInfo, REPORT_MD, Results, SceneEntry, Settings, machine, write_outputs,
 };
 use zrak::bench::table::{Table, format_mark, format_seconds};
-use zrak::engine::cpu::dense::Precision;
 use zrak::engine::{EngineKind, choose_engine};
 use zrak::field::ModelKind;
-use zrak::field::nerf::Sampling;
-use zrak::interrupt::{self, note, say};
+use zrak::field::common::Sampling;
+use zrak::field::mlp::Precision;
+use zrak::interrupt::{
+    note, say, {self},
+};
 use zrak::scene::{Scene, Split};
 use zrak::train::run::RunFolder;
 use zrak::train::trainer::Trainer;

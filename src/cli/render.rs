@@ -10,11 +10,14 @@ use anyhow::{Context, bail};
 use clap::Args;
 use indicatif::ProgressBar;
 use zrak::engine::EngineKind;
-use zrak::interrupt::{self, note};
+use zrak::interrupt::{
+    note, {self},
+};
+use zrak::model::RenderMode;
+use zrak::model::pixels::{render_pixels, to_image};
 use zrak::render::camera_path::frames::RenderSource;
 use zrak::render::export::{ExportSettings, export_turntable};
 use zrak::render::path::Turntable;
-use zrak::render::{RenderMode, render_pixels, to_image};
 use zrak::scene::{Camera, Split};
 use zrak::train::run::RunFolder;
 

@@ -7,13 +7,11 @@ use std::sync::Arc;
 
 use anyhow::{Context, bail};
 use serde::{Deserialize, Serialize};
-use zrak::engine::build;
-use zrak::engine::cpu::dense::Precision;
 use zrak::engine::request::{ModelRequest, ModelSettings};
-use zrak::engine::{EngineChoice, EngineKind, choose_engine};
+use zrak::engine::{EngineChoice, EngineKind, build, choose_engine};
 use zrak::field::ModelKind;
-use zrak::field::nerf::Sampling;
-use zrak::field::ngp::LossKind;
+use zrak::field::common::{LossKind, Sampling};
+use zrak::field::mlp::Precision;
 use zrak::interrupt::note;
 use zrak::scene::Scene;
 use zrak::train::run::{

@@ -8,12 +8,13 @@ use std::time::Instant;
 use anyhow::bail;
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use zrak::engine::cpu::dense::Precision;
 use zrak::engine::{EngineKind, choose_engine};
 use zrak::field::ModelKind;
-use zrak::field::nerf::Sampling;
-use zrak::field::ngp::LossKind;
-use zrak::interrupt::{self, note, say};
+use zrak::field::common::{LossKind, Sampling};
+use zrak::field::mlp::Precision;
+use zrak::interrupt::{
+    note, say, {self},
+};
 use zrak::train::log::MetricsLog;
 use zrak::train::run::{Limits, RunFolder, Schedule, run};
 use zrak::train::trainer::Trainer;

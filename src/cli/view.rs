@@ -7,9 +7,9 @@ use clap::{Args, FromArgMatches};
 use zrak::app::ui::ExportKind;
 use zrak::app::viewer::ViewerOptions;
 use zrak::engine::EngineKind;
-use zrak::engine::cpu::dense::Precision;
 use zrak::field::ModelKind;
-use zrak::field::nerf::Sampling;
+use zrak::field::common::Sampling;
+use zrak::field::mlp::Precision;
 use zrak::scene::crop::CropArg;
 use zrak::session::protocol::SceneSource;
 

@@ -5,12 +5,9 @@
 //! [`crate::field::MODELS`]; [`crate::engine::build`] builds it.
 
 use super::shared::driver::{DriverCore, ModelIdentity};
-use crate::field::FieldShape;
-use crate::field::ModelKind;
-use crate::field::common::{BatchSize, Recipe};
+use crate::field::common::{BatchSize, LossKind, Recipe, Sampling};
 use crate::field::mlp::Precision;
-use crate::field::nerf::Sampling;
-use crate::field::ngp::LossKind;
+use crate::field::{FieldShape, ModelKind};
 use crate::scene::Scene;
 
 /// Settings every model takes.

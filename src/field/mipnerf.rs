@@ -15,7 +15,10 @@ use super::common::{
     BatchSize, Level, LrSchedule, OptimiserConfig, RayBounds, Recipe, SampleShape, SamplerKind,
 };
 use super::encoding::FrequencyEncoding;
-use super::nerf::{self, NerfShape, Sampling};
+use super::nerf::{
+    NerfShape, {self},
+};
+use crate::field::common::Sampling;
 
 /// Frequencies of the integrated position encoding: 2⁰ … 2¹⁵ (reference
 /// `min_deg_point` 0, `max_deg_point` 16). No raw input: the reference's

@@ -55,7 +55,7 @@ impl ModelKind {
     }
 
     /// The loss the model trains with unless told otherwise.
-    pub fn default_loss(self) -> ngp::LossKind {
+    pub fn default_loss(self) -> crate::field::common::LossKind {
         self.spec().default_loss
     }
 
@@ -68,7 +68,9 @@ impl ModelKind {
     /// Mip-NeRF's stratified plus hierarchical samples), besides the
     /// occupancy grid.
     pub fn has_paper_sampler(self) -> bool {
-        self.spec().samplings.contains(&nerf::Sampling::Paper)
+        self.spec()
+            .samplings
+            .contains(&crate::field::common::Sampling::Paper)
     }
 }
 
@@ -84,13 +86,13 @@ pub struct ModelSpec {
     pub paper: &'static str,
     /// Huber for Instant-NGP (instant-ngp's default `loss`), the squared
     /// error of the NeRF and Mip-NeRF papers for them.
-    pub default_loss: ngp::LossKind,
+    pub default_loss: crate::field::common::LossKind,
     /// The samplers it trains with, its default first.
-    pub samplings: &'static [nerf::Sampling],
+    pub samplings: &'static [crate::field::common::Sampling],
     /// Its colour in the viewer's plots and the exported ones (RGB).
     pub colour: [u8; 3],
     /// Its recipe for a scene with a sampler (of [`Self::samplings`]).
-    pub recipe: fn(&Scene, nerf::Sampling) -> common::Recipe,
+    pub recipe: fn(&Scene, crate::field::common::Sampling) -> common::Recipe,
     /// The shape of its fields for a scene, the paper's.
     pub shape: fn(&Scene) -> FieldShape,
     /// Samples per batch on the `gpu` engine where its recipe's batch is in
@@ -152,8 +154,8 @@ pub const MODELS: &[ModelSpec] = &[
         name: "Instant-NGP",
         key: "ngp",
         paper: "Müller et al. 2022",
-        default_loss: ngp::LossKind::Huber,
-        samplings: &[nerf::Sampling::Occupancy],
+        default_loss: crate::field::common::LossKind::Huber,
+        samplings: &[crate::field::common::Sampling::Occupancy],
         colour: [0x4c, 0x9b, 0xe8],
         recipe: |scene, _| ngp::recipe(scene.unit_cube.aabb_scale),
         shape: |scene| ngp::NgpShape::for_scene(scene).into(),
@@ -162,7 +164,7 @@ pub const MODELS: &[ModelSpec] = &[
             cpu: Some(NGP_VIEWER_CPU_SAMPLES),
             slow: None,
         },
-        bench_warmup_steps: ngp::OccupancyConfig::PAPER.warmup_steps as usize + 32,
+        bench_warmup_steps: crate::field::common::OccupancyConfig::PAPER.warmup_steps as usize + 32,
         engine_update_mismatch_share: 0.001,
     },
     ModelSpec {
@@ -170,8 +172,11 @@ pub const MODELS: &[ModelSpec] = &[
         name: "NeRF",
         key: "nerf",
         paper: "Mildenhall et al. 2020",
-        default_loss: ngp::LossKind::L2,
-        samplings: &[nerf::Sampling::Occupancy, nerf::Sampling::Paper],
+        default_loss: crate::field::common::LossKind::L2,
+        samplings: &[
+            crate::field::common::Sampling::Occupancy,
+            crate::field::common::Sampling::Paper,
+        ],
         colour: [0xe8, 0x8a, 0x3c],
         recipe: |scene, sampling| nerf::recipe(sampling, scene.format == SceneFormat::Blender),
         shape: |_| nerf::NerfShape::paper().into(),
@@ -190,8 +195,11 @@ pub const MODELS: &[ModelSpec] = &[
         name: "Mip-NeRF",
         key: "mipnerf",
         paper: "Barron et al. 2021",
-        default_loss: ngp::LossKind::L2,
-        samplings: &[nerf::Sampling::Occupancy, nerf::Sampling::Paper],
+        default_loss: crate::field::common::LossKind::L2,
+        samplings: &[
+            crate::field::common::Sampling::Occupancy,
+            crate::field::common::Sampling::Paper,
+        ],
         colour: [0x5c, 0xc0, 0x6a],
         recipe: |scene, sampling| mipnerf::recipe(sampling, scene.format == SceneFormat::Blender),
         shape: |_| nerf::NerfShape::mipnerf().into(),

@@ -7,12 +7,10 @@
 //! the colour branch and σ's activation, also Mip-NeRF's), which both
 //! engines build their NeRF field from.
 
-// Former paths, deleted with the other compatibility re-exports.
 use super::common::{
-    BatchSize, Level, LrSchedule, MarchConfig, OccupancyConfig, OptimiserConfig, RayBounds,
-    SampleShape, SamplerKind,
+    BatchSize, Level, LrSchedule, MarchConfig, OccupancyConfig, OptimiserConfig, RayBounds, Recipe,
+    SampleShape, SamplerKind, Sampling,
 };
-pub use super::common::{Recipe, Sampling};
 use super::encoding::FrequencyEncoding;
 use super::mlp::{Activation, MlpLayout, Precision};
 use super::params::{ParamLayout, Update};

@@ -8,12 +8,9 @@
 
 use std::ops::Range;
 
-// Former paths, deleted with the other compatibility re-exports.
-pub use super::common::{
-    HUBER_DELTA, LossKind, LrSchedule, MarchConfig, OccupancyConfig, OptimiserConfig,
-};
-pub use super::encoding::HashGridConfig;
-pub use super::mlp::{DENSITY_EXP_CLAMP, NetworkConfig};
+use super::common::{LrSchedule, MarchConfig, OccupancyConfig, OptimiserConfig};
+use super::encoding::HashGridConfig;
+use super::mlp::NetworkConfig;
 
 use super::encoding::HashGridLayout;
 use super::mlp::{Activation, MlpLayout, Precision};

@@ -8,7 +8,7 @@ use super::{Mesh, MinComponent};
 use crate::field::ModelKind;
 use crate::model::{PointQuery, RadianceModel};
 use crate::scene::crop::CropBox;
-use crate::scene::image::to_u8;
+use crate::scene::to_u8;
 
 /// The largest grid side: 2048³ nodes take 32 GiB of densities.
 pub const MAX_RESOLUTION: u32 = 2048;

@@ -5,8 +5,7 @@ use glam::Vec3;
 
 use crate::model::{RadianceModel, RayColumns};
 use crate::scene::crop::CropBox;
-use crate::scene::image::to_u8;
-use crate::scene::{Frame, Ray};
+use crate::scene::{Frame, Ray, to_u8};
 
 /// How to make a point cloud.
 #[derive(Debug, Clone, PartialEq)]

@@ -8,8 +8,8 @@
 //! figures then agree with scikit-image to ~1e-15 (see the tests in
 //! `ssim.rs`).
 
-pub mod psnr;
-pub mod ssim;
+mod psnr;
+mod ssim;
 
 use serde::{Deserialize, Serialize};
 use thiserror::Error;

@@ -16,8 +16,6 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-pub use crate::scene::identity::SceneIdentity;
-
 const MAGIC: &[u8; 8] = b"ZRAKCKPT";
 /// 2: a CRC-32C of the header and of each tensor, and tensors of few
 /// distinct values stored as a dictionary. Files of version 1 (no

@@ -6,7 +6,7 @@
 use rayon::prelude::*;
 
 use super::{RadianceModel, RayColumns, RenderMode, RenderedPixel};
-use crate::scene::{Camera, ImageRgba8, image::to_u8};
+use crate::scene::{Camera, ImageRgba8, to_u8};
 
 /// Rays per call into the model: large enough to keep every core busy,
 /// small enough that a render can report progress.

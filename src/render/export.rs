@@ -11,8 +11,8 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use super::path::{Turntable, turntable_cameras};
-use super::{RenderMode, render_pixels, to_image};
-use crate::model::RadianceModel;
+use crate::model::pixels::{render_pixels, to_image};
+use crate::model::{RadianceModel, RenderMode};
 use crate::scene::{Camera, ImageRgba8, Scene};
 
 /// What a turntable export writes.

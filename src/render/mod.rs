@@ -4,9 +4,6 @@ pub mod camera_path;
 pub mod export;
 pub mod path;
 
-pub use crate::model::RenderMode;
-pub use crate::model::pixels::{render_pixels, rgb_of, to_image};
-
 /// Bytes rendering one `width` × `height` frame and writing it as a PNG
 /// takes at its peak: the frame's rays (origin and direction, 24 bytes a
 /// pixel), the rendered pixels (colour, opacity, depth: 20), the 8-bit

@@ -5,13 +5,13 @@
 
 use std::path::Path;
 
-use super::camera::{Camera, Intrinsics};
 use super::error::{SceneError, SceneResult};
 use super::pose::{
     FrameSource, decode_images, frame_object, parse_transform_matrix, read_json_object,
     required_array, required_number, required_str, resolve_image_path,
 };
 use super::{Frame, LoadOptions, Scene, SceneFormat, Split, UnitCubeMapping, folder_name};
+use crate::scene::{Camera, Intrinsics};
 
 /// The file name of a split's JSON file, e.g. `transforms_train.json`.
 pub fn split_file_name(split: Split) -> String {

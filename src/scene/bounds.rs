@@ -2,7 +2,7 @@
 
 use glam::Vec3;
 
-use super::camera::Ray;
+use crate::scene::Ray;
 
 /// An axis-aligned box.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -8,7 +8,7 @@
 
 use glam::{Mat3, Mat4, Vec3};
 
-pub use super::lens::Lens;
+use super::lens::Lens;
 
 /// Intrinsics in pixels, and the lens that bends the rays.
 #[derive(Debug, Clone, Copy, PartialEq)]

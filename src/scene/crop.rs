@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use glam::{Quat, Vec3};
 use serde::{Deserialize, Serialize};
 
-use super::bounds::Aabb;
+use crate::scene::Aabb;
 
 /// The name of a run's crop box file.
 pub const CROP_FILE: &str = "crop.json";

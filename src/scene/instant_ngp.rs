@@ -16,13 +16,14 @@ use std::path::Path;
 use glam::{Mat4, Vec3};
 use serde_json::Value;
 
-use super::camera::{Camera, Intrinsics, Lens, focal_from_fov};
+use super::camera::focal_from_fov;
 use super::error::{SceneError, SceneResult};
 use super::pose::{
     FrameSource, JsonObject, check_downscale, decode_images, describe, frame_object, number,
     parse_transform_matrix, read_json_object, required_array, required_str, resolve_image_path,
 };
 use super::{Frame, LoadOptions, Scene, SceneFormat, Split, UnitCubeMapping, folder_name};
+use crate::scene::{Camera, Intrinsics, Lens};
 
 /// The file this format lives in.
 pub const FILE_NAME: &str = "transforms.json";

@@ -2,16 +2,16 @@
 //! built-in demo scene.
 
 pub mod blender;
-pub mod bounds;
-pub mod camera;
+mod bounds;
+mod camera;
 pub mod colmap;
 pub mod crop;
 pub mod demo;
-pub mod error;
+mod error;
 pub mod identity;
-pub mod image;
+mod image;
 pub mod instant_ngp;
-pub mod lens;
+mod lens;
 pub mod names;
 pub mod pose;
 
@@ -21,8 +21,8 @@ use glam::Vec3;
 
 pub use bounds::Aabb;
 pub use camera::{Camera, Intrinsics, Ray};
-pub use error::{SceneError, SceneResult};
-pub use image::ImageRgba8;
+pub use error::{SceneError, SceneResult, escape_controls};
+pub use image::{ImageRgba8, load_image, to_u8};
 pub use lens::Lens;
 
 /// Options for loading a scene from disk.

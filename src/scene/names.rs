@@ -8,7 +8,7 @@
 
 use std::path::{Component, Path, PathBuf};
 
-use super::error::escape_controls;
+use crate::scene::escape_controls;
 
 /// Whether `c` is a combining mark of the block Latin accents use
 /// (U+0300 to U+036F: grave, acute, circumflex, tilde, diaeresis, cedilla …).

@@ -11,8 +11,9 @@ use rayon::prelude::*;
 use serde_json::{Map, Value};
 
 use super::error::{SceneError, SceneResult, shown};
-use super::image::{ImageRgba8, load_image_sharing};
+use super::image::load_image_sharing;
 use crate::files::Unreadable;
+use crate::scene::ImageRgba8;
 
 /// How far `RᵀR` may stray from the identity. NeRF-synthetic rotations are
 /// orthonormal to about 1e-7 and COLMAP-derived ones to about 1e-6; a
@@ -543,7 +544,7 @@ pub(crate) mod test_support {
 
     use serde_json::{Value, json};
 
-    use crate::scene::image::ImageRgba8;
+    use crate::scene::ImageRgba8;
 
     /// A PNG with an alpha channel, every pixel half transparent grey.
     pub fn write_rgba_png(path: &Path, width: u32, height: u32) {

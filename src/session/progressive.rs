@@ -9,9 +9,8 @@ use std::time::Duration;
 use glam::Vec3;
 
 use crate::engine::gpu::GpuContext;
-use crate::render::RenderMode;
+use crate::model::{RadianceModel, RenderMode, RenderRays, RenderedPixel, TextureRender};
 use crate::scene::{Camera, Intrinsics};
-use crate::train::model::{RadianceModel, RenderRays, RenderedPixel, TextureRender};
 
 /// `camera` seen at 1/`downscale` of its resolution, at least one pixel each
 /// way. The image plane keeps its extent, so the focal lengths and the

@@ -8,14 +8,13 @@ use std::sync::Arc;
 use crate::engine::EngineKind;
 use crate::field::ModelKind;
 use crate::mesh::MinComponent;
-use crate::render::RenderMode;
+use crate::model::{RenderMode, RenderedPixel, StageTimes};
 use crate::render::camera_path::nerfstudio::CameraPathFile;
 use crate::render::export::ExportSettings;
 use crate::scene::crop::CropBox;
 use crate::scene::{Camera, Scene};
-use crate::train::model::{RenderedPixel, StageTimes};
 
-pub use super::schedule::{LevelTime, ScheduleTrace};
+use super::schedule::ScheduleTrace;
 
 /// Where a scene comes from.
 #[derive(Debug, Clone, PartialEq)]

@@ -3,7 +3,9 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::metrics::{self, ImageScores, RgbImage, WHITE};
+use crate::metrics::{
+    ImageScores, RgbImage, WHITE, {self},
+};
 use crate::model::pixels::{render_pixels, rgb_of};
 use crate::scene::Frame;
 

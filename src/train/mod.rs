@@ -8,7 +8,3 @@ pub mod lock;
 pub mod log;
 pub mod run;
 pub mod trainer;
-
-// The model layer's modules, under their former paths (the app, the
-// command line and the tests still name them so).
-pub use crate::model::{self, batch, checkpoint};

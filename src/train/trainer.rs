@@ -10,8 +10,9 @@ use crate::rng::Pcg32;
 use crate::scene::Scene;
 
 use crate::model::batch::{RayBatch, TrainingBackground, sample_rays_cropped, training_background};
-use crate::model::checkpoint::{Checkpoint, SceneIdentity};
+use crate::model::checkpoint::Checkpoint;
 use crate::model::{RadianceModel, StepStats};
+use crate::scene::identity::SceneIdentity;
 
 /// Random streams of a step, so each purpose draws independently.
 const BATCH_STREAM: u64 = 1;

@@ -1,10 +1,10 @@
 //! The gpu Adam step against the cpu engine's on lavapipe.
 
-use zrak::engine::cpu::adam::Adam;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::adam::GpuAdam;
 use zrak::engine::gpu::kernel::{Recorder, read_buffer, storage_buffer};
-use zrak::field::ngp::OptimiserConfig;
+use zrak::engine::shared::adam::Adam;
+use zrak::field::common::OptimiserConfig;
 use zrak::rng::Pcg32;
 
 const PAPER: OptimiserConfig = OptimiserConfig::PAPER;

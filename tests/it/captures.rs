@@ -9,8 +9,10 @@ use std::time::Instant;
 
 use zrak::engine::cpu::model::CpuModel;
 use zrak::field::ModelKind;
-use zrak::field::ngp::LossKind;
-use zrak::scene::demo::{self, DemoConfig};
+use zrak::field::common::LossKind;
+use zrak::scene::demo::{
+    DemoConfig, {self},
+};
 use zrak::scene::{Lens, Scene};
 use zrak::train::eval::score_view;
 use zrak::train::trainer::Trainer;
@@ -52,7 +54,7 @@ fn train_and_score(scene: Scene, held_out: &Scene) -> f64 {
     recipe.occupancy.resolution = env_or("ZRAK_CAPTURES_GRID", 64u32);
     let model = CpuModel::build(
         &crate::common::request(ModelKind::Ngp, 0, LossKind::Huber, Some(batch))
-            .with_shape(zrak::engine::cpu::fields::ngp::NgpShape::for_scene(&scene))
+            .with_shape(zrak::field::ngp::NgpShape::for_scene(&scene))
             .with_recipe(recipe),
         &scene,
     );
@@ -172,8 +174,8 @@ fn modelled_lens_distortion_trains_as_well_as_no_distortion() {
 #[test]
 fn cone_steps_march_the_large_demo_in_proportion() {
     let _cores = crate::common::shared();
-    use zrak::engine::cpu::occupancy::{Cell, OccupancyGrid};
-    use zrak::field::ngp::MarchConfig;
+    use zrak::engine::shared::occupancy::{Cell, OccupancyGrid};
+    use zrak::field::common::MarchConfig;
     let scene = demo::build_large(&DemoConfig {
         size: 16,
         train_views: 20,

@@ -10,7 +10,7 @@ use std::path::Path;
 use std::process::{Command, Output, Stdio};
 
 use common::finish;
-use zrak::train::checkpoint::Checkpoint;
+use zrak::model::checkpoint::Checkpoint;
 
 fn zrak() -> Command {
     Command::new(common::zrak_bin())

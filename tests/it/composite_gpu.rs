@@ -4,8 +4,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use zrak::engine::cpu::composite_batch::{
-    CompositeGradients, CompositeOutputs, Distortion, RayBatch, composite_backward,
-    composite_forward,
+    CompositeGradients, CompositeOutputs, composite_backward, composite_forward,
 };
 use zrak::engine::cpu::loss::loss_and_gradient;
 use zrak::engine::gpu::GpuContext;
@@ -14,7 +13,8 @@ use zrak::engine::gpu::composite::{
 };
 use zrak::engine::gpu::kernel::{Recorder, read_buffer, storage_buffer, zeroed_storage_buffer};
 use zrak::engine::gpu::loss::{GpuLoss, LossBuffers};
-use zrak::field::ngp::{LossKind, MarchConfig};
+use zrak::engine::shared::composite::{Distortion, RayBatch};
+use zrak::field::common::{LossKind, MarchConfig};
 use zrak::rng::Pcg32;
 
 const CUT: f32 = MarchConfig::PAPER.min_transmittance;

@@ -1,7 +1,9 @@
 //! The demo scene through its public API only, as the viewer, the trainer
 //! and the evaluation code use it.
 
-use zrak::scene::demo::{self, CAMERA_ANGLE_X, DemoConfig};
+use zrak::scene::demo::{
+    CAMERA_ANGLE_X, DemoConfig, {self},
+};
 use zrak::scene::{Camera, Intrinsics, SceneFormat, Split, UnitCubeMapping};
 
 use glam::Vec3;

@@ -2,12 +2,12 @@
 //! output, the parameter gradients and the input gradient.
 
 use zrak::engine::cpu::dense::{
-    Activation, InputGradient, MlpGradients, MlpLayout, MlpWorkspace, mlp_backward, mlp_forward,
-    reference_forward,
+    InputGradient, MlpGradients, MlpWorkspace, mlp_backward, mlp_forward, reference_forward,
 };
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::dense::GpuDense;
-use zrak::field::ngp::{HashGridConfig, NetworkConfig};
+use zrak::field::encoding::HashGridConfig;
+use zrak::field::mlp::{Activation, MlpLayout, NetworkConfig};
 use zrak::rng::Pcg32;
 
 fn random(rng: &mut Pcg32, n: usize, scale: f32) -> Vec<f32> {

@@ -17,9 +17,10 @@
 //! give (order 1e-2 or more). This says nothing about real GPUs, whose
 //! sin/cos may be much worse for large angles.
 
-use zrak::engine::cpu::frequency::{FrequencyEncoding, encode};
+use zrak::engine::cpu::frequency::encode;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::frequency::GpuFrequency;
+use zrak::field::encoding::FrequencyEncoding;
 use zrak::rng::Pcg32;
 
 const TOLERANCE: f32 = 1e-6;

@@ -16,9 +16,11 @@ use std::path::{Path, PathBuf};
 use proptest::prelude::*;
 use proptest::test_runner::{Config, RngAlgorithm, TestRng, TestRunner};
 use serde_json::{Value, json};
-use zrak::scene::colmap::{self, ColmapCamera, ColmapImage, ColmapModel};
+use zrak::model::checkpoint::Checkpoint;
+use zrak::scene::colmap::{
+    ColmapCamera, ColmapImage, ColmapModel, {self},
+};
 use zrak::scene::{ImageRgba8, LoadOptions, Scene};
-use zrak::train::checkpoint::Checkpoint;
 
 /// Cases per parser in `cargo test`: a few seconds in all.
 const BOUNDED_CASES: u32 = 300;

@@ -90,8 +90,10 @@ fn shader_errors_are_reported_not_panicked() {
 #[test]
 fn an_existing_device_is_used_when_it_has_what_the_engine_needs() {
     let _cores = crate::common::shared();
-    use zrak::field::ngp::LossKind;
-    use zrak::scene::demo::{self, DemoConfig};
+    use zrak::field::common::LossKind;
+    use zrak::scene::demo::{
+        DemoConfig, {self},
+    };
 
     let base = GpuContext::new().expect("an adapter exists");
     let adapter = &base.adapter;

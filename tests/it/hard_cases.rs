@@ -27,24 +27,21 @@ use crate::common;
 use std::time::Instant;
 
 use glam::Vec3;
-use zrak::engine::EngineKind;
-use zrak::engine::build_gpu;
-use zrak::engine::cpu::dense::Precision;
-use zrak::engine::cpu::fields::nerf::NerfShape;
-use zrak::engine::cpu::fields::ngp::NgpShape;
-use zrak::engine::cpu::hash_grid::HashGridLayout;
 use zrak::engine::cpu::model::CpuModel;
-use zrak::engine::cpu::occupancy::GridGeometry;
 use zrak::engine::gpu::model::GpuModel;
-use zrak::engine::request::ModelRequest;
-use zrak::engine::request::ModelSettings;
+use zrak::engine::request::{ModelRequest, ModelSettings};
+use zrak::engine::shared::occupancy::GridGeometry;
+use zrak::engine::{EngineKind, build_gpu};
 use zrak::field::ModelKind;
-use zrak::field::nerf::Sampling;
-use zrak::field::ngp::{HashGridConfig, LossKind, OccupancyConfig};
+use zrak::field::common::{LossKind, OccupancyConfig, Sampling};
+use zrak::field::encoding::{HashGridConfig, HashGridLayout};
+use zrak::field::mlp::Precision;
+use zrak::field::nerf::NerfShape;
+use zrak::field::ngp::NgpShape;
+use zrak::model::batch::RayBatch;
+use zrak::model::checkpoint::Checkpoint;
+use zrak::model::{RadianceModel, RenderedPixel};
 use zrak::scene::Scene;
-use zrak::train::batch::RayBatch;
-use zrak::train::checkpoint::Checkpoint;
-use zrak::train::model::{RadianceModel, RenderedPixel};
 
 use common::{NerfKind, small_nerf_shape};
 
@@ -85,12 +82,7 @@ enum Layout {
 }
 
 /// Weights of `layer` in `net` (an MLP's parameters): row `out`, column `input`.
-fn weight(
-    layout: &zrak::engine::cpu::dense::MlpLayout,
-    layer: usize,
-    out: usize,
-    input: usize,
-) -> usize {
+fn weight(layout: &zrak::field::mlp::MlpLayout, layer: usize, out: usize, input: usize) -> usize {
     layout.weight_offset(layer) + out * layout.widths[layer] + input
 }
 

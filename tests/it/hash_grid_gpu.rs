@@ -15,11 +15,11 @@
 //! of absolute terms (the condition-free scale of a sum; against the sum
 //! itself, cancellation could make any tolerance fail or pass by luck).
 
-use zrak::engine::cpu::hash_grid::{HashGridLayout, encode, encode_backward};
+use zrak::engine::cpu::hash_grid::{encode, encode_backward};
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::hash_grid::GpuHashGrid;
 use zrak::engine::gpu::kernel::{Recorder, read_buffer, storage_buffer, zeroed_storage_buffer};
-use zrak::field::ngp::HashGridConfig;
+use zrak::field::encoding::{HashGridConfig, HashGridLayout};
 use zrak::rng::Pcg32;
 
 const TOLERANCE: f32 = 1e-4;

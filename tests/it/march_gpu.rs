@@ -4,11 +4,12 @@
 //! updates its occupancy grid with the cpu engine's code on the host
 //! (`ngp_gpu::occupancy_update_matches_the_cpu_engine`).
 
-use zrak::engine::cpu::march::{MarchParams, MarchStats, MarchWorkspace, MarchedSamples, march};
-use zrak::engine::cpu::occupancy::{OccupancyGrid, mix64};
+use zrak::engine::cpu::march::{MarchWorkspace, march};
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::march::GpuMarch;
-use zrak::field::ngp::{MarchConfig, OccupancyConfig};
+use zrak::engine::shared::march::{MarchParams, MarchStats, MarchedSamples};
+use zrak::engine::shared::occupancy::{OccupancyGrid, mix64};
+use zrak::field::common::{MarchConfig, OccupancyConfig};
 use zrak::scene::UnitCubeMapping;
 
 use crate::common::march::{rays, uniform};

@@ -10,7 +10,7 @@ use glam::Vec3;
 use zrak::field::ModelKind;
 use zrak::mesh::extract::{MeshSettings, default_threshold, extract_mesh};
 use zrak::mesh::points::{PointSettings, extract_points};
-use zrak::render::render_pixels;
+use zrak::model::pixels::render_pixels;
 use zrak::scene::Scene;
 use zrak::scene::crop::CropBox;
 use zrak::scene::demo::{GREEN_CENTRE, RED_CENTRE, surface_distance};
@@ -179,7 +179,7 @@ fn a_crop_box_leaves_background_where_it_cuts_an_object_away() {
         let cropped = render_pixels(trainer.model.as_ref(), &camera, background);
         trainer.model.set_crop(None).unwrap();
         let width = camera.intrinsics.width;
-        let at = |pixels: &[zrak::train::model::RenderedPixel], (i, j): (u32, u32)| {
+        let at = |pixels: &[zrak::model::RenderedPixel], (i, j): (u32, u32)| {
             pixels[(j * width + i) as usize]
         };
         // The ball is there uncropped: opaque and red.

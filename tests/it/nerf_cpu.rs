@@ -12,15 +12,13 @@ use glam::Vec3;
 use zrak::engine::cpu::fields::nerf::NerfField;
 use zrak::engine::cpu::fields::{Field, Gradient};
 use zrak::engine::cpu::model::CpuModel;
-use zrak::engine::request::ModelRequest;
-use zrak::engine::request::ModelSettings;
+use zrak::engine::request::{ModelRequest, ModelSettings};
 use zrak::field::ModelKind;
-use zrak::field::nerf::Sampling;
-use zrak::field::ngp::LossKind;
+use zrak::field::common::{LossKind, Sampling};
+use zrak::model::RadianceModel;
+use zrak::model::checkpoint::Checkpoint;
 use zrak::rng::Pcg32;
 use zrak::scene::Scene;
-use zrak::train::checkpoint::Checkpoint;
-use zrak::train::model::RadianceModel;
 use zrak::train::trainer::Trainer;
 
 fn small_scene() -> Arc<Scene> {
@@ -35,7 +33,7 @@ fn model_of(scene: &Scene, kind: NerfKind, sampling: Sampling) -> CpuModel {
         loss: LossKind::L2,
         batch_samples: Some(1 << 12),
         sampling,
-        precision: zrak::engine::cpu::dense::Precision::F32,
+        precision: zrak::field::mlp::Precision::F32,
     };
     match kind {
         NerfKind::Nerf => CpuModel::build(
@@ -353,7 +351,7 @@ fn checkpoint_of_the_other_sampler_or_model_is_refused() {
     );
     let ngp = CpuModel::build(
         &crate::common::request(ModelKind::Ngp, 1, LossKind::L2, Some(1 << 12))
-            .with_shape(zrak::engine::cpu::fields::ngp::NgpShape::for_scene(&scene)),
+            .with_shape(zrak::field::ngp::NgpShape::for_scene(&scene)),
         &scene,
     );
     let error = model(&scene, Sampling::Occupancy)

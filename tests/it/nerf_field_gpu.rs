@@ -45,14 +45,16 @@
 //! then differs by a whole term. Rows with such a unit (in any trunk or
 //! colour layer, and σ_raw under the ReLU density) are redrawn.
 
-use zrak::engine::cpu::dense::{Activation, MlpLayout};
-use zrak::engine::cpu::fields::nerf::{DensityActivation, NerfField, NerfShape};
+use zrak::engine::cpu::fields::nerf::NerfField;
 use zrak::engine::cpu::fields::{Field, Gradient};
-use zrak::engine::cpu::frequency::{FrequencyEncoding, encode};
+use zrak::engine::cpu::frequency::encode;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::fields::nerf::GpuNerfField;
 use zrak::engine::gpu::fields::{FieldInputs, FieldOutputs};
 use zrak::engine::gpu::kernel::{Recorder, read_buffer, storage_buffer};
+use zrak::field::encoding::FrequencyEncoding;
+use zrak::field::mlp::{Activation, MlpLayout};
+use zrak::field::nerf::{DensityActivation, NerfShape};
 use zrak::rng::Pcg32;
 
 /// f32's unit roundoff.

@@ -34,26 +34,24 @@ use std::time::Instant;
 
 use glam::{Quat, Vec3};
 use zrak::engine::build_gpu;
-use zrak::engine::cpu::fields::nerf::{DensityActivation, NerfShape};
-use zrak::engine::cpu::frequency::FrequencyEncoding;
 use zrak::engine::cpu::model::CpuModel;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::model::GpuModel;
 use zrak::engine::gpu::render::{read_texture_rgba8, render_target};
-use zrak::engine::request::ModelRequest;
-use zrak::engine::request::ModelSettings;
-use zrak::field::ModelKind;
-use zrak::field::common::Recipe;
-use zrak::field::mipnerf;
-use zrak::field::nerf::Sampling;
-use zrak::field::ngp::LossKind;
-use zrak::render::{RenderMode, render_pixels, to_image};
+use zrak::engine::request::{ModelRequest, ModelSettings};
+use zrak::field::common::{LossKind, Recipe, Sampling};
+use zrak::field::encoding::FrequencyEncoding;
+use zrak::field::nerf::{DensityActivation, NerfShape};
+use zrak::field::{ModelKind, mipnerf};
+use zrak::model::batch::{RayBatch, TrainingBackground, sample_rays};
+use zrak::model::pixels::{render_pixels, to_image};
+use zrak::model::{RadianceModel, RenderMode, RenderedPixel};
 use zrak::rng::Pcg32;
 use zrak::scene::Scene;
 use zrak::scene::crop::CropBox;
-use zrak::scene::demo::{self, DemoConfig};
-use zrak::train::batch::{RayBatch, TrainingBackground, sample_rays};
-use zrak::train::model::{RadianceModel, RenderedPixel};
+use zrak::scene::demo::{
+    DemoConfig, {self},
+};
 
 const SEED: u64 = 3;
 
@@ -150,7 +148,7 @@ fn settings(sampling: Sampling) -> ModelSettings {
         loss: LossKind::L2,
         batch_samples: None,
         sampling,
-        precision: zrak::engine::cpu::dense::Precision::F32,
+        precision: zrak::field::mlp::Precision::F32,
     }
 }
 

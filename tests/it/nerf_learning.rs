@@ -6,15 +6,15 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use zrak::engine::cpu::dense::Precision;
 use zrak::engine::cpu::model::CpuModel;
-use zrak::engine::request::ModelRequest;
-use zrak::engine::request::ModelSettings;
+use zrak::engine::request::{ModelRequest, ModelSettings};
 use zrak::field::ModelKind;
-use zrak::field::nerf::Sampling;
-use zrak::field::ngp::LossKind;
+use zrak::field::common::{LossKind, Sampling};
+use zrak::field::mlp::Precision;
 use zrak::scene::Scene;
-use zrak::scene::demo::{self, DemoConfig};
+use zrak::scene::demo::{
+    DemoConfig, {self},
+};
 use zrak::train::eval::{mean_colour_psnr, mean_psnr};
 use zrak::train::trainer::Trainer;
 
@@ -88,7 +88,7 @@ fn held_out_psnr_at(trainer: &Trainer, scene: &Scene, factor: u32) -> f64 {
 /// render at that size would score, for comparison (ZRAK_AA_SUPERSAMPLED=1).
 fn area_averaged_render_psnr(trainer: &Trainer, scene: &Scene, factor: usize) -> f64 {
     use zrak::metrics::{RgbImage, WHITE, psnr};
-    use zrak::render::{render_pixels, rgb_of};
+    use zrak::model::pixels::{render_pixels, rgb_of};
     let mut sum = 0.0;
     for frame in &scene.val {
         let k = frame.camera.intrinsics;

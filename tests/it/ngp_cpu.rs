@@ -10,11 +10,13 @@ use std::sync::Arc;
 use common::batch;
 use zrak::engine::cpu::model::CpuModel;
 use zrak::field::ModelKind;
-use zrak::field::ngp::LossKind;
+use zrak::field::common::LossKind;
+use zrak::model::RadianceModel;
+use zrak::model::checkpoint::Checkpoint;
 use zrak::scene::Scene;
-use zrak::scene::demo::{self, DemoConfig};
-use zrak::train::checkpoint::Checkpoint;
-use zrak::train::model::RadianceModel;
+use zrak::scene::demo::{
+    DemoConfig, {self},
+};
 use zrak::train::trainer::Trainer;
 
 fn small_scene() -> Arc<Scene> {
@@ -24,7 +26,7 @@ fn small_scene() -> Arc<Scene> {
 fn model(scene: &Scene) -> CpuModel {
     CpuModel::build(
         &crate::common::request(ModelKind::Ngp, 3, LossKind::Huber, Some(1 << 13))
-            .with_shape(zrak::engine::cpu::fields::ngp::NgpShape::for_scene(scene)),
+            .with_shape(zrak::field::ngp::NgpShape::for_scene(scene)),
         scene,
     )
 }
@@ -91,7 +93,7 @@ fn model_with_coarse_grid(scene: &Scene) -> CpuModel {
     recipe.occupancy.resolution = 32;
     CpuModel::build(
         &crate::common::request(ModelKind::Ngp, 3, LossKind::Huber, Some(1 << 13))
-            .with_shape(zrak::engine::cpu::fields::ngp::NgpShape::for_scene(scene))
+            .with_shape(zrak::field::ngp::NgpShape::for_scene(scene))
             .with_recipe(recipe),
         scene,
     )

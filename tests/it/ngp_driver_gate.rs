@@ -21,13 +21,13 @@ use crate::common::gate_record::{Fixture, GateRecord};
 
 use std::sync::Arc;
 
-use zrak::engine::cpu::fields::ngp::NgpShape;
 use zrak::engine::cpu::model::CpuModel;
 use zrak::field::ModelKind;
-use zrak::field::ngp::LossKind;
+use zrak::field::common::LossKind;
+use zrak::field::ngp::NgpShape;
+use zrak::model::RadianceModel;
+use zrak::model::checkpoint::Checkpoint;
 use zrak::scene::Scene;
-use zrak::train::checkpoint::Checkpoint;
-use zrak::train::model::RadianceModel;
 use zrak::train::trainer::Trainer;
 
 const SEED: u64 = 7;

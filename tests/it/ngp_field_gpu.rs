@@ -14,14 +14,14 @@
 use crate::common;
 
 use common::relative_norm;
-use zrak::engine::cpu::fields::ngp::{NgpField, NgpShape};
+use zrak::engine::cpu::fields::ngp::NgpField;
 use zrak::engine::cpu::fields::{Field, Gradient};
-use zrak::engine::cpu::hash_grid::HashGridLayout;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::fields::ngp::GpuNgpField;
 use zrak::engine::gpu::fields::{FieldInputs, FieldOutputs, GpuField};
 use zrak::engine::gpu::kernel::{Recorder, read_buffer, storage_buffer, zeroed_storage_buffer};
-use zrak::field::ngp::HashGridConfig;
+use zrak::field::encoding::{HashGridConfig, HashGridLayout};
+use zrak::field::ngp::NgpShape;
 use zrak::rng::Pcg32;
 
 const ROWS: usize = 512;

@@ -11,15 +11,14 @@ use std::time::Instant;
 use common::{batch, relative, relative_norm};
 use glam::Vec3;
 use zrak::engine::build_gpu;
-use zrak::engine::cpu::fields::ngp::NgpShape;
 use zrak::engine::cpu::model::CpuModel;
 use zrak::engine::gpu::model::GpuModel;
 use zrak::engine::gpu::timing::StageTiming;
 use zrak::field::ModelKind;
-use zrak::field::common::Recipe;
-use zrak::field::ngp::LossKind;
+use zrak::field::common::{LossKind, Recipe};
+use zrak::field::ngp::NgpShape;
+use zrak::model::{RadianceModel, Stage};
 use zrak::scene::Scene;
-use zrak::train::model::{RadianceModel, Stage};
 
 /// 2^12 samples per batch: a few dozen rays through a sparse grid.
 const BATCH_SAMPLES: usize = 1 << 12;
@@ -300,7 +299,7 @@ fn occupancy_update_matches_the_cpu_engine() {
     let scene = small_scene();
     let mut recipe = zrak::field::ngp::recipe(scene.unit_cube.aabb_scale);
     recipe.occupancy.resolution = 32;
-    let shape = || zrak::engine::cpu::fields::ngp::NgpShape::for_scene(&scene);
+    let shape = || zrak::field::ngp::NgpShape::for_scene(&scene);
     let mut cpu = CpuModel::build(
         &crate::common::request(ModelKind::Ngp, SEED, LossKind::Huber, Some(BATCH_SAMPLES))
             .with_shape(shape())

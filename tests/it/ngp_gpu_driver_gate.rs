@@ -26,16 +26,14 @@ use crate::common::gate_record::{Fixture, GateRecord};
 use std::sync::Arc;
 
 use zrak::engine::build_gpu;
-use zrak::engine::cpu::fields::ngp::NgpShape;
-use zrak::engine::cpu::hash_grid::HashGridLayout;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::render::{read_texture_rgba8, render_target};
 use zrak::field::ModelKind;
-use zrak::field::ngp::HashGridConfig;
-use zrak::field::ngp::LossKind;
-use zrak::model::RenderMode;
+use zrak::field::common::LossKind;
+use zrak::field::encoding::{HashGridConfig, HashGridLayout};
+use zrak::field::ngp::NgpShape;
+use zrak::model::{RadianceModel, RenderMode};
 use zrak::scene::Scene;
-use zrak::train::model::RadianceModel;
 use zrak::train::trainer::Trainer;
 
 const SEED: u64 = 7;

@@ -5,13 +5,13 @@ use std::io::Write;
 use std::sync::Arc;
 use std::time::Instant;
 
-use zrak::engine::cpu::dense::Precision;
 use zrak::engine::cpu::model::CpuModel;
 use zrak::field::ModelKind;
-use zrak::field::ngp::LossKind;
+use zrak::field::common::LossKind;
+use zrak::field::mlp::Precision;
+use zrak::model::RadianceModel;
 use zrak::scene::Scene;
 use zrak::train::eval::{mean_colour_psnr, mean_psnr};
-use zrak::train::model::RadianceModel;
 use zrak::train::trainer::Trainer;
 
 use crate::common::demo_ngp;

@@ -13,16 +13,17 @@ use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::model::GpuModel;
 use zrak::engine::gpu::render::{read_texture_rgba8, render_target};
 use zrak::field::ModelKind;
-use zrak::field::ngp::LossKind;
-use zrak::model::TextureRender;
+use zrak::field::common::LossKind;
+use zrak::model::batch::{RayBatch, TrainingBackground, sample_rays};
 use zrak::model::checkpoint::Checkpoint;
-use zrak::render::{RenderMode, render_pixels, to_image};
+use zrak::model::pixels::{render_pixels, to_image};
+use zrak::model::{RadianceModel, RenderMode, RenderedPixel, TextureRender};
 use zrak::rng::Pcg32;
 use zrak::scene::crop::CropBox;
-use zrak::scene::demo::{self, DemoConfig};
+use zrak::scene::demo::{
+    DemoConfig, {self},
+};
 use zrak::scene::{Camera, Scene};
-use zrak::train::batch::{RayBatch, TrainingBackground, sample_rays};
-use zrak::train::model::{RadianceModel, RenderedPixel};
 
 const SEED: u64 = 3;
 
@@ -81,7 +82,7 @@ fn trained_models(scene: &Scene, batch_samples: usize) -> (impl RadianceModel, G
 fn untrained_cpu_model(scene: &Scene) -> CpuModel {
     CpuModel::build(
         &crate::common::request(ModelKind::Ngp, SEED, LossKind::Huber, Some(1 << 12))
-            .with_shape(zrak::engine::cpu::fields::ngp::NgpShape::for_scene(scene)),
+            .with_shape(zrak::field::ngp::NgpShape::for_scene(scene)),
         scene,
     )
 }
@@ -279,7 +280,7 @@ fn a_wrong_target_is_refused_with_what_is_wrong() {
     assert!(message.contains("8×8"), "{message}");
     let cpu: &dyn RadianceModel = &CpuModel::build(
         &crate::common::request(ModelKind::Ngp, 1, LossKind::Huber, Some(1024))
-            .with_shape(zrak::engine::cpu::fields::ngp::NgpShape::for_scene(&scene)),
+            .with_shape(zrak::field::ngp::NgpShape::for_scene(&scene)),
         &scene,
     );
     assert!(cpu.texture_render().is_none());

@@ -181,7 +181,7 @@ fn the_hand_made_png_decodes() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("black.png");
     write_black_png(&path, 301, 7);
-    let loaded = zrak::scene::image::load_image(&path).unwrap();
+    let loaded = zrak::scene::load_image(&path).unwrap();
     assert_eq!((loaded.image.width, loaded.image.height), (301, 7));
     assert!(loaded.image.data.chunks(4).all(|p| p == [0, 0, 0, 255]));
 }

@@ -1,9 +1,10 @@
 //! The gpu spherical-harmonics encoding against the cpu on lavapipe.
 
-use zrak::engine::cpu::sh::{sh_coefficients, sh_encode};
+use zrak::engine::cpu::sh::sh_encode;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::kernel::{Columns, Recorder, read_buffer, storage_buffer};
 use zrak::engine::gpu::sh::GpuSh;
+use zrak::field::encoding::sh_coefficients;
 use zrak::rng::Pcg32;
 
 fn directions(rows: usize) -> Vec<f32> {

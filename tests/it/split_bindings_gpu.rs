@@ -12,20 +12,22 @@
 use std::sync::Arc;
 
 use zrak::engine::build_gpu;
-use zrak::engine::cpu::adam::Adam;
-use zrak::engine::cpu::dense::{Activation, MlpLayout};
-use zrak::engine::cpu::hash_grid::HashGridLayout;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::adam::GpuAdam;
 use zrak::engine::gpu::dense::GpuDense;
 use zrak::engine::gpu::hash_grid::GpuHashGrid;
 use zrak::engine::gpu::kernel::{Recorder, read_buffer, rows_per_piece, storage_buffer};
+use zrak::engine::shared::adam::Adam;
 use zrak::field::ModelKind;
-use zrak::field::ngp::{HashGridConfig, LossKind, OptimiserConfig};
+use zrak::field::common::{LossKind, OptimiserConfig};
+use zrak::field::encoding::{HashGridConfig, HashGridLayout};
+use zrak::field::mlp::{Activation, MlpLayout};
+use zrak::model::batch::{RayBatch, TrainingBackground, sample_rays};
 use zrak::rng::Pcg32;
 use zrak::scene::Scene;
-use zrak::scene::demo::{self, DemoConfig};
-use zrak::train::batch::{RayBatch, TrainingBackground, sample_rays};
+use zrak::scene::demo::{
+    DemoConfig, {self},
+};
 
 fn context() -> GpuContext {
     GpuContext::new().expect("lavapipe or a GPU")

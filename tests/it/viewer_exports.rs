@@ -8,19 +8,21 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use glam::{DMat4, DVec3, Vec3};
-use zrak::engine::cpu::dense::Precision;
 use zrak::field::ModelKind;
+use zrak::field::mlp::Precision;
 use zrak::mesh::extract::{MeshSettings, extract_mesh, sample_density};
 use zrak::mesh::points::{PointSettings, extract_points, stride_for};
 use zrak::mesh::points_to_ply;
-use zrak::render::RenderMode;
+use zrak::model::RenderMode;
+use zrak::model::checkpoint::Checkpoint;
 use zrak::render::camera_path::nerfstudio::CameraPathFile;
 use zrak::render::camera_path::{CameraPath, Keyframe, look_at};
 use zrak::scene::crop::CropBox;
-use zrak::scene::demo::{self, DemoConfig};
+use zrak::scene::demo::{
+    DemoConfig, {self},
+};
 use zrak::session::protocol::{CameraPathExport, Command, Event, MeshExport, PointsExport};
 use zrak::session::worker::{TrainingWorker, WorkerOptions};
-use zrak::train::checkpoint::Checkpoint;
 use zrak::train::trainer::Trainer;
 
 use crate::common;

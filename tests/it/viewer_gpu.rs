@@ -13,25 +13,24 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use crate::common::worker::wait_for;
-use zrak::engine::build;
-use zrak::engine::build_gpu;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::render::read_texture_rgba8;
-use zrak::engine::request::ModelRequest;
-use zrak::engine::request::ModelSettings;
-use zrak::engine::{EngineChoice, EngineKind};
+use zrak::engine::request::{ModelRequest, ModelSettings};
+use zrak::engine::{EngineChoice, EngineKind, build, build_gpu};
 use zrak::field::ModelKind;
-use zrak::field::ngp::LossKind;
+use zrak::field::common::LossKind;
 use zrak::metrics::WHITE;
-use zrak::render::{RenderMode, render_pixels, to_image};
-use zrak::scene::demo::{self, DemoConfig};
+use zrak::model::checkpoint::Checkpoint;
+use zrak::model::pixels::{render_pixels, to_image};
+use zrak::model::{RenderMode, RenderedPixel};
+use zrak::scene::demo::{
+    DemoConfig, {self},
+};
 use zrak::scene::{Camera, Scene};
 use zrak::session::protocol::{
     Command, Event, GpuFrame, RenderRequest, RenderedFrame, SceneSource,
 };
 use zrak::session::worker::{TrainingWorker, WorkerOptions};
-use zrak::train::checkpoint::Checkpoint;
-use zrak::train::model::RenderedPixel;
 use zrak::train::trainer::Trainer;
 
 const SEED: u64 = 5;
@@ -57,8 +56,8 @@ fn settings() -> ModelSettings {
         seed: SEED,
         loss: LossKind::Huber,
         batch_samples: Some(BATCH_SAMPLES),
-        sampling: zrak::field::nerf::Sampling::Occupancy,
-        precision: zrak::engine::cpu::dense::Precision::F32,
+        sampling: zrak::field::common::Sampling::Occupancy,
+        precision: zrak::field::mlp::Precision::F32,
     }
 }
 
@@ -305,12 +304,12 @@ fn a_level_drawn_in_bands_is_the_level_drawn_whole() {
     };
     // NeRF in miniature, a few steps in so that its picture is not flat.
     let nerf = {
-        let shape = zrak::engine::cpu::fields::nerf::NerfShape::new(
-            zrak::engine::cpu::frequency::FrequencyEncoding {
+        let shape = zrak::field::nerf::NerfShape::new(
+            zrak::field::encoding::FrequencyEncoding {
                 frequencies: 3,
                 include_input: true,
             },
-            zrak::engine::cpu::frequency::FrequencyEncoding {
+            zrak::field::encoding::FrequencyEncoding {
                 frequencies: 2,
                 include_input: true,
             },
@@ -318,7 +317,7 @@ fn a_level_drawn_in_bands_is_the_level_drawn_whole() {
             4,
             2,
             8,
-            zrak::engine::cpu::fields::nerf::DensityActivation::Relu,
+            zrak::field::nerf::DensityActivation::Relu,
         );
         let model = build_gpu(
             share(&context),

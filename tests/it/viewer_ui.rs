@@ -15,14 +15,15 @@ use egui_kittest::kittest::Queryable;
 use zrak::app::ui::{ExportKind, PlotAxis, TrainingLink, ViewerUi};
 use zrak::engine::EngineKind;
 use zrak::field::ModelKind;
-use zrak::render::RenderMode;
+use zrak::model::{RenderMode, RenderedPixel, Stage, StageTimes};
 use zrak::scene::crop::CropBox;
-use zrak::scene::demo::{self, DemoConfig};
+use zrak::scene::demo::{
+    DemoConfig, {self},
+};
 use zrak::session::protocol::{
     Command, Event, InTurn, MeshExport, RenderedFrame, SceneInfo, SceneSource, TrainingStats,
 };
 use zrak::session::worker::TrainingWorker;
-use zrak::train::model::{RenderedPixel, Stage, StageTimes};
 
 /// Records every command; hands out events the test queued.
 #[derive(Clone, Default)]
@@ -613,7 +614,7 @@ fn the_plot_and_table_export_from_the_window_with_the_sessions_numbers() {
 #[test]
 fn the_stats_show_where_the_thread_time_goes_and_how_far_the_picture_lags() {
     let _cores = crate::common::shared();
-    use zrak::session::protocol::{LevelTime, ScheduleTrace};
+    use zrak::session::schedule::{LevelTime, ScheduleTrace};
     let (mut harness, link) = harness_with_scene();
     // The timing column shows where the thread's time goes, or on a click
     // the stages of a step.

@@ -275,7 +275,7 @@ fn window_trains_on_the_demo_scene_shows_it_and_keeps_it_on_ctrl_c() {
     // The checkpoint holds at least the steps logged before the interrupt
     // (closing finishes the step under way), and the command line
     // evaluates the run from it.
-    let checkpoint = zrak::train::checkpoint::Checkpoint::load(&run.join("checkpoint.zrak"))
+    let checkpoint = zrak::model::checkpoint::Checkpoint::load(&run.join("checkpoint.zrak"))
         .unwrap_or_else(|e| panic!("the kept checkpoint loads: {e}"));
     let step = checkpoint.header["trainer"]["step"]
         .as_u64()

@@ -19,12 +19,13 @@ use std::time::{Duration, Instant};
 
 use zrak::engine::EngineKind;
 use zrak::field::ModelKind;
-use zrak::field::nerf::Sampling;
-use zrak::field::ngp::LossKind;
-use zrak::render::RenderMode;
+use zrak::field::common::{LossKind, Sampling};
+use zrak::model::RenderMode;
 use zrak::render::export::ExportSettings;
 use zrak::render::path::Turntable;
-use zrak::scene::demo::{self, DemoConfig};
+use zrak::scene::demo::{
+    DemoConfig, {self},
+};
 use zrak::session::protocol::{Command, Event, InTurn, RenderRequest, SceneSource};
 use zrak::session::worker::{TrainingWorker, WorkerOptions};
 
@@ -353,7 +354,7 @@ fn closing_keeps_each_model_trained_since_its_last_save() {
     let name = kept[0].file_name().unwrap().to_string_lossy().into_owned();
     assert!(name.starts_with("demo-ngp-"), "{name}");
     let checkpoint =
-        zrak::train::checkpoint::Checkpoint::load(&kept[0].join("checkpoint.zrak")).unwrap();
+        zrak::model::checkpoint::Checkpoint::load(&kept[0].join("checkpoint.zrak")).unwrap();
     assert_eq!(checkpoint.header["trainer"]["step"], 2);
     let run: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(kept[0].join("run.json")).unwrap()).unwrap();

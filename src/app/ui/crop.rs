@@ -9,7 +9,7 @@ use egui::RichText;
 use glam::{EulerRot, Quat, Vec3};
 
 use super::ViewerUi;
-use crate::scene::bounds::Aabb;
+use crate::scene::Aabb;
 use crate::scene::crop::CropBox;
 use crate::session::protocol::Command;
 

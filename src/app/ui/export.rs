@@ -13,7 +13,7 @@ use super::panels::ERROR_COLOUR;
 use super::{Notice, ViewerUi};
 use crate::mesh::MinComponent;
 use crate::mesh::extract::{MAX_RESOLUTION, default_threshold};
-use crate::render::RenderMode;
+use crate::model::RenderMode;
 use crate::render::camera_path::nerfstudio::CameraPathFile;
 use crate::render::export::ExportSettings;
 use crate::render::path::Turntable;

@@ -22,12 +22,13 @@ use std::time::{Duration, Instant};
 
 use crate::engine::EngineKind;
 use crate::field::ModelKind;
-use crate::render::RenderMode;
+use crate::model::RenderMode;
 use crate::session::camera::ViewCamera;
 use crate::session::path_state::PathEditor;
 use crate::session::protocol::{
-    Balance, Command, Event, InTurn, SceneInfo, SceneSource, ScheduleTrace, TrainingStats,
+    Balance, Command, Event, InTurn, SceneInfo, SceneSource, TrainingStats,
 };
+use crate::session::schedule::ScheduleTrace;
 use crate::session::worker::TrainingWorker;
 
 pub use crop::CropPanel;

@@ -6,10 +6,12 @@ use std::path::PathBuf;
 
 use egui::{Color32, RichText};
 
-use super::viewport::{self, CompareMode, CompareWith};
+use super::viewport::{
+    CompareMode, CompareWith, {self},
+};
 use super::{PlotAxis, ViewerUi, describe_source, plots};
 use crate::field::ModelKind;
-use crate::render::RenderMode;
+use crate::model::RenderMode;
 use crate::session::camera::Navigation;
 use crate::session::protocol::{Balance, Command, SceneSource};
 

@@ -8,12 +8,10 @@ use egui::{
 
 use super::{NativeTextures, ViewerUi};
 use crate::field::ModelKind;
-use crate::render::RenderMode;
-use crate::scene::image::to_u8;
-use crate::scene::{Camera, Scene};
+use crate::model::{RenderMode, RenderedPixel};
+use crate::scene::{Camera, Scene, to_u8};
 use crate::session::camera::{FlyInput, Navigation, ViewCamera, step_view};
 use crate::session::protocol::{Command, GpuFrame, RenderRequest, RenderedFrame};
-use crate::train::model::RenderedPixel;
 
 /// The colour the training thread composites empty space onto (white, as
 /// the reference protocol evaluates); photographs are shown over it too.

@@ -13,13 +13,15 @@ use std::path::Path;
 use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
-use zrak::interrupt::{self, note};
+use zrak::interrupt::{
+    note, {self},
+};
+use zrak::model::RadianceModel;
 use zrak::render::camera_path::export::{PathRender, PathRenderSettings};
 use zrak::render::camera_path::frames::RenderSource;
 use zrak::render::camera_path::nerfstudio::{CameraPathFile, scene_to_original};
 use zrak::render::camera_path::video::size_problem;
 use zrak::scene::Scene;
-use zrak::train::model::RadianceModel;
 
 use super::RenderArgs;
 

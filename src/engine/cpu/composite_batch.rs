@@ -38,7 +38,7 @@ use num_traits::Float;
 /// splitting costs nothing next to the work.
 const LEAF_SAMPLES: usize = 2048;
 
-pub use crate::engine::shared::composite::{Distortion, RayBatch};
+use crate::engine::shared::composite::{Distortion, RayBatch};
 
 impl<F> RayBatch<'_, F> {
     /// Panics on inconsistent lengths or decreasing offsets: either would

@@ -45,7 +45,7 @@
 use num_traits::Float;
 use rayon::prelude::*;
 
-pub use crate::field::encoding::{FrequencyEncoding, MAX_FREQUENCIES};
+use crate::field::encoding::{FrequencyEncoding, MAX_FREQUENCIES};
 
 impl FrequencyEncoding {
     /// Column of the first sinusoid (after the raw input, if any).

@@ -9,7 +9,7 @@
 use glam::Vec3;
 use rayon::prelude::*;
 
-pub use crate::engine::shared::frustum::{FrustumMoments, frustum_gaussian, frustum_moments};
+use crate::engine::shared::frustum::frustum_gaussian;
 
 /// Samples per rayon task.
 const SAMPLES_PER_TASK: usize = 4096;
@@ -62,6 +62,7 @@ pub fn frustum_gaussians(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::engine::shared::frustum::frustum_moments;
 
     /// Mean and variances of the frustum by numerical integration in f64:
     /// the cone's cross-section at distance t is a disc of radius r·t, its

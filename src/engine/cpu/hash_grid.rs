@@ -51,7 +51,7 @@ pub fn spatial_hash(x: u32, y: u32, z: u32) -> u32 {
     x.wrapping_mul(HASH_PRIMES[0]) ^ y.wrapping_mul(HASH_PRIMES[1]) ^ z.wrapping_mul(HASH_PRIMES[2])
 }
 
-pub use crate::field::encoding::{HashGridLayout, LevelLayout, SUPPORTED_FEATURES};
+use crate::field::encoding::{HashGridLayout, LevelLayout};
 
 /// The floating-point types the stage runs in.
 pub trait Real: Float + Send + Sync + 'static {

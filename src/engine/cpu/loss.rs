@@ -18,7 +18,7 @@
 use num_traits::Float;
 use rayon::prelude::*;
 
-use crate::field::ngp::{HUBER_DELTA, LossKind};
+use crate::field::common::{HUBER_DELTA, LossKind};
 
 /// Elements per rayon task: fixed, so the partial sums (and so the loss
 /// value) do not depend on how work was stolen.

@@ -11,11 +11,11 @@
 use glam::Vec3;
 use rayon::prelude::*;
 
-use super::occupancy::OccupancyGrid;
+use crate::engine::shared::occupancy::OccupancyGrid;
 
 // What both engines use, under the paths the cpu engine has always named
 // it by.
-pub use crate::engine::shared::march::*;
+use crate::engine::shared::march::*;
 
 /// Per-thread scratch of [`march`], kept between calls.
 #[derive(Debug, Default)]
@@ -216,8 +216,6 @@ pub fn march(
         samples: total,
     }
 }
-
-pub use crate::engine::shared::batch_sizer::BatchSizer;
 
 #[cfg(test)]
 mod tests;

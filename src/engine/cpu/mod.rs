@@ -16,4 +16,3 @@ pub mod sh;
 
 // What both engines hold on the host, under the paths the cpu engine's
 // stages have always named them by.
-pub use super::shared::{adam, occupancy, state};

@@ -25,7 +25,7 @@
 
 use rayon::prelude::*;
 
-use super::march::mix32;
+use crate::engine::shared::march::mix32;
 
 /// Rays per rayon task: a ray costs O(N) here, far less than the splitting,
 /// so rays go in blocks (as `composite_batch`'s 64 rays per task).
@@ -129,7 +129,7 @@ pub fn stratified(
         });
 }
 
-pub use crate::engine::shared::sampling::stratified_step;
+use crate::engine::shared::sampling::stratified_step;
 
 /// A weight as the pdf uses it: non-finite, negative and subnormal weights
 /// count as zero (subnormals because GPUs may flush them to zero, and the

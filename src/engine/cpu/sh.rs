@@ -26,7 +26,7 @@
 use num_traits::Float;
 use rayon::prelude::*;
 
-pub use crate::field::encoding::{SH_MAX_DEGREE, sh_coefficients};
+use crate::field::encoding::{SH_MAX_DEGREE, sh_coefficients};
 
 /// 1/(2√π) = K_0^0.
 const C0: f64 = 0.282_094_791_773_878_14;

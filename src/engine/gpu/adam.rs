@@ -5,13 +5,13 @@
 use std::ops::Range;
 
 use super::composite::grid;
-use super::context::{GpuContext, GpuError};
 use super::kernel::{
     Kernel, Recorder, float_range, pieces, read_buffer, rows_per_piece, storage_buffer,
     uniform_buffer,
 };
+use crate::engine::gpu::{GpuContext, GpuError};
 use crate::engine::shared::adam::Adam;
-use crate::field::ngp::OptimiserConfig;
+use crate::field::common::OptimiserConfig;
 use crate::field::params::{ParamLayout, Update};
 
 /// Threads per workgroup in adam.wgsl.

@@ -12,9 +12,9 @@
 //! read the count from the prefix sum's counter, so the whole compaction
 //! goes into the same submission as the march and adds no wait.
 
-use super::context::{GpuContext, GpuError};
 use super::kernel::{Kernel, Recorder, uniform_buffer, zeroed_storage_buffer};
 use super::march::{GpuMarch, PrefixSum, block_sums_len, dispatch_grid, source};
+use crate::engine::gpu::{GpuContext, GpuError};
 
 /// Threads per workgroup of the gathers.
 const WORKGROUP: u32 = 64;

@@ -5,10 +5,10 @@
 //! (`shaders/composite_weights.wgsl`), which importance sampling draws from.
 //! `shaders/volume_common.wgsl` is prepended to each kernel.
 
-use super::context::{GpuContext, GpuError};
 use super::kernel::{
     Kernel, Recorder, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer,
 };
+use crate::engine::gpu::{GpuContext, GpuError};
 use crate::engine::shared::composite::{Distortion, RayBatch};
 
 pub(crate) const VOLUME_COMMON: &str = include_str!("../../../shaders/volume_common.wgsl");

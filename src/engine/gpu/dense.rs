@@ -28,13 +28,12 @@
 //! the gradients are bit for bit those of the unsplit batch. The partials
 //! adapt their chunk size to stay under the limit.
 
-use super::context::{GpuContext, GpuError};
 use super::kernel::{
     FloatsAt, Kernel, Recorder, float_range, groups_for, pieces, read_buffer, rows_per_piece,
     storage_buffer, uniform_buffer, zeroed_storage_buffer,
 };
-use crate::field::mlp::{Activation, MlpLayout};
-use crate::field::ngp::DENSITY_EXP_CLAMP;
+use crate::engine::gpu::{GpuContext, GpuError};
+use crate::field::mlp::{Activation, DENSITY_EXP_CLAMP, MlpLayout};
 
 const COMMON: &str = include_str!("../../../shaders/dense_common.wgsl");
 /// Each workgroup computes a BLOCK × BLOCK tile of its result

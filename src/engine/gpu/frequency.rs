@@ -2,11 +2,11 @@
 //! (`shaders/frequency_encode.wgsl`): the forward pass of
 //! [`crate::engine::cpu::frequency`], same formulas and layout.
 
-use super::context::{GpuContext, GpuError};
 use super::kernel::{
     Kernel, Recorder, float_range, pieces, read_buffer, rows_per_piece, storage_buffer,
     uniform_buffer, zeroed_storage_buffer,
 };
+use crate::engine::gpu::{GpuContext, GpuError};
 use crate::field::encoding::{FrequencyEncoding, MAX_FREQUENCIES};
 
 /// Threads per workgroup in frequency_encode.wgsl.

@@ -27,10 +27,10 @@
 //! are the divisions (2.5 ulp), so the two engines agree to a few ulps (on
 //! lavapipe, bit for bit: see `tests/it/sampling_gpu.rs`).
 
-use super::context::{GpuContext, GpuError};
 use super::kernel::{Kernel, Recorder, float_range};
 use super::march::{CPU_ARITHMETIC, source};
 use super::sampling::{COMMON, GpuSampling, SampleUniforms};
+use crate::engine::gpu::{GpuContext, GpuError};
 
 const FRUSTUM_COMMON: &str = include_str!("../../../shaders/frustum_common.wgsl");
 

@@ -8,7 +8,7 @@
 //! bits in an `atomic<u32>`, which every device supports. Both add exact
 //! f32 values; the order of additions varies from run to run either way.
 
-use super::context::{GpuContext, GpuError};
+use crate::engine::gpu::{GpuContext, GpuError};
 use std::ops::Range;
 
 use super::kernel::{

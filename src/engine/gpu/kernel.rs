@@ -4,7 +4,7 @@
 use bytemuck::Pod;
 use wgpu::util::DeviceExt;
 
-use super::context::{GpuContext, GpuError};
+use crate::engine::gpu::{GpuContext, GpuError};
 
 /// Where a stage records its work: the device it runs on and the command
 /// encoder its dispatches and copies go into, submitted together by

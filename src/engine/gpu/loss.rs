@@ -3,11 +3,11 @@
 //! mean, as [`crate::engine::cpu::loss`].
 
 use super::composite::grid;
-use super::context::{GpuContext, GpuError};
 use super::kernel::{
     Kernel, Recorder, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer,
 };
-use crate::field::ngp::{HUBER_DELTA, LossKind};
+use crate::engine::gpu::{GpuContext, GpuError};
+use crate::field::common::{HUBER_DELTA, LossKind};
 
 /// Threads per workgroup in loss_gradient.wgsl.
 const WORKGROUP: u32 = 64;

@@ -14,10 +14,10 @@
 //! power-of-two arithmetic), so both engines take the same samples with the same steps;
 //! each sample carries its own step.
 
-use super::context::{GpuContext, GpuError};
 use super::kernel::{
     Kernel, Recorder, read_buffer, storage_buffer, uniform_buffer, zeroed_storage_buffer,
 };
+use crate::engine::gpu::{GpuContext, GpuError};
 use crate::engine::shared::march::{
     MarchParams, MarchStats, MarchedSamples, cone_for, skip_margin,
 };

@@ -1,10 +1,10 @@
 //! The `gpu` engine: wgpu compute pipelines over the WGSL in `shaders/`.
 
-pub mod context;
+mod context;
 pub mod hash_grid;
 pub mod kernel;
 
-pub use context::{GpuContext, GpuError};
+pub use context::{CounterReading, GpuContext, GpuCounters, GpuError};
 pub mod adam;
 pub mod compact;
 pub mod composite;

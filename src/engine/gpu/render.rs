@@ -14,9 +14,9 @@
 //! are the cpu's, so the pixels are the cpu's up to rounding.
 
 use super::composite::VOLUME_COMMON;
-use super::context::{GpuContext, GpuError};
 use super::kernel::{Kernel, zeroed_storage_buffer};
 use super::march::{CPU_ARITHMETIC, MARCH_COMMON, MARCH_PARAMS, source};
+use crate::engine::gpu::{GpuContext, GpuError};
 use crate::scene::UnitCubeMapping;
 use crate::scene::crop::CropBox;
 

@@ -16,10 +16,9 @@
 //! normal number can meet a GPU that flushes subnormal products to zero.
 //! Rays beyond one storage binding go a piece at a time.
 
-use super::context::{GpuContext, GpuError};
 use super::kernel::{Kernel, Recorder, float_range, pieces, rows_per_piece, uniform_buffer};
-use super::march::GpuRays;
-use super::march::{CPU_ARITHMETIC, dispatch_grid, source};
+use super::march::{CPU_ARITHMETIC, GpuRays, dispatch_grid, source};
+use crate::engine::gpu::{GpuContext, GpuError};
 use crate::engine::shared::sampling::stratified_step;
 
 /// Threads per workgroup of every sampling kernel.

@@ -1,11 +1,11 @@
 //! The spherical-harmonics direction encoding on the GPU
 //! (`shaders/sh_encode.wgsl`), the basis of [`crate::engine::cpu::sh`].
 
-use super::context::{GpuContext, GpuError};
 use super::kernel::{
     Columns, Kernel, Recorder, float_range, pieces, read_buffer, rows_per_piece, storage_buffer,
     uniform_buffer, zeroed_storage_buffer,
 };
+use crate::engine::gpu::{GpuContext, GpuError};
 use crate::field::encoding::{SH_MAX_DEGREE, sh_coefficients};
 
 /// Threads per workgroup in sh_encode.wgsl.

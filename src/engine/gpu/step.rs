@@ -9,12 +9,12 @@ use std::ops::Range;
 use super::composite::{
     CompositeGradientBuffers, CompositeOutputBuffers, GpuComposite, RayBatchBuffers,
 };
-use super::context::GpuContext;
 use super::kernel::{MapRequest, Recorder, staging_buffer, zeroed_storage_buffer};
 use super::loss::{GpuLoss, LossBuffers};
 use super::timing::{PendingTimes, StageClock};
+use crate::engine::gpu::GpuContext;
 use crate::engine::shared::composite::Distortion;
-use crate::field::ngp::LossKind;
+use crate::field::common::LossKind;
 use crate::model::StageTimes;
 use crate::model::batch::RayBatch;
 

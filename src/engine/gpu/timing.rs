@@ -20,10 +20,9 @@ use std::time::Instant;
 
 use wgpu::Features;
 
-use super::context::GpuContext;
 use super::kernel::{MapRequest, Recorder};
-pub use crate::model::Stage;
-use crate::model::StageTimes;
+use crate::engine::gpu::GpuContext;
+use crate::model::{Stage, StageTimes};
 
 /// How stage times are measured.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

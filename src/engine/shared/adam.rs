@@ -37,7 +37,7 @@ use std::ops::Range;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::field::ngp::OptimiserConfig;
+use crate::field::common::OptimiserConfig;
 use crate::field::params::{ParamLayout, Update};
 
 /// Parameters per rayon task: big enough that the scheduling cost vanishes

@@ -16,8 +16,9 @@ use super::batch_sizer::BatchSizer;
 use super::frustum::frustum_gaussian;
 use super::march::{GridSamples, mix32};
 use super::occupancy::OccupancyGrid;
-use crate::field::common::{BatchSize, RayBounds, Recipe, SamplerKind};
-use crate::field::ngp::{MarchConfig, OccupancyConfig};
+use crate::field::common::{
+    BatchSize, MarchConfig, OccupancyConfig, RayBounds, Recipe, SamplerKind,
+};
 use crate::field::params::ParamLayout;
 use crate::scene::{Aabb, UnitCubeMapping};
 

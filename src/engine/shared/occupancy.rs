@@ -33,7 +33,7 @@
 use glam::Vec3;
 use rayon::prelude::*;
 
-use crate::field::ngp::{MarchConfig, OccupancyConfig};
+use crate::field::common::{MarchConfig, OccupancyConfig};
 
 /// Density evaluations per call of the density function unless the driver
 /// sets its batch's size: 2^18, Instant-NGP's batch (paper, section 5.4).

@@ -5,7 +5,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::adam::Adam;
-use crate::field::ngp::LossKind;
+use crate::field::common::LossKind;
 use crate::model::checkpoint::Checkpoint;
 
 /// The checkpoint header of a model.

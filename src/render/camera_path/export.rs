@@ -16,9 +16,8 @@ use std::path::{Path, PathBuf};
 use super::PathSample;
 use super::frames::{FrameJob, MANIFEST, RenderSource, read_frame};
 use super::video::{Mp4Encoder, VideoInfo, size_problem};
-use crate::render::RenderMode;
+use crate::model::{RadianceModel, RenderMode};
 use crate::scene::ImageRgba8;
-use crate::train::model::RadianceModel;
 
 /// Whether `out` names a video file rather than a folder of frames.
 pub fn is_video(out: &Path) -> bool {

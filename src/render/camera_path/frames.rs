@@ -20,8 +20,8 @@ use serde_json::{Value, json};
 
 use super::PathSample;
 use crate::crc32c::Crc32c;
-use crate::model::RadianceModel;
-use crate::render::{RenderMode, render_pixels, to_image};
+use crate::model::pixels::{render_pixels, to_image};
+use crate::model::{RadianceModel, RenderMode};
 use crate::scene::ImageRgba8;
 use crate::scene::crop::CropBox;
 

@@ -25,10 +25,10 @@ use std::path::{Path, PathBuf};
 use glam::{DMat3, DQuat, DVec3, Mat4, Vec4};
 use serde_json::{Value, json};
 
-use super::camera::{Camera, Intrinsics, Lens};
 use super::error::{SceneError, SceneResult, shown};
 use super::pose::{FrameSource, check_downscale, decode_images};
 use super::{Frame, LoadOptions, Scene, SceneFormat, UnitCubeMapping, folder_name};
+use crate::scene::{Camera, Intrinsics, Lens};
 
 mod files;
 
@@ -544,7 +544,7 @@ pub fn load(root: &Path, options: LoadOptions) -> SceneResult<Scene> {
         .collect();
     for (source, image) in sources.iter().zip(&converted.images) {
         if !source.image_path.is_file() {
-            let name = crate::scene::error::escape_controls(&image.name);
+            let name = crate::scene::escape_controls(&image.name);
             let path = &source.image_path;
             return Err(source.error(if crate::files::exists_at_all(path) {
                 format!(

@@ -19,11 +19,11 @@ use glam::Vec3;
 use rayon::prelude::*;
 use serde::Serialize;
 
-use super::image::to_u8;
 use super::{
     Camera, Frame, ImageRgba8, Intrinsics, Scene, SceneError, SceneFormat, SceneResult, Split,
     UnitCubeMapping,
 };
+use crate::scene::to_u8;
 
 /// Horizontal field of view of every demo camera, NeRF-synthetic's value.
 pub const CAMERA_ANGLE_X: f32 = 0.691_111_2;

@@ -336,7 +336,7 @@ fn write_produces_blender_layout() {
                 }
             }
             let png = root.join(format!("{}.png", &file_path[2..]));
-            let loaded = crate::scene::image::load_image(&png).unwrap();
+            let loaded = crate::scene::load_image(&png).unwrap();
             assert!(loaded.file_has_alpha);
             assert_eq!(loaded.image, frame.image);
         }

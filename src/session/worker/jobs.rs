@@ -7,8 +7,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use crate::field::ModelKind;
-use crate::metrics::WHITE;
-use crate::metrics::psnr::psnr_from_mse;
+use crate::metrics::{WHITE, psnr_from_mse};
 use crate::model::{RadianceModel, RayColumns, RenderedPixel};
 use crate::scene::crop::CropBox;
 use crate::scene::{Frame, Scene};
@@ -203,7 +202,9 @@ impl Jobs {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::scene::demo::{self, DemoConfig};
+    use crate::scene::demo::{
+        DemoConfig, {self},
+    };
 
     fn frames() -> Vec<Frame> {
         let scene = demo::build(&DemoConfig {

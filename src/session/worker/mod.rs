@@ -22,25 +22,27 @@
 //! concern most of them, are its own (`saving.rs`).
 
 use std::path::PathBuf;
-use std::sync::mpsc::{self, Receiver, RecvTimeoutError, Sender, TryRecvError};
+use std::sync::mpsc::{
+    Receiver, RecvTimeoutError, Sender, TryRecvError, {self},
+};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use crate::engine::build;
-use crate::engine::cpu::dense::{Precision, backend_for};
-use crate::engine::cpu::fields::nerf::NerfShape;
+use crate::engine::cpu::dense::backend_for;
 use crate::engine::gpu::GpuContext;
 use crate::engine::request::{ModelRequest, ModelSettings};
-use crate::engine::{EngineChoice, EngineKind, choose_engine};
-use crate::field::FieldShape;
-use crate::field::ModelKind;
-use crate::field::nerf::Sampling;
-use crate::field::ngp::LossKind;
+use crate::engine::{EngineChoice, EngineKind, build, choose_engine};
+use crate::field::common::{LossKind, Sampling};
+use crate::field::mlp::Precision;
+use crate::field::nerf::NerfShape;
+use crate::field::{FieldShape, ModelKind};
 use crate::model::{RadianceModel, Stage};
 use crate::scene::Scene;
 use crate::scene::crop::CropBox;
-use crate::scene::demo::{self, DemoConfig};
+use crate::scene::demo::{
+    DemoConfig, {self},
+};
 use crate::session::protocol::{Command, Event, InTurn, SceneSource};
 use crate::train::trainer::Trainer;
 

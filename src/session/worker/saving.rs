@@ -4,10 +4,10 @@
 use std::path::Path;
 
 use crate::field::ModelKind;
-use crate::field::ngp::LossKind;
+use crate::field::common::LossKind;
+use crate::model::checkpoint::Checkpoint;
 use crate::scene::crop::CropBox;
 use crate::session::protocol::{Event, SceneSource};
-use crate::train::checkpoint::Checkpoint;
 
 use super::{UiGone, Worker};
 

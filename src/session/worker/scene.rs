@@ -4,10 +4,14 @@
 
 use std::path::PathBuf;
 use std::sync::Arc;
-use std::sync::mpsc::{self, Receiver, TryRecvError};
+use std::sync::mpsc::{
+    Receiver, TryRecvError, {self},
+};
 
 use crate::scene::crop::CropBox;
-use crate::scene::demo::{self, DemoConfig};
+use crate::scene::demo::{
+    DemoConfig, {self},
+};
 use crate::scene::{Frame, LoadOptions, Scene};
 use crate::session::protocol::{SceneInfo, SceneSource};
 use crate::train::eval::spread_views;

@@ -1,7 +1,7 @@
 use super::viewer_batch_samples;
 use crate::engine::EngineKind;
 use crate::field::ModelKind;
-use crate::field::nerf::Sampling;
+use crate::field::common::Sampling;
 
 #[test]
 fn viewer_batches_shrink_only_where_a_step_would_be_long() {

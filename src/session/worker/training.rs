@@ -5,8 +5,8 @@
 use std::time::{Duration, Instant};
 
 use crate::field::ModelKind;
-use crate::field::ngp::LossKind;
-use crate::metrics::psnr::psnr_from_mse;
+use crate::field::common::LossKind;
+use crate::metrics::psnr_from_mse;
 use crate::model::{StageTimes, StepStats};
 use crate::scene::Frame;
 use crate::session::progressive::ChunkPacer;

@@ -1,13 +1,12 @@
 //! The view's part without a thread: the cameras it refuses, the balance
 //! it keeps, and what it tells the window.
 
-use std::sync::mpsc;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, mpsc};
 
 use glam::Vec3;
 
 use super::{MAX_TRAINING_SHARE, Viewing, check_camera};
-use crate::render::RenderMode;
+use crate::model::RenderMode;
 use crate::scene::{Camera, Intrinsics};
 use crate::session::protocol::{Balance, Event, RenderRequest};
 use crate::session::worker::Outbox;

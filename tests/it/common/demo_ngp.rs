@@ -8,16 +8,16 @@
 
 use std::sync::{Arc, Mutex};
 
-use zrak::engine::cpu::dense::Precision;
 use zrak::engine::cpu::model::CpuModel;
-use zrak::engine::request::ModelRequest;
-use zrak::engine::request::ModelSettings;
+use zrak::engine::request::{ModelRequest, ModelSettings};
 use zrak::field::ModelKind;
-use zrak::field::nerf::Sampling;
-use zrak::field::ngp::LossKind;
+use zrak::field::common::{LossKind, Sampling};
+use zrak::field::mlp::Precision;
 use zrak::model::checkpoint::Checkpoint;
 use zrak::scene::Scene;
-use zrak::scene::demo::{self, DemoConfig};
+use zrak::scene::demo::{
+    DemoConfig, {self},
+};
 use zrak::train::trainer::Trainer;
 
 /// The steps trained once and shared: the learning test's run.

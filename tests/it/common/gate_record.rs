@@ -11,7 +11,7 @@
 //! within a relative tolerance the gate justifies.
 
 use zrak::model::RenderedPixel;
-use zrak::train::checkpoint::Checkpoint;
+use zrak::model::checkpoint::Checkpoint;
 
 /// A gate's fixture: where it lives, what its origin line is called
 /// (`kernels`, `device`), the comment it starts with and how many steps a

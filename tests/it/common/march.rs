@@ -2,7 +2,7 @@
 //! the probes of `benches/probes` (which include this file on its own).
 
 use glam::Vec3;
-use zrak::engine::cpu::occupancy::mix64;
+use zrak::engine::shared::occupancy::mix64;
 use zrak::scene::{Scene, UnitCubeMapping};
 
 /// A uniform draw in [0, 1) from the hash of `key` (24 bits).
@@ -62,17 +62,18 @@ pub fn training_rays(scene: &Scene, rays: usize) -> (Vec<glam::Vec3>, Vec<glam::
 pub struct MarchedTrainingRays {
     pub origins: Vec<glam::Vec3>,
     pub directions: Vec<glam::Vec3>,
-    pub samples: zrak::engine::cpu::march::MarchedSamples,
-    pub stats: zrak::engine::cpu::march::MarchStats,
+    pub samples: zrak::engine::shared::march::MarchedSamples,
+    pub stats: zrak::engine::shared::march::MarchStats,
 }
 
 pub fn march_training_rays(
     scene: &Scene,
-    grid: &zrak::engine::cpu::occupancy::OccupancyGrid,
-    config: zrak::field::ngp::MarchConfig,
+    grid: &zrak::engine::shared::occupancy::OccupancyGrid,
+    config: zrak::field::common::MarchConfig,
     rays: usize,
 ) -> MarchedTrainingRays {
-    use zrak::engine::cpu::march::{MarchParams, MarchWorkspace, MarchedSamples, march};
+    use zrak::engine::cpu::march::{MarchWorkspace, march};
+    use zrak::engine::shared::march::{MarchParams, MarchedSamples};
     let (origins, directions) = training_rays(scene, rays);
     let flat = |v: &[glam::Vec3]| v.iter().flat_map(|p| p.to_array()).collect::<Vec<f32>>();
     let params = MarchParams {
@@ -100,8 +101,8 @@ pub fn march_training_rays(
 /// `grid` with `config`.
 pub fn samples_per_ray(
     scene: &Scene,
-    grid: &zrak::engine::cpu::occupancy::OccupancyGrid,
-    config: zrak::field::ngp::MarchConfig,
+    grid: &zrak::engine::shared::occupancy::OccupancyGrid,
+    config: zrak::field::common::MarchConfig,
     rays: usize,
 ) -> f64 {
     march_training_rays(scene, grid, config, rays).stats.samples as f64 / rays as f64

@@ -15,13 +15,15 @@ use std::process::{Child, Output};
 use std::sync::{Arc, RwLock, RwLockReadGuard, RwLockWriteGuard};
 use std::time::{Duration, Instant};
 
-use zrak::engine::cpu::fields::nerf::{DensityActivation, NerfShape};
-use zrak::engine::cpu::frequency::FrequencyEncoding;
 use zrak::engine::gpu::GpuContext;
+use zrak::field::encoding::FrequencyEncoding;
+use zrak::field::nerf::{DensityActivation, NerfShape};
+use zrak::model::batch::{RayBatch, TrainingBackground, sample_rays};
 use zrak::rng::Pcg32;
 use zrak::scene::Scene;
-use zrak::scene::demo::{self, DemoConfig};
-use zrak::train::batch::{RayBatch, TrainingBackground, sample_rays};
+use zrak::scene::demo::{
+    DemoConfig, {self},
+};
 
 /// The demo scene at `size` × `size` pixels with 12 training views (2
 /// held out, 1 test): enough views for a few training steps, small enough
@@ -212,8 +214,8 @@ pub fn finish(mut child: Child, seconds: u64) -> Output {
 /// the gpu engine, whose context's `counters` count them), on batches of
 /// `rays` rays of `scene`.
 pub fn readbacks_per_step(
-    model: &mut dyn zrak::train::model::RadianceModel,
-    counters: &zrak::engine::gpu::context::GpuCounters,
+    model: &mut dyn zrak::model::RadianceModel,
+    counters: &zrak::engine::gpu::GpuCounters,
     scene: &Scene,
     steps: std::ops::Range<u32>,
 ) -> Vec<u64> {
@@ -261,7 +263,7 @@ pub fn alone() -> RwLockWriteGuard<'static, ()> {
 pub fn request(
     kind: zrak::field::ModelKind,
     seed: u64,
-    loss: zrak::field::ngp::LossKind,
+    loss: zrak::field::common::LossKind,
     batch_samples: Option<usize>,
 ) -> zrak::engine::request::ModelRequest {
     use zrak::engine::request::{ModelRequest, ModelSettings};

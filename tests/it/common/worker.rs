@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use glam::Vec3;
 use zrak::engine::EngineKind;
 use zrak::field::ModelKind;
-use zrak::render::RenderMode;
+use zrak::model::RenderMode;
 use zrak::scene::demo::{CAMERA_ANGLE_X, DemoConfig};
 use zrak::scene::{Camera, Intrinsics};
 use zrak::session::protocol::{Command, Event, RenderRequest, RenderedFrame, SceneSource};

@@ -1,6 +1,8 @@
 use super::*;
-use crate::engine::cpu::composite::{self as reference, OutputGradients, RaySamples};
-use crate::field::ngp::MarchConfig;
+use crate::engine::cpu::composite::{
+    OutputGradients, RaySamples, {self as reference},
+};
+use crate::field::common::MarchConfig;
 
 /// A deterministic pseudo-random sequence in [0, 1).
 fn sequence(seed: u64, n: usize) -> Vec<f64> {

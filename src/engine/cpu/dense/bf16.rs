@@ -22,7 +22,7 @@
 //! training on GPUs. The register tiles and their fused epilogue are the
 //! f32 kernels' own.
 
-use super::MlpLayout;
+use crate::field::mlp::MlpLayout;
 
 /// The weights of every layer as bf16 pairs, packed once per pass.
 ///

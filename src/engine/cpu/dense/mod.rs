@@ -81,7 +81,7 @@ fn scratch_floats(max_width: usize) -> usize {
     2 * BLOCK * max_width + 2 * BLOCK * (max_width + 16)
 }
 
-pub use crate::field::mlp::{Activation, MlpLayout, Precision};
+use crate::field::mlp::{Activation, MlpLayout, Precision};
 
 impl Activation {
     /// True where the kernels apply it with scalar code after the vector

@@ -1,5 +1,6 @@
 use super::*;
-use crate::field::ngp::{DENSITY_EXP_CLAMP, HashGridConfig, NetworkConfig};
+use crate::field::encoding::HashGridConfig;
+use crate::field::mlp::{DENSITY_EXP_CLAMP, NetworkConfig};
 use crate::rng::Pcg32;
 
 fn random(seed: u64, n: usize, scale: f32) -> Vec<f32> {

@@ -11,7 +11,7 @@ use crate::field::params::ParamLayout;
 
 // Where a field's positions live is a property of the field on either
 // engine: declared beside the recipe.
-pub use crate::field::common::Coordinates;
+use crate::field::common::Coordinates;
 
 /// The model's `count` fields of `shape` on the `cpu` engine (their
 /// initial parameters come from the shape, [`FieldShape::model_params`]).

@@ -37,7 +37,7 @@ const ROWS_PER_TASK: usize = 1024;
 /// activations small.
 const INFERENCE_ROWS: usize = 1 << 14;
 
-pub use crate::field::nerf::{DensityActivation, NerfShape};
+use crate::field::nerf::NerfShape;
 
 impl NerfShape {
     /// Widens the sigmoid's colours in place (see `colour_padding`).

@@ -24,14 +24,15 @@ use std::sync::Mutex;
 
 use rayon::prelude::*;
 
-use super::{Coordinates, Field, Gradient, gather_rows, set_len};
+use super::{Field, Gradient, gather_rows, set_len};
 use crate::engine::cpu::dense::{
     Backend, InputGradient, MlpGradients, MlpWorkspace, mlp_backward, mlp_forward, mlp_inference,
     mlp_inference_leading,
 };
 use crate::engine::cpu::hash_grid;
 use crate::engine::cpu::sh::sh_encode;
-use crate::field::ngp::DENSITY_EXP_CLAMP;
+use crate::field::common::Coordinates;
+use crate::field::mlp::DENSITY_EXP_CLAMP;
 use crate::field::params::ParamLayout;
 
 /// Rows per rayon task in the element-wise passes.
@@ -41,7 +42,7 @@ const ROWS_PER_TASK: usize = 4096;
 /// are ~80 floats a sample, so 2^16 rows hold ~20 MB.
 const INFERENCE_ROWS: usize = 1 << 16;
 
-pub use crate::field::ngp::NgpShape;
+use crate::field::ngp::NgpShape;
 
 impl NgpShape {
     /// Inference of σ at unit-cube positions (n × 3), with the hash

@@ -1,5 +1,5 @@
 use super::*;
-use crate::field::ngp::HashGridConfig;
+use crate::field::encoding::HashGridConfig;
 use crate::rng::splitmix64;
 
 /// A small deterministic stream of uniforms in [0, 1) for tests.

@@ -2,9 +2,9 @@ use glam::Vec3;
 
 use super::*;
 use crate::engine::cpu::composite::{RaySamples, composite};
+use crate::engine::shared::batch_sizer::BatchSizer;
 use crate::engine::shared::occupancy::mix64;
-use crate::field::ngp::MarchConfig;
-use crate::field::ngp::OccupancyConfig;
+use crate::field::common::{MarchConfig, OccupancyConfig};
 /// Instant-NGP's batch (paper, section 5.4), which the sizer is tested at.
 const SAMPLES_PER_BATCH: usize = 1 << 18;
 use crate::scene::{Aabb, UnitCubeMapping};

@@ -338,7 +338,7 @@ pub(super) fn composite_level(
     pixels: &mut RayScratch,
 ) {
     let rays = lb.ray_offsets.len() - 1;
-    let batch = composite_batch::RayBatch {
+    let batch = crate::engine::shared::composite::RayBatch {
         density: &lb.sigma,
         rgb: &lb.rgb,
         dt: &lb.dt,
@@ -404,7 +404,7 @@ pub(super) fn composite_and_loss(
     }
     set_len(&mut lb.d_sigma, n);
     set_len(&mut lb.d_rgb, 3 * n);
-    let batch = composite_batch::RayBatch {
+    let batch = crate::engine::shared::composite::RayBatch {
         density: &lb.sigma,
         rgb: &lb.rgb,
         dt: &lb.dt,

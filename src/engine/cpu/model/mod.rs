@@ -28,21 +28,23 @@ use std::time::Instant;
 use glam::Vec3;
 use rayon::prelude::*;
 
-use super::adam::Adam;
-use super::composite_batch::Distortion;
-use super::composite_batch::{self, CompositeGradients, CompositeOutputs};
-use super::fields::{Coordinates, Field, Gradient, gather_rows, set_len};
+use super::composite_batch::{
+    CompositeGradients, CompositeOutputs, {self},
+};
+use super::fields::{Field, Gradient, gather_rows, set_len};
 use super::frustum::frustum_gaussians;
 use super::loss::loss_and_gradient;
-use super::march::{
-    GridSamples, MarchParams, MarchWorkspace, MarchedSamples, march, mix_seed, render_through_grid,
-};
-use super::occupancy::OccupancyGrid;
+use super::march::{MarchWorkspace, march};
 use super::sampling;
-use super::state::{ModelHeader, ModelState};
 use crate::engine::crop::{crop_densities, crop_ray_bounds};
-use crate::field::common::{BatchSize, SampleShape, SamplerKind};
-use crate::field::ngp::LossKind;
+use crate::engine::shared::adam::Adam;
+use crate::engine::shared::composite::Distortion;
+use crate::engine::shared::march::{
+    GridSamples, MarchParams, MarchedSamples, mix_seed, render_through_grid,
+};
+use crate::engine::shared::occupancy::OccupancyGrid;
+use crate::engine::shared::state::{ModelHeader, ModelState};
+use crate::field::common::{BatchSize, Coordinates, LossKind, SampleShape, SamplerKind};
 use crate::field::params::ParamLayout;
 use crate::model::batch::RayBatch;
 use crate::model::checkpoint::Checkpoint;

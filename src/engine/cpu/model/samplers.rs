@@ -9,8 +9,7 @@
 //! (Mip-NeRF), from the rays' bounds or from the level before; the driver
 //! turns them into the field's inputs.
 
-use super::sampling;
-use super::{LevelBuffers, RaysOfChunk, SamplingScratch, importance_samples, set_len};
+use super::{LevelBuffers, RaysOfChunk, SamplingScratch, importance_samples, sampling, set_len};
 use crate::field::common::{SampleShape, SamplerKind};
 
 /// Draws a fixed-count level's sample distances.

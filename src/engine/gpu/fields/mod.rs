@@ -7,8 +7,8 @@
 pub mod nerf;
 pub mod ngp;
 
-use super::context::{GpuContext, GpuError};
 use super::kernel::Recorder;
+use crate::engine::gpu::{GpuContext, GpuError};
 use crate::field::FieldShape;
 use crate::field::common::Coordinates;
 

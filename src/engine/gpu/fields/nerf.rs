@@ -29,7 +29,6 @@
 
 use std::ops::Range;
 
-use crate::engine::gpu::context::{GpuContext, GpuError};
 use crate::engine::gpu::dense::{GpuDense, GpuMlpWorkspace, MlpGradients};
 use crate::engine::gpu::fields::{FieldInputs, FieldOutputs};
 use crate::engine::gpu::frequency::GpuFrequency;
@@ -38,6 +37,7 @@ use crate::engine::gpu::kernel::{
     storage_buffer, uniform_buffer, zeroed_storage_buffer,
 };
 use crate::engine::gpu::march::dispatch_grid;
+use crate::engine::gpu::{GpuContext, GpuError};
 use crate::field::nerf::{DensityActivation, NerfShape};
 
 /// Threads per workgroup of the nerf_* kernels.

@@ -13,7 +13,6 @@
 //! gradient buffer, so nothing is copied in or out. Positions are the unit
 //! cube's, as marched.
 
-use crate::engine::gpu::context::{GpuContext, GpuError};
 use crate::engine::gpu::dense::{GpuDense, GpuMlpWorkspace, MlpGradients};
 use crate::engine::gpu::fields::{FieldInputs, FieldOutputs, GpuField};
 use crate::engine::gpu::hash_grid::GpuHashGrid;
@@ -23,9 +22,10 @@ use crate::engine::gpu::kernel::{
 };
 use crate::engine::gpu::march::dispatch_grid;
 use crate::engine::gpu::sh::GpuSh;
+use crate::engine::gpu::{GpuContext, GpuError};
 use crate::field::common::Coordinates;
 use crate::field::encoding::sh_coefficients;
-use crate::field::ngp::DENSITY_EXP_CLAMP;
+use crate::field::mlp::DENSITY_EXP_CLAMP;
 use crate::field::ngp::NgpShape;
 
 /// Threads per workgroup of the activation kernels.

@@ -57,7 +57,6 @@ use glam::Vec3;
 use super::adam::GpuAdam;
 use super::compact::{CompactedSamples, GpuCompaction, MarchedInputs};
 use super::composite::{CompositeOutputBuffers, GpuComposite};
-use super::context::{GpuContext, GpuError};
 use super::fields::{GpuField, fields_for};
 use super::frustum::{FrustumRays, FrustumSamples, GpuFrustums, MarchedIntervals};
 use super::kernel::{
@@ -73,6 +72,7 @@ use super::step::{
 };
 use super::timing::{StageClock, StageTiming};
 use crate::engine::crop::{crop_densities, crop_ray_bounds};
+use crate::engine::gpu::{GpuContext, GpuError};
 use crate::engine::request::ModelRequest;
 use crate::engine::shared::driver::{
     DriverCore, RAYS_PER_CHUNK, check_sampling, chunk_jitter_seed, grid_cell_variance,
@@ -81,9 +81,7 @@ use crate::engine::shared::driver::{
 use crate::engine::shared::march::{GridSamples, MarchParams, mix_seed, render_through_grid};
 use crate::engine::shared::occupancy::OccupancyGrid;
 use crate::engine::shared::state::{ModelHeader, ModelState};
-use crate::field::common::Coordinates;
-use crate::field::common::{BatchSize, Recipe, SampleShape, SamplerKind};
-use crate::field::ngp::LossKind;
+use crate::field::common::{BatchSize, Coordinates, LossKind, Recipe, SampleShape, SamplerKind};
 use crate::model::batch::RayBatch;
 use crate::model::checkpoint::Checkpoint;
 use crate::model::pixels::{render_pixels, to_image};
@@ -91,9 +89,8 @@ use crate::model::{
     PointQuery, RadianceModel, RenderMode, RenderRays, RenderedPixel, Stage, StepStats,
     TextureRender,
 };
-use crate::scene::Camera;
 use crate::scene::crop::CropBox;
-use crate::scene::{Aabb, Scene, UnitCubeMapping};
+use crate::scene::{Aabb, Camera, Scene, UnitCubeMapping};
 
 mod levels;
 mod marched;

@@ -248,8 +248,7 @@ impl LevelSampler for Resample {
 #[cfg(test)]
 mod tests {
     use super::super::{Plan, plan};
-    use crate::field::common::{Recipe, SamplerKind};
-    use crate::field::nerf::Sampling;
+    use crate::field::common::{Recipe, SamplerKind, Sampling};
 
     /// Each level's samples per ray, or the plan's refusal.
     fn per_ray(recipe: &Recipe) -> Result<Vec<usize>, String> {

@@ -42,7 +42,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 
 use super::occupancy::{Cell, GridGeometry, OccupancyGrid, bit_is_set};
-use crate::field::ngp::MarchConfig;
+use crate::field::common::MarchConfig;
 use crate::model::RenderedPixel;
 use crate::scene::{Aabb, UnitCubeMapping};
 
