@@ -382,7 +382,7 @@ fn the_gpu_engine_names_nothing_in_the_cpu_engine_outside_its_tests() {
 fn the_cpu_engine_check_sees_paths_and_groups_and_skips_test_modules() {
     let _cores = crate::common::shared();
     let text = without_comments(
-        "use crate::engine::shared::march::Marcher;\n\
+        "use crate::engine::cpu::march::march;\n\
          // crate::engine::cpu::sh in a comment\n\
          use crate::engine::{cpu::dense, shared};\n\
          use crate::engine::{gpu, shared::march};\n\
