@@ -113,47 +113,10 @@ fn identifier_at(text: &str, at: usize) -> &str {
 /// plain path names one; a `use root::{a::x, b}` group names each of its
 /// first-level entries.
 fn modules_named(text: &str, root: &str) -> Vec<String> {
-    let prefix = format!("{root}::");
-    let mut named = Vec::new();
-    let mut from = 0;
-    while let Some(found) = text[from..].find(&prefix) {
-        let start = from + found;
-        from = start + prefix.len();
-        let boundary = text[..start]
-            .chars()
-            .next_back()
-            .is_none_or(|c| !(c.is_alphanumeric() || c == '_' || c == ':'));
-        if !boundary {
-            continue;
-        }
-        if text[from..].starts_with('{') {
-            let mut depth = 0;
-            let mut expecting = true;
-            for (offset, c) in text[from..].char_indices() {
-                match c {
-                    '{' => {
-                        depth += 1;
-                        expecting = depth == 1;
-                    }
-                    '}' => {
-                        depth -= 1;
-                        if depth == 0 {
-                            break;
-                        }
-                    }
-                    ',' if depth == 1 => expecting = true,
-                    c if expecting && depth == 1 && (c.is_alphanumeric() || c == '_') => {
-                        named.push(identifier_at(text, from + offset).to_string());
-                        expecting = false;
-                    }
-                    _ => {}
-                }
-            }
-        } else {
-            named.push(identifier_at(text, from).to_string());
-        }
-    }
-    named
+    paths_from(text, &format!("{root}::"), &[])
+        .into_iter()
+        .filter_map(|path| path.into_iter().next())
+        .collect()
 }
 
 /// Paths from each module into every other, counted.
@@ -415,85 +378,92 @@ fn module_path(src: &Path, file: &Path) -> Vec<String> {
 }
 
 /// The identifiers of a path from `at` on (`a::b::c`), up to the first
-/// character that continues no path.
-fn path_at(text: &str, at: usize) -> Vec<String> {
+/// character that continues no path, and where a `use` group opens there
+/// (`a::b::{`, or a `{` at `at` itself, right after a root's `::`): its
+/// brace's position.
+fn path_at(text: &str, at: usize) -> (Vec<String>, Option<usize>) {
     let mut segments = Vec::new();
     let mut at = at;
     loop {
         let name = identifier_at(text, at);
         if name.is_empty() {
-            break;
+            return (segments, text[at..].starts_with('{').then_some(at));
         }
         segments.push(name.to_string());
         at += name.len();
         if !text[at..].starts_with("::") {
-            break;
+            return (segments, None);
         }
         at += 2;
     }
-    segments
+}
+
+/// Every path in `text` that starts with `root` (`crate::`, `super::`,
+/// `engine::` …) where no identifier or `::` runs into it, as its
+/// segments after `base` (the module `root` stands for); a `use` group
+/// gives one path per entry. More `super::`s after `super::` climb from
+/// `base`.
+fn paths_from(text: &str, root: &str, base: &[String]) -> Vec<Vec<String>> {
+    let mut named = Vec::new();
+    let mut from = 0;
+    while let Some(found) = text[from..].find(root) {
+        let start = from + found;
+        from = start + root.len();
+        let boundary = text[..start]
+            .chars()
+            .next_back()
+            .is_none_or(|c| !(c.is_alphanumeric() || c == '_' || c == ':'));
+        if !boundary {
+            continue;
+        }
+        let mut path = base.to_vec();
+        let mut at = from;
+        while root == "super::" && text[at..].starts_with("super::") {
+            path.pop();
+            at += "super::".len();
+        }
+        let (prefix, group) = path_at(text, at);
+        path.extend(prefix);
+        let Some(brace) = group else {
+            named.push(path);
+            continue;
+        };
+        // A group: each entry at the first depth.
+        let entries = brace + 1;
+        let mut depth = 1;
+        let mut expecting = true;
+        for (offset, c) in text[entries..].char_indices() {
+            match c {
+                '{' => depth += 1,
+                '}' => {
+                    depth -= 1;
+                    if depth == 0 {
+                        break;
+                    }
+                }
+                ',' if depth == 1 => expecting = true,
+                c if expecting && depth == 1 && (c.is_alphanumeric() || c == '_') => {
+                    let mut entry = path.clone();
+                    entry.extend(path_at(text, entries + offset).0);
+                    named.push(entry);
+                    expecting = false;
+                }
+                _ => {}
+            }
+        }
+    }
+    named
 }
 
 /// Every module path that `text` (a file of module `here`) names, from
 /// `crate::` or `zrak::` or relative to its own module (`super::`,
 /// `self::`); a `use` group names each of its entries.
 fn paths_named(text: &str, here: &[String]) -> Vec<Vec<String>> {
-    let mut named = Vec::new();
-    for root in ["crate::", "zrak::", "super::", "self::"] {
-        let mut from = 0;
-        while let Some(found) = text[from..].find(root) {
-            let start = from + found;
-            from = start + root.len();
-            let boundary = text[..start]
-                .chars()
-                .next_back()
-                .is_none_or(|c| !(c.is_alphanumeric() || c == '_' || c == ':'));
-            if !boundary {
-                continue;
-            }
-            // The module the path starts from.
-            let mut base: Vec<String> = match root {
-                "crate::" | "zrak::" => Vec::new(),
-                "self::" => here.to_vec(),
-                _ => here[..here.len().saturating_sub(1)].to_vec(),
-            };
-            let mut at = from;
-            while text[at..].starts_with("super::") {
-                base.pop();
-                at += "super::".len();
-            }
-            let prefix = path_at(text, at);
-            let mut after = at + prefix.iter().map(|s| s.len() + 2).sum::<usize>();
-            base.extend(prefix);
-            if after > text.len() || !text[after.min(text.len())..].starts_with('{') {
-                named.push(base);
-                continue;
-            }
-            // A group: each entry at the first depth.
-            after += 1;
-            let mut depth = 1;
-            let mut expecting = true;
-            for (offset, c) in text[after..].char_indices() {
-                match c {
-                    '{' => depth += 1,
-                    '}' => {
-                        depth -= 1;
-                        if depth == 0 {
-                            break;
-                        }
-                    }
-                    ',' if depth == 1 => expecting = true,
-                    c if expecting && depth == 1 && (c.is_alphanumeric() || c == '_') => {
-                        let mut entry = base.clone();
-                        entry.extend(path_at(text, after + offset));
-                        named.push(entry);
-                        expecting = false;
-                    }
-                    _ => {}
-                }
-            }
-        }
-    }
+    let parent = &here[..here.len().saturating_sub(1)];
+    let mut named = paths_from(text, "crate::", &[]);
+    named.extend(paths_from(text, "zrak::", &[]));
+    named.extend(paths_from(text, "super::", parent));
+    named.extend(paths_from(text, "self::", here));
     named
 }
 
@@ -640,6 +610,9 @@ fn the_circle_reader_resolves_relative_paths_and_groups() {
             "{expected}: {named:?}"
         );
     }
+    // A brace after a plain path opens no group (a block, a struct).
+    let plain = paths_named("use crate::engine;\n{ let a = 1; }", &here);
+    assert_eq!(plain, vec![vec!["engine".to_string()]]);
     let graph: BTreeMap<String, Vec<String>> = [
         ("a", vec!["b"]),
         ("b", vec!["c"]),
