@@ -322,10 +322,16 @@ impl CellSpec {
         self.model.has_paper_sampler() && self.sampling == Sampling::Paper
     }
 
-    /// `NeRF`, `NeRF (paper sampler)`, `Instant-NGP`.
+    /// Whether it uses another sampler than its model's default, which
+    /// its label and folder then name.
+    fn names_sampler(&self) -> bool {
+        self.sampling != self.model.spec().samplings[0]
+    }
+
+    /// `NeRF`, `NeRF (paper sampler)`, `Instant-NGP (proposal sampler)`.
     pub fn label(&self) -> String {
-        if self.paper_sampler() {
-            format!("{} (paper sampler)", self.model.name())
+        if self.names_sampler() {
+            format!("{} ({} sampler)", self.model.name(), self.sampling.name())
         } else {
             self.model.name().to_string()
         }
@@ -334,8 +340,8 @@ impl CellSpec {
     /// The run folder's name: `lego_400-nerf-paper`.
     pub fn folder_name(&self) -> String {
         let scene = safe_name(&self.scene);
-        if self.paper_sampler() {
-            format!("{scene}-{}-paper", self.model.key())
+        if self.names_sampler() {
+            format!("{scene}-{}-{}", self.model.key(), self.sampling.name())
         } else {
             format!("{scene}-{}", self.model.key())
         }
@@ -356,18 +362,23 @@ pub fn safe_name(name: &str) -> String {
         .collect()
 }
 
-/// The cells of an experiment, scene by scene: each model with each
-/// sampler; Instant-NGP once, whatever the samplers (it has one).
+/// The cells of an experiment, scene by scene: each model with each of the
+/// samplers it has; a model with none of them once, with its default
+/// (Instant-NGP has no paper sampler).
 pub fn cells_for(scenes: &[String], models: &[ModelKind], samplings: &[Sampling]) -> Vec<CellSpec> {
     let mut cells = Vec::new();
     for scene in scenes {
         for &model in models {
-            let own: &[Sampling] = if model.has_paper_sampler() {
-                samplings
-            } else {
-                model.spec().samplings
-            };
-            for &sampling in own {
+            let spec = model.spec();
+            let mut own: Vec<Sampling> = samplings
+                .iter()
+                .copied()
+                .filter(|s| spec.samplings.contains(s))
+                .collect();
+            if own.is_empty() {
+                own.push(spec.samplings[0]);
+            }
+            for sampling in own {
                 let cell = CellSpec {
                     scene: scene.clone(),
                     model,

@@ -7,7 +7,7 @@
 use super::shared::driver::{DriverCore, ModelIdentity};
 use crate::field::common::{BatchSize, LossKind, Recipe, Sampling};
 use crate::field::mlp::Precision;
-use crate::field::{FieldShape, ModelKind};
+use crate::field::{FieldShape, ModelKind, model_layout, model_params};
 use crate::scene::Scene;
 
 /// Settings every model takes.
@@ -89,18 +89,23 @@ impl ModelRequest {
             .recipe
             .clone()
             .unwrap_or_else(|| (spec.recipe)(scene, settings.sampling));
-        let shape = self.shape.clone().unwrap_or_else(|| (spec.shape)(scene));
-        let (params, ranges) = shape.model_params(recipe.fields, settings.seed);
-        let layout = shape.model_layout(recipe.fields);
+        let shape = self
+            .shape
+            .clone()
+            .unwrap_or_else(|| (spec.shape)(scene, settings.sampling));
+        let shapes = shape.for_recipe(&recipe);
+        let (params, ranges) = model_params(&shapes, settings.seed);
+        let layout = model_layout(&shapes);
+        let named = spec.samplings.len() > 1 && spec.unnamed_sampling != Some(settings.sampling);
         let identity = ModelIdentity {
             name: spec.name,
             key: spec.key,
-            sampling: (spec.samplings.len() > 1).then(|| settings.sampling.name()),
+            sampling: named.then(|| settings.sampling.name()),
         };
         let batch = batch_of(&recipe, settings.batch_samples.or(engine_batch));
         ModelPlan {
             core: DriverCore::new(identity, recipe, layout, ranges, batch),
-            shape,
+            shapes,
             params,
         }
     }
@@ -109,7 +114,8 @@ impl ModelRequest {
 /// A model's parts before an engine builds it.
 pub(crate) struct ModelPlan {
     pub core: DriverCore,
-    pub shape: FieldShape,
+    /// Each field's shape, in the recipe's order.
+    pub shapes: Vec<FieldShape>,
     pub params: Vec<f32>,
 }
 

@@ -28,6 +28,12 @@ pub enum Sampling {
     /// Instant-NGP's occupancy grid (zrak's default): samples only in
     /// occupied cells, at a fixed step, until the ray is opaque; one network.
     Occupancy,
+    /// Proposal density fields (Mip-NeRF 360, section 2.1; nerfstudio's
+    /// nerfacto; nerfacc's `ngp_prop`): in the scene's contracted space,
+    /// small density-only fields place 256 then 96 samples per ray, each
+    /// level resampled from the one before, and the full field evaluates
+    /// 48: unbounded scenes at a fixed, small count per ray.
+    Proposal,
 }
 
 impl Sampling {
@@ -35,6 +41,7 @@ impl Sampling {
         match self {
             Sampling::Paper => "paper",
             Sampling::Occupancy => "occupancy",
+            Sampling::Proposal => "proposal",
         }
     }
 }
@@ -250,6 +257,16 @@ pub enum SamplerKind {
     /// 2-tap average) and padded by `padding` first; they replace the
     /// previous level's intervals instead of joining them.
     Resample { count: usize, padding: f32 },
+    /// `count` intervals between `count` + 1 edges stratified in the
+    /// spacing coordinate s of the recipe's contraction (linear inside its
+    /// unit ball, linear in disparity beyond; `field::contraction`), from
+    /// the ray's near to its far bound: a proposal sampler's first level.
+    SpacedIntervals { count: usize },
+    /// `count` intervals whose edges are drawn from the previous level's
+    /// intervals and weights in s (inverse CDF, `padding` added to each
+    /// weight, no blur): the proposal sampler's later levels (nerfstudio's
+    /// `PDFSampler`, `histogram_padding` 0.01).
+    ProposalResample { count: usize, padding: f32 },
 }
 
 impl SamplerKind {
@@ -259,7 +276,10 @@ impl SamplerKind {
     /// the occupancy grid's march has no fixed count (0).
     pub fn samples_evaluated(self, previous: usize) -> usize {
         match self {
-            SamplerKind::Stratified { count } | SamplerKind::Resample { count, .. } => count,
+            SamplerKind::Stratified { count }
+            | SamplerKind::Resample { count, .. }
+            | SamplerKind::SpacedIntervals { count }
+            | SamplerKind::ProposalResample { count, .. } => count,
             SamplerKind::Importance { count, .. } => previous + count,
             SamplerKind::Occupancy => 0,
         }
@@ -286,6 +306,32 @@ pub struct Level {
     /// Index of the model's field this level evaluates.
     pub field: usize,
     pub loss_weight: f32,
+    /// Whether the level composites colour and is trained by the loss on
+    /// pixels. A proposal level computes density only: its weights place
+    /// the next level's samples, and the interlevel loss trains it.
+    pub colour: bool,
+}
+
+impl Level {
+    /// A level that composites colour, with its loss weight.
+    pub const fn radiance(sampler: SamplerKind, field: usize, loss_weight: f32) -> Self {
+        Self {
+            sampler,
+            field,
+            loss_weight,
+            colour: true,
+        }
+    }
+
+    /// A density-only proposal level (no loss on pixels).
+    pub const fn proposal(sampler: SamplerKind, field: usize) -> Self {
+        Self {
+            sampler,
+            field,
+            loss_weight: 0.0,
+            colour: false,
+        }
+    }
 }
 
 /// How big a training batch is.
@@ -319,14 +365,23 @@ pub struct Recipe {
     pub optimiser: OptimiserConfig,
     pub march: MarchConfig,
     pub occupancy: OccupancyConfig,
-    /// λ of the distortion loss on a level marched through the occupancy
-    /// grid (Mip-NeRF 360, Barron et al. 2022, eq. 15; see
-    /// `engine::shared::composite::Distortion`), per ray of the batch;
-    /// 0 for none.
+    /// λ of the distortion loss (Mip-NeRF 360, Barron et al. 2022, eq. 15)
+    /// on a level marched through the occupancy grid (see
+    /// `engine::shared::composite::Distortion`), or on the final level of a
+    /// proposal sampler (in its spacing coordinate s), per ray of the
+    /// batch; 0 for none.
     pub distortion: f32,
     /// (steps, fraction): rays come from the central `fraction` of each
     /// image during the first `steps` steps.
     pub centre_crop: Option<(u32, f32)>,
+    /// Where samples become the fields' inputs through the scene's
+    /// contraction (unbounded scenes), its frame and norm; `None` keeps
+    /// world or unit-cube positions.
+    pub contraction: Option<super::contraction::Contraction>,
+    /// λ of the interlevel loss (Mip-NeRF 360, eq. 13) that trains each
+    /// proposal level to bound the final level's weights; 0 without
+    /// proposal levels.
+    pub interlevel: f32,
 }
 
 impl Recipe {

@@ -96,6 +96,7 @@ pub fn recipe(sampling: Sampling, blender_scene: bool) -> Recipe {
                     },
                     field: 0,
                     loss_weight: COARSE_LOSS_WEIGHT,
+                    colour: true,
                 },
                 Level {
                     sampler: SamplerKind::Resample {
@@ -104,15 +105,19 @@ pub fn recipe(sampling: Sampling, blender_scene: bool) -> Recipe {
                     },
                     field: 0,
                     loss_weight: 1.0,
+                    colour: true,
                 },
             ],
             BatchSize::Rays(PAPER_RAYS_PER_BATCH),
         ),
-        Sampling::Occupancy => (
+        // NeRF's and Mip-NeRF's proposal fields are still to come: their
+        // rows do not list the proposal sampler, so no command asks for it.
+        Sampling::Occupancy | Sampling::Proposal => (
             vec![Level {
                 sampler: SamplerKind::Occupancy,
                 field: 0,
                 loss_weight: 1.0,
+                colour: true,
             }],
             BatchSize::Samples(nerf::OCCUPANCY_SAMPLES_PER_BATCH),
         ),
@@ -130,6 +135,8 @@ pub fn recipe(sampling: Sampling, blender_scene: bool) -> Recipe {
         // No distortion loss in the paper.
         distortion: 0.0,
         centre_crop: None,
+        contraction: None,
+        interlevel: 0.0,
     }
 }
 

@@ -2,6 +2,7 @@
 //! sampling strategy and paper defaults, one place per model.
 
 pub mod common;
+pub mod contraction;
 pub mod encoding;
 pub mod mipnerf;
 pub mod mlp;
@@ -93,8 +94,13 @@ pub struct ModelSpec {
     pub colour: [u8; 3],
     /// Its recipe for a scene with a sampler (of [`Self::samplings`]).
     pub recipe: fn(&Scene, crate::field::common::Sampling) -> common::Recipe,
-    /// The shape of its fields for a scene, the paper's.
-    pub shape: fn(&Scene) -> FieldShape,
+    /// The shape of its fields for a scene and sampler, the paper's (the
+    /// proposal fields' come from it: [`FieldShape::for_recipe`]).
+    pub shape: fn(&Scene, crate::field::common::Sampling) -> FieldShape,
+    /// The sampler that its labels and checkpoints leave unnamed: a model's
+    /// only sampler before it had a choice (Instant-NGP's occupancy grid),
+    /// so its earlier checkpoints still load.
+    pub unnamed_sampling: Option<crate::field::common::Sampling>,
     /// Samples per batch on the `gpu` engine where its recipe's batch is in
     /// samples sized for the cpu's, and the settings name none (`None`
     /// keeps the recipe's).
@@ -155,10 +161,20 @@ pub const MODELS: &[ModelSpec] = &[
         key: "ngp",
         paper: "Müller et al. 2022",
         default_loss: crate::field::common::LossKind::Huber,
-        samplings: &[crate::field::common::Sampling::Occupancy],
+        samplings: &[
+            crate::field::common::Sampling::Occupancy,
+            crate::field::common::Sampling::Proposal,
+        ],
         colour: [0x4c, 0x9b, 0xe8],
-        recipe: |scene, _| ngp::recipe(scene.unit_cube.aabb_scale),
-        shape: |scene| ngp::NgpShape::for_scene(scene).into(),
+        recipe: |scene, sampling| match sampling {
+            crate::field::common::Sampling::Proposal => ngp::proposal_recipe(scene),
+            _ => ngp::recipe(scene.unit_cube.aabb_scale),
+        },
+        shape: |scene, sampling| match sampling {
+            crate::field::common::Sampling::Proposal => ngp::NgpShape::contracted(scene).into(),
+            _ => ngp::NgpShape::for_scene(scene).into(),
+        },
+        unnamed_sampling: Some(crate::field::common::Sampling::Occupancy),
         gpu_batch_samples: None,
         viewer_batch: ViewerBatch {
             cpu: Some(NGP_VIEWER_CPU_SAMPLES),
@@ -179,7 +195,8 @@ pub const MODELS: &[ModelSpec] = &[
         ],
         colour: [0xe8, 0x8a, 0x3c],
         recipe: |scene, sampling| nerf::recipe(sampling, scene.format == SceneFormat::Blender),
-        shape: |_| nerf::NerfShape::paper().into(),
+        shape: |_, _| nerf::NerfShape::paper().into(),
+        unnamed_sampling: None,
         gpu_batch_samples: Some(nerf::GPU_OCCUPANCY_SAMPLES_PER_BATCH),
         viewer_batch: ViewerBatch {
             cpu: None,
@@ -202,7 +219,8 @@ pub const MODELS: &[ModelSpec] = &[
         ],
         colour: [0x5c, 0xc0, 0x6a],
         recipe: |scene, sampling| mipnerf::recipe(sampling, scene.format == SceneFormat::Blender),
-        shape: |_| nerf::NerfShape::mipnerf().into(),
+        shape: |_, _| nerf::NerfShape::mipnerf().into(),
+        unnamed_sampling: None,
         gpu_batch_samples: Some(nerf::GPU_OCCUPANCY_SAMPLES_PER_BATCH),
         viewer_batch: ViewerBatch {
             cpu: None,
@@ -222,6 +240,8 @@ pub enum FieldShape {
     /// NeRF's networks on a frequency encoding (Mip-NeRF's on the
     /// integrated one).
     Nerf(NerfShape),
+    /// A density-only field on a small hash grid: a proposal level's.
+    Density(ngp::DensityShape),
 }
 
 impl From<NgpShape> for FieldShape {
@@ -249,6 +269,7 @@ impl FieldShape {
         match self {
             FieldShape::Ngp(shape) => shape.layout(),
             FieldShape::Nerf(shape) => shape.layout(),
+            FieldShape::Density(shape) => shape.layout(),
         }
     }
 
@@ -257,6 +278,7 @@ impl FieldShape {
         match self {
             FieldShape::Ngp(shape) => shape.init_params(seed),
             FieldShape::Nerf(shape) => shape.init_params(seed),
+            FieldShape::Density(shape) => shape.init_params(seed),
         }
     }
 
@@ -268,7 +290,7 @@ impl FieldShape {
     pub fn init_seed(&self, model_seed: u64, index: usize) -> u64 {
         match self {
             FieldShape::Ngp(_) => model_seed,
-            FieldShape::Nerf(_) => field_seed(model_seed, index),
+            FieldShape::Nerf(_) | FieldShape::Density(_) => field_seed(model_seed, index),
         }
     }
 
@@ -278,38 +300,73 @@ impl FieldShape {
         match self {
             FieldShape::Ngp(shape) => FieldShape::Ngp(shape.with_precision(precision)),
             FieldShape::Nerf(shape) => FieldShape::Nerf(shape.with_precision(precision)),
+            FieldShape::Density(shape) => FieldShape::Density(shape.with_precision(precision)),
         }
     }
 
-    /// The initial parameters of a model of `fields` fields of this shape,
-    /// one after the other, and where each sits. Both engines start a model
-    /// from these, so a model starts identical on either.
-    pub fn model_params(&self, fields: usize, seed: u64) -> (Vec<f32>, Vec<Range<usize>>) {
-        let mut params = Vec::new();
-        let mut ranges = Vec::new();
-        for index in 0..fields {
-            let start = params.len();
-            params.extend(self.init_params(self.init_seed(seed, index)));
-            ranges.push(start..params.len());
+    /// The shape of the proposal field that is the model's `index`-th
+    /// proposal level's, beside a field of this shape (`None` where the
+    /// model has no proposal fields).
+    pub fn proposal(&self, index: usize) -> Option<FieldShape> {
+        match self {
+            FieldShape::Ngp(_) => ngp::PROPOSAL_FINEST
+                .get(index)
+                .map(|&finest| FieldShape::Density(ngp::DensityShape::proposal(finest))),
+            FieldShape::Nerf(_) | FieldShape::Density(_) => None,
         }
-        (params, ranges)
     }
 
-    /// The parts of such a model's parameters, one field after the other
-    /// (named "field i: …" where there are several).
-    pub fn model_layout(&self, fields: usize) -> ParamLayout {
-        let one = self.layout();
-        let mut layout = ParamLayout::new();
-        for index in 0..fields {
-            let prefix = if fields > 1 {
-                format!("field {index}: ")
-            } else {
-                String::new()
-            };
-            layout.append(&one, &prefix);
-        }
-        layout
+    /// The shapes of a recipe's fields, in its order: this shape for the
+    /// fields of levels that composite colour, [`Self::proposal`]'s for
+    /// those of proposal levels (in the order they first appear).
+    pub fn for_recipe(&self, recipe: &common::Recipe) -> Vec<FieldShape> {
+        let mut proposals = 0;
+        (0..recipe.fields)
+            .map(|field| {
+                let proposal = recipe
+                    .levels
+                    .iter()
+                    .find(|level| level.field == field)
+                    .is_some_and(|level| !level.colour);
+                if !proposal {
+                    return self.clone();
+                }
+                proposals += 1;
+                self.proposal(proposals - 1).unwrap_or_else(|| {
+                    panic!("{self:?} has no proposal field {}", proposals - 1)
+                })
+            })
+            .collect()
     }
+}
+
+/// The initial parameters of a model whose fields have `shapes`, one after
+/// the other, and where each sits. Both engines start a model from these,
+/// so a model starts identical on either.
+pub fn model_params(shapes: &[FieldShape], seed: u64) -> (Vec<f32>, Vec<Range<usize>>) {
+    let mut params = Vec::new();
+    let mut ranges = Vec::new();
+    for (index, shape) in shapes.iter().enumerate() {
+        let start = params.len();
+        params.extend(shape.init_params(shape.init_seed(seed, index)));
+        ranges.push(start..params.len());
+    }
+    (params, ranges)
+}
+
+/// The parts of such a model's parameters, one field after the other
+/// (named "field i: …" where there are several).
+pub fn model_layout(shapes: &[FieldShape]) -> ParamLayout {
+    let mut layout = ParamLayout::new();
+    for (index, shape) in shapes.iter().enumerate() {
+        let prefix = if shapes.len() > 1 {
+            format!("field {index}: ")
+        } else {
+            String::new()
+        };
+        layout.append(&shape.layout(), &prefix);
+    }
+    layout
 }
 
 #[cfg(test)]
@@ -346,12 +403,13 @@ mod shape_tests {
     #[test]
     fn a_model_of_several_fields_seeds_each_apart_and_lays_them_out_in_turn() {
         let shape = FieldShape::Nerf(NerfShape::paper());
-        let (params, ranges) = shape.model_params(2, 7);
+        let shapes = [shape.clone(), shape.clone()];
+        let (params, ranges) = model_params(&shapes, 7);
         let one = shape.layout().len();
         assert_eq!(ranges, vec![0..one, one..2 * one]);
         assert_eq!(params.len(), 2 * one);
         assert_eq!(params[..one], shape.init_params(field_seed(7, 0))[..]);
         assert_ne!(params[..one], params[one..]);
-        assert_eq!(shape.model_layout(2).len(), 2 * one);
+        assert_eq!(model_layout(&shapes).len(), 2 * one);
     }
 }

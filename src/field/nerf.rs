@@ -153,6 +153,7 @@ pub fn recipe(sampling: Sampling, blender_scene: bool) -> Recipe {
                     },
                     field: 0,
                     loss_weight: 1.0,
+                    colour: true,
                 },
                 Level {
                     sampler: SamplerKind::Importance {
@@ -161,6 +162,7 @@ pub fn recipe(sampling: Sampling, blender_scene: bool) -> Recipe {
                     },
                     field: 1,
                     loss_weight: 1.0,
+                    colour: true,
                 },
             ],
             2,
@@ -169,11 +171,14 @@ pub fn recipe(sampling: Sampling, blender_scene: bool) -> Recipe {
         // The grid does the coarse network's job (finding where the
         // content is), so one network remains, as nerfacc trains NeRF
         // with its occupancy estimator.
-        Sampling::Occupancy => (
+        // NeRF's and Mip-NeRF's proposal fields are still to come: their
+        // rows do not list the proposal sampler, so no command asks for it.
+        Sampling::Occupancy | Sampling::Proposal => (
             vec![Level {
                 sampler: SamplerKind::Occupancy,
                 field: 0,
                 loss_weight: 1.0,
+                colour: true,
             }],
             1,
             BatchSize::Samples(OCCUPANCY_SAMPLES_PER_BATCH),
@@ -191,6 +196,8 @@ pub fn recipe(sampling: Sampling, blender_scene: bool) -> Recipe {
         // No distortion loss in the paper.
         distortion: 0.0,
         centre_crop: Some((CENTRE_CROP_STEPS, CENTRE_CROP_FRACTION)),
+        contraction: None,
+        interlevel: 0.0,
     }
 }
 

@@ -147,6 +147,7 @@ pub fn recipe(aabb_scale: f32) -> super::common::Recipe {
             sampler: SamplerKind::Occupancy,
             field: 0,
             loss_weight: 1.0,
+            colour: true,
         }],
         fields: 1,
         samples: SampleShape::Points,
@@ -160,6 +161,177 @@ pub fn recipe(aabb_scale: f32) -> super::common::Recipe {
         distortion: distortion_weight(aabb_scale),
         // instant-ngp samples rays from whole images from the start.
         centre_crop: None,
+        contraction: None,
+        interlevel: 0.0,
+    }
+}
+
+// The proposal sampler for unbounded scenes (`--sampling proposal`):
+// Instant-NGP's field in the contracted cube, with two density-only hash
+// grids that place its samples. Not in the Instant-NGP paper; the values
+// are nerfstudio's nerfacto (`nerfacto.py`, `NerfactoModelConfig`) and
+// nerfacc's `examples/train_ngp_nerf_prop.py`, which both pair
+// Instant-NGP's field with Mip-NeRF 360's proposal sampler.
+
+/// Proposal samples per ray, level by level (nerfacto:
+/// `num_proposal_samples_per_ray` (256, 96); nerfacc: `num_samples_per_prop`).
+pub const PROPOSAL_SAMPLES: [usize; 2] = [256, 96];
+
+/// The full field's samples per ray (nerfacto: `num_nerf_samples_per_ray`;
+/// nerfacc: `num_samples`).
+pub const PROPOSAL_FIELD_SAMPLES: usize = 48;
+
+/// Padding added to each proposal weight before resampling (nerfstudio's
+/// `PDFSampler`, `histogram_padding` 0.01).
+pub const PROPOSAL_PADDING: f32 = 0.01;
+
+/// Near and far bounds of every ray in the contraction frame's units
+/// (nerfacto: `near_plane` 0.05, `far_plane` 1000).
+pub const PROPOSAL_NEAR: f32 = 0.05;
+pub const PROPOSAL_FAR: f32 = 1000.0;
+
+/// λ of the interlevel loss (nerfacto: `interlevel_loss_mult` 1.0).
+pub const INTERLEVEL_WEIGHT: f32 = 1.0;
+
+/// λ of the distortion loss on the final level, in the spacing
+/// coordinate s (nerfacto: `distortion_loss_mult` 0.002).
+pub const PROPOSAL_DISTORTION: f32 = 0.002;
+
+/// Rays per batch (nerfacto: `train_num_rays_per_batch` 4096; nerfacc:
+/// `init_batch_size` 4096): 196,608 samples of the full field and 1.4 M of
+/// the proposals a step, near Instant-NGP's 2^18 of the full field.
+pub const PROPOSAL_RAYS_PER_BATCH: usize = 4096;
+
+/// The proposal grids' finest resolutions, level by level (nerfacto's
+/// `proposal_net_args_list`: `max_res` 128, then 256).
+pub const PROPOSAL_FINEST: [u32; 2] = [128, 256];
+
+/// A proposal field's hash grid (nerfacto's `proposal_net_args_list`: 5
+/// levels, 2^17 entries, base resolution 16 (`HashMLPDensityField`'s
+/// default), 2 features per level) over the contracted cube.
+pub fn proposal_grid(finest_resolution: u32) -> HashGridConfig {
+    HashGridConfig {
+        levels: 5,
+        features_per_level: 2,
+        log2_table_size: 17,
+        base_resolution: 16,
+        finest_resolution,
+        init_range: 1e-4,
+        extent: 1.0,
+    }
+}
+
+/// A proposal field's network: one hidden layer of 16 (nerfacto's
+/// `proposal_net_args_list`: `hidden_dim` 16, `num_layers` 2 counting the
+/// output), σ through the clamped exponential, no biases.
+pub const PROPOSAL_HIDDEN_WIDTH: usize = 16;
+
+/// Instant-NGP with the proposal sampler, for a scene whose cameras give
+/// the contraction's frame: two proposal levels then the full field, all
+/// in the contracted cube (L∞, nerfacto's `SceneContraction(order=inf)`),
+/// the interlevel and distortion losses, Instant-NGP's optimiser.
+pub fn proposal_recipe(scene: &Scene) -> super::common::Recipe {
+    use super::common::{BatchSize, Level, RayBounds, Recipe, SampleShape, SamplerKind};
+    use super::contraction::{Contraction, ContractionNorm};
+    let positions: Vec<glam::Vec3> = scene
+        .photographed_training_views()
+        .iter()
+        .map(|frame| frame.camera.position())
+        .collect();
+    let contraction = Contraction::around_cameras(&positions, ContractionNorm::LInf);
+    let [first, second] = PROPOSAL_SAMPLES;
+    Recipe {
+        levels: vec![
+            Level::proposal(SamplerKind::SpacedIntervals { count: first }, 0),
+            Level::proposal(
+                SamplerKind::ProposalResample {
+                    count: second,
+                    padding: PROPOSAL_PADDING,
+                },
+                1,
+            ),
+            Level::radiance(
+                SamplerKind::ProposalResample {
+                    count: PROPOSAL_FIELD_SAMPLES,
+                    padding: PROPOSAL_PADDING,
+                },
+                2,
+                1.0,
+            ),
+        ],
+        fields: 3,
+        samples: SampleShape::Points,
+        batch: BatchSize::Rays(PROPOSAL_RAYS_PER_BATCH),
+        bounds: RayBounds::Fixed {
+            near: PROPOSAL_NEAR * contraction.radius,
+            far: PROPOSAL_FAR * contraction.radius,
+        },
+        optimiser: OptimiserConfig::PAPER,
+        march: MarchConfig::PAPER,
+        occupancy: OccupancyConfig::PAPER,
+        distortion: PROPOSAL_DISTORTION,
+        centre_crop: None,
+        contraction: Some(contraction),
+        interlevel: INTERLEVEL_WEIGHT,
+    }
+}
+
+/// A density-only field on a small hash grid: a proposal level's.
+#[derive(Debug, Clone)]
+pub struct DensityShape {
+    pub grid: HashGridLayout,
+    pub density: MlpLayout,
+}
+
+impl DensityShape {
+    /// The proposal field whose grid's finest resolution is `finest`.
+    pub fn proposal(finest_resolution: u32) -> Self {
+        let grid = proposal_grid(finest_resolution);
+        Self {
+            density: MlpLayout::new(
+                vec![grid.output_width(), PROPOSAL_HIDDEN_WIDTH, 1],
+                Activation::Relu,
+                Activation::ClampedExp,
+                false,
+            ),
+            grid: HashGridLayout::new(&grid),
+        }
+    }
+
+    pub fn with_precision(mut self, precision: Precision) -> Self {
+        self.density = self.density.with_precision(precision);
+        self
+    }
+
+    pub fn grid_range(&self) -> Range<usize> {
+        0..self.grid.param_count()
+    }
+
+    pub fn density_range(&self) -> Range<usize> {
+        let start = self.grid.param_count();
+        start..start + self.density.param_count()
+    }
+
+    pub fn param_count(&self) -> usize {
+        self.density_range().end
+    }
+
+    /// Initial parameters as Instant-NGP's field's: the grid's entries
+    /// uniform in ±1e-4, the network from its own seed.
+    pub fn init_params(&self, seed: u64) -> Vec<f32> {
+        let mut params = self.grid.init_params(seed);
+        params.extend(self.density.init_params(seed ^ 0x64656e73));
+        params
+    }
+
+    pub fn layout(&self) -> ParamLayout {
+        ParamLayout::new()
+            .with("hash grid", self.grid.param_count(), Update::Sparse)
+            .with(
+                "density network",
+                self.density.param_count(),
+                Update::Dense { l2: true },
+            )
     }
 }
 
@@ -205,8 +377,18 @@ pub struct NgpShape {
 
 impl NgpShape {
     pub fn for_scene(scene: &Scene) -> Self {
+        Self::with_grid(scene, HashGridConfig::paper(scene.unit_cube.aabb_scale))
+    }
+
+    /// The field in the contracted cube: the grid spans it (extent 1, the
+    /// cube mapped onto [0, 1]³) at the paper's N_max 2048, as nerfacto's
+    /// (`max_res` 2048, 2^19 entries, 16 levels).
+    pub fn contracted(scene: &Scene) -> Self {
+        Self::with_grid(scene, HashGridConfig::paper(1.0))
+    }
+
+    fn with_grid(scene: &Scene, grid_config: HashGridConfig) -> Self {
         let network = NetworkConfig::PAPER;
-        let grid_config = HashGridConfig::paper(scene.unit_cube.aabb_scale);
         Self {
             grid: HashGridLayout::new(&grid_config),
             density: MlpLayout::ngp_density(&network, &grid_config),

@@ -114,6 +114,11 @@ pub struct StepStats {
     /// compaction. Reported by steps that compact (the gpu engine's σ-first
     /// steps) or count them on the host (every cpu engine step).
     pub samples_composited: Option<usize>,
+    /// Samples of a proposal sampler's density-only levels (not counted in
+    /// [`Self::samples`], which are the full field's).
+    pub proposal_samples: usize,
+    /// The interlevel loss that trained the proposal levels (0 without).
+    pub proposal_loss: f32,
     pub times: StageTimes,
     /// Floating-point operations of the networks' forward and backward
     /// passes in this step, for models that count them (0 otherwise).
@@ -176,6 +181,8 @@ impl LevelLossSum {
             rays,
             samples,
             samples_composited: None,
+            proposal_samples: 0,
+            proposal_loss: 0.0,
             times,
             network_flops,
         }

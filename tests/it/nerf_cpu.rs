@@ -213,7 +213,7 @@ fn check_step_gradient(kind: NerfKind, sampling: Sampling) {
     // both orders are checked, and give one gradient.
     let orders: &[f64] = match sampling {
         Sampling::Occupancy => &[0.0, 1.0],
-        Sampling::Paper => &[1.0],
+        Sampling::Paper | Sampling::Proposal => &[1.0],
     };
     let mut gradients: Vec<Vec<f32>> = Vec::new();
     for &used in orders {

@@ -13,6 +13,7 @@ pub mod march;
 pub mod model;
 pub mod sampling;
 pub mod sh;
+pub mod weight_losses;
 
 // What both engines hold on the host, under the paths the cpu engine's
 // stages have always named them by.

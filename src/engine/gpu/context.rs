@@ -52,6 +52,8 @@ pub enum GpuError {
     DeviceTooSmall { missing: String },
     #[error("cannot render into this texture: {0}")]
     RenderTarget(String),
+    #[error("{0}")]
+    Unsupported(String),
     #[error("the adapter {adapter} refused to create a device: {source}")]
     RequestDevice {
         adapter: String,

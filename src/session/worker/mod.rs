@@ -934,7 +934,7 @@ fn build_viewer_model(
     nerf_shape: Option<&NerfShape>,
 ) -> Result<Box<dyn RadianceModel>, String> {
     let request = ModelRequest::new(kind, *settings);
-    let request = match (nerf_shape, (kind.spec().shape)(scene)) {
+    let request = match (nerf_shape, (kind.spec().shape)(scene, settings.sampling)) {
         (Some(shape), FieldShape::Nerf(_)) => request.with_shape(shape.clone()),
         _ => request,
     };

@@ -3,6 +3,7 @@
 //! ([`super::model`]) chains a sampler, fields, compositing, the loss and
 //! the optimiser; the fields are the part that differs between models.
 
+pub mod density;
 pub mod nerf;
 pub mod ngp;
 
@@ -13,13 +14,15 @@ use crate::field::params::ParamLayout;
 // engine: declared beside the recipe.
 use crate::field::common::Coordinates;
 
-/// The model's `count` fields of `shape` on the `cpu` engine (their
-/// initial parameters come from the shape, [`FieldShape::model_params`]).
-pub fn fields_for(shape: &FieldShape, count: usize) -> Vec<Box<dyn Field>> {
-    (0..count)
-        .map(|_| match shape {
+/// The model's fields of `shapes` on the `cpu` engine (their initial
+/// parameters come from the shapes, [`crate::field::model_params`]).
+pub fn fields_for(shapes: &[FieldShape]) -> Vec<Box<dyn Field>> {
+    shapes
+        .iter()
+        .map(|shape| match shape {
             FieldShape::Ngp(shape) => Box::new(ngp::NgpField::new(shape.clone())) as Box<dyn Field>,
             FieldShape::Nerf(shape) => Box::new(nerf::NerfField::new(shape.clone())),
+            FieldShape::Density(shape) => Box::new(density::DensityField::new(shape.clone())),
         })
         .collect()
 }

@@ -3,11 +3,12 @@
 //! number of samples per ray.
 
 use super::*;
+use crate::engine::cpu::weight_losses::{self, Intervals};
 use crate::model::LevelLossSum;
 
 impl CpuModel {
-    /// A step of fixed-count levels (stratified, then importance), in
-    /// chunks of rays.
+    /// A step of fixed-count levels (stratified, then importance or
+    /// resampled; or a proposal sampler's levels), in chunks of rays.
     pub(super) fn fixed_step(&mut self, step: u32) -> StepStats {
         let mut times = StageTimes::default();
         let rays = self.buffers.origins.len() / 3;
@@ -15,6 +16,8 @@ impl CpuModel {
         self.buffers.gradients.fill(0.0);
         let mut losses = LevelLossSum::default();
         let mut samples = 0usize;
+        let mut proposal_samples = 0usize;
+        let mut proposal_loss = 0f64;
         let mut network_flops = 0f64;
         let (mut near, mut far) = (Vec::new(), Vec::new());
         {
@@ -23,13 +26,14 @@ impl CpuModel {
         }
         let step_seed = mix_seed(self.seed, step);
         let per_chunk = self.rays_per_chunk;
+        let level_count = self.core.recipe.levels.len();
         for (chunk, start) in (0..rays).step_by(per_chunk).enumerate() {
             let end = (start + per_chunk).min(rays);
             let chunk_rays = end - start;
             // Each chunk and level draws its own jitter.
             let seed_of = |level: usize| chunk_jitter_seed(step_seed, chunk, level);
             let share = chunk_rays as f32 / rays as f32;
-            for level_index in 0..self.core.recipe.levels.len() {
+            for level_index in 0..level_count {
                 let level = self.core.recipe.levels[level_index];
                 let clock = Instant::now();
                 self.sample_level(
@@ -45,7 +49,11 @@ impl CpuModel {
                 let b = &mut self.buffers;
                 let lb = &mut b.levels[level_index];
                 let n = lb.t.len();
-                samples += n;
+                if level.colour {
+                    samples += n;
+                } else {
+                    proposal_samples += n;
+                }
                 network_flops += 6.0 * (self.fields[level.field].macs_per_sample() * n) as f64;
                 let field_range = self.core.ranges[level.field].clone();
                 let field_params = &self.params[field_range.clone()];
@@ -64,6 +72,14 @@ impl CpuModel {
                 times[Stage::NetworksForward] += clock.elapsed().as_secs_f64();
 
                 let clock = Instant::now();
+                if !level.colour {
+                    // A proposal level: its weights, for the next level's
+                    // samples and the interlevel loss; its backward pass
+                    // waits for the final level's weights.
+                    composite_level(lb, &b.backgrounds[3 * start..3 * end], 0.0, &mut b.rays);
+                    times[Stage::Composite] += clock.elapsed().as_secs_f64();
+                    continue;
+                }
                 let level_loss = composite_and_loss(
                     lb,
                     &b.targets[3 * start..3 * end],
@@ -75,6 +91,12 @@ impl CpuModel {
                     &mut b.rays,
                 );
                 losses.add(level_index, level.loss_weight, share, level_loss);
+                if let Some(contraction) = self.core.recipe.contraction {
+                    let weight = self.core.recipe.distortion;
+                    if weight > 0.0 {
+                        distortion_in_spacing(lb, &contraction, weight / rays as f32, &mut b.proposal);
+                    }
+                }
                 times[Stage::Composite] += clock.elapsed().as_secs_f64();
 
                 let clock = Instant::now();
@@ -87,8 +109,82 @@ impl CpuModel {
                 );
                 times[Stage::NetworksBackward] += clock.elapsed().as_secs_f64();
             }
+            proposal_loss += self.train_proposals(chunk_rays, rays, &mut times);
         }
-        losses.into_stats(rays, samples, times, network_flops)
+        let mut stats = losses.into_stats(rays, samples, times, network_flops);
+        stats.proposal_samples = proposal_samples;
+        stats.proposal_loss = proposal_loss as f32;
+        stats
+    }
+
+    /// The proposal levels' backward passes for the chunk just stepped:
+    /// each one's interlevel loss against the final level's weights (held
+    /// still), through its weights to its densities. Returns the chunk's
+    /// share of the batch's interlevel loss.
+    fn train_proposals(&mut self, chunk_rays: usize, rays: usize, times: &mut StageTimes) -> f64 {
+        let recipe = &self.core.recipe;
+        let Some(contraction) = recipe.contraction else {
+            return 0.0;
+        };
+        let last = recipe.levels.len() - 1;
+        if recipe.levels[..last].iter().all(|l| l.colour) {
+            return 0.0;
+        }
+        let clock = Instant::now();
+        let b = &mut self.buffers;
+        let scale = recipe.interlevel / rays as f32;
+        let scratch = &mut b.proposal;
+        let (before, final_level) = b.levels.split_at_mut(last);
+        let final_level = &final_level[0];
+        spacing_edges(&final_level.edges, &contraction, &mut scratch.final_edges);
+        let mut loss = 0f64;
+        for (index, lb) in before.iter_mut().enumerate() {
+            let level = recipe.levels[index];
+            if level.colour {
+                continue;
+            }
+            spacing_edges(&lb.edges, &contraction, &mut scratch.edges);
+            scratch.d_weights.clear();
+            scratch.d_weights.resize(lb.weights.len(), 0.0);
+            loss += weight_losses::interlevel(
+                Intervals {
+                    edges: &scratch.final_edges,
+                    weights: &final_level.weights,
+                },
+                Intervals {
+                    edges: &scratch.edges,
+                    weights: &lb.weights,
+                },
+                chunk_rays,
+                scale,
+                &mut scratch.d_weights,
+            ) * (recipe.interlevel as f64 / rays as f64);
+            let per_ray = lb.sigma.len() / chunk_rays.max(1);
+            set_len(&mut lb.d_sigma, lb.sigma.len());
+            lb.d_sigma.fill(0.0);
+            weight_losses::weights_to_densities(
+                &lb.sigma,
+                &lb.dt,
+                &lb.weights,
+                &scratch.d_weights,
+                per_ray,
+                &mut lb.d_sigma,
+            );
+            set_len(&mut lb.d_rgb, lb.rgb.len());
+            lb.d_rgb.fill(0.0);
+            let range = self.core.ranges[level.field].clone();
+            times[Stage::Composite] += clock.elapsed().as_secs_f64();
+            let backward = Instant::now();
+            self.fields[level.field].backward(
+                &self.params[range.clone()],
+                &lb.d_sigma,
+                &lb.d_rgb,
+                &mut b.gradients[range],
+                Gradient::Add,
+            );
+            times[Stage::NetworksBackward] += backward.elapsed().as_secs_f64();
+        }
+        loss
     }
 
     /// Fills level `level`'s samples for rays `rays` of the step's buffers
@@ -105,6 +201,7 @@ impl CpuModel {
             .held_samples
             .as_ref()
             .and_then(|held| held.get(&(chunk, level)));
+        let inputs = self.input_map(self.fields[self.core.recipe.levels[level].field].as_ref());
         let b = &mut self.buffers;
         while b.levels.len() <= level {
             b.levels.push(LevelBuffers::default());
@@ -117,7 +214,7 @@ impl CpuModel {
         };
         sample_level(
             &*self.samplers[level],
-            self.core.recipe.samples,
+            (self.core.recipe.samples, inputs),
             before.last(),
             RaysOfChunk {
                 origins: &b.origins[3 * rays.start..3 * rays.end],
@@ -133,9 +230,10 @@ impl CpuModel {
         );
         if let Some(held) = self.held_samples.as_mut() {
             let lb = &self.buffers.levels[level];
-            let distances = match self.core.recipe.samples {
-                SampleShape::Points => &lb.t,
-                SampleShape::ConicalFrustums => &lb.edges,
+            let distances = if self.samplers[level].draws_intervals() {
+                &lb.edges
+            } else {
+                &lb.t
             };
             held.entry((chunk, level))
                 .or_insert_with(|| distances.clone());
@@ -158,7 +256,9 @@ impl CpuModel {
             crop_ray_bounds(crop, origins, directions, &mut near, &mut far);
         }
         let mut scratch = SamplingScratch::default();
-        let mut levels = [LevelBuffers::default(), LevelBuffers::default()];
+        let mut levels: Vec<LevelBuffers> = (0..self.core.recipe.levels.len())
+            .map(|_| LevelBuffers::default())
+            .collect();
         let mut pixels = RayScratch::default();
         let frustums = self.core.recipe.samples == SampleShape::ConicalFrustums;
         for start in (0..rays).step_by(RAYS_PER_CHUNK) {
@@ -168,9 +268,10 @@ impl CpuModel {
             for (index, level) in self.core.recipe.levels.iter().enumerate() {
                 let (before, rest) = levels.split_at_mut(index);
                 let lb = &mut rest[0];
+                let inputs = self.input_map(self.fields[level.field].as_ref());
                 sample_level(
                     &*self.samplers[index],
-                    self.core.recipe.samples,
+                    (self.core.recipe.samples, inputs),
                     before.last(),
                     RaysOfChunk {
                         origins: &origins[3 * start..3 * end],
@@ -250,7 +351,7 @@ pub(super) struct SamplingScratch {
 #[allow(clippy::too_many_arguments)]
 pub(super) fn sample_level(
     sampler: &dyn LevelSampler,
-    shape: SampleShape,
+    (shape, inputs): (SampleShape, InputMap),
     previous: Option<&LevelBuffers>,
     chunk: RaysOfChunk,
     jitter: Option<u32>,
@@ -259,13 +360,14 @@ pub(super) fn sample_level(
     lb: &mut LevelBuffers,
 ) {
     let count = chunk.near.len();
-    let per_ray = match (shape, held) {
-        (SampleShape::Points, Some(t)) => {
+    let intervals = sampler.draws_intervals();
+    let per_ray = match (intervals, held) {
+        (false, Some(t)) => {
             lb.t.clear();
             lb.t.extend_from_slice(t);
             t.len() / count.max(1)
         }
-        (SampleShape::ConicalFrustums, Some(edges)) => {
+        (true, Some(edges)) => {
             lb.edges.clear();
             lb.edges.extend_from_slice(edges);
             (edges.len() / count.max(1)).saturating_sub(1)
@@ -276,8 +378,8 @@ pub(super) fn sample_level(
     lb.ray_offsets.clear();
     lb.ray_offsets
         .extend((0..=count).map(|r| (r * per_ray) as u32));
-    match shape {
-        SampleShape::Points => {
+    match (shape, intervals) {
+        (SampleShape::Points, false) => {
             set_len(&mut lb.dt, count * per_ray);
             sampling::intervals_to_far(&lb.t, chunk.far, per_ray, &mut lb.dt);
             points_along_rays(
@@ -289,7 +391,28 @@ pub(super) fn sample_level(
                 &mut lb.directions,
             );
         }
-        SampleShape::ConicalFrustums => {
+        (SampleShape::Points, true) => {
+            // Each interval's sample at its midpoint (nerfstudio's frustums'
+            // positions), composited over its length.
+            let n = count * per_ray;
+            set_len(&mut lb.t, n);
+            set_len(&mut lb.dt, n);
+            for (r, edges) in lb.edges.chunks_exact(per_ray + 1).enumerate() {
+                for (i, pair) in edges.windows(2).enumerate() {
+                    lb.t[r * per_ray + i] = 0.5 * (pair[0] + pair[1]);
+                    lb.dt[r * per_ray + i] = pair[1] - pair[0];
+                }
+            }
+            points_along_rays(
+                chunk.origins,
+                chunk.directions,
+                &lb.t,
+                per_ray,
+                &mut lb.positions,
+                &mut lb.directions,
+            );
+        }
+        (SampleShape::ConicalFrustums, _) => {
             let n = count * per_ray;
             scratch.starts.clear();
             scratch.ends.clear();
@@ -325,6 +448,55 @@ pub(super) fn sample_level(
             }
         }
     }
+    inputs.map_in_place(&mut lb.positions);
+}
+
+/// Scratch of the losses on proposal and final weights, reused.
+#[derive(Default)]
+pub(super) struct ProposalScratch {
+    /// Edges in the spacing coordinate s: the final level's, and a
+    /// proposal level's.
+    final_edges: Vec<f32>,
+    edges: Vec<f32>,
+    d_weights: Vec<f32>,
+}
+
+/// Each edge's spacing coordinate s.
+fn spacing_edges(edges: &[f32], contraction: &Contraction, out: &mut Vec<f32>) {
+    out.clear();
+    out.extend(edges.iter().map(|&t| contraction.spacing_of(t)));
+}
+
+/// Adds the distortion loss on the level's intervals in s (Mip-NeRF 360,
+/// eq. 15), `scale` × its gradient, to the level's density gradients.
+fn distortion_in_spacing(
+    lb: &mut LevelBuffers,
+    contraction: &Contraction,
+    scale: f32,
+    scratch: &mut ProposalScratch,
+) {
+    let rays = lb.ray_offsets.len() - 1;
+    spacing_edges(&lb.edges, contraction, &mut scratch.final_edges);
+    scratch.d_weights.clear();
+    scratch.d_weights.resize(lb.weights.len(), 0.0);
+    weight_losses::distortion(
+        Intervals {
+            edges: &scratch.final_edges,
+            weights: &lb.weights,
+        },
+        rays,
+        scale,
+        &mut scratch.d_weights,
+    );
+    let per_ray = lb.sigma.len() / rays.max(1);
+    weight_losses::weights_to_densities(
+        &lb.sigma,
+        &lb.dt,
+        &lb.weights,
+        &scratch.d_weights,
+        per_ray,
+        &mut lb.d_sigma,
+    );
 }
 
 /// Composites a level's samples (σ, rgb, dt, t, ray offsets in `lb`) over

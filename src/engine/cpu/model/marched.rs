@@ -243,6 +243,8 @@ impl CpuModel {
             rays: if rays == 0 { 0 } else { kept },
             samples: s,
             samples_composited: Some(u),
+            proposal_samples: 0,
+            proposal_loss: 0.0,
             times,
             network_flops,
         }

@@ -45,6 +45,7 @@ use crate::engine::shared::march::{
 use crate::engine::shared::occupancy::OccupancyGrid;
 use crate::engine::shared::state::{ModelHeader, ModelState};
 use crate::field::common::{BatchSize, Coordinates, LossKind, SampleShape, SamplerKind};
+use crate::field::contraction::Contraction;
 use crate::field::params::ParamLayout;
 use crate::model::batch::RayBatch;
 use crate::model::checkpoint::Checkpoint;
@@ -109,6 +110,7 @@ struct StepBuffers {
     source: Vec<u32>,
     levels: Vec<LevelBuffers>,
     sampling: SamplingScratch,
+    proposal: ProposalScratch,
     targets: Vec<f32>,
     backgrounds: Vec<f32>,
     rays: RayScratch,
@@ -152,8 +154,13 @@ impl CpuModel {
     /// the requested shape, with the settings' precision.
     pub fn build(request: &ModelRequest, scene: &Scene) -> Self {
         let plan = request.plan(scene, None);
-        let shape = plan.shape.with_precision(request.settings.precision);
-        let fields = fields_for(&shape, plan.core.recipe.fields);
+        let precision = request.settings.precision;
+        let shapes: Vec<_> = plan
+            .shapes
+            .into_iter()
+            .map(|shape| shape.with_precision(precision))
+            .collect();
+        let fields = fields_for(&shapes);
         let settings = &request.settings;
         Self::new(
             plan.core,
@@ -195,23 +202,35 @@ impl CpuModel {
                 .levels
                 .iter()
                 .map(|l| {
-                    level_sampler(l.sampler, recipe.samples).unwrap_or_else(|| {
-                        panic!(
-                            "{:?} does not sample {:?}: importance sampling adds points, \
-                             resampling draws frustums, and only a first and only level \
-                             marches",
-                            l.sampler, recipe.samples
-                        )
-                    })
+                    level_sampler(l.sampler, recipe.samples, recipe.contraction).unwrap_or_else(
+                        || {
+                            panic!(
+                                "{:?} does not sample {:?}: importance sampling adds points, \
+                                 resampling draws frustums, the proposal levels need a \
+                                 contraction, and only a first and only level marches",
+                                l.sampler, recipe.samples
+                            )
+                        },
+                    )
                 })
                 .collect()
         };
         assert!(
             fields.iter().all(|f| f.coordinates() == Coordinates::World)
-                || (recipe.samples == SampleShape::Points
-                    && recipe.levels[0].sampler == SamplerKind::Occupancy),
-            "a field of unit-cube positions takes marched points (fixed-count levels and \
-             frustums are placed in world units)"
+                || recipe.samples == SampleShape::Points,
+            "a field of unit-cube positions takes points (frustums are placed in world units)"
+        );
+        assert!(
+            recipe.contraction.is_none() || recipe.samples == SampleShape::Points,
+            "contracted frustums are not on the cpu engine yet"
+        );
+        assert!(
+            recipe
+                .levels
+                .iter()
+                .filter(|l| !l.colour)
+                .all(|p| recipe.levels.iter().filter(|l| l.field == p.field).count() == 1),
+            "a proposal level's field serves it alone: its backward pass waits for the final level"
         );
         let mapping = scene.unit_cube;
         let grid = core.occupancy_grid(&mapping);
@@ -310,6 +329,15 @@ impl CpuModel {
         let mut sigma = vec![0f32; positions.len() / 3];
         field.density(params, positions, None, &mut sigma);
         sigma
+    }
+
+    /// How world positions become `field`'s inputs in this model.
+    fn input_map(&self, field: &dyn Field) -> InputMap {
+        InputMap {
+            coordinates: field.coordinates(),
+            mapping: self.mapping,
+            contraction: self.core.recipe.contraction,
+        }
     }
 
     /// Whether the share of samples used orders the next marched step's
@@ -513,7 +541,7 @@ impl RadianceModel for CpuModel {
             world.extend(
                 points
                     .iter()
-                    .flat_map(|&p| field_position(field.as_ref(), &self.mapping, p)),
+                    .flat_map(|&p| self.input_map(field.as_ref()).position(p)),
             );
             if frustums {
                 variances.clear();
@@ -552,7 +580,7 @@ impl RadianceModel for CpuModel {
             world.extend(
                 points
                     .iter()
-                    .flat_map(|&p| field_position(field.as_ref(), &self.mapping, p)),
+                    .flat_map(|&p| self.input_map(field.as_ref()).position(p)),
             );
             flat_directions.clear();
             flat_directions.extend(directions.iter().flat_map(|d| d.to_array()));
@@ -668,11 +696,36 @@ impl RadianceModel for CpuModel {
     }
 }
 
-/// A world position as `field` takes it: in the world, or in the unit cube
-/// (Instant-NGP's hash grid).
-fn field_position(field: &dyn Field, mapping: &UnitCubeMapping, world: Vec3) -> [f32; 3] {
-    match field.coordinates() {
-        Coordinates::World => world.to_array(),
-        Coordinates::UnitCube => mapping.to_unit(world).to_array(),
+/// How world positions become a field's inputs: through the recipe's
+/// contraction where it has one (into the contracted cube, or its [0, 1]³
+/// image for a field of unit-cube positions), else as they are or in the
+/// scene's unit cube (Instant-NGP's hash grid).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct InputMap {
+    coordinates: Coordinates,
+    mapping: UnitCubeMapping,
+    contraction: Option<Contraction>,
+}
+
+impl InputMap {
+    pub(super) fn position(&self, world: Vec3) -> [f32; 3] {
+        match (self.contraction, self.coordinates) {
+            (Some(c), Coordinates::UnitCube) => c.to_unit_cube(world).to_array(),
+            (Some(c), Coordinates::World) => c.contract_world(world).to_array(),
+            (None, Coordinates::World) => world.to_array(),
+            (None, Coordinates::UnitCube) => self.mapping.to_unit(world).to_array(),
+        }
+    }
+
+    /// Maps world positions (n × 3) in place.
+    pub(super) fn map_in_place(&self, positions: &mut [f32]) {
+        if self.contraction.is_none() && self.coordinates == Coordinates::World {
+            return;
+        }
+        positions.par_chunks_mut(3 * 1024).for_each(|chunk| {
+            for p in chunk.chunks_exact_mut(3) {
+                p.copy_from_slice(&self.position(Vec3::from_slice(p)));
+            }
+        });
     }
 }

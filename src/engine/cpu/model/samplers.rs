@@ -11,6 +11,7 @@
 
 use super::{LevelBuffers, RaysOfChunk, SamplingScratch, importance_samples, sampling, set_len};
 use crate::field::common::{SampleShape, SamplerKind};
+use crate::field::contraction::Contraction;
 
 /// Draws a fixed-count level's sample distances.
 pub(super) trait LevelSampler: Send + Sync {
@@ -26,17 +27,32 @@ pub(super) trait LevelSampler: Send + Sync {
         scratch: &mut SamplingScratch,
         lb: &mut LevelBuffers,
     ) -> usize;
+
+    /// Whether it draws intervals (edges into `lb.edges`, one more than
+    /// samples per ray) rather than points into `lb.t`.
+    fn draws_intervals(&self) -> bool;
 }
 
 /// The sampler that draws a level named `kind` of a recipe whose samples
 /// are `shape`, or `None` where the driver does not sample it level by
 /// level (the occupancy grid's march) or the pair is not a sampler
-/// (importance points among frustums, resampled frustums among points).
+/// (importance points among frustums, resampled frustums among points,
+/// the proposal sampler's levels without a contraction to space them by).
 pub(super) fn level_sampler(
     kind: SamplerKind,
     shape: SampleShape,
+    contraction: Option<Contraction>,
 ) -> Option<Box<dyn LevelSampler>> {
     Some(match (shape, kind) {
+        (_, SamplerKind::SpacedIntervals { count }) => Box::new(SpacedIntervals {
+            count,
+            contraction: contraction?,
+        }),
+        (_, SamplerKind::ProposalResample { count, padding }) => Box::new(ProposalResample {
+            count,
+            padding,
+            contraction: contraction?,
+        }),
         (SampleShape::Points, SamplerKind::Stratified { count }) => {
             Box::new(StratifiedPoints { count })
         }
@@ -71,6 +87,10 @@ impl LevelSampler for StratifiedPoints {
         set_len(&mut lb.t, chunk.near.len() * n);
         sampling::stratified(chunk.near, chunk.far, n, jitter, &mut lb.t);
         n
+    }
+
+    fn draws_intervals(&self) -> bool {
+        false
     }
 }
 
@@ -108,6 +128,10 @@ impl LevelSampler for ImportancePoints {
         sampling::merge_sorted(&previous.t, m, &scratch.fine_t, n, &mut lb.t);
         m + n
     }
+
+    fn draws_intervals(&self) -> bool {
+        false
+    }
 }
 
 /// `count` frustums between `count` + 1 stratified edges from near to far.
@@ -128,6 +152,10 @@ impl LevelSampler for StratifiedEdges {
         set_len(&mut lb.edges, chunk.near.len() * (n + 1));
         sampling::stratified(chunk.near, chunk.far, n + 1, jitter, &mut lb.edges);
         n
+    }
+
+    fn draws_intervals(&self) -> bool {
+        true
     }
 }
 
@@ -165,6 +193,91 @@ impl LevelSampler for ResampledEdges {
         );
         n
     }
+
+    fn draws_intervals(&self) -> bool {
+        true
+    }
+}
+
+/// A proposal sampler's first level: `count` intervals whose `count` + 1
+/// edges are stratified in the contraction's spacing coordinate s between
+/// each ray's near and far bounds.
+struct SpacedIntervals {
+    count: usize,
+    contraction: Contraction,
+}
+
+impl LevelSampler for SpacedIntervals {
+    fn draw(
+        &self,
+        _previous: Option<&LevelBuffers>,
+        chunk: &RaysOfChunk,
+        jitter: Option<u32>,
+        scratch: &mut SamplingScratch,
+        lb: &mut LevelBuffers,
+    ) -> usize {
+        let (n, c) = (self.count, &self.contraction);
+        scratch.starts.clear();
+        scratch.starts.extend(chunk.near.iter().map(|&t| c.spacing_of(t)));
+        scratch.ends.clear();
+        scratch.ends.extend(chunk.far.iter().map(|&t| c.spacing_of(t)));
+        set_len(&mut lb.edges, chunk.near.len() * (n + 1));
+        sampling::stratified(&scratch.starts, &scratch.ends, n + 1, jitter, &mut lb.edges);
+        for e in lb.edges.iter_mut() {
+            *e = c.distance_of(*e);
+        }
+        n
+    }
+
+    fn draws_intervals(&self) -> bool {
+        true
+    }
+}
+
+/// A proposal sampler's later levels: `count` + 1 edges drawn from the
+/// previous level's intervals and weights in s (padded by `padding`, not
+/// blurred), mapped back to distances.
+struct ProposalResample {
+    count: usize,
+    padding: f32,
+    contraction: Contraction,
+}
+
+impl LevelSampler for ProposalResample {
+    fn draw(
+        &self,
+        previous: Option<&LevelBuffers>,
+        chunk: &RaysOfChunk,
+        jitter: Option<u32>,
+        scratch: &mut SamplingScratch,
+        lb: &mut LevelBuffers,
+    ) -> usize {
+        let (n, rays, c) = (self.count, chunk.near.len(), &self.contraction);
+        let previous = previous.expect("resampling follows a level");
+        let m = previous.weights.len() / rays.max(1);
+        scratch.starts.clear();
+        scratch
+            .starts
+            .extend(previous.edges.iter().map(|&t| c.spacing_of(t)));
+        set_len(&mut lb.edges, rays * (n + 1));
+        sampling::sample_pdf(
+            &scratch.starts,
+            &previous.weights,
+            m,
+            self.padding,
+            n + 1,
+            jitter,
+            &mut lb.edges,
+        );
+        for e in lb.edges.iter_mut() {
+            *e = c.distance_of(*e);
+        }
+        n
+    }
+
+    fn draws_intervals(&self) -> bool {
+        true
+    }
 }
 
 #[cfg(test)]
@@ -196,7 +309,7 @@ mod tests {
             (SamplerKind::Occupancy, frustums, false),
         ] {
             assert_eq!(
-                level_sampler(kind, shape).is_some(),
+                level_sampler(kind, shape, None).is_some(),
                 draws,
                 "{kind:?} of {shape:?}"
             );
@@ -221,6 +334,7 @@ mod tests {
         let stratified = level_sampler(
             SamplerKind::Stratified { count: 4 },
             SampleShape::ConicalFrustums,
+            None,
         )
         .unwrap();
         assert_eq!(
@@ -236,6 +350,7 @@ mod tests {
                 padding: 0.01,
             },
             SampleShape::ConicalFrustums,
+            None,
         )
         .unwrap();
         assert_eq!(

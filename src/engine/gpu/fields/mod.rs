@@ -14,7 +14,7 @@ use crate::field::common::Coordinates;
 
 /// One field of `shape` on the `gpu` engine, for passes of up to
 /// `capacity_rows` samples (its initial parameters come from the shape,
-/// [`FieldShape::model_params`]).
+/// [`crate::field::model_params`]).
 pub fn fields_for(
     context: &GpuContext,
     shape: &FieldShape,
@@ -24,6 +24,11 @@ pub fn fields_for(
         FieldShape::Ngp(shape) => Box::new(ngp::GpuNgpField::new(context, shape, capacity_rows)?),
         FieldShape::Nerf(shape) => {
             Box::new(nerf::GpuNerfField::new(context, shape, capacity_rows)?)
+        }
+        FieldShape::Density(_) => {
+            return Err(GpuError::Unsupported(
+                "the proposal sampler's density fields are not on the gpu engine yet".into(),
+            ));
         }
     })
 }

@@ -352,6 +352,8 @@ impl GpuModel {
             rays: if rays == 0 { 0 } else { kept },
             samples,
             samples_composited: compact.then_some(used),
+            proposal_samples: 0,
+            proposal_loss: 0.0,
             times,
             network_flops: 0.0,
         }

@@ -369,13 +369,13 @@ impl GpuModel {
         scene: &Scene,
     ) -> Result<Self, String> {
         let plan = request.plan(scene, request.kind.spec().gpu_batch_samples);
-        let shape = plan.shape;
+        let shapes = plan.shapes;
         let settings = &request.settings;
         Self::new(
             context,
             plan.core,
             plan.params,
-            |context, _, capacity| fields_for(context, &shape, capacity),
+            |context, index, capacity| fields_for(context, &shapes[index], capacity),
             scene,
             settings.seed,
             settings.loss,

@@ -84,6 +84,13 @@ pub(super) fn level_sampler(
                     .into(),
             );
         }
+        SamplerKind::SpacedIntervals { .. } | SamplerKind::ProposalResample { .. } => {
+            return Err(
+                "the proposal sampler is not on the gpu engine yet: use --engine cpu, or \
+                 --sampling occupancy"
+                    .into(),
+            );
+        }
     })
 }
 
