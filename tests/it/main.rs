@@ -36,6 +36,7 @@ mod ngp_field_gpu;
 mod ngp_gpu;
 mod ngp_gpu_driver_gate;
 mod ngp_learning;
+mod proposal_cpu;
 mod render_texture_gpu;
 mod sampling_gpu;
 mod scene_bounds;

@@ -27,6 +27,8 @@
 //! δ_k T_{k+1} for i = k and 0 before: a gradient g on the weights gives
 //! ∂L/∂σ_k = δ_k (T_{k+1} g_k − Σ_{i>k} g_i w_i).
 
+use rayon::prelude::*;
+
 /// ε of the interlevel loss's denominator (multinerf: f32's machine epsilon).
 const INTERLEVEL_EPSILON: f32 = f32::EPSILON;
 
@@ -57,39 +59,47 @@ pub fn interlevel(
     let n = fine.per_ray(rays);
     let m = proposal.per_ray(rays);
     assert_eq!(d_proposal_weights.len(), rays * m);
-    let mut total = 0f64;
-    let mut cumulative = vec![0f32; m + 1];
-    let mut difference = vec![0f32; m + 1];
-    for r in 0..rays {
-        let fine_edges = &fine.edges[r * (n + 1)..][..n + 1];
-        let fine_weights = &fine.weights[r * n..][..n];
-        let edges = &proposal.edges[r * (m + 1)..][..m + 1];
-        let weights = &proposal.weights[r * m..][..m];
-        cumulative[0] = 0.0;
-        for j in 0..m {
-            cumulative[j + 1] = cumulative[j] + weights[j].max(0.0);
-        }
-        difference.fill(0.0);
-        for i in 0..n {
-            let (first, end) = overlapping(edges, fine_edges[i], fine_edges[i + 1]);
-            let bound = cumulative[end] - cumulative[first];
-            let w = fine_weights[i];
-            let excess = (w - bound).max(0.0);
-            if excess > 0.0 {
-                let denominator = w + INTERLEVEL_EPSILON;
-                total += (excess * excess / denominator) as f64;
-                let g = -2.0 * excess / denominator * scale;
-                difference[first] += g;
-                difference[end] -= g;
-            }
-        }
-        let mut running = 0.0;
-        for (j, d) in d_proposal_weights[r * m..][..m].iter_mut().enumerate() {
-            running += difference[j];
-            *d += running;
-        }
+    if m == 0 {
+        return 0.0;
     }
-    total
+    d_proposal_weights
+        .par_chunks_mut(m)
+        .enumerate()
+        .map_init(
+            || (vec![0f32; m + 1], vec![0f32; m + 1]),
+            |(cumulative, difference), (r, d)| {
+                let fine_edges = &fine.edges[r * (n + 1)..][..n + 1];
+                let fine_weights = &fine.weights[r * n..][..n];
+                let edges = &proposal.edges[r * (m + 1)..][..m + 1];
+                let weights = &proposal.weights[r * m..][..m];
+                cumulative[0] = 0.0;
+                for j in 0..m {
+                    cumulative[j + 1] = cumulative[j] + weights[j].max(0.0);
+                }
+                difference.fill(0.0);
+                let mut total = 0f64;
+                for i in 0..n {
+                    let (first, end) = overlapping(edges, fine_edges[i], fine_edges[i + 1]);
+                    let bound = cumulative[end] - cumulative[first];
+                    let w = fine_weights[i];
+                    let excess = (w - bound).max(0.0);
+                    if excess > 0.0 {
+                        let denominator = w + INTERLEVEL_EPSILON;
+                        total += (excess * excess / denominator) as f64;
+                        let g = -2.0 * excess / denominator * scale;
+                        difference[first] += g;
+                        difference[end] -= g;
+                    }
+                }
+                let mut running = 0.0;
+                for (j, d) in d.iter_mut().enumerate() {
+                    running += difference[j];
+                    *d += running;
+                }
+                total
+            },
+        )
+        .sum()
 }
 
 /// The proposal intervals [first, end) that overlap (lo, hi): those whose
@@ -113,40 +123,44 @@ fn overlapping(edges: &[f32], lo: f32, hi: f32) -> (usize, usize) {
 pub fn distortion(intervals: Intervals, rays: usize, scale: f32, d_weights: &mut [f32]) -> f64 {
     let n = intervals.per_ray(rays);
     assert_eq!(d_weights.len(), rays * n);
-    let mut total = 0f64;
-    for r in 0..rays {
-        let edges = &intervals.edges[r * (n + 1)..][..n + 1];
-        let weights = &intervals.weights[r * n..][..n];
-        let d = &mut d_weights[r * n..][..n];
-        let total_weight: f64 = weights.iter().map(|&w| w as f64).sum();
-        let total_moment: f64 = weights
-            .iter()
-            .zip(edges.windows(2))
-            .map(|(&w, e)| w as f64 * 0.5 * (e[0] + e[1]) as f64)
-            .sum();
-        let (mut before, mut moment_before) = (0f64, 0f64);
-        let mut loss = 0f64;
-        for i in 0..n {
-            let w = weights[i] as f64;
-            let mid = 0.5 * (edges[i] + edges[i + 1]) as f64;
-            let width = (edges[i + 1] - edges[i]) as f64;
-            loss += 2.0 * w * (mid * before - moment_before) + w * w * width / 3.0;
-            let (after, moment_after) = (
-                total_weight - before - w,
-                total_moment - moment_before - w * mid,
-            );
-            // ∂/∂w_i: its pairs with the earlier intervals and with the
-            // later ones, and its own interval's term.
-            let gradient = 2.0 * (mid * before - moment_before)
-                + 2.0 * (moment_after - mid * after)
-                + 2.0 * w * width / 3.0;
-            d[i] += (gradient * scale as f64) as f32;
-            before += w;
-            moment_before += w * mid;
-        }
-        total += loss;
+    if n == 0 {
+        return 0.0;
     }
-    total
+    d_weights
+        .par_chunks_mut(n)
+        .enumerate()
+        .map(|(r, d)| {
+            let edges = &intervals.edges[r * (n + 1)..][..n + 1];
+            let weights = &intervals.weights[r * n..][..n];
+            let total_weight: f64 = weights.iter().map(|&w| w as f64).sum();
+            let total_moment: f64 = weights
+                .iter()
+                .zip(edges.windows(2))
+                .map(|(&w, e)| w as f64 * 0.5 * (e[0] + e[1]) as f64)
+                .sum();
+            let (mut before, mut moment_before) = (0f64, 0f64);
+            let mut loss = 0f64;
+            for i in 0..n {
+                let w = weights[i] as f64;
+                let mid = 0.5 * (edges[i] + edges[i + 1]) as f64;
+                let width = (edges[i + 1] - edges[i]) as f64;
+                loss += 2.0 * w * (mid * before - moment_before) + w * w * width / 3.0;
+                let (after, moment_after) = (
+                    total_weight - before - w,
+                    total_moment - moment_before - w * mid,
+                );
+                // ∂/∂w_i: its pairs with the earlier intervals and with the
+                // later ones, and its own interval's term.
+                let gradient = 2.0 * (mid * before - moment_before)
+                    + 2.0 * (moment_after - mid * after)
+                    + 2.0 * w * width / 3.0;
+                d[i] += (gradient * scale as f64) as f32;
+                before += w;
+                moment_before += w * mid;
+            }
+            loss
+        })
+        .sum()
 }
 
 /// Adds to `d_sigma` the gradient that `d_weights` (the loss's gradient on
@@ -164,28 +178,31 @@ pub fn weights_to_densities(
     if per_ray == 0 {
         return;
     }
-    for ((((sigma, dt), weights), d_weights), d_sigma) in sigma
-        .chunks_exact(per_ray)
-        .zip(dt.chunks_exact(per_ray))
-        .zip(weights.chunks_exact(per_ray))
-        .zip(d_weights.chunks_exact(per_ray))
-        .zip(d_sigma.chunks_exact_mut(per_ray))
-    {
-        // Σ_{i>k} g_i w_i, from the back.
-        let mut later = 0f64;
-        let mut suffix = vec![0f64; per_ray];
-        for k in (0..per_ray).rev() {
-            suffix[k] = later;
-            later += d_weights[k] as f64 * weights[k] as f64;
-        }
-        let mut optical_depth = 0f64;
-        for k in 0..per_ray {
-            optical_depth += sigma[k].max(0.0) as f64 * dt[k] as f64;
-            let transmittance_after = (-optical_depth).exp();
-            d_sigma[k] +=
-                (dt[k] as f64 * (transmittance_after * d_weights[k] as f64 - suffix[k])) as f32;
-        }
-    }
+    d_sigma
+        .par_chunks_mut(per_ray)
+        .zip(sigma.par_chunks(per_ray))
+        .zip(dt.par_chunks(per_ray))
+        .zip(weights.par_chunks(per_ray))
+        .zip(d_weights.par_chunks(per_ray))
+        .for_each_init(
+            || vec![0f64; per_ray],
+            |suffix, ((((d_sigma, sigma), dt), weights), d_weights)| {
+                // Σ_{i>k} g_i w_i, from the back.
+                let mut later = 0f64;
+                for k in (0..per_ray).rev() {
+                    suffix[k] = later;
+                    later += d_weights[k] as f64 * weights[k] as f64;
+                }
+                let mut optical_depth = 0f64;
+                for k in 0..per_ray {
+                    optical_depth += sigma[k].max(0.0) as f64 * dt[k] as f64;
+                    let transmittance_after = (-optical_depth).exp();
+                    d_sigma[k] += (dt[k] as f64
+                        * (transmittance_after * d_weights[k] as f64 - suffix[k]))
+                        as f32;
+                }
+            },
+        );
 }
 
 #[cfg(test)]

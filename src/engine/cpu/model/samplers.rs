@@ -363,4 +363,82 @@ mod tests {
         }
         assert_eq!(second.edges.len(), 2 * 5);
     }
+
+    /// The proposal sampler's levels: the first spaces its edges linearly
+    /// inside the contraction's unit ball and in disparity beyond; the
+    /// next resamples where the previous level's weight is.
+    #[test]
+    fn proposal_levels_space_edges_then_resample_where_the_weight_is() {
+        use crate::field::contraction::{Contraction, ContractionNorm};
+        let contraction = Contraction {
+            centre: glam::Vec3::ZERO,
+            radius: 2.0,
+            norm: ContractionNorm::LInf,
+        };
+        let (near, far) = ([0.1f32], [2000.0f32]);
+        let chunk = RaysOfChunk {
+            origins: &[0.0; 3],
+            directions: &[0.0, 0.0, 1.0],
+            radii: &[],
+            near: &near,
+            far: &far,
+        };
+        let mut scratch = SamplingScratch::default();
+        let mut first = LevelBuffers::default();
+        let spaced = level_sampler(
+            SamplerKind::SpacedIntervals { count: 8 },
+            SampleShape::Points,
+            Some(contraction),
+        )
+        .unwrap();
+        assert!(spaced.draws_intervals());
+        assert_eq!(spaced.draw(None, &chunk, None, &mut scratch, &mut first), 8);
+        // Deterministic edges: equal steps of s from s(near) to s(far).
+        let s: Vec<f32> = first
+            .edges
+            .iter()
+            .map(|&t| contraction.spacing_of(t))
+            .collect();
+        let step = (s[8] - s[0]) / 8.0;
+        for pair in s.windows(2) {
+            assert!((pair[1] - pair[0] - step).abs() < 1e-4, "{s:?}");
+        }
+        assert!((first.edges[0] - 0.1).abs() < 1e-5 && (first.edges[8] - 2000.0).abs() < 1.0);
+        // All the weight in one interval: the resampled edges gather there,
+        // but for the padding's share (0.01 per interval: 7 × 0.01 / 1.08 of
+        // the mass lies elsewhere, ~7 %).
+        first.weights = vec![0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0];
+        let (lo, hi) = (first.edges[3], first.edges[4]);
+        let mut second = LevelBuffers::default();
+        let resample = level_sampler(
+            SamplerKind::ProposalResample {
+                count: 32,
+                padding: 0.01,
+            },
+            SampleShape::Points,
+            Some(contraction),
+        )
+        .unwrap();
+        assert_eq!(
+            resample.draw(Some(&first), &chunk, Some(3), &mut scratch, &mut second),
+            32
+        );
+        assert_eq!(second.edges.len(), 33);
+        assert!(second.edges.windows(2).all(|p| p[0] <= p[1]));
+        let inside = second
+            .edges
+            .iter()
+            .filter(|&&t| t >= lo * 0.999 && t <= hi * 1.001)
+            .count();
+        assert!(inside >= 28, "{inside} of 33 edges in [{lo}, {hi}]: {:?}", second.edges);
+        // Without a contraction there is no spacing to draw in.
+        assert!(
+            level_sampler(
+                SamplerKind::SpacedIntervals { count: 8 },
+                SampleShape::Points,
+                None
+            )
+            .is_none()
+        );
+    }
 }
