@@ -99,7 +99,8 @@ pub fn keep_recorded_space(scene: Scene, config: &RunConfig) -> Scene {
         analysis.reasons.insert(
             0,
             format!(
-                "kept as {space} from the run's run.json (the analysis made it so when the run                  began; it now finds {})",
+                "kept as {space} from the run's run.json (the analysis made it so when the run \
+                 began; it now finds {})",
                 analysis.space
             ),
         );
