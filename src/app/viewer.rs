@@ -52,6 +52,9 @@ pub struct ViewerOptions {
     pub path_time: Option<f64>,
     /// Play the camera path from the start (or `path_time`).
     pub path_play: bool,
+    /// What every scene opened is treated as; `None` leaves it to the
+    /// scene analysis.
+    pub space: Option<crate::scene::SceneSpace>,
 }
 
 impl Default for ViewerOptions {
@@ -73,6 +76,7 @@ impl Default for ViewerOptions {
             camera_path: None,
             path_time: None,
             path_play: false,
+            space: None,
         }
     }
 }
@@ -241,6 +245,7 @@ impl ViewerApp {
                 gpu_device,
                 sampling: options.sampling,
                 precision: options.precision,
+                space: options.space,
                 autosave: crate::session::worker::default_autosave_folder(),
                 kept_runs: options.kept_runs,
                 ..WorkerOptions::default()

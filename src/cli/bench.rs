@@ -19,7 +19,7 @@ use zrak::model::RenderMode;
 use zrak::scene::{Camera, Scene};
 use zrak::train::trainer::Trainer;
 
-use super::{KernelsLine, load_scene};
+use super::{KernelsLine, SpaceChoice, load_scene};
 
 #[derive(Args, Debug)]
 pub struct DenseArgs {
@@ -57,6 +57,9 @@ pub struct ThroughputArgs {
     /// mixed where the processor has bf16 kernels, else f32.
     #[arg(long, value_enum)]
     precision: Option<Precision>,
+    /// What the scene is treated as; auto leaves it to the scene analysis.
+    #[arg(long, value_enum, default_value_t = SpaceChoice::Auto)]
+    space: SpaceChoice,
 }
 
 #[derive(Args, Debug)]
@@ -80,6 +83,9 @@ pub struct GpuBenchArgs {
     /// Timed steps per model (0: the self-check only).
     #[arg(long, default_value_t = 16)]
     steps: usize,
+    /// What the scene is treated as; auto leaves it to the scene analysis.
+    #[arg(long, value_enum, default_value_t = SpaceChoice::Auto)]
+    space: SpaceChoice,
 }
 
 /// NeRF's networks in f32 and, where the processor has bf16 kernels, in
@@ -230,7 +236,7 @@ pub fn bench_gpu(args: GpuBenchArgs) -> anyhow::Result<()> {
 
     if args.steps > 0 && !interrupt::requested() {
         let scene_name = args.scene.unwrap_or_else(default_bench_scene);
-        let scene = Arc::new(load_scene(&scene_name, 1)?);
+        let scene = Arc::new(args.space.apply(load_scene(&scene_name, 1)?));
         for &model in &args.models {
             if interrupt::requested() {
                 break;
@@ -318,10 +324,11 @@ pub fn bench_throughput(args: ThroughputArgs) -> anyhow::Result<()> {
         warmup,
         steps,
         precision,
+        space,
     } = args;
     let precision = precision.unwrap_or_else(Precision::best_available);
     let scene_name = scene.unwrap_or_else(default_bench_scene);
-    let scene = Arc::new(load_scene(&scene_name, downscale)?);
+    let scene = Arc::new(space.apply(load_scene(&scene_name, downscale)?));
     let choice = choose_engine(engine)?;
     let engine_line = choice.reason.clone();
     let counters = choice.gpu.as_ref().map(|gpu| gpu.counters.clone());
@@ -382,9 +389,13 @@ mod tests {
         assert_eq!(throughput.sampling, Sampling::Occupancy);
         assert_eq!((throughput.warmup, throughput.steps), (None, 32));
         assert_eq!(throughput.downscale, 1);
+        assert_eq!(throughput.space, SpaceChoice::Auto);
         let gpu: GpuBenchArgs = parse_args(&[]).unwrap();
         assert_eq!(gpu.models, ModelKind::ALL);
         assert_eq!((gpu.warmup, gpu.steps), (None, 16));
+        assert_eq!(gpu.space, SpaceChoice::Auto);
+        let chosen: ThroughputArgs = parse_args(&["--space", "forward-facing"]).unwrap();
+        assert_eq!(chosen.space, SpaceChoice::ForwardFacing);
     }
 
     #[test]

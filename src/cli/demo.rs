@@ -24,8 +24,13 @@ pub struct DemoArgs {
     views: usize,
     /// The large-extent variant: an opaque backdrop sphere around the
     /// objects, aabb_scale 8, written as an instant-ngp transforms.json.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "unbounded")]
     large: bool,
+    /// The unbounded variant: the objects on a ground plane that runs to
+    /// the horizon under a sky at infinity, every pixel opaque, aabb_scale
+    /// 16, written as an instant-ngp transforms.json.
+    #[arg(long)]
+    unbounded: bool,
     /// Write into a folder that is not empty, replacing the scene's
     /// files there (others are left alone).
     #[arg(long)]
@@ -71,6 +76,7 @@ pub fn write_demo(args: DemoArgs) -> anyhow::Result<()> {
         size,
         views,
         large,
+        unbounded,
         force,
     } = args;
     let config = demo_config(size, views)?;
@@ -80,6 +86,8 @@ pub fn write_demo(args: DemoArgs) -> anyhow::Result<()> {
     let started = Instant::now();
     if large {
         demo::write_large(&config, &out).context("writing the large demo scene")?;
+    } else if unbounded {
+        demo::write_unbounded(&config, &out).context("writing the unbounded demo scene")?;
     } else {
         demo::write(&config, &out).context("writing the demo scene")?;
     }
@@ -129,7 +137,11 @@ mod tests {
         assert_eq!(args.out, PathBuf::from("scene"));
         assert_eq!(args.size, DemoConfig::default().size);
         assert_eq!(args.views, DemoConfig::default().train_views);
-        assert!(!args.large && !args.force);
+        assert!(!args.large && !args.unbounded && !args.force);
+        let args: DemoArgs = parse_args(&["--out", "scene", "--unbounded"]).unwrap();
+        assert!(args.unbounded);
+        let error = parse_args::<DemoArgs>(&["--out", "s", "--unbounded", "--large"]).unwrap_err();
+        assert_eq!(error.kind(), clap::error::ErrorKind::ArgumentConflict);
         let error = parse_args::<DemoArgs>(&["--size", "64"]).unwrap_err();
         assert_eq!(
             error.kind(),

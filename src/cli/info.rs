@@ -6,23 +6,36 @@ use std::time::Instant;
 use clap::Args;
 use zrak::scene::{LoadOptions, Scene, Split};
 
+use super::{SpaceChoice, load_scene};
+
 #[derive(Args, Debug)]
 pub struct InfoArgs {
-    /// A folder in the NeRF-synthetic layout, with a transforms.json, or with a COLMAP model.
+    /// A folder in the NeRF-synthetic layout, with a transforms.json, or
+    /// with a COLMAP model; `demo` for the built-in demo scene.
     scene: PathBuf,
     /// Integer image downscale, as training would load it.
     #[arg(long, default_value_t = 1)]
     downscale: u32,
+    /// What the scene is treated as, as `zrak train --space` would: auto
+    /// leaves it to the scene analysis, whose reasons are printed either
+    /// way.
+    #[arg(long, value_enum, default_value_t = SpaceChoice::Auto)]
+    space: SpaceChoice,
 }
 
 pub fn info(args: InfoArgs) -> anyhow::Result<()> {
     let started = Instant::now();
-    let scene = Scene::load(
-        &args.scene,
-        LoadOptions {
-            downscale: args.downscale,
-        },
-    )?;
+    let scene = if args.scene.as_os_str() == "demo" {
+        load_scene("demo", args.downscale)?
+    } else {
+        Scene::load(
+            &args.scene,
+            LoadOptions {
+                downscale: args.downscale,
+            },
+        )?
+    };
+    let scene = args.space.apply(scene);
     print_info(&scene);
     println!("loaded in {:.2} s", started.elapsed().as_secs_f64());
     Ok(())
@@ -79,6 +92,28 @@ fn print_info(scene: &Scene) {
     if let Some((near, far)) = scene.seen_depth_range() {
         println!("near/far    {near:.3} to {far:.3} (where camera rays cross the bounds)");
     }
+    for line in space_lines(scene) {
+        println!("{line}");
+    }
+}
+
+/// The space the scene is treated as and why: a line for the choice, one
+/// per reason under it.
+fn space_lines(scene: &Scene) -> Vec<String> {
+    let analysis = &scene.space;
+    let how = if analysis.overridden {
+        "chosen with --space"
+    } else {
+        "from the scene analysis; --space overrides it"
+    };
+    let mut lines = vec![format!("space       {} ({how})", analysis.space)];
+    lines.extend(
+        analysis
+            .reasons
+            .iter()
+            .map(|reason| format!("  - {reason}")),
+    );
+    lines
 }
 
 #[cfg(test)]
@@ -93,11 +128,33 @@ mod tests {
         assert_eq!(args.downscale, 4);
         let args: InfoArgs = parse_args(&["lego"]).unwrap();
         assert_eq!(args.downscale, 1);
+        assert_eq!(args.space, SpaceChoice::Auto);
+        let args: InfoArgs = parse_args(&["lego", "--space", "unbounded"]).unwrap();
+        assert_eq!(args.space, SpaceChoice::Unbounded);
         let error = parse_args::<InfoArgs>(&[]).unwrap_err();
         assert_eq!(
             error.kind(),
             clap::error::ErrorKind::MissingRequiredArgument
         );
         assert!(error.to_string().contains("<SCENE>"), "{error}");
+    }
+
+    #[test]
+    fn the_space_is_printed_with_its_reasons_and_whether_it_was_chosen() {
+        let scene = load_scene("demo", 16).unwrap();
+        let lines = space_lines(&scene);
+        assert_eq!(
+            lines[0],
+            "space       object (from the scene analysis; --space overrides it)"
+        );
+        assert_eq!(lines.len(), 1 + scene.space.reasons.len());
+        assert_eq!(lines[1], format!("  - {}", scene.space.reasons[0]));
+        let chosen = SpaceChoice::ForwardFacing.apply(scene);
+        let lines = space_lines(&chosen);
+        assert_eq!(lines[0], "space       forward-facing (chosen with --space)");
+        assert_eq!(
+            lines[1],
+            "  - chosen by hand as forward-facing; the analysis found object"
+        );
     }
 }

@@ -34,7 +34,7 @@ use std::path::Path;
 use zrak::scene::demo::{
     DemoConfig, {self as demo_scene},
 };
-use zrak::scene::{LoadOptions, Scene};
+use zrak::scene::{LoadOptions, Scene, SceneSpace};
 
 /// A scene argument as the commands take it: `demo` for the built-in demo
 /// scene (its views divided by `downscale`), else a folder.
@@ -52,6 +52,37 @@ pub fn load_scene(scene: &str, downscale: u32) -> anyhow::Result<Scene> {
         return Ok(demo_scene::build(&config));
     }
     Ok(Scene::load(Path::new(scene), LoadOptions { downscale })?)
+}
+
+/// `--space`: what a scene is treated as, `auto` leaving it to the scene
+/// analysis (`zrak info` prints its choice and reasons).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum SpaceChoice {
+    #[default]
+    Auto,
+    Object,
+    Unbounded,
+    ForwardFacing,
+}
+
+impl SpaceChoice {
+    /// The space chosen by hand, or `None` for the analysis's.
+    pub fn space(self) -> Option<SceneSpace> {
+        match self {
+            SpaceChoice::Auto => None,
+            SpaceChoice::Object => Some(SceneSpace::Object),
+            SpaceChoice::Unbounded => Some(SceneSpace::Unbounded),
+            SpaceChoice::ForwardFacing => Some(SceneSpace::ForwardFacing),
+        }
+    }
+
+    /// `scene` treated as chosen: as analysed for `auto`.
+    pub fn apply(self, scene: Scene) -> Scene {
+        match self.space() {
+            Some(space) => scene.with_space(space),
+            None => scene,
+        }
+    }
 }
 
 /// A duration argument in seconds: `90s`, `10m`, `2min`, `1h`, or a bare
@@ -194,6 +225,23 @@ mod tests {
                 full + 1
             )
         );
+    }
+
+    #[test]
+    fn space_choices_override_the_analysis_or_leave_it() {
+        use clap::ValueEnum;
+        let names: Vec<String> = SpaceChoice::value_variants()
+            .iter()
+            .map(|v| v.to_possible_value().unwrap().get_name().to_string())
+            .collect();
+        assert_eq!(names, ["auto", "object", "unbounded", "forward-facing"]);
+        let scene = load_scene("demo", 16).unwrap();
+        assert_eq!(scene.space.space, SceneSpace::Object);
+        let kept = SpaceChoice::Auto.apply(scene.clone());
+        assert_eq!(kept.space, scene.space);
+        let chosen = SpaceChoice::Unbounded.apply(scene);
+        assert_eq!(chosen.space.space, SceneSpace::Unbounded);
+        assert!(chosen.space.overridden);
     }
 
     #[test]

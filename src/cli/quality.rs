@@ -31,7 +31,7 @@ use zrak::train::trainer::Trainer;
 use super::run_config::{
     RunConfig, build_trainer, read_run_config, restore_checkpoint, scene_key, start_run_folder,
 };
-use super::{load_scene, parse_duration};
+use super::{SpaceChoice, load_scene, parse_duration};
 
 #[derive(Args, Debug)]
 pub struct QualityArgs {
@@ -100,6 +100,10 @@ pub struct QualityArgs {
     /// mixed where the processor has bf16 kernels, else f32.
     #[arg(long, value_enum)]
     precision: Option<Precision>,
+    /// What every scene is treated as: a bounded object, unbounded, or a
+    /// forward-facing capture; auto leaves it to the scene analysis.
+    #[arg(long, value_enum, default_value_t = SpaceChoice::Auto)]
+    space: SpaceChoice,
 }
 
 /// A scene of the experiment, loaded once for all its cells.
@@ -208,9 +212,9 @@ fn command_line() -> String {
 }
 
 /// How one cell's run folder is set up.
-fn run_config(cell: &CellSpec, argument: &str, args: &QualityArgs) -> RunConfig {
-    RunConfig {
-        scene: scene_key(argument),
+fn run_config(cell: &CellSpec, scene: &LoadedScene, args: &QualityArgs) -> RunConfig {
+    let mut config = RunConfig {
+        scene: scene_key(&scene.argument),
         model: cell.model,
         downscale: args.downscale,
         loss: cell.model.default_loss(),
@@ -220,7 +224,11 @@ fn run_config(cell: &CellSpec, argument: &str, args: &QualityArgs) -> RunConfig 
         batch_samples: args.batch_samples.map(|n| n as usize),
         precision: precision(args),
         training_scales: 1,
-    }
+        space: None,
+        space_overridden: false,
+    };
+    config.record_space(&scene.scene);
+    config
 }
 
 /// The experiment's precision: as asked, else mixed where the processor
@@ -264,8 +272,10 @@ pub fn bench_quality(args: QualityArgs) -> anyhow::Result<()> {
                 other.argument
             );
         }
-        let scene = load_scene(argument, args.downscale)
-            .with_context(|| format!("{argument}: cannot load the scene"))?;
+        let scene = args.space.apply(
+            load_scene(argument, args.downscale)
+                .with_context(|| format!("{argument}: cannot load the scene"))?,
+        );
         if let Some(problem) = scene.training_problem() {
             bail!("{argument}: nothing to train: {problem}");
         }
@@ -329,7 +339,7 @@ pub fn bench_quality(args: QualityArgs) -> anyhow::Result<()> {
                 .iter()
                 .find(|s| s.name == cell.scene)
                 .expect("loaded");
-            let config = run_config(cell, &scene.argument, &args);
+            let config = run_config(cell, scene, &args);
             build_trainer(&config, scene.scene.clone(), choice.share()?)
                 .with_context(|| format!("{} on {}", cell.label(), cell.scene))?;
         }
@@ -406,7 +416,7 @@ pub fn bench_quality(args: QualityArgs) -> anyhow::Result<()> {
             .expect("loaded");
         let folder_path = runs.join(cell.folder_name());
         let folder = RunFolder::create(&folder_path).map_err(anyhow::Error::msg)?;
-        let config = run_config(cell, &scene.argument, &args);
+        let config = run_config(cell, scene, &args);
         let mut trainer = open_cell(&folder, &config, scene, choice.share()?)?;
         let mut record = records[index].take().unwrap_or_else(|| CellRecord {
             protocol: protocol.clone(),
@@ -514,6 +524,8 @@ fn open_cell(
 ) -> anyhow::Result<Trainer> {
     if folder.checkpoint_path().is_file() {
         let recorded = read_run_config(folder)?;
+        // A run from before spaces were recorded matches any.
+        let same_space = recorded.space.is_none() || recorded.space == config.space;
         if (
             recorded.model,
             recorded.sampling,
@@ -526,10 +538,11 @@ fn open_cell(
             &config.scene,
             config.downscale,
             config.seed,
-        ) {
+        ) || !same_space
+        {
             bail!(
                 "{}: the run there is not this cell's (another model, sampler, scene, \
-                 downscale or seed); move it away or give another --out",
+                 downscale, seed or scene space); move it away or give another --out",
                 folder.dir.display()
             );
         }
@@ -670,6 +683,8 @@ mod tests {
             "4096",
             "--precision",
             "f32",
+            "--space",
+            "unbounded",
         ])
         .unwrap();
         let cell = CellSpec {
@@ -677,7 +692,12 @@ mod tests {
             model: ModelKind::Nerf,
             sampling: Sampling::Paper,
         };
-        let config = run_config(&cell, "demo", &args);
+        let scene = LoadedScene {
+            name: "demo".into(),
+            argument: "demo".into(),
+            scene: Arc::new(args.space.apply(load_scene("demo", 16).unwrap())),
+        };
+        let config = run_config(&cell, &scene, &args);
         assert_eq!(config.scene, "demo");
         assert_eq!(
             (config.model, config.sampling),
@@ -689,5 +709,7 @@ mod tests {
         assert_eq!(config.batch_samples, Some(4096));
         assert_eq!(config.precision, Precision::F32);
         assert_eq!(config.training_scales, 1);
+        assert_eq!(config.space, Some(zrak::scene::SceneSpace::Unbounded));
+        assert!(config.space_overridden);
     }
 }

@@ -13,7 +13,7 @@ use zrak::field::ModelKind;
 use zrak::field::common::{LossKind, Sampling};
 use zrak::field::mlp::Precision;
 use zrak::interrupt::note;
-use zrak::scene::Scene;
+use zrak::scene::{Scene, SceneSpace};
 use zrak::train::run::{
     MAX_RUN_JSON_BYTES, RUN_JSON_MARKER, RunFolder, SAVED_BY_COMMAND_LINE, load_checkpoint,
 };
@@ -51,6 +51,16 @@ pub struct RunConfig {
     /// see `Scene::with_training_scales`).
     #[serde(default = "single_scale", skip_serializing_if = "is_single_scale")]
     pub training_scales: u32,
+    /// What the scene was treated as (object, unbounded, forward-facing),
+    /// kept so that a resumed run is treated the same even where the
+    /// analysis would now decide otherwise (absent in runs made before
+    /// the analysis existed: the analysis decides).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub space: Option<SceneSpace>,
+    /// Whether `space` was chosen with `--space` rather than by the
+    /// analysis.
+    #[serde(default)]
+    pub space_overridden: bool,
 }
 
 fn single_scale() -> u32 {
@@ -63,6 +73,40 @@ fn is_single_scale(scales: &u32) -> bool {
 
 fn default_sampling() -> Sampling {
     Sampling::Occupancy
+}
+
+impl RunConfig {
+    /// Records what `scene` is treated as.
+    pub fn record_space(&mut self, scene: &Scene) {
+        self.space = Some(scene.space.space);
+        self.space_overridden = scene.space.overridden;
+    }
+}
+
+/// `scene` treated as the run recorded (see [`RunConfig::space`]): by
+/// hand as the run was, or as the analysis decided when the run was made
+/// (said in the reasons where it now decides otherwise).
+pub fn keep_recorded_space(scene: Scene, config: &RunConfig) -> Scene {
+    let Some(space) = config.space else {
+        return scene;
+    };
+    if config.space_overridden {
+        return scene.with_space(space);
+    }
+    let mut scene = scene;
+    let analysis = &mut scene.space;
+    if analysis.space != space {
+        analysis.reasons.insert(
+            0,
+            format!(
+                "kept as {space} from the run's run.json (the analysis made it so when the run \
+                 began; it now finds {})",
+                analysis.space
+            ),
+        );
+        analysis.space = space;
+    }
+    scene
 }
 
 /// A run's scene: `scene` (`demo` or a folder) loaded at `downscale`, its
@@ -159,7 +203,10 @@ pub fn restore_run(
     if let Some(precision) = precision {
         config.precision = precision;
     }
-    let scene = load_run_scene(&config.scene, config.downscale, config.training_scales)?;
+    let scene = keep_recorded_space(
+        load_run_scene(&config.scene, config.downscale, config.training_scales)?,
+        &config,
+    );
     let choice = choose_engine(engine.or(config.engine))?;
     note(&choice.reason);
     let mut trainer = build_trainer(&config, Arc::new(scene), choice)?;
@@ -239,6 +286,50 @@ mod tests {
         assert_eq!(config.batch_samples, None);
         assert_eq!(config.precision, Precision::F32);
         assert_eq!(config.training_scales, 1);
+        assert_eq!(config.space, None);
+        assert!(!config.space_overridden);
+    }
+
+    #[test]
+    fn run_json_keeps_the_space_and_a_resumed_run_is_treated_the_same() {
+        let mut config: RunConfig = serde_json::from_str(
+            r#"{"scene": "demo", "model": "ngp", "downscale": 16, "loss": "Huber", "seed": 0}"#,
+        )
+        .unwrap();
+        let scene = load_scene("demo", 16).unwrap();
+        // An older run (no space recorded): the analysis decides.
+        assert_eq!(
+            keep_recorded_space(scene.clone(), &config).space,
+            scene.space
+        );
+        // Chosen by hand: written, and chosen again on resuming.
+        let chosen = scene.clone().with_space(SceneSpace::Unbounded);
+        config.record_space(&chosen);
+        let written = serde_json::to_value(&config).unwrap();
+        assert_eq!(written["space"], "unbounded");
+        assert_eq!(written["space_overridden"], true);
+        let read: RunConfig = serde_json::from_value(written).unwrap();
+        let resumed = keep_recorded_space(scene.clone(), &read);
+        assert_eq!(resumed.space, chosen.space);
+        // Decided by the analysis, which now finds otherwise: the run's
+        // own kept, and said so.
+        config.space = Some(SceneSpace::ForwardFacing);
+        config.space_overridden = false;
+        let resumed = keep_recorded_space(scene.clone(), &config);
+        assert_eq!(resumed.space.space, SceneSpace::ForwardFacing);
+        assert!(!resumed.space.overridden);
+        assert_eq!(
+            resumed.space.reasons[0],
+            "kept as forward-facing from the run's run.json (the analysis made it so when the \
+             run began; it now finds object)"
+        );
+        assert_eq!(resumed.space.reasons[1..], scene.space.reasons[..]);
+        // Decided by the analysis, which still finds the same: unchanged.
+        config.space = Some(SceneSpace::Object);
+        assert_eq!(
+            keep_recorded_space(scene.clone(), &config).space,
+            scene.space
+        );
     }
 
     #[test]

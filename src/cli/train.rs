@@ -23,7 +23,7 @@ use super::run_config::{
     RunConfig, build_trainer, check_same_scene, load_run_scene, read_run_config, restore_run,
     scene_key, start_run_folder,
 };
-use super::{KernelsLine, parse_duration};
+use super::{KernelsLine, SpaceChoice, parse_duration};
 
 #[derive(Args, Debug)]
 pub struct TrainArgs {
@@ -90,6 +90,12 @@ pub struct TrainArgs {
     /// resuming, the run's own (this overrides it).
     #[arg(long, value_enum)]
     precision: Option<Precision>,
+    /// What the scene is treated as: a bounded object, unbounded, or a
+    /// forward-facing capture; auto leaves it to the scene analysis
+    /// (`zrak info` prints its choice and why). When resuming, the run's
+    /// own.
+    #[arg(long, value_enum, default_value_t = SpaceChoice::Auto, conflicts_with = "resume")]
+    space: SpaceChoice,
 }
 
 impl TrainArgs {
@@ -154,7 +160,22 @@ fn new_run_config(args: &TrainArgs, scene: &str) -> RunConfig {
         batch_samples: None,
         precision: args.precision.unwrap_or_else(Precision::best_available),
         training_scales: args.training_scales,
+        space: None,
+        space_overridden: false,
     }
+}
+
+/// The space a scene is treated as, in one line: what and why.
+fn describe_space(scene: &zrak::scene::Scene) -> String {
+    let analysis = &scene.space;
+    format!(
+        "scene space: {} ({})",
+        analysis.space,
+        analysis
+            .reasons
+            .first()
+            .map_or("no reason given", String::as_str)
+    )
 }
 
 /// Starts a new run in `--out`: the model is built first, and the folder
@@ -167,8 +188,14 @@ fn start_run(args: &TrainArgs) -> anyhow::Result<(RunFolder, RunConfig, Trainer)
     // loads, so a refused command leaves nothing behind.
     check_out_is_not_the_scene(dir, scene_arg)?;
     RunFolder::check_out(dir, args.force).map_err(anyhow::Error::msg)?;
-    let config = new_run_config(args, scene_arg);
-    let scene = load_run_scene(scene_arg, args.downscale, args.training_scales)?;
+    let mut config = new_run_config(args, scene_arg);
+    let scene = args.space.apply(load_run_scene(
+        scene_arg,
+        args.downscale,
+        args.training_scales,
+    )?);
+    config.record_space(&scene);
+    note(&describe_space(&scene));
     if let Some(problem) = scene.training_problem() {
         bail!("{scene_arg}: nothing to train: {problem}");
     }

@@ -13,6 +13,8 @@ use zrak::field::mlp::Precision;
 use zrak::scene::crop::CropArg;
 use zrak::session::protocol::SceneSource;
 
+use super::SpaceChoice;
+
 #[derive(Args, Debug)]
 pub struct ViewArgs {
     /// A scene folder (default: the built-in demo scene).
@@ -70,6 +72,11 @@ pub struct ViewArgs {
     /// start).
     #[arg(long, requires = "camera_path")]
     path_play: bool,
+    /// What the scene (and every scene opened) is treated as: a bounded
+    /// object, unbounded, or a forward-facing capture; auto leaves it to
+    /// the scene analysis (the Scene panel shows its choice and why).
+    #[arg(long, value_enum, default_value_t = SpaceChoice::Auto)]
+    space: SpaceChoice,
 }
 
 impl Default for ViewArgs {
@@ -110,6 +117,7 @@ pub fn view(args: ViewArgs) -> anyhow::Result<()> {
         camera_path: args.camera_path,
         path_time: args.path_time,
         path_play: args.path_play,
+        space: args.space.space(),
     })
 }
 

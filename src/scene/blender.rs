@@ -10,7 +10,10 @@ use super::pose::{
     FrameSource, decode_images, frame_object, parse_transform_matrix, read_json_object,
     required_array, required_number, required_str, resolve_image_path,
 };
-use super::{Frame, LoadOptions, Scene, SceneFormat, Split, UnitCubeMapping, folder_name};
+use super::{
+    Frame, LoadOptions, Scene, SceneFormat, SpaceAnalysis, Split, UnitCubeMapping, folder_name,
+    space,
+};
 use crate::scene::{Camera, Intrinsics};
 
 /// The file name of a split's JSON file, e.g. `transforms_train.json`.
@@ -91,6 +94,8 @@ pub fn load(folder: &Path, options: LoadOptions) -> SceneResult<Scene> {
         unit_cube: UnitCubeMapping::BLENDER,
         bounds: UnitCubeMapping::BLENDER.world_bounds(),
         smaller_training_views: 0,
+        sparse_points: None,
+        space: SpaceAnalysis::default(),
     };
     for file in files {
         let frames: Vec<Frame> = file
@@ -116,6 +121,7 @@ pub fn load(folder: &Path, options: LoadOptions) -> SceneResult<Scene> {
             Split::Test => scene.test = frames,
         }
     }
+    scene.space = space::analyse(&scene);
     Ok(scene)
 }
 

@@ -22,7 +22,10 @@ use super::pose::{
     FrameSource, JsonObject, check_downscale, decode_images, describe, frame_object, number,
     parse_transform_matrix, read_json_object, required_array, required_str, resolve_image_path,
 };
-use super::{Frame, LoadOptions, Scene, SceneFormat, Split, UnitCubeMapping, folder_name};
+use super::{
+    Frame, LoadOptions, Scene, SceneFormat, SpaceAnalysis, Split, UnitCubeMapping, folder_name,
+    space,
+};
 use crate::scene::{Camera, Intrinsics, Lens};
 
 /// The file this format lives in.
@@ -120,6 +123,8 @@ pub fn load(path: &Path, options: LoadOptions) -> SceneResult<Scene> {
         unit_cube,
         bounds: unit_cube.world_bounds(),
         smaller_training_views: 0,
+        sparse_points: None,
+        space: SpaceAnalysis::default(),
     };
     for (((source, camera), image), split) in
         sources.into_iter().zip(cameras).zip(decoded).zip(splits)
@@ -139,6 +144,7 @@ pub fn load(path: &Path, options: LoadOptions) -> SceneResult<Scene> {
             Split::Test => scene.test.push(frame),
         }
     }
+    scene.space = space::analyse(&scene);
     Ok(scene)
 }
 

@@ -14,6 +14,7 @@ pub mod instant_ngp;
 mod lens;
 pub mod names;
 pub mod pose;
+pub mod space;
 
 use std::path::{Path, PathBuf};
 
@@ -24,6 +25,7 @@ pub use camera::{Camera, Intrinsics, Ray};
 pub use error::{SceneError, SceneResult, escape_controls};
 pub use image::{ImageRgba8, load_image, to_u8};
 pub use lens::Lens;
+pub use space::{SceneSpace, SpaceAnalysis, SparsePoints};
 
 /// Options for loading a scene from disk.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -175,6 +177,13 @@ pub struct Scene {
     /// How many of the last training views are smaller copies of the
     /// others ([`Scene::with_training_scales`]): 0 as loaded.
     pub smaller_training_views: usize,
+    /// How far a COLMAP model's sparse points lie (`None` for other
+    /// formats, or a model without points): what [`space::analyse`] reads
+    /// of them.
+    pub sparse_points: Option<SparsePoints>,
+    /// What the scene calls for (object, unbounded, forward-facing) and
+    /// why: [`space::analyse`]'s, or chosen by [`Scene::with_space`].
+    pub space: SpaceAnalysis,
 }
 
 impl Scene {

@@ -41,6 +41,7 @@ mod render_texture_gpu;
 mod sampling_gpu;
 mod scene_bounds;
 mod scene_loading;
+mod scene_space;
 mod sh_gpu;
 mod split_bindings_gpu;
 mod viewer_exports;

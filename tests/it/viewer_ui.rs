@@ -825,3 +825,23 @@ fn the_path_editor_adds_keyframes_and_plays_them_in_the_viewport() {
     assert_eq!(harness.state().path_editor().keyframes().len(), 1);
     assert_eq!(harness.state().path_editor().selected, Some(0));
 }
+
+#[test]
+fn the_scene_panel_shows_the_space_and_why() {
+    let _cores = crate::common::shared();
+    let (mut harness, _link) = harness_with_scene();
+    let analysis = harness.state().scene().unwrap().scene.space.clone();
+    assert_eq!(analysis.space, zrak::scene::SceneSpace::Object);
+    harness.get_by_label("Space: object (from the scene)");
+    // The reasons open under it.
+    assert!(
+        harness
+            .query_by_label(&format!("• {}", analysis.reasons[0]))
+            .is_none()
+    );
+    harness.get_by_label("Why").click();
+    harness.run_steps(3);
+    for reason in &analysis.reasons {
+        harness.get_by_label(&format!("• {reason}"));
+    }
+}

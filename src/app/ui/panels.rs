@@ -12,6 +12,7 @@ use super::viewport::{
 use super::{PlotAxis, ViewerUi, describe_source, plots};
 use crate::field::ModelKind;
 use crate::model::RenderMode;
+use crate::scene::SpaceAnalysis;
 use crate::session::camera::Navigation;
 use crate::session::protocol::{Balance, Command, SceneSource};
 
@@ -243,6 +244,7 @@ fn scene_section(state: &mut ViewerUi, ui: &mut egui::Ui) {
                     RichText::new(format!("{w}×{h}, {}", describe_source(&info.source))).small(),
                 );
             }
+            space_line(ui, &info.scene.space);
         }
         None => {
             ui.label("No scene loaded yet");
@@ -278,6 +280,32 @@ fn scene_section(state: &mut ViewerUi, ui: &mut egui::Ui) {
             state.open_scene(path);
         }
     });
+}
+
+/// What the scene is treated as: a line, its reasons on hover and, opened,
+/// under it.
+fn space_line(ui: &mut egui::Ui, analysis: &SpaceAnalysis) {
+    let label = ui.label(space_summary(analysis));
+    if !analysis.reasons.is_empty() {
+        label.on_hover_text(analysis.reasons.join("\n\n"));
+        egui::CollapsingHeader::new(RichText::new("Why").small())
+            .id_salt("scene space reasons")
+            .show(ui, |ui| {
+                for reason in &analysis.reasons {
+                    ui.label(RichText::new(format!("• {reason}")).small());
+                }
+            });
+    }
+}
+
+/// The space line's text, e.g. "Space: unbounded (from the scene)".
+fn space_summary(analysis: &SpaceAnalysis) -> String {
+    let how = if analysis.overridden {
+        "chosen with --space"
+    } else {
+        "from the scene"
+    };
+    format!("Space: {} ({how})", analysis.space)
 }
 
 fn training_section(state: &mut ViewerUi, ui: &mut egui::Ui) {

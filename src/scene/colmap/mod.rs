@@ -27,7 +27,10 @@ use serde_json::{Value, json};
 
 use super::error::{SceneError, SceneResult, shown};
 use super::pose::{FrameSource, check_downscale, decode_images};
-use super::{Frame, LoadOptions, Scene, SceneFormat, UnitCubeMapping, folder_name};
+use super::{
+    Frame, LoadOptions, Scene, SceneFormat, SpaceAnalysis, SparsePoints, UnitCubeMapping,
+    folder_name, space,
+};
 use crate::scene::{Camera, Intrinsics, Lens};
 
 mod files;
@@ -370,6 +373,9 @@ pub struct Converted {
     /// scale.
     pub centre: DVec3,
     pub scale: f64,
+    /// How far the sparse points lie from the cameras, in zrak world
+    /// (`None` without points).
+    pub sparse_points: Option<SparsePoints>,
 }
 
 /// Reads and converts the COLMAP model under `root` (see the module notes).
@@ -411,10 +417,12 @@ pub fn convert(root: &Path) -> SceneResult<Converted> {
         1.0
     };
     let to_zrak = |p: DVec3| (p - centre) * scale;
+    let zrak_positions: Vec<DVec3> = positions.iter().map(|&p| to_zrak(p)).collect();
+    let zrak_points: Vec<DVec3> = points.iter().map(|&p| to_zrak(p)).collect();
     let unit_cube = UnitCubeMapping {
         aabb_scale: choose_aabb_scale(
-            &positions.iter().map(|&p| to_zrak(p)).collect::<Vec<_>>(),
-            &points.iter().map(|&p| to_zrak(p)).collect::<Vec<_>>(),
+            &zrak_positions,
+            &zrak_points,
             UnitCubeMapping::BLENDER.scale as f64,
         ),
         ..UnitCubeMapping::BLENDER
@@ -460,6 +468,7 @@ pub fn convert(root: &Path) -> SceneResult<Converted> {
         unit_cube,
         centre,
         scale,
+        sparse_points: SparsePoints::measure(&zrak_points, &zrak_positions),
     })
 }
 
@@ -569,6 +578,8 @@ pub fn load(root: &Path, options: LoadOptions) -> SceneResult<Scene> {
         unit_cube: converted.unit_cube,
         bounds: converted.unit_cube.world_bounds(),
         smaller_training_views: 0,
+        sparse_points: converted.sparse_points,
+        space: SpaceAnalysis::default(),
     };
     for (index, ((source, image), posed)) in sources
         .into_iter()
@@ -598,6 +609,7 @@ pub fn load(root: &Path, options: LoadOptions) -> SceneResult<Scene> {
             scene.train.push(frame);
         }
     }
+    scene.space = space::analyse(&scene);
     Ok(scene)
 }
 

@@ -20,8 +20,8 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use super::{
-    Camera, Frame, ImageRgba8, Intrinsics, Scene, SceneError, SceneFormat, SceneResult, Split,
-    UnitCubeMapping,
+    Camera, Frame, ImageRgba8, Intrinsics, Scene, SceneError, SceneFormat, SceneResult,
+    SpaceAnalysis, Split, UnitCubeMapping, space,
 };
 use crate::scene::to_u8;
 
@@ -74,30 +74,27 @@ impl DemoConfig {
 
 /// Builds the scene in memory: every view of every split rendered.
 pub fn build(config: &DemoConfig) -> Scene {
-    build_with(config, |camera| *camera, render_view)
+    build_with(|split| split_cameras(config, split), render_view)
 }
 
-/// The demo with each camera changed by `camera` and rendered by `render`.
+/// The demo with the `cameras` of each split, each view rendered by
+/// `render`.
 fn build_with(
-    config: &DemoConfig,
-    camera: impl Fn(&Camera) -> Camera + Sync,
+    cameras: impl Fn(Split) -> Vec<Camera>,
     render: impl Fn(&Camera) -> ImageRgba8 + Sync,
 ) -> Scene {
     let mut frames = Split::ALL.map(|split| {
-        split_cameras(config, split)
+        cameras(split)
             .par_iter()
-            .map(|original| {
-                let camera = camera(original);
-                Frame {
-                    camera,
-                    image: render(&camera),
-                    image_path: PathBuf::new(),
-                }
+            .map(|&camera| Frame {
+                camera,
+                image: render(&camera),
+                image_path: PathBuf::new(),
             })
             .collect::<Vec<_>>()
     });
     let unit_cube = UnitCubeMapping::BLENDER;
-    Scene {
+    let mut scene = Scene {
         name: "demo".to_string(),
         root: PathBuf::new(),
         format: SceneFormat::Demo,
@@ -108,7 +105,11 @@ fn build_with(
         unit_cube,
         bounds: unit_cube.world_bounds(),
         smaller_training_views: 0,
-    }
+        sparse_points: None,
+        space: SpaceAnalysis::default(),
+    };
+    scene.space = space::analyse(&scene);
+    scene
 }
 
 /// Writes the scene in the NeRF-synthetic (Blender) layout under `dir`:
@@ -152,7 +153,13 @@ pub fn write(config: &DemoConfig, dir: &Path) -> SceneResult<()> {
 /// instant-ngp layout: `transforms.json` (with `aabb_scale` and nerfstudio's
 /// split lists) and `{train,val,test}/r_N.png`, opaque.
 pub fn write_large(config: &DemoConfig, dir: &Path) -> SceneResult<()> {
-    let scene = build_large(config);
+    write_instant_ngp(&build_large(config), dir)
+}
+
+/// Writes `scene` under `dir` in the instant-ngp layout: `transforms.json`
+/// (with its `aabb_scale` and nerfstudio's split lists) and
+/// `{train,val,test}/r_N.png`. Its cameras have the demo's field of view.
+fn write_instant_ngp(scene: &Scene, dir: &Path) -> SceneResult<()> {
     let mut frames = Vec::new();
     let mut lists: [Vec<String>; 3] = Default::default();
     for (list, split) in lists.iter_mut().zip(Split::ALL) {
@@ -176,7 +183,7 @@ pub fn write_large(config: &DemoConfig, dir: &Path) -> SceneResult<()> {
     }
     let json = serde_json::json!({
         "camera_angle_x": CAMERA_ANGLE_X,
-        "aabb_scale": LARGE_AABB_SCALE,
+        "aabb_scale": scene.unit_cube.aabb_scale,
         "train_filenames": lists[0],
         "val_filenames": lists[1],
         "test_filenames": lists[2],
@@ -210,6 +217,12 @@ struct FrameEntry {
 /// the way into each stretch, test three quarters): the same distribution
 /// of viewpoints, but never one the model was trained on.
 pub fn split_cameras(config: &DemoConfig, split: Split) -> Vec<Camera> {
+    spiral_cameras(config, split, (MIN_ELEVATION_DEG, MAX_ELEVATION_DEG))
+}
+
+/// [`split_cameras`] on a spiral between `elevations` (lowest and highest,
+/// in degrees).
+fn spiral_cameras(config: &DemoConfig, split: Split, elevations: (f32, f32)) -> Vec<Camera> {
     let count = config.views(split);
     // With no training views there is nothing to avoid; the held-out views
     // then make their own spiral.
@@ -221,7 +234,7 @@ pub fn split_cameras(config: &DemoConfig, split: Split) -> Vec<Camera> {
     let stretch = spiral_length as f32 / count as f32;
     let positions: Vec<Vec3> = match split {
         Split::Train => (0..count)
-            .map(|k| spiral_position(k as f32, spiral_length))
+            .map(|k| spiral_position(k as f32, spiral_length, elevations))
             .collect(),
         Split::Val | Split::Test => {
             let phase = if split == Split::Val { 0.25 } else { 0.75 };
@@ -230,7 +243,7 @@ pub fn split_cameras(config: &DemoConfig, split: Split) -> Vec<Camera> {
                     let index = ((k as f32 + phase) * stretch)
                         .floor()
                         .min(spiral_length as f32 - 1.0);
-                    spiral_position(index + 0.5, spiral_length)
+                    spiral_position(index + 0.5, spiral_length, elevations)
                 })
                 .collect()
         }
@@ -253,13 +266,13 @@ fn on_hemisphere(elevation: f32, azimuth: f32) -> Vec3 {
 }
 
 /// The point at (possibly fractional) `index` of a spiral of `length`
-/// views from `MIN_ELEVATION_DEG` up to `MAX_ELEVATION_DEG`.
-fn spiral_position(index: f32, length: usize) -> Vec3 {
+/// views from the lowest of `elevations` up to the highest (in degrees).
+fn spiral_position(index: f32, length: usize, elevations: (f32, f32)) -> Vec3 {
     // The golden angle never repeats a direction, so consecutive views are
     // far apart in azimuth while all views together fill the band evenly.
     let golden_angle = std::f32::consts::PI * (3.0 - 5f32.sqrt());
-    let low = MIN_ELEVATION_DEG.to_radians().sin();
-    let high = MAX_ELEVATION_DEG.to_radians().sin();
+    let low = elevations.0.to_radians().sin();
+    let high = elevations.1.to_radians().sin();
     let t = (index + 0.5) / length as f32;
     let elevation = (low + t * (high - low)).asin();
     on_hemisphere(elevation, index * golden_angle)
@@ -269,7 +282,7 @@ fn spiral_position(index: f32, length: usize) -> Vec3 {
 /// pixel) as seen by any camera. Where no sample hits anything the pixel is
 /// fully transparent.
 pub fn render_view(camera: &Camera) -> ImageRgba8 {
-    render(camera, false)
+    render(camera, None)
 }
 
 /// The radius of the large demo's backdrop: a sphere around the objects,
@@ -288,12 +301,12 @@ pub const LARGE_AABB_SCALE: f32 = 8.0;
 /// and parallax to show its depth), like the walls and sky of a real,
 /// unbounded capture. Every pixel is opaque.
 pub fn render_view_with_backdrop(camera: &Camera) -> ImageRgba8 {
-    render(camera, true)
+    render(camera, Some(backdrop))
 }
 
 /// The colour of the backdrop where the ray from `origin` (inside the
 /// sphere) along unit `direction` meets it.
-fn backdrop(origin: Vec3, direction: Vec3) -> Vec3 {
+fn backdrop(_world: &World, origin: Vec3, direction: Vec3) -> Vec3 {
     // |o + t d| = R, the positive root.
     let b = origin.dot(direction);
     let c = origin.length_squared() - BACKDROP_RADIUS * BACKDROP_RADIUS;
@@ -317,7 +330,10 @@ fn backdrop(origin: Vec3, direction: Vec3) -> Vec3 {
 /// rendered with the backdrop ([`render_view_with_backdrop`], no alpha),
 /// aabb_scale [`LARGE_AABB_SCALE`], as an instant-ngp scene.
 pub fn build_large(config: &DemoConfig) -> Scene {
-    let mut scene = build_with(config, |camera| *camera, render_view_with_backdrop);
+    let mut scene = build_with(
+        |split| split_cameras(config, split),
+        render_view_with_backdrop,
+    );
     scene.name = "demo-large".into();
     scene.format = SceneFormat::InstantNgp;
     scene.has_alpha = false;
@@ -326,6 +342,7 @@ pub fn build_large(config: &DemoConfig) -> Scene {
         ..UnitCubeMapping::BLENDER
     };
     scene.bounds = scene.unit_cube.world_bounds();
+    scene.space = space::analyse(&scene);
     scene
 }
 
@@ -334,11 +351,12 @@ pub fn build_large(config: &DemoConfig) -> Scene {
 /// capture with that lens would be.
 pub fn build_distorted(config: &DemoConfig, lens: super::Lens) -> Scene {
     let mut scene = build_with(
-        config,
-        |camera| {
-            let mut camera = *camera;
-            camera.intrinsics.lens = lens;
-            camera
+        |split| {
+            let mut cameras = split_cameras(config, split);
+            for camera in &mut cameras {
+                camera.intrinsics.lens = lens;
+            }
+            cameras
         },
         render_view,
     );
@@ -346,7 +364,13 @@ pub fn build_distorted(config: &DemoConfig, lens: super::Lens) -> Scene {
     scene
 }
 
-fn render(camera: &Camera, with_backdrop: bool) -> ImageRgba8 {
+/// What a ray that hits no object sees: a colour from the world, the ray's
+/// origin and its unit direction.
+type Surroundings = fn(&World, Vec3, Vec3) -> Vec3;
+
+/// Renders the objects, and `surroundings` where a ray misses them
+/// (transparent without).
+fn render(camera: &Camera, surroundings: Option<Surroundings>) -> ImageRgba8 {
     let (width, height) = (camera.intrinsics.width, camera.intrinsics.height);
     let world = World::new();
     let mut data = vec![0u8; width as usize * height as usize * 4];
@@ -371,8 +395,8 @@ fn render(camera: &Camera, with_backdrop: bool) -> ImageRgba8 {
                     if let Some(c) = world.trace(ray.origin, ray.direction) {
                         colour += c;
                         hits += 1;
-                    } else if with_backdrop {
-                        colour += backdrop(ray.origin, ray.direction);
+                    } else if let Some(surroundings) = surroundings {
+                        colour += surroundings(&world, ray.origin, ray.direction);
                         hits += 1;
                     }
                 }
@@ -843,3 +867,9 @@ fn intersect_shape(
 
 #[cfg(test)]
 mod tests;
+mod unbounded;
+
+pub use unbounded::{
+    UNBOUNDED_AABB_SCALE, build_unbounded, render_view_unbounded, unbounded_depth,
+    unbounded_split_cameras, write_unbounded,
+};

@@ -38,11 +38,11 @@ use crate::field::mlp::Precision;
 use crate::field::nerf::NerfShape;
 use crate::field::{FieldShape, ModelKind};
 use crate::model::{RadianceModel, Stage};
-use crate::scene::Scene;
 use crate::scene::crop::CropBox;
 use crate::scene::demo::{
     DemoConfig, {self},
 };
+use crate::scene::{Scene, SceneSpace};
 use crate::session::protocol::{Command, Event, InTurn, SceneSource};
 use crate::train::trainer::Trainer;
 
@@ -57,7 +57,7 @@ mod view;
 
 use export_jobs::ExportOrder;
 use jobs::{Evaluation, Jobs};
-use scene::{SceneState, load_scene};
+use scene::{SceneState, load_scene, with_chosen_space};
 use trace::Trace;
 pub use training::Turns;
 use training::{ModelSlot, Training};
@@ -103,6 +103,9 @@ pub struct WorkerOptions {
     pub precision: Precision,
     /// The scene [`SceneSource::Demo`] builds.
     pub demo: DemoConfig,
+    /// What every scene opened is treated as (`zrak view --space`);
+    /// `None` leaves it to the scene analysis.
+    pub space: Option<SceneSpace>,
     /// Training seconds between held-out PSNR evaluations, for every
     /// model. Each evaluation scores a grid of pixels spread over the
     /// held-out views, as many as fit in [`EVAL_SHARE`] of this time at
@@ -154,6 +157,7 @@ impl Default for WorkerOptions {
             nerf_shape: None,
             precision: Precision::F32,
             demo: DemoConfig::default(),
+            space: None,
             val_every_train_seconds: 5.0,
             // As `zrak train` (`Schedule::eval_views`).
             val_views: 3,
@@ -460,7 +464,11 @@ impl Worker {
                 (demo::build(&options.demo), SceneSource::Demo)
             }
         };
-        let scene = SceneState::new(source, scene, options.val_views);
+        let scene = SceneState::new(
+            source,
+            with_chosen_space(scene, options.space),
+            options.val_views,
+        );
         // `choose_engine_on` keeps the given device only for the gpu engine.
         let textures_shared =
             display_device && engine.kind == EngineKind::Gpu && engine.gpu.is_some();
@@ -741,7 +749,7 @@ impl Worker {
             return Ok(());
         };
         let scene = match result {
-            Ok(scene) => scene,
+            Ok(scene) => with_chosen_space(scene, self.options.space),
             Err(error) => return self.send(Event::SceneFailed { source, error }),
         };
         if self.jobs.stop_export() {

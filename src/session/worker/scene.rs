@@ -12,7 +12,7 @@ use crate::scene::crop::CropBox;
 use crate::scene::demo::{
     DemoConfig, {self},
 };
-use crate::scene::{Frame, LoadOptions, Scene};
+use crate::scene::{Frame, LoadOptions, Scene, SceneSpace};
 use crate::session::protocol::{SceneInfo, SceneSource};
 use crate::train::eval::spread_views;
 
@@ -130,6 +130,15 @@ pub(super) fn load_scene(source: &SceneSource, demo_config: &DemoConfig) -> Resu
         ));
     }
     Ok(scene)
+}
+
+/// `scene` treated as `space` when one was chosen (`zrak view --space`),
+/// else as its analysis decided.
+pub(super) fn with_chosen_space(scene: Scene, space: Option<SceneSpace>) -> Scene {
+    match space {
+        Some(space) => scene.with_space(space),
+        None => scene,
+    }
 }
 
 /// Up to `count` held-out views (val, else test, else train), spread over
