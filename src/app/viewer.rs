@@ -27,8 +27,9 @@ pub struct ViewerOptions {
     pub source: SceneSource,
     pub engine: Option<EngineKind>,
     pub model: ModelKind,
-    /// NeRF's sampler.
-    pub sampling: Sampling,
+    /// The sampler asked for (each model that has it trains with it);
+    /// `None` chooses per model from the scene's space.
+    pub sampling: Option<Sampling>,
     /// Save a PNG of the window here, `screenshot_after` seconds in.
     pub screenshot: Option<PathBuf>,
     pub screenshot_after: f64,
@@ -63,7 +64,7 @@ impl Default for ViewerOptions {
             source: SceneSource::Demo,
             engine: None,
             model: ModelKind::Ngp,
-            sampling: Sampling::Occupancy,
+            sampling: None,
             screenshot: None,
             screenshot_after: 5.0,
             quit_after: None,

@@ -36,10 +36,12 @@ pub struct TrainArgs {
     // (clap does not count a default value as given).
     #[arg(long, value_enum, default_value_t = ModelKind::Ngp, conflicts_with = "resume")]
     model: ModelKind,
-    /// NeRF's sampler: the occupancy grid (default) or the paper's
-    /// stratified + importance sampling.
-    #[arg(long, value_enum, default_value_t = Sampling::Occupancy, conflicts_with = "resume")]
-    sampling: Sampling,
+    /// The sampler: the occupancy grid, the paper's stratified +
+    /// importance sampling (NeRF, Mip-NeRF) or proposal fields in the
+    /// contracted space (Instant-NGP). Default: proposal fields on an
+    /// unbounded scene where the model has them, else the occupancy grid.
+    #[arg(long, value_enum, conflicts_with = "resume")]
+    sampling: Option<Sampling>,
     /// Default: gpu on a real GPU, cpu otherwise; when resuming, the run's
     /// own choice (this overrides it: checkpoints move between engines).
     #[arg(long, value_enum)]
@@ -155,7 +157,8 @@ fn new_run_config(args: &TrainArgs, scene: &str) -> RunConfig {
         downscale: args.downscale,
         loss: args.loss.unwrap_or_else(|| args.model.default_loss()),
         seed: args.seed,
-        sampling: args.sampling,
+        // Chosen once the scene is loaded (see `start_run`).
+        sampling: args.sampling.unwrap_or(Sampling::Occupancy),
         engine: args.engine,
         batch_samples: None,
         precision: args.precision.unwrap_or_else(Precision::best_available),
@@ -196,6 +199,14 @@ fn start_run(args: &TrainArgs) -> anyhow::Result<(RunFolder, RunConfig, Trainer)
     )?);
     config.record_space(&scene);
     note(&describe_space(&scene));
+    config.sampling = args
+        .model
+        .choose_sampling(args.sampling, scene.space.space)
+        .map_err(anyhow::Error::msg)?;
+    if args.sampling.is_none() {
+        let (_, why) = args.model.sampling_for(scene.space.space);
+        note(&format!("sampler: {} ({why})", config.sampling.name()));
+    }
     if let Some(problem) = scene.training_problem() {
         bail!("{scene_arg}: nothing to train: {problem}");
     }
@@ -424,7 +435,7 @@ mod tests {
         assert_eq!(args.steps, Some(10));
         assert_eq!(args.time, None);
         assert_eq!(args.model, ModelKind::Ngp);
-        assert_eq!(args.sampling, Sampling::Occupancy);
+        assert_eq!(args.sampling, None);
         assert_eq!(args.engine, None);
         assert_eq!(args.downscale, 1);
         assert_eq!(args.loss, None);
@@ -475,7 +486,7 @@ mod tests {
         ])
         .unwrap();
         assert_eq!(args.model, ModelKind::MipNerf);
-        assert_eq!(args.sampling, Sampling::Paper);
+        assert_eq!(args.sampling, Some(Sampling::Paper));
         assert_eq!(args.engine, Some(EngineKind::Cpu));
         assert_eq!(args.time, Some(90.0));
         assert_eq!(args.downscale, 2);

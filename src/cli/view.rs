@@ -24,10 +24,11 @@ pub struct ViewArgs {
     engine: Option<EngineKind>,
     #[arg(long, value_enum, default_value_t = ModelKind::Ngp)]
     model: ModelKind,
-    /// NeRF's sampler: the occupancy grid (default) or the paper's
-    /// stratified + importance sampling.
-    #[arg(long, value_enum, default_value_t = Sampling::Occupancy)]
-    sampling: Sampling,
+    /// The sampler, for the models that have it (as `zrak train`'s);
+    /// default: proposal fields on an unbounded scene where the model has
+    /// them, else the occupancy grid.
+    #[arg(long, value_enum)]
+    sampling: Option<Sampling>,
     /// Save a PNG of the window to this path (after --screenshot-after).
     #[arg(long)]
     screenshot: Option<PathBuf>,
@@ -150,7 +151,7 @@ mod tests {
         assert_eq!(args.scene, None);
         assert_eq!(args.engine, None);
         assert_eq!(args.model, ModelKind::Ngp);
-        assert_eq!(args.sampling, Sampling::Occupancy);
+        assert_eq!(args.sampling, None);
         assert_eq!(args.screenshot, None);
         assert_eq!(args.screenshot_after, 5.0);
         assert_eq!(args.quit_after, None);

@@ -13,6 +13,7 @@ pub mod params;
 use std::ops::Range;
 
 use crate::scene::{Scene, SceneFormat};
+use common::Sampling;
 use mlp::Precision;
 use nerf::NerfShape;
 use ngp::NgpShape;
@@ -63,6 +64,45 @@ impl ModelKind {
     /// The name on the command line and in files (`--model ngp`).
     pub fn key(self) -> &'static str {
         self.spec().key
+    }
+
+    /// The sampler it trains with on a scene of `space` unless told
+    /// otherwise, and why: the proposal sampler in an unbounded scene's
+    /// contracted space where the model has one, else its default.
+    pub fn sampling_for(self, space: crate::scene::SceneSpace) -> (Sampling, &'static str) {
+        let spec = self.spec();
+        if space == crate::scene::SceneSpace::Unbounded && spec.samplings.contains(&Sampling::Proposal)
+        {
+            return (
+                Sampling::Proposal,
+                "the scene is unbounded: proposal fields sample its contracted space",
+            );
+        }
+        (spec.samplings[0], "the model's default sampler")
+    }
+
+    /// The sampler asked for, if the model has it, else an error that names
+    /// the ones it has; with none asked for, [`Self::sampling_for`]'s.
+    pub fn choose_sampling(
+        self,
+        requested: Option<Sampling>,
+        space: crate::scene::SceneSpace,
+    ) -> Result<Sampling, String> {
+        let spec = self.spec();
+        match requested {
+            None => Ok(self.sampling_for(space).0),
+            Some(sampling) if spec.samplings.contains(&sampling) => Ok(sampling),
+            Some(sampling) => Err(format!(
+                "{} has no {} sampler (it has: {})",
+                spec.name,
+                sampling.name(),
+                spec.samplings
+                    .iter()
+                    .map(|s| s.name())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )),
+        }
     }
 
     /// Whether it also trains with its paper's own sampler (NeRF's and
@@ -393,6 +433,33 @@ mod spec_tests {
         }
         assert!(!ModelKind::Ngp.has_paper_sampler());
         assert!(ModelKind::Nerf.has_paper_sampler() && ModelKind::MipNerf.has_paper_sampler());
+    }
+
+    #[test]
+    fn an_unbounded_scene_gets_the_proposal_sampler_where_the_model_has_one() {
+        use crate::scene::SceneSpace;
+        let ngp = ModelKind::Ngp;
+        assert_eq!(ngp.sampling_for(SceneSpace::Unbounded).0, Sampling::Proposal);
+        assert_eq!(ngp.sampling_for(SceneSpace::Object).0, Sampling::Occupancy);
+        assert_eq!(
+            ngp.sampling_for(SceneSpace::ForwardFacing).0,
+            Sampling::Occupancy
+        );
+        assert_eq!(
+            ModelKind::Nerf.sampling_for(SceneSpace::Unbounded).0,
+            Sampling::Occupancy
+        );
+        assert_eq!(
+            ngp.choose_sampling(Some(Sampling::Occupancy), SceneSpace::Unbounded),
+            Ok(Sampling::Occupancy)
+        );
+        let refused = ngp
+            .choose_sampling(Some(Sampling::Paper), SceneSpace::Object)
+            .unwrap_err();
+        assert_eq!(
+            refused,
+            "Instant-NGP has no paper sampler (it has: occupancy, proposal)"
+        );
     }
 }
 

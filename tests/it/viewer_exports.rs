@@ -130,7 +130,7 @@ fn the_viewers_mesh_and_points_are_the_commands_and_an_existing_file_stays() {
         seed,
         loss: ModelKind::Ngp.default_loss(),
         batch_samples,
-        sampling,
+        sampling: sampling.unwrap_or(zrak::field::common::Sampling::Occupancy),
         precision: Precision::F32,
     };
     let mut trainer = Trainer::new(

@@ -431,7 +431,7 @@ fn models_in_turn_train_in_order_at_equal_shares_of_training_time() {
         // samples): steps of tens of ms and no occupancy-grid update, so
         // turns come quickly. No held-out evaluations, which would pause
         // training.
-        sampling: Sampling::Paper,
+        sampling: Some(Sampling::Paper),
         batch_samples: Some(1 << 10),
         val_every_train_seconds: 1e9,
         ..options()

@@ -93,8 +93,10 @@ pub struct WorkerOptions {
     /// Samples per training batch; `None` picks by engine and sampler: the
     /// model's [`crate::field::ViewerBatch`].
     pub batch_samples: Option<usize>,
-    /// NeRF's sampler.
-    pub sampling: Sampling,
+    /// The sampler asked for: each model that has it trains with it, the
+    /// others (and every model with `None`) with the one the scene's space
+    /// calls for ([`ModelKind::sampling_for`]).
+    pub sampling: Option<Sampling>,
     /// The networks of NeRF and Mip-NeRF; `None` gives each its paper's.
     /// Tests give small ones, so that a software gpu adapter runs them.
     pub nerf_shape: Option<NerfShape>,
@@ -153,7 +155,7 @@ impl Default for WorkerOptions {
             seed: 0,
             loss: None,
             batch_samples: None,
-            sampling: Sampling::Occupancy,
+            sampling: None,
             nerf_shape: None,
             precision: Precision::F32,
             demo: DemoConfig::default(),
@@ -618,14 +620,18 @@ impl Worker {
 
     /// A fresh trainer of `kind` on the current scene and engine.
     fn build_trainer(&self, kind: ModelKind) -> Result<Trainer, String> {
+        let space = self.scene.scene.space.space;
+        let sampling = kind
+            .choose_sampling(self.options.sampling, space)
+            .unwrap_or_else(|_| kind.sampling_for(space).0);
         let settings = ModelSettings {
             seed: self.options.seed,
             loss: self.options.loss.unwrap_or(kind.default_loss()),
             batch_samples: self.options.batch_samples.or_else(|| {
                 let software_gpu = self.engine.gpu.as_ref().is_some_and(|g| g.is_software());
-                viewer_batch_samples(kind, self.engine.kind, software_gpu, self.options.sampling)
+                viewer_batch_samples(kind, self.engine.kind, software_gpu, sampling)
             }),
-            sampling: self.options.sampling,
+            sampling,
             precision: self.options.precision,
         };
         let engine = self.engine.choice()?;
