@@ -98,8 +98,9 @@ impl ModelRequest {
             sampling: (spec.samplings.len() > 1).then(|| settings.sampling.name()),
         };
         let batch = batch_of(&recipe, settings.batch_samples.or(engine_batch));
+        let train_batch = batch_of(&recipe, engine_batch);
         ModelPlan {
-            core: DriverCore::new(identity, recipe, layout, ranges, batch),
+            core: DriverCore::new(identity, recipe, layout, ranges, batch, train_batch),
             shape,
             params,
         }
@@ -143,4 +144,59 @@ pub enum BuildError {
         model: &'static str,
         problem: String,
     },
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::field::nerf::GPU_OCCUPANCY_SAMPLES_PER_BATCH;
+    use crate::scene::demo::{self, DemoConfig};
+
+    /// The steps of `kind`'s plan, of `batch_samples` on an engine of
+    /// `engine_batch`, that update its occupancy grid, out of the first
+    /// 300.
+    fn update_steps(
+        kind: ModelKind,
+        batch_samples: Option<usize>,
+        engine_batch: Option<usize>,
+    ) -> Vec<u32> {
+        let scene = demo::build(&DemoConfig {
+            size: 8,
+            train_views: 2,
+            val_views: 1,
+            test_views: 1,
+        });
+        let settings = ModelSettings {
+            batch_samples,
+            sampling: Sampling::Occupancy,
+            ..ModelSettings::of(kind, 0)
+        };
+        let plan = ModelRequest::new(kind, settings).plan(&scene, engine_batch);
+        let grid = plan
+            .core
+            .occupancy_grid(&scene.unit_cube)
+            .expect("an occupancy recipe");
+        (0..300).filter(|&step| grid.is_due(step)).collect()
+    }
+
+    /// `zrak train` (the recipe's batch, or the gpu engine's own) updates
+    /// every 16 steps as it always did; the viewer's smaller batches update
+    /// after as many samples, so fewer times per step.
+    #[test]
+    fn grid_updates_are_paced_by_the_batch_zrak_train_takes() {
+        let every = |n: u32| (0..300).step_by(n as usize).collect::<Vec<u32>>();
+        // Instant-NGP on the cpu engine: 2^18, and the viewer's 2^16.
+        assert_eq!(update_steps(ModelKind::Ngp, None, None), every(16));
+        assert_eq!(update_steps(ModelKind::Ngp, Some(1 << 16), None), every(64));
+        // NeRF's occupancy sampler on the gpu engine trains 2^16 samples a
+        // step; the viewer on lavapipe 2^12.
+        let gpu = Some(GPU_OCCUPANCY_SAMPLES_PER_BATCH);
+        assert_eq!(update_steps(ModelKind::Nerf, None, gpu), every(16));
+        assert_eq!(
+            update_steps(ModelKind::Nerf, Some(1 << 12), gpu),
+            every(256)
+        );
+        // On the cpu engine its recipe's 2^14.
+        assert_eq!(update_steps(ModelKind::Nerf, None, None), every(16));
+    }
 }
