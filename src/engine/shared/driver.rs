@@ -262,25 +262,25 @@ pub struct DriverCore {
     /// marched ones.
     pub batch_size: BatchSize,
     pub batch_sizer: BatchSizer,
-    /// The batch `zrak train` takes on this engine (the recipe's, or the
-    /// engine's own): the one the occupancy grid's intervals count steps
-    /// of.
-    pub train_batch: BatchSize,
+    /// The batch the occupancy grid's intervals count steps of: this
+    /// driver's own, or, for the viewer, the one `zrak train` takes on the
+    /// engine (see [`GridPace`]).
+    pub grid_batch: BatchSize,
 }
 
 impl DriverCore {
     /// `batch_size` replaces the recipe's batch (tests and the viewer ask
-    /// for smaller ones); `train_batch` is the engine's where it has its
-    /// own (`None`: the recipe's).
+    /// for smaller ones); `grid_batch` is the one the occupancy grid's
+    /// intervals count steps of (`None`: the recipe's).
     pub fn new(
         identity: ModelIdentity,
         recipe: Recipe,
         layout: ParamLayout,
         ranges: Vec<Range<usize>>,
         batch_size: Option<BatchSize>,
-        train_batch: Option<BatchSize>,
+        grid_batch: Option<BatchSize>,
     ) -> Self {
-        let train_batch = train_batch.unwrap_or(recipe.batch);
+        let grid_batch = grid_batch.unwrap_or(recipe.batch);
         let batch_size = batch_size.unwrap_or(recipe.batch);
         let batch_sizer = BatchSizer::new(match batch_size {
             BatchSize::Samples(samples) => samples,
@@ -293,7 +293,7 @@ impl DriverCore {
             ranges,
             batch_size,
             batch_sizer,
-            train_batch,
+            grid_batch,
         }
     }
 
@@ -320,7 +320,7 @@ impl DriverCore {
             }
             grid.pace = GridPace {
                 step_batch: batch_units(self.batch_size),
-                recipe_batch: batch_units(self.train_batch),
+                recipe_batch: batch_units(self.grid_batch),
             };
             grid
         })

@@ -21,8 +21,8 @@
 //! was made or [`OccupancyGrid::mark_untrained`] hold [`UNTRAINED`] and count
 //! as occupied, so training starts with every ray sampled everywhere.
 //!
-//! Updates (every 16 steps, the caller asks [`OccupancyGrid::is_due`]; a
-//! driver of a smaller batch counts steps of the recipe's batch, see
+//! Updates (every 16 steps, the caller asks [`OccupancyGrid::is_due`]; the
+//! viewer's smaller batch counts steps of `zrak train`'s, see
 //! [`GridPace`]): during the first 256 steps every cell of every cascade is
 //! sampled once; afterwards
 //! a quarter of each cascade's cells (distinct, at random) plus as many draws
@@ -213,14 +213,17 @@ pub struct UpdateReport {
 }
 
 /// How often a driver's steps update the grid. The recipe's
-/// `update_interval` and `warmup_steps` count steps of the batch `zrak
-/// train` takes; a driver of another batch (the viewer's quarter batch on
-/// the cpu engine) updates after as many samples as those steps would
-/// train, not after as many of its own steps: a step of a quarter batch
-/// updates every 64 steps instead of 16, and warms up for 1024 steps
-/// instead of 256. Samples are counted as batches: step n has trained n
-/// times its batch, so pacing needs no state beyond the step (a model
-/// resumed at another batch counts its earlier steps at the new one).
+/// `update_interval` and `warmup_steps` count steps of a reference batch:
+/// the driver's own (every driver but the viewer's), or the one `zrak
+/// train` takes on the engine (the viewer's, asked for with
+/// `ModelRequest::with_grid_paced_by_samples`), which then updates after
+/// as many samples
+/// as those steps would train, not after as many of its own steps: a step
+/// of a quarter batch updates every 64 steps instead of 16, and warms up
+/// for 1024 steps instead of 256. Samples are counted as batches: step n
+/// has trained n times its batch, so pacing needs no state beyond the
+/// step (a model resumed at another batch counts its earlier steps at the
+/// new one).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct GridPace {
     /// What a step of this driver trains (samples, or rays for a recipe
