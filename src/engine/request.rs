@@ -53,6 +53,12 @@ pub struct ModelRequest {
     /// The stages' recipe; `None` takes the model's for the scene and the
     /// settings' sampler.
     pub recipe: Option<Recipe>,
+    /// Whether the occupancy grid's intervals count steps of the batch
+    /// `zrak train` takes on the engine (the viewer, whose batch is
+    /// smaller, updates after as many samples) rather than this model's
+    /// own steps (tests of small batches count their steps, and so do the
+    /// engines' parity tests, whose engines' batches differ).
+    pub grid_paced_by_samples: bool,
 }
 
 impl ModelRequest {
@@ -62,6 +68,7 @@ impl ModelRequest {
             settings,
             shape: None,
             recipe: None,
+            grid_paced_by_samples: false,
         }
     }
 
@@ -75,6 +82,14 @@ impl ModelRequest {
     /// grid, or other levels).
     pub fn with_recipe(mut self, recipe: Recipe) -> Self {
         self.recipe = Some(recipe);
+        self
+    }
+
+    /// The same model with its occupancy grid updated after as many
+    /// samples as the recipe's intervals of `zrak train`'s batch train (see
+    /// [`crate::engine::shared::occupancy::GridPace`]).
+    pub fn with_grid_paced_by_samples(mut self) -> Self {
+        self.grid_paced_by_samples = true;
         self
     }
 
@@ -103,8 +118,14 @@ impl ModelRequest {
             sampling: named.then(|| settings.sampling.name()),
         };
         let batch = batch_of(&recipe, settings.batch_samples.or(engine_batch));
+        // Not paced by samples: the intervals count this model's steps.
+        let grid_batch = if self.grid_paced_by_samples {
+            batch_of(&recipe, engine_batch).or(Some(recipe.batch))
+        } else {
+            batch
+        };
         ModelPlan {
-            core: DriverCore::new(identity, recipe, layout, ranges, batch),
+            core: DriverCore::new(identity, recipe, layout, ranges, batch, grid_batch),
             shapes,
             params,
         }
@@ -149,4 +170,71 @@ pub enum BuildError {
         model: &'static str,
         problem: String,
     },
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::field::nerf::GPU_OCCUPANCY_SAMPLES_PER_BATCH;
+    use crate::scene::demo::{self, DemoConfig};
+
+    /// The steps of `request`'s plan on an engine of `engine_batch` that
+    /// update its occupancy grid, out of the first 300.
+    fn update_steps(request: ModelRequest, engine_batch: Option<usize>) -> Vec<u32> {
+        let scene = demo::build(&DemoConfig {
+            size: 8,
+            train_views: 2,
+            val_views: 1,
+            test_views: 1,
+        });
+        let plan = request.plan(&scene, engine_batch);
+        let grid = plan
+            .core
+            .occupancy_grid(&scene.unit_cube)
+            .expect("an occupancy recipe");
+        (0..300).filter(|&step| grid.is_due(step)).collect()
+    }
+
+    /// A request of `kind` with its occupancy sampler and `batch_samples`.
+    fn request(kind: ModelKind, batch_samples: Option<usize>) -> ModelRequest {
+        let settings = ModelSettings {
+            batch_samples,
+            sampling: Sampling::Occupancy,
+            ..ModelSettings::of(kind, 0)
+        };
+        ModelRequest::new(kind, settings)
+    }
+
+    /// `zrak train` (the recipe's batch, or the gpu engine's own) updates
+    /// every 16 steps as it always did, paced by samples or not; the
+    /// viewer's smaller batches, paced by samples, update after as many
+    /// samples, so fewer times per step; a test's small batch, not paced,
+    /// still updates every 16 of its steps.
+    #[test]
+    fn grid_updates_are_paced_by_the_batch_zrak_train_takes() {
+        let every = |n: u32| (0..300).step_by(n as usize).collect::<Vec<u32>>();
+        let paced = |kind, batch| request(kind, batch).with_grid_paced_by_samples();
+        // Instant-NGP on the cpu engine: 2^18, and the viewer's 2^16.
+        assert_eq!(update_steps(request(ModelKind::Ngp, None), None), every(16));
+        assert_eq!(update_steps(paced(ModelKind::Ngp, None), None), every(16));
+        assert_eq!(
+            update_steps(paced(ModelKind::Ngp, Some(1 << 16)), None),
+            every(64)
+        );
+        assert_eq!(
+            update_steps(request(ModelKind::Ngp, Some(1 << 12)), None),
+            every(16)
+        );
+        // NeRF's occupancy sampler on the gpu engine trains 2^16 samples a
+        // step; the viewer on lavapipe 2^12.
+        let gpu = Some(GPU_OCCUPANCY_SAMPLES_PER_BATCH);
+        assert_eq!(update_steps(request(ModelKind::Nerf, None), gpu), every(16));
+        assert_eq!(update_steps(paced(ModelKind::Nerf, None), gpu), every(16));
+        assert_eq!(
+            update_steps(paced(ModelKind::Nerf, Some(1 << 12)), gpu),
+            every(256)
+        );
+        // On the cpu engine its recipe's 2^14.
+        assert_eq!(update_steps(paced(ModelKind::Nerf, None), None), every(16));
+    }
 }

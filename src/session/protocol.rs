@@ -189,12 +189,17 @@ pub struct TrainingStats {
     pub batch_psnr: Option<f32>,
     /// PSNR on held-out views, when the thread evaluated this step.
     pub val_psnr: Option<f32>,
+    /// The median step time over the model's last seconds of training
+    /// (one long step, such as one that also updated the occupancy grid,
+    /// does not swing it; time not spent training does not count).
     pub ms_per_step: f32,
     /// Samples marched per ray (what the networks' density pass ran on).
     pub samples_per_ray: f32,
     /// Of those, the samples before each ray's cut, per ray, where the
     /// engine counts them (`StepStats::samples_composited`).
     pub composited_per_ray: Option<f32>,
+    /// The mean samples per step over the same steps, over the median step
+    /// time.
     pub samples_per_second: f32,
     pub memory_bytes: usize,
     pub times: StageTimes,

@@ -450,8 +450,8 @@ fn models_in_turn_train_in_order_at_equal_shares_of_training_time() {
     worker.send(Command::Start);
     // Each turn's model, its training seconds at the last report of the
     // turn (the one sent when the turn passes on), and the longest step it
-    // may have taken in the turn. Reports give the mean step of their
-    // window, which hides one long step (an occupancy-grid update, the
+    // may have taken in the turn. Reports give the median step of the last
+    // seconds, which hides one long step (an occupancy-grid update, the
     // first Instant-NGP step), so a step is bounded instead by the
     // training time between the two reports that bracket it.
     let mut ends: Vec<(ModelKind, f64, f64)> = Vec::new();
@@ -585,8 +585,9 @@ struct Watched {
     /// (seconds since the run began, training seconds, step) of each
     /// stats event.
     stats: Vec<(f64, f64, u32)>,
-    /// The longest step reported (ms per step of a report: a grid update's
-    /// step is its report's whole time).
+    /// A bound on the longest step: the most training time between two
+    /// reports (a report's ms per step is a median, which hides the one
+    /// long step that also updated the grid).
     longest_step: f64,
     /// Render seconds of each level finished, by downscale, as the
     /// thread's traces of where its time went add them up.
@@ -680,8 +681,11 @@ fn watch(
                 complete: f.complete,
             },
             Event::Stats(s) => {
+                // The first report's steps began before the watch did.
+                if let Some(&(_, before, _)) = into.stats.last() {
+                    into.longest_step = into.longest_step.max(s.train_seconds - before);
+                }
                 into.stats.push((at, s.train_seconds, s.step));
-                into.longest_step = into.longest_step.max(s.ms_per_step as f64 / 1e3);
                 continue;
             }
             Event::Schedule(trace) => {

@@ -15,7 +15,7 @@ use rayon::prelude::*;
 use super::batch_sizer::BatchSizer;
 use super::frustum::frustum_gaussian;
 use super::march::{GridSamples, mix32};
-use super::occupancy::OccupancyGrid;
+use super::occupancy::{GridPace, OccupancyGrid};
 use crate::field::common::{
     BatchSize, MarchConfig, OccupancyConfig, RayBounds, Recipe, SamplerKind,
 };
@@ -169,6 +169,14 @@ pub fn rays_for_batch(batch_size: BatchSize, sizer: &BatchSizer) -> usize {
     }
 }
 
+/// A batch's size in its own unit (`batch_of` keeps a driver's batch in
+/// the recipe's unit, so two batches of one driver compare).
+fn batch_units(batch: BatchSize) -> u64 {
+    match batch {
+        BatchSize::Rays(n) | BatchSize::Samples(n) => n as u64,
+    }
+}
+
 /// Which pass finds where each marched ray becomes opaque (its cut), for a
 /// field whose forward pass costs `forward_macs` multiply-adds a sample and
 /// whose σ alone costs `density_macs`, when the last step's rays used
@@ -254,18 +262,25 @@ pub struct DriverCore {
     /// marched ones.
     pub batch_size: BatchSize,
     pub batch_sizer: BatchSizer,
+    /// The batch the occupancy grid's intervals count steps of: this
+    /// driver's own, or, for the viewer, the one `zrak train` takes on the
+    /// engine (see [`GridPace`]).
+    pub grid_batch: BatchSize,
 }
 
 impl DriverCore {
     /// `batch_size` replaces the recipe's batch (tests and the viewer ask
-    /// for smaller ones).
+    /// for smaller ones); `grid_batch` is the one the occupancy grid's
+    /// intervals count steps of (`None`: the recipe's).
     pub fn new(
         identity: ModelIdentity,
         recipe: Recipe,
         layout: ParamLayout,
         ranges: Vec<Range<usize>>,
         batch_size: Option<BatchSize>,
+        grid_batch: Option<BatchSize>,
     ) -> Self {
+        let grid_batch = grid_batch.unwrap_or(recipe.batch);
         let batch_size = batch_size.unwrap_or(recipe.batch);
         let batch_sizer = BatchSizer::new(match batch_size {
             BatchSize::Samples(samples) => samples,
@@ -278,6 +293,7 @@ impl DriverCore {
             ranges,
             batch_size,
             batch_sizer,
+            grid_batch,
         }
     }
 
@@ -302,6 +318,10 @@ impl DriverCore {
             if let BatchSize::Samples(samples) = self.batch_size {
                 grid.chunk = samples;
             }
+            grid.pace = GridPace {
+                step_batch: batch_units(self.batch_size),
+                recipe_batch: batch_units(self.grid_batch),
+            };
             grid
         })
     }

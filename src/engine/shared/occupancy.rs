@@ -21,8 +21,10 @@
 //! was made or [`OccupancyGrid::mark_untrained`] hold [`UNTRAINED`] and count
 //! as occupied, so training starts with every ray sampled everywhere.
 //!
-//! Updates (every 16 steps, the caller asks [`OccupancyGrid::is_due`]): during
-//! the first 256 steps every cell of every cascade is sampled once; afterwards
+//! Updates (every 16 steps, the caller asks [`OccupancyGrid::is_due`]; the
+//! viewer's smaller batch counts steps of `zrak train`'s, see
+//! [`GridPace`]): during the first 256 steps every cell of every cascade is
+//! sampled once; afterwards
 //! a quarter of each cascade's cells (distinct, at random) plus as many draws
 //! (with replacement) from the cells that are occupied before the update.
 //! Each sample evaluates the density at a uniformly random point inside its
@@ -210,6 +212,58 @@ pub struct UpdateReport {
     pub full: bool,
 }
 
+/// How often a driver's steps update the grid. The recipe's
+/// `update_interval` and `warmup_steps` count steps of a reference batch:
+/// the driver's own (every driver but the viewer's), or the one `zrak
+/// train` takes on the engine (the viewer's, asked for with
+/// `ModelRequest::with_grid_paced_by_samples`), which then updates after
+/// as many samples
+/// as those steps would train, not after as many of its own steps: a step
+/// of a quarter batch updates every 64 steps instead of 16, and warms up
+/// for 1024 steps instead of 256. Samples are counted as batches: step n
+/// has trained n times its batch, so pacing needs no state beyond the
+/// step (a model resumed at another batch counts its earlier steps at the
+/// new one).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct GridPace {
+    /// What a step of this driver trains (samples, or rays for a recipe
+    /// that counts its batch in rays).
+    pub step_batch: u64,
+    /// What a step of the batch the recipe's intervals count trains, in the
+    /// same unit.
+    pub recipe_batch: u64,
+}
+
+impl GridPace {
+    /// Steps of the batch the recipe's intervals count: the grid updates
+    /// on the steps it always did.
+    pub const RECIPE: Self = Self {
+        step_batch: 1,
+        recipe_batch: 1,
+    };
+
+    /// Whether a grid of `config` is updated at step `step`: the first
+    /// step (0), and the first step after the samples trained reach each
+    /// further multiple of `update_interval` recipe batches (the previous
+    /// step's batch reached it).
+    pub fn is_due(&self, config: &OccupancyConfig, step: u32) -> bool {
+        let batch = self.step_batch.max(1);
+        let every = u64::from(config.update_interval) * self.recipe_batch;
+        match (u64::from(step) * batch).checked_rem(every) {
+            Some(past) => past < batch,
+            // No interval: the first step only, as `is_multiple_of(0)` says.
+            None => step == 0,
+        }
+    }
+
+    /// Whether step `step` is still in the warm-up of a grid of `config`
+    /// (`warmup_steps` recipe batches).
+    pub fn warming_up(&self, config: &OccupancyConfig, step: u32) -> bool {
+        u64::from(step) * self.step_batch.max(1)
+            < u64::from(config.warmup_steps) * self.recipe_batch
+    }
+}
+
 /// The occupancy grid: stored optical thicknesses, the occupancy bitfield
 /// built from them, and reusable workspaces for updates.
 #[derive(Debug, Clone)]
@@ -224,6 +278,8 @@ pub struct OccupancyGrid {
     occupied: usize,
     /// Density evaluations per call of the density function.
     pub chunk: usize,
+    /// How the driver's steps count towards the recipe's intervals.
+    pub pace: GridPace,
     // Workspaces, kept between updates so updates do not allocate.
     sample_cells: Vec<u32>,
     sample_positions: Vec<f32>,
@@ -248,6 +304,7 @@ impl OccupancyGrid {
             threshold: config.min_optical_thickness,
             occupied: 0,
             chunk: DEFAULT_CHUNK,
+            pace: GridPace::RECIPE,
             sample_cells: Vec::new(),
             sample_positions: Vec::new(),
             sample_density: Vec::new(),
@@ -345,9 +402,10 @@ impl OccupancyGrid {
     }
 
     /// Whether the grid is updated at training step `step` (every
-    /// `update_interval` steps, starting with step 0).
+    /// `update_interval` steps of the recipe's batch, starting with step 0;
+    /// see [`GridPace`]).
     pub fn is_due(&self, step: u32) -> bool {
-        step.is_multiple_of(self.config.update_interval)
+        self.pace.is_due(&self.config, step)
     }
 
     /// The mean stored value over the sampled cells of cascade 0 (the
@@ -428,7 +486,7 @@ impl OccupancyGrid {
     /// them, readable from [`Self::update_cells`] and
     /// [`Self::update_positions`] until [`Self::apply_update`].
     pub fn plan_update(&mut self, step: u32, seed: u64) -> UpdateReport {
-        let full = step < self.config.warmup_steps || self.occupied == 0;
+        let full = self.pace.warming_up(&self.config, step) || self.occupied == 0;
         let key = mix64(seed ^ mix64(step as u64 ^ 0x6f63_6375_7061_6e63));
         self.choose_cells(full, key);
         self.sample_points(key);
@@ -689,6 +747,86 @@ mod tests {
                 assert_eq!(g.cell_of(centre), cell, "{index}");
             }
         }
+    }
+
+    /// Dense in the half x < 0.5, empty elsewhere: after an update some
+    /// cells are occupied and others not.
+    fn half_dense(positions: &[f32], sigma: &mut [f32]) {
+        for (p, s) in positions.chunks(3).zip(sigma) {
+            *s = if p[0] < 0.5 { 1000.0 } else { 0.0 };
+        }
+    }
+
+    /// At the recipe's batch the grid updates on exactly the steps it did
+    /// when it counted steps (every `update_interval`, warm-up for
+    /// `warmup_steps`), whatever the batch's size.
+    #[test]
+    fn at_the_recipes_batch_updates_fall_on_the_same_steps_as_before() {
+        let config = OccupancyConfig::PAPER;
+        for batch in [1, 1 << 14, 1 << 18] {
+            let pace = GridPace {
+                step_batch: batch,
+                recipe_batch: batch,
+            };
+            for step in 0..10_000 {
+                assert_eq!(
+                    pace.is_due(&config, step),
+                    step.is_multiple_of(config.update_interval),
+                    "step {step}, batch {batch}"
+                );
+                assert_eq!(
+                    pace.warming_up(&config, step),
+                    step < config.warmup_steps,
+                    "step {step}, batch {batch}"
+                );
+            }
+        }
+        let mut grid = small(4, 1);
+        assert_eq!(grid.pace, GridPace::RECIPE);
+        grid.update(0, 1, half_dense);
+        assert!(grid.plan_update(255, 1).full);
+        assert!(!grid.plan_update(256, 1).full);
+    }
+
+    /// A step of a quarter of the recipe's batch updates a quarter as
+    /// often per step (every 64 steps instead of 16) and warms up for four
+    /// times the steps, the same samples; a batch that does not divide the
+    /// recipe's updates at the step whose batch reaches each interval's
+    /// samples.
+    #[test]
+    fn a_quarter_batch_updates_a_quarter_as_often_per_step() {
+        let config = OccupancyConfig::PAPER;
+        let quarter = GridPace {
+            step_batch: 1 << 16,
+            recipe_batch: 1 << 18,
+        };
+        let due: Vec<u32> = (0..6400).filter(|&s| quarter.is_due(&config, s)).collect();
+        let full_batch = (0..6400)
+            .filter(|&s| GridPace::RECIPE.is_due(&config, s))
+            .count();
+        assert_eq!(due.len() * 4, full_batch);
+        assert!(due.iter().all(|s| s.is_multiple_of(64)), "{due:?}");
+        assert_eq!(&due[..3], &[0, 64, 128]);
+        assert!(quarter.warming_up(&config, 1023));
+        assert!(!quarter.warming_up(&config, 1024));
+
+        // 3 samples a step against 16 × 4 a period: 64 samples are
+        // trained by step 21 (63 to 66), 128 by step 42, 192 by step 63,
+        // so the steps after those update.
+        let thirds = GridPace {
+            step_batch: 3,
+            recipe_batch: 4,
+        };
+        let due: Vec<u32> = (0..65).filter(|&s| thirds.is_due(&config, s)).collect();
+        assert_eq!(due, [0, 22, 43, 64]);
+
+        // A driver's grid follows its pace in `plan_update`'s warm-up.
+        let mut grid = small(4, 1);
+        grid.pace = quarter;
+        grid.update(0, 1, half_dense);
+        assert!(grid.plan_update(1023, 1).full);
+        assert!(!grid.plan_update(1024, 1).full);
+        assert!(grid.is_due(64) && !grid.is_due(16));
     }
 
     #[test]

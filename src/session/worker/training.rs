@@ -2,6 +2,7 @@
 //! steps not yet reported, what its pixels cost), which of them trains
 //! (the active one, or the one whose turn it is), and the turns.
 
+use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 use crate::field::ModelKind;
@@ -21,6 +22,20 @@ const CHUNK_TARGET: Duration = Duration::from_millis(40);
 /// Stats go out at most this often (ten times a second), aggregated over
 /// the steps in between.
 const STATS_INTERVAL: Duration = Duration::from_millis(100);
+
+/// The speed figures (ms/step, samples/s) are medians over the steps of
+/// this many of the last training seconds: a report covers a step or two
+/// (a step of the viewer's cpu batch takes ~0.2 s), so a mean over it
+/// showed the one step that also updated the occupancy grid at four times
+/// the others' time.
+const RECENT_TRAINING_SECONDS: f64 = 5.0;
+
+/// The speed figures keep at least this many steps, however long they
+/// took, so one long step is outvoted even when steps are slow.
+const MIN_RECENT_STEPS: usize = 5;
+
+/// At most this many steps are kept (fast gpu steps take a millisecond).
+const MAX_RECENT_STEPS: usize = 1024;
 
 /// While the camera moves, training gets at most 1/(1 + this) of wall time:
 /// after a step of d seconds, the next waits d × this. A step cannot be
@@ -91,11 +106,89 @@ impl Turns {
     }
 }
 
+/// A step of [`RecentSteps`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct RecentStep {
+    /// The model's training seconds when the step ended.
+    ended_at: f64,
+    seconds: f64,
+    samples: usize,
+}
+
+/// Training speed a report shows: medians over the last training seconds.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(super) struct StepRate {
+    /// The median step time, in milliseconds.
+    pub(super) ms_per_step: f64,
+    /// The steps' mean samples per step over the median step time.
+    pub(super) samples_per_second: f64,
+}
+
+/// A model's steps of the last [`RECENT_TRAINING_SECONDS`] training
+/// seconds. Measured on the training clock (each step's own time), so
+/// time the thread spends not training (paused, rendering, waiting for
+/// commands) neither counts in a step nor ages the steps kept.
+#[derive(Debug, Default)]
+pub(super) struct RecentSteps {
+    steps: VecDeque<RecentStep>,
+}
+
+impl RecentSteps {
+    /// A step of `seconds` that trained `samples` and ended at `ended_at`
+    /// training seconds.
+    pub(super) fn add(&mut self, ended_at: f64, seconds: f64, samples: usize) {
+        if self
+            .steps
+            .back()
+            .is_some_and(|last| ended_at < last.ended_at)
+        {
+            // The training clock went back (a checkpoint was loaded): the
+            // steps kept were another model's.
+            self.steps.clear();
+        }
+        self.steps.push_back(RecentStep {
+            ended_at,
+            seconds,
+            samples,
+        });
+        while self.steps.len() > MAX_RECENT_STEPS
+            || (self.steps.len() > MIN_RECENT_STEPS
+                && self.steps[0].ended_at < ended_at - RECENT_TRAINING_SECONDS)
+        {
+            self.steps.pop_front();
+        }
+    }
+
+    /// The median step time and the samples per second it gives; `None`
+    /// before any step.
+    pub(super) fn rate(&self) -> Option<StepRate> {
+        if self.steps.is_empty() {
+            return None;
+        }
+        let mut seconds: Vec<f64> = self.steps.iter().map(|s| s.seconds).collect();
+        seconds.sort_by(f64::total_cmp);
+        let n = seconds.len();
+        let median = if n % 2 == 1 {
+            seconds[n / 2]
+        } else {
+            0.5 * (seconds[n / 2 - 1] + seconds[n / 2])
+        };
+        let samples_per_step = self.steps.iter().map(|s| s.samples as f64).sum::<f64>() / n as f64;
+        Some(StepRate {
+            ms_per_step: 1000.0 * median,
+            samples_per_second: if median > 0.0 {
+                samples_per_step / median
+            } else {
+                0.0
+            },
+        })
+    }
+}
+
 /// Steps since the last stats event, to be reported as one.
 #[derive(Debug, Default)]
 pub(super) struct StatsWindow {
     steps: u32,
-    seconds: f64,
     rays: usize,
     samples: usize,
     /// Samples before the rays' cuts, while every step of the window
@@ -107,15 +200,14 @@ pub(super) struct StatsWindow {
 }
 
 impl StatsWindow {
-    /// Adds a step of `seconds` training seconds.
-    pub(super) fn add(&mut self, stats: &StepStats, seconds: f64) {
+    /// Adds a step.
+    pub(super) fn add(&mut self, stats: &StepStats) {
         self.composited = match (self.steps, self.composited, stats.samples_composited) {
             (0, _, now) => now,
             (_, Some(sum), Some(now)) => Some(sum + now),
             _ => None,
         };
         self.steps += 1;
-        self.seconds += seconds;
         self.rays += stats.rays;
         self.samples += stats.samples;
         self.loss_times_rays += stats.loss as f64 * stats.rays as f64;
@@ -123,8 +215,8 @@ impl StatsWindow {
     }
 
     /// The window's steps as one report of `model` (trained with `loss`,
-    /// now at `step` after `train_seconds`, holding `memory_bytes`),
-    /// without a held-out PSNR; `None` when it holds no step.
+    /// now at `step` after `train_seconds`, holding `memory_bytes`, training
+    /// at `rate`), without a held-out PSNR; `None` when it holds no step.
     pub(super) fn stats(
         &self,
         model: ModelKind,
@@ -132,6 +224,7 @@ impl StatsWindow {
         step: u32,
         train_seconds: f64,
         memory_bytes: usize,
+        rate: StepRate,
     ) -> Option<TrainingStats> {
         if self.steps == 0 {
             return None;
@@ -157,18 +250,14 @@ impl StatsWindow {
             loss: mean_loss as f32,
             batch_psnr,
             val_psnr: None,
-            ms_per_step: (1000.0 * per(self.seconds)) as f32,
+            ms_per_step: rate.ms_per_step as f32,
             samples_per_ray: if self.rays > 0 {
                 self.samples as f32 / self.rays as f32
             } else {
                 0.0
             },
             composited_per_ray: self.composited.map(|n| n as f32 / self.rays.max(1) as f32),
-            samples_per_second: if self.seconds > 0.0 {
-                (self.samples as f64 / self.seconds) as f32
-            } else {
-                0.0
-            },
+            samples_per_second: rate.samples_per_second as f32,
             memory_bytes,
             times: StageTimes::from_fn(|stage| per(t[stage])),
         })
@@ -182,6 +271,8 @@ pub(super) struct ModelSlot {
     /// The loss the model trains with (a loaded checkpoint brings its own).
     pub(super) loss: LossKind,
     window: StatsWindow,
+    /// The steps the speed figures are medians over.
+    recent: RecentSteps,
     last_stats: Option<Instant>,
     /// Training seconds at which the next held-out evaluation is due.
     next_val_at: f64,
@@ -212,7 +303,9 @@ impl ModelSlot {
     fn step(&mut self, revision: u64) -> StepStats {
         let before = self.trainer.train_seconds;
         let stats = self.trainer.step();
-        self.window.add(&stats, self.trainer.train_seconds - before);
+        self.window.add(&stats);
+        let ended_at = self.trainer.train_seconds;
+        self.recent.add(ended_at, ended_at - before, stats.samples);
         if stats.rays > 0 {
             self.cost.follow_march(f64::from(stats.samples_per_ray()));
             self.eval_cost
@@ -262,13 +355,16 @@ impl ModelSlot {
     pub(super) fn take_report(&mut self) -> Option<TrainingStats> {
         let window = std::mem::take(&mut self.window);
         let trainer = &self.trainer;
-        let stats = window.stats(
-            self.kind,
-            self.loss,
-            trainer.step,
-            trainer.train_seconds,
-            trainer.model.memory_bytes(),
-        );
+        let stats = self.recent.rate().and_then(|rate| {
+            window.stats(
+                self.kind,
+                self.loss,
+                trainer.step,
+                trainer.train_seconds,
+                trainer.model.memory_bytes(),
+                rate,
+            )
+        });
         let Some(stats) = stats else {
             let (Some(val_psnr), Some(last)) = (self.pending_val.take(), self.last_report) else {
                 return None;
@@ -386,6 +482,7 @@ impl Training {
             trainer,
             loss,
             window: StatsWindow::default(),
+            recent: RecentSteps::default(),
             last_stats: None,
             pending_val: None,
             last_report: None,

@@ -3,7 +3,7 @@
 
 use std::time::{Duration, Instant};
 
-use super::{StatsWindow, Training, Turns};
+use super::{RecentSteps, StatsWindow, StepRate, Training, Turns};
 use crate::field::ModelKind;
 use crate::field::common::LossKind;
 use crate::metrics::psnr_from_mse;
@@ -201,15 +201,19 @@ fn step(loss: f32, rays: usize, samples: usize, composited: Option<usize>) -> St
 #[test]
 fn a_window_of_steps_reports_their_means() {
     let mut window = StatsWindow::default();
+    let rate = StepRate {
+        ms_per_step: 400.0,
+        samples_per_second: 10_000.0,
+    };
     assert!(
         window
-            .stats(ModelKind::Ngp, LossKind::L2, 0, 0.0, 0)
+            .stats(ModelKind::Ngp, LossKind::L2, 0, 0.0, 0, rate)
             .is_none()
     );
-    window.add(&step(0.01, 100, 2000, Some(500)), 0.2);
-    window.add(&step(0.04, 300, 6000, Some(1500)), 0.6);
+    window.add(&step(0.01, 100, 2000, Some(500)));
+    window.add(&step(0.04, 300, 6000, Some(1500)));
     let stats = window
-        .stats(ModelKind::Ngp, LossKind::L2, 7, 3.5, 1234)
+        .stats(ModelKind::Ngp, LossKind::L2, 7, 3.5, 1234, rate)
         .unwrap();
     assert_eq!(
         (
@@ -232,9 +236,144 @@ fn a_window_of_steps_reports_their_means() {
     assert!((stats.times[Stage::GridUpdate] - 0.01).abs() < 1e-12);
     // Huber has no honest PSNR; a step without composited counts makes
     // the window's unknown.
-    window.add(&step(0.02, 100, 100, None), 0.1);
+    window.add(&step(0.02, 100, 100, None));
     let stats = window
-        .stats(ModelKind::Ngp, LossKind::Huber, 8, 3.6, 1234)
+        .stats(ModelKind::Ngp, LossKind::Huber, 8, 3.6, 1234, rate)
         .unwrap();
     assert_eq!((stats.batch_psnr, stats.composited_per_ray), (None, None));
+}
+
+/// The viewer's speed figures: 189 ms steps of 2^16 samples and one step
+/// of 864 ms that also updated the occupancy grid (the panel once showed
+/// "ms/step 863.9" and "samples/s 0.08 M" from such a step alone).
+#[test]
+fn speed_figures_are_medians_that_one_long_step_does_not_swing() {
+    let mut recent = RecentSteps::default();
+    assert_eq!(recent.rate(), None);
+    let mut clock = 0.0;
+    for seconds in [0.189, 0.189, 0.864, 0.189, 0.189] {
+        clock += seconds;
+        recent.add(clock, seconds, 1 << 16);
+    }
+    let rate = recent.rate().unwrap();
+    assert!((rate.ms_per_step - 189.0).abs() < 1e-9, "{rate:?}");
+    // Samples per step over the median time: 0.35 M samples/s, not 0.08.
+    assert!(
+        (rate.samples_per_second - 65536.0 / 0.189).abs() < 1e-6,
+        "{rate:?}"
+    );
+    // An even count takes the mean of the middle two; samples per step are
+    // the steps' mean.
+    recent.add(clock + 0.2, 0.2, 3 << 16);
+    let rate = recent.rate().unwrap();
+    assert!((rate.ms_per_step - 189.0).abs() < 1e-9, "{rate:?}");
+    let samples_per_step = 8.0 * 65536.0 / 6.0;
+    assert!(
+        (rate.samples_per_second - samples_per_step / 0.189).abs() < 1e-6,
+        "{rate:?}"
+    );
+}
+
+/// The figures cover the last training seconds: older steps leave once
+/// enough steps are newer, a clock that goes back (a loaded checkpoint)
+/// starts afresh, and time that is not training (the training clock
+/// stands still) ages nothing.
+#[test]
+fn speed_figures_cover_the_last_training_seconds() {
+    let mut recent = RecentSteps::default();
+    // Ten slow steps of 1 s, then fast ones of 0.1 s: after 5 training
+    // seconds of fast steps, the slow ones are gone.
+    let mut clock = 0.0;
+    for _ in 0..10 {
+        clock += 1.0;
+        recent.add(clock, 1.0, 100);
+    }
+    assert_eq!(recent.rate().unwrap().ms_per_step, 1000.0);
+    for _ in 0..52 {
+        clock += 0.1;
+        recent.add(clock, 0.1, 100);
+    }
+    assert!((recent.rate().unwrap().ms_per_step - 100.0).abs() < 1e-9);
+    // Slow steps keep at least five, the window's length notwithstanding.
+    let mut slow = RecentSteps::default();
+    for (i, seconds) in [9.0, 9.0, 9.0, 30.0, 9.0, 9.0].into_iter().enumerate() {
+        slow.add(10.0 * (i + 1) as f64, seconds, 100);
+    }
+    assert_eq!(slow.rate().unwrap().ms_per_step, 9000.0);
+    // A checkpoint loaded: its clock is behind the steps kept.
+    slow.add(3.0, 0.5, 100);
+    assert_eq!(slow.rate().unwrap().ms_per_step, 500.0);
+}
+
+/// A model whose steps take `step` of wall time.
+struct Sleepy {
+    step: Duration,
+}
+
+impl crate::model::RadianceModel for Sleepy {
+    fn describe(&self) -> String {
+        "sleepy".into()
+    }
+    fn rays_for_next_batch(&self) -> usize {
+        4
+    }
+    fn step(&mut self, batch: &crate::model::batch::RayBatch, _step: u32) -> StepStats {
+        std::thread::sleep(self.step);
+        StepStats {
+            rays: batch.len(),
+            samples: 10 * batch.len(),
+            ..StepStats::default()
+        }
+    }
+    fn render(&self, _: crate::model::RenderRays, out: &mut [crate::model::RenderedPixel]) {
+        out.fill(crate::model::RenderedPixel::default());
+    }
+    fn save(&self) -> crate::model::checkpoint::Checkpoint {
+        crate::model::checkpoint::Checkpoint {
+            header: serde_json::json!({}),
+            tensors: Vec::new(),
+        }
+    }
+    fn load(&mut self, _: &crate::model::checkpoint::Checkpoint) -> Result<(), String> {
+        Ok(())
+    }
+    fn memory_bytes(&self) -> usize {
+        0
+    }
+}
+
+/// Between a slot's steps the thread pauses (renders, waits for commands):
+/// ms/step is the steps' own time, not the time from one to the next.
+#[test]
+fn time_between_steps_does_not_count_in_ms_per_step() {
+    let scene = std::sync::Arc::new(crate::scene::demo::build(&crate::scene::demo::DemoConfig {
+        size: 8,
+        train_views: 2,
+        val_views: 1,
+        test_views: 1,
+    }));
+    let model = Box::new(Sleepy {
+        step: Duration::from_millis(20),
+    });
+    let trainer = crate::train::trainer::Trainer::new(model, scene, 0);
+    let mut training = Training::new(ModelKind::Ngp);
+    let mut slot = training.new_slot(ModelKind::Ngp, trainer, LossKind::L2, 1e9);
+    for revision in 0..5 {
+        slot.step(revision);
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    let stats = slot.take_report().unwrap();
+    // 20 ms each, with room for a busy machine; counting the pauses would
+    // give at least 220.
+    assert!(
+        (20.0..150.0).contains(&stats.ms_per_step),
+        "{}",
+        stats.ms_per_step
+    );
+    let samples_per_second = 40.0 / (stats.ms_per_step as f64 / 1000.0);
+    assert!(
+        (stats.samples_per_second as f64 / samples_per_second - 1.0).abs() < 1e-4,
+        "{} against {samples_per_second}",
+        stats.samples_per_second
+    );
 }
