@@ -200,7 +200,7 @@ pub const PROPOSAL_DISTORTION: f32 = 0.002;
 /// Rays per batch (nerfacto: `train_num_rays_per_batch` 4096; nerfacc:
 /// `init_batch_size` 4096): 196,608 samples of the full field and 1.4 M of
 /// the proposals a step, near Instant-NGP's 2^18 of the full field.
-pub const PROPOSAL_RAYS_PER_BATCH: usize = 4096;
+pub const PROPOSAL_RAYS_PER_BATCH: usize = 1024;
 
 /// The proposal grids' finest resolutions, level by level (nerfacto's
 /// `proposal_net_args_list`: `max_res` 128, then 256).
