@@ -723,7 +723,11 @@ mod tests {
         let reference = Camera::new(camera.intrinsics, Mat4::IDENTITY).with_ndc(Some(ndc));
         let rays = reference.all_rays();
         for ray in &rays {
-            assert!(ray.direction.abs_diff_eq(Vec3::Z, 1e-6), "{}", ray.direction);
+            assert!(
+                ray.direction.abs_diff_eq(Vec3::Z, 1e-6),
+                "{}",
+                ray.direction
+            );
         }
         // Pixel centres across the image span x′ from −1 + 1/W to 1 − 1/W.
         assert!((rays[0].origin.x - (-1.0 + 1.0 / 80.0)).abs() < 1e-6);

@@ -108,7 +108,11 @@ impl LlffView {
                  and backwards axes)"
             )
         })?;
-        for (name, value) in [("height", height), ("width", width), ("focal length", focal)] {
+        for (name, value) in [
+            ("height", height),
+            ("width", width),
+            ("focal length", focal),
+        ] {
             if value <= 0.0 {
                 return Err(format!(
                     "the {name} (column 4 of the 3 × 5 matrix holds height, width, focal) is \
@@ -343,7 +347,9 @@ fn header_bool(header: &str, key: &str) -> Result<bool, String> {
     } else if value.starts_with("False") {
         Ok(false)
     } else {
-        Err(format!("the .npy header's '{key}' is neither True nor False"))
+        Err(format!(
+            "the .npy header's '{key}' is neither True nor False"
+        ))
     }
 }
 
@@ -590,7 +596,10 @@ fn image_folder(root: &Path, downscale: u32) -> SceneResult<(PathBuf, u32)> {
         }
     );
     Err(if crate::files::exists_at_all(&full) {
-        SceneError::unreadable(&full, format!("{problem}: {}", super::pose::what_is_there(&full)))
+        SceneError::unreadable(
+            &full,
+            format!("{problem}: {}", super::pose::what_is_there(&full)),
+        )
     } else {
         SceneError::not_found(&full, problem)
     })
@@ -812,8 +821,13 @@ mod tests {
         let hwf = [60.0, 80.0, 50.0];
         let mut row = [0.0; ROW_LENGTH];
         for r in 0..3 {
-            row[5 * r..5 * r + 5]
-                .copy_from_slice(&[down[r], right[r], backwards[r], position[r], hwf[r]]);
+            row[5 * r..5 * r + 5].copy_from_slice(&[
+                down[r],
+                right[r],
+                backwards[r],
+                position[r],
+                hwf[r],
+            ]);
         }
         row[15] = near;
         row[16] = far;
@@ -845,7 +859,10 @@ mod tests {
         let camera = Camera::new(k, m.as_mat4());
         let ahead = Vec3::new(1.0, 7.0, 3.0);
         let (u, v) = camera.project(ahead).unwrap();
-        assert!((u - 40.0).abs() < 1e-4 && (v - 30.0).abs() < 1e-4, "({u}, {v})");
+        assert!(
+            (u - 40.0).abs() < 1e-4 && (v - 30.0).abs() < 1e-4,
+            "({u}, {v})"
+        );
         let (u, _) = camera.project(ahead + Vec3::X).unwrap();
         assert!(u > 45.0, "{u}");
         let (_, v) = camera.project(ahead - Vec3::Z).unwrap();
@@ -857,7 +874,11 @@ mod tests {
         let view = LlffView::from_row(&looking_along_y([0.5, -1.0, 0.25], 1.5, 20.0)).unwrap();
         let view = turned(&view, DVec3::new(0.3, -0.5, 0.8), 0.7);
         let again = LlffView::from_row(&view.to_row()).unwrap();
-        assert!(again.camera_to_world.abs_diff_eq(view.camera_to_world, 1e-12));
+        assert!(
+            again
+                .camera_to_world
+                .abs_diff_eq(view.camera_to_world, 1e-12)
+        );
         assert_eq!((again.near, again.far, again.focal), (1.5, 20.0, 50.0));
         // The NeRF paper's reorder, on the written row: [c1, −c0, c2].
         let row = view.to_row();
@@ -886,7 +907,10 @@ mod tests {
         );
         let mut row = looking_along_y([0.0; 3], 1.0, 2.0);
         row[14] = 0.0;
-        assert_mentions(&LlffView::from_row(&row).unwrap_err(), &["focal length", "is 0"]);
+        assert_mentions(
+            &LlffView::from_row(&row).unwrap_err(),
+            &["focal length", "is 0"],
+        );
     }
 
     fn write_npy(dir: &Path, bytes: &[u8]) -> PathBuf {
@@ -1047,9 +1071,15 @@ mod tests {
         let mean = poses.iter().map(|p| p.w_axis.truncate()).sum::<DVec3>() / 4.0;
         assert!(mean.length() < 1e-12, "{mean}");
         let backwards: DVec3 = poses.iter().map(|p| p.z_axis.truncate()).sum();
-        assert!(backwards.normalize().abs_diff_eq(DVec3::Z, 1e-12), "{backwards}");
+        assert!(
+            backwards.normalize().abs_diff_eq(DVec3::Z, 1e-12),
+            "{backwards}"
+        );
         let up: DVec3 = poses.iter().map(|p| p.y_axis.truncate()).sum();
-        assert!(up.x.abs() < 1e-12 && up.y > 0.0, "the mean up is in the y-z plane: {up}");
+        assert!(
+            up.x.abs() < 1e-12 && up.y > 0.0,
+            "the mean up is in the y-z plane: {up}"
+        );
         // A similarity: distances scale by `scale`, angles stay.
         let (a, b) = (&views[0].camera_to_world, &views[3].camera_to_world);
         let before = (a.w_axis - b.w_axis).length();
@@ -1088,20 +1118,37 @@ mod tests {
         std::fs::write(dir.path().join("images/notes.txt"), "x").unwrap();
         let scene = Scene::load(dir.path(), LoadOptions::default()).unwrap();
         assert_eq!(scene.format, SceneFormat::Llff);
-        assert_eq!((scene.train.len(), scene.val.len(), scene.test.len()), (8, 2, 0));
+        assert_eq!(
+            (scene.train.len(), scene.val.len(), scene.test.len()),
+            (8, 2, 0)
+        );
         let names: Vec<String> = scene
             .val
             .iter()
-            .map(|f| f.image_path.file_name().unwrap().to_string_lossy().into_owned())
+            .map(|f| {
+                f.image_path
+                    .file_name()
+                    .unwrap()
+                    .to_string_lossy()
+                    .into_owned()
+            })
             .collect();
         assert_eq!(names, ["IMG_0000.png", "IMG_0008.png"]);
         // Rows by file name: the photograph of row 9 is the 9th by name.
         assert_eq!(scene.train[7].image.rgba(0, 0)[0], 90.0 / 255.0);
         let k = scene.train[0].camera.intrinsics;
-        assert_eq!((k.width, k.height, k.fx, k.fy, k.cx, k.cy), (40, 30, 25.0, 25.0, 20.0, 15.0));
+        assert_eq!(
+            (k.width, k.height, k.fx, k.fy, k.cx, k.cy),
+            (40, 30, 25.0, 25.0, 20.0, 15.0)
+        );
         let n = Normalisation::of(&views);
         let pose = n.pose(views[1].camera_to_world).as_mat4();
-        assert!(scene.train[0].camera.camera_to_world.abs_diff_eq(pose, 1e-6));
+        assert!(
+            scene.train[0]
+                .camera
+                .camera_to_world
+                .abs_diff_eq(pose, 1e-6)
+        );
         // The box holds every camera and its frustum out to the far bound
         // (30 and more).
         for frame in scene.frames() {
@@ -1160,14 +1207,21 @@ mod tests {
         let error = Scene::load(dir.path(), LoadOptions::default())
             .unwrap_err()
             .to_string();
-        assert_mentions(&error, &["frame 0", "IMG_0000.png", "40×40", "no one scale"]);
+        assert_mentions(
+            &error,
+            &["frame 0", "IMG_0000.png", "40×40", "no one scale"],
+        );
         // No images/, but images_4/.
         std::fs::rename(dir.path().join("images"), dir.path().join("images_4")).unwrap();
         let error = Scene::load(dir.path(), LoadOptions::default()).unwrap_err();
         assert!(matches!(error, SceneError::NotFound { .. }), "{error:?}");
         assert_mentions(
             &error.to_string(),
-            &["no images/ folder beside", "holds images_4", "downscale of 4"],
+            &[
+                "no images/ folder beside",
+                "holds images_4",
+                "downscale of 4",
+            ],
         );
     }
 }

@@ -152,9 +152,10 @@ impl UnitCubeMapping {
     }
 
     /// The mapping that fits the cube around `bounds` (its longest side,
-    /// centred on it) to the unit cube, `aabb_scale` 1.
+    /// centred on it, a millionth larger so that rounding keeps the box's
+    /// corners inside) to the unit cube, `aabb_scale` 1.
     pub fn around(bounds: &Aabb) -> Self {
-        let half = 0.5 * bounds.size().max_element();
+        let half = 0.5 * bounds.size().max_element() * (1.0 + 1e-6);
         let scale = 0.5 / half;
         Self {
             scale,
