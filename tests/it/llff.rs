@@ -268,3 +268,53 @@ fn a_loaded_llff_folder_takes_ndc_like_the_demo() {
         assert!((a.direction - b.direction).length() < 1e-5);
     }
 }
+
+/// Instant-NGP on the forward-facing demo in NDC for `steps`: the held-out
+/// PSNR.
+fn held_out_psnr_in_ndc_after(steps: u32) -> f64 {
+    use std::sync::Arc;
+    use zrak::engine::cpu::model::CpuModel;
+    use zrak::engine::request::{ModelRequest, ModelSettings};
+    use zrak::field::ModelKind;
+    use zrak::field::common::{LossKind, Sampling};
+    use zrak::field::mlp::Precision;
+    use zrak::train::trainer::Trainer;
+
+    let config = ForwardFacingConfig {
+        width: 64,
+        height: 48,
+        views: 25,
+    };
+    let scene = demo::build_forward_facing(&config);
+    let scene = Arc::new(scene.with_ndc());
+    let model = CpuModel::build(
+        &ModelRequest::new(
+            ModelKind::Ngp,
+            ModelSettings {
+                seed: 0,
+                loss: LossKind::Huber,
+                batch_samples: Some(1 << 16),
+                sampling: Sampling::Occupancy,
+                precision: Precision::F32,
+            },
+        ),
+        &scene,
+    );
+    let mut trainer = Trainer::new(Box::new(model), scene.clone(), 0);
+    while trainer.step < steps {
+        trainer.step();
+    }
+    zrak::train::eval::evaluate_split(trainer.model.as_ref(), "val", &scene.val, |_| {}).mean_psnr
+}
+
+/// The forward-facing demo learns in NDC: Instant-NGP, 300 steps of 2^16
+/// samples, held-out PSNR 29.1 dB when written (31.9 dB in the world,
+/// where this demo's wall at 2.2 times the nearest depth needs no NDC; 21
+/// dB after 100 steps either way). The floor leaves 3 dB for other
+/// machines' rounding.
+#[test]
+fn the_forward_facing_demo_trains_in_ndc() {
+    let _cores = common::shared();
+    let psnr = held_out_psnr_in_ndc_after(300);
+    assert!(psnr > 26.0, "held-out PSNR {psnr:.2} dB");
+}
