@@ -1,4 +1,5 @@
-//! `zrak convert`: a COLMAP model written as a transforms.json.
+//! `zrak convert`: a COLMAP model or an LLFF capture written as a
+//! transforms.json.
 
 use std::path::{Path, PathBuf};
 
@@ -7,7 +8,8 @@ use clap::Args;
 
 #[derive(Args, Debug)]
 pub struct ConvertArgs {
-    /// A folder with sparse/0/cameras.bin and images.bin (or .txt) and images/.
+    /// A folder with sparse/0/cameras.bin and images.bin (or .txt) and
+    /// images/, or an LLFF folder (poses_bounds.npy and images/).
     colmap: PathBuf,
     /// The transforms.json to write (an existing file is kept unless
     /// --force).
@@ -34,6 +36,9 @@ pub fn convert(args: ConvertArgs) -> anyhow::Result<()> {
             out.display()
         );
     }
+    if zrak::scene::llff::is_llff_folder(&colmap) {
+        return convert_llff(&colmap, &out);
+    }
     let converted = zrak::scene::colmap::convert(&colmap)?;
     let out_folder = out
         .parent()
@@ -59,6 +64,33 @@ pub fn convert(args: ConvertArgs) -> anyhow::Result<()> {
         converted.centre.z,
         converted.scale,
         converted.unit_cube.aabb_scale
+    );
+    Ok(())
+}
+
+/// Writes the LLFF capture at `llff` as the transforms.json `out`: its
+/// poses as zrak loads them (axes, rescale and recentring applied).
+fn convert_llff(llff: &Path, out: &Path) -> anyhow::Result<()> {
+    use zrak::scene::llff;
+    let converted = llff::convert(llff)?;
+    let out_folder = out
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let absolute = |p: &Path| std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
+    let mut absolute_images = converted.clone();
+    for (path, _) in &mut absolute_images.images {
+        *path = absolute(path);
+    }
+    let json = llff::transforms_json(&absolute_images, &absolute(out_folder));
+    let text = serde_json::to_string_pretty(&json)?;
+    zrak::files::write_bytes_atomically(out, text.as_bytes())
+        .with_context(|| format!("{}: cannot write", out.display()))?;
+    println!(
+        "wrote {} ({} frames of an LLFF capture, scale {:.5} and its average pose applied)",
+        out.display(),
+        converted.images.len(),
+        converted.normalisation.scale,
     );
     Ok(())
 }
@@ -105,6 +137,18 @@ fn check_not_colmap_input(colmap: &Path, out: &Path) -> anyhow::Result<()> {
                 colmap.join("transforms.json").display()
             );
         }
+    }
+    let poses = colmap.join(zrak::scene::llff::POSES_FILE);
+    if zrak::files::exists_at_all(&poses)
+        && std::fs::canonicalize(&poses).is_ok_and(|poses| poses == destination)
+    {
+        bail!(
+            "{}: that is the LLFF capture's own {} (convert reads it); give --out another \
+             path, e.g. {}",
+            out.display(),
+            zrak::scene::llff::POSES_FILE,
+            colmap.join("transforms.json").display()
+        );
     }
     let images = std::fs::canonicalize(colmap.join("images")).ok();
     if let Some(images) = images
@@ -178,6 +222,14 @@ mod tests {
             .to_string();
         assert!(
             error.contains("that is inside the model's photographs folder"),
+            "{error}"
+        );
+        std::fs::write(colmap.join("poses_bounds.npy"), "").unwrap();
+        let error = check_not_colmap_input(colmap, &colmap.join("poses_bounds.npy"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            error.contains("that is the LLFF capture's own poses_bounds.npy"),
             "{error}"
         );
         // Beside the model is where the README writes it.

@@ -31,6 +31,12 @@ pub struct DemoArgs {
     /// 16, written as an instant-ngp transforms.json.
     #[arg(long)]
     unbounded: bool,
+    /// The forward-facing variant: --views cameras on a plane, all looking
+    /// at the objects in front of an opaque, textured wall, written as an
+    /// LLFF folder (poses_bounds.npy and images/, 4:3 photographs --size
+    /// wide).
+    #[arg(long, conflicts_with_all = ["large", "unbounded"])]
+    forward_facing: bool,
     /// Write into a folder that is not empty, replacing the scene's
     /// files there (others are left alone).
     #[arg(long)]
@@ -70,6 +76,16 @@ fn demo_config(size: u32, views: usize) -> anyhow::Result<DemoConfig> {
     })
 }
 
+/// The forward-facing demo's settings: `views` photographs in all, 4:3,
+/// `size` wide (sizes and counts checked by [`demo_config`]).
+fn forward_facing_config(size: u32, views: usize) -> demo::ForwardFacingConfig {
+    demo::ForwardFacingConfig {
+        width: size,
+        height: (size * 3 / 4).max(1),
+        views,
+    }
+}
+
 pub fn write_demo(args: DemoArgs) -> anyhow::Result<()> {
     let DemoArgs {
         out,
@@ -77,6 +93,7 @@ pub fn write_demo(args: DemoArgs) -> anyhow::Result<()> {
         views,
         large,
         unbounded,
+        forward_facing,
         force,
     } = args;
     let config = demo_config(size, views)?;
@@ -84,6 +101,22 @@ pub fn write_demo(args: DemoArgs) -> anyhow::Result<()> {
         refuse_a_folder_in_use(&out)?;
     }
     let started = Instant::now();
+    if forward_facing {
+        let config = forward_facing_config(size, views);
+        demo::write_forward_facing_llff(&config, &out)
+            .context("writing the forward-facing demo scene")?;
+        println!(
+            "wrote the forward-facing demo scene to {} ({} views at {}×{}, every {}th held \
+             out) in {:.2} s",
+            out.display(),
+            config.views,
+            config.width,
+            config.height,
+            zrak::scene::llff::HOLD_OUT_EVERY,
+            started.elapsed().as_secs_f64()
+        );
+        return Ok(());
+    }
     if large {
         demo::write_large(&config, &out).context("writing the large demo scene")?;
     } else if unbounded {
@@ -142,6 +175,17 @@ mod tests {
         assert!(args.unbounded);
         let error = parse_args::<DemoArgs>(&["--out", "s", "--unbounded", "--large"]).unwrap_err();
         assert_eq!(error.kind(), clap::error::ErrorKind::ArgumentConflict);
+        assert!(!args.forward_facing);
+        let args: DemoArgs = parse_args(&["--out", "s", "--forward-facing"]).unwrap();
+        assert!(args.forward_facing);
+        let error =
+            parse_args::<DemoArgs>(&["--out", "s", "--forward-facing", "--large"]).unwrap_err();
+        assert_eq!(error.kind(), clap::error::ErrorKind::ArgumentConflict);
+        let error =
+            parse_args::<DemoArgs>(&["--out", "s", "--forward-facing", "--unbounded"]).unwrap_err();
+        assert_eq!(error.kind(), clap::error::ErrorKind::ArgumentConflict);
+        let config = forward_facing_config(64, 20);
+        assert_eq!((config.width, config.height, config.views), (64, 48, 20));
         let error = parse_args::<DemoArgs>(&["--size", "64"]).unwrap_err();
         assert_eq!(
             error.kind(),

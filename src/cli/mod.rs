@@ -76,12 +76,14 @@ impl SpaceChoice {
         }
     }
 
-    /// `scene` treated as chosen: as analysed for `auto`.
+    /// `scene` treated as chosen: as analysed for `auto` (a forward-facing
+    /// LLFF capture then in NDC: [`Scene::in_its_space`]).
     pub fn apply(self, scene: Scene) -> Scene {
         match self.space() {
             Some(space) => scene.with_space(space),
             None => scene,
         }
+        .in_its_space()
     }
 }
 

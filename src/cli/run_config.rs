@@ -88,10 +88,10 @@ impl RunConfig {
 /// (said in the reasons where it now decides otherwise).
 pub fn keep_recorded_space(scene: Scene, config: &RunConfig) -> Scene {
     let Some(space) = config.space else {
-        return scene;
+        return scene.in_its_space();
     };
     if config.space_overridden {
-        return scene.with_space(space);
+        return scene.with_space(space).in_its_space();
     }
     let mut scene = scene;
     let analysis = &mut scene.space;
@@ -106,7 +106,7 @@ pub fn keep_recorded_space(scene: Scene, config: &RunConfig) -> Scene {
         );
         analysis.space = space;
     }
-    scene
+    scene.in_its_space()
 }
 
 /// A run's scene: `scene` (`demo` or a folder) loaded at `downscale`, its

@@ -89,6 +89,11 @@ pub fn focal_from_fov(size: u32, angle: f32) -> f32 {
 }
 
 /// A ray `origin + t · direction`, with what Mip-NeRF needs besides.
+///
+/// From a camera that carries an [`NdcSpace`] the ray lives in normalised
+/// device coordinates instead of the world (see [`NdcSpace::ray`]): the
+/// origin on the near plane z' = −1, `t` in NDC units along the unit
+/// `direction`, the scene inside the box [−1, 1]³ with infinity at z' = 1.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Ray {
     pub origin: Vec3,
@@ -96,12 +101,19 @@ pub struct Ray {
     pub direction: Vec3,
     /// The un-normalised direction: the camera-space direction with z = -1
     /// rotated into the world, so `t` along it is depth along the optical
-    /// axis. Mip-NeRF builds its cones along this vector.
+    /// axis. Mip-NeRF builds its cones along this vector. In NDC it is the
+    /// paper's d′, whose z component is 2 (the origin is on the near
+    /// plane): `t` from 0 to 1 along it runs from the near plane to
+    /// infinity, the NeRF paper's NDC near 0 and far 1.
     pub direction_unnormalised: Vec3,
     /// Radius of the pixel's cone at unit distance along
     /// `direction_unnormalised`: 2/√12 of the pixel width there (Mip-NeRF,
     /// Barron et al. 2021, section 3.1), which gives the cone the variance of
-    /// the pixel's square footprint.
+    /// the pixel's square footprint. In NDC, 2/√12 of the spacing of
+    /// neighbouring pixels' origins on the near plane, so the cone reaches
+    /// the pixel's footprint at t = 1 along d′ (infinity), as Mip-NeRF's
+    /// LLFF loader sizes it (`internal/datasets.py`, radii from the NDC
+    /// origins).
     pub cone_radius: f32,
 }
 
@@ -119,11 +131,87 @@ impl Ray {
     }
 }
 
+/// Normalised device coordinates of a forward-facing scene (NeRF paper,
+/// Mildenhall et al. 2020, appendix C; `ndc_rays` in its code): the
+/// perspective projection of a reference camera at the world origin looking
+/// down −z, which maps the frustum from the near plane z = −`near` out to
+/// infinity onto the box [−1, 1]³, so that samples spaced evenly in NDC are
+/// spaced evenly in disparity in the world. Its intrinsics are the scene's
+/// (the photographs'), shared by every camera whatever its own resolution:
+/// only the ratios focal / half-size matter.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NdcSpace {
+    pub focal_x: f32,
+    pub focal_y: f32,
+    pub width: f32,
+    pub height: f32,
+    /// The near plane's distance: z = −near maps to z′ = −1.
+    pub near: f32,
+}
+
+impl NdcSpace {
+    /// The NDC space of a reference camera with intrinsics `k` and near
+    /// plane `near`.
+    pub fn of(k: &Intrinsics, near: f32) -> Self {
+        Self {
+            focal_x: k.fx,
+            focal_y: k.fy,
+            width: k.width as f32,
+            height: k.height as f32,
+            near,
+        }
+    }
+
+    /// How much NDC x′ and y′ grow per unit of x/z and y/z:
+    /// focal / (size / 2).
+    fn axis_scales(&self) -> (f32, f32) {
+        (
+            self.focal_x / (0.5 * self.width),
+            self.focal_y / (0.5 * self.height),
+        )
+    }
+
+    /// A world point's image in NDC: (−sx·x/z, −sy·y/z, 1 + 2·near/z).
+    pub fn point(&self, p: Vec3) -> Vec3 {
+        let (sx, sy) = self.axis_scales();
+        Vec3::new(
+            -sx * p.x / p.z,
+            -sy * p.y / p.z,
+            1.0 + 2.0 * self.near / p.z,
+        )
+    }
+
+    /// The world ray `origin + t · direction` in NDC, as the paper's
+    /// appendix C derives it: the origin first moved along the ray to the
+    /// near plane z = −near, then o′ is its image and d′ the direction
+    /// whose z′ is 2 at the near plane, so that o′ + d′ is the image of the
+    /// ray's point at infinity. Every world point of the ray in front of the
+    /// near plane maps onto o′ + s·d′ for some s in [0, 1).
+    pub fn ray(&self, origin: Vec3, direction: Vec3) -> (Vec3, Vec3) {
+        let (sx, sy) = self.axis_scales();
+        let to_near = -(self.near + origin.z) / direction.z;
+        let o = origin + to_near * direction;
+        let d = direction;
+        let ndc_origin = self.point(o);
+        let ndc_direction = Vec3::new(
+            -sx * (d.x / d.z - o.x / o.z),
+            -sy * (d.y / d.z - o.y / o.z),
+            -2.0 * self.near / o.z,
+        );
+        (ndc_origin, ndc_direction)
+    }
+}
+
 /// A pinhole camera: intrinsics and a camera-to-world pose.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Camera {
     pub intrinsics: Intrinsics,
     pub camera_to_world: Mat4,
+    /// When set, [`Camera::ray_through`] gives rays in these normalised
+    /// device coordinates rather than the world (forward-facing scenes,
+    /// [`super::Scene::with_ndc`]); the pose and [`Camera::project`] stay
+    /// in the world.
+    pub ndc: Option<NdcSpace>,
 }
 
 impl Camera {
@@ -131,7 +219,13 @@ impl Camera {
         Self {
             intrinsics,
             camera_to_world,
+            ndc: None,
         }
+    }
+
+    /// The same camera, its rays in `ndc` (or in the world for `None`).
+    pub fn with_ndc(self, ndc: Option<NdcSpace>) -> Self {
+        Self { ndc, ..self }
     }
 
     /// The camera centre in world space.
@@ -173,8 +267,19 @@ impl Camera {
     }
 
     /// The ray through image point (u, v) in pixel units; the centre of
-    /// pixel (i, j) is (i + 0.5, j + 0.5).
+    /// pixel (i, j) is (i + 0.5, j + 0.5). In the world, or in NDC when the
+    /// camera carries an [`NdcSpace`].
     pub fn ray_through(&self, u: f32, v: f32) -> Ray {
+        let world = self.world_ray_through(u, v);
+        match self.ndc {
+            None => world,
+            Some(ndc) => ndc_ray(&ndc, &world, &self.intrinsics),
+        }
+    }
+
+    /// The world ray through image point (u, v), whatever NDC the camera
+    /// carries.
+    pub fn world_ray_through(&self, u: f32, v: f32) -> Ray {
         let (unit, on_plane) = self.camera_space_directions(u, v);
         let rotation = self.rotation();
         let direction_unnormalised = rotation * on_plane;
@@ -248,6 +353,24 @@ impl Camera {
             eye.extend(1.0),
         );
         Self::new(intrinsics, camera_to_world)
+    }
+}
+
+/// `world` (a ray from the camera centre, `direction_unnormalised` at unit
+/// depth per unit t) in `ndc`.
+fn ndc_ray(ndc: &NdcSpace, world: &Ray, k: &Intrinsics) -> Ray {
+    let (origin, direction_unnormalised) = ndc.ray(world.origin, world.direction_unnormalised);
+    // The origin moved to the near plane lies `depth` along the optical
+    // axis, where a pixel is `depth` pixel widths wide; NDC stretches x and
+    // y there by scale / near.
+    let depth = (-(ndc.near + world.origin.z) / world.direction_unnormalised.z).abs();
+    let (sx, sy) = ndc.axis_scales();
+    let spacing = pixel_width_at_unit_depth(k) * depth * 0.5 * (sx + sy) / ndc.near;
+    Ray {
+        origin,
+        direction: direction_unnormalised.normalize(),
+        direction_unnormalised,
+        cone_radius: spacing * 2.0 / 12f32.sqrt(),
     }
 }
 
@@ -480,5 +603,148 @@ mod tests {
                 ray.direction
             );
         }
+    }
+
+    /// A forward-facing view: 80 × 60, focal 70, beside the reference
+    /// camera at the origin and turned a little, looking down −z.
+    fn forward_facing_camera() -> (Camera, NdcSpace) {
+        let k = Intrinsics {
+            width: 80,
+            height: 60,
+            fx: 70.0,
+            fy: 70.0,
+            cx: 40.0,
+            cy: 30.0,
+            lens: Lens::Pinhole,
+        };
+        let pose = Mat4::from_translation(Vec3::new(0.15, -0.1, 0.05))
+            * Mat4::from_axis_angle(Vec3::new(0.3, 1.0, 0.1).normalize(), 0.08);
+        let ndc = NdcSpace::of(&k, 1.0);
+        (Camera::new(k, pose).with_ndc(Some(ndc)), ndc)
+    }
+
+    /// The paper's closed form (appendix C, eq. 25 and 26) after moving
+    /// the origin to z = −n, written out here apart from `NdcSpace::ray`.
+    fn paper_ndc(o: Vec3, d: Vec3, f: f32, w: f32, h: f32, n: f32) -> (Vec3, Vec3) {
+        let t = -(n + o.z) / d.z;
+        let o = o + t * d;
+        let (ax, ay) = (-f / (w / 2.0), -f / (h / 2.0));
+        let origin = Vec3::new(ax * o.x / o.z, ay * o.y / o.z, 1.0 + 2.0 * n / o.z);
+        let direction = Vec3::new(
+            ax * (d.x / d.z - o.x / o.z),
+            ay * (d.y / d.z - o.y / o.z),
+            -2.0 * n / o.z,
+        );
+        (origin, direction)
+    }
+
+    #[test]
+    fn ndc_rays_follow_the_papers_closed_form() {
+        let (camera, _) = forward_facing_camera();
+        for (u, v) in [(0.5, 0.5), (40.0, 30.0), (79.5, 12.25), (3.0, 59.5)] {
+            let world = camera.world_ray_through(u, v);
+            let (o, d) = paper_ndc(
+                world.origin,
+                world.direction_unnormalised,
+                70.0,
+                80.0,
+                60.0,
+                1.0,
+            );
+            let ray = camera.ray_through(u, v);
+            assert!((ray.origin - o).length() < 1e-5, "{} vs {o}", ray.origin);
+            assert!((ray.direction_unnormalised - d).length() < 1e-5);
+            assert!((ray.direction - d.normalize()).length() < 1e-6);
+            assert!((ray.direction.length() - 1.0).abs() < 1e-6);
+            // From the near plane, d′ reaches infinity at t = 1.
+            assert!((ray.origin.z + 1.0).abs() < 1e-6);
+            assert!((ray.direction_unnormalised.z - 2.0).abs() < 1e-5);
+        }
+        // The same direction (not unit length) gives the same NDC ray.
+        let world = camera.world_ray_through(10.0, 20.0);
+        let ndc = camera.ndc.unwrap();
+        let (a, b) = ndc.ray(world.origin, world.direction);
+        assert!((a - camera.ray_through(10.0, 20.0).origin).length() < 1e-5);
+        assert!((b - camera.ray_through(10.0, 20.0).direction_unnormalised).length() < 1e-5);
+    }
+
+    #[test]
+    fn points_on_a_world_ray_map_onto_its_ndc_ray() {
+        let (camera, ndc) = forward_facing_camera();
+        for (u, v) in [(5.5, 7.5), (60.0, 44.0)] {
+            let world = camera.world_ray_through(u, v);
+            let ray = camera.ray_through(u, v);
+            let mut last_s = 0.0;
+            for depth in [1.5f32, 2.0, 5.0, 40.0, 1e4] {
+                let p = world.origin + depth * world.direction_unnormalised;
+                // Its image, from the paper's projection.
+                let image = Vec3::new(
+                    -70.0 / 40.0 * p.x / p.z,
+                    -70.0 / 30.0 * p.y / p.z,
+                    1.0 + 2.0 / p.z,
+                );
+                assert!((ndc.point(p) - image).length() < 1e-5);
+                let s = (image - ray.origin).dot(ray.direction_unnormalised)
+                    / ray.direction_unnormalised.length_squared();
+                let on_ray = ray.origin + s * ray.direction_unnormalised;
+                assert!(
+                    (on_ray - image).length() < 1e-4,
+                    "depth {depth}: {image} is {} from the NDC ray",
+                    (on_ray - image).length()
+                );
+                // Farther in the world is farther along the NDC ray, within
+                // [0, 1].
+                assert!(s > last_s && s < 1.0, "{s}");
+                last_s = s;
+            }
+        }
+    }
+
+    #[test]
+    fn the_near_plane_is_minus_one_and_infinity_plus_one() {
+        let (camera, ndc) = forward_facing_camera();
+        let near_point = Vec3::new(0.3, -0.2, -1.0);
+        assert!((ndc.point(near_point).z + 1.0).abs() < 1e-7);
+        let far_point = Vec3::new(3e6, -2e6, -1e7);
+        assert!((ndc.point(far_point).z - 1.0).abs() < 1e-6);
+        // The ray's end at t = 1 along d′ is the image of its direction at
+        // infinity.
+        let world = camera.world_ray_through(20.0, 50.0);
+        let ray = camera.ray_through(20.0, 50.0);
+        let end = ray.origin + ray.direction_unnormalised;
+        let far = ndc.point(world.origin + 1e6 * world.direction_unnormalised);
+        assert!((end - far).length() < 1e-4, "{end} vs {far}");
+        assert!((end.z - 1.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn the_reference_cameras_ndc_rays_are_parallel_and_a_pixel_apart() {
+        let (camera, ndc) = forward_facing_camera();
+        let reference = Camera::new(camera.intrinsics, Mat4::IDENTITY).with_ndc(Some(ndc));
+        let rays = reference.all_rays();
+        for ray in &rays {
+            assert!(
+                ray.direction.abs_diff_eq(Vec3::Z, 1e-6),
+                "{}",
+                ray.direction
+            );
+        }
+        // Pixel centres across the image span x′ from −1 + 1/W to 1 − 1/W.
+        assert!((rays[0].origin.x - (-1.0 + 1.0 / 80.0)).abs() < 1e-6);
+        assert!((rays[0].origin.y - (1.0 - 1.0 / 60.0)).abs() < 1e-6);
+        assert!((rays[79].origin.x - (1.0 - 1.0 / 80.0)).abs() < 1e-6);
+        // The cone: 2/√12 of the spacing of neighbouring origins (2/W
+        // across, 2/H down), the mean of both axes as Mip-NeRF takes it.
+        let across = (rays[1].origin - rays[0].origin).length();
+        let down = (rays[80].origin - rays[0].origin).length();
+        assert!((across - 2.0 / 80.0).abs() < 1e-6 && (down - 2.0 / 60.0).abs() < 1e-6);
+        let spacing = 0.5 * (across + down);
+        assert!((rays[0].cone_radius - spacing * 2.0 / 12f32.sqrt()).abs() < 1e-6);
+        // A downscaled copy keeps the NDC, its pixels twice as wide.
+        let half = Camera::new(reference.intrinsics.downscaled(2), Mat4::IDENTITY)
+            .with_ndc(Some(ndc))
+            .all_rays();
+        assert!(((half[1].origin - half[0].origin).length() - 4.0 / 80.0).abs() < 1e-6);
+        assert!((half[0].cone_radius - 2.0 * rays[0].cone_radius).abs() < 1e-6);
     }
 }

@@ -12,6 +12,7 @@ pub mod identity;
 mod image;
 pub mod instant_ngp;
 mod lens;
+pub mod llff;
 pub mod names;
 pub mod pose;
 pub mod space;
@@ -21,7 +22,7 @@ use std::path::{Path, PathBuf};
 use glam::Vec3;
 
 pub use bounds::Aabb;
-pub use camera::{Camera, Intrinsics, Ray};
+pub use camera::{Camera, Intrinsics, NdcSpace, Ray};
 pub use error::{SceneError, SceneResult, escape_controls};
 pub use image::{ImageRgba8, load_image, to_u8};
 pub use lens::Lens;
@@ -51,6 +52,9 @@ pub enum SceneFormat {
     Demo,
     /// A COLMAP sparse model and its `images/` folder.
     Colmap,
+    /// The NeRF paper's forward-facing captures: `poses_bounds.npy` and
+    /// `images/` (LLFF, Mildenhall et al. 2019).
+    Llff,
 }
 
 /// The splits of a scene (`--split train|val|test` on the command line).
@@ -92,7 +96,8 @@ impl Frame {
             camera: Camera::new(
                 self.camera.intrinsics.downscaled(factor),
                 self.camera.camera_to_world,
-            ),
+            )
+            .with_ndc(self.camera.ndc),
             image: self.image.downscaled(factor),
             image_path: self.image_path.clone(),
         }
@@ -106,7 +111,8 @@ impl Frame {
             camera: Camera::new(
                 self.camera.intrinsics.cropped(x0, y0, width, height),
                 self.camera.camera_to_world,
-            ),
+            )
+            .with_ndc(self.camera.ndc),
             image: self.image.cropped(x0, y0, width, height),
             image_path: self.image_path.clone(),
         }
@@ -147,6 +153,19 @@ impl UnitCubeMapping {
         (unit - self.offset) / self.scale
     }
 
+    /// The mapping that fits the cube around `bounds` (its longest side,
+    /// centred on it, a millionth larger so that rounding keeps the box's
+    /// corners inside) to the unit cube, `aabb_scale` 1.
+    pub fn around(bounds: &Aabb) -> Self {
+        let half = 0.5 * bounds.size().max_element() * (1.0 + 1e-6);
+        let scale = 0.5 / half;
+        Self {
+            scale,
+            offset: Vec3::splat(0.5) - bounds.centre() * scale,
+            aabb_scale: 1.0,
+        }
+    }
+
     /// The box holding the scene's content, in world coordinates.
     pub fn world_bounds(&self) -> Aabb {
         let half = 0.5 * self.aabb_scale;
@@ -156,6 +175,10 @@ impl UnitCubeMapping {
         )
     }
 }
+
+/// The share of the NDC box's side added beyond the cameras' rays in x and
+/// y ([`Scene::with_ndc`]).
+const NDC_MARGIN: f32 = 0.01;
 
 /// A scene: frames per split, with what every model needs to know about
 /// where the content is.
@@ -314,6 +337,90 @@ impl Scene {
         }
         None
     }
+    /// The scene as its space treats it: a forward-facing capture in the
+    /// LLFF layout in normalised device coordinates (NeRF, appendix C),
+    /// every other scene as it is. Forward-facing captures in other layouts
+    /// keep their world coordinates: NDC needs the LLFF loader's frame (the
+    /// cameras around the origin looking down −z, nothing nearer than its
+    /// near plane), which only that loader's rescale guarantees.
+    pub fn in_its_space(self) -> Scene {
+        if self.space.space == SceneSpace::ForwardFacing
+            && self.format == SceneFormat::Llff
+            && self.ndc().is_none()
+        {
+            self.with_ndc()
+        } else {
+            self
+        }
+    }
+
+
+    /// The scene with every camera of every split giving its rays in
+    /// normalised device coordinates (NeRF paper, appendix C), for a
+    /// forward-facing capture: the NDC of the first training view's
+    /// intrinsics with the near plane at z = −[`llff::NDC_NEAR`], and the
+    /// box around what the cameras see there (a little beyond [−1, 1] in x
+    /// and y, where cameras beside the reference look; z from −1, the near
+    /// plane, to 1, infinity). It assumes the frame the LLFF loader leaves
+    /// ([`llff`]): the cameras around the origin looking down −z, nothing
+    /// they see nearer than `NDC_NEAR` (the loader puts the nearest bound at
+    /// 1/0.75).
+    pub fn with_ndc(mut self) -> Scene {
+        let Some(reference) = self
+            .photographed_training_views()
+            .first()
+            .or_else(|| self.frames().next())
+            .map(|frame| frame.camera.intrinsics)
+        else {
+            return self;
+        };
+        let ndc = NdcSpace::of(&reference, llff::NDC_NEAR);
+        for frame in self
+            .train
+            .iter_mut()
+            .chain(&mut self.val)
+            .chain(&mut self.test)
+        {
+            frame.camera.ndc = Some(ndc);
+        }
+        self.bounds = self.ndc_bounds();
+        self.unit_cube = UnitCubeMapping::around(&self.bounds);
+        self
+    }
+
+    /// The NDC space the cameras' rays are in, when they are
+    /// ([`Self::with_ndc`]).
+    pub fn ndc(&self) -> Option<NdcSpace> {
+        self.frames().next().and_then(|frame| frame.camera.ndc)
+    }
+
+    /// The box in NDC that holds every camera's rays from the near plane
+    /// to infinity (each view's corner rays at t = 0 and t = 1 along d′),
+    /// at least [−1, 1]³, with z from −1 to 1 and a margin of
+    /// [`NDC_MARGIN`] of the box's side in x and y for rays between pixel
+    /// centres and corners.
+    fn ndc_bounds(&self) -> Aabb {
+        let mut min = Vec3::splat(-1.0);
+        let mut max = Vec3::splat(1.0);
+        for frame in self.frames() {
+            let k = frame.camera.intrinsics;
+            let (w, h) = (k.width as f32, k.height as f32);
+            for (u, v) in [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)] {
+                let ray = frame.camera.ray_through(u, v);
+                for point in [ray.origin, ray.origin + ray.direction_unnormalised] {
+                    if point.is_finite() {
+                        min = min.min(point);
+                        max = max.max(point);
+                    }
+                }
+            }
+        }
+        let margin = NDC_MARGIN * (max - min);
+        Aabb::new(
+            Vec3::new(min.x - margin.x, min.y - margin.y, -1.0),
+            Vec3::new(max.x + margin.x, max.y + margin.y, 1.0),
+        )
+    }
 
     /// Near and far distances (along the unit direction) for a ray: where it
     /// enters and leaves the scene box, or `None` when it misses the box.
@@ -326,10 +433,13 @@ impl Scene {
     /// Loads a scene from disk: a folder in the NeRF-synthetic layout
     /// (`transforms_{train,val,test}.json`, see [`blender`]), the
     /// instant-ngp / nerfstudio layout (`transforms.json`, see
-    /// [`instant_ngp`]) or with a COLMAP model (see [`colmap`]), or the path
+    /// [`instant_ngp`]), the NeRF paper's LLFF layout (`poses_bounds.npy`,
+    /// see [`llff`]) or with a COLMAP model (see [`colmap`]), or the path
     /// of one of those JSON files. A folder
     /// with both prefers the split files, because they carry the dataset's
-    /// own train/val/test division.
+    /// own train/val/test division; then `poses_bounds.npy`, because the
+    /// NeRF paper's captures carry their COLMAP model beside it and a
+    /// transforms.json there is most likely converted from it.
     pub fn load(path: &Path, options: LoadOptions) -> SceneResult<Scene> {
         let scene = Self::load_unchecked(path, options)?;
         scene.check_lenses(path)?;
@@ -419,6 +529,8 @@ impl Scene {
         }
         if blender::is_blender_folder(path) {
             blender::load(path, options)
+        } else if llff::is_llff_folder(path) {
+            llff::load(path, options)
         } else if crate::files::exists_at_all(&path.join(instant_ngp::FILE_NAME)) {
             instant_ngp::load(path, options)
         } else if colmap::is_colmap_folder(path) {
@@ -427,8 +539,9 @@ impl Scene {
             Err(SceneError::not_a_scene(
                 path,
                 "not a scene folder: it holds none of transforms_train.json, \
-                 transforms_val.json, transforms_test.json, transforms.json or a COLMAP \
-                 model (sparse/0/cameras.bin and images.bin, or the .txt forms)",
+                 transforms_val.json, transforms_test.json, transforms.json, LLFF's \
+                 poses_bounds.npy or a COLMAP model (sparse/0/cameras.bin and images.bin, \
+                 or the .txt forms)",
             ))
         }
     }

@@ -34,6 +34,7 @@ pub fn level_camera(camera: &Camera, downscale: u32) -> Camera {
         },
         camera.camera_to_world,
     )
+    .with_ndc(camera.ndc)
 }
 
 /// Rows `first .. first + rows` of `camera`'s image as a camera of their
@@ -50,6 +51,7 @@ pub fn band_camera(camera: &Camera, first: u32, rows: u32) -> Camera {
         },
         camera.camera_to_world,
     )
+    .with_ndc(camera.ndc)
 }
 
 /// Which rows of which view a band draws, and over what.

@@ -23,6 +23,7 @@ mod gpu_context;
 mod hard_cases;
 mod hash_grid_gpu;
 mod layering;
+mod llff;
 mod locks;
 mod march_gpu;
 mod mesh_export;

@@ -772,7 +772,10 @@ fn check_similarity(m: &DMat4) -> Result<(), String> {
 /// identity for scenes whose poses zrak takes as written (NeRF-synthetic,
 /// instant-ngp, the demo), and for a COLMAP model the inverse of the
 /// centring and scaling its loader applies (`zrak = (colmap − centre) ·
-/// scale`, see [`crate::scene::colmap::convert`]).
+/// scale`, see [`crate::scene::colmap::convert`]); for an LLFF capture the
+/// inverse of its rescale and recentring
+/// ([`crate::scene::llff::Normalisation`]), the identity for one built in
+/// memory.
 pub fn scene_to_original(scene: &Scene) -> Result<DMat4, String> {
     match scene.format {
         SceneFormat::Blender | SceneFormat::InstantNgp | SceneFormat::Demo => Ok(DMat4::IDENTITY),
@@ -781,6 +784,13 @@ pub fn scene_to_original(scene: &Scene) -> Result<DMat4, String> {
                 crate::scene::colmap::convert(&scene.root).map_err(|e| e.to_string())?;
             Ok(DMat4::from_translation(converted.centre)
                 * DMat4::from_scale(glam::DVec3::splat(1.0 / converted.scale)))
+        }
+        SceneFormat::Llff if scene.root.as_os_str().is_empty() => Ok(DMat4::IDENTITY),
+        SceneFormat::Llff => {
+            use crate::scene::llff;
+            let views = llff::read_poses_bounds(&scene.root.join(llff::POSES_FILE))
+                .map_err(|e| e.to_string())?;
+            Ok(llff::Normalisation::of(&views).to_original())
         }
     }
 }

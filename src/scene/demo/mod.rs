@@ -25,6 +25,14 @@ use super::{
 };
 use crate::scene::to_u8;
 
+mod forward;
+
+pub use forward::{
+    CAPTURE_RADIUS, FORWARD_CAMERA_DISTANCE, ForwardFacingConfig, WALL_DISTANCE,
+    build_forward_facing, forward_facing_cameras, render_forward_facing_view, view_bounds,
+    viewing_direction, write_forward_facing_llff,
+};
+
 /// Horizontal field of view of every demo camera, NeRF-synthetic's value.
 pub const CAMERA_ANGLE_X: f32 = 0.691_111_2;
 

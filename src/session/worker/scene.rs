@@ -139,6 +139,7 @@ pub(super) fn with_chosen_space(scene: Scene, space: Option<SceneSpace>) -> Scen
         Some(space) => scene.with_space(space),
         None => scene,
     }
+    .in_its_space()
 }
 
 /// Up to `count` held-out views (val, else test, else train), spread over
