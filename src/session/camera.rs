@@ -10,7 +10,7 @@
 use glam::{Mat4, Quat, Vec3};
 
 use crate::render::path::scene_up;
-use crate::scene::{Camera, Intrinsics, Lens, Scene};
+use crate::scene::{Camera, Intrinsics, Lens, NdcSpace, Scene};
 
 /// How the mouse and keys move the camera.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -100,6 +100,9 @@ pub struct ViewCamera {
     /// The lens of the view last snapped to, so that a training view is
     /// rendered through the same distortion as its photograph.
     lens: Lens,
+    /// The scene's normalised device coordinates, where its rays are in
+    /// NDC (a forward-facing capture): the views are rendered in them too.
+    ndc: Option<NdcSpace>,
 }
 
 impl ViewCamera {
@@ -107,8 +110,13 @@ impl ViewCamera {
     /// the yaw axis, starting from the first training camera (its position,
     /// roll and field of view), turned just enough to face the centre.
     pub fn for_scene(scene: &Scene) -> Self {
-        let centre = scene.bounds.centre();
-        let size = scene.bounds.size().length();
+        // A scene in NDC has its box in NDC; the camera moves in the world,
+        // where the LLFF loader puts the cameras about the origin looking
+        // down −z and the nearest content at 1/0.75: orbit a point past it.
+        let (centre, size) = match scene.ndc() {
+            Some(_) => (Vec3::new(0.0, 0.0, -2.0), 4.0),
+            None => (scene.bounds.centre(), scene.bounds.size().length()),
+        };
         let scene_size = if size.is_finite() && size > 0.0 {
             size
         } else {
@@ -127,6 +135,7 @@ impl ViewCamera {
             pixel_aspect: 1.0,
             principal_point: (0.5, 0.5),
             lens: Lens::Pinhole,
+            ndc: scene.ndc(),
         };
         let first = scene.train.first().or_else(|| scene.frames().next());
         match first {
@@ -339,6 +348,7 @@ impl ViewCamera {
             intrinsics,
             Mat4::from_rotation_translation(self.rotation, self.eye()),
         )
+        .with_ndc(self.ndc)
     }
 
     pub fn eye(&self) -> Vec3 {
