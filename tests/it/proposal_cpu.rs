@@ -118,27 +118,88 @@ fn step_gradient_matches_finite_differences_of_each_fields_loss() {
     }
 }
 
-/// Trained for a few hundred steps on the demo scene, the proposal sampler
-/// gives a held-out PSNR well above the mean colour's.
+/// Instant-NGP on the unbounded demo (objects on a ground plane that
+/// runs to the horizon, a sky at infinity) with the sampler its space calls
+/// for: the proposal sampler learns the views well above the mean colour,
+/// puts the ground at its depth and the sky in the contracted far field,
+/// beyond the cameras' region. (The demo's sky is a gradient by elevation
+/// alone, which parallax pins only weakly: after 400 steps it sits at
+/// ~2 frame radii, not at infinity.)
 #[test]
-fn instant_ngp_with_proposals_learns_the_demo_scene() {
+fn on_the_unbounded_demo_proposals_learn_the_views_the_ground_and_a_far_sky() {
+    use zrak::scene::SceneSpace;
+    use zrak::scene::demo::{DemoConfig, build_unbounded, unbounded_depth};
     let _cores = crate::common::shared();
-    let scene: Arc<Scene> = small_scene(48);
+    let scene = Arc::new(build_unbounded(&DemoConfig {
+        size: 48,
+        train_views: 60,
+        val_views: 3,
+        test_views: 1,
+    }));
+    assert_eq!(scene.space.space, SceneSpace::Unbounded);
+    let (sampling, _) = ModelKind::Ngp.sampling_for(scene.space.space);
+    assert_eq!(sampling, Sampling::Proposal);
     let model = CpuModel::build(&proposal_request(256), &scene);
     let mut trainer = Trainer::new(Box::new(model), scene.clone(), 11);
     let views: Vec<_> = scene.val.iter().collect();
     let baseline = mean_colour_psnr(&scene.train, &scene.val);
-    let mut psnr = 0.0;
-    for step in 1..=400 {
+    for step in 1..=STEPS {
         let stats = trainer.step();
-        if step % 50 == 0 {
-            psnr = mean_psnr(trainer.model.as_ref(), &views);
+        if step % 100 == 0 {
             eprintln!(
-                "step {step}: loss {:.4}, interlevel {:.5}, held-out {psnr:.2} dB",
+                "step {step}: loss {:.4}, interlevel {:.5}",
                 stats.loss, stats.proposal_loss
             );
         }
     }
-    eprintln!("proposal sampler on the demo: {psnr:.2} dB (mean colour {baseline:.2} dB)");
+    let psnr = mean_psnr(trainer.model.as_ref(), &views);
+    let recipe = (ModelKind::Ngp.spec().recipe)(&scene, Sampling::Proposal);
+    let radius = recipe.contraction.expect("a contracted recipe").radius;
+    let mut sky_depths = Vec::new();
+    let mut ground_errors = Vec::new();
+    for frame in &scene.val {
+        let camera = &frame.camera;
+        let rays = camera.all_rays();
+        let columns = zrak::model::RayColumns::of(&rays);
+        let mut out = vec![zrak::model::RenderedPixel::default(); rays.len()];
+        trainer.model.render(columns.over([0.0; 3]), &mut out);
+        let width = camera.intrinsics.width as usize;
+        for (index, (pixel, ray)) in out.iter().zip(&rays).enumerate() {
+            let (u, v) = ((index % width) as f32 + 0.5, (index / width) as f32 + 0.5);
+            let _ = ray;
+            let depth = pixel.depth / pixel.opacity.max(1e-6);
+            match unbounded_depth(camera, u, v) {
+                None => sky_depths.push(depth),
+                // The ground and objects within the cameras' region.
+                Some(truth) if truth < radius => {
+                    ground_errors.push((depth - truth).abs() / truth);
+                }
+                Some(_) => {}
+            }
+        }
+    }
+    let median = |v: &mut Vec<f32>| {
+        v.sort_by(f32::total_cmp);
+        v[v.len() / 2]
+    };
+    let (sky, near) = (sky_depths.len(), ground_errors.len());
+    let sky_depth = median(&mut sky_depths);
+    let ground_error = median(&mut ground_errors);
+    let beyond = sky_depths.iter().filter(|&&d| d > radius).count();
+    eprintln!(
+        "unbounded demo, {STEPS} steps: {psnr:.2} dB (mean colour {baseline:.2} dB); \
+         median sky depth {sky_depth:.1} (frame radius {radius:.1}), {beyond} of {sky} sky \
+         pixels beyond it; median relative depth error of {near} nearby pixels {ground_error:.3}"
+    );
+    // Measured on a 2-core Zen 4: 25.0 dB against 14.3 dB.
     assert!(psnr > baseline + 6.0, "{psnr} vs mean colour {baseline}");
+    assert!(sky > 100 && near > 100, "{sky} sky and {near} nearby pixels");
+    assert!(
+        beyond * 10 >= sky * 9,
+        "{beyond} of {sky} sky pixels beyond the frame radius {radius}"
+    );
+    assert!(ground_error < 0.2, "median relative depth error {ground_error}");
 }
+
+/// Training steps of the unbounded demo's test.
+const STEPS: u32 = 400;
