@@ -61,7 +61,9 @@ impl CpuModel {
                 set_len(&mut lb.rgb, 3 * n);
                 let variances = (self.core.recipe.samples == SampleShape::ConicalFrustums)
                     .then_some(&lb.variances[..]);
-                self.fields[level.field].forward(
+                let field =
+                    Self::level_field(&mut self.fields, &mut self.twins, level_index, level.field);
+                field.forward(
                     field_params,
                     &lb.positions,
                     variances,
@@ -94,19 +96,25 @@ impl CpuModel {
                 if let Some(contraction) = self.core.recipe.contraction {
                     let weight = self.core.recipe.distortion;
                     if weight > 0.0 {
-                        distortion_in_spacing(lb, &contraction, weight / rays as f32, &mut b.proposal);
+                        distortion_in_spacing(
+                            lb,
+                            &contraction,
+                            weight / rays as f32,
+                            &mut b.proposal,
+                        );
                     }
                 }
                 times[Stage::Composite] += clock.elapsed().as_secs_f64();
 
                 let clock = Instant::now();
-                self.fields[level.field].backward(
-                    field_params,
-                    &lb.d_sigma,
-                    &lb.d_rgb,
-                    &mut b.gradients[field_range],
-                    Gradient::Add,
-                );
+                Self::level_field(&mut self.fields, &mut self.twins, level_index, level.field)
+                    .backward(
+                        field_params,
+                        &lb.d_sigma,
+                        &lb.d_rgb,
+                        &mut b.gradients[field_range],
+                        Gradient::Add,
+                    );
                 times[Stage::NetworksBackward] += clock.elapsed().as_secs_f64();
             }
             proposal_loss += self.train_proposals(chunk_rays, rays, &mut times);
@@ -175,7 +183,7 @@ impl CpuModel {
             let range = self.core.ranges[level.field].clone();
             times[Stage::Composite] += clock.elapsed().as_secs_f64();
             let backward = Instant::now();
-            self.fields[level.field].backward(
+            Self::level_field(&mut self.fields, &mut self.twins, index, level.field).backward(
                 &self.params[range.clone()],
                 &lb.d_sigma,
                 &lb.d_rgb,

@@ -147,6 +147,11 @@ pub struct CpuModel {
     /// The sampler of each fixed-count level (none for a recipe that
     /// marches through the occupancy grid).
     samplers: Vec<Box<dyn LevelSampler>>,
+    /// Per level: a twin of its field ([`Field::twin`]) where an earlier
+    /// proposal level evaluates the same field, so each round keeps its
+    /// own activations until the proposals' backward passes; `None` where
+    /// the level uses the field itself.
+    twins: Vec<Option<Box<dyn Field>>>,
 }
 
 impl CpuModel {
@@ -221,17 +226,36 @@ impl CpuModel {
             "a field of unit-cube positions takes points (frustums are placed in world units)"
         );
         assert!(
-            recipe.contraction.is_none() || recipe.samples == SampleShape::Points,
-            "contracted frustums are not on the cpu engine yet"
-        );
-        assert!(
-            recipe
+            recipe.levels.iter().filter(|l| !l.colour).all(|p| recipe
                 .levels
                 .iter()
-                .filter(|l| !l.colour)
-                .all(|p| recipe.levels.iter().filter(|l| l.field == p.field).count() == 1),
-            "a proposal level's field serves it alone: its backward pass waits for the final level"
+                .all(|l| l.field != p.field || !l.colour)),
+            "a proposal level's field serves proposal levels only: their backward passes wait \
+             for the final level"
         );
+        // A proposal field that serves several rounds (Mip-NeRF 360's)
+        // evaluates each after the first through a twin, with activations
+        // of its own: the rounds' backward passes all follow the final
+        // level, each on its own round's activations, adding to the one
+        // gradient of the shared parameters.
+        let twins = recipe
+            .levels
+            .iter()
+            .enumerate()
+            .map(|(index, level)| {
+                let shared = recipe.levels[..index]
+                    .iter()
+                    .any(|earlier| earlier.field == level.field);
+                (!level.colour && shared).then(|| {
+                    fields[level.field].twin().unwrap_or_else(|| {
+                        panic!(
+                            "field {} serves several proposal rounds but has no twin",
+                            level.field
+                        )
+                    })
+                })
+            })
+            .collect();
         let mapping = scene.unit_cube;
         let grid = core.occupancy_grid(&mapping);
         Self {
@@ -251,6 +275,21 @@ impl CpuModel {
             used_fraction: 1.0,
             crop: None,
             samplers,
+            twins,
+        }
+    }
+
+    /// The field that evaluates level `level` (of field `field`) in a
+    /// step: its twin where it has one, else the field.
+    fn level_field<'a>(
+        fields: &'a mut [Box<dyn Field>],
+        twins: &'a mut [Option<Box<dyn Field>>],
+        level: usize,
+        field: usize,
+    ) -> &'a mut dyn Field {
+        match twins.get_mut(level) {
+            Some(Some(twin)) => twin.as_mut(),
+            _ => fields[field].as_mut(),
         }
     }
 
