@@ -440,20 +440,38 @@ pub(super) fn sample_level(
             }
             set_len(&mut lb.positions, 3 * n);
             set_len(&mut lb.variances, 3 * n);
-            frustum_gaussians(
-                chunk.origins,
-                chunk.directions,
-                chunk.radii,
-                &scratch.rays,
-                &scratch.starts,
-                &scratch.ends,
-                &mut lb.positions,
-                &mut lb.variances,
-            );
+            match inputs.contraction {
+                // The Gaussians in contracted space: the positions are the
+                // field's inputs already.
+                Some(contraction) => contracted_frustum_gaussians(
+                    chunk.origins,
+                    chunk.directions,
+                    chunk.radii,
+                    &scratch.rays,
+                    &scratch.starts,
+                    &scratch.ends,
+                    &contraction,
+                    &mut lb.positions,
+                    &mut lb.variances,
+                ),
+                None => frustum_gaussians(
+                    chunk.origins,
+                    chunk.directions,
+                    chunk.radii,
+                    &scratch.rays,
+                    &scratch.starts,
+                    &scratch.ends,
+                    &mut lb.positions,
+                    &mut lb.variances,
+                ),
+            }
             set_len(&mut lb.directions, 3 * n);
             for (d, &r) in lb.directions.chunks_exact_mut(3).zip(&scratch.rays) {
                 d.copy_from_slice(&chunk.directions[3 * r as usize..][..3]);
             }
+            // Frustums are placed in world units (the driver refuses
+            // unit-cube fields of frustums), or contracted above.
+            return;
         }
     }
     inputs.map_in_place(&mut lb.positions);
