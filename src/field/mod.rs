@@ -367,14 +367,17 @@ impl FieldShape {
     /// proposal field, beside a field of this shape (`None` where the
     /// model has no proposal fields). NeRF's and Mip-NeRF's recipes have
     /// one, which serves both proposal rounds (Mip-NeRF 360's one
-    /// proposal MLP).
+    /// proposal MLP), of the same shape whatever its index.
     pub fn proposal(&self, index: usize) -> Option<FieldShape> {
         match self {
             FieldShape::Ngp(_) => ngp::PROPOSAL_FINEST
                 .get(index)
                 .map(|&finest| FieldShape::Density(ngp::DensityShape::proposal(finest))),
-            FieldShape::Nerf(shape) => (index == 0)
-                .then(|| FieldShape::NerfDensity(nerf::NerfDensityShape::proposal(shape))),
+            // Any number of the same MLP (a recipe may give each round its
+            // own, as a test of the shared one does).
+            FieldShape::Nerf(shape) => Some(FieldShape::NerfDensity(
+                nerf::NerfDensityShape::proposal(shape),
+            )),
             FieldShape::Density(_) | FieldShape::NerfDensity(_) => None,
         }
     }

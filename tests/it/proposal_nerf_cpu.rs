@@ -144,6 +144,15 @@ fn step_gradient_matches_finite_differences_of_each_fields_loss() {
         }
         let mut model = CpuModel::build(&request, &scene);
         model.params_mut().copy_from_slice(trained.params());
+        // The proposal MLP's σ bias lowered, so that both rounds' weights
+        // fall short of the final level's somewhere and each round's
+        // interlevel loss has a gradient: a round whose bounds all hold
+        // adds nothing, and a backward pass of the one round on the other
+        // round's activations would then go unseen.
+        let small = zrak::field::nerf::NerfDensityShape::proposal(&small_nerf_shape(kind));
+        let last = small.network.layers() - 1;
+        let bias = model.parameter_ranges()[0].start + small.network.bias_offset(last).unwrap();
+        model.params_mut()[bias] -= 3.0;
         model.hold_samples(true);
         let rays = batch(&scene, 24, 9);
         let step = 77;
@@ -184,6 +193,79 @@ fn step_gradient_matches_finite_differences_of_each_fields_loss() {
                 );
             }
         }
+    }
+}
+
+/// The one proposal MLP that serves both rounds gets the sum of the
+/// gradients two MLPs holding its parameters, one per round, get: each
+/// round's backward pass runs on its own round's activations (a twin of
+/// the field keeps them), none is lost or counted twice. Same parameters
+/// draw the same samples, so the two models evaluate the same intervals.
+#[test]
+fn one_proposal_mlp_for_both_rounds_gets_the_sum_of_two_mlps_gradients() {
+    let _cores = crate::common::shared();
+    let scene = unbounded_scene(16, 8);
+    for kind in [NerfKind::Nerf, NerfKind::MipNerf] {
+        let shared_recipe = (model_kind(kind).spec().recipe)(&scene, Sampling::Proposal);
+        let mut apart_recipe = shared_recipe.clone();
+        apart_recipe.fields = 3;
+        apart_recipe.levels[1].field = 1;
+        apart_recipe.levels[2].field = 2;
+        let request =
+            |recipe| proposal_request(kind, 24, small_nerf_shape(kind)).with_recipe(recipe);
+        let mut shared = CpuModel::build(&request(shared_recipe), &scene);
+        for step in 0..10 {
+            shared.step(&batch(&scene, 24, 100 + step), step as u32);
+        }
+        // The σ bias lowered, so that both rounds fall short of the final
+        // weights somewhere (as in the finite-difference test).
+        let small = zrak::field::nerf::NerfDensityShape::proposal(&small_nerf_shape(kind));
+        let bias = small
+            .network
+            .bias_offset(small.network.layers() - 1)
+            .unwrap();
+        shared.params_mut()[bias] -= 3.0;
+        let mut apart = CpuModel::build(&request(apart_recipe), &scene);
+        let ranges = shared.parameter_ranges().to_vec();
+        let (proposal, field) = (ranges[0].clone(), ranges[1].clone());
+        let apart_ranges = apart.parameter_ranges().to_vec();
+        for (index, range) in [(0, &proposal), (1, &proposal), (2, &field)] {
+            let values = shared.params()[range.clone()].to_vec();
+            apart.params_mut()[apart_ranges[index].clone()].copy_from_slice(&values);
+        }
+        let rays = batch(&scene, 24, 9);
+        let one = shared.forward_backward(&rays, 5);
+        let two = apart.forward_backward(&rays, 5);
+        assert!(
+            (one.loss - two.loss).abs() <= 1e-6 * one.loss,
+            "{kind:?}: {one:?} {two:?}"
+        );
+        let g = apart.gradients();
+        let first = &g[apart_ranges[0].clone()];
+        let second = &g[apart_ranges[1].clone()];
+        let norm = |v: &[f32]| v.iter().map(|&x| (x as f64).powi(2)).sum::<f64>().sqrt();
+        // Both rounds contribute: otherwise the sum says nothing of which
+        // activations a round's backward pass used.
+        assert!(
+            norm(first) > 0.01 * norm(second) && norm(second) > 0.01 * norm(first),
+            "{kind:?}: rounds' gradients {} and {}",
+            norm(first),
+            norm(second)
+        );
+        let sum: Vec<f32> = first.iter().zip(second).map(|(a, b)| a + b).collect();
+        // The same products, summed in another order where one buffer
+        // takes both rounds: f32 rounding, ~1e-7 of each sum.
+        let difference = crate::common::relative_norm(&shared.gradients()[proposal], &sum);
+        assert!(
+            difference < 1e-5,
+            "{kind:?}: proposal gradient off by {difference:e}"
+        );
+        let difference =
+            crate::common::relative_norm(&shared.gradients()[field], &g[apart_ranges[2].clone()]);
+        assert!(
+            difference < 1e-5,
+            "{kind:?}: field gradient off by {difference:e}"
+        );
     }
 }
 
