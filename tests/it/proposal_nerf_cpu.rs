@@ -292,8 +292,14 @@ fn medium_shape(kind: NerfKind) -> NerfShape {
     shape.with_colour_padding(paper.colour_padding)
 }
 
-/// Trained for a few hundred steps on the unbounded demo, each model with
-/// the proposal sampler gives a held-out PSNR well above the mean colour's.
+/// Trained for 1000 steps of 128 rays on the unbounded demo, each model
+/// with the proposal sampler gives a held-out PSNR well above the mean
+/// colour's. Measured (seed 11, 32 px, 40 views): the mean colour 14.5 dB;
+/// NeRF 18.7 dB at step 400 and 21.3 at 1000, Mip-NeRF (whose learning
+/// rate warms up over 2500 steps) 16.9 and 20.3: a margin of 4 dB leaves
+/// 1.7 dB for other machines' rounding, and a sampler that put the
+/// field's samples where nothing is (the sky's far interval only, say)
+/// stays near the mean colour. ~30 s each on two cores.
 fn learns_the_unbounded_demo(kind: NerfKind) {
     let _cores = crate::common::shared();
     let scene = unbounded_scene(32, 40);
@@ -302,9 +308,9 @@ fn learns_the_unbounded_demo(kind: NerfKind) {
     let views: Vec<_> = scene.val.iter().collect();
     let baseline = mean_colour_psnr(&scene.train, &scene.val);
     let mut psnr = 0.0;
-    for step in 1..=400 {
+    for step in 1..=1000 {
         let stats = trainer.step();
-        if step % 100 == 0 {
+        if step % 200 == 0 {
             psnr = mean_psnr(trainer.model.as_ref(), &views);
             eprintln!(
                 "{kind:?} step {step}: loss {:.4}, interlevel {:.5}, held-out {psnr:.2} dB",
