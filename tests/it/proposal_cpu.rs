@@ -53,11 +53,7 @@ fn a_step_evaluates_48_field_samples_and_the_proposals_apart() {
             .sum();
         assert!(norm > 0.0, "field {field} has no gradient");
     }
-    assert!(
-        model.describe().contains("proposal"),
-        "{}",
-        model.describe()
-    );
+    assert!(model.describe().contains("proposal"), "{}", model.describe());
 }
 
 /// With the samples held still, a proposal field's parameters change only
