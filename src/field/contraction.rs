@@ -93,6 +93,14 @@ impl Contraction {
         self.contract_world(world) * 0.25 + Vec3::splat(0.5)
     }
 
+    /// A world Gaussian (mean, covariance) in the frame's units and through
+    /// the contraction's linearisation at its mean ([`contract_gaussian`]):
+    /// Mip-NeRF 360's frustums in contracted space (eq. 9–10).
+    pub fn contract_world_gaussian(&self, mean: Vec3, covariance: Mat3) -> (Vec3, Mat3) {
+        let scale = 1.0 / (self.radius * self.radius);
+        contract_gaussian(self.to_frame(mean), covariance * scale, self.norm)
+    }
+
     /// A world distance along a ray in the frame's units.
     pub fn to_frame_distance(&self, t: f32) -> f32 {
         t / self.radius

@@ -73,9 +73,18 @@ pub const OPTIMISER: OptimiserConfig = OptimiserConfig {
     },
 };
 
+/// Mip-NeRF with the proposal sampler, as Mip-NeRF 360 trains it: its
+/// levels (`nerf::proposal_levels`) on conical frustums, each frustum's
+/// Gaussian carried through the contraction's linearisation (Mip-NeRF 360,
+/// eq. 9–10), with Mip-NeRF's optimiser.
+pub fn proposal_recipe(scene: &crate::scene::Scene) -> Recipe {
+    nerf::proposal_levels(scene, SampleShape::ConicalFrustums, OPTIMISER)
+}
+
 /// Mip-NeRF as trained with `sampling`: the paper's two levels of one
 /// network, or one level marched through NeRF's occupancy grid (the same
-/// network cost per sample, so the same grid, step and batch as NeRF's).
+/// network cost per sample, so the same grid, step and batch as NeRF's);
+/// the proposal sampler's is [`proposal_recipe`].
 /// Blender scenes sample between the reference's near and far planes (2 and
 /// 6, `Config.near` / `far`, NeRF's); other scenes inside their box.
 pub fn recipe(sampling: Sampling, blender_scene: bool) -> Recipe {
@@ -110,9 +119,7 @@ pub fn recipe(sampling: Sampling, blender_scene: bool) -> Recipe {
             ],
             BatchSize::Rays(PAPER_RAYS_PER_BATCH),
         ),
-        // NeRF's and Mip-NeRF's proposal fields are still to come: their
-        // rows do not list the proposal sampler, so no command asks for it.
-        Sampling::Occupancy | Sampling::Proposal => (
+        Sampling::Occupancy => (
             vec![Level {
                 sampler: SamplerKind::Occupancy,
                 field: 0,
@@ -121,6 +128,7 @@ pub fn recipe(sampling: Sampling, blender_scene: bool) -> Recipe {
             }],
             BatchSize::Samples(nerf::OCCUPANCY_SAMPLES_PER_BATCH),
         ),
+        Sampling::Proposal => unreachable!("the proposal sampler's recipe is `proposal_recipe`"),
     };
     Recipe {
         levels,

@@ -232,9 +232,13 @@ pub const MODELS: &[ModelSpec] = &[
         samplings: &[
             crate::field::common::Sampling::Occupancy,
             crate::field::common::Sampling::Paper,
+            crate::field::common::Sampling::Proposal,
         ],
         colour: [0xe8, 0x8a, 0x3c],
-        recipe: |scene, sampling| nerf::recipe(sampling, scene.format == SceneFormat::Blender),
+        recipe: |scene, sampling| match sampling {
+            crate::field::common::Sampling::Proposal => nerf::proposal_recipe(scene),
+            _ => nerf::recipe(sampling, scene.format == SceneFormat::Blender),
+        },
         shape: |_, _| nerf::NerfShape::paper().into(),
         unnamed_sampling: None,
         gpu_batch_samples: Some(nerf::GPU_OCCUPANCY_SAMPLES_PER_BATCH),
@@ -256,9 +260,13 @@ pub const MODELS: &[ModelSpec] = &[
         samplings: &[
             crate::field::common::Sampling::Occupancy,
             crate::field::common::Sampling::Paper,
+            crate::field::common::Sampling::Proposal,
         ],
         colour: [0x5c, 0xc0, 0x6a],
-        recipe: |scene, sampling| mipnerf::recipe(sampling, scene.format == SceneFormat::Blender),
+        recipe: |scene, sampling| match sampling {
+            crate::field::common::Sampling::Proposal => mipnerf::proposal_recipe(scene),
+            _ => mipnerf::recipe(sampling, scene.format == SceneFormat::Blender),
+        },
         shape: |_, _| nerf::NerfShape::mipnerf().into(),
         unnamed_sampling: None,
         gpu_batch_samples: Some(nerf::GPU_OCCUPANCY_SAMPLES_PER_BATCH),
@@ -282,6 +290,9 @@ pub enum FieldShape {
     Nerf(NerfShape),
     /// A density-only field on a small hash grid: a proposal level's.
     Density(ngp::DensityShape),
+    /// A density-only MLP on NeRF's or Mip-NeRF's position encoding: their
+    /// proposal levels' (Mip-NeRF 360's proposal MLP).
+    NerfDensity(nerf::NerfDensityShape),
 }
 
 impl From<NgpShape> for FieldShape {
@@ -310,6 +321,7 @@ impl FieldShape {
             FieldShape::Ngp(shape) => shape.layout(),
             FieldShape::Nerf(shape) => shape.layout(),
             FieldShape::Density(shape) => shape.layout(),
+            FieldShape::NerfDensity(shape) => shape.layout(),
         }
     }
 
@@ -319,6 +331,7 @@ impl FieldShape {
             FieldShape::Ngp(shape) => shape.init_params(seed),
             FieldShape::Nerf(shape) => shape.init_params(seed),
             FieldShape::Density(shape) => shape.init_params(seed),
+            FieldShape::NerfDensity(shape) => shape.init_params(seed),
         }
     }
 
@@ -330,7 +343,9 @@ impl FieldShape {
     pub fn init_seed(&self, model_seed: u64, index: usize) -> u64 {
         match self {
             FieldShape::Ngp(_) => model_seed,
-            FieldShape::Nerf(_) | FieldShape::Density(_) => field_seed(model_seed, index),
+            FieldShape::Nerf(_) | FieldShape::Density(_) | FieldShape::NerfDensity(_) => {
+                field_seed(model_seed, index)
+            }
         }
     }
 
@@ -341,18 +356,28 @@ impl FieldShape {
             FieldShape::Ngp(shape) => FieldShape::Ngp(shape.with_precision(precision)),
             FieldShape::Nerf(shape) => FieldShape::Nerf(shape.with_precision(precision)),
             FieldShape::Density(shape) => FieldShape::Density(shape.with_precision(precision)),
+            FieldShape::NerfDensity(shape) => {
+                FieldShape::NerfDensity(shape.with_precision(precision))
+            }
         }
     }
 
     /// The shape of the proposal field that is the model's `index`-th
-    /// proposal level's, beside a field of this shape (`None` where the
-    /// model has no proposal fields).
+    /// proposal field, beside a field of this shape (`None` where the
+    /// model has no proposal fields). NeRF's and Mip-NeRF's recipes have
+    /// one, which serves both proposal rounds (Mip-NeRF 360's one
+    /// proposal MLP), of the same shape whatever its index.
     pub fn proposal(&self, index: usize) -> Option<FieldShape> {
         match self {
             FieldShape::Ngp(_) => ngp::PROPOSAL_FINEST
                 .get(index)
                 .map(|&finest| FieldShape::Density(ngp::DensityShape::proposal(finest))),
-            FieldShape::Nerf(_) | FieldShape::Density(_) => None,
+            // Any number of the same MLP (a recipe may give each round its
+            // own, as a test of the shared one does).
+            FieldShape::Nerf(shape) => Some(FieldShape::NerfDensity(
+                nerf::NerfDensityShape::proposal(shape),
+            )),
+            FieldShape::Density(_) | FieldShape::NerfDensity(_) => None,
         }
     }
 
@@ -439,16 +464,22 @@ mod spec_tests {
     fn an_unbounded_scene_gets_the_proposal_sampler_where_the_model_has_one() {
         use crate::scene::SceneSpace;
         let ngp = ModelKind::Ngp;
-        assert_eq!(ngp.sampling_for(SceneSpace::Unbounded).0, Sampling::Proposal);
+        assert_eq!(
+            ngp.sampling_for(SceneSpace::Unbounded).0,
+            Sampling::Proposal
+        );
         assert_eq!(ngp.sampling_for(SceneSpace::Object).0, Sampling::Occupancy);
         assert_eq!(
             ngp.sampling_for(SceneSpace::ForwardFacing).0,
             Sampling::Occupancy
         );
-        assert_eq!(
-            ModelKind::Nerf.sampling_for(SceneSpace::Unbounded).0,
-            Sampling::Occupancy
-        );
+        for nerf in [ModelKind::Nerf, ModelKind::MipNerf] {
+            assert_eq!(
+                nerf.sampling_for(SceneSpace::Unbounded).0,
+                Sampling::Proposal
+            );
+            assert_eq!(nerf.sampling_for(SceneSpace::Object).0, Sampling::Occupancy);
+        }
         assert_eq!(
             ngp.choose_sampling(Some(Sampling::Occupancy), SceneSpace::Unbounded),
             Ok(Sampling::Occupancy)

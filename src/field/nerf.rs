@@ -11,6 +11,7 @@ use super::common::{
     BatchSize, Level, LrSchedule, MarchConfig, OccupancyConfig, OptimiserConfig, RayBounds, Recipe,
     SampleShape, SamplerKind, Sampling,
 };
+use super::contraction::{Contraction, ContractionNorm};
 use super::encoding::FrequencyEncoding;
 use super::mlp::{Activation, MlpLayout, Precision};
 use super::params::{ParamLayout, Update};
@@ -130,7 +131,124 @@ pub const OCCUPANCY_SAMPLES_PER_BATCH: usize = 1 << 14;
 /// which 1.3 ms waited on the host and 2 ms were per-step fixed work).
 pub const GPU_OCCUPANCY_SAMPLES_PER_BATCH: usize = 1 << 16;
 
-/// NeRF as trained with `sampling`. Blender scenes sample between the
+// The proposal sampler for unbounded scenes (`--sampling proposal`), for
+// NeRF and Mip-NeRF: Mip-NeRF 360's (Barron et al. 2022, section 2.1 and
+// its appendix). "multinerf" is its code (google-research/multinerf):
+// `internal/models.py` (`Model`, `MLP`, `PropMLP`), `internal/configs.py`
+// (`Config`) and `configs/360.gin`.
+
+/// Proposal samples per ray, round by round (multinerf `Model`:
+/// `num_prop_samples` 64, `num_levels` 3, i.e. two proposal rounds).
+pub const PROPOSAL_SAMPLES: [usize; 2] = [64, 64];
+
+/// The full field's samples per ray (multinerf `Model`:
+/// `num_nerf_samples` 32).
+pub const PROPOSAL_FIELD_SAMPLES: usize = 32;
+
+/// The proposal MLP's layers and width (multinerf `configs/360.gin`:
+/// `PropMLP.net_depth` 4, `PropMLP.net_width` 256, `PropMLP.disable_rgb`):
+/// σ only, from a linear head on the last layer. Its `skip_layer` 4 puts
+/// no skip in a 4-layer trunk (the input joins after layer i only where
+/// i % 4 = 0 and i > 0).
+pub const PROPOSAL_LAYERS: usize = 4;
+pub const PROPOSAL_WIDTH: usize = 256;
+
+/// The proposal MLP's σ = softplus(raw − 1) (multinerf `MLP`:
+/// `density_activation` softplus, `density_bias` −1), for NeRF's too:
+/// Mip-NeRF 360's proposal MLP, whose σ never stops learning where ReLU's
+/// would die.
+pub const PROPOSAL_DENSITY: DensityActivation = DensityActivation::ShiftedSoftplus { shift: 1.0 };
+
+/// Near and far bounds of every ray in the contraction frame's units
+/// (multinerf `configs/360.gin`: `Config.near` 0.2, `Config.far` 1e6, in
+/// its poses normalised to about the unit cube, as the frame here is).
+pub const PROPOSAL_NEAR: f32 = 0.2;
+pub const PROPOSAL_FAR: f32 = 1e6;
+
+/// λ of the interlevel loss (multinerf `Config.interlevel_loss_mult` 1).
+pub const PROPOSAL_INTERLEVEL: f32 = 1.0;
+
+/// λ of the distortion loss on the final level, in the spacing coordinate
+/// s (multinerf `Config.distortion_loss_mult` 0.01).
+pub const PROPOSAL_DISTORTION: f32 = 0.01;
+
+/// Padding added to each weight before resampling. multinerf has none
+/// (`resample_padding` 0) but dilates each proposal's intervals and anneals
+/// the weights early in training (`dilation_multiplier`, `anneal_slope`),
+/// which the engine's proposal levels do not; nerfstudio's padding of 0.01
+/// (`PDFSampler`, `histogram_padding`, also Instant-NGP's here) keeps a
+/// share of the samples everywhere in their place.
+pub const PROPOSAL_PADDING: f32 = 0.01;
+
+/// Rays per batch on the cpu engine. multinerf trains 16,384 rays a step
+/// (`Config.batch_size`) on accelerators; a ray here costs 64 + 64
+/// evaluations of the 4 × 256 proposal MLP (~0.2 M multiply-adds each)
+/// and 32 of the 8 × 256 field (~0.6 M), ~46 M forward, so 256 rays cost
+/// what the occupancy sampler's 2^14 samples of the field do (~10 G), a
+/// step of a fraction of a second on two cores.
+pub const PROPOSAL_RAYS_PER_BATCH: usize = 256;
+
+/// The contraction of `scene` for NeRF's and Mip-NeRF's fields: L2, the
+/// ball of Mip-NeRF 360 (eq. 10), its frame around the training cameras.
+pub fn proposal_contraction(scene: &crate::scene::Scene) -> Contraction {
+    let positions: Vec<glam::Vec3> = scene
+        .photographed_training_views()
+        .iter()
+        .map(|frame| frame.camera.position())
+        .collect();
+    Contraction::around_cameras(&positions, ContractionNorm::L2)
+}
+
+/// Mip-NeRF 360's levels and losses for a model of `samples` with
+/// `optimiser`: two rounds of one proposal MLP (field 0; multinerf's one
+/// `PropMLP` serves every proposal round) then the full field (field 1),
+/// in `scene`'s contracted space.
+pub fn proposal_levels(
+    scene: &crate::scene::Scene,
+    samples: SampleShape,
+    optimiser: OptimiserConfig,
+) -> Recipe {
+    let contraction = proposal_contraction(scene);
+    let [first, second] = PROPOSAL_SAMPLES;
+    let resample = |count| SamplerKind::ProposalResample {
+        count,
+        padding: PROPOSAL_PADDING,
+    };
+    Recipe {
+        levels: vec![
+            Level::proposal(SamplerKind::SpacedIntervals { count: first }, 0),
+            Level::proposal(resample(second), 0),
+            Level::radiance(resample(PROPOSAL_FIELD_SAMPLES), 1, 1.0),
+        ],
+        fields: 2,
+        samples,
+        batch: BatchSize::Rays(PROPOSAL_RAYS_PER_BATCH),
+        bounds: RayBounds::Fixed {
+            near: PROPOSAL_NEAR * contraction.radius,
+            far: PROPOSAL_FAR * contraction.radius,
+        },
+        optimiser,
+        // Unused: no level marches.
+        march: MARCH,
+        occupancy: OCCUPANCY,
+        distortion: PROPOSAL_DISTORTION,
+        // The centre crop is for objects on an empty background; an
+        // unbounded scene has content in every pixel (multinerf has none).
+        centre_crop: None,
+        contraction: Some(contraction),
+        interlevel: PROPOSAL_INTERLEVEL,
+    }
+}
+
+/// NeRF with the proposal sampler: Mip-NeRF 360's levels on points (each
+/// interval's midpoint) and NeRF's optimiser.
+pub fn proposal_recipe(scene: &crate::scene::Scene) -> Recipe {
+    proposal_levels(scene, SampleShape::Points, OPTIMISER)
+}
+
+/// NeRF as trained with `sampling`, the paper's sampler or the occupancy
+/// grid (the proposal sampler's is [`proposal_recipe`]: its contraction
+/// needs the scene's cameras). Blender scenes sample between the
 /// paper's near and far planes; other scenes between the entry and exit of
 /// their box.
 pub fn recipe(sampling: Sampling, blender_scene: bool) -> Recipe {
@@ -171,9 +289,7 @@ pub fn recipe(sampling: Sampling, blender_scene: bool) -> Recipe {
         // The grid does the coarse network's job (finding where the
         // content is), so one network remains, as nerfacc trains NeRF
         // with its occupancy estimator.
-        // NeRF's and Mip-NeRF's proposal fields are still to come: their
-        // rows do not list the proposal sampler, so no command asks for it.
-        Sampling::Occupancy | Sampling::Proposal => (
+        Sampling::Occupancy => (
             vec![Level {
                 sampler: SamplerKind::Occupancy,
                 field: 0,
@@ -183,6 +299,7 @@ pub fn recipe(sampling: Sampling, blender_scene: bool) -> Recipe {
             1,
             BatchSize::Samples(OCCUPANCY_SAMPLES_PER_BATCH),
         ),
+        Sampling::Proposal => unreachable!("the proposal sampler's recipe is `proposal_recipe`"),
     };
     Recipe {
         levels,
@@ -370,5 +487,68 @@ impl NerfShape {
             density,
             colour_padding: 0.0,
         }
+    }
+}
+
+/// A density-only NeRF-shaped field: the proposal MLP of Mip-NeRF 360
+/// (multinerf `PropMLP`): the position's encoding → ReLU layers → σ, no
+/// skip and no colour.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NerfDensityShape {
+    pub position: FrequencyEncoding,
+    /// Encoded position → hidden ReLU layers → raw σ (linear).
+    pub network: MlpLayout,
+    pub density: DensityActivation,
+}
+
+impl NerfDensityShape {
+    /// `layers` ReLU layers of `width` on `position`'s encoding.
+    pub fn new(
+        position: FrequencyEncoding,
+        width: usize,
+        layers: usize,
+        density: DensityActivation,
+    ) -> Self {
+        let mut widths = vec![position.output_width()];
+        widths.extend(std::iter::repeat_n(width, layers));
+        widths.push(1);
+        Self {
+            position,
+            network: MlpLayout::new(widths, Activation::Relu, Activation::None, true),
+            density,
+        }
+    }
+
+    /// The proposal MLP beside the field `beside`: its position encoding
+    /// (points for NeRF, frustums for Mip-NeRF), [`PROPOSAL_LAYERS`] layers
+    /// of [`PROPOSAL_WIDTH`] (never wider than the field it samples for:
+    /// Mip-NeRF 360's is a quarter of its NeRF MLP's 1024; tests' small
+    /// fields get small proposals), σ as [`PROPOSAL_DENSITY`].
+    pub fn proposal(beside: &NerfShape) -> Self {
+        let width = PROPOSAL_WIDTH.min(beside.trunk_a.output_width());
+        Self::new(beside.position, width, PROPOSAL_LAYERS, PROPOSAL_DENSITY)
+    }
+
+    /// One dense network, updated every step (with the optimiser's weight
+    /// decay, none in NeRF's and Mip-NeRF's).
+    pub fn layout(&self) -> ParamLayout {
+        ParamLayout::new().with(
+            "proposal network",
+            self.network.param_count(),
+            Update::Dense { l2: true },
+        )
+    }
+
+    pub fn init_params(&self, seed: u64) -> Vec<f32> {
+        self.network.init_params(seed ^ 0x7072_6f70)
+    }
+
+    pub fn macs_per_sample(&self) -> usize {
+        self.network.macs_per_row()
+    }
+
+    pub fn with_precision(mut self, precision: Precision) -> Self {
+        self.network = self.network.with_precision(precision);
+        self
     }
 }

@@ -26,7 +26,7 @@
 //! No gradient flows into the frustums (sample positions are not learned),
 //! so only the forward pass exists.
 
-use glam::Vec3;
+use glam::{Mat3, Vec3};
 
 /// Moments of one frustum along and across the cone's axis.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -88,4 +88,23 @@ pub fn frustum_gaussian(
     let along = direction * direction;
     let variance = along * m.t_variance + (Vec3::ONE - along).max(Vec3::ZERO) * m.radial_variance;
     (origin + direction * m.t_mean, variance)
+}
+
+/// The world-space Gaussian of a frustum with its full covariance,
+/// σ_t² ddᵀ + σ_r² (I − ddᵀ) for a unit `direction` d (Mip-NeRF, eq. 7;
+/// reference `lift_gaussian` with `diag=False`): what a non-linear map of
+/// space (Mip-NeRF 360's contraction) carries through its Jacobian, where
+/// the integrated encoding alone needs only the diagonal.
+pub fn frustum_gaussian_full(
+    origin: Vec3,
+    direction: Vec3,
+    radius: f32,
+    t0: f32,
+    t1: f32,
+) -> (Vec3, Mat3) {
+    let m = frustum_moments(t0, t1, radius);
+    let d = direction;
+    let outer = Mat3::from_cols(d * d.x, d * d.y, d * d.z);
+    let covariance = outer * m.t_variance + (Mat3::IDENTITY - outer) * m.radial_variance;
+    (origin + d * m.t_mean, covariance)
 }

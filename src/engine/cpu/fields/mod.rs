@@ -5,6 +5,7 @@
 
 pub mod density;
 pub mod nerf;
+pub mod nerf_density;
 pub mod ngp;
 
 use crate::field::FieldShape;
@@ -23,6 +24,9 @@ pub fn fields_for(shapes: &[FieldShape]) -> Vec<Box<dyn Field>> {
             FieldShape::Ngp(shape) => Box::new(ngp::NgpField::new(shape.clone())) as Box<dyn Field>,
             FieldShape::Nerf(shape) => Box::new(nerf::NerfField::new(shape.clone())),
             FieldShape::Density(shape) => Box::new(density::DensityField::new(shape.clone())),
+            FieldShape::NerfDensity(shape) => {
+                Box::new(nerf_density::NerfDensityField::new(shape.clone()))
+            }
         })
         .collect()
 }
@@ -163,6 +167,15 @@ pub trait Field: Send + Sync {
         sigma: &mut [f32],
         rgb: &mut [f32],
     );
+
+    /// A field of the same shape with scratch of its own, for a later level
+    /// that evaluates the same parameters while this field's activations
+    /// still wait for their backward pass (Mip-NeRF 360's one proposal MLP
+    /// serves both proposal rounds, whose backward passes follow the final
+    /// level's); `None` for a field that no recipe shares so.
+    fn twin(&self) -> Option<Box<dyn Field>> {
+        None
+    }
 
     /// Multiply-adds of the networks per sample in one forward pass (the
     /// backward pass does twice as many), for the benchmark's FLOP/s.

@@ -61,7 +61,9 @@ impl CpuModel {
                 set_len(&mut lb.rgb, 3 * n);
                 let variances = (self.core.recipe.samples == SampleShape::ConicalFrustums)
                     .then_some(&lb.variances[..]);
-                self.fields[level.field].forward(
+                let field =
+                    Self::level_field(&mut self.fields, &mut self.twins, level_index, level.field);
+                field.forward(
                     field_params,
                     &lb.positions,
                     variances,
@@ -100,13 +102,14 @@ impl CpuModel {
                 times[Stage::Composite] += clock.elapsed().as_secs_f64();
 
                 let clock = Instant::now();
-                self.fields[level.field].backward(
-                    field_params,
-                    &lb.d_sigma,
-                    &lb.d_rgb,
-                    &mut b.gradients[field_range],
-                    Gradient::Add,
-                );
+                Self::level_field(&mut self.fields, &mut self.twins, level_index, level.field)
+                    .backward(
+                        field_params,
+                        &lb.d_sigma,
+                        &lb.d_rgb,
+                        &mut b.gradients[field_range],
+                        Gradient::Add,
+                    );
                 times[Stage::NetworksBackward] += clock.elapsed().as_secs_f64();
             }
             proposal_loss += self.train_proposals(chunk_rays, rays, &mut times);
@@ -175,7 +178,7 @@ impl CpuModel {
             let range = self.core.ranges[level.field].clone();
             times[Stage::Composite] += clock.elapsed().as_secs_f64();
             let backward = Instant::now();
-            self.fields[level.field].backward(
+            Self::level_field(&mut self.fields, &mut self.twins, index, level.field).backward(
                 &self.params[range.clone()],
                 &lb.d_sigma,
                 &lb.d_rgb,
@@ -432,20 +435,38 @@ pub(super) fn sample_level(
             }
             set_len(&mut lb.positions, 3 * n);
             set_len(&mut lb.variances, 3 * n);
-            frustum_gaussians(
-                chunk.origins,
-                chunk.directions,
-                chunk.radii,
-                &scratch.rays,
-                &scratch.starts,
-                &scratch.ends,
-                &mut lb.positions,
-                &mut lb.variances,
-            );
+            match inputs.contraction {
+                // The Gaussians in contracted space: the positions are the
+                // field's inputs already.
+                Some(contraction) => contracted_frustum_gaussians(
+                    chunk.origins,
+                    chunk.directions,
+                    chunk.radii,
+                    &scratch.rays,
+                    &scratch.starts,
+                    &scratch.ends,
+                    &contraction,
+                    &mut lb.positions,
+                    &mut lb.variances,
+                ),
+                None => frustum_gaussians(
+                    chunk.origins,
+                    chunk.directions,
+                    chunk.radii,
+                    &scratch.rays,
+                    &scratch.starts,
+                    &scratch.ends,
+                    &mut lb.positions,
+                    &mut lb.variances,
+                ),
+            }
             set_len(&mut lb.directions, 3 * n);
             for (d, &r) in lb.directions.chunks_exact_mut(3).zip(&scratch.rays) {
                 d.copy_from_slice(&chunk.directions[3 * r as usize..][..3]);
             }
+            // Frustums are placed in world units (the driver refuses
+            // unit-cube fields of frustums), or contracted above.
+            return;
         }
     }
     inputs.map_in_place(&mut lb.positions);

@@ -32,7 +32,7 @@ use super::composite_batch::{
     CompositeGradients, CompositeOutputs, {self},
 };
 use super::fields::{Field, Gradient, gather_rows, set_len};
-use super::frustum::frustum_gaussians;
+use super::frustum::{contracted_frustum_gaussians, frustum_gaussians};
 use super::loss::loss_and_gradient;
 use super::march::{MarchWorkspace, march};
 use super::sampling;
@@ -147,6 +147,11 @@ pub struct CpuModel {
     /// The sampler of each fixed-count level (none for a recipe that
     /// marches through the occupancy grid).
     samplers: Vec<Box<dyn LevelSampler>>,
+    /// Per level: a twin of its field ([`Field::twin`]) where an earlier
+    /// proposal level evaluates the same field, so each round keeps its
+    /// own activations until the proposals' backward passes; `None` where
+    /// the level uses the field itself.
+    twins: Vec<Option<Box<dyn Field>>>,
 }
 
 impl CpuModel {
@@ -221,17 +226,36 @@ impl CpuModel {
             "a field of unit-cube positions takes points (frustums are placed in world units)"
         );
         assert!(
-            recipe.contraction.is_none() || recipe.samples == SampleShape::Points,
-            "contracted frustums are not on the cpu engine yet"
-        );
-        assert!(
-            recipe
+            recipe.levels.iter().filter(|l| !l.colour).all(|p| recipe
                 .levels
                 .iter()
-                .filter(|l| !l.colour)
-                .all(|p| recipe.levels.iter().filter(|l| l.field == p.field).count() == 1),
-            "a proposal level's field serves it alone: its backward pass waits for the final level"
+                .all(|l| l.field != p.field || !l.colour)),
+            "a proposal level's field serves proposal levels only: their backward passes wait \
+             for the final level"
         );
+        // A proposal field that serves several rounds (Mip-NeRF 360's)
+        // evaluates each after the first through a twin, with activations
+        // of its own: the rounds' backward passes all follow the final
+        // level, each on its own round's activations, adding to the one
+        // gradient of the shared parameters.
+        let twins = recipe
+            .levels
+            .iter()
+            .enumerate()
+            .map(|(index, level)| {
+                let shared = recipe.levels[..index]
+                    .iter()
+                    .any(|earlier| earlier.field == level.field);
+                (!level.colour && shared).then(|| {
+                    fields[level.field].twin().unwrap_or_else(|| {
+                        panic!(
+                            "field {} serves several proposal rounds but has no twin",
+                            level.field
+                        )
+                    })
+                })
+            })
+            .collect();
         let mapping = scene.unit_cube;
         let grid = core.occupancy_grid(&mapping);
         Self {
@@ -251,6 +275,21 @@ impl CpuModel {
             used_fraction: 1.0,
             crop: None,
             samplers,
+            twins,
+        }
+    }
+
+    /// The field that evaluates level `level` (of field `field`) in a
+    /// step: its twin where it has one, else the field.
+    fn level_field<'a>(
+        fields: &'a mut [Box<dyn Field>],
+        twins: &'a mut [Option<Box<dyn Field>>],
+        level: usize,
+        field: usize,
+    ) -> &'a mut dyn Field {
+        match twins.get_mut(level) {
+            Some(Some(twin)) => twin.as_mut(),
+            _ => fields[field].as_mut(),
         }
     }
 
@@ -532,21 +571,18 @@ impl RadianceModel for CpuModel {
         // s²/12 (that of a uniform distribution over the side).
         let frustums = self.core.recipe.samples == SampleShape::ConicalFrustums;
         let variance = footprint * footprint / 12.0;
+        let inputs = self.input_map(field.as_ref());
         let (mut world, mut variances) = (Vec::new(), Vec::new());
         for (points, sigma) in positions
             .chunks(field.inference_rows())
             .zip(sigma.chunks_mut(field.inference_rows()))
         {
-            world.clear();
-            world.extend(
-                points
-                    .iter()
-                    .flat_map(|&p| self.input_map(field.as_ref()).position(p)),
+            inputs.fill(
+                points,
+                frustums.then_some(variance),
+                &mut world,
+                &mut variances,
             );
-            if frustums {
-                variances.clear();
-                variances.resize(world.len(), variance);
-            }
             field.density(params, &world, frustums.then_some(&variances[..]), sigma);
             // Nothing in cells the occupancy grid marks empty, as the
             // renderer sees it (see the Instant-NGP model's `density_at`).
@@ -569,6 +605,7 @@ impl RadianceModel for CpuModel {
         let params = &self.params[self.core.ranges[level.field].clone()];
         let frustums = self.core.recipe.samples == SampleShape::ConicalFrustums;
         let variance = footprint * footprint / 12.0;
+        let inputs = self.input_map(field.as_ref());
         let (mut world, mut flat_directions, mut variances, mut sigma) =
             (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         for ((points, directions), rgb) in positions
@@ -576,18 +613,14 @@ impl RadianceModel for CpuModel {
             .zip(directions.chunks(field.inference_rows()))
             .zip(rgb.chunks_mut(3 * field.inference_rows()))
         {
-            world.clear();
-            world.extend(
-                points
-                    .iter()
-                    .flat_map(|&p| self.input_map(field.as_ref()).position(p)),
+            inputs.fill(
+                points,
+                frustums.then_some(variance),
+                &mut world,
+                &mut variances,
             );
             flat_directions.clear();
             flat_directions.extend(directions.iter().flat_map(|d| d.to_array()));
-            if frustums {
-                variances.clear();
-                variances.resize(world.len(), variance);
-            }
             set_len(&mut sigma, points.len());
             field.radiance(
                 params,
@@ -714,6 +747,37 @@ impl InputMap {
             (Some(c), Coordinates::World) => c.contract_world(world).to_array(),
             (None, Coordinates::World) => world.to_array(),
             (None, Coordinates::UnitCube) => self.mapping.to_unit(world).to_array(),
+        }
+    }
+
+    /// The field's inputs for world `points`: their positions, and with
+    /// `variance`, each point as a Gaussian of that variance per world axis
+    /// (a query's footprint), whose covariance diagonal goes through the
+    /// contraction's linearisation where there is one (Mip-NeRF 360, eq. 9).
+    pub(super) fn fill(
+        &self,
+        points: &[Vec3],
+        variance: Option<f32>,
+        positions: &mut Vec<f32>,
+        variances: &mut Vec<f32>,
+    ) {
+        positions.clear();
+        variances.clear();
+        for &p in points {
+            match (variance, self.contraction) {
+                (Some(v), Some(c)) => {
+                    let (mean, covariance) =
+                        c.contract_world_gaussian(p, glam::Mat3::from_diagonal(Vec3::splat(v)));
+                    positions.extend(mean.to_array());
+                    variances.extend(covariance.diagonal().to_array());
+                }
+                (variance, _) => {
+                    positions.extend(self.position(p));
+                    if let Some(v) = variance {
+                        variances.extend([v; 3]);
+                    }
+                }
+            }
         }
     }
 

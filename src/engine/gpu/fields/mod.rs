@@ -25,7 +25,7 @@ pub fn fields_for(
         FieldShape::Nerf(shape) => {
             Box::new(nerf::GpuNerfField::new(context, shape, capacity_rows)?)
         }
-        FieldShape::Density(_) => {
+        FieldShape::Density(_) | FieldShape::NerfDensity(_) => {
             return Err(GpuError::Unsupported(
                 "the proposal sampler's density fields are not on the gpu engine yet".into(),
             ));
