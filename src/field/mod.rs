@@ -71,7 +71,8 @@ impl ModelKind {
     /// contracted space where the model has one, else its default.
     pub fn sampling_for(self, space: crate::scene::SceneSpace) -> (Sampling, &'static str) {
         let spec = self.spec();
-        if space == crate::scene::SceneSpace::Unbounded && spec.samplings.contains(&Sampling::Proposal)
+        if space == crate::scene::SceneSpace::Unbounded
+            && spec.samplings.contains(&Sampling::Proposal)
         {
             return (
                 Sampling::Proposal,
@@ -397,9 +398,8 @@ impl FieldShape {
                     return self.clone();
                 }
                 proposals += 1;
-                self.proposal(proposals - 1).unwrap_or_else(|| {
-                    panic!("{self:?} has no proposal field {}", proposals - 1)
-                })
+                self.proposal(proposals - 1)
+                    .unwrap_or_else(|| panic!("{self:?} has no proposal field {}", proposals - 1))
             })
             .collect()
     }

@@ -134,6 +134,11 @@ impl StepStats {
         }
     }
 
+    /// [`Self::proposal_samples`] per ray, where a proposal sampler ran.
+    pub fn proposal_samples_per_ray(&self) -> Option<f32> {
+        (self.proposal_samples > 0).then(|| self.proposal_samples as f32 / self.rays.max(1) as f32)
+    }
+
     /// [`Self::samples_composited`] per ray.
     pub fn composited_per_ray(&self) -> Option<f32> {
         self.samples_composited.map(|n| {

@@ -354,7 +354,6 @@ impl Scene {
         }
     }
 
-
     /// The scene with every camera of every split giving its rays in
     /// normalised device coordinates (NeRF paper, appendix C), for a
     /// forward-facing capture: the NDC of the first training view's

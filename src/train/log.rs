@@ -25,6 +25,13 @@ pub struct LogLine {
     /// (see `StepStats::samples_composited`).
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub composited_per_ray: Option<f32>,
+    /// Samples per ray of a proposal sampler's density-only levels, apart
+    /// from `samples_per_ray` (the full field's).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub proposal_samples_per_ray: Option<f32>,
+    /// The interlevel loss that trains the proposal levels.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub proposal_loss: Option<f32>,
     pub samples_per_second: f64,
     pub rays_per_batch: usize,
 }
@@ -150,6 +157,8 @@ mod tests {
             psnr: None,
             samples_per_ray: 4.0,
             composited_per_ray: None,
+            proposal_samples_per_ray: None,
+            proposal_loss: None,
             samples_per_second: 1e6,
             rays_per_batch: 256,
         }

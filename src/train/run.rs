@@ -430,6 +430,8 @@ pub fn run(
                 psnr: evaluated,
                 samples_per_ray: stats.samples_per_ray(),
                 composited_per_ray: stats.composited_per_ray(),
+                proposal_samples_per_ray: stats.proposal_samples_per_ray(),
+                proposal_loss: (stats.proposal_samples > 0).then_some(stats.proposal_loss),
                 samples_per_second,
                 rays_per_batch: stats.rays,
             })

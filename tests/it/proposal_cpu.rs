@@ -10,7 +10,6 @@ use zrak::field::ModelKind;
 use zrak::field::common::{LossKind, Sampling};
 use zrak::field::ngp::{PROPOSAL_FIELD_SAMPLES, PROPOSAL_SAMPLES};
 use zrak::model::RadianceModel;
-use zrak::scene::Scene;
 use zrak::train::eval::{mean_colour_psnr, mean_psnr};
 use zrak::train::trainer::Trainer;
 
@@ -53,7 +52,11 @@ fn a_step_evaluates_48_field_samples_and_the_proposals_apart() {
             .sum();
         assert!(norm > 0.0, "field {field} has no gradient");
     }
-    assert!(model.describe().contains("proposal"), "{}", model.describe());
+    assert!(
+        model.describe().contains("proposal"),
+        "{}",
+        model.describe()
+    );
 }
 
 /// With the samples held still, a proposal field's parameters change only
@@ -193,12 +196,18 @@ fn on_the_unbounded_demo_proposals_learn_the_views_the_ground_and_a_far_sky() {
     );
     // Measured on a 2-core Zen 4: 25.0 dB against 14.3 dB.
     assert!(psnr > baseline + 6.0, "{psnr} vs mean colour {baseline}");
-    assert!(sky > 100 && near > 100, "{sky} sky and {near} nearby pixels");
+    assert!(
+        sky > 100 && near > 100,
+        "{sky} sky and {near} nearby pixels"
+    );
     assert!(
         beyond * 10 >= sky * 9,
         "{beyond} of {sky} sky pixels beyond the frame radius {radius}"
     );
-    assert!(ground_error < 0.2, "median relative depth error {ground_error}");
+    assert!(
+        ground_error < 0.2,
+        "median relative depth error {ground_error}"
+    );
 }
 
 /// Training steps of the unbounded demo's test.

@@ -267,7 +267,10 @@ mod tests {
         let expected = 0.3f64 * 0.3 / (0.8 + f32::EPSILON as f64);
         assert!((loss - expected).abs() < 1e-6, "{loss} vs {expected}");
         // Only the interval that bounds it is pushed up.
-        assert!(d[1] < 0.0 && d[0] == 0.0 && d[2] == 0.0 && d[3] == 0.0, "{d:?}");
+        assert!(
+            d[1] < 0.0 && d[0] == 0.0 && d[2] == 0.0 && d[3] == 0.0,
+            "{d:?}"
+        );
     }
 
     #[test]

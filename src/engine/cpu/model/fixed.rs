@@ -96,7 +96,12 @@ impl CpuModel {
                 if let Some(contraction) = self.core.recipe.contraction {
                     let weight = self.core.recipe.distortion;
                     if weight > 0.0 {
-                        distortion_in_spacing(lb, &contraction, weight / rays as f32, &mut b.proposal);
+                        distortion_in_spacing(
+                            lb,
+                            &contraction,
+                            weight / rays as f32,
+                            &mut b.proposal,
+                        );
                     }
                 }
                 times[Stage::Composite] += clock.elapsed().as_secs_f64();

@@ -218,9 +218,13 @@ impl LevelSampler for SpacedIntervals {
     ) -> usize {
         let (n, c) = (self.count, &self.contraction);
         scratch.starts.clear();
-        scratch.starts.extend(chunk.near.iter().map(|&t| c.spacing_of(t)));
+        scratch
+            .starts
+            .extend(chunk.near.iter().map(|&t| c.spacing_of(t)));
         scratch.ends.clear();
-        scratch.ends.extend(chunk.far.iter().map(|&t| c.spacing_of(t)));
+        scratch
+            .ends
+            .extend(chunk.far.iter().map(|&t| c.spacing_of(t)));
         set_len(&mut lb.edges, chunk.near.len() * (n + 1));
         sampling::stratified(&scratch.starts, &scratch.ends, n + 1, jitter, &mut lb.edges);
         for e in lb.edges.iter_mut() {
@@ -430,7 +434,11 @@ mod tests {
             .iter()
             .filter(|&&t| t >= lo * 0.999 && t <= hi * 1.001)
             .count();
-        assert!(inside >= 28, "{inside} of 33 edges in [{lo}, {hi}]: {:?}", second.edges);
+        assert!(
+            inside >= 28,
+            "{inside} of 33 edges in [{lo}, {hi}]: {:?}",
+            second.edges
+        );
         // Without a contraction there is no spacing to draw in.
         assert!(
             level_sampler(
