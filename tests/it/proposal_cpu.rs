@@ -83,42 +83,15 @@ fn step_gradient_matches_finite_differences_of_each_fields_loss() {
     }
     model.params_mut().copy_from_slice(trainer_model.params());
     model.hold_samples(true);
-    let step = 77;
-    let stats = model.forward_backward(&rays, step);
-    assert!(stats.proposal_loss > 0.0, "{stats:?}");
-    let gradient = model.gradients().to_vec();
-    let ranges = model.parameter_ranges().to_vec();
-    let last = ranges.len() - 1;
-    for (field, range) in ranges.iter().enumerate() {
-        let objective = |model: &mut CpuModel| {
-            let stats = model.forward_backward(&rays, step);
-            if field == last {
-                stats.loss as f64
-            } else {
-                stats.proposal_loss as f64
-            }
-        };
-        let mut order: Vec<usize> = range.clone().collect();
-        order.sort_by(|&a, &b| gradient[b].abs().total_cmp(&gradient[a].abs()));
-        for &index in order.iter().take(4) {
-            let original = model.params()[index];
-            let h = (original.abs() * 1e-2).max(1e-3);
-            model.params_mut()[index] = original + h;
-            let plus = objective(&mut model);
-            model.params_mut()[index] = original - h;
-            let minus = objective(&mut model);
-            model.params_mut()[index] = original;
-            let numeric = (plus - minus) / (2.0 * h as f64);
-            let analytic = gradient[index] as f64;
-            // 5 %, as for the other models' steps: f32 sums over thousands
-            // of samples; a broken link in the chain is off by far more.
-            let error = (numeric - analytic).abs() / analytic.abs().max(numeric.abs());
-            assert!(
-                error < 0.05,
-                "field {field} parameter {index}: analytic {analytic:e}, numeric {numeric:e}"
-            );
-        }
-    }
+    // The two proposal grids, then the field.
+    let last = model.parameter_ranges().len() - 1;
+    crate::common::check_proposal_step_gradient(
+        &mut model,
+        &rays,
+        77,
+        |field| field < last,
+        "Instant-NGP",
+    );
 }
 
 /// Instant-NGP on the unbounded demo (objects on a ground plane that

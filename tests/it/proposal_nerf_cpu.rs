@@ -156,43 +156,14 @@ fn step_gradient_matches_finite_differences_of_each_fields_loss() {
         model.hold_samples(true);
         let rays = batch(&scene, 24, 9);
         let step = 77;
-        let stats = model.forward_backward(&rays, step);
-        assert!(stats.proposal_loss > 0.0, "{kind:?} {stats:?}");
-        let gradient = model.gradients().to_vec();
-        let ranges = model.parameter_ranges().to_vec();
-        for (field, range) in ranges.iter().enumerate() {
-            let objective = |model: &mut CpuModel| {
-                let stats = model.forward_backward(&rays, step);
-                if field == 0 {
-                    stats.proposal_loss as f64
-                } else {
-                    stats.loss as f64
-                }
-            };
-            let mut order: Vec<usize> = range.clone().collect();
-            order.sort_by(|&a, &b| gradient[b].abs().total_cmp(&gradient[a].abs()));
-            for &index in order.iter().take(4) {
-                let original = model.params()[index];
-                let h = (original.abs() * 1e-2).max(1e-3);
-                model.params_mut()[index] = original + h;
-                let plus = objective(&mut model);
-                model.params_mut()[index] = original - h;
-                let minus = objective(&mut model);
-                model.params_mut()[index] = original;
-                let numeric = (plus - minus) / (2.0 * h as f64);
-                let analytic = gradient[index] as f64;
-                // 5 %, as for the other models' steps: f32 sums over
-                // thousands of samples; a broken link in the chain (a
-                // round's backward pass on the other round's activations,
-                // or one round's gradient missing) is off by far more.
-                let error = (numeric - analytic).abs() / analytic.abs().max(numeric.abs());
-                assert!(
-                    error < 0.05,
-                    "{kind:?} field {field} parameter {index}: analytic {analytic:e}, \
-                     numeric {numeric:e}"
-                );
-            }
-        }
+        // One proposal MLP (field 0) for both rounds, then the field.
+        crate::common::check_proposal_step_gradient(
+            &mut model,
+            &rays,
+            step,
+            |field| field == 0,
+            &format!("{kind:?}"),
+        );
     }
 }
 

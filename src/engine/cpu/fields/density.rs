@@ -14,7 +14,7 @@
 
 use std::sync::Mutex;
 
-use super::{Field, Gradient, set_len};
+use super::{Field, Gradient, hash_grid_backward, set_len};
 use crate::engine::cpu::dense::{
     Backend, InputGradient, MlpGradients, MlpWorkspace, mlp_backward, mlp_forward, mlp_inference,
 };
@@ -157,23 +157,14 @@ impl Field for DensityField {
                 )),
             },
         );
-        let positions = bytemuck::cast_slice(&self.positions);
-        match mode {
-            Gradient::Overwrite => hash_grid::encode_gradient_with_scratch(
-                &shape.grid,
-                positions,
-                &self.d_encoded,
-                grid_grad,
-                &mut self.encode_scratch,
-            ),
-            Gradient::Add => hash_grid::encode_backward_with_scratch(
-                &shape.grid,
-                positions,
-                &self.d_encoded,
-                grid_grad,
-                &mut self.encode_scratch,
-            ),
-        }
+        hash_grid_backward(
+            &shape.grid,
+            bytemuck::cast_slice(&self.positions),
+            &self.d_encoded,
+            grid_grad,
+            &mut self.encode_scratch,
+            mode,
+        );
     }
 
     fn radiance(

@@ -188,6 +188,35 @@ pub trait Field: Send + Sync {
     fn workspace_bytes(&self) -> usize;
 }
 
+/// The hash grid's backward pass from the gradient of its features,
+/// writing or adding (`mode`) its entries' gradient.
+pub(crate) fn hash_grid_backward(
+    grid: &crate::field::encoding::HashGridLayout,
+    positions: &[[f32; 3]],
+    d_encoded: &[f32],
+    grid_gradient: &mut [f32],
+    scratch: &mut Vec<f32>,
+    mode: Gradient,
+) {
+    use crate::engine::cpu::hash_grid;
+    match mode {
+        Gradient::Overwrite => hash_grid::encode_gradient_with_scratch(
+            grid,
+            positions,
+            d_encoded,
+            grid_gradient,
+            scratch,
+        ),
+        Gradient::Add => hash_grid::encode_backward_with_scratch(
+            grid,
+            positions,
+            d_encoded,
+            grid_gradient,
+            scratch,
+        ),
+    }
+}
+
 /// Sets the length of a buffer about to be overwritten in full: only growth
 /// is zero-filled.
 pub(crate) fn set_len<T: Copy + Default>(v: &mut Vec<T>, n: usize) {
