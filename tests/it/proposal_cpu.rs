@@ -1,6 +1,6 @@
 //! Instant-NGP with the proposal sampler on the cpu engine: the counts a
 //! step evaluates, its gradients against finite differences of the losses
-//! that train each field, and that it learns the demo scene.
+//! that train each field, and that it learns the unbounded demo scene.
 
 use std::sync::Arc;
 
@@ -10,6 +10,8 @@ use zrak::field::ModelKind;
 use zrak::field::common::{LossKind, Sampling};
 use zrak::field::ngp::{PROPOSAL_FIELD_SAMPLES, PROPOSAL_SAMPLES};
 use zrak::model::RadianceModel;
+use zrak::scene::SceneSpace;
+use zrak::scene::demo::{DemoConfig, build_unbounded, unbounded_depth};
 use zrak::train::eval::{mean_colour_psnr, mean_psnr};
 use zrak::train::trainer::Trainer;
 
@@ -103,8 +105,6 @@ fn step_gradient_matches_finite_differences_of_each_fields_loss() {
 /// ~2 frame radii, not at infinity.)
 #[test]
 fn on_the_unbounded_demo_proposals_learn_the_views_the_ground_and_a_far_sky() {
-    use zrak::scene::SceneSpace;
-    use zrak::scene::demo::{DemoConfig, build_unbounded, unbounded_depth};
     let _cores = crate::common::shared();
     let scene = Arc::new(build_unbounded(&DemoConfig {
         size: 48,
