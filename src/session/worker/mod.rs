@@ -618,12 +618,17 @@ impl Worker {
         Work::Wait(wake_after)
     }
 
+    /// The sampler `kind` trains with here: the one asked for where the
+    /// model has it, else the one the scene's space calls for.
+    fn sampling_of(&self, kind: ModelKind) -> Sampling {
+        let space = self.scene.scene.space.space;
+        kind.choose_sampling(self.options.sampling, space)
+            .unwrap_or_else(|_| kind.sampling_for(space).0)
+    }
+
     /// A fresh trainer of `kind` on the current scene and engine.
     fn build_trainer(&self, kind: ModelKind) -> Result<Trainer, String> {
-        let space = self.scene.scene.space.space;
-        let sampling = kind
-            .choose_sampling(self.options.sampling, space)
-            .unwrap_or_else(|_| kind.sampling_for(space).0);
+        let sampling = self.sampling_of(kind);
         let settings = ModelSettings {
             seed: self.options.seed,
             loss: self.options.loss.unwrap_or(kind.default_loss()),

@@ -105,8 +105,10 @@ impl Worker {
                 "downscale": 1,
                 "loss": slot.loss,
                 "seed": slot.trainer.seed,
-                "sampling": self.options.sampling,
+                "sampling": self.sampling_of(slot.kind),
                 "engine": self.engine.kind,
+                "space": self.scene.scene.space.space,
+                "space_overridden": self.scene.scene.space.overridden,
                 "precision": self.options.precision,
                 "saved_by": "viewer",
             });
