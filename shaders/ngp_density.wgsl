@@ -1,5 +1,5 @@
 // Instant-NGP's density activation between the two networks (the cpu
-// engine's loops in `engine::cpu::ngp`): σ = exp(min(x₀, clamp)) of the
+// engine's loops in `engine::cpu::ngp`): σ = scale · exp(min(x₀, clamp)) of the
 // density network's first output, and the whole raw output row copied into
 // the first columns of the colour network's input; backward, the colour
 // input's gradient copied back plus ∂L/∂σ · σ on x₀ where the clamp was
@@ -13,7 +13,8 @@ struct Params {
     density_width: u32,
     colour_width: u32,
     exp_clamp: f32,
-    _pad0: u32,
+    // The shape's `density_scale` (field/ngp.rs).
+    density_scale: f32,
     _pad1: u32,
     _pad2: u32,
 }
@@ -30,7 +31,7 @@ fn forward(@builtin(global_invocation_id) id: vec3<u32>) {
         return;
     }
     let row = s * params.density_width;
-    sigma[s] = exp(min(density_out[row], params.exp_clamp));
+    sigma[s] = params.density_scale * exp(min(density_out[row], params.exp_clamp));
     let out = s * params.colour_width;
     for (var j = 0u; j < params.density_width; j++) {
         colour_input[out + j] = density_out[row + j];

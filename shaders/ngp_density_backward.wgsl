@@ -10,7 +10,8 @@ struct Params {
     density_width: u32,
     colour_width: u32,
     exp_clamp: f32,
-    _pad0: u32,
+    // The shape's `density_scale` (field/ngp.rs).
+    density_scale: f32,
     _pad1: u32,
     _pad2: u32,
 }

@@ -76,9 +76,13 @@ pub const OPTIMISER: OptimiserConfig = OptimiserConfig {
 /// Mip-NeRF with the proposal sampler, as Mip-NeRF 360 trains it: its
 /// levels (`nerf::proposal_levels`) on conical frustums, each frustum's
 /// Gaussian carried through the contraction's linearisation (Mip-NeRF 360,
-/// eq. 9–10), with Mip-NeRF's optimiser.
+/// eq. 9–10), with its optimiser ([`nerf::MIPNERF360_OPTIMISER`]).
 pub fn proposal_recipe(scene: &crate::scene::Scene) -> Recipe {
-    nerf::proposal_levels(scene, SampleShape::ConicalFrustums, OPTIMISER)
+    nerf::proposal_levels(
+        scene,
+        SampleShape::ConicalFrustums,
+        nerf::MIPNERF360_OPTIMISER,
+    )
 }
 
 /// Mip-NeRF as trained with `sampling`: the paper's two levels of one

@@ -226,6 +226,18 @@ pub fn proposal_grid(finest_resolution: u32) -> HashGridConfig {
 /// output), σ through the clamped exponential, no biases.
 pub const PROPOSAL_HIDDEN_WIDTH: usize = 16;
 
+/// The density at initialisation, relative to the paper's σ = exp(x):
+/// σ = 0.01 · exp(x) for the contracted field and its proposal fields
+/// (nerfstudio's nerfacto, `average_init_density` 0.01, given to the
+/// field and to each proposal field). With the paper's scale every ray of
+/// an unbounded scene is opaque a few units from its camera before any
+/// step, the far field is hidden behind that fog from the start and the
+/// sky settles there; starting nearly empty, the long far intervals (their
+/// length grows as 1/(1 − s)) take the sky's weight first and the near
+/// content condenses where the views agree. On the unbounded demo after
+/// 400 steps: sky 7.6 → 82 units away, 23.0 → 26.9 dB.
+pub const PROPOSAL_INIT_DENSITY: f32 = 0.01;
+
 /// Instant-NGP with the proposal sampler, for a scene whose cameras give
 /// the contraction's frame: two proposal levels then the full field, all
 /// in the contracted cube (L∞, nerfacto's `SceneContraction(order=inf)`),
@@ -281,6 +293,8 @@ pub fn proposal_recipe(scene: &Scene) -> super::common::Recipe {
 pub struct DensityShape {
     pub grid: HashGridLayout,
     pub density: MlpLayout,
+    /// σ = `density_scale` · exp(x) of the network's output x.
+    pub density_scale: f32,
 }
 
 impl DensityShape {
@@ -295,6 +309,7 @@ impl DensityShape {
                 false,
             ),
             grid: HashGridLayout::new(&grid),
+            density_scale: PROPOSAL_INIT_DENSITY,
         }
     }
 
@@ -373,6 +388,10 @@ pub struct NgpShape {
     pub colour: MlpLayout,
     pub network: NetworkConfig,
     pub mapping: UnitCubeMapping,
+    /// σ = `density_scale` · exp(x) of the density network's first output
+    /// x: 1 as in the paper, [`PROPOSAL_INIT_DENSITY`] in the contracted
+    /// space.
+    pub density_scale: f32,
 }
 
 impl NgpShape {
@@ -384,7 +403,10 @@ impl NgpShape {
     /// cube mapped onto [0, 1]³) at the paper's N_max 2048, as nerfacto's
     /// (`max_res` 2048, 2^19 entries, 16 levels).
     pub fn contracted(scene: &Scene) -> Self {
-        Self::with_grid(scene, HashGridConfig::paper(1.0))
+        Self {
+            density_scale: PROPOSAL_INIT_DENSITY,
+            ..Self::with_grid(scene, HashGridConfig::paper(1.0))
+        }
     }
 
     fn with_grid(scene: &Scene, grid_config: HashGridConfig) -> Self {
@@ -395,6 +417,7 @@ impl NgpShape {
             colour: MlpLayout::ngp_colour(&network),
             network,
             mapping: scene.unit_cube,
+            density_scale: 1.0,
         }
     }
 

@@ -7,8 +7,8 @@
 //! The ground is the plane z = [`GROUND_PLANE_Z`] (the stand's underside),
 //! a checkerboard of [`GROUND_CELL`]-unit squares whose contrast fades
 //! with distance (so it does not alias towards the horizon) under a light
-//! haze. The sky's colour depends on the direction alone, so it shows no
-//! parallax. Cameras lie on the demo's spiral, lower (from
+//! haze. The sky's colour (a gradient with clouds) depends on the direction
+//! alone, so it shows no parallax. Cameras lie on the demo's spiral, lower (from
 //! [`LOWEST_ELEVATION_DEG`]), so that the lower half of them see the
 //! horizon and the sky above it.
 
@@ -148,9 +148,39 @@ fn ground_or_sky(world: &World, origin: Vec3, direction: Vec3) -> Vec3 {
 }
 
 /// The sky's colour along `direction`: pale at the horizon, deeper blue
-/// towards the zenith; it depends on the direction only (at infinity).
+/// towards the zenith, with clouds; it depends on the direction only (at
+/// infinity).
 fn sky(direction: Vec3) -> Vec3 {
-    SKY_HORIZON.lerp(SKY_ZENITH, direction.z.clamp(0.0, 1.0).sqrt())
+    let blue = SKY_HORIZON.lerp(SKY_ZENITH, direction.z.clamp(0.0, 1.0).sqrt());
+    blue.lerp(CLOUD, cloud_cover(direction))
+}
+
+/// The clouds' colour.
+const CLOUD: Vec3 = Vec3::new(0.95, 0.95, 0.97);
+
+/// Angular frequencies (radians⁻¹ along the unit sphere) and phases of
+/// the waves whose sum makes the clouds: periods of 20° to 40°, several
+/// pixels wide in every view, so that a sky placed at a finite distance
+/// would not line up across the cameras' spread.
+const CLOUD_WAVES: [(Vec3, f32); 4] = [
+    (Vec3::new(11.0, 4.0, 3.0), 0.3),
+    (Vec3::new(-5.0, 13.0, 2.0), 1.7),
+    (Vec3::new(7.0, -8.0, 9.0), 4.1),
+    (Vec3::new(-14.0, -6.0, 5.0), 2.6),
+];
+
+/// How much of the sky along unit `direction` is cloud, 0 to 1: the waves'
+/// sum through a smooth threshold, about a third of the sky covered. Why
+/// clouds: a sky that changes with elevation alone looks the same from
+/// every camera at any distance along each elevation's cone, so parallax
+/// barely pins it; a real sky has texture, and so does this one.
+pub fn cloud_cover(direction: Vec3) -> f32 {
+    let sum: f32 = CLOUD_WAVES
+        .iter()
+        .map(|&(frequency, phase)| (frequency.dot(direction) + phase).sin())
+        .sum();
+    // The sum of four unit waves spreads over about ±2; cover starts at 0.5.
+    ((sum - 0.5) / 1.5).clamp(0.0, 1.0)
 }
 
 #[cfg(test)]

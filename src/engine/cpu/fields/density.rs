@@ -32,6 +32,8 @@ pub struct DensityField {
     encoded: Vec<f32>,
     positions: Vec<f32>,
     d_encoded: Vec<f32>,
+    /// ∂L/∂y of the network's outputs y (σ = scale · y).
+    d_output: Vec<f32>,
     encode_scratch: Vec<f32>,
     /// Hash features of σ inference through `&self`.
     inference: Mutex<Vec<f32>>,
@@ -45,6 +47,7 @@ impl DensityField {
             encoded: Vec::new(),
             positions: Vec::new(),
             d_encoded: Vec::new(),
+            d_output: Vec::new(),
             encode_scratch: Vec::new(),
             inference: Mutex::new(Vec::new()),
         }
@@ -91,6 +94,7 @@ impl Field for DensityField {
             n,
             sigma,
         );
+        scale_densities(sigma, self.shape.density_scale);
     }
 
     fn forward(
@@ -123,6 +127,7 @@ impl Field for DensityField {
             &mut self.workspace,
             sigma,
         );
+        scale_densities(sigma, shape.density_scale);
         rgb.fill(0.0);
     }
 
@@ -142,6 +147,10 @@ impl Field for DensityField {
             network_grad.fill(0.0);
         }
         set_len(&mut self.d_encoded, n * shape.grid.output_width());
+        // σ = scale · y of the network's output y.
+        self.d_output.clear();
+        self.d_output
+            .extend(d_sigma.iter().map(|d| d * shape.density_scale));
         mlp_backward(
             &shape.density,
             &params[shape.density_range()],
@@ -149,7 +158,7 @@ impl Field for DensityField {
             n,
             &mut self.workspace,
             MlpGradients {
-                output: d_sigma,
+                output: &self.d_output,
                 params: network_grad,
                 input: Some(InputGradient::every_column(
                     &mut self.d_encoded,
@@ -199,5 +208,12 @@ impl Field for DensityField {
         .map(|v| v.capacity())
         .sum::<usize>()
             + self.workspace.bytes()
+    }
+}
+
+/// σ = `scale` · y of the density network's outputs y, in place.
+fn scale_densities(sigma: &mut [f32], scale: f32) {
+    if scale != 1.0 {
+        sigma.iter_mut().for_each(|s| *s *= scale);
     }
 }

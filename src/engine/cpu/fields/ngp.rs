@@ -74,9 +74,10 @@ impl NgpShape {
             sigma,
             1,
         );
+        let scale = self.density_scale;
         sigma.par_chunks_mut(ROWS_PER_TASK).for_each(|chunk| {
             for s in chunk {
-                *s = density_activation(*s);
+                *s = density_activation(*s, scale);
             }
         });
     }
@@ -114,7 +115,7 @@ impl NgpShape {
             .zip(raw.chunks_exact(density_width))
             .zip(colour_input.chunks_exact_mut(colour_width))
         {
-            *s = density_activation(row[0]);
+            *s = density_activation(row[0], self.density_scale);
             input[..density_width].copy_from_slice(row);
         }
         sh_encode(
@@ -134,9 +135,10 @@ impl NgpShape {
     }
 }
 
-/// σ = exp(x), clamped (field/ngp.rs, DENSITY_EXP_CLAMP).
-pub fn density_activation(x: f32) -> f32 {
-    x.min(DENSITY_EXP_CLAMP).exp()
+/// σ = scale · exp(x), x clamped (field/ngp.rs, DENSITY_EXP_CLAMP; the
+/// scale is the shape's `density_scale`).
+pub fn density_activation(x: f32, scale: f32) -> f32 {
+    scale * x.min(DENSITY_EXP_CLAMP).exp()
 }
 
 /// Instant-NGP's field on the `cpu` engine.
@@ -346,12 +348,13 @@ impl Field for NgpField {
         set_len(&mut self.sigma, n);
         self.networks_forward(params, directions, rgb);
         let density_width = self.shape.density.output_width();
+        let scale = self.shape.density_scale;
         for (s, row) in self
             .sigma
             .iter_mut()
             .zip(self.density_out.chunks_exact(density_width))
         {
-            *s = density_activation(row[0]);
+            *s = density_activation(row[0], scale);
         }
         sigma.copy_from_slice(&self.sigma);
     }
@@ -397,6 +400,7 @@ impl Field for NgpField {
                 }),
             },
         );
+        let sigma_at_clamp = shape.density_scale * DENSITY_EXP_CLAMP.exp();
         for ((d_out, &d_sigma), &sigma) in self
             .d_density_out
             .chunks_exact_mut(density_width)
@@ -404,7 +408,7 @@ impl Field for NgpField {
             .zip(&self.sigma)
         {
             // dσ/dx = σ below the clamp, 0 above it.
-            let clamped = sigma >= DENSITY_EXP_CLAMP.exp();
+            let clamped = sigma >= sigma_at_clamp;
             if !clamped {
                 d_out[0] += d_sigma * sigma;
             }

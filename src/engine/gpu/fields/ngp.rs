@@ -40,7 +40,8 @@ struct ActivationUniforms {
     density_width: u32,
     colour_width: u32,
     exp_clamp: f32,
-    _pad: [u32; 3],
+    density_scale: f32,
+    _pad: [u32; 2],
 }
 
 /// Instant-NGP's field on the `gpu` engine, with buffers for up to
@@ -149,7 +150,8 @@ impl GpuNgpField {
                 density_width: density_width as u32,
                 colour_width: colour_width as u32,
                 exp_clamp: DENSITY_EXP_CLAMP,
-                _pad: [0; 3],
+                density_scale: self.shape.density_scale,
+                _pad: [0; 2],
             };
             let uniform = uniform_buffer(context, "ngp activation", &uniforms);
             let rows = |buffer, width: usize| {
@@ -405,7 +407,14 @@ mod uniform_mirrors {
             include_str!("../../../../shaders/ngp_density.wgsl"),
             "Params",
             ActivationUniforms,
-            [count, row_stride, density_width, colour_width, exp_clamp]
+            [
+                count,
+                row_stride,
+                density_width,
+                colour_width,
+                exp_clamp,
+                density_scale
+            ]
         );
     }
     #[test]
@@ -414,7 +423,14 @@ mod uniform_mirrors {
             include_str!("../../../../shaders/ngp_density_backward.wgsl"),
             "Params",
             ActivationUniforms,
-            [count, row_stride, density_width, colour_width, exp_clamp]
+            [
+                count,
+                row_stride,
+                density_width,
+                colour_width,
+                exp_clamp,
+                density_scale
+            ]
         );
     }
 }
