@@ -38,10 +38,12 @@ pub fn scene_up(scene: &Scene) -> Vec3 {
     sum.try_normalize().unwrap_or(Vec3::Z)
 }
 
-/// The cameras of `turntable` around `scene`, looking at the centre of its
-/// bounds, with the field of view of its first training view.
+/// The cameras of `turntable` around `scene`, looking at its view centre
+/// ([`Scene::view_centre_and_size`]: its box's centre, unless its rays are
+/// in NDC), with the field of view of its first training view and the
+/// scene's NDC, if any.
 pub fn turntable_cameras(scene: &Scene, turntable: &Turntable) -> Vec<Camera> {
-    let centre = scene.bounds.centre();
+    let (centre, _) = scene.view_centre_and_size();
     let up = scene_up(scene);
     let first = scene.train.first().or_else(|| scene.frames().next());
     let mean_distance = if scene.train.is_empty() {
@@ -78,7 +80,7 @@ pub fn turntable_cameras(scene: &Scene, turntable: &Turntable) -> Vec<Camera> {
             let azimuth = std::f32::consts::TAU * i as f32 / turntable.frames.max(1) as f32;
             let horizontal = east * azimuth.cos() + north * azimuth.sin();
             let eye = centre + radius * (horizontal * elevation.cos() + up * elevation.sin());
-            Camera::look_at(intrinsics, eye, centre, up)
+            Camera::look_at(intrinsics, eye, centre, up).with_ndc(scene.ndc())
         })
         .collect()
 }

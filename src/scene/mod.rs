@@ -393,6 +393,18 @@ impl Scene {
         self.frames().next().and_then(|frame| frame.camera.ndc)
     }
 
+    /// The world point that views of the scene orbit and face, with the
+    /// size of the region around it: the box's centre and diagonal, or, for
+    /// a scene in NDC (whose box is in NDC), a point past the nearest
+    /// content, where the LLFF loader puts the cameras about the origin
+    /// looking down −z and the nearest content at 1/0.75.
+    pub fn view_centre_and_size(&self) -> (Vec3, f32) {
+        match self.ndc() {
+            Some(_) => (Vec3::new(0.0, 0.0, -2.0), 4.0),
+            None => (self.bounds.centre(), self.bounds.size().length()),
+        }
+    }
+
     /// The box in NDC that holds every camera's rays from the near plane
     /// to infinity (each view's corner rays at t = 0 and t = 1 along d′),
     /// at least [−1, 1]³, with z from −1 to 1 and a margin of

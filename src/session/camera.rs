@@ -110,13 +110,8 @@ impl ViewCamera {
     /// the yaw axis, starting from the first training camera (its position,
     /// roll and field of view), turned just enough to face the centre.
     pub fn for_scene(scene: &Scene) -> Self {
-        // A scene in NDC has its box in NDC; the camera moves in the world,
-        // where the LLFF loader puts the cameras about the origin looking
-        // down −z and the nearest content at 1/0.75: orbit a point past it.
-        let (centre, size) = match scene.ndc() {
-            Some(_) => (Vec3::new(0.0, 0.0, -2.0), 4.0),
-            None => (scene.bounds.centre(), scene.bounds.size().length()),
-        };
+        // A scene in NDC has its box in NDC; the camera moves in the world.
+        let (centre, size) = scene.view_centre_and_size();
         let scene_size = if size.is_finite() && size > 0.0 {
             size
         } else {

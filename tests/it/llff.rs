@@ -345,3 +345,100 @@ fn an_llff_folder_written_from_the_demo_trains_the_same() {
         "{from_folder:.2} dB from the folder, {in_memory:.2} dB built in memory"
     );
 }
+
+/// A camera path of a forward-facing scene renders in its NDC, as the
+/// training rays are: a path frame at a held-out camera's pose is that
+/// camera's own render (up to the 8-bit rounding of a PNG and the f64
+/// round trip of the pose), where world-space rays would show nothing the
+/// field learned. The turntable's cameras carry the NDC too.
+#[test]
+fn a_camera_path_of_a_forward_facing_scene_renders_in_its_ndc() {
+    use std::sync::Arc;
+    use zrak::engine::cpu::model::CpuModel;
+    use zrak::engine::request::{ModelRequest, ModelSettings};
+    use zrak::field::ModelKind;
+    use zrak::field::common::{LossKind, Sampling};
+    use zrak::field::mlp::Precision;
+    use zrak::model::RenderMode;
+    use zrak::model::pixels::{render_pixels, to_image};
+    use zrak::render::camera_path::PathSample;
+    use zrak::render::camera_path::frames::{BACKGROUND, FrameJob, RenderSource};
+    use zrak::render::path::{Turntable, turntable_cameras};
+    use zrak::train::trainer::Trainer;
+
+    let _cores = common::shared();
+    let scene = Arc::new(demo::build_forward_facing(&ndc_training_config()).with_ndc());
+    let ndc = scene.ndc().expect("the scene is in NDC");
+    let model = CpuModel::build(
+        &ModelRequest::new(
+            ModelKind::Ngp,
+            ModelSettings {
+                seed: 0,
+                loss: LossKind::Huber,
+                batch_samples: Some(1 << 16),
+                sampling: Sampling::Occupancy,
+                precision: Precision::F32,
+            },
+        ),
+        &scene,
+    );
+    let mut trainer = Trainer::new(Box::new(model), scene.clone(), 0);
+    while trainer.step < 60 {
+        trainer.step();
+    }
+    let camera = &scene.val[0].camera;
+    let k = camera.intrinsics;
+    let own = to_image(
+        &render_pixels(trainer.model.as_ref(), camera, BACKGROUND),
+        k.width,
+        k.height,
+        RenderMode::Rgb,
+        scene.depth_range(),
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let job = FrameJob {
+        samples: vec![PathSample {
+            camera_to_world: camera.camera_to_world.as_dmat4(),
+            fov_degrees: (k.fov_y() as f64).to_degrees(),
+        }],
+        range: 0..1,
+        width: k.width,
+        height: k.height,
+        mode: RenderMode::Rgb,
+        depth_range: scene.depth_range(),
+        source: RenderSource::default(),
+        out_dir: dir.path().to_path_buf(),
+        ndc: scene.ndc(),
+    };
+    let frame = job.render_frame(trainer.model.as_ref(), 0).unwrap();
+    let largest = own
+        .data
+        .iter()
+        .zip(&frame.data)
+        .map(|(a, b)| a.abs_diff(*b))
+        .max()
+        .unwrap();
+    assert!(largest <= 2, "a path frame differs by {largest}/255");
+    // The same frame in world rays is another picture.
+    let world = FrameJob { ndc: None, ..job }
+        .render_frame(trainer.model.as_ref(), 0)
+        .unwrap();
+    let mean_world_difference = own
+        .data
+        .iter()
+        .zip(&world.data)
+        .map(|(a, b)| a.abs_diff(*b) as f64)
+        .sum::<f64>()
+        / own.data.len() as f64;
+    assert!(
+        mean_world_difference > 10.0,
+        "world rays differ by only {mean_world_difference:.1}/255 on average"
+    );
+    let turntable = Turntable {
+        frames: 4,
+        ..Turntable::default()
+    };
+    for view in turntable_cameras(&scene, &turntable) {
+        assert_eq!(view.ndc, Some(ndc));
+    }
+}

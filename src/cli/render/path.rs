@@ -152,6 +152,7 @@ pub fn render_camera_path(
         keep_frames: args.keep_frames,
         depth_range: scene.depth_range(),
         source,
+        ndc: scene.ndc(),
     })
     .map_err(anyhow::Error::msg)?;
     let already = render.already();

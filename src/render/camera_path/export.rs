@@ -17,7 +17,7 @@ use super::PathSample;
 use super::frames::{FrameJob, MANIFEST, RenderSource, read_frame};
 use super::video::{Mp4Encoder, VideoInfo, size_problem};
 use crate::model::{RadianceModel, RenderMode};
-use crate::scene::ImageRgba8;
+use crate::scene::{ImageRgba8, NdcSpace};
 
 /// Whether `out` names a video file rather than a folder of frames.
 pub fn is_video(out: &Path) -> bool {
@@ -68,6 +68,9 @@ pub struct PathRenderSettings {
     /// frames of another checkpoint or box are never taken as this
     /// render's.
     pub source: RenderSource,
+    /// A forward-facing scene's normalised device coordinates (the
+    /// scene's [`crate::scene::Scene::ndc`]).
+    pub ndc: Option<NdcSpace>,
 }
 
 /// What a finished render wrote.
@@ -149,6 +152,7 @@ impl PathRender {
             depth_range: settings.depth_range,
             source: settings.source.clone(),
             out_dir: frames_dir,
+            ndc: settings.ndc,
         };
         let todo = job.prepare(settings.replace_existing)?;
         Ok(Self {

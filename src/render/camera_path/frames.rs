@@ -22,8 +22,8 @@ use super::PathSample;
 use crate::crc32c::Crc32c;
 use crate::model::pixels::{render_pixels, to_image};
 use crate::model::{RadianceModel, RenderMode};
-use crate::scene::ImageRgba8;
 use crate::scene::crop::CropBox;
+use crate::scene::{ImageRgba8, NdcSpace};
 
 /// The manifest's file name in the frames folder.
 pub const MANIFEST: &str = "camera_path_render.json";
@@ -65,6 +65,9 @@ pub struct FrameJob {
     pub depth_range: (f32, f32),
     pub source: RenderSource,
     pub out_dir: PathBuf,
+    /// A forward-facing scene's normalised device coordinates: each
+    /// frame's rays are mapped into them, as the training rays were.
+    pub ndc: Option<NdcSpace>,
 }
 
 /// The manifest's fields in the order a difference is reported, each with
@@ -242,7 +245,9 @@ impl FrameJob {
         model: &dyn RadianceModel,
         index: usize,
     ) -> Result<ImageRgba8, String> {
-        let camera = self.samples[index].camera(self.width, self.height);
+        let camera = self.samples[index]
+            .camera(self.width, self.height)
+            .with_ndc(self.ndc);
         let pixels = render_pixels(model, &camera, BACKGROUND);
         let image = to_image(
             &pixels,
@@ -335,6 +340,7 @@ mod tests {
                 crop: None,
             },
             out_dir: dir.to_path_buf(),
+            ndc: None,
         }
     }
 

@@ -160,5 +160,6 @@ fn path_settings(
         keep_frames: false,
         depth_range: scene.depth_range(),
         source,
+        ndc: scene.ndc(),
     })
 }
