@@ -422,7 +422,11 @@ impl GpuProposal {
         scale: f32,
     ) -> (Vec<f32>, Vec<f32>) {
         let upload = |label: &str, values: &[f32]| {
-            storage_buffer(context, label, if values.is_empty() { &[0.0] } else { values })
+            storage_buffer(
+                context,
+                label,
+                if values.is_empty() { &[0.0] } else { values },
+            )
         };
         let (n, m) = (fine.1.len() / rays, proposal.1.len() / rays);
         let fine_edges = upload("fine edges", fine.0);

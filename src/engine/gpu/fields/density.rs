@@ -39,8 +39,7 @@ fn write_outputs(rec: &mut Recorder, sigma: &wgpu::Buffer, rows: usize, out: Fie
     }
     rec.encoder
         .copy_buffer_to_buffer(sigma, 0, out.sigma, 0, 4 * rows as u64);
-    rec.encoder
-        .clear_buffer(out.rgb, 0, Some(12 * rows as u64));
+    rec.encoder.clear_buffer(out.rgb, 0, Some(12 * rows as u64));
 }
 
 /// An Instant-NGP proposal level's field on the `gpu` engine: a small hash
@@ -73,11 +72,7 @@ impl GpuDensityField {
             dense: GpuDense::new(context)?,
             network: GpuMlpWorkspace::new(context, &shape.density, capacity),
             encoded: zeroed_storage_buffer::<f32>(context, "density encoded", capacity * width),
-            d_encoded: zeroed_storage_buffer::<f32>(
-                context,
-                "density d encoded",
-                capacity * width,
-            ),
+            d_encoded: zeroed_storage_buffer::<f32>(context, "density d encoded", capacity * width),
             forward_positions: None,
             param_offset: 0,
             shape: shape.clone(),
@@ -112,8 +107,13 @@ impl GpuDensityField {
             &self.encoded,
             rows,
         );
-        self.dense
-            .record_forward(rec, self.network_at(params), &self.encoded, &self.network, rows);
+        self.dense.record_forward(
+            rec,
+            self.network_at(params),
+            &self.encoded,
+            &self.network,
+            rows,
+        );
     }
 }
 
@@ -199,8 +199,13 @@ impl GpuField for GpuDensityField {
     ) {
         self.record_network(rec, params, positions, rows);
         if rows > 0 {
-            rec.encoder
-                .copy_buffer_to_buffer(self.network.output(), 0, sigma_out, 0, 4 * rows as u64);
+            rec.encoder.copy_buffer_to_buffer(
+                self.network.output(),
+                0,
+                sigma_out,
+                0,
+                4 * rows as u64,
+            );
         }
         self.forward_positions = None;
     }
@@ -374,8 +379,7 @@ impl GpuField for GpuNerfDensityField {
             out.sigma,
         );
         if rows > 0 {
-            rec.encoder
-                .clear_buffer(out.rgb, 0, Some(12 * rows as u64));
+            rec.encoder.clear_buffer(out.rgb, 0, Some(12 * rows as u64));
         }
         self.forward_rows = Some(rows);
     }

@@ -43,7 +43,8 @@ use crate::field::nerf::{DensityActivation, NerfShape};
 /// Threads per workgroup of the nerf_* kernels.
 const WORKGROUP: u32 = 64;
 
-pub(super) const DENSITY_COMMON: &str = include_str!("../../../../shaders/nerf_density_common.wgsl");
+pub(super) const DENSITY_COMMON: &str =
+    include_str!("../../../../shaders/nerf_density_common.wgsl");
 
 /// `Params` in shaders/nerf_concat.wgsl.
 #[repr(C)]

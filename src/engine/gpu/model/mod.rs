@@ -64,8 +64,8 @@ use super::kernel::{
     zeroed_storage_buffer,
 };
 use super::loss::GpuLoss;
-use super::proposal::GpuProposal;
 use super::march::{GpuGrid, GpuMarch, GpuMarchBuffers, GpuRays};
+use super::proposal::GpuProposal;
 use super::render::{RenderBuffers, RenderKernels, check_target};
 use super::sampling::GpuSampling;
 use super::step::{
@@ -1031,9 +1031,22 @@ impl RadianceModel for GpuModel {
                 4 * (g.grid.values().len() + g.grid.bitfield().len())
                     + g.cell_variances.as_ref().map_or(0, |b| b.size() as usize)
             })
-            + [&work.edges, &work.bin_weights, &work.fine_t]
+            + [
+                &work.edges,
+                &work.bin_weights,
+                &work.fine_t,
+                &work.d_weights,
+                &work.weight_scratch,
+                &work.weight_ray_loss,
+            ]
+            .iter()
+            .map(|b| b.size() as usize)
+            .sum::<usize>()
+            + work
+                .twins
                 .iter()
-                .map(|b| b.size() as usize)
+                .flatten()
+                .map(|f| f.workspace_bytes())
                 .sum::<usize>()
     }
 }

@@ -449,6 +449,51 @@ mod tests {
         assert!(matches!(plan(&marched), Ok(Plan::Marched)));
     }
 
+    /// The proposal sampler's levels: 256 then 96 proposal intervals, then
+    /// 48 of the full field (Instant-NGP's counts, nerfacc's `ngp_prop`),
+    /// each its own; without a contraction to space them by, refused.
+    #[test]
+    fn the_proposal_levels_evaluate_their_intervals_and_need_a_contraction() {
+        use crate::field::common::Level;
+        use crate::field::contraction::{Contraction, ContractionNorm};
+        let mut recipe = crate::field::nerf::recipe(Sampling::Paper, true);
+        recipe.levels = vec![
+            Level::proposal(SamplerKind::SpacedIntervals { count: 256 }, 0),
+            Level::proposal(
+                SamplerKind::ProposalResample {
+                    count: 96,
+                    padding: 0.01,
+                },
+                0,
+            ),
+            Level::radiance(
+                SamplerKind::ProposalResample {
+                    count: 48,
+                    padding: 0.01,
+                },
+                1,
+                1.0,
+            ),
+        ];
+        let without = per_ray(&recipe).expect_err("refused");
+        assert!(
+            without.starts_with("level 0: the proposal sampler's levels space their samples"),
+            "{without}"
+        );
+        recipe.contraction = Some(Contraction {
+            centre: glam::Vec3::ZERO,
+            radius: 1.0,
+            norm: ContractionNorm::L2,
+        });
+        assert_eq!(per_ray(&recipe), Ok(vec![256, 96, 48]));
+        recipe.levels.swap(0, 1);
+        let first = per_ray(&recipe).expect_err("refused");
+        assert!(
+            first.starts_with("level 0: the first level cannot be a proposal resampling"),
+            "{first}"
+        );
+    }
+
     #[test]
     fn levels_that_no_sampler_draws_are_refused_by_level() {
         let nerf = crate::field::nerf::recipe(Sampling::Paper, true);
