@@ -259,13 +259,28 @@ fn engines(kind: ModelKind, scene: &Scene) -> (CpuModel, GpuModel) {
     (cpu, gpu)
 }
 
-fn one_proposal_step_matches_the_cpu_engine(kind: ModelKind) {
+/// One step of `kind` from the same state on both engines, after
+/// `warm_up` steps on the cpu engine (moved to the gpu engine through a
+/// checkpoint). Instant-NGP's fresh proposal grids nearly bound the final
+/// weights (interlevel loss ~2e-6): its excesses w − bound are then
+/// differences of weights within ~1e-4 of each other, which keep only
+/// ~1e-3 of their digits through f32 (measured: 3e-4 on the loss, 8e-4 on
+/// a grid's gradient); after 30 steps the excesses are ~100 × larger and
+/// the chain's 1e-4 holds (measured ~2e-5).
+fn one_proposal_step_matches_the_cpu_engine(kind: ModelKind, warm_up: u32) {
     let scene = unbounded_scene();
     let (mut cpu, mut gpu) = engines(kind, &scene);
     assert!(
         gpu.params() == cpu.params(),
         "initial parameters differ: the engines must start identical"
     );
+    for step in 0..warm_up {
+        cpu.step(&batch(&scene, 32, 100 + step as u64), step);
+    }
+    if warm_up > 0 {
+        gpu.load(&cpu.save()).expect("the cpu engine's checkpoint");
+        assert!(gpu.params() == cpu.params());
+    }
     let rays = batch(&scene, 12, 17);
     let cpu_stats = cpu.forward_backward(&rays, 1);
     let gpu_stats = gpu.forward_backward(&rays, 1);
@@ -294,15 +309,9 @@ fn one_proposal_step_matches_the_cpu_engine(kind: ModelKind) {
         gpu_stats.loss,
         cpu_stats.loss
     );
-    // The interlevel loss sums excess²/w where the excess w − bound is a
-    // difference of weights that agree to ~1e-6 relative: where the
-    // excesses are ~1 % of the weights (early in training, proposals
-    // nearly bound the final weights) the loss keeps ~1e-4 of its digits
-    // (measured 2.9e-4 for Instant-NGP), so 2e-3; a wrong overlap or
-    // scale is off by O(1).
     assert!(cpu_stats.proposal_loss > 0.0, "{cpu_stats:?}");
     assert!(
-        relative(gpu_stats.proposal_loss, cpu_stats.proposal_loss) < 2e-3,
+        relative(gpu_stats.proposal_loss, cpu_stats.proposal_loss) < 1e-4,
         "interlevel loss: gpu {} cpu {}",
         gpu_stats.proposal_loss,
         cpu_stats.proposal_loss
@@ -316,31 +325,26 @@ fn one_proposal_step_matches_the_cpu_engine(kind: ModelKind) {
         assert!(g.iter().any(|&x| x != 0.0), "field {field} has no gradient");
         let error = relative_norm(&gpu_gradient[range.clone()], g);
         println!("gradient of field {field}: relative error {error:.2e}");
-        // The proposal fields' gradients are −2·excess/w through their
-        // weights: as sensitive as the interlevel loss above (measured
-        // 1.3e-4 for Instant-NGP's first grid); the full field's is the
-        // chain of nerf_gpu.rs.
-        let tolerance = if field + 1 < ranges.len() { 2e-3 } else { 1e-4 };
-        assert!(error < tolerance, "field {field}: {error:e}");
+        assert!(error < 1e-4, "field {field}: {error:e}");
     }
 }
 
 #[test]
 fn ngp_proposal_step_matches_the_cpu_engine_gpu() {
     let _cores = crate::common::shared();
-    one_proposal_step_matches_the_cpu_engine(ModelKind::Ngp);
+    one_proposal_step_matches_the_cpu_engine(ModelKind::Ngp, 30);
 }
 
 #[test]
 fn nerf_proposal_step_matches_the_cpu_engine_gpu() {
     let _cores = crate::common::shared();
-    one_proposal_step_matches_the_cpu_engine(ModelKind::Nerf);
+    one_proposal_step_matches_the_cpu_engine(ModelKind::Nerf, 0);
 }
 
 #[test]
 fn mipnerf_proposal_step_matches_the_cpu_engine_gpu() {
     let _cores = crate::common::shared();
-    one_proposal_step_matches_the_cpu_engine(ModelKind::MipNerf);
+    one_proposal_step_matches_the_cpu_engine(ModelKind::MipNerf, 0);
 }
 
 /// A validation view rendered with the proposal sampler (no jitter: each

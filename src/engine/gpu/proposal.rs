@@ -261,6 +261,7 @@ impl GpuProposal {
     /// `contraction`'s contracted space (as [`super::frustum::GpuFrustums::record_edges`]
     /// in world space): midpoints and lengths for compositing, contracted
     /// means and covariance diagonals for the field.
+    #[allow(clippy::too_many_arguments)]
     pub fn record_contracted_frustums(
         &self,
         rec: &mut Recorder,
