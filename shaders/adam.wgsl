@@ -18,7 +18,10 @@ struct Params {
     one_minus_beta2: f32,
     epsilon: f32,
     l2: f32,
-    _pad: u32,
+    // Elements at the binding's start that belong to the span before (a
+    // span off the storage-binding alignment is bound from the aligned
+    // offset below it): left alone.
+    first: u32,
 }
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -32,7 +35,7 @@ struct Params {
 @compute @workgroup_size(256)
 fn main(@builtin(global_invocation_id) id: vec3<u32>) {
     let i = id.x + id.y * params.row_stride;
-    if (i >= params.count) {
+    if (i < params.first || i >= params.count) {
         return;
     }
     var g = gradients[i];

@@ -17,9 +17,9 @@ fn unfused3(x: vec3<f32>) -> vec3<f32> {
     return bitcast<vec3<f32>>(bitcast<vec3<u32>>(x) ^ vec3<u32>(params.zero));
 }
 
-// The frustum of the cone of radius `radius` at unit distance around the
-// unit direction `d` from `o`, between distances t0 <= t1.
-fn frustum_gaussian(o: vec3<f32>, d: vec3<f32>, radius: f32, t0: f32, t1: f32) -> Gaussian {
+// The frustum's moments along its ray: the mean distance, the variance
+// along the ray and the variance across it (x, y, z of the result).
+fn frustum_moments(radius: f32, t0: f32, t1: f32) -> vec3<f32> {
     let mid = 0.5 * (t0 + t1);
     let half = 0.5 * (t1 - t0);
     let mid2 = mid * mid;
@@ -45,6 +45,16 @@ fn frustum_gaussian(o: vec3<f32>, d: vec3<f32>, radius: f32, t0: f32, t1: f32) -
             0.0,
         );
     }
+    return vec3<f32>(t_mean, t_variance, radial_variance);
+}
+
+// The frustum of the cone of radius `radius` at unit distance around the
+// unit direction `d` from `o`, between distances t0 <= t1.
+fn frustum_gaussian(o: vec3<f32>, d: vec3<f32>, radius: f32, t0: f32, t1: f32) -> Gaussian {
+    let moments = frustum_moments(radius, t0, t1);
+    let t_mean = moments.x;
+    let t_variance = moments.y;
+    let radial_variance = moments.z;
     let along = d * d;
     var g: Gaussian;
     g.mean = o + unfused3(d * t_mean);

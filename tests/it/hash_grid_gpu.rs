@@ -336,3 +336,71 @@ fn large_batches_fold_into_more_dispatch_dimensions() {
     // |θ| ≤ 1, Σw = 1: a few ε.
     assert!(worst <= 1e-6, "worst error {worst:e}");
 }
+
+/// A table that starts off the storage-binding alignment (a field after
+/// another in a model's flat buffer: Instant-NGP's after its proposal
+/// grids) encodes and accumulates exactly what the same table at its
+/// buffer's start does, and touches nothing before it. Encodings are the
+/// same operations on the same entries (bit-equal); gradients add the same
+/// terms in the atomics' order (the tolerance above).
+#[test]
+fn a_table_off_the_binding_alignment_reads_and_adds_the_same_entries() {
+    let _cores = crate::common::shared();
+    use zrak::engine::gpu::kernel::FloatsAt;
+    let context = context();
+    let layout = contended_layout();
+    let grid = GpuHashGrid::new(&context, &layout, true).expect("hash grid");
+    let n = layout.param_count();
+    let params = symmetric(n, 5);
+    let positions = positions(&layout, 300, 9);
+    let count = positions.len();
+    let width = layout.output_width();
+    let d_encoded = symmetric(count * width, 6);
+    let encoded_at_start = grid.encode_once(&context, &params, &positions);
+    let gradient_at_start = grid.backward_once(&context, &positions, &d_encoded);
+    // 37 f32s: off any alignment a device asks for (4 bytes at least).
+    let lead = 37;
+    let mut padded = vec![9.0f32; lead];
+    padded.extend(&params);
+    let padded = storage_buffer(&context, "padded params", &padded);
+    let gradient = zeroed_storage_buffer::<f32>(&context, "padded gradient", lead + n);
+    let position_buffer = storage_buffer(&context, "positions", &positions);
+    let d_encoded_buffer = storage_buffer(&context, "d encoded", &d_encoded);
+    let encoded = zeroed_storage_buffer::<f32>(&context, "encoded", count * width);
+    let mut rec = Recorder::new(&context);
+    grid.record_encode_at(
+        &mut rec,
+        FloatsAt {
+            buffer: &padded,
+            offset: lead,
+        },
+        &position_buffer,
+        &encoded,
+        count,
+    );
+    grid.record_backward_at(
+        &mut rec,
+        &position_buffer,
+        &d_encoded_buffer,
+        FloatsAt {
+            buffer: &gradient,
+            offset: lead,
+        },
+        count,
+    );
+    rec.submit();
+    let encoded: Vec<f32> = read_buffer(&context, &encoded, count * width);
+    assert!(encoded == encoded_at_start, "the encodings differ");
+    let gradient: Vec<f32> = read_buffer(&context, &gradient, lead + n);
+    assert!(
+        gradient[..lead].iter().all(|&g| g == 0.0),
+        "written before the table"
+    );
+    let largest = gradient_at_start.iter().fold(0f32, |m, g| m.max(g.abs()));
+    for (i, (g, e)) in gradient[lead..].iter().zip(&gradient_at_start).enumerate() {
+        assert!(
+            (g - e).abs() <= TOLERANCE * largest,
+            "entry {i}: {g} vs {e}"
+        );
+    }
+}

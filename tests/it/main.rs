@@ -38,6 +38,7 @@ mod ngp_gpu;
 mod ngp_gpu_driver_gate;
 mod ngp_learning;
 mod proposal_cpu;
+mod proposal_gpu;
 mod proposal_nerf_cpu;
 mod render_texture_gpu;
 mod sampling_gpu;

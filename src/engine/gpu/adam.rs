@@ -31,7 +31,7 @@ struct Params {
     one_minus_beta2: f32,
     epsilon: f32,
     l2: f32,
-    _pad: u32,
+    first: u32,
 }
 
 /// Adam's state on the GPU and the compiled step.
@@ -172,13 +172,18 @@ impl GpuAdam {
         // Every array is bound a piece at a time when it exceeds the
         // storage-binding limit (or the span starts inside the buffer);
         // each element's update is independent.
-        let per = rows_per_piece(context, 1, 1);
+        // A piece that starts off the binding alignment (a part of the
+        // layout after another) is bound from the aligned offset below it,
+        // the elements before its start skipped.
+        let align = (context.limits.min_storage_buffer_offset_alignment as usize / 4).max(1);
+        let per = rows_per_piece(context, 1, 1).saturating_sub(align).max(1);
         for piece in pieces(span.len(), per) {
             let piece = span.start + piece.start..span.start + piece.end;
-            let (groups, row_stride) = grid(piece.len(), WORKGROUP);
-            let relative = |i: usize| i.clamp(piece.start, piece.end) - piece.start;
+            let bound = piece.start / align * align;
+            let (groups, row_stride) = grid(piece.end - bound, WORKGROUP);
+            let relative = |i: usize| i.clamp(piece.start, piece.end) - bound;
             let uniform = Params {
-                count: piece.len() as u32,
+                count: (piece.end - bound) as u32,
                 row_stride,
                 network_start: relative(network_weights.start) as u32,
                 network_end: relative(network_weights.end) as u32,
@@ -189,10 +194,10 @@ impl GpuAdam {
                 one_minus_beta2: 1.0 - config.beta2,
                 epsilon: config.epsilon,
                 l2,
-                _pad: 0,
+                first: (piece.start - bound) as u32,
             };
             let uniform = uniform_buffer(context, "adam params", &uniform);
-            let range = |buffer| float_range(buffer, piece.start, piece.len());
+            let range = |buffer| float_range(buffer, bound, piece.end - bound);
             self.kernel.record_bindings(
                 rec,
                 &[
@@ -233,7 +238,8 @@ mod uniform_mirrors {
                 one_minus_beta1,
                 one_minus_beta2,
                 epsilon,
-                l2
+                l2,
+                first
             ]
         );
     }

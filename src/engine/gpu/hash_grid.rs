@@ -227,6 +227,7 @@ impl GpuHashGrid {
             Pass::Backward => (&self.backward, 4),
         };
         let width = self.width as usize;
+        let align = Self::offset_alignment(context);
         let per = rows_per_piece(context, width.max(3), 1);
         for piece in pieces(count, per) {
             let groups = u32::try_from(piece.len().div_ceil(WORKGROUP as usize))
@@ -235,13 +236,19 @@ impl GpuHashGrid {
             let z = groups.div_ceil(MAX_GROUPS_PER_DIMENSION);
             let x = groups.div_ceil(z);
             for group in &self.groups {
+                // A table that starts off the binding alignment (a field
+                // after another in a model's flat buffer) is bound from the
+                // aligned offset below it; the shader's index, less
+                // `table_base`, wraps (u32) onto the same entries.
+                let start = table.offset + group.base;
+                let lead = start % align;
                 let params = Params {
                     count: piece.len() as u32,
                     features: self.features,
                     width: self.width,
                     groups_x: x,
                     first_level: group.levels.start,
-                    table_base: group.base as u32,
+                    table_base: (group.base as u32).wrapping_sub(lead as u32),
                     box_min: self.box_min,
                     inverse_extent: self.inverse_extent,
                 };
@@ -256,7 +263,7 @@ impl GpuHashGrid {
                 ];
                 bindings.insert(
                     table_binding,
-                    float_range(table.buffer, table.offset + group.base, group.len),
+                    float_range(table.buffer, start - lead, group.len + lead),
                 );
                 kernel.record_bindings(rec, &bindings, [x, group.levels.len() as u32, z]);
             }
@@ -276,8 +283,7 @@ impl GpuHashGrid {
         self.record_encode_at(rec, FloatsAt::start(params), positions, encoded, count);
     }
 
-    /// As [`Self::record_encode`], the table at `table` (its offset a
-    /// multiple of [`Self::offset_alignment`]).
+    /// As [`Self::record_encode`], the table at `table` (any offset).
     pub fn record_encode_at(
         &self,
         rec: &mut Recorder,
@@ -310,7 +316,7 @@ impl GpuHashGrid {
     }
 
     /// As [`Self::record_backward`], the table's gradient at `d_table`
-    /// (its offset a multiple of [`Self::offset_alignment`]).
+    /// (any offset).
     pub fn record_backward_at(
         &self,
         rec: &mut Recorder,

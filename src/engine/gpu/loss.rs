@@ -129,6 +129,24 @@ impl GpuLoss {
         );
     }
 
+    /// Records the sum of the first `count` of `values` into `total[0]`
+    /// (one f32), as the loss's sum over rays.
+    pub fn record_sum(
+        &self,
+        rec: &mut Recorder,
+        values: &wgpu::Buffer,
+        count: usize,
+        total: &wgpu::Buffer,
+    ) {
+        let sum_params = SumParams {
+            count: count as u32,
+            _pad: [0; 3],
+        };
+        let sum_uniform = uniform_buffer(rec.context, "sum params", &sum_params);
+        self.sum
+            .record(rec, &[&sum_uniform, values, total], [1, 1, 1]);
+    }
+
     /// Uploads, runs and reads back the mean loss and its gradient (tests
     /// and tools).
     pub fn loss_and_gradient(

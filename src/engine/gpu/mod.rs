@@ -17,6 +17,7 @@ pub mod march;
 #[cfg(test)]
 pub(crate) mod mirror;
 pub mod model;
+pub mod proposal;
 pub mod render;
 pub mod sampling;
 pub mod sh;

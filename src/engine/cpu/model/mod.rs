@@ -322,6 +322,18 @@ impl CpuModel {
         &self.params
     }
 
+    /// The sample distances level `level` drew for the last chunk of the
+    /// last fixed-count step: each ray's interval edges for a level of
+    /// intervals, else its points' t (tests compare engines with them).
+    pub fn level_distances(&self, level: usize) -> &[f32] {
+        let buffers = &self.buffers.levels[level];
+        if self.samplers[level].draws_intervals() {
+            &buffers.edges
+        } else {
+            &buffers.t
+        }
+    }
+
     /// Parameters, writable (for gradient checks).
     pub fn params_mut(&mut self) -> &mut [f32] {
         &mut self.params

@@ -4,6 +4,7 @@
 //! parameter layouts, so a model's parameters move between engines as they
 //! are.
 
+pub mod density;
 pub mod nerf;
 pub mod ngp;
 
@@ -25,11 +26,16 @@ pub fn fields_for(
         FieldShape::Nerf(shape) => {
             Box::new(nerf::GpuNerfField::new(context, shape, capacity_rows)?)
         }
-        FieldShape::Density(_) | FieldShape::NerfDensity(_) => {
-            return Err(GpuError::Unsupported(
-                "the proposal sampler's density fields are not on the gpu engine yet".into(),
-            ));
-        }
+        FieldShape::Density(shape) => Box::new(density::GpuDensityField::new(
+            context,
+            shape,
+            capacity_rows,
+        )?),
+        FieldShape::NerfDensity(shape) => Box::new(density::GpuNerfDensityField::new(
+            context,
+            shape,
+            capacity_rows,
+        )?),
     })
 }
 

@@ -43,7 +43,8 @@ use crate::field::nerf::{DensityActivation, NerfShape};
 /// Threads per workgroup of the nerf_* kernels.
 const WORKGROUP: u32 = 64;
 
-const DENSITY_COMMON: &str = include_str!("../../../../shaders/nerf_density_common.wgsl");
+pub(super) const DENSITY_COMMON: &str =
+    include_str!("../../../../shaders/nerf_density_common.wgsl");
 
 /// `Params` in shaders/nerf_concat.wgsl.
 #[repr(C)]
@@ -74,15 +75,15 @@ struct PaddingUniform {
 /// `Params` in shaders/nerf_density_common.wgsl.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct DensityUniform {
-    rows: u32,
-    row_stride: u32,
-    raw_stride: u32,
-    feature_width: u32,
-    colour_stride: u32,
-    activation: u32,
-    shift: f32,
-    _pad: u32,
+pub(super) struct DensityUniform {
+    pub(super) rows: u32,
+    pub(super) row_stride: u32,
+    pub(super) raw_stride: u32,
+    pub(super) feature_width: u32,
+    pub(super) colour_stride: u32,
+    pub(super) activation: u32,
+    pub(super) shift: f32,
+    pub(super) _pad: u32,
 }
 
 /// The compiled kernels a NeRF field records.

@@ -65,6 +65,7 @@ use super::kernel::{
 };
 use super::loss::GpuLoss;
 use super::march::{GpuGrid, GpuMarch, GpuMarchBuffers, GpuRays};
+use super::proposal::GpuProposal;
 use super::render::{RenderBuffers, RenderKernels, check_target};
 use super::sampling::GpuSampling;
 use super::step::{
@@ -122,7 +123,7 @@ fn plan(recipe: &Recipe) -> Result<Plan, String> {
     }
     let mut levels: Vec<(Box<dyn LevelSampler>, usize)> = Vec::with_capacity(recipe.levels.len());
     for (i, level) in recipe.levels.iter().enumerate() {
-        let sampler = level_sampler(level.sampler, recipe.samples)
+        let sampler = level_sampler(level.sampler, recipe.samples, recipe.contraction)
             .map_err(|why| format!("level {i}: {why}"))?;
         // An importance level evaluates the previous level's samples and
         // its own; a resampled level only its own frustums.
@@ -224,8 +225,8 @@ impl MarchedBuffers {
 /// Buffers of one level for one chunk of rays.
 struct LevelBuffers {
     per_ray: usize,
-    /// Frustum levels: each ray's per_ray + 1 interval edges (else one
-    /// float, unused).
+    /// Levels of intervals (frustums, the proposal sampler's): each ray's
+    /// per_ray + 1 interval edges (else one float, unused).
     edges: wgpu::Buffer,
     /// Frustum levels: each sample's covariance diagonal (else one float,
     /// unused).
@@ -244,17 +245,18 @@ struct LevelBuffers {
 }
 
 impl LevelBuffers {
-    fn new(context: &GpuContext, per_ray: usize, frustums: bool) -> Self {
+    fn new(context: &GpuContext, per_ray: usize, frustums: bool, intervals: bool) -> Self {
         let n = RAYS_PER_CHUNK * per_ray;
         let f = |label: &str, count: usize| zeroed_storage_buffer::<f32>(context, label, count);
         let offsets: Vec<u32> = (0..=RAYS_PER_CHUNK)
             .map(|r| u32::try_from(r * per_ray).expect("a chunk's samples fit in u32"))
             .collect();
-        let (edges, variances) = if frustums {
-            (RAYS_PER_CHUNK * (per_ray + 1), 3 * n)
+        let edges = if intervals {
+            RAYS_PER_CHUNK * (per_ray + 1)
         } else {
-            (1, 1)
+            1
         };
+        let variances = if frustums { 3 * n } else { 1 };
         Self {
             per_ray,
             edges: f("level edges", edges),
@@ -286,6 +288,9 @@ enum Purpose<'a> {
         share: f32,
         losses: &'a wgpu::Buffer,
         first_slot: usize,
+        /// Rays of the whole batch (the losses on weights are per ray of
+        /// it, as on the cpu).
+        batch_rays: usize,
     },
     /// Compositing only (rendering).
     Inference,
@@ -304,6 +309,16 @@ struct Work {
     edges: wgpu::Buffer,
     bin_weights: wgpu::Buffer,
     fine_t: wgpu::Buffer,
+    /// Per level: a second instance of its field where an earlier proposal
+    /// level evaluates the same field (as the cpu's twins), so each round
+    /// keeps its own activations until the proposals' backward passes.
+    twins: Vec<Option<Box<dyn GpuField>>>,
+    /// The losses on weights (proposal sampler): their gradient on a
+    /// level's weights (R × the widest level), the kernels' scratch
+    /// (R × (the widest level + 1)), and each ray's interlevel loss.
+    d_weights: wgpu::Buffer,
+    weight_scratch: wgpu::Buffer,
+    weight_ray_loss: wgpu::Buffer,
     scratch: Vec<f32>,
     clock: StageClock,
     /// The loss and stage times of each marched step.
@@ -318,6 +333,7 @@ struct Stages {
     frustums: GpuFrustums,
     composite: GpuComposite,
     loss: GpuLoss,
+    proposal: GpuProposal,
 }
 
 /// A model on the `gpu` engine built from a recipe and its fields.
@@ -473,9 +489,12 @@ impl GpuModel {
             ));
         }
         // As `CpuModel::new`: fixed-count levels and frustums are placed in
-        // world units.
+        // world units, or contracted (onto the unit cube for a hash grid).
         let marches_points = recipe.samples == SampleShape::Points && marches;
+        let contracted_points =
+            recipe.samples == SampleShape::Points && recipe.contraction.is_some();
         if !marches_points
+            && !contracted_points
             && fields
                 .iter()
                 .any(|f| f.coordinates() == Coordinates::UnitCube)
@@ -491,14 +510,45 @@ impl GpuModel {
         let mut edges = 1;
         let mut bins = 1;
         let mut fine = 1;
-        for (i, sampler) in samplers.iter().enumerate().skip(1) {
-            let needs = sampler.scratch_per_ray(per_ray[i - 1]);
+        for (i, sampler) in samplers.iter().enumerate() {
+            let needs = sampler.scratch_per_ray(if i == 0 { 0 } else { per_ray[i - 1] });
             edges = edges.max(RAYS_PER_CHUNK * needs.edges);
             bins = bins.max(RAYS_PER_CHUNK * needs.bins);
             fine = fine.max(RAYS_PER_CHUNK * needs.fine);
         }
         let frustums = recipe.samples == SampleShape::ConicalFrustums;
         let f = |label: &str, n: usize| zeroed_storage_buffer::<f32>(ctx, label, n);
+        if recipe
+            .levels
+            .iter()
+            .filter(|l| !l.colour)
+            .any(|p| recipe.levels.iter().any(|l| l.field == p.field && l.colour))
+        {
+            return Err(
+                "a proposal level's field serves proposal levels only: their backward passes \
+                 wait for the final level"
+                    .into(),
+            );
+        }
+        // A proposal field that serves several rounds evaluates each after
+        // the first through a second instance of itself, reading the same
+        // parameters and adding to the same gradient.
+        let mut twins = Vec::with_capacity(recipe.levels.len());
+        for (index, level) in recipe.levels.iter().enumerate() {
+            let shared = recipe.levels[..index]
+                .iter()
+                .any(|earlier| earlier.field == level.field);
+            twins.push(if !level.colour && shared {
+                let mut twin =
+                    make_field(ctx, level.field, RAYS_PER_CHUNK * per_ray[index]).map_err(gpu)?;
+                twin.set_param_offset(ranges[level.field].start);
+                Some(twin)
+            } else {
+                None
+            });
+        }
+        let widest = per_ray.iter().copied().max().unwrap_or(1);
+        let intervals: Vec<bool> = samplers.iter().map(|s| s.draws_intervals()).collect();
         let mut work = Work {
             fields,
             rays: RayBuffers::new(ctx, RAYS_PER_CHUNK),
@@ -506,11 +556,16 @@ impl GpuModel {
             far: f("ray far", RAYS_PER_CHUNK),
             levels: per_ray
                 .iter()
-                .map(|&n| LevelBuffers::new(ctx, n, frustums))
+                .zip(&intervals)
+                .map(|(&n, &intervals)| LevelBuffers::new(ctx, n, frustums, intervals))
                 .collect(),
             edges: f("importance edges", edges),
             bin_weights: f("importance bin weights", bins),
             fine_t: f("importance samples", fine),
+            twins,
+            d_weights: f("d weights", RAYS_PER_CHUNK * widest),
+            weight_scratch: f("weight loss scratch", RAYS_PER_CHUNK * (widest + 1)),
+            weight_ray_loss: f("interlevel loss per ray", RAYS_PER_CHUNK),
             scratch: Vec::new(),
             clock: StageClock::new(ctx, StageTiming::Timestamps),
             readback: StepReadback::new(ctx),
@@ -521,6 +576,7 @@ impl GpuModel {
             frustums: GpuFrustums::new(ctx).map_err(gpu)?,
             composite: GpuComposite::new(ctx).map_err(gpu)?,
             loss: GpuLoss::new(ctx).map_err(gpu)?,
+            proposal: GpuProposal::new(ctx).map_err(gpu)?,
         };
         let mapping = scene.unit_cube;
         let grid = match (marched_samples, core.occupancy_grid(&mapping)) {
@@ -620,6 +676,19 @@ impl GpuModel {
     /// Reads the parameters back.
     pub fn params(&self) -> Vec<f32> {
         read_buffer(&self.context, &self.params, self.param_count)
+    }
+
+    /// Reads back the sample distances level `level` drew for the last
+    /// chunk (of `rays` rays) of the last fixed-count step, as
+    /// `CpuModel::level_distances`: interval edges or points' t.
+    pub fn level_distances(&self, level: usize, rays: usize) -> Vec<f32> {
+        let work = self.work();
+        let buffers = &work.levels[level];
+        if self.samplers[level].draws_intervals() {
+            read_buffer(&self.context, &buffers.edges, rays * (buffers.per_ray + 1))
+        } else {
+            read_buffer(&self.context, &buffers.t, rays * buffers.per_ray)
+        }
     }
 
     /// Reads back the gradient of the last step or
@@ -962,9 +1031,22 @@ impl RadianceModel for GpuModel {
                 4 * (g.grid.values().len() + g.grid.bitfield().len())
                     + g.cell_variances.as_ref().map_or(0, |b| b.size() as usize)
             })
-            + [&work.edges, &work.bin_weights, &work.fine_t]
+            + [
+                &work.edges,
+                &work.bin_weights,
+                &work.fine_t,
+                &work.d_weights,
+                &work.weight_scratch,
+                &work.weight_ray_loss,
+            ]
+            .iter()
+            .map(|b| b.size() as usize)
+            .sum::<usize>()
+            + work
+                .twins
                 .iter()
-                .map(|b| b.size() as usize)
+                .flatten()
+                .map(|f| f.workspace_bytes())
                 .sum::<usize>()
     }
 }

@@ -27,6 +27,7 @@ impl GpuModel {
         let field = &mut guard.fields[level.field];
         let unit_cube = field.coordinates() == Coordinates::UnitCube;
         let mapping = self.grid.as_ref().map(|g| g.mapping);
+        let contraction = self.core.recipe.contraction;
         let chunk = field.capacity().min(positions.len()).max(1);
         let f = |label: &str, n: usize| zeroed_storage_buffer::<f32>(ctx, label, n);
         let point_buffer = f("points positions", 3 * chunk);
@@ -41,20 +42,30 @@ impl GpuModel {
             .enumerate()
         {
             let n = points.len();
-            let flat: Vec<f32> = points
+            let (flat, variances): (Vec<[f32; 3]>, Vec<[f32; 3]>) = points
                 .iter()
-                .flat_map(|&p| match mapping {
-                    Some(mapping) if unit_cube => mapping.to_unit(p).to_array(),
-                    _ => p.to_array(),
+                .map(|&p| match (contraction, mapping) {
+                    // Through the contraction where the recipe has one (the
+                    // cpu's `InputMap::fill`): a frustum's Gaussian through
+                    // its linearisation.
+                    (Some(c), _) if frustums => {
+                        let (mean, covariance) = c.contract_world_gaussian(
+                            p,
+                            glam::Mat3::from_diagonal(Vec3::splat(variance)),
+                        );
+                        (mean.to_array(), covariance.diagonal().to_array())
+                    }
+                    (Some(c), _) if unit_cube => (c.to_unit_cube(p).to_array(), [variance; 3]),
+                    (Some(c), _) => (c.contract_world(p).to_array(), [variance; 3]),
+                    (None, Some(mapping)) if unit_cube => {
+                        (mapping.to_unit(p).to_array(), [variance; 3])
+                    }
+                    _ => (p.to_array(), [variance; 3]),
                 })
-                .collect();
+                .unzip();
             queue.write_buffer(&point_buffer, 0, bytemuck::cast_slice(&flat));
             if frustums {
-                queue.write_buffer(
-                    &variance_buffer,
-                    0,
-                    bytemuck::cast_slice(&vec![variance; 3 * n]),
-                );
+                queue.write_buffer(&variance_buffer, 0, bytemuck::cast_slice(&variances));
             }
             let variances = frustums.then_some(&variance_buffer);
             let mut rec = Recorder::new(ctx);

@@ -11,8 +11,10 @@
 
 use super::LevelBuffers;
 use crate::engine::gpu::kernel::Recorder;
+use crate::engine::gpu::proposal::GpuProposal;
 use crate::engine::gpu::sampling::{GpuSampling, Pdf, RayBounds, SortedRows, WeightedSamples};
 use crate::field::common::{SampleShape, SamplerKind};
+use crate::field::contraction::Contraction;
 
 /// What a level's sampler reads and writes on the device, for a chunk of
 /// `rays` rays.
@@ -26,8 +28,11 @@ pub(super) struct LevelSampling<'a> {
     pub(super) edges: &'a wgpu::Buffer,
     pub(super) bin_weights: &'a wgpu::Buffer,
     pub(super) fine_t: &'a wgpu::Buffer,
-    /// The level's own buffers: `t` for points, `edges` for frustums.
+    /// The level's own buffers: `t` for points, `edges` for frustums and
+    /// intervals.
     pub(super) out: &'a LevelBuffers,
+    /// The spacing coordinate's kernels (the proposal levels').
+    pub(super) proposal: &'a GpuProposal,
 }
 
 /// Per-ray floats of the shared sampling scratch a level needs.
@@ -50,6 +55,10 @@ pub(super) trait LevelSampler: Send + Sync {
         ScratchPerRay::default()
     }
 
+    /// Whether it draws intervals (each ray's samples + 1 edges into
+    /// `edges`) rather than points into `t` (as the cpu twin's).
+    fn draws_intervals(&self) -> bool;
+
     /// Records the draw. `jitter` seeds the random offsets (`None`: the
     /// deterministic positions).
     fn record(
@@ -66,8 +75,16 @@ pub(super) trait LevelSampler: Send + Sync {
 pub(super) fn level_sampler(
     kind: SamplerKind,
     shape: SampleShape,
+    contraction: Option<Contraction>,
 ) -> Result<Box<dyn LevelSampler>, String> {
     let frustums = shape == SampleShape::ConicalFrustums;
+    let spacing = || {
+        contraction.ok_or_else(|| {
+            "the proposal sampler's levels space their samples by the scene's contraction, \
+             which the recipe does not have"
+                .to_string()
+        })
+    };
     Ok(match kind {
         SamplerKind::Stratified { count } => Box::new(Stratified { count, frustums }),
         SamplerKind::Importance { .. } if frustums => {
@@ -84,13 +101,15 @@ pub(super) fn level_sampler(
                     .into(),
             );
         }
-        SamplerKind::SpacedIntervals { .. } | SamplerKind::ProposalResample { .. } => {
-            return Err(
-                "the proposal sampler is not on the gpu engine yet: use --engine cpu, or \
-                 --sampling occupancy"
-                    .into(),
-            );
-        }
+        SamplerKind::SpacedIntervals { count } => Box::new(SpacedIntervals {
+            count,
+            contraction: spacing()?,
+        }),
+        SamplerKind::ProposalResample { count, padding } => Box::new(ProposalResample {
+            count,
+            padding,
+            contraction: spacing()?,
+        }),
     })
 }
 
@@ -104,6 +123,10 @@ struct Stratified {
 impl LevelSampler for Stratified {
     fn samples_per_ray(&self, _previous: Option<usize>) -> Result<usize, String> {
         Ok(self.count)
+    }
+
+    fn draws_intervals(&self) -> bool {
+        self.frustums
     }
 
     fn record(
@@ -144,6 +167,10 @@ impl LevelSampler for Importance {
             ),
             None => Err("the first level cannot be an importance level".into()),
         }
+    }
+
+    fn draws_intervals(&self) -> bool {
+        false
     }
 
     fn scratch_per_ray(&self, previous: usize) -> ScratchPerRay {
@@ -219,6 +246,10 @@ impl LevelSampler for Resample {
         }
     }
 
+    fn draws_intervals(&self) -> bool {
+        true
+    }
+
     fn scratch_per_ray(&self, previous: usize) -> ScratchPerRay {
         ScratchPerRay {
             bins: previous,
@@ -252,6 +283,144 @@ impl LevelSampler for Resample {
     }
 }
 
+/// A proposal sampler's first level: `count` intervals whose `count` + 1
+/// edges are stratified in the contraction's spacing coordinate s between
+/// each ray's near and far bounds (the cpu engine's `SpacedIntervals`: the
+/// same stratified kernel, so the same jitter, on the bounds in s).
+struct SpacedIntervals {
+    count: usize,
+    contraction: Contraction,
+}
+
+impl LevelSampler for SpacedIntervals {
+    fn samples_per_ray(&self, _previous: Option<usize>) -> Result<usize, String> {
+        Ok(self.count)
+    }
+
+    fn scratch_per_ray(&self, _previous: usize) -> ScratchPerRay {
+        // Each ray's near and far bound in s.
+        ScratchPerRay {
+            edges: 1,
+            fine: 1,
+            ..ScratchPerRay::default()
+        }
+    }
+
+    fn draws_intervals(&self) -> bool {
+        true
+    }
+
+    fn record(
+        &self,
+        rec: &mut Recorder,
+        sampling: &GpuSampling,
+        level: LevelSampling,
+        jitter: Option<u32>,
+    ) {
+        let rays = level.rays;
+        if rays == 0 {
+            return;
+        }
+        let bytes = 4 * rays as u64;
+        let (near, far) = (level.edges, level.fine_t);
+        rec.encoder
+            .copy_buffer_to_buffer(level.bounds.near, 0, near, 0, bytes);
+        rec.encoder
+            .copy_buffer_to_buffer(level.bounds.far, 0, far, 0, bytes);
+        for bound in [near, far] {
+            level
+                .proposal
+                .record_spacing(rec, &self.contraction, bound, rays, false);
+        }
+        sampling.record_stratified(
+            rec,
+            RayBounds { near, far },
+            rays,
+            self.count + 1,
+            jitter,
+            &level.out.edges,
+        );
+        level.proposal.record_spacing(
+            rec,
+            &self.contraction,
+            &level.out.edges,
+            rays * (self.count + 1),
+            true,
+        );
+    }
+}
+
+/// A proposal sampler's later levels: `count` + 1 edges drawn from the
+/// previous level's intervals and weights in s (padded by `padding`, not
+/// blurred), mapped back to distances (the cpu engine's
+/// `ProposalResample`).
+struct ProposalResample {
+    count: usize,
+    padding: f32,
+    contraction: Contraction,
+}
+
+impl LevelSampler for ProposalResample {
+    fn samples_per_ray(&self, previous: Option<usize>) -> Result<usize, String> {
+        match previous {
+            Some(_) => Ok(self.count),
+            None => Err("the first level cannot be a proposal resampling level".into()),
+        }
+    }
+
+    fn scratch_per_ray(&self, previous: usize) -> ScratchPerRay {
+        // The previous level's edges in s.
+        ScratchPerRay {
+            edges: previous + 1,
+            ..ScratchPerRay::default()
+        }
+    }
+
+    fn draws_intervals(&self) -> bool {
+        true
+    }
+
+    fn record(
+        &self,
+        rec: &mut Recorder,
+        sampling: &GpuSampling,
+        level: LevelSampling,
+        jitter: Option<u32>,
+    ) {
+        let previous = level.previous.expect("checked by samples_per_ray");
+        let (rays, m) = (level.rays, previous.per_ray);
+        if rays == 0 {
+            return;
+        }
+        let edges = rays * (m + 1);
+        rec.encoder
+            .copy_buffer_to_buffer(&previous.edges, 0, level.edges, 0, 4 * edges as u64);
+        level
+            .proposal
+            .record_spacing(rec, &self.contraction, level.edges, edges, false);
+        sampling.record_sample_pdf(
+            rec,
+            Pdf {
+                edges: level.edges,
+                weights: &previous.weights,
+                bins: m,
+                padding: self.padding,
+            },
+            rays,
+            self.count + 1,
+            jitter,
+            &level.out.edges,
+        );
+        level.proposal.record_spacing(
+            rec,
+            &self.contraction,
+            &level.out.edges,
+            rays * (self.count + 1),
+            true,
+        );
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::super::{Plan, plan};
@@ -278,6 +447,51 @@ mod tests {
         assert_eq!(per_ray(&mipnerf), Ok(vec![128, 128]));
         let marched = crate::field::nerf::recipe(Sampling::Occupancy, true);
         assert!(matches!(plan(&marched), Ok(Plan::Marched)));
+    }
+
+    /// The proposal sampler's levels: 256 then 96 proposal intervals, then
+    /// 48 of the full field (Instant-NGP's counts, nerfacc's `ngp_prop`),
+    /// each its own; without a contraction to space them by, refused.
+    #[test]
+    fn the_proposal_levels_evaluate_their_intervals_and_need_a_contraction() {
+        use crate::field::common::Level;
+        use crate::field::contraction::{Contraction, ContractionNorm};
+        let mut recipe = crate::field::nerf::recipe(Sampling::Paper, true);
+        recipe.levels = vec![
+            Level::proposal(SamplerKind::SpacedIntervals { count: 256 }, 0),
+            Level::proposal(
+                SamplerKind::ProposalResample {
+                    count: 96,
+                    padding: 0.01,
+                },
+                0,
+            ),
+            Level::radiance(
+                SamplerKind::ProposalResample {
+                    count: 48,
+                    padding: 0.01,
+                },
+                1,
+                1.0,
+            ),
+        ];
+        let without = per_ray(&recipe).expect_err("refused");
+        assert!(
+            without.starts_with("level 0: the proposal sampler's levels space their samples"),
+            "{without}"
+        );
+        recipe.contraction = Some(Contraction {
+            centre: glam::Vec3::ZERO,
+            radius: 1.0,
+            norm: ContractionNorm::L2,
+        });
+        assert_eq!(per_ray(&recipe), Ok(vec![256, 96, 48]));
+        recipe.levels.swap(0, 1);
+        let first = per_ray(&recipe).expect_err("refused");
+        assert!(
+            first.starts_with("level 0: the first level cannot be a proposal resampling"),
+            "{first}"
+        );
     }
 
     #[test]
