@@ -31,15 +31,19 @@ use crate::field::ngp::DensityShape;
 /// Threads per workgroup of the density kernels.
 const WORKGROUP: u32 = 64;
 
-/// Copies σ (the first `rows` floats of `sigma`) where the driver reads
-/// it and clears the colours a density-only field does not have.
-fn write_outputs(rec: &mut Recorder, sigma: &wgpu::Buffer, rows: usize, out: FieldOutputs) {
-    if rows == 0 {
-        return;
-    }
-    rec.encoder
-        .copy_buffer_to_buffer(sigma, 0, out.sigma, 0, 4 * rows as u64);
+/// Clears the colours a density-only field does not have.
+fn clear_colours(rec: &mut Recorder, rows: usize, out: FieldOutputs) {
     rec.encoder.clear_buffer(out.rgb, 0, Some(12 * rows as u64));
+}
+
+/// `Params` in shaders/density_scale.wgsl.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct ScaleUniform {
+    count: u32,
+    row_stride: u32,
+    scale: f32,
+    _pad: u32,
 }
 
 /// An Instant-NGP proposal level's field on the `gpu` engine: a small hash
@@ -51,6 +55,10 @@ pub struct GpuDensityField {
     hash: GpuHashGrid,
     dense: GpuDense,
     network: GpuMlpWorkspace,
+    /// σ = `density_scale` · y of the network's outputs y, and back.
+    scale: Kernel,
+    /// ∂L/∂y of the network's outputs.
+    d_output: wgpu::Buffer,
     encoded: wgpu::Buffer,
     d_encoded: wgpu::Buffer,
     /// The positions of the last forward pass (a handle to the driver's
@@ -71,6 +79,13 @@ impl GpuDensityField {
             hash: GpuHashGrid::new(context, &shape.grid, true)?,
             dense: GpuDense::new(context)?,
             network: GpuMlpWorkspace::new(context, &shape.density, capacity),
+            scale: Kernel::new(
+                context,
+                "density_scale",
+                include_str!("../../../../shaders/density_scale.wgsl"),
+                "main",
+            )?,
+            d_output: zeroed_storage_buffer::<f32>(context, "density d output", capacity),
             encoded: zeroed_storage_buffer::<f32>(context, "density encoded", capacity * width),
             d_encoded: zeroed_storage_buffer::<f32>(context, "density d encoded", capacity * width),
             forward_positions: None,
@@ -87,8 +102,38 @@ impl GpuDensityField {
         }
     }
 
+    /// `to` = `density_scale` · `from` over `rows` floats.
+    fn record_scale(
+        &self,
+        rec: &mut Recorder,
+        from: &wgpu::Buffer,
+        to: &wgpu::Buffer,
+        rows: usize,
+    ) {
+        if rows == 0 {
+            return;
+        }
+        let (groups, row_stride) = dispatch_grid(rows, WORKGROUP);
+        let uniform = ScaleUniform {
+            count: rows as u32,
+            row_stride,
+            scale: self.shape.density_scale,
+            _pad: 0,
+        };
+        let uniform = uniform_buffer(rec.context, "density scale", &uniform);
+        self.scale.record_bindings(
+            rec,
+            &[
+                uniform.as_entire_buffer_binding(),
+                float_range(from, 0, rows),
+                float_range(to, 0, rows),
+            ],
+            groups,
+        );
+    }
+
     /// The encoding and the network at `rows` positions: σ is then the
-    /// network's output.
+    /// network's output times the shape's `density_scale`.
     fn record_network(
         &self,
         rec: &mut Recorder,
@@ -147,7 +192,10 @@ impl GpuField for GpuDensityField {
         out: FieldOutputs,
     ) {
         self.record_network(rec, params, inputs.positions, rows);
-        write_outputs(rec, self.network.output(), rows, out);
+        self.record_scale(rec, self.network.output(), out.sigma, rows);
+        if rows > 0 {
+            clear_colours(rec, rows, out);
+        }
         self.forward_positions = Some(inputs.positions.clone());
     }
 
@@ -164,13 +212,14 @@ impl GpuField for GpuDensityField {
             .forward_positions
             .as_ref()
             .expect("a forward pass before the backward pass");
+        self.record_scale(rec, d_sigma, &self.d_output, rows);
         self.dense.record_backward(
             rec,
             self.network_at(params),
             &self.encoded,
             &self.network,
             MlpGradients {
-                output: d_sigma,
+                output: &self.d_output,
                 params: gradients,
                 input: Some(&self.d_encoded),
             },
@@ -198,15 +247,7 @@ impl GpuField for GpuDensityField {
         sigma_out: &wgpu::Buffer,
     ) {
         self.record_network(rec, params, positions, rows);
-        if rows > 0 {
-            rec.encoder.copy_buffer_to_buffer(
-                self.network.output(),
-                0,
-                sigma_out,
-                0,
-                4 * rows as u64,
-            );
-        }
+        self.record_scale(rec, self.network.output(), sigma_out, rows);
         self.forward_positions = None;
     }
 
@@ -456,5 +497,22 @@ impl GpuField for GpuNerfDensityField {
 
     fn workspace_bytes(&self) -> usize {
         (self.encoded.size() + self.d_raw.size()) as usize + self.network.bytes()
+    }
+}
+
+/// The uniform as the shader declares it (`engine::gpu::mirror`).
+#[cfg(test)]
+mod uniform_mirrors {
+    use super::*;
+    use crate::engine::gpu::mirror::assert_mirrors;
+
+    #[test]
+    fn scaleuniform_of_density_scale_mirrors_the_shader() {
+        assert_mirrors!(
+            include_str!("../../../../shaders/density_scale.wgsl"),
+            "Params",
+            ScaleUniform,
+            [count, row_stride, scale]
+        );
     }
 }
