@@ -30,9 +30,10 @@ pub enum Sampling {
     Occupancy,
     /// Proposal density fields (Mip-NeRF 360, section 2.1; nerfstudio's
     /// nerfacto; nerfacc's `ngp_prop`): in the scene's contracted space,
-    /// small density-only fields place 256 then 96 samples per ray, each
-    /// level resampled from the one before, and the full field evaluates
-    /// 48: unbounded scenes at a fixed, small count per ray.
+    /// small density-only fields place samples per ray (Instant-NGP: 256
+    /// then 96; NeRF and Mip-NeRF: 64 then 64), each level resampled from
+    /// the one before, and the full field evaluates a few (48; 32):
+    /// unbounded scenes at a fixed, small count per ray.
     Proposal,
 }
 
