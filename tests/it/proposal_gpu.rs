@@ -397,8 +397,11 @@ fn mipnerf_proposal_step_matches_the_cpu_engine_gpu() {
 
 /// A validation view rendered with the proposal sampler (no jitter: each
 /// level's deterministic edges), gpu against cpu, for each model: the same
-/// chain as a step's forward pass, so the same 1e-4 (depth relative: the
-/// far field's samples lie up to 1000 frame radii out).
+/// chain as a step's forward pass, so the same 1e-4 on colour and opacity.
+/// Depth is Σ wᵢ tᵢ with the far field's tᵢ up to 1000 frame radii out:
+/// weights that agree to f32's ~1e-7 there move a depth of about one
+/// radius by ~1e-4 relative, and the resampled levels' edges (an inverse
+/// CDF of those weights) add as much again at each level; 1e-3 relative.
 #[test]
 fn proposal_renders_match_the_cpu_engine_gpu() {
     let _cores = crate::common::shared();
@@ -420,6 +423,6 @@ fn proposal_renders_match_the_cpu_engine_gpu() {
             expected.iter().any(|p| p.opacity > 0.01),
             "{kind:?}: nothing drawn"
         );
-        assert!(colour < 1e-4 && depth < 1e-4, "{kind:?}: {colour} {depth}");
+        assert!(colour < 1e-4 && depth < 1e-3, "{kind:?}: {colour} {depth}");
     }
 }

@@ -69,9 +69,10 @@ fn an_unbounded_scene_trains_nerf_and_mipnerf_with_one_proposal_mlp_by_default()
         let shapes = (kind.spec().shape)(&scene, sampling).for_recipe(&recipe);
         match &shapes[0] {
             zrak::field::FieldShape::NerfDensity(shape) => {
-                // multinerf's PropMLP: 4 layers of 256, then σ.
+                // multinerf's PropMLP: 4 layers a quarter of the field's
+                // width (256 beside its 1024; 64 beside NeRF's 256), then σ.
                 let mut widths = vec![shape.position.output_width()];
-                widths.extend([256; 4]);
+                widths.extend([64; 4]);
                 widths.push(1);
                 assert_eq!(shape.network.widths, widths);
             }
