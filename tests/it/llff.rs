@@ -5,6 +5,11 @@
 use std::path::Path;
 
 use glam::Vec3;
+use zrak::model::RenderMode;
+use zrak::model::pixels::{render_pixels, to_image};
+use zrak::render::camera_path::PathSample;
+use zrak::render::camera_path::frames::{BACKGROUND, FrameJob, RenderSource};
+use zrak::render::path::{Turntable, turntable_cameras};
 use zrak::scene::demo::{self, ForwardFacingConfig};
 use zrak::scene::llff::{self, BOUNDS_FACTOR};
 use zrak::scene::{Frame, LoadOptions, Scene, SceneFormat};
@@ -269,9 +274,9 @@ fn a_loaded_llff_folder_takes_ndc_like_the_demo() {
     }
 }
 
-/// Instant-NGP on the forward-facing demo in NDC for `steps`: the held-out
-/// PSNR.
-fn held_out_psnr_in_ndc_after(steps: u32, scene: Scene) -> f64 {
+/// Instant-NGP trained on the forward-facing demo `scene` (in NDC) for
+/// `steps` steps of 2^16 samples.
+fn trained_in_ndc(steps: u32, scene: Scene) -> zrak::train::trainer::Trainer {
     use std::sync::Arc;
     use zrak::engine::cpu::model::CpuModel;
     use zrak::engine::request::{ModelRequest, ModelSettings};
@@ -294,11 +299,19 @@ fn held_out_psnr_in_ndc_after(steps: u32, scene: Scene) -> f64 {
         ),
         &scene,
     );
-    let mut trainer = Trainer::new(Box::new(model), scene.clone(), 0);
+    let mut trainer = Trainer::new(Box::new(model), scene, 0);
     while trainer.step < steps {
         trainer.step();
     }
-    zrak::train::eval::evaluate_split(trainer.model.as_ref(), "val", &scene.val, |_| {}).mean_psnr
+    trainer
+}
+
+/// Instant-NGP on the forward-facing demo in NDC for `steps`: the held-out
+/// PSNR.
+fn held_out_psnr_in_ndc_after(steps: u32, scene: Scene) -> f64 {
+    let trainer = trained_in_ndc(steps, scene);
+    let val = &trainer.scene.val;
+    zrak::train::eval::evaluate_split(trainer.model.as_ref(), "val", val, |_| {}).mean_psnr
 }
 
 /// The forward-facing demo learns in NDC: Instant-NGP, 300 steps of 2^16
@@ -353,39 +366,13 @@ fn an_llff_folder_written_from_the_demo_trains_the_same() {
 /// field learned. The turntable's cameras carry the NDC too.
 #[test]
 fn a_camera_path_of_a_forward_facing_scene_renders_in_its_ndc() {
-    use std::sync::Arc;
-    use zrak::engine::cpu::model::CpuModel;
-    use zrak::engine::request::{ModelRequest, ModelSettings};
-    use zrak::field::ModelKind;
-    use zrak::field::common::{LossKind, Sampling};
-    use zrak::field::mlp::Precision;
-    use zrak::model::RenderMode;
-    use zrak::model::pixels::{render_pixels, to_image};
-    use zrak::render::camera_path::PathSample;
-    use zrak::render::camera_path::frames::{BACKGROUND, FrameJob, RenderSource};
-    use zrak::render::path::{Turntable, turntable_cameras};
-    use zrak::train::trainer::Trainer;
-
     let _cores = common::shared();
-    let scene = Arc::new(demo::build_forward_facing(&ndc_training_config()).with_ndc());
-    let ndc = scene.ndc().expect("the scene is in NDC");
-    let model = CpuModel::build(
-        &ModelRequest::new(
-            ModelKind::Ngp,
-            ModelSettings {
-                seed: 0,
-                loss: LossKind::Huber,
-                batch_samples: Some(1 << 16),
-                sampling: Sampling::Occupancy,
-                precision: Precision::F32,
-            },
-        ),
-        &scene,
+    let trainer = trained_in_ndc(
+        60,
+        demo::build_forward_facing(&ndc_training_config()).with_ndc(),
     );
-    let mut trainer = Trainer::new(Box::new(model), scene.clone(), 0);
-    while trainer.step < 60 {
-        trainer.step();
-    }
+    let scene = trainer.scene.clone();
+    let ndc = scene.ndc().expect("the scene is in NDC");
     let camera = &scene.val[0].camera;
     let k = camera.intrinsics;
     let own = to_image(

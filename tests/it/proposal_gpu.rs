@@ -51,6 +51,7 @@ fn frame(norm: ContractionNorm) -> Contraction {
 
 #[test]
 fn spacing_and_contraction_match_the_cpu_gpu() {
+    let _cores = crate::common::shared();
     let context = gpu_context();
     let kernels = GpuProposal::new(&context).expect("proposal kernels");
     for norm in [ContractionNorm::L2, ContractionNorm::LInf] {
@@ -131,6 +132,7 @@ fn assert_close(label: &str, gpu: &[f32], cpu: &[f32]) {
 
 #[test]
 fn weight_losses_and_their_density_gradients_match_the_cpu_gpu() {
+    let _cores = crate::common::shared();
     let context = gpu_context();
     let kernels = GpuProposal::new(&context).expect("proposal kernels");
     let c = frame(ContractionNorm::LInf);
