@@ -711,6 +711,7 @@ mod tests {
             ),
             image: crate::scene::ImageRgba8::new(width, height, data),
             image_path: "view.png".into(),
+            mask: None,
         }
     }
 

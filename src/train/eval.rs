@@ -256,6 +256,7 @@ mod tests {
             ),
             image: ImageRgba8::new(width, height, vec![255; (width * height * 4) as usize]),
             image_path: Default::default(),
+            mask: None,
         }
     }
 

@@ -98,6 +98,7 @@ fn build_with(
                 camera,
                 image: render(&camera),
                 image_path: PathBuf::new(),
+                mask: None,
             })
             .collect::<Vec<_>>()
     });

@@ -1,0 +1,205 @@
+//! Per-pixel masks: read in instant-ngp's and nerfstudio's conventions,
+//! refused clearly when wrong, and left out of the held-out scores.
+
+use std::path::Path;
+
+use serde_json::{Value, json};
+use zrak::scene::{ImageRgba8, LoadOptions, Scene, SceneError};
+
+/// A 4 × 4 opaque image whose pixel (x, y) has red 40·x and green 40·y.
+fn write_image(path: &Path) {
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    let data = (0..16u8)
+        .flat_map(|i| [40 * (i % 4), 40 * (i / 4), 0, 255])
+        .collect();
+    ImageRgba8::new(4, 4, data).save_png(path).unwrap();
+}
+
+/// A grey PNG of `width` × `height`, `value(x, y)` at each pixel.
+fn write_grey(path: &Path, width: u32, height: u32, value: impl Fn(u32, u32) -> u8) {
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    image::GrayImage::from_fn(width, height, |x, y| image::Luma([value(x, y)]))
+        .save(path)
+        .unwrap();
+}
+
+fn frame(file_path: &str) -> Value {
+    let pose = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]];
+    json!({ "file_path": file_path, "transform_matrix": pose })
+}
+
+/// A transforms.json scene of three 4 × 4 frames `images/f_{i}.png`, all
+/// training (nerfstudio's split lists); `edit` adjusts the JSON.
+fn write_scene(root: &Path, edit: impl FnOnce(&mut Value)) {
+    let names: Vec<String> = (0..3).map(|i| format!("images/f_{i}.png")).collect();
+    for name in &names {
+        write_image(&root.join(name));
+    }
+    let mut value = json!({
+        "fl_x": 4.0,
+        "train_filenames": names,
+        "frames": names.iter().map(|n| frame(n)).collect::<Vec<_>>(),
+    });
+    edit(&mut value);
+    std::fs::write(root.join("transforms.json"), value.to_string()).unwrap();
+}
+
+fn load(root: &Path, downscale: u32) -> Result<Scene, SceneError> {
+    Scene::load(root, LoadOptions { downscale })
+}
+
+fn counting(scene: &Scene, frame: usize) -> Option<Vec<bool>> {
+    scene.train[frame]
+        .mask
+        .as_ref()
+        .map(|mask| mask.counting().to_vec())
+}
+
+#[test]
+fn instant_ngp_dynamic_masks_hide_their_non_zero_pixels() {
+    let _cores = crate::common::shared();
+    let dir = tempfile::tempdir().unwrap();
+    write_scene(dir.path(), |_| {});
+    // Frame 1's mask marks its top-left 2 × 2 block and pixel (3, 3) as
+    // dynamic (any non-zero value; here 1 and 255).
+    write_grey(
+        &dir.path().join("images/dynamic_mask_f_1.png"),
+        4,
+        4,
+        |x, y| match (x, y) {
+            (0..=1, 0..=1) => 255,
+            (3, 3) => 1,
+            _ => 0,
+        },
+    );
+    let scene = load(dir.path(), 1).unwrap();
+    assert_eq!(counting(&scene, 0), None);
+    assert_eq!(counting(&scene, 2), None);
+    let mask = counting(&scene, 1).unwrap();
+    let hidden: Vec<usize> = (0..16).filter(|&i| !mask[i]).collect();
+    assert_eq!(hidden, [0, 1, 4, 5, 15]);
+    assert_eq!(scene.masked_frames(), (1, 5));
+    let said = scene.describe_masks().unwrap();
+    assert!(
+        said.starts_with("1 frames have masks (train 1 of 3"),
+        "{said}"
+    );
+    assert!(said.contains("5 pixels masked out"), "{said}");
+
+    // At ½ a pixel counts only where its whole 2 × 2 block counts: the
+    // top-left block and the bottom-right one (which holds (3, 3)) are out.
+    let half = load(dir.path(), 2).unwrap();
+    assert_eq!(counting(&half, 1).unwrap(), [false, true, true, false]);
+    assert_eq!(half.train[1].image.width, 2);
+}
+
+#[test]
+fn nerfstudio_mask_paths_hide_their_zero_pixels() {
+    let _cores = crate::common::shared();
+    let dir = tempfile::tempdir().unwrap();
+    write_scene(dir.path(), |v| {
+        v["frames"][2]["mask_path"] = json!("./masks/m_2.png");
+    });
+    // Zero in the left column: ignored; everything else counts. A
+    // dynamic_mask file beside the same image is not read: mask_path wins.
+    write_grey(&dir.path().join("masks/m_2.png"), 4, 4, |x, _| {
+        if x == 0 { 0 } else { 255 }
+    });
+    write_grey(
+        &dir.path().join("images/dynamic_mask_f_2.png"),
+        4,
+        4,
+        |_, _| 255,
+    );
+    let scene = load(dir.path(), 1).unwrap();
+    let mask = counting(&scene, 2).unwrap();
+    for (i, &counts) in mask.iter().enumerate() {
+        assert_eq!(counts, i % 4 != 0, "pixel {i}");
+    }
+    assert_eq!(counting(&scene, 0), None);
+}
+
+/// The error loading the scene with frame 1's `mask_path` set to `mask`.
+fn mask_path_error(mask: Value, prepare: impl FnOnce(&Path)) -> (SceneError, String) {
+    let dir = tempfile::tempdir().unwrap();
+    write_scene(dir.path(), |v| v["frames"][1]["mask_path"] = mask);
+    prepare(dir.path());
+    let error = load(dir.path(), 1).expect_err("the mask is wrong");
+    let message = error.to_string();
+    assert!(message.contains("transforms.json: frame 1: "), "{message}");
+    (error, message)
+}
+
+#[test]
+fn bad_masks_are_refused_naming_the_file_and_the_problem() {
+    let _cores = crate::common::shared();
+    // Missing.
+    let (error, message) = mask_path_error(json!("masks/gone.png"), |_| {});
+    assert!(matches!(error, SceneError::NotFound { .. }), "{error:?}");
+    assert!(message.contains("masks/gone.png"), "{message}");
+    // Another size than its image.
+    let (error, message) = mask_path_error(json!("m.png"), |root| {
+        write_grey(&root.join("m.png"), 5, 4, |_, _| 255)
+    });
+    assert!(matches!(error, SceneError::Invalid { .. }), "{error:?}");
+    assert!(
+        message.contains("m.png: the mask is 5×4 pixels, but its image")
+            && message.contains("f_1.png is 4×4"),
+        "{message}"
+    );
+    // Not an image.
+    let (error, message) = mask_path_error(json!("m.png"), |root| {
+        std::fs::write(root.join("m.png"), b"not a png").unwrap()
+    });
+    assert!(matches!(error, SceneError::Invalid { .. }), "{error:?}");
+    assert!(message.contains("m.png"), "{message}");
+    // A folder.
+    let (error, _) = mask_path_error(json!("masks"), |root| {
+        std::fs::create_dir_all(root.join("masks")).unwrap()
+    });
+    assert!(matches!(error, SceneError::Unreadable { .. }), "{error:?}");
+    // Not a string.
+    let (error, message) = mask_path_error(json!(7), |_| {});
+    assert!(matches!(error, SceneError::Invalid { .. }), "{error:?}");
+    assert!(
+        message.contains("`mask_path` must be a string"),
+        "{message}"
+    );
+    // An instant-ngp mask of the wrong size is refused too.
+    let dir = tempfile::tempdir().unwrap();
+    write_scene(dir.path(), |_| {});
+    write_grey(
+        &dir.path().join("images/dynamic_mask_f_0.png"),
+        4,
+        3,
+        |_, _| 0,
+    );
+    let message = load(dir.path(), 1).unwrap_err().to_string();
+    assert!(
+        message.contains("frame 0: mask ")
+            && message.contains("dynamic_mask_f_0.png: the mask is 4×3 pixels"),
+        "{message}"
+    );
+}
+
+#[test]
+fn a_scene_whose_masks_hide_every_training_pixel_has_nothing_to_train() {
+    let _cores = crate::common::shared();
+    let dir = tempfile::tempdir().unwrap();
+    write_scene(dir.path(), |_| {});
+    for i in 0..3 {
+        write_grey(
+            &dir.path().join(format!("images/dynamic_mask_f_{i}.png")),
+            4,
+            4,
+            |_, _| 9,
+        );
+    }
+    let scene = load(dir.path(), 1).unwrap();
+    assert_eq!(scene.fully_masked_training_views().len(), 3);
+    let problem = scene.training_problem().unwrap();
+    assert!(
+        problem.contains("every pixel of the 3 training views is masked out"),
+        "{problem}"
+    );
+}
