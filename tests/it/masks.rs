@@ -203,3 +203,87 @@ fn a_scene_whose_masks_hide_every_training_pixel_has_nothing_to_train() {
         "{problem}"
     );
 }
+
+/// A 32 × 32 view of a texture whose pixels in the box `hidden` hold
+/// `inside(x, y)` instead, with a mask hiding that box.
+fn view_with_box(inside: impl Fn(u32, u32) -> [u8; 3]) -> zrak::scene::Frame {
+    use glam::{Mat4, Vec3};
+    use zrak::scene::{Camera, Intrinsics, PixelMask};
+    let size = 32;
+    let hidden = |x: u32, y: u32| (20..28).contains(&x) && (4..30).contains(&y);
+    let data = (0..size * size)
+        .flat_map(|i| {
+            let (x, y) = (i % size, i / size);
+            let [r, g, b] = if hidden(x, y) {
+                inside(x, y)
+            } else {
+                [(x * 7) as u8, (y * 5 + 20) as u8, ((x + y) * 3) as u8]
+            };
+            [r, g, b, 255]
+        })
+        .collect();
+    let counts = (0..size * size)
+        .map(|i| !hidden(i % size, i / size))
+        .collect();
+    zrak::scene::Frame {
+        camera: Camera::new(
+            Intrinsics::from_fov_x(size, size, 0.7),
+            Mat4::from_translation(Vec3::new(0.0, 0.0, 4.0)),
+        ),
+        image: ImageRgba8::new(size, size, data),
+        image_path: Default::default(),
+        mask: Some(PixelMask::new(size, size, counts)),
+    }
+}
+
+#[test]
+fn masked_garbage_changes_neither_psnr_nor_ssim() {
+    use zrak::metrics::{RgbImage, WHITE};
+    use zrak::train::eval::score_prediction;
+    let _cores = crate::common::shared();
+    let clean = view_with_box(|x, y| [(x * 7) as u8, (y * 5 + 20) as u8, ((x + y) * 3) as u8]);
+    let garbage = view_with_box(|x, y| [(x * 97 + y * 31) as u8, (x * y) as u8, 255]);
+    // The prediction: the clean texture 0.05 brighter, black in the box.
+    let truth = RgbImage::from_rgba8_over(&clean.image, WHITE);
+    let prediction = RgbImage::new(
+        32,
+        32,
+        truth
+            .pixels
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let (x, y) = (i % 32, i / 32);
+                if (20..28).contains(&x) && (4..30).contains(&y) {
+                    [0.0; 3]
+                } else {
+                    p.map(|c| c + 0.05)
+                }
+            })
+            .collect(),
+    )
+    .unwrap();
+    let on_clean = score_prediction(&prediction, &clean, true);
+    let on_garbage = score_prediction(&prediction, &garbage, true);
+    assert_eq!(on_clean, on_garbage);
+    // Every counted pixel is off by 0.05 in each channel: 26.02 dB, to
+    // f32 rounding of the sums (far below 1e-4 dB).
+    let want = -10.0 * 0.0025f64.log10();
+    assert!((on_clean.psnr - want).abs() < 1e-4, "{}", on_clean.psnr);
+    // An offset alone leaves the structure: SSIM near 1 on the windows
+    // clear of the box (some exist: its columns 0..20 hold 10 of them a row).
+    assert!(
+        on_clean.ssim > 0.9 && on_clean.ssim < 1.0,
+        "{}",
+        on_clean.ssim
+    );
+    // Without the masks the box counts, and the garbage changes both.
+    let unmasked = |mut frame: zrak::scene::Frame| {
+        frame.mask = None;
+        score_prediction(&prediction, &frame, true)
+    };
+    let (plain_clean, plain_garbage) = (unmasked(clean), unmasked(garbage));
+    assert!(plain_clean.psnr < want - 1.0, "{}", plain_clean.psnr);
+    assert_ne!(plain_clean.psnr, plain_garbage.psnr);
+    assert_ne!(plain_clean.ssim, plain_garbage.ssim);
+}
