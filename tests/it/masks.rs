@@ -287,3 +287,150 @@ fn masked_garbage_changes_neither_psnr_nor_ssim() {
     assert_ne!(plain_clean.psnr, plain_garbage.psnr);
     assert_ne!(plain_clean.ssim, plain_garbage.ssim);
 }
+
+/// The moving-object demo at `size` pixels with `views` training views
+/// and 4 held out.
+fn moving_demo(size: u32, views: usize) -> Scene {
+    zrak::scene::demo::build_moving_object(&zrak::scene::demo::DemoConfig {
+        size,
+        train_views: views,
+        val_views: 4,
+        test_views: 1,
+    })
+}
+
+#[test]
+fn the_moving_object_demo_reads_back_with_its_masks_over_the_ball() {
+    let _cores = crate::common::shared();
+    let built = moving_demo(32, 8);
+    let dir = tempfile::tempdir().unwrap();
+    zrak::scene::demo::write_moving_object(
+        &zrak::scene::demo::DemoConfig {
+            size: 32,
+            train_views: 8,
+            val_views: 4,
+            test_views: 1,
+        },
+        dir.path(),
+    )
+    .unwrap();
+    assert!(dir.path().join("train/dynamic_mask_r_3.png").is_file());
+    let loaded = Scene::load(dir.path(), LoadOptions::default()).unwrap();
+    assert_eq!(loaded.train.len(), 8);
+    assert!(loaded.val.iter().all(|frame| frame.mask.is_none()));
+    for (index, (read, made)) in loaded.train.iter().zip(&built.train).enumerate() {
+        assert_eq!(read.mask, made.mask, "view {index}");
+        assert_eq!(read.image, made.image, "view {index}");
+        // The ball's centre projects onto a hidden pixel, and the mask
+        // hides a disc of about its size: 0.22 at a distance near 4 with a
+        // focal length of 32 / (2 tan(0.3456)) ≈ 44.4 pixels is a radius
+        // of about 2.4 pixels, so 18 pixels; the samples that graze it
+        // widen that by up to a pixel all round.
+        let mask = read.mask.as_ref().unwrap();
+        let centre = zrak::scene::demo::moving_object_centre(index);
+        let (u, v) = project(&read.camera, centre);
+        assert!(!mask.counts(u as u32, v as u32), "view {index}: ({u}, {v})");
+        assert!(
+            (12..=60).contains(&mask.hidden()),
+            "view {index}: {}",
+            mask.hidden()
+        );
+    }
+    // The held-out views never show the ball: they are the plain demo's.
+    let plain = zrak::scene::demo::build(&zrak::scene::demo::DemoConfig {
+        size: 32,
+        train_views: 8,
+        val_views: 4,
+        test_views: 1,
+    });
+    assert_eq!(loaded.val[2].image, plain.val[2].image);
+    assert_ne!(loaded.train[2].image, plain.train[2].image);
+}
+
+/// Where `point` appears in `camera`'s image, in pixels.
+fn project(camera: &zrak::scene::Camera, point: glam::Vec3) -> (f32, f32) {
+    let local = camera.camera_to_world.inverse().transform_point3(point);
+    let k = camera.intrinsics;
+    // OpenGL axes: the camera looks down −z, y up, rows from the top.
+    (
+        k.cx + k.fx * local.x / -local.z,
+        k.cy - k.fy * local.y / -local.z,
+    )
+}
+
+/// Instant-NGP (cpu engine, occupancy sampling) trained on `scene` for
+/// `steps` steps: its mean held-out PSNR and its mean density at the
+/// places the ball visited.
+fn train_moving(scene: Scene, steps: u32) -> (f64, f32) {
+    use std::sync::Arc;
+    use zrak::engine::cpu::model::CpuModel;
+    use zrak::field::ModelKind;
+    use zrak::field::common::LossKind;
+    use zrak::model::PointQuery;
+    let scene = Arc::new(scene);
+    let request = crate::common::request(ModelKind::Ngp, 3, LossKind::Huber, Some(1 << 14));
+    let model = CpuModel::build(&request, &scene);
+    let mut trainer = zrak::train::trainer::Trainer::new(Box::new(model), scene.clone(), 3);
+    while trainer.step < steps {
+        trainer.step();
+    }
+    let views: Vec<_> = scene.val.iter().collect();
+    let psnr = zrak::train::eval::mean_psnr(trainer.model.as_ref(), &views);
+    // Points through the ball's volume at each place: 5 × 5 × 5 spread
+    // over the cube inside it (half side R/√3), 125 a place.
+    let radius = zrak::scene::demo::MOVING_RADIUS / 3f32.sqrt();
+    let places: Vec<glam::Vec3> = (0..zrak::scene::demo::MOVING_PLACES)
+        .flat_map(|place| {
+            let centre = zrak::scene::demo::moving_object_centre(place);
+            (0..125).map(move |i| {
+                let at = |k: usize| (k as f32 / 2.0 - 1.0) * radius;
+                centre + glam::Vec3::new(at(i % 5), at(i / 5 % 5), at(i / 25))
+            })
+        })
+        .collect();
+    let mut sigma = vec![0f32; places.len()];
+    trainer
+        .model
+        .density_at(
+            PointQuery {
+                positions: &places,
+                directions: &[],
+                footprint: 0.0,
+            },
+            &mut sigma,
+        )
+        .unwrap();
+    (psnr, sigma.iter().sum::<f32>() / sigma.len() as f32)
+}
+
+/// The demo's known answer: a ball that moves between the training views
+/// leaves fog where it passed unless its masks keep it out of training.
+#[test]
+fn with_masks_the_moving_object_leaves_no_floater() {
+    let _cores = crate::common::shared();
+    let started = std::time::Instant::now();
+    let masked = moving_demo(32, 24);
+    let mut unmasked = masked.clone();
+    for frame in &mut unmasked.train {
+        frame.mask = None;
+    }
+    let steps = 300;
+    let (psnr_masked, sigma_masked) = train_moving(masked, steps);
+    let (psnr_unmasked, sigma_unmasked) = train_moving(unmasked, steps);
+    eprintln!(
+        "held-out PSNR {psnr_masked:.2} dB with masks, {psnr_unmasked:.2} dB without; σ where \
+         the ball passed {sigma_masked:.3} with masks, {sigma_unmasked:.3} without ({:.0} s)",
+        started.elapsed().as_secs_f64()
+    );
+    // Seen here: 26.3 dB against 22.8, σ 0.11 against 0.45 (and at 40 px
+    // with 30 views, 26.2 against 22.5, σ 0.20 against 0.47). A sampler
+    // that ignored the masks would train the same model twice.
+    assert!(
+        psnr_masked > psnr_unmasked + 1.0,
+        "{psnr_masked} against {psnr_unmasked}"
+    );
+    assert!(
+        sigma_masked < 0.5 * sigma_unmasked,
+        "{sigma_masked} against {sigma_unmasked}"
+    );
+}
