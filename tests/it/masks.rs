@@ -435,3 +435,44 @@ fn with_masks_the_moving_object_leaves_no_floater() {
         "{sigma_masked} against {sigma_unmasked}"
     );
 }
+
+/// `zrak demo --moving-object` writes the scene with its masks, and
+/// `zrak info` says so (and says so of a scene without masks).
+#[test]
+fn zrak_info_says_how_many_frames_have_masks() {
+    let _cores = crate::common::shared();
+    let zrak = |args: &[&str]| {
+        let output = std::process::Command::new(crate::common::zrak_bin())
+            .args(args)
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(output.status.success(), "zrak {args:?}: {stderr}");
+        String::from_utf8(output.stdout).unwrap()
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("moving");
+    let out = out.to_str().unwrap();
+    zrak(&[
+        "demo",
+        "--moving-object",
+        "--out",
+        out,
+        "--size",
+        "16",
+        "--views",
+        "4",
+    ]);
+    let printed = zrak(&["info", out]);
+    assert!(
+        printed.contains(
+            "\nmasks       4 frames have masks (train 4 of 4, val 0 of 1, test 0 of 1); "
+        ),
+        "{printed}"
+    );
+    let plain = zrak(&["info", "demo", "--downscale", "16"]);
+    assert!(
+        plain.contains("\nmasks       none (every pixel counts)\n"),
+        "{plain}"
+    );
+}
