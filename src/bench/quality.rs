@@ -533,6 +533,12 @@ pub fn score_parts(model: &dyn RadianceModel, view: &ScoredView, index: usize) -
         image: view.image_path().display().to_string(),
         psnr: psnr_from_mse(squared_error),
         ssim,
+        masked_pixels: view
+            .parts
+            .iter()
+            .filter_map(|part| part.mask.as_ref())
+            .map(|mask| mask.hidden())
+            .sum(),
     }
 }
 
@@ -711,6 +717,7 @@ mod tests {
             ),
             image: crate::scene::ImageRgba8::new(width, height, data),
             image_path: "view.png".into(),
+            mask: None,
         }
     }
 

@@ -37,6 +37,12 @@ pub struct DemoArgs {
     /// wide).
     #[arg(long, conflicts_with_all = ["large", "unbounded"])]
     forward_facing: bool,
+    /// The demo with a ball that floats above the stand at another place
+    /// in each training view, and each training image's
+    /// dynamic_mask_r_N.png marking it (instant-ngp's masks), written as an
+    /// instant-ngp transforms.json; the held-out views are without it.
+    #[arg(long, conflicts_with_all = ["large", "unbounded", "forward_facing"])]
+    moving_object: bool,
     /// Write into a folder that is not empty, replacing the scene's
     /// files there (others are left alone).
     #[arg(long)]
@@ -94,6 +100,7 @@ pub fn write_demo(args: DemoArgs) -> anyhow::Result<()> {
         large,
         unbounded,
         forward_facing,
+        moving_object,
         force,
     } = args;
     let config = demo_config(size, views)?;
@@ -121,6 +128,9 @@ pub fn write_demo(args: DemoArgs) -> anyhow::Result<()> {
         demo::write_large(&config, &out).context("writing the large demo scene")?;
     } else if unbounded {
         demo::write_unbounded(&config, &out).context("writing the unbounded demo scene")?;
+    } else if moving_object {
+        demo::write_moving_object(&config, &out)
+            .context("writing the demo scene with a moving object")?;
     } else {
         demo::write(&config, &out).context("writing the demo scene")?;
     }
@@ -183,6 +193,11 @@ mod tests {
         assert_eq!(error.kind(), clap::error::ErrorKind::ArgumentConflict);
         let error =
             parse_args::<DemoArgs>(&["--out", "s", "--forward-facing", "--unbounded"]).unwrap_err();
+        assert_eq!(error.kind(), clap::error::ErrorKind::ArgumentConflict);
+        let args: DemoArgs = parse_args(&["--out", "s", "--moving-object"]).unwrap();
+        assert!(args.moving_object && !args.large);
+        let error =
+            parse_args::<DemoArgs>(&["--out", "s", "--moving-object", "--large"]).unwrap_err();
         assert_eq!(error.kind(), clap::error::ErrorKind::ArgumentConflict);
         let config = forward_facing_config(64, 20);
         assert_eq!((config.width, config.height, config.views), (64, 48, 20));

@@ -86,7 +86,17 @@ pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
         );
         return Ok(());
     }
-    if let Some(view) = scores.views.iter().find(|v| v.psnr.is_nan()) {
+    let fully_masked = |v: &&zrak::train::eval::ViewScores| {
+        frames[v.index]
+            .mask
+            .as_ref()
+            .is_some_and(|mask| mask.counted() == 0)
+    };
+    if let Some(view) = scores
+        .views
+        .iter()
+        .find(|v| v.psnr.is_nan() && !fully_masked(v))
+    {
         bail!(
             "view {} of the {} split ({}) renders colours that are not numbers: the model in \
              {} is broken (its training diverged); nothing written",
@@ -100,6 +110,9 @@ pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
         "{:>5}  {:>8.3}  {:>7.4}",
         "mean", scores.mean_psnr, scores.mean_ssim
     );
+    if let Some(masks) = scores.describe_masks() {
+        note(&masks);
+    }
     let window = zrak::metrics::SSIM_WINDOW as u32;
     let small = frames
         .iter()

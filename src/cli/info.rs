@@ -89,6 +89,10 @@ fn print_info(scene: &Scene) {
         "unit cube   scale {}  offset [{}, {}, {}]  aabb_scale {}",
         m.scale, m.offset.x, m.offset.y, m.offset.z, m.aabb_scale
     );
+    match scene.describe_masks() {
+        Some(masks) => println!("masks       {masks}"),
+        None => println!("masks       none (every pixel counts)"),
+    }
     if let Some((near, far)) = scene.seen_depth_range() {
         println!("near/far    {near:.3} to {far:.3} (where camera rays cross the bounds)");
     }

@@ -181,6 +181,25 @@ fn describe_space(scene: &zrak::scene::Scene) -> String {
     )
 }
 
+/// What training says of the scene's masks: how many frames have one and
+/// what they leave out of training and of the held-out PSNR, and a warning
+/// for each training view whose mask hides every pixel (it is skipped).
+fn mask_notes(scene: &zrak::scene::Scene) -> Vec<String> {
+    let Some(masks) = scene.describe_masks() else {
+        return Vec::new();
+    };
+    let mut lines = vec![format!(
+        "masks: {masks}; the held-out PSNR is over the pixels that count"
+    )];
+    lines.extend(scene.fully_masked_training_views().iter().map(|frame| {
+        format!(
+            "warning: the mask of {} hides every pixel; that view is skipped",
+            frame.image_path.display()
+        )
+    }));
+    lines
+}
+
 /// Starts a new run in `--out`: the model is built first, and the folder
 /// made (or, with --force, the old run moved aside) only once it is.
 fn start_run(args: &TrainArgs) -> anyhow::Result<(RunFolder, RunConfig, Trainer)> {
@@ -209,6 +228,9 @@ fn start_run(args: &TrainArgs) -> anyhow::Result<(RunFolder, RunConfig, Trainer)
     }
     if let Some(problem) = scene.training_problem() {
         bail!("{scene_arg}: nothing to train: {problem}");
+    }
+    for line in mask_notes(&scene) {
+        note(&line);
     }
     let choice = choose_engine(args.engine)?;
     note(&choice.reason);

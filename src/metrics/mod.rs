@@ -16,8 +16,8 @@ use thiserror::Error;
 
 use crate::scene::ImageRgba8;
 
-pub use psnr::{MSE_FLOOR, PSNR_CAP_DB, mse, psnr, psnr_from_mse};
-pub use ssim::{SSIM_WINDOW, ssim};
+pub use psnr::{MSE_FLOOR, PSNR_CAP_DB, mse, mse_masked, psnr, psnr_from_mse};
+pub use ssim::{SSIM_WINDOW, ssim, ssim_masked};
 
 /// The background the reference protocol composites RGBA images on.
 pub const WHITE: [f32; 3] = [1.0, 1.0, 1.0];

@@ -36,6 +36,41 @@ pub fn mse(a: &RgbImage, b: &RgbImage) -> Result<f64, MetricsError> {
     Ok(sum / (a.pixels.len() * 3) as f64)
 }
 
+/// Mean squared error over the pixels that count (`counts`, row-major,
+/// one per pixel) and their channels; NaN when none counts.
+pub fn mse_masked(a: &RgbImage, b: &RgbImage, counts: &[bool]) -> Result<f64, MetricsError> {
+    check_pair(a, b)?;
+    if counts.len() != a.pixels.len() {
+        // A mask of another size: told as an image of one row.
+        return Err(MetricsError::SizeMismatch {
+            a_width: a.width,
+            a_height: a.height,
+            b_width: counts.len(),
+            b_height: 1,
+        });
+    }
+    let mut sum = 0f64;
+    let mut counted = 0usize;
+    for ((p, q), _) in a
+        .pixels
+        .iter()
+        .zip(&b.pixels)
+        .zip(counts)
+        .filter(|(_, c)| **c)
+    {
+        for c in 0..3 {
+            let d = p[c] as f64 - q[c] as f64;
+            sum += d * d;
+        }
+        counted += 1;
+    }
+    Ok(if counted == 0 {
+        f64::NAN
+    } else {
+        sum / (counted * 3) as f64
+    })
+}
+
 /// PSNR in dB for data range 1, capped at [`PSNR_CAP_DB`].
 pub fn psnr(a: &RgbImage, b: &RgbImage) -> Result<f64, MetricsError> {
     Ok(psnr_from_mse(mse(a, b)?))

@@ -47,9 +47,67 @@ pub fn ssim(a: &RgbImage, b: &RgbImage) -> Result<f64, MetricsError> {
     let taps = gaussian_taps();
     let per_channel: Vec<f64> = (0..3)
         .into_par_iter()
-        .map(|c| channel_ssim(a, b, c, &taps))
+        .map(|c| channel_ssim(a, b, c, &taps, None))
         .collect();
     Ok(per_channel.iter().sum::<f64>() / 3.0)
+}
+
+/// [`ssim`] over the windows that lie wholly on pixels that count
+/// (`counts`, row-major, one per pixel): a pixel left out never enters
+/// the score, not even at the edge of a window. NaN when no window fits
+/// among the counted pixels.
+pub fn ssim_masked(a: &RgbImage, b: &RgbImage, counts: &[bool]) -> Result<f64, MetricsError> {
+    check_pair(a, b)?;
+    if counts.len() != a.pixels.len() {
+        // A mask of another size: told as an image of one row.
+        return Err(MetricsError::SizeMismatch {
+            a_width: a.width,
+            a_height: a.height,
+            b_width: counts.len(),
+            b_height: 1,
+        });
+    }
+    if a.width < SSIM_WINDOW || a.height < SSIM_WINDOW {
+        return Err(MetricsError::TooSmall {
+            width: a.width,
+            height: a.height,
+            min: SSIM_WINDOW,
+        });
+    }
+    let windows = windows_on_counted_pixels(a.width, a.height, counts);
+    if !windows.contains(&true) {
+        return Ok(f64::NAN);
+    }
+    let taps = gaussian_taps();
+    let per_channel: Vec<f64> = (0..3)
+        .into_par_iter()
+        .map(|c| channel_ssim(a, b, c, &taps, Some(&windows)))
+        .collect();
+    Ok(per_channel.iter().sum::<f64>() / 3.0)
+}
+
+/// For each window that fits ('valid' filtering, (H−10)×(W−10) of them,
+/// row-major), whether every pixel under it counts: a summed-area table of
+/// the pixels left out, read at each window's corners.
+fn windows_on_counted_pixels(width: usize, height: usize, counts: &[bool]) -> Vec<bool> {
+    let mut left_out = vec![0u32; (width + 1) * (height + 1)];
+    for y in 0..height {
+        for x in 0..width {
+            let here = u32::from(!counts[y * width + x]);
+            left_out[(y + 1) * (width + 1) + x + 1] =
+                here + left_out[y * (width + 1) + x + 1] + left_out[(y + 1) * (width + 1) + x]
+                    - left_out[y * (width + 1) + x];
+        }
+    }
+    let at = |x: usize, y: usize| left_out[y * (width + 1) + x];
+    let (out_width, out_height) = (width - 2 * RADIUS, height - 2 * RADIUS);
+    (0..out_height)
+        .flat_map(|i| (0..out_width).map(move |j| (j, i)))
+        .map(|(j, i)| {
+            let (x1, y1) = (j + SSIM_WINDOW, i + SSIM_WINDOW);
+            at(x1, y1) + at(j, i) - at(j, y1) - at(x1, i) == 0
+        })
+        .collect()
 }
 
 /// The 1-D Gaussian, normalised so the 2-D window sums to 1.
@@ -107,8 +165,15 @@ fn sum_in_lanes(values: &[f64]) -> f64 {
     partial.iter().sum::<f64>() + tail
 }
 
-/// Mean of the SSIM map of one channel.
-fn channel_ssim(a: &RgbImage, b: &RgbImage, channel: usize, taps: &[f64; SSIM_WINDOW]) -> f64 {
+/// Mean of the SSIM map of one channel, over the map entries `windows`
+/// selects (row-major) when given, else over all of them.
+fn channel_ssim(
+    a: &RgbImage,
+    b: &RgbImage,
+    channel: usize,
+    taps: &[f64; SSIM_WINDOW],
+    windows: Option<&[bool]>,
+) -> f64 {
     let (width, height) = (a.width, a.height);
     let out_width = width - 2 * RADIUS;
     let out_height = height - 2 * RADIUS;
@@ -184,13 +249,24 @@ fn channel_ssim(a: &RgbImage, b: &RgbImage, channel: usize, taps: &[f64; SSIM_WI
                     map[j] = ((2.0 * ux * uy + C1) * (2.0 * vxy + C2))
                         / ((ux * ux + uy * uy + C1) * (vx + vy + C2));
                 }
+                if let Some(windows) = windows {
+                    let selected = &windows[i * out_width..(i + 1) * out_width];
+                    for (value, &kept) in map.iter_mut().zip(selected) {
+                        if !kept {
+                            *value = 0.0;
+                        }
+                    }
+                }
                 sum_in_lanes(&map[..out_width])
             },
         )
         .collect();
+    let scored = windows.map_or(out_width * out_height, |w| {
+        w.iter().filter(|&&kept| kept).count()
+    });
     // Summed in row order, not by rayon's reduction tree, so the result does
     // not depend on how work was split between threads.
-    row_sums.iter().sum::<f64>() / (out_width * out_height) as f64
+    row_sums.iter().sum::<f64>() / scored as f64
 }
 
 #[cfg(test)]
@@ -451,5 +527,29 @@ mod tests {
         let mut b = a.clone();
         b.pixels[0] = [0.0, 0.0, 0.0];
         assert!(ssim(&a, &b).unwrap() < 1.0);
+    }
+
+    #[test]
+    fn a_mask_leaves_out_every_window_touching_a_hidden_pixel() {
+        let a = build(24, 20, texture);
+        let b = build(24, 20, |x, y, c, w, h| 0.8 * texture(x, y, c, w, h) + 0.1);
+        // Nothing hidden: the same score as without a mask, to the bit.
+        let all = vec![true; 24 * 20];
+        assert_eq!(ssim_masked(&a, &b, &all).unwrap(), ssim(&a, &b).unwrap());
+        // Pixel (12, 9) hidden: of the 14 × 10 windows, those whose 11 × 11
+        // span covers it (x from 2 to 12; every row does) go: the columns
+        // at x 0, 1 and 13 stay.
+        let mut one_hidden = all.clone();
+        one_hidden[9 * 24 + 12] = false;
+        let windows = windows_on_counted_pixels(24, 20, &one_hidden);
+        assert_eq!(windows.iter().filter(|&&w| w).count(), 3 * 10);
+        assert!(windows[0] && windows[1] && !windows[2] && !windows[12] && windows[13]);
+        // Four hidden pixels 11 apart each way: every window covers one.
+        let mut none_fits = all;
+        none_fits[5 * 24 + 5] = false;
+        none_fits[5 * 24 + 16] = false;
+        none_fits[16 * 24 + 5] = false;
+        none_fits[16 * 24 + 16] = false;
+        assert!(ssim_masked(&a, &b, &none_fits).unwrap().is_nan());
     }
 }

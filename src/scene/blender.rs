@@ -112,6 +112,7 @@ pub fn load(folder: &Path, options: LoadOptions) -> SceneResult<Scene> {
                     camera: Camera::new(intrinsics, source.camera_to_world),
                     image: image.image,
                     image_path: source.image_path,
+                    mask: None,
                 }
             })
             .collect();

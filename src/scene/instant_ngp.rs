@@ -10,6 +10,8 @@
 //! `aabb_scale`, `scale`, `offset`, and nerfstudio's `train_filenames`,
 //! `val_filenames`, `test_filenames`. Every camera key may be given at the
 //! top level, per frame, or both. Equirectangular cameras are refused.
+//! Masks ([`super::mask`]): a frame's nerfstudio `mask_path`, or else
+//! instant-ngp's `dynamic_mask_<image stem>.png` beside its image.
 
 use std::path::Path;
 
@@ -18,9 +20,11 @@ use serde_json::Value;
 
 use super::camera::focal_from_fov;
 use super::error::{SceneError, SceneResult};
+use super::mask::{self, MaskConvention, MaskFile, PixelMask};
 use super::pose::{
-    FrameSource, JsonObject, check_downscale, decode_images, describe, frame_object, number,
-    parse_transform_matrix, read_json_object, required_array, required_str, resolve_image_path,
+    DecodedImage, FrameSource, JsonObject, check_downscale, decode_images, describe, frame_object,
+    number, parse_transform_matrix, read_json_object, required_array, required_str,
+    resolve_image_path,
 };
 use super::{
     Frame, LoadOptions, Scene, SceneFormat, SpaceAnalysis, Split, UnitCubeMapping, folder_name,
@@ -85,6 +89,7 @@ pub fn load(path: &Path, options: LoadOptions) -> SceneResult<Scene> {
     let mut sources = Vec::with_capacity(frame_values.len());
     let mut cameras = Vec::with_capacity(frame_values.len());
     let mut splits = Vec::with_capacity(frame_values.len());
+    let mut masks = Vec::with_capacity(frame_values.len());
     for (index, value) in frame_values.iter().enumerate() {
         let split = match &explicit {
             Some(assigned) => match assigned[index] {
@@ -100,6 +105,9 @@ pub fn load(path: &Path, options: LoadOptions) -> SceneResult<Scene> {
             let problem = e.problem().to_string();
             e.in_frame_of(&json_path, index, problem)
         })?;
+        let mask_file = read_mask_file(value, &folder, &image_path)
+            .map_err(|problem| SceneError::in_frame(&json_path, index, problem))?;
+        masks.push(mask_file);
         splits.push(split);
         sources.push(FrameSource {
             json_path: json_path.clone(),
@@ -111,6 +119,7 @@ pub fn load(path: &Path, options: LoadOptions) -> SceneResult<Scene> {
     }
 
     let decoded = decode_images(&sources, options.downscale)?;
+    let masks = load_masks(&sources, &masks, &decoded, options.downscale)?;
     let has_alpha = decoded.iter().any(|d| d.file_has_alpha);
     let mut scene = Scene {
         name: folder_name(&folder),
@@ -126,8 +135,12 @@ pub fn load(path: &Path, options: LoadOptions) -> SceneResult<Scene> {
         sparse_points: None,
         space: SpaceAnalysis::default(),
     };
-    for (((source, camera), image), split) in
-        sources.into_iter().zip(cameras).zip(decoded).zip(splits)
+    for ((((source, camera), image), split), mask) in sources
+        .into_iter()
+        .zip(cameras)
+        .zip(decoded)
+        .zip(splits)
+        .zip(masks)
     {
         let intrinsics = camera
             .intrinsics(image.width, image.height)
@@ -137,6 +150,7 @@ pub fn load(path: &Path, options: LoadOptions) -> SceneResult<Scene> {
             camera: Camera::new(intrinsics, source.camera_to_world),
             image: image.image,
             image_path: source.image_path,
+            mask,
         };
         match split {
             Split::Train => scene.train.push(frame),
@@ -146,6 +160,70 @@ pub fn load(path: &Path, options: LoadOptions) -> SceneResult<Scene> {
     }
     scene.space = space::analyse(&scene);
     Ok(scene)
+}
+
+/// A frame's mask file: nerfstudio's `mask_path` (relative to the JSON
+/// file's folder) when the frame gives one, which must then be there;
+/// otherwise instant-ngp's `dynamic_mask_<stem>.png` beside the image when
+/// that exists.
+fn read_mask_file(
+    value: &Value,
+    folder: &Path,
+    image_path: &Path,
+) -> Result<Option<MaskFile>, String> {
+    if let Some(given) = value.get("mask_path") {
+        let path = given
+            .as_str()
+            .ok_or_else(|| format!("`mask_path` must be a string, found {}", describe(given)))?;
+        if path.contains('\0') {
+            return Err(format!(
+                "`mask_path` {path:?} holds a NUL character (\\0), which no file name can hold"
+            ));
+        }
+        let relative = path.strip_prefix("./").unwrap_or(path);
+        return Ok(Some(MaskFile {
+            path: folder.join(relative),
+            convention: MaskConvention::Keep,
+        }));
+    }
+    Ok(mask::dynamic_mask_path(image_path)
+        .filter(|path| crate::files::exists_at_all(path))
+        .map(|path| MaskFile {
+            path,
+            convention: MaskConvention::Dynamic,
+        }))
+}
+
+/// Reads every frame's mask that has one, in parallel, each checked
+/// against its decoded image's size and downscaled as the image was; the
+/// first bad mask in frame order is reported.
+fn load_masks(
+    sources: &[FrameSource],
+    files: &[Option<MaskFile>],
+    decoded: &[DecodedImage],
+    downscale: u32,
+) -> SceneResult<Vec<Option<PixelMask>>> {
+    use rayon::prelude::*;
+    let decodes_at_once = rayon::current_num_threads().min(sources.len()).max(1);
+    let results: Vec<SceneResult<Option<PixelMask>>> = sources
+        .par_iter()
+        .zip(files)
+        .zip(decoded)
+        .map(|((source, file), image)| {
+            file.as_ref()
+                .map(|file| {
+                    mask::load_mask(
+                        file,
+                        source,
+                        (image.width, image.height),
+                        downscale,
+                        decodes_at_once,
+                    )
+                })
+                .transpose()
+        })
+        .collect();
+    results.into_iter().collect()
 }
 
 /// The split of each frame named by nerfstudio's `*_filenames` lists, or

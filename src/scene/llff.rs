@@ -513,6 +513,7 @@ pub fn assemble(
             ),
             image: photograph.image,
             image_path: photograph.image_path,
+            mask: None,
         };
         if index % HOLD_OUT_EVERY == 0 {
             scene.val.push(frame);

@@ -13,6 +13,7 @@ mod image;
 pub mod instant_ngp;
 mod lens;
 pub mod llff;
+pub mod mask;
 pub mod names;
 pub mod pose;
 pub mod space;
@@ -26,6 +27,7 @@ pub use camera::{Camera, Intrinsics, NdcSpace, Ray};
 pub use error::{SceneError, SceneResult, escape_controls};
 pub use image::{ImageRgba8, load_image, to_u8};
 pub use lens::Lens;
+pub use mask::PixelMask;
 pub use space::{SceneSpace, SpaceAnalysis, SparsePoints};
 
 /// Options for loading a scene from disk.
@@ -84,6 +86,10 @@ pub struct Frame {
     pub image: ImageRgba8,
     /// The image file it was read from (empty for in-memory scenes).
     pub image_path: PathBuf,
+    /// Which of the image's pixels count (its size), when the scene gives
+    /// a mask: the others are never training targets and are left out of
+    /// the held-out scores. `None`: every pixel counts.
+    pub mask: Option<PixelMask>,
 }
 
 impl Frame {
@@ -100,6 +106,7 @@ impl Frame {
             .with_ndc(self.camera.ndc),
             image: self.image.downscaled(factor),
             image_path: self.image_path.clone(),
+            mask: self.mask.as_ref().map(|mask| mask.downscaled(factor)),
         }
     }
 
@@ -115,6 +122,10 @@ impl Frame {
             .with_ndc(self.camera.ndc),
             image: self.image.cropped(x0, y0, width, height),
             image_path: self.image_path.clone(),
+            mask: self
+                .mask
+                .as_ref()
+                .map(|mask| mask.cropped(x0, y0, width, height)),
         }
     }
 }
@@ -292,6 +303,51 @@ impl Scene {
             .map(|f| (f.camera.intrinsics.width, f.camera.intrinsics.height))
     }
 
+    /// Frames of all splits that carry a mask, and the pixels their masks
+    /// leave out.
+    pub fn masked_frames(&self) -> (usize, usize) {
+        self.frames()
+            .filter_map(|frame| frame.mask.as_ref())
+            .fold((0, 0), |(frames, pixels), mask| {
+                (frames + 1, pixels + mask.hidden())
+            })
+    }
+
+    /// What `zrak info` and `zrak train` say of the masks: how many frames
+    /// of each split have one and how many pixels they leave out, or `None`
+    /// when no frame has a mask.
+    pub fn describe_masks(&self) -> Option<String> {
+        let (frames, pixels) = self.masked_frames();
+        if frames == 0 {
+            return None;
+        }
+        let per_split: Vec<String> = Split::ALL
+            .iter()
+            .map(|&split| {
+                let masked = self
+                    .split(split)
+                    .iter()
+                    .filter(|frame| frame.mask.is_some())
+                    .count();
+                format!("{} {masked} of {}", split.name(), self.split(split).len())
+            })
+            .collect();
+        Some(format!(
+            "{frames} frames have masks ({}); {pixels} pixels masked out, never trained on \
+             nor scored",
+            per_split.join(", ")
+        ))
+    }
+
+    /// The training views whose mask leaves out every pixel: training
+    /// skips them.
+    pub fn fully_masked_training_views(&self) -> Vec<&Frame> {
+        self.train
+            .iter()
+            .filter(|frame| frame.mask.as_ref().is_some_and(|mask| mask.counted() == 0))
+            .collect()
+    }
+
     /// Why training on this scene would do nothing, or `None`: no
     /// training views, a box that is not finite, or training cameras
     /// none of whose rays (checked on a grid of 16 × 16 pixels per view)
@@ -310,6 +366,13 @@ impl Scene {
                 "the scene's box [{}, {}] is not a finite box (check `scale`, `offset` and \
                  `aabb_scale`)",
                 b.min, b.max
+            ));
+        }
+        if self.fully_masked_training_views().len() == self.train.len() {
+            return Some(format!(
+                "every pixel of the {} training views is masked out: no pixel is left to \
+                 train on",
+                self.train.len()
             ));
         }
         const GRID: u32 = 16;

@@ -18,6 +18,9 @@ pub struct ViewScores {
     pub image: String,
     pub psnr: f64,
     pub ssim: f64,
+    /// Pixels the view's mask leaves out of both scores.
+    #[serde(default)]
+    pub masked_pixels: usize,
 }
 
 /// Scores of a split: per view and means (per-image PSNR, then the mean).
@@ -28,6 +31,24 @@ pub struct SplitScores {
     pub mean_psnr: f64,
     pub mean_ssim: f64,
     pub render_seconds: f64,
+    /// Pixels the views' masks leave out of the scores, all views together.
+    #[serde(default)]
+    pub masked_pixels: usize,
+}
+
+impl SplitScores {
+    /// What the scores leave out, for the evaluation's output: `None` when
+    /// no view has a mask.
+    pub fn describe_masks(&self) -> Option<String> {
+        let masked_views = self.views.iter().filter(|v| v.masked_pixels > 0).count();
+        (self.masked_pixels > 0).then(|| {
+            format!(
+                "{} pixels of {masked_views} views masked out: PSNR over the pixels that \
+                 count, SSIM over the 11×11 windows wholly on them",
+                self.masked_pixels
+            )
+        })
+    }
 }
 
 /// Renders `frame`'s camera over white and scores it against the image.
@@ -38,13 +59,26 @@ pub fn score_view(model: &dyn RadianceModel, frame: &Frame, with_ssim: bool) -> 
     let rendered = render_pixels(model, &frame.camera, WHITE);
     let (w, h) = (k.width as usize, k.height as usize);
     let prediction = RgbImage::new(w, h, rgb_of(&rendered)).expect("one pixel per ray");
+    score_prediction(&prediction, frame, with_ssim)
+}
+
+/// Scores `prediction` against `frame`'s image on white: over every pixel,
+/// or, where the frame has a mask, PSNR over the pixels that count and
+/// SSIM over the windows that lie wholly on them.
+pub fn score_prediction(prediction: &RgbImage, frame: &Frame, with_ssim: bool) -> ImageScores {
     let truth = RgbImage::from_rgba8_over(&frame.image, WHITE);
-    let psnr = metrics::psnr(&prediction, &truth).unwrap_or(f64::NAN);
-    let ssim = if with_ssim {
-        metrics::ssim(&prediction, &truth).unwrap_or(f64::NAN)
-    } else {
-        f64::NAN
-    };
+    let counts = frame.mask.as_ref().map(|mask| mask.counting());
+    let psnr = match counts {
+        None => metrics::psnr(prediction, &truth),
+        Some(counts) => metrics::mse_masked(prediction, &truth, counts).map(metrics::psnr_from_mse),
+    }
+    .unwrap_or(f64::NAN);
+    let ssim = match (with_ssim, counts) {
+        (false, _) => Ok(f64::NAN),
+        (true, None) => metrics::ssim(prediction, &truth),
+        (true, Some(counts)) => metrics::ssim_masked(prediction, &truth, counts),
+    }
+    .unwrap_or(f64::NAN);
     ImageScores { psnr, ssim }
 }
 
@@ -69,11 +103,19 @@ pub fn mean_psnr_sampled(model: &dyn RadianceModel, frames: &[&Frame], rays: usi
         return f64::NAN;
     }
     let per_view = (rays / frames.len()).max(1);
-    frames
+    // A view whose mask hides every pixel of its grid has no estimate and
+    // is left out of the mean.
+    let estimates: Vec<f64> = frames
         .iter()
-        .map(|frame| {
+        .filter_map(|frame| {
             let k = frame.camera.intrinsics;
-            let coordinates = pixel_grid(k.width, k.height, per_view);
+            let mut coordinates = pixel_grid(k.width, k.height, per_view);
+            if let Some(mask) = &frame.mask {
+                coordinates.retain(|&(x, y)| mask.counts(x, y));
+                if coordinates.is_empty() {
+                    return None;
+                }
+            }
             let rays: Vec<_> = coordinates
                 .iter()
                 .map(|&(x, y)| frame.camera.pixel_ray(x, y))
@@ -87,10 +129,15 @@ pub fn mean_psnr_sampled(model: &dyn RadianceModel, frames: &[&Frame], rays: usi
                     squared += ((p - t) as f64).powi(2);
                 }
             }
-            metrics::psnr_from_mse(squared / (3 * coordinates.len().max(1)) as f64)
+            Some(metrics::psnr_from_mse(
+                squared / (3 * coordinates.len().max(1)) as f64,
+            ))
         })
-        .sum::<f64>()
-        / frames.len() as f64
+        .collect();
+    if estimates.is_empty() {
+        return f64::NAN;
+    }
+    estimates.iter().sum::<f64>() / estimates.len() as f64
 }
 
 /// About `count` pixels (column, row) of a `width × height` view (at most
@@ -153,15 +200,28 @@ pub fn evaluate_split_until(
             image: frame.image_path.display().to_string(),
             psnr: scores.psnr,
             ssim: scores.ssim,
+            masked_pixels: frame.mask.as_ref().map_or(0, |mask| mask.hidden()),
         };
         on_view(&view);
         views.push(view);
     }
-    let n = views.len().max(1) as f64;
+    // A view whose mask hides every pixel has nothing to score: it is
+    // listed, and left out of the means.
+    let scored: Vec<&ViewScores> = views
+        .iter()
+        .filter(|v| {
+            frames[v.index]
+                .mask
+                .as_ref()
+                .is_none_or(|m| m.counted() > 0)
+        })
+        .collect();
+    let n = scored.len().max(1) as f64;
     SplitScores {
         split: split.to_string(),
-        mean_psnr: views.iter().map(|v| v.psnr).sum::<f64>() / n,
-        mean_ssim: views.iter().map(|v| v.ssim).sum::<f64>() / n,
+        mean_psnr: scored.iter().map(|v| v.psnr).sum::<f64>() / n,
+        mean_ssim: scored.iter().map(|v| v.ssim).sum::<f64>() / n,
+        masked_pixels: views.iter().map(|v| v.masked_pixels).sum(),
         views,
         render_seconds: started.elapsed().as_secs_f64(),
     }
@@ -256,6 +316,7 @@ mod tests {
             ),
             image: ImageRgba8::new(width, height, vec![255; (width * height * 4) as usize]),
             image_path: Default::default(),
+            mask: None,
         }
     }
 

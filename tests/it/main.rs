@@ -26,6 +26,7 @@ mod layering;
 mod llff;
 mod locks;
 mod march_gpu;
+mod masks;
 mod mesh_export;
 mod nerf_cpu;
 mod nerf_field_gpu;

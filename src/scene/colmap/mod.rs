@@ -602,6 +602,7 @@ pub fn load(root: &Path, options: LoadOptions) -> SceneResult<Scene> {
             camera: Camera::new(k.downscaled(options.downscale), source.camera_to_world),
             image: image.image,
             image_path: source.image_path,
+            mask: None,
         };
         if index % VAL_EVERY == 0 {
             scene.val.push(frame);

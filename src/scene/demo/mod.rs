@@ -98,6 +98,7 @@ fn build_with(
                 camera,
                 image: render(&camera),
                 image_path: PathBuf::new(),
+                mask: None,
             })
             .collect::<Vec<_>>()
     });
@@ -873,9 +874,14 @@ fn intersect_shape(
     }
 }
 
+mod moving;
 #[cfg(test)]
 mod tests;
 mod unbounded;
+
+pub use moving::{
+    MOVING_PLACES, MOVING_RADIUS, build_moving_object, moving_object_centre, write_moving_object,
+};
 
 pub use unbounded::{
     UNBOUNDED_AABB_SCALE, build_unbounded, render_view_unbounded, unbounded_depth,

@@ -16,6 +16,7 @@ fn scene_of(cameras: Vec<Camera>, has_alpha: bool, alpha: u8, aabb_scale: f32) -
             camera,
             image: ImageRgba8::new(2, 2, [90, 90, 90, alpha].repeat(4)),
             image_path: PathBuf::new(),
+            mask: None,
         })
         .collect();
     let unit_cube = UnitCubeMapping {
