@@ -215,6 +215,19 @@ pub fn read_regular_bounded(path: &Path, max_bytes: u64, what: &str) -> Result<V
     Ok(bytes)
 }
 
+/// The first `max_bytes` of a regular file (all of it when shorter),
+/// refusing what [`open_regular`] refuses: for headers of files that may
+/// be large (a photograph's EXIF).
+pub fn read_regular_prefix(path: &Path, max_bytes: u64) -> Result<Vec<u8>, String> {
+    use std::io::Read;
+    let (file, length) = open_regular(path).map_err(|e| e.to_string())?;
+    let mut bytes = Vec::with_capacity(length.min(max_bytes) as usize);
+    file.take(max_bytes)
+        .read_to_end(&mut bytes)
+        .map_err(|e| format!("cannot read it: {e}"))?;
+    Ok(bytes)
+}
+
 /// [`read_regular_bounded`] for UTF-8 text.
 pub fn read_text_bounded(path: &Path, max_bytes: u64, what: &str) -> Result<String, String> {
     String::from_utf8(read_regular_bounded(path, max_bytes, what)?).map_err(|e| {

@@ -6,7 +6,7 @@ use std::time::Instant;
 use clap::Args;
 use zrak::scene::{LoadOptions, Scene, Split};
 
-use super::{SpaceChoice, load_scene};
+use super::{PhotographSwitches, SpaceChoice, load_scene, photograph_lines};
 
 #[derive(Args, Debug)]
 pub struct InfoArgs {
@@ -21,6 +21,8 @@ pub struct InfoArgs {
     /// way.
     #[arg(long, value_enum, default_value_t = SpaceChoice::Auto)]
     space: SpaceChoice,
+    #[command(flatten)]
+    photographs: PhotographSwitches,
 }
 
 pub fn info(args: InfoArgs) -> anyhow::Result<()> {
@@ -37,6 +39,9 @@ pub fn info(args: InfoArgs) -> anyhow::Result<()> {
     };
     let scene = args.space.apply(scene);
     print_info(&scene);
+    for line in photograph_lines(&args.photographs.analyse(&scene)) {
+        println!("{line}");
+    }
     println!("loaded in {:.2} s", started.elapsed().as_secs_f64());
     Ok(())
 }

@@ -34,6 +34,7 @@ use std::path::Path;
 use zrak::scene::demo::{
     DemoConfig, {self as demo_scene},
 };
+use zrak::scene::photographs::{self, PhotographAnalysis, Switch};
 use zrak::scene::{LoadOptions, Scene, SceneSpace};
 
 /// A scene argument as the commands take it: `demo` for the built-in demo
@@ -85,6 +86,50 @@ impl SpaceChoice {
         }
         .in_its_space()
     }
+}
+
+/// `--appearance` and `--refine-cameras`: per-image appearance vectors and
+/// camera corrections, `auto` leaving each to the analysis of the
+/// photographs (`zrak info` prints its choices and reasons).
+#[derive(clap::Args, Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct PhotographSwitches {
+    /// A learned appearance vector per training image (exposure and white
+    /// balance that change from photograph to photograph): auto turns it on
+    /// where the photographs' exposure differs.
+    #[arg(long, value_enum, default_value_t = Switch::Auto)]
+    pub appearance: Switch,
+    /// A learned pose correction per training image: auto turns it on for
+    /// cameras estimated by structure from motion.
+    #[arg(long = "refine-cameras", value_enum, default_value_t = Switch::Auto)]
+    pub refine_cameras: Switch,
+}
+
+impl PhotographSwitches {
+    /// What `scene`'s photographs call for, as these switches leave it.
+    pub fn analyse(self, scene: &Scene) -> PhotographAnalysis {
+        photographs::analyse(
+            scene,
+            photographs::Switches {
+                appearance: self.appearance,
+                refine_cameras: self.refine_cameras,
+            },
+        )
+    }
+}
+
+/// The choices of `analysis`, a line each with its reasons under it, as
+/// `zrak info` and `zrak train` print them.
+pub fn photograph_lines(analysis: &PhotographAnalysis) -> Vec<String> {
+    let mut lines = Vec::new();
+    for (name, choice) in [
+        ("appearance", &analysis.appearance),
+        ("refine cams", &analysis.refine_cameras),
+        ("masks", &analysis.masks),
+    ] {
+        lines.push(format!("{name:<11} {}", choice.summary()));
+        lines.extend(choice.reasons.iter().map(|reason| format!("  - {reason}")));
+    }
+    lines
 }
 
 /// A duration argument in seconds: `90s`, `10m`, `2min`, `1h`, or a bare

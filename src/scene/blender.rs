@@ -96,6 +96,9 @@ pub fn load(folder: &Path, options: LoadOptions) -> SceneResult<Scene> {
         smaller_training_views: 0,
         sparse_points: None,
         space: SpaceAnalysis::default(),
+        poses: crate::scene::PoseOrigin::exact(
+            "NeRF-synthetic renders: each camera is the one Blender rendered its image from",
+        ),
     };
     for file in files {
         let frames: Vec<Frame> = file

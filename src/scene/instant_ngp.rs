@@ -134,6 +134,7 @@ pub fn load(path: &Path, options: LoadOptions) -> SceneResult<Scene> {
         smaller_training_views: 0,
         sparse_points: None,
         space: SpaceAnalysis::default(),
+        poses: pose_origin(&json, frame_values, &sources, &cameras),
     };
     for ((((source, camera), image), split), mask) in sources
         .into_iter()
@@ -160,6 +161,68 @@ pub fn load(path: &Path, options: LoadOptions) -> SceneResult<Scene> {
     }
     scene.space = space::analyse(&scene);
     Ok(scene)
+}
+
+/// Where a transforms.json's poses came from. The format carries both
+/// renders (NeRF-synthetic's layout, Blender exports) and captures posed by
+/// structure from motion; the tools that write the latter leave signs:
+/// instant-ngp's colmap2nerf.py a per-frame `sharpness`, nerfstudio's
+/// ns-process-data a per-frame `colmap_im_id` and a top-level
+/// `applied_transform`, both the lens's distortion coefficients; and
+/// photographs are JPEGs, renders seldom are.
+fn pose_origin(
+    json: &JsonObject,
+    frames: &[Value],
+    sources: &[FrameSource],
+    cameras: &[CameraFields],
+) -> super::PoseOrigin {
+    let per_frame = |key: &str| frames.iter().filter(|f| f.get(key).is_some()).count();
+    let mut signs = Vec::new();
+    let sharpness = per_frame("sharpness");
+    if sharpness > 0 {
+        signs.push(format!(
+            "{sharpness} frames carry colmap2nerf's `sharpness`"
+        ));
+    }
+    let colmap_ids = per_frame("colmap_im_id");
+    if colmap_ids > 0 {
+        signs.push(format!(
+            "{colmap_ids} frames carry nerfstudio's `colmap_im_id`"
+        ));
+    }
+    if json.contains_key("applied_transform") {
+        signs.push("it has nerfstudio's `applied_transform`".into());
+    }
+    if cameras
+        .iter()
+        .any(|c| c.distortion.iter().any(|k| k.is_some_and(|k| k != 0.0)))
+    {
+        signs.push("its cameras have lens distortion".into());
+    }
+    let jpegs = sources
+        .iter()
+        .filter(|s| {
+            s.image_path
+                .extension()
+                .and_then(|e| e.to_str())
+                .is_some_and(|e| e.eq_ignore_ascii_case("jpg") || e.eq_ignore_ascii_case("jpeg"))
+        })
+        .count();
+    if jpegs * 2 > sources.len() {
+        signs.push(format!("{jpegs} of {} images are JPEGs", sources.len()));
+    }
+    if signs.is_empty() {
+        super::PoseOrigin::exact(
+            "transforms.json without a sign of structure from motion (no lens distortion, \
+             no colmap2nerf `sharpness`, no nerfstudio `colmap_im_id`, no JPEGs): its cameras \
+             are taken as exact, as a render's",
+        )
+    } else {
+        super::PoseOrigin::estimated(format!(
+            "transforms.json posed by structure from motion: {}",
+            signs.join("; ")
+        ))
+    }
 }
 
 /// A frame's mask file: nerfstudio's `mask_path` (relative to the JSON

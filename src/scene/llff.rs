@@ -504,6 +504,9 @@ pub fn assemble(
         smaller_training_views: 0,
         sparse_points: None,
         space: SpaceAnalysis::default(),
+        poses: crate::scene::PoseOrigin::estimated(
+            "LLFF's poses_bounds.npy: its cameras come from COLMAP's structure from motion (LLFF's imgs2poses)",
+        ),
     };
     for (index, (view, photograph)) in views.iter().zip(photographs).enumerate() {
         let frame = Frame {

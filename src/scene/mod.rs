@@ -8,6 +8,7 @@ pub mod colmap;
 pub mod crop;
 pub mod demo;
 mod error;
+pub mod exif;
 pub mod identity;
 mod image;
 pub mod instant_ngp;
@@ -15,6 +16,7 @@ mod lens;
 pub mod llff;
 pub mod mask;
 pub mod names;
+pub mod photographs;
 pub mod pose;
 pub mod space;
 
@@ -218,6 +220,38 @@ pub struct Scene {
     /// What the scene calls for (object, unbounded, forward-facing) and
     /// why: [`space::analyse`]'s, or chosen by [`Scene::with_space`].
     pub space: SpaceAnalysis,
+    /// Where the cameras' poses came from, as the loader saw it: what
+    /// decides whether they are refined ([`photographs::analyse`]).
+    pub poses: PoseOrigin,
+}
+
+/// Where a scene's camera poses came from.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct PoseOrigin {
+    /// Estimated from the photographs (structure from motion), so off by a
+    /// fraction of a pixel to a few pixels; otherwise known exactly (the
+    /// cameras a render was made from).
+    pub estimated: bool,
+    /// The sentence that says so, naming what in the files shows it.
+    pub evidence: String,
+}
+
+impl PoseOrigin {
+    /// The cameras a render was made from.
+    pub fn exact(evidence: impl Into<String>) -> Self {
+        Self {
+            estimated: false,
+            evidence: evidence.into(),
+        }
+    }
+
+    /// Cameras estimated by structure from motion.
+    pub fn estimated(evidence: impl Into<String>) -> Self {
+        Self {
+            estimated: true,
+            evidence: evidence.into(),
+        }
+    }
 }
 
 impl Scene {

@@ -580,6 +580,9 @@ pub fn load(root: &Path, options: LoadOptions) -> SceneResult<Scene> {
         smaller_training_views: 0,
         sparse_points: converted.sparse_points,
         space: SpaceAnalysis::default(),
+        poses: crate::scene::PoseOrigin::estimated(
+            "a COLMAP model: its cameras were estimated by structure from motion",
+        ),
     };
     for (index, ((source, image), posed)) in sources
         .into_iter()

@@ -116,6 +116,7 @@ fn build_with(
         smaller_training_views: 0,
         sparse_points: None,
         space: SpaceAnalysis::default(),
+        poses: crate::scene::PoseOrigin::exact("the demo is rendered from the cameras it stores"),
     };
     scene.space = space::analyse(&scene);
     scene

@@ -36,6 +36,7 @@ fn scene_of(cameras: Vec<Camera>, has_alpha: bool, alpha: u8, aabb_scale: f32) -
         smaller_training_views: 0,
         sparse_points: None,
         space: SpaceAnalysis::default(),
+        poses: crate::scene::PoseOrigin::default(),
     };
     scene.space = analyse(&scene);
     scene
