@@ -56,6 +56,8 @@ pub struct ViewerOptions {
     /// What every scene opened is treated as; `None` leaves it to the
     /// scene analysis.
     pub space: Option<crate::scene::SceneSpace>,
+    /// Per-image appearance and camera refinement for every scene opened.
+    pub photographs: crate::scene::photographs::Switches,
 }
 
 impl Default for ViewerOptions {
@@ -78,6 +80,7 @@ impl Default for ViewerOptions {
             path_time: None,
             path_play: false,
             space: None,
+            photographs: Default::default(),
         }
     }
 }
@@ -247,6 +250,7 @@ impl ViewerApp {
                 sampling: options.sampling,
                 precision: options.precision,
                 space: options.space,
+                photographs: options.photographs,
                 autosave: crate::session::worker::default_autosave_folder(),
                 kept_runs: options.kept_runs,
                 ..WorkerOptions::default()

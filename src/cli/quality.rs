@@ -31,7 +31,7 @@ use zrak::train::trainer::Trainer;
 use super::run_config::{
     RunConfig, build_trainer, read_run_config, restore_checkpoint, scene_key, start_run_folder,
 };
-use super::{SpaceChoice, load_scene, parse_duration};
+use super::{PhotographSwitches, SpaceChoice, load_scene, parse_duration};
 
 #[derive(Args, Debug)]
 pub struct QualityArgs {
@@ -104,6 +104,10 @@ pub struct QualityArgs {
     /// forward-facing capture; auto leaves it to the scene analysis.
     #[arg(long, value_enum, default_value_t = SpaceChoice::Auto)]
     space: SpaceChoice,
+    /// Per-image appearance and camera refinement in every cell: auto
+    /// leaves each to the analysis of each scene's photographs.
+    #[command(flatten)]
+    photographs: PhotographSwitches,
 }
 
 /// A scene of the experiment, loaded once for all its cells.
@@ -226,6 +230,7 @@ fn run_config(cell: &CellSpec, scene: &LoadedScene, args: &QualityArgs) -> RunCo
         training_scales: 1,
         space: None,
         space_overridden: false,
+        photographs: args.photographs.analyse(&scene.scene),
     };
     config.record_space(&scene.scene);
     config

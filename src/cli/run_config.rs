@@ -13,6 +13,7 @@ use zrak::field::ModelKind;
 use zrak::field::common::{LossKind, Sampling};
 use zrak::field::mlp::Precision;
 use zrak::interrupt::note;
+use zrak::scene::photographs::PhotographAnalysis;
 use zrak::scene::{Scene, SceneSpace};
 use zrak::train::run::{
     MAX_RUN_JSON_BYTES, RUN_JSON_MARKER, RunFolder, SAVED_BY_COMMAND_LINE, load_checkpoint,
@@ -61,6 +62,12 @@ pub struct RunConfig {
     /// analysis.
     #[serde(default)]
     pub space_overridden: bool,
+    /// What the photographs called for when the run began (appearance
+    /// vectors, camera refinement, masks) and why, kept so a resumed,
+    /// evaluated or rendered run rebuilds the same model (absent in runs
+    /// made before the choice existed: all off, as they trained).
+    #[serde(default)]
+    pub photographs: PhotographAnalysis,
 }
 
 fn single_scale() -> u32 {

@@ -23,7 +23,8 @@ use super::run_config::{
     RunConfig, build_trainer, check_same_scene, load_run_scene, read_run_config, restore_run,
     scene_key, start_run_folder,
 };
-use super::{KernelsLine, SpaceChoice, parse_duration};
+use super::{KernelsLine, PhotographSwitches, SpaceChoice, parse_duration, photograph_lines};
+use zrak::scene::photographs::PhotographAnalysis;
 
 #[derive(Args, Debug)]
 pub struct TrainArgs {
@@ -98,6 +99,11 @@ pub struct TrainArgs {
     /// own.
     #[arg(long, value_enum, default_value_t = SpaceChoice::Auto, conflicts_with = "resume")]
     space: SpaceChoice,
+    /// Per-image appearance and camera refinement: auto leaves each to the
+    /// analysis of the photographs (`zrak info` prints its choices and
+    /// why). When resuming, the run's own.
+    #[command(flatten)]
+    photographs: PhotographSwitches,
 }
 
 impl TrainArgs {
@@ -125,6 +131,12 @@ pub fn train(args: TrainArgs) -> anyhow::Result<()> {
 fn resume_run(args: &TrainArgs, dir: &Path) -> anyhow::Result<(RunFolder, RunConfig, Trainer)> {
     // The lock first: a run another zrak is training must not be read
     // half-way or continued twice.
+    if args.photographs != PhotographSwitches::default() {
+        bail!(
+            "--appearance and --refine-cameras are the run's own when resuming (its run.json \
+             records them)"
+        );
+    }
     let folder = RunFolder::resume(dir).map_err(anyhow::Error::msg)?;
     if let Some(scene) = &args.scene {
         check_same_scene(scene, &read_run_config(&folder)?.scene, dir)?;
@@ -165,6 +177,7 @@ fn new_run_config(args: &TrainArgs, scene: &str) -> RunConfig {
         training_scales: args.training_scales,
         space: None,
         space_overridden: false,
+        photographs: PhotographAnalysis::default(),
     }
 }
 
@@ -228,6 +241,10 @@ fn start_run(args: &TrainArgs) -> anyhow::Result<(RunFolder, RunConfig, Trainer)
     }
     if let Some(problem) = scene.training_problem() {
         bail!("{scene_arg}: nothing to train: {problem}");
+    }
+    config.photographs = args.photographs.analyse(&scene);
+    for line in photograph_lines(&config.photographs) {
+        note(&line);
     }
     for line in mask_notes(&scene) {
         note(&line);

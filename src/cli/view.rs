@@ -13,7 +13,7 @@ use zrak::field::mlp::Precision;
 use zrak::scene::crop::CropArg;
 use zrak::session::protocol::SceneSource;
 
-use super::SpaceChoice;
+use super::{PhotographSwitches, SpaceChoice};
 
 #[derive(Args, Debug)]
 pub struct ViewArgs {
@@ -78,6 +78,11 @@ pub struct ViewArgs {
     /// the scene analysis (the Scene panel shows its choice and why).
     #[arg(long, value_enum, default_value_t = SpaceChoice::Auto)]
     space: SpaceChoice,
+    /// Per-image appearance and camera refinement for every scene opened:
+    /// auto leaves each to the analysis of its photographs (the Scene panel
+    /// shows the choices and why).
+    #[command(flatten)]
+    photographs: PhotographSwitches,
 }
 
 impl Default for ViewArgs {
@@ -119,6 +124,10 @@ pub fn view(args: ViewArgs) -> anyhow::Result<()> {
         path_time: args.path_time,
         path_play: args.path_play,
         space: args.space.space(),
+        photographs: zrak::scene::photographs::Switches {
+            appearance: args.photographs.appearance,
+            refine_cameras: args.photographs.refine_cameras,
+        },
     })
 }
 

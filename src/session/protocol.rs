@@ -174,6 +174,8 @@ pub struct PointsExport {
 pub struct SceneInfo {
     pub scene: Arc<Scene>,
     pub source: SceneSource,
+    /// What its photographs call for, and why.
+    pub photographs: crate::scene::photographs::PhotographAnalysis,
 }
 
 /// Training figures after a step of one model.

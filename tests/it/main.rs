@@ -38,6 +38,7 @@ mod ngp_field_gpu;
 mod ngp_gpu;
 mod ngp_gpu_driver_gate;
 mod ngp_learning;
+mod photographs;
 mod proposal_cpu;
 mod proposal_gpu;
 mod proposal_nerf_cpu;

@@ -84,6 +84,7 @@ fn small_demo() -> SceneInfo {
     SceneInfo {
         scene: Arc::new(demo::build(&config)),
         source: SceneSource::Demo,
+        photographs: Default::default(),
     }
 }
 

@@ -13,6 +13,7 @@ use super::{PlotAxis, ViewerUi, describe_source, plots};
 use crate::field::ModelKind;
 use crate::model::RenderMode;
 use crate::scene::SpaceAnalysis;
+use crate::scene::photographs::PhotographAnalysis;
 use crate::session::camera::Navigation;
 use crate::session::protocol::{Balance, Command, SceneSource};
 
@@ -245,6 +246,7 @@ fn scene_section(state: &mut ViewerUi, ui: &mut egui::Ui) {
                 );
             }
             space_line(ui, &info.scene.space);
+            photograph_lines(ui, &info.photographs);
         }
         None => {
             ui.label("No scene loaded yet");
@@ -295,6 +297,21 @@ fn space_line(ui: &mut egui::Ui, analysis: &SpaceAnalysis) {
                     ui.label(RichText::new(format!("• {reason}")).small());
                 }
             });
+    }
+}
+
+/// Appearance vectors, camera refinement and masks: a line each, its
+/// reasons on hover.
+fn photograph_lines(ui: &mut egui::Ui, analysis: &PhotographAnalysis) {
+    for (name, choice) in [
+        ("Appearance", &analysis.appearance),
+        ("Camera refinement", &analysis.refine_cameras),
+        ("Masks", &analysis.masks),
+    ] {
+        let label = ui.label(format!("{name}: {}", choice.summary()));
+        if !choice.reasons.is_empty() {
+            label.on_hover_text(choice.reasons.join("\n\n"));
+        }
     }
 }
 

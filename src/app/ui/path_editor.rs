@@ -791,6 +791,7 @@ mod tests {
         state.handle_event(Event::SceneLoaded(SceneInfo {
             scene: Arc::new(scene),
             source: SceneSource::Demo,
+            photographs: Default::default(),
         }));
         state
     }

@@ -108,6 +108,10 @@ pub struct WorkerOptions {
     /// What every scene opened is treated as (`zrak view --space`);
     /// `None` leaves it to the scene analysis.
     pub space: Option<SceneSpace>,
+    /// Per-image appearance and camera refinement for every scene opened
+    /// (`zrak view --appearance`, `--refine-cameras`; auto: as each scene's
+    /// photographs call for).
+    pub photographs: crate::scene::photographs::Switches,
     /// Training seconds between held-out PSNR evaluations, for every
     /// model. Each evaluation scores a grid of pixels spread over the
     /// held-out views, as many as fit in [`EVAL_SHARE`] of this time at
@@ -160,6 +164,7 @@ impl Default for WorkerOptions {
             precision: Precision::F32,
             demo: DemoConfig::default(),
             space: None,
+            photographs: Default::default(),
             val_every_train_seconds: 5.0,
             // As `zrak train` (`Schedule::eval_views`).
             val_views: 3,
@@ -470,6 +475,7 @@ impl Worker {
             source,
             with_chosen_space(scene, options.space),
             options.val_views,
+            options.photographs,
         );
         // `choose_engine_on` keeps the given device only for the gpu engine.
         let textures_shared =

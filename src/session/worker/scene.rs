@@ -12,6 +12,7 @@ use crate::scene::crop::CropBox;
 use crate::scene::demo::{
     DemoConfig, {self},
 };
+use crate::scene::photographs::{self, PhotographAnalysis, Switches};
 use crate::scene::{Frame, LoadOptions, Scene, SceneSpace};
 use crate::session::protocol::{SceneInfo, SceneSource};
 use crate::train::eval::spread_views;
@@ -33,17 +34,30 @@ pub(super) struct SceneState {
     /// A scene being loaded on a thread of its own, so that reading and
     /// decoding a large one never stalls training or rendering.
     loading: Option<SceneLoad>,
+    /// What the photographs call for (appearance, camera refinement,
+    /// masks), as the switches leave it.
+    pub(super) photographs: PhotographAnalysis,
+    switches: Switches,
 }
 
 impl SceneState {
     /// `scene`, loaded from `source`, with up to `val_views` held-out views.
-    pub(super) fn new(source: SceneSource, scene: Scene, val_views: usize) -> Self {
+    /// `switches` (`zrak view --appearance`, `--refine-cameras`) stand for
+    /// every scene opened.
+    pub(super) fn new(
+        source: SceneSource,
+        scene: Scene,
+        val_views: usize,
+        switches: Switches,
+    ) -> Self {
         Self {
             val_frames: held_out_views(&scene, val_views),
+            photographs: photographs::analyse(&scene, switches),
             scene: Arc::new(scene),
             source,
             crop: None,
             loading: None,
+            switches,
         }
     }
 
@@ -52,6 +66,7 @@ impl SceneState {
         SceneInfo {
             scene: self.scene.clone(),
             source: self.source.clone(),
+            photographs: self.photographs.clone(),
         }
     }
 
@@ -107,6 +122,7 @@ impl SceneState {
         self.crop = None;
         self.source = source;
         self.val_frames = held_out_views(&self.scene, val_views);
+        self.photographs = photographs::analyse(&self.scene, self.switches);
     }
 }
 
@@ -202,7 +218,12 @@ mod tests {
 
     #[test]
     fn a_scene_loads_beside_the_current_one_and_a_later_request_replaces_it() {
-        let mut state = SceneState::new(SceneSource::Demo, demo::build(&demo_of(2, 1, 0)), 1);
+        let mut state = SceneState::new(
+            SceneSource::Demo,
+            demo::build(&demo_of(2, 1, 0)),
+            1,
+            Switches::default(),
+        );
         assert!(!state.is_loading());
         assert!(state.poll_loaded().is_none());
         let missing = SceneSource::Folder(PathBuf::from("/nonexistent/zrak-scene"));
