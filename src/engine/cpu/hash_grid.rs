@@ -443,8 +443,16 @@ pub fn position_gradient<T: Real>(
     let width = layout.output_width();
     let features = layout.features();
     assert_eq!(params.len(), layout.param_count(), "params");
-    assert_eq!(d_out.len(), positions.len() * width, "d_out must be S × L·F");
-    assert_eq!(d_positions.len(), positions.len(), "a gradient per position");
+    assert_eq!(
+        d_out.len(),
+        positions.len() * width,
+        "d_out must be S × L·F"
+    );
+    assert_eq!(
+        d_positions.len(),
+        positions.len(),
+        "a gradient per position"
+    );
     let levels: Vec<(LevelMath<T>, &[T])> = layout
         .levels()
         .iter()

@@ -183,18 +183,26 @@ impl CameraRefinement {
     }
 
     /// Training image `image`'s camera-to-world matrix `given` with its
-    /// correction: R' = exp(ω) R, centre c' = c + t.
+    /// correction (see [`corrected_pose`]).
     pub fn corrected(&self, image: usize, given: Mat4) -> Mat4 {
-        let values = &self.values[image * VALUES_PER_IMAGE..][..VALUES_PER_IMAGE];
-        let rotation = self.rotations[image].as_mat3();
-        let t = Vec3::from_slice(&values[3..]);
-        Mat4::from_cols(
-            (rotation * given.x_axis.truncate()).extend(0.0),
-            (rotation * given.y_axis.truncate()).extend(0.0),
-            (rotation * given.z_axis.truncate()).extend(0.0),
-            (given.w_axis.truncate() + t).extend(1.0),
+        corrected_pose(
+            &self.values[image * VALUES_PER_IMAGE..][..VALUES_PER_IMAGE],
+            given,
         )
     }
+}
+
+/// The camera-to-world matrix `given` with the correction of `values` (ω,
+/// t): R' = exp(ω) R, centre c' = c + t.
+pub fn corrected_pose(values: &[f32], given: Mat4) -> Mat4 {
+    let rotation = so3_exp(omega_of(values)).as_mat3();
+    let t = Vec3::from_slice(&values[3..6]);
+    Mat4::from_cols(
+        (rotation * given.x_axis.truncate()).extend(0.0),
+        (rotation * given.y_axis.truncate()).extend(0.0),
+        (rotation * given.z_axis.truncate()).extend(0.0),
+        (given.w_axis.truncate() + t).extend(1.0),
+    )
 }
 
 fn omega_of(values: &[f32]) -> DVec3 {
@@ -233,7 +241,10 @@ pub fn so3_left_jacobian(w: DVec3) -> DMat3 {
     let theta = w.length();
     let k = cross_matrix(w);
     let (b, c) = if theta < SMALL_ANGLE {
-        (0.5 - theta * theta / 24.0, 1.0 / 6.0 - theta * theta / 120.0)
+        (
+            0.5 - theta * theta / 24.0,
+            1.0 / 6.0 - theta * theta / 120.0,
+        )
     } else {
         (
             (1.0 - theta.cos()) / (theta * theta),
@@ -277,7 +288,10 @@ mod tests {
     #[test]
     fn rays_and_cameras_are_corrected_alike() {
         let mut refinement = CameraRefinement::new(2);
-        refinement.set_values(&[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.1, 0.0, 1.0, -2.0, 0.5], None);
+        refinement.set_values(
+            &[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.1, 0.0, 1.0, -2.0, 0.5],
+            None,
+        );
         let given = Mat4::from_translation(Vec3::new(3.0, 0.0, 1.0));
         let corrected = refinement.corrected(1, given);
         // A camera at (3, 0, 1) looking down −z, turned by 0.1 rad about y

@@ -674,7 +674,13 @@ fn positions_outside_the_box_have_no_gradient_along_the_clamped_axis() {
     let params = random_params(&layout, 3);
     let d_out = vec![1.0; layout.output_width()];
     let mut d_positions = vec![[0.0; 3]];
-    position_gradient(&layout, &params, &[[1.5, 0.3, 0.6]], &d_out, &mut d_positions);
+    position_gradient(
+        &layout,
+        &params,
+        &[[1.5, 0.3, 0.6]],
+        &d_out,
+        &mut d_positions,
+    );
     assert_eq!(d_positions[0][0], 0.0);
     assert!(d_positions[0][1] != 0.0 && d_positions[0][2] != 0.0);
 }
