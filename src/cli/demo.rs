@@ -48,8 +48,13 @@ pub struct DemoArgs {
     /// by FRACTION of the scene's box side in a random direction (the same
     /// each time), e.g. `1,0.02`. The images are rendered from the true
     /// cameras, which go to cameras_truth.json; held-out views keep theirs.
-    #[arg(long, value_name = "DEGREES,FRACTION", value_parser = parse_perturbation,
-          conflicts_with_all = ["large", "unbounded", "forward_facing", "moving_object"])]
+    #[arg(
+        long,
+        value_name = "DEGREES,FRACTION",
+        value_parser = parse_perturbation,
+        allow_hyphen_values = true,
+        conflicts_with_all = ["large", "unbounded", "forward_facing", "moving_object"]
+    )]
     perturb_cameras: Option<demo::CameraPerturbation>,
     /// Write into a folder that is not empty, replacing the scene's
     /// files there (others are left alone).

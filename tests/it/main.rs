@@ -41,6 +41,7 @@ mod ngp_learning;
 mod proposal_cpu;
 mod proposal_gpu;
 mod proposal_nerf_cpu;
+mod refine_cameras;
 mod render_texture_gpu;
 mod sampling_gpu;
 mod scene_bounds;

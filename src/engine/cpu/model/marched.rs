@@ -26,14 +26,33 @@ impl CpuModel {
             jitter_seed: Some(mix_seed(self.seed, step)),
             sample_budget: budget,
         };
-        let marched = march(
-            grid,
-            &b.origins,
-            &b.directions,
-            &params,
-            &mut b.march,
-            &mut b.marched,
-        );
+        let held = self.held_samples.is_some();
+        let marched = match b.held_march {
+            // Samples held (gradient checks of the cameras): each keeps its
+            // distance along its ray, the ray wherever its pose puts it.
+            Some(stats) if held && stats.rays == rays => {
+                let m = &mut b.marched;
+                for r in 0..stats.rays_kept {
+                    let origin = Vec3::from_slice(&b.origins[3 * r..3 * r + 3]);
+                    let direction = Vec3::from_slice(&b.directions[3 * r..3 * r + 3]);
+                    for i in m.ray(r) {
+                        let p = self.mapping.to_unit(origin + direction * m.t[i]);
+                        m.positions[3 * i..3 * i + 3].copy_from_slice(&p.to_array());
+                        m.directions[3 * i..3 * i + 3].copy_from_slice(&direction.to_array());
+                    }
+                }
+                stats
+            }
+            _ => march(
+                grid,
+                &b.origins,
+                &b.directions,
+                &params,
+                &mut b.march,
+                &mut b.marched,
+            ),
+        };
+        b.held_march = held.then_some(marched);
         self.core
             .batch_sizer
             .record(marched.rays_kept, marched.samples);

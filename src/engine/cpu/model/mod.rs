@@ -119,6 +119,9 @@ struct StepBuffers {
     /// Camera refinement: each ray's training image, the field's input
     /// gradients (per sample) and each ray's gradients (R × 3).
     images: Vec<u32>,
+    /// The last march's figures while samples are held
+    /// ([`CpuModel::hold_samples`]): later steps reuse its samples.
+    held_march: Option<crate::engine::shared::march::MarchStats>,
     d_positions: Vec<f32>,
     d_sample_directions: Vec<f32>,
     d_origins: Vec<f32>,
@@ -344,9 +347,12 @@ impl CpuModel {
     /// through where the importance and resampled levels put their samples
     /// (NeRF, section 5.2; Mip-NeRF's `stop_level_grad`), so a finite
     /// difference of the loss matches the step's gradient only with the
-    /// samples held still.
+    /// samples held still. A marched step holds its samples' distances
+    /// along their rays, so a gradient check of the cameras moves the
+    /// samples with their rays, as the gradient does.
     pub fn hold_samples(&mut self, hold: bool) {
         self.held_samples = hold.then(Default::default);
+        self.buffers.held_march = None;
     }
 
     /// Processes fixed-count levels in chunks of `rays` (at least 1)
