@@ -43,6 +43,19 @@ pub struct DemoArgs {
     /// instant-ngp transforms.json; the held-out views are without it.
     #[arg(long, conflicts_with_all = ["large", "unbounded", "forward_facing"])]
     moving_object: bool,
+    /// The demo with each training camera off by a known amount, for
+    /// camera refinement: turned by DEGREES about a random axis and moved
+    /// by FRACTION of the scene's box side in a random direction (the same
+    /// each time), e.g. `1,0.02`. The images are rendered from the true
+    /// cameras, which go to cameras_truth.json; held-out views keep theirs.
+    #[arg(
+        long,
+        value_name = "DEGREES,FRACTION",
+        value_parser = parse_perturbation,
+        allow_hyphen_values = true,
+        conflicts_with_all = ["large", "unbounded", "forward_facing", "moving_object"]
+    )]
+    perturb_cameras: Option<demo::CameraPerturbation>,
     /// Write into a folder that is not empty, replacing the scene's
     /// files there (others are left alone).
     #[arg(long)]
@@ -101,6 +114,7 @@ pub fn write_demo(args: DemoArgs) -> anyhow::Result<()> {
         unbounded,
         forward_facing,
         moving_object,
+        perturb_cameras,
         force,
     } = args;
     let config = demo_config(size, views)?;
@@ -128,6 +142,9 @@ pub fn write_demo(args: DemoArgs) -> anyhow::Result<()> {
         demo::write_large(&config, &out).context("writing the large demo scene")?;
     } else if unbounded {
         demo::write_unbounded(&config, &out).context("writing the unbounded demo scene")?;
+    } else if let Some(perturbation) = perturb_cameras {
+        demo::write_with_perturbed_cameras(&config, perturbation, &out)
+            .context("writing the demo scene with perturbed cameras")?;
     } else if moving_object {
         demo::write_moving_object(&config, &out)
             .context("writing the demo scene with a moving object")?;
@@ -143,6 +160,25 @@ pub fn write_demo(args: DemoArgs) -> anyhow::Result<()> {
         started.elapsed().as_secs_f64()
     );
     Ok(())
+}
+
+/// `--perturb-cameras`' DEGREES,FRACTION: an angle of 0 to 180 degrees and
+/// a share of the box's side of 0 to 1.
+fn parse_perturbation(text: &str) -> Result<demo::CameraPerturbation, String> {
+    let (degrees, fraction) = text
+        .split_once(',')
+        .ok_or_else(|| format!("`{text}` is not DEGREES,FRACTION (e.g. 1,0.02)"))?;
+    let number = |part: &str, what: &str, max: f32| {
+        part.trim()
+            .parse::<f32>()
+            .ok()
+            .filter(|v| (0.0..=max).contains(v))
+            .ok_or_else(|| format!("{what} `{part}` is not a number from 0 to {max}"))
+    };
+    Ok(demo::CameraPerturbation {
+        degrees: number(degrees, "the angle", 180.0)?,
+        offset_fraction: number(fraction, "the offset", 1.0)?,
+    })
 }
 
 /// Refuses an `--out` that holds files, or that is something other than a
@@ -194,6 +230,18 @@ mod tests {
         let error =
             parse_args::<DemoArgs>(&["--out", "s", "--forward-facing", "--unbounded"]).unwrap_err();
         assert_eq!(error.kind(), clap::error::ErrorKind::ArgumentConflict);
+        let args: DemoArgs = parse_args(&["--out", "s", "--perturb-cameras", "1,0.02"]).unwrap();
+        let perturbation = args.perturb_cameras.unwrap();
+        assert_eq!(
+            (perturbation.degrees, perturbation.offset_fraction),
+            (1.0, 0.02)
+        );
+        for bad in ["1", "1,x", "-1,0.02", "1,2"] {
+            let error = parse_args::<DemoArgs>(&["--out", "s", "--perturb-cameras", bad])
+                .unwrap_err()
+                .to_string();
+            assert!(error.contains("--perturb-cameras"), "{bad}: {error}");
+        }
         let args: DemoArgs = parse_args(&["--out", "s", "--moving-object"]).unwrap();
         assert!(args.moving_object && !args.large);
         let error =

@@ -30,6 +30,22 @@ pub enum ExportCommand {
     /// A coloured point cloud at each training ray's expected depth, as a
     /// binary PLY file.
     Points(PointsArgs),
+    /// The training cameras with the pose corrections the run learned
+    /// (trained with camera refinement), as a transforms.json other tools
+    /// read.
+    Cameras(CamerasArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct CamerasArgs {
+    /// The run folder written by `zrak train`.
+    run: PathBuf,
+    /// The transforms.json to write.
+    #[arg(long)]
+    out: PathBuf,
+    /// Replace --out if it exists.
+    #[arg(long)]
+    force: bool,
 }
 
 /// The crop box argument both exports and `zrak render` take.
@@ -124,7 +140,55 @@ pub fn export(command: ExportCommand) -> anyhow::Result<()> {
     match command {
         ExportCommand::Mesh(args) => export_mesh(args),
         ExportCommand::Points(args) => export_points(args),
+        ExportCommand::Cameras(args) => export_cameras(args),
     }
+}
+
+/// Reads the run's corrections from its checkpoint (no model is built) and
+/// its training cameras from its scene at full size, whose image files the
+/// transforms.json names.
+fn export_cameras(args: CamerasArgs) -> anyhow::Result<()> {
+    use zrak::engine::shared::camera_refinement::{VALUES_PER_IMAGE, corrected_pose};
+    check_output(&args.out, args.force)?;
+    let folder = RunFolder::open(&args.run).map_err(anyhow::Error::msg)?;
+    let config = super::run_config::read_run_config(&folder)?;
+    let path = folder.checkpoint_path();
+    let checkpoint = zrak::model::checkpoint::Checkpoint::load(&path)?;
+    let corrections = checkpoint.tensor("cameras").ok_or_else(|| {
+        anyhow::anyhow!(
+            "{}: the run did not refine its cameras (train it with camera refinement on)",
+            path.display()
+        )
+    })?;
+    let scene = super::run_config::load_run_scene(&config.scene, 1, config.training_scales)?;
+    anyhow::ensure!(
+        corrections.len() == VALUES_PER_IMAGE * scene.train.len(),
+        "{}: {} camera corrections for {} training images of {}",
+        path.display(),
+        corrections.len() / VALUES_PER_IMAGE,
+        scene.train.len(),
+        config.scene
+    );
+    let cameras: Vec<_> = scene
+        .train
+        .iter()
+        .zip(corrections.chunks_exact(VALUES_PER_IMAGE))
+        .map(|(frame, values)| {
+            let mut camera = frame.camera;
+            camera.camera_to_world = corrected_pose(values, camera.camera_to_world);
+            (frame.image_path.clone(), camera)
+        })
+        .collect();
+    let json = zrak::scene::camera_export::transforms_json(&cameras, scene.unit_cube);
+    let text = serde_json::to_string_pretty(&json)?;
+    zrak::files::write_bytes_atomically(&args.out, text.as_bytes())
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    println!(
+        "wrote the {} corrected training cameras to {}",
+        cameras.len(),
+        args.out.display()
+    );
+    Ok(())
 }
 
 /// Refuses an output that could not be written, before any work: an

@@ -161,6 +161,7 @@ pub fn build_trainer(
         batch_samples: config.batch_samples,
         sampling: config.sampling,
         precision: config.precision,
+        refine_cameras: false,
     };
     let model = build(&ModelRequest::new(config.model, settings), choice, &scene)?;
     Ok(Trainer::new(model, scene, config.seed))

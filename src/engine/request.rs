@@ -25,6 +25,11 @@ pub struct ModelSettings {
     /// How the cpu engine computes the networks' products (the gpu engine
     /// computes in f32).
     pub precision: Precision,
+    /// Learn a pose correction per training image with the field
+    /// (`engine::shared::camera_refinement`; the cpu engine, on models
+    /// that march through the occupancy grid with a field that gives its
+    /// inputs' gradient: Instant-NGP).
+    pub refine_cameras: bool,
 }
 
 impl ModelSettings {
@@ -37,6 +42,7 @@ impl ModelSettings {
             batch_samples: None,
             sampling: kind.spec().samplings[0],
             precision: Precision::F32,
+            refine_cameras: false,
         }
     }
 }

@@ -1,6 +1,7 @@
 //! What is learned: each model's encodings, network shapes, activations,
 //! sampling strategy and paper defaults, one place per model.
 
+pub mod camera;
 pub mod common;
 pub mod contraction;
 pub mod encoding;

@@ -364,6 +364,14 @@ pub trait RadianceModel: Send {
         ))
     }
 
+    /// The pose corrections camera refinement learned, six values per
+    /// training image (a rotation vector, then a translation: see
+    /// `engine::shared::camera_refinement`); `None` when the model does not
+    /// refine its cameras.
+    fn camera_corrections(&self) -> Option<Vec<f32>> {
+        None
+    }
+
     /// Limits what [`Self::render`] shows to a crop box (`None`: the whole
     /// scene): samples outside it have no density, so the background shows
     /// through.

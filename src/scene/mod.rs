@@ -4,6 +4,7 @@
 pub mod blender;
 mod bounds;
 mod camera;
+pub mod camera_export;
 pub mod colmap;
 pub mod crop;
 pub mod demo;

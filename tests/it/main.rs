@@ -42,6 +42,7 @@ mod photographs;
 mod proposal_cpu;
 mod proposal_gpu;
 mod proposal_nerf_cpu;
+mod refine_cameras;
 mod render_texture_gpu;
 mod sampling_gpu;
 mod scene_bounds;

@@ -34,6 +34,7 @@ fn model_of(scene: &Scene, kind: NerfKind, sampling: Sampling) -> CpuModel {
         batch_samples: Some(1 << 12),
         sampling,
         precision: zrak::field::mlp::Precision::F32,
+        refine_cameras: false,
     };
     match kind {
         NerfKind::Nerf => CpuModel::build(

@@ -424,6 +424,110 @@ fn backward_sweeps<T: Real>(
         });
 }
 
+/// The gradient with respect to the positions (written, S × 3) of a loss
+/// whose gradient with respect to the features is `d_out` (S × L·F), for
+/// camera refinement. Each level's features are the trilinear blend
+/// Σ_c w_c f_c of its cell's corners, whose weights are products of
+/// (1 − u) or u per axis with u the position's fraction in the cell, so
+/// ∂/∂u_a flips the sign of axis a's factor and drops it, and ∂u_a/∂x_a =
+/// N_l / extent. A coordinate clamped onto the box's face has no
+/// gradient. One sample at a time over every level: it runs only when
+/// cameras are refined, beside a backward pass that costs far more.
+pub fn position_gradient<T: Real>(
+    layout: &HashGridLayout,
+    params: &[T],
+    positions: &[[T; 3]],
+    d_out: &[T],
+    d_positions: &mut [[T; 3]],
+) {
+    let width = layout.output_width();
+    let features = layout.features();
+    assert_eq!(params.len(), layout.param_count(), "params");
+    assert_eq!(
+        d_out.len(),
+        positions.len() * width,
+        "d_out must be S × L·F"
+    );
+    assert_eq!(
+        d_positions.len(),
+        positions.len(),
+        "a gradient per position"
+    );
+    let levels: Vec<(LevelMath<T>, &[T])> = layout
+        .levels()
+        .iter()
+        .map(|level| {
+            let table = &params[level.offset * features..][..level.entries * features];
+            (LevelMath::<T>::new(layout, level), table)
+        })
+        .collect();
+    let dense: Vec<bool> = layout.levels().iter().map(|l| l.dense).collect();
+    d_positions
+        .par_chunks_mut(TASK)
+        .zip(positions.par_chunks(TASK))
+        .zip(d_out.par_chunks(TASK * width))
+        .for_each(|((d_positions, positions), d_out)| {
+            for ((d_position, position), d_row) in d_positions
+                .iter_mut()
+                .zip(positions)
+                .zip(d_out.chunks_exact(width))
+            {
+                let mut sum = [T::zero(); 3];
+                for (l, (math, table)) in levels.iter().enumerate() {
+                    let d_features = &d_row[l * features..][..features];
+                    let multiplier = if dense[l] {
+                        [1, math.stride_y, math.stride_z]
+                    } else {
+                        HASH_PRIMES
+                    };
+                    let mut term = [[0u32; 2]; 3];
+                    let mut weight = [[T::zero(); 2]; 3];
+                    let mut slope = [T::zero(); 3];
+                    for axis in 0..3 {
+                        let x = (position[axis] - math.box_min) * math.inverse_extent;
+                        let inside = x > T::zero() && x < T::one();
+                        let x = if x > T::zero() { x } else { T::zero() };
+                        let x = if x < T::one() { x } else { T::one() };
+                        let scaled = x * math.scale;
+                        // SAFETY: x ∈ [0, 1] (NaN was mapped to 0) and N_l < 2^31.
+                        let cell = unsafe { scaled.truncate_index() }.min(math.last_cell);
+                        let frac = scaled - T::from_index(cell);
+                        term[axis] = [
+                            cell.wrapping_mul(multiplier[axis]),
+                            (cell + 1).wrapping_mul(multiplier[axis]),
+                        ];
+                        weight[axis] = [T::one() - frac, frac];
+                        if inside {
+                            slope[axis] = math.scale * math.inverse_extent;
+                        }
+                    }
+                    for c in 0..8 {
+                        let bits = [c & 1, (c >> 1) & 1, c >> 2];
+                        let (x, y, z) = (term[0][bits[0]], term[1][bits[1]], term[2][bits[2]]);
+                        let index = if dense[l] {
+                            x + y + z
+                        } else {
+                            (x ^ y ^ z) & math.mask
+                        } as usize;
+                        let entry = &table[index * features..][..features];
+                        let along = entry
+                            .iter()
+                            .zip(d_features)
+                            .fold(T::zero(), |acc, (&f, &g)| acc + f * g);
+                        for axis in 0..3 {
+                            let sign = if bits[axis] == 1 { T::one() } else { -T::one() };
+                            let others = (0..3)
+                                .filter(|&a| a != axis)
+                                .fold(T::one(), |acc, a| acc * weight[a][bits[a]]);
+                            sum[axis] = sum[axis] + sign * others * along * slope[axis];
+                        }
+                    }
+                }
+                *d_position = sum;
+            }
+        });
+}
+
 /// `out` (S × L·F rows) from `level_major` (L × S × F).
 fn level_major_to_rows<T: Real, const F: usize>(level_major: &[T], out: &mut [T], samples: usize) {
     let levels = level_major.len() / (samples * F);

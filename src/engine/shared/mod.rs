@@ -15,6 +15,7 @@
 
 pub mod adam;
 pub mod batch_sizer;
+pub mod camera_refinement;
 pub mod composite;
 pub mod driver;
 pub mod frustum;

@@ -59,6 +59,15 @@ pub(crate) struct ModelState {
     pub params: Vec<f32>,
     pub adam: Adam,
     pub occupancy: Option<Vec<f32>>,
+    /// Camera refinement's pose corrections and their optimiser's state.
+    pub cameras: Option<CameraState>,
+}
+
+/// The pose corrections of a model that refines its cameras
+/// ([`super::camera_refinement`]), six values per training image.
+pub(crate) struct CameraState {
+    pub values: Vec<f32>,
+    pub adam: Adam,
 }
 
 impl ModelState {
@@ -73,21 +82,31 @@ impl ModelState {
         if let Some(occupancy) = self.occupancy {
             tensors.push(("occupancy".into(), occupancy));
         }
-        Checkpoint {
-            header: serde_json::to_value(&self.header).expect("serialisable"),
-            tensors,
+        let mut header = serde_json::to_value(&self.header).expect("serialisable");
+        if let Some(cameras) = self.cameras {
+            header["cameras_adam_step"] = cameras.adam.step.into();
+            tensors.extend([
+                ("cameras".into(), cameras.values),
+                ("cameras.adam.m".into(), cameras.adam.m),
+                ("cameras.adam.v".into(), cameras.adam.v),
+                ("cameras.adam.m_norm".into(), cameras.adam.m_norm),
+                ("cameras.adam.v_norm".into(), cameras.adam.v_norm),
+            ]);
         }
+        Checkpoint { header, tensors }
     }
 
     /// Reads and checks every part before the caller changes anything, so
     /// a bad checkpoint leaves the model as it was. `model` is the header's
     /// expected model name; `occupancy_len` the grid's size, if the model
-    /// has a grid.
+    /// has a grid; `cameras_len` the pose corrections' count, if the model
+    /// refines its cameras (a checkpoint without them starts them at zero).
     pub fn from_checkpoint(
         checkpoint: &Checkpoint,
         model: &str,
         param_count: usize,
         occupancy_len: Option<usize>,
+        cameras_len: Option<usize>,
     ) -> Result<Self, String> {
         let header: ModelHeader = serde_json::from_value(checkpoint.header.clone())
             .map_err(|e| format!("not a checkpoint of a model: {e}"))?;
@@ -122,12 +141,29 @@ impl ModelState {
             v_norm: tensor("adam.v_norm", param_count)?,
             step: header.adam_step,
         };
+        let cameras = match cameras_len {
+            Some(len) if checkpoint.tensor("cameras").is_some() => Some(CameraState {
+                values: tensor("cameras", len)?,
+                adam: Adam {
+                    m: tensor("cameras.adam.m", len)?,
+                    v: tensor("cameras.adam.v", len)?,
+                    m_norm: tensor("cameras.adam.m_norm", len)?,
+                    v_norm: tensor("cameras.adam.v_norm", len)?,
+                    step: checkpoint.header["cameras_adam_step"]
+                        .as_u64()
+                        .ok_or("the checkpoint's cameras have no optimiser step")?
+                        as u32,
+                },
+            }),
+            _ => None,
+        };
         Ok(Self {
             params: tensor("params", param_count)?,
             adam,
             occupancy: occupancy_len
                 .map(|len| tensor("occupancy", len))
                 .transpose()?,
+            cameras,
             header,
         })
     }
@@ -251,7 +287,7 @@ mod tests {
         #[test]
         fn model_state_from_any_checkpoint(header in header(), tensors in tensors()) {
             let checkpoint = Checkpoint { header, tensors };
-            if let Ok(state) = ModelState::from_checkpoint(&checkpoint, "ngp", 4, Some(8)) {
+            if let Ok(state) = ModelState::from_checkpoint(&checkpoint, "ngp", 4, Some(8), None) {
                 prop_assert_eq!(state.params.len(), 4);
                 prop_assert_eq!(state.adam.v_norm.len(), 4);
                 prop_assert_eq!(state.occupancy.map(|o| o.len()), Some(8));

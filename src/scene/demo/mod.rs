@@ -26,11 +26,16 @@ use super::{
 use crate::scene::to_u8;
 
 mod forward;
+mod perturbed;
 
 pub use forward::{
     CAPTURE_RADIUS, FORWARD_CAMERA_DISTANCE, ForwardFacingConfig, WALL_DISTANCE,
     build_forward_facing, forward_facing_cameras, render_forward_facing_view, view_bounds,
     viewing_direction, write_forward_facing_llff,
+};
+pub use perturbed::{
+    CAMERA_TRUTH_FILE, CameraPerturbation, PERTURBATION_SEED, perturb_cameras, read_camera_truth,
+    write_with_perturbed_cameras,
 };
 
 /// Horizontal field of view of every demo camera, NeRF-synthetic's value.
@@ -125,7 +130,11 @@ fn build_with(
 /// Writes the scene in the NeRF-synthetic (Blender) layout under `dir`:
 /// `transforms_{train,val,test}.json` and `{train,val,test}/r_N.png`.
 pub fn write(config: &DemoConfig, dir: &Path) -> SceneResult<()> {
-    let scene = build(config);
+    write_blender(&build(config), dir)
+}
+
+/// Writes `scene` in the NeRF-synthetic layout under `dir` (see [`write`]).
+fn write_blender(scene: &Scene, dir: &Path) -> SceneResult<()> {
     for split in Split::ALL {
         let frames = scene.split(split);
         let folder = dir.join(split.name());

@@ -644,6 +644,7 @@ impl Worker {
             }),
             sampling,
             precision: self.options.precision,
+            refine_cameras: false,
         };
         let engine = self.engine.choice()?;
         let mut model = build_viewer_model(

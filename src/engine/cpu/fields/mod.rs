@@ -157,6 +157,29 @@ pub trait Field: Send + Sync {
         mode: Gradient,
     );
 
+    /// Asks the backward passes that follow to keep what
+    /// [`Field::input_gradients`] needs (camera refinement); off by
+    /// default, when a backward pass does nothing more than it did. A
+    /// field that cannot give its inputs' gradient answers false.
+    fn keep_input_gradients(&mut self, keep: bool) -> bool {
+        let _ = keep;
+        false
+    }
+
+    /// After a backward pass with input gradients kept: the loss's
+    /// gradient with respect to each row's position (in the field's
+    /// coordinates) and direction, written (rows × 3 each).
+    fn input_gradients(
+        &mut self,
+        params: &[f32],
+        d_positions: &mut [f32],
+        d_directions: &mut [f32],
+    ) {
+        let _ = params;
+        d_positions.fill(0.0);
+        d_directions.fill(0.0);
+    }
+
     /// σ and colour without keeping activations (rendering).
     fn radiance(
         &self,

@@ -30,7 +30,7 @@ use crate::engine::cpu::dense::{
     mlp_inference_leading,
 };
 use crate::engine::cpu::hash_grid;
-use crate::engine::cpu::sh::sh_encode;
+use crate::engine::cpu::sh::{sh_encode, sh_encode_backward};
 use crate::field::common::Coordinates;
 use crate::field::mlp::DENSITY_EXP_CLAMP;
 use crate::field::params::ParamLayout;
@@ -162,6 +162,13 @@ pub struct NgpField {
     colour_input: Vec<f32>,
     d_density_out: Vec<f32>,
     d_encoded: Vec<f32>,
+    /// With camera refinement: the gradient of the colour network's whole
+    /// input, direction encoding included (rows × its width), kept by the
+    /// backward pass for [`Field::input_gradients`].
+    keep_input_gradients: bool,
+    d_colour_input: Vec<f32>,
+    /// With camera refinement: the last forward pass's directions.
+    directions: Vec<f32>,
     /// Hash features and scratch of σ inference through `&self` (the
     /// occupancy grid's updates).
     inference: Mutex<(Vec<f32>, Vec<f32>)>,
@@ -183,6 +190,9 @@ impl NgpField {
             colour_input: Vec::new(),
             d_density_out: Vec::new(),
             d_encoded: Vec::new(),
+            keep_input_gradients: false,
+            d_colour_input: Vec::new(),
+            directions: Vec::new(),
             inference: Mutex::new((Vec::new(), Vec::new())),
         }
     }
@@ -194,6 +204,10 @@ impl NgpField {
     /// The networks' forward pass on the rows whose hash features are in
     /// `self.encoded` and σ in `self.sigma`: the colour of each into `rgb`.
     fn networks_forward(&mut self, params: &[f32], directions: &[f32], rgb: &mut [f32]) {
+        if self.keep_input_gradients {
+            self.directions.clear();
+            self.directions.extend_from_slice(directions);
+        }
         let shape = &self.shape;
         let u = self.sigma.len();
         let density_width = shape.density.output_width();
@@ -385,21 +399,50 @@ impl Field for NgpField {
         // The colour network's input gradient is wanted for its density
         // features only (the first columns), not for the direction encoding.
         set_len(&mut self.d_density_out, u * density_width);
-        mlp_backward(
-            &shape.colour,
-            &params[shape.colour_range()],
-            &self.colour_input,
-            u,
-            &mut self.colour_workspace,
-            MlpGradients {
-                output: d_rgb,
-                params: colour_grad,
-                input: Some(InputGradient {
-                    values: &mut self.d_density_out,
-                    columns: 0..density_width,
-                }),
-            },
-        );
+        if self.keep_input_gradients {
+            // Every column, the direction encoding's too; the density
+            // features' columns then go where the pass below reads them.
+            let colour_width = shape.colour.input_width();
+            set_len(&mut self.d_colour_input, u * colour_width);
+            mlp_backward(
+                &shape.colour,
+                &params[shape.colour_range()],
+                &self.colour_input,
+                u,
+                &mut self.colour_workspace,
+                MlpGradients {
+                    output: d_rgb,
+                    params: colour_grad,
+                    input: Some(InputGradient::every_column(
+                        &mut self.d_colour_input,
+                        &shape.colour,
+                    )),
+                },
+            );
+            for (d_out, d_input) in self
+                .d_density_out
+                .chunks_exact_mut(density_width)
+                .zip(self.d_colour_input.chunks_exact(colour_width))
+            {
+                d_out.copy_from_slice(&d_input[..density_width]);
+            }
+        } else {
+            mlp_backward(
+                &shape.colour,
+                &params[shape.colour_range()],
+                &self.colour_input,
+                u,
+                &mut self.colour_workspace,
+                MlpGradients {
+                    output: d_rgb,
+                    params: colour_grad,
+                    input: Some(InputGradient {
+                        values: &mut self.d_density_out,
+                        columns: 0..density_width,
+                    }),
+                },
+            );
+        }
         let sigma_at_clamp = shape.density_scale * DENSITY_EXP_CLAMP.exp();
         for ((d_out, &d_sigma), &sigma) in self
             .d_density_out
@@ -436,6 +479,46 @@ impl Field for NgpField {
             grid_grad,
             &mut self.encode_scratch,
             mode,
+        );
+    }
+
+    fn keep_input_gradients(&mut self, keep: bool) -> bool {
+        self.keep_input_gradients = keep;
+        true
+    }
+
+    /// Positions through the hash grid's trilinear interpolation (the
+    /// density network's input gradient, which the backward pass keeps),
+    /// directions through the spherical harmonics (the colour network's
+    /// gradient of its direction columns).
+    fn input_gradients(
+        &mut self,
+        params: &[f32],
+        d_positions: &mut [f32],
+        d_directions: &mut [f32],
+    ) {
+        assert!(
+            self.keep_input_gradients,
+            "input gradients were not asked for before the backward pass"
+        );
+        let shape = &self.shape;
+        let u = self.sigma.len();
+        hash_grid::position_gradient(
+            &shape.grid,
+            &params[shape.grid_range()],
+            bytemuck::cast_slice(&self.positions),
+            &self.d_encoded,
+            bytemuck::cast_slice_mut(&mut d_positions[..3 * u]),
+        );
+        let density_width = shape.density.output_width();
+        let colour_width = shape.colour.input_width();
+        sh_encode_backward(
+            shape.network.sh_degree,
+            &self.directions,
+            u,
+            self.d_colour_input.get(density_width..).unwrap_or_default(),
+            colour_width,
+            d_directions,
         );
     }
 

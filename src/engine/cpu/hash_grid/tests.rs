@@ -619,3 +619,68 @@ fn init_is_deterministic_and_in_range() {
     assert!(mean.abs() < 1e-7, "{mean}");
     assert!((mean_square / (r as f64).powi(2) - 1.0 / 3.0).abs() < 1e-3);
 }
+
+/// The positions' gradient against central differences in f64, on random
+/// positions inside cells and a grid spanning a box larger than the unit
+/// cube: the encoding is trilinear inside a cell, so the difference of a
+/// step that stays in the cell has only rounding and second-order terms
+/// of the products of two axes' weights, which cancel in a central
+/// difference; h = 1e-7 of the box, far from any of the finest level's
+/// cell edges (1/16) for these positions, leaves ~1e-9.
+#[test]
+fn position_gradients_match_central_differences() {
+    let config = HashGridConfig {
+        extent: 2.0,
+        ..small_config()
+    };
+    let layout = HashGridLayout::new(&config);
+    let mut u = Uniforms(77);
+    let positions: Vec<[f64; 3]> = (0..60)
+        .map(|_| u.position().map(|x| 2.0 * x - 0.5))
+        .collect();
+    let d_out: Vec<f64> = (0..positions.len() * layout.output_width())
+        .map(|_| u.symmetric())
+        .collect();
+    let params = random_params(&layout, 9);
+    let mut d_positions = vec![[0.0; 3]; positions.len()];
+    position_gradient(&layout, &params, &positions, &d_out, &mut d_positions);
+    let h = 1e-7;
+    let mut largest = 0f64;
+    for (s, position) in positions.iter().enumerate() {
+        let row = &d_out[s * layout.output_width()..][..layout.output_width()];
+        for axis in 0..3 {
+            let at = |offset: f64| {
+                let mut p = *position;
+                p[axis] += offset;
+                loss(&layout, &params, &[p], row)
+            };
+            let numeric = (at(h) - at(-h)) / (2.0 * h);
+            let analytic = d_positions[s][axis];
+            assert!(
+                (analytic - numeric).abs() < 1e-6 * (1.0 + numeric.abs()),
+                "sample {s} axis {axis}: analytic {analytic} numeric {numeric}"
+            );
+            largest = largest.max(analytic.abs());
+        }
+    }
+    // A gradient of zero everywhere would pass the comparison.
+    assert!(largest > 1.0, "{largest}");
+}
+
+/// A coordinate clamped onto the box's face does not move the features.
+#[test]
+fn positions_outside_the_box_have_no_gradient_along_the_clamped_axis() {
+    let layout = HashGridLayout::new(&small_config());
+    let params = random_params(&layout, 3);
+    let d_out = vec![1.0; layout.output_width()];
+    let mut d_positions = vec![[0.0; 3]];
+    position_gradient(
+        &layout,
+        &params,
+        &[[1.5, 0.3, 0.6]],
+        &d_out,
+        &mut d_positions,
+    );
+    assert_eq!(d_positions[0][0], 0.0);
+    assert!(d_positions[0][1] != 0.0 && d_positions[0][2] != 0.0);
+}

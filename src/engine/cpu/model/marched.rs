@@ -26,14 +26,33 @@ impl CpuModel {
             jitter_seed: Some(mix_seed(self.seed, step)),
             sample_budget: budget,
         };
-        let marched = march(
-            grid,
-            &b.origins,
-            &b.directions,
-            &params,
-            &mut b.march,
-            &mut b.marched,
-        );
+        let held = self.held_samples.is_some();
+        let marched = match b.held_march {
+            // Samples held (gradient checks of the cameras): each keeps its
+            // distance along its ray, the ray wherever its pose puts it.
+            Some(stats) if held && stats.rays == rays => {
+                let m = &mut b.marched;
+                for r in 0..stats.rays_kept {
+                    let origin = Vec3::from_slice(&b.origins[3 * r..3 * r + 3]);
+                    let direction = Vec3::from_slice(&b.directions[3 * r..3 * r + 3]);
+                    for i in m.ray(r) {
+                        let p = self.mapping.to_unit(origin + direction * m.t[i]);
+                        m.positions[3 * i..3 * i + 3].copy_from_slice(&p.to_array());
+                        m.directions[3 * i..3 * i + 3].copy_from_slice(&direction.to_array());
+                    }
+                }
+                stats
+            }
+            _ => march(
+                grid,
+                &b.origins,
+                &b.directions,
+                &params,
+                &mut b.march,
+                &mut b.marched,
+            ),
+        };
+        b.held_march = held.then_some(marched);
         self.core
             .batch_sizer
             .record(marched.rays_kept, marched.samples);
@@ -213,7 +232,7 @@ impl CpuModel {
                 field_params,
                 &b.d_sigma_marched,
                 &b.d_rgb_marched,
-                &mut b.gradients[field_range],
+                &mut b.gradients[field_range.clone()],
                 Gradient::Overwrite,
             );
         } else {
@@ -221,9 +240,39 @@ impl CpuModel {
                 field_params,
                 &lb.d_sigma,
                 &lb.d_rgb,
-                &mut b.gradients[field_range],
+                &mut b.gradients[field_range.clone()],
                 Gradient::Overwrite,
             );
+        }
+        if let Some(refinement) = &mut self.refinement {
+            // The rows the backward pass saw: every marched sample (zero
+            // past the cut) or the used ones.
+            let (rows, offsets, t) = if forward_first {
+                (s, &b.marched.ray_offsets[..kept + 1], &b.marched.t)
+            } else {
+                (u, &lb.ray_offsets[..], &lb.t)
+            };
+            set_len(&mut b.d_positions, 3 * rows);
+            set_len(&mut b.d_sample_directions, 3 * rows);
+            self.fields[level.field].input_gradients(
+                &self.params[field_range.clone()],
+                &mut b.d_positions,
+                &mut b.d_sample_directions,
+            );
+            // The field's position is o + t·d, in the unit cube (scaled by
+            // the mapping) or in the world.
+            let scale = if unit_cube { self.mapping.scale } else { 1.0 };
+            ray_gradients(
+                offsets,
+                t,
+                scale,
+                &b.d_positions,
+                &b.d_sample_directions,
+                rays,
+                &mut b.d_origins,
+                &mut b.d_directions,
+            );
+            refinement.backward(&b.images, &b.directions, &b.d_origins, &b.d_directions);
         }
         times[Stage::NetworksBackward] = clock.elapsed().as_secs_f64();
         if s > 0 {
@@ -275,5 +324,41 @@ impl CpuModel {
             }
             field.density(params, &world, frustums.then_some(&variances[..]), sigma);
         });
+    }
+}
+
+/// Each ray's gradients (`rays` × 3, rays past the offsets' zero) from its
+/// samples' gradients with respect to the field's positions x = scale ·
+/// (o + t d) + offset and its directions: dL/do = scale · Σ dL/dx, dL/dd =
+/// Σ (scale · t · dL/dx + dL/d(direction)), the samples' t held still (no
+/// gradient flows through where the march put them).
+#[allow(clippy::too_many_arguments)]
+fn ray_gradients(
+    offsets: &[u32],
+    t: &[f32],
+    scale: f32,
+    d_positions: &[f32],
+    d_directions: &[f32],
+    rays: usize,
+    d_origins: &mut Vec<f32>,
+    d_ray_directions: &mut Vec<f32>,
+) {
+    set_len(d_origins, 3 * rays);
+    set_len(d_ray_directions, 3 * rays);
+    d_origins.fill(0.0);
+    d_ray_directions.fill(0.0);
+    for (r, window) in offsets.windows(2).enumerate() {
+        let (mut origin, mut direction) = ([0f64; 3], [0f64; 3]);
+        for i in window[0] as usize..window[1] as usize {
+            for a in 0..3 {
+                let dx = (scale * d_positions[3 * i + a]) as f64;
+                origin[a] += dx;
+                direction[a] += t[i] as f64 * dx + d_directions[3 * i + a] as f64;
+            }
+        }
+        for a in 0..3 {
+            d_origins[3 * r + a] = origin[a] as f32;
+            d_ray_directions[3 * r + a] = direction[a] as f32;
+        }
     }
 }

@@ -38,12 +38,13 @@ use super::march::{MarchWorkspace, march};
 use super::sampling;
 use crate::engine::crop::{crop_densities, crop_ray_bounds};
 use crate::engine::shared::adam::Adam;
+use crate::engine::shared::camera_refinement::CameraRefinement;
 use crate::engine::shared::composite::Distortion;
 use crate::engine::shared::march::{
     GridSamples, MarchParams, MarchedSamples, mix_seed, render_through_grid,
 };
 use crate::engine::shared::occupancy::OccupancyGrid;
-use crate::engine::shared::state::{ModelHeader, ModelState};
+use crate::engine::shared::state::{CameraState, ModelHeader, ModelState};
 use crate::field::common::{BatchSize, Coordinates, LossKind, SampleShape, SamplerKind};
 use crate::field::contraction::Contraction;
 use crate::field::params::ParamLayout;
@@ -115,6 +116,16 @@ struct StepBuffers {
     backgrounds: Vec<f32>,
     rays: RayScratch,
     gradients: Vec<f32>,
+    /// Camera refinement: each ray's training image, the field's input
+    /// gradients (per sample) and each ray's gradients (R × 3).
+    images: Vec<u32>,
+    /// The last march's figures while samples are held
+    /// ([`CpuModel::hold_samples`]): later steps reuse its samples.
+    held_march: Option<crate::engine::shared::march::MarchStats>,
+    d_positions: Vec<f32>,
+    d_sample_directions: Vec<f32>,
+    d_origins: Vec<f32>,
+    d_directions: Vec<f32>,
 }
 
 /// A model on the `cpu` engine built from a recipe and its fields.
@@ -152,6 +163,9 @@ pub struct CpuModel {
     /// own activations until the proposals' backward passes; `None` where
     /// the level uses the field itself.
     twins: Vec<Option<Box<dyn Field>>>,
+    /// The training images' pose corrections, where the settings ask for
+    /// them and the model can learn them (see [`Self::refine_cameras`]).
+    refinement: Option<CameraRefinement>,
 }
 
 impl CpuModel {
@@ -167,14 +181,40 @@ impl CpuModel {
             .collect();
         let fields = fields_for(&shapes);
         let settings = &request.settings;
-        Self::new(
+        let mut model = Self::new(
             plan.core,
             plan.params,
             fields,
             scene,
             settings.seed,
             settings.loss,
-        )
+        );
+        if settings.refine_cameras {
+            model.refine_cameras(scene.train.len());
+        }
+        model
+    }
+
+    /// Learns a pose correction for each of `images` training images with
+    /// the field, where the model can: a recipe that marches through the
+    /// occupancy grid, whose field gives its inputs' gradient (Instant-NGP).
+    /// Elsewhere the cameras stay as given; returns whether they are
+    /// refined.
+    pub fn refine_cameras(&mut self, images: usize) -> bool {
+        let level = self.core.recipe.levels[0];
+        let refined = self.core.marches() && self.fields[level.field].keep_input_gradients(true);
+        self.refinement = refined.then(|| CameraRefinement::new(images));
+        refined
+    }
+
+    /// The pose corrections being learned, if any.
+    pub fn camera_refinement(&self) -> Option<&CameraRefinement> {
+        self.refinement.as_ref()
+    }
+
+    /// The pose corrections, writable (gradient checks).
+    pub fn camera_refinement_mut(&mut self) -> Option<&mut CameraRefinement> {
+        self.refinement.as_mut()
     }
 
     /// A fresh model of `core`'s recipe from `params` (laid out as its
@@ -276,6 +316,7 @@ impl CpuModel {
             crop: None,
             samplers,
             twins,
+            refinement: None,
         }
     }
 
@@ -306,9 +347,12 @@ impl CpuModel {
     /// through where the importance and resampled levels put their samples
     /// (NeRF, section 5.2; Mip-NeRF's `stop_level_grad`), so a finite
     /// difference of the loss matches the step's gradient only with the
-    /// samples held still.
+    /// samples held still. A marched step holds its samples' distances
+    /// along their rays, so a gradient check of the cameras moves the
+    /// samples with their rays, as the gradient does.
     pub fn hold_samples(&mut self, hold: bool) {
         self.held_samples = hold.then(Default::default);
+        self.buffers.held_march = None;
     }
 
     /// Processes fixed-count levels in chunks of `rays` (at least 1)
@@ -453,6 +497,13 @@ impl CpuModel {
             b.targets.extend_from_slice(&batch.targets[r]);
             b.backgrounds.extend_from_slice(&batch.backgrounds[r]);
         }
+        if let Some(refinement) = &self.refinement {
+            b.images.clear();
+            b.images.extend_from_slice(&batch.images);
+            // Rays of no image (a batch built without them) keep their pose.
+            b.images.resize(batch.len(), u32::MAX);
+            refinement.apply(&b.images, &mut b.origins, &mut b.directions);
+        }
         set_len(&mut b.gradients, self.params.len());
         if self.core.recipe.levels[0].sampler == SamplerKind::Occupancy {
             self.marched_step(step)
@@ -500,6 +551,9 @@ impl RadianceModel for CpuModel {
             &mut self.params,
             &self.buffers.gradients,
         );
+        if let Some(refinement) = &mut self.refinement {
+            refinement.step();
+        }
         stats.times[Stage::Optimiser] = clock.elapsed().as_secs_f64();
         stats
     }
@@ -651,6 +705,10 @@ impl RadianceModel for CpuModel {
         Ok(())
     }
 
+    fn camera_corrections(&self) -> Option<Vec<f32>> {
+        self.refinement.as_ref().map(|r| r.values().to_vec())
+    }
+
     fn save(&self) -> Checkpoint {
         ModelState {
             header: ModelHeader {
@@ -668,6 +726,10 @@ impl RadianceModel for CpuModel {
             params: self.params.clone(),
             adam: self.adam.clone(),
             occupancy: self.grid.as_ref().map(|g| g.values().to_vec()),
+            cameras: self.refinement.as_ref().map(|r| CameraState {
+                values: r.values().to_vec(),
+                adam: r.adam().clone(),
+            }),
         }
         .into_checkpoint()
     }
@@ -678,6 +740,7 @@ impl RadianceModel for CpuModel {
             self.core.identity.key,
             self.params.len(),
             self.grid.as_ref().map(|g| g.values().len()),
+            self.refinement.as_ref().map(|r| r.values().len()),
         )?;
         check_sampling(&state.header, &self.core.identity)?;
         if let Some(extent) = self.grid_extent() {
@@ -685,6 +748,9 @@ impl RadianceModel for CpuModel {
         }
         self.params = state.params;
         self.adam = state.adam;
+        if let (Some(refinement), Some(cameras)) = (self.refinement.as_mut(), state.cameras) {
+            refinement.set_values(&cameras.values, Some(cameras.adam));
+        }
         if let (Some(grid), Some(values)) = (self.grid.as_mut(), &state.occupancy) {
             grid.values_mut().copy_from_slice(values);
             grid.build_bitfield();

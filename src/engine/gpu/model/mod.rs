@@ -968,6 +968,8 @@ impl RadianceModel for GpuModel {
             params: self.params(),
             adam,
             occupancy: self.grid.as_ref().map(|g| g.grid.values().to_vec()),
+            // The gpu engine does not refine cameras yet.
+            cameras: None,
         }
         .into_checkpoint()
     }
@@ -978,6 +980,7 @@ impl RadianceModel for GpuModel {
             self.core.identity.key,
             self.param_count,
             self.grid.as_ref().map(|g| g.grid.values().len()),
+            None,
         )?;
         check_sampling(&state.header, &self.core.identity)?;
         if let Some(extent) = self.grid_extent() {
