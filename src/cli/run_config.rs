@@ -161,10 +161,29 @@ pub fn build_trainer(
         batch_samples: config.batch_samples,
         sampling: config.sampling,
         precision: config.precision,
-        refine_cameras: false,
+        refine_cameras: config.photographs.refine_cameras.on,
     };
     let model = build(&ModelRequest::new(config.model, settings), choice, &scene)?;
     Ok(Trainer::new(model, scene, config.seed))
+}
+
+/// Where camera refinement was chosen but `trainer`'s model cannot refine
+/// (only Instant-NGP marching through the occupancy grid on the cpu engine
+/// does so far), the choice turned off with the reason first, so
+/// `run.json` and what is printed say what was trained.
+pub fn settle_camera_refinement(config: &mut RunConfig, trainer: &Trainer) -> Option<String> {
+    let choice = &mut config.photographs.refine_cameras;
+    if !choice.on || trainer.model.camera_corrections().is_some() {
+        return None;
+    }
+    let reason = format!(
+        "{} cannot refine cameras yet (Instant-NGP with the occupancy sampler on the cpu engine \
+         can): the cameras stay as given",
+        trainer.model.describe()
+    );
+    choice.on = false;
+    choice.reasons.insert(0, reason.clone());
+    Some(format!("camera refinement off: {reason}"))
 }
 
 /// Reads a run's `run.json`: a regular file of at most

@@ -21,7 +21,7 @@ use zrak::train::trainer::Trainer;
 
 use super::run_config::{
     RunConfig, build_trainer, check_same_scene, load_run_scene, read_run_config, restore_run,
-    scene_key, start_run_folder,
+    scene_key, settle_camera_refinement, start_run_folder,
 };
 use super::{KernelsLine, PhotographSwitches, SpaceChoice, parse_duration, photograph_lines};
 use zrak::scene::photographs::PhotographAnalysis;
@@ -252,6 +252,9 @@ fn start_run(args: &TrainArgs) -> anyhow::Result<(RunFolder, RunConfig, Trainer)
     let choice = choose_engine(args.engine)?;
     note(&choice.reason);
     let trainer = build_trainer(&config, Arc::new(scene), choice)?;
+    if let Some(line) = settle_camera_refinement(&mut config, &trainer) {
+        note(&line);
+    }
     let (folder, aside) = RunFolder::create_new(dir, args.force).map_err(anyhow::Error::msg)?;
     if let Some(aside) = aside {
         note(&format!(

@@ -644,7 +644,7 @@ impl Worker {
             }),
             sampling,
             precision: self.options.precision,
-            refine_cameras: false,
+            refine_cameras: self.scene.photographs.refine_cameras.on,
         };
         let engine = self.engine.choice()?;
         let mut model = build_viewer_model(
