@@ -233,6 +233,7 @@ pub fn self_check(context: &GpuContext, kind: ModelKind, size: CheckSize) -> Vec
         batch_samples: Some(size.batch_samples),
         sampling: Sampling::Occupancy,
         precision: Precision::F32,
+        appearance: false,
     };
     let cpu_choice = EngineChoice {
         kind: EngineKind::Cpu,

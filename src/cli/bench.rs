@@ -184,6 +184,7 @@ fn bench_settings(
         batch_samples: software_gpu.then_some(SOFTWARE_GPU_SAMPLES),
         sampling,
         precision,
+        appearance: false,
     }
 }
 

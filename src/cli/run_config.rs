@@ -154,6 +154,7 @@ pub fn build_trainer(
         batch_samples: config.batch_samples,
         sampling: config.sampling,
         precision: config.precision,
+        appearance: false,
     };
     let model = build(&ModelRequest::new(config.model, settings), choice, &scene)?;
     Ok(Trainer::new(model, scene, config.seed))

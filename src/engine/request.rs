@@ -5,6 +5,7 @@
 //! [`crate::field::MODELS`]; [`crate::engine::build`] builds it.
 
 use super::shared::driver::{DriverCore, ModelIdentity};
+use crate::field::appearance::AppearanceShape;
 use crate::field::common::{BatchSize, LossKind, Recipe, Sampling};
 use crate::field::mlp::Precision;
 use crate::field::{FieldShape, ModelKind, model_layout, model_params};
@@ -25,6 +26,10 @@ pub struct ModelSettings {
     /// How the cpu engine computes the networks' products (the gpu engine
     /// computes in f32).
     pub precision: Precision,
+    /// Whether the fields that give colour learn a vector per training
+    /// image (NeRF in the Wild's appearance embeddings,
+    /// [`crate::field::appearance`]). Off by default.
+    pub appearance: bool,
 }
 
 impl ModelSettings {
@@ -37,6 +42,7 @@ impl ModelSettings {
             batch_samples: None,
             sampling: kind.spec().samplings[0],
             precision: Precision::F32,
+            appearance: false,
         }
     }
 }
@@ -104,10 +110,15 @@ impl ModelRequest {
             .recipe
             .clone()
             .unwrap_or_else(|| (spec.recipe)(scene, settings.sampling));
-        let shape = self
+        let mut shape = self
             .shape
             .clone()
             .unwrap_or_else(|| (spec.shape)(scene, settings.sampling));
+        if settings.appearance {
+            // A vector per training view: each is drawn as a ray's image.
+            let images = scene.train.len().max(1);
+            shape = shape.with_appearance(Some(AppearanceShape::for_images(images)));
+        }
         let shapes = shape.for_recipe(&recipe);
         let (params, ranges) = model_params(&shapes, settings.seed);
         let layout = model_layout(&shapes);

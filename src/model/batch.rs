@@ -16,6 +16,10 @@ pub struct RayBatch {
     pub backgrounds: Vec<[f32; 3]>,
     /// Cone radius at unit distance of each ray ([`crate::scene::Ray::radius`]).
     pub radii: Vec<f32>,
+    /// Each ray's training image: its index among the frames it was drawn
+    /// from (the scene's training views), which picks its appearance
+    /// vector in a model with appearance embeddings.
+    pub images: Vec<u32>,
 }
 
 impl RayBatch {
@@ -33,6 +37,7 @@ impl RayBatch {
         self.targets.clear();
         self.backgrounds.clear();
         self.radii.clear();
+        self.images.clear();
     }
 }
 
@@ -100,7 +105,8 @@ pub fn sample_rays_cropped(
     }
     for _ in 0..count {
         let choice = rng.below(choices as u32) as usize;
-        let frame = &frames[drawable.as_ref().map_or(choice, |d| d[choice])];
+        let index = drawable.as_ref().map_or(choice, |d| d[choice]);
+        let frame = &frames[index];
         let k = frame.camera.intrinsics;
         let (x, y) = match (crop, &frame.mask) {
             (None, None) => (rng.below(k.width), rng.below(k.height)),
@@ -132,6 +138,7 @@ pub fn sample_rays_cropped(
         batch.radii.push(ray.radius());
         batch.targets.push(frame.image.rgb_over(x, y, bg));
         batch.backgrounds.push(bg);
+        batch.images.push(index as u32);
     }
 }
 

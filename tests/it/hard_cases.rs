@@ -221,6 +221,7 @@ fn settings(sampling: Sampling) -> ModelSettings {
         batch_samples: Some(BATCH_SAMPLES),
         sampling,
         precision: Precision::F32,
+        appearance: false,
     }
 }
 

@@ -295,6 +295,7 @@ fn trained_in_ndc(steps: u32, scene: Scene) -> zrak::train::trainer::Trainer {
                 batch_samples: Some(1 << 16),
                 sampling: Sampling::Occupancy,
                 precision: Precision::F32,
+                appearance: false,
             },
         ),
         &scene,

@@ -34,6 +34,7 @@ fn model_of(scene: &Scene, kind: NerfKind, sampling: Sampling) -> CpuModel {
         batch_samples: Some(1 << 12),
         sampling,
         precision: zrak::field::mlp::Precision::F32,
+        appearance: false,
     };
     match kind {
         NerfKind::Nerf => CpuModel::build(
@@ -105,6 +106,7 @@ fn check_field_gradient(kind: NerfKind) {
             &positions,
             variances,
             &directions,
+            zrak::field::appearance::Appearance::None,
             &mut sigma,
             &mut rgb,
         );
@@ -130,6 +132,7 @@ fn check_field_gradient(kind: NerfKind) {
         &positions,
         variances,
         &directions,
+        zrak::field::appearance::Appearance::None,
         &mut sigma,
         &mut rgb,
     );
@@ -139,6 +142,7 @@ fn check_field_gradient(kind: NerfKind) {
         &positions,
         variances,
         &directions,
+        zrak::field::appearance::Appearance::None,
         &mut sigma_inf,
         &mut rgb_inf,
     );

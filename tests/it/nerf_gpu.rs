@@ -149,6 +149,7 @@ fn settings(sampling: Sampling) -> ModelSettings {
         batch_samples: None,
         sampling,
         precision: zrak::field::mlp::Precision::F32,
+        appearance: false,
     }
 }
 

@@ -56,6 +56,7 @@ fn demo_trainer(
         batch_samples: Some(batch),
         sampling: Sampling::Occupancy,
         precision,
+        appearance: false,
     };
     let model_kind = match kind {
         Kind::Nerf => ModelKind::Nerf,

@@ -58,6 +58,7 @@ fn settings() -> ModelSettings {
         batch_samples: Some(BATCH_SAMPLES),
         sampling: zrak::field::common::Sampling::Occupancy,
         precision: zrak::field::mlp::Precision::F32,
+        appearance: false,
     }
 }
 

@@ -638,6 +638,7 @@ impl Worker {
             }),
             sampling,
             precision: self.options.precision,
+            appearance: false,
         };
         let engine = self.engine.choice()?;
         let mut model = build_viewer_model(

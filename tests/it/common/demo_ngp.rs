@@ -62,6 +62,7 @@ pub fn trained(steps: u32) -> Trainer {
                 batch_samples: Some(BATCH_SAMPLES),
                 sampling: Sampling::Occupancy,
                 precision: Precision::F32,
+                appearance: false,
             },
         ),
         &scene,

@@ -24,7 +24,10 @@ use std::sync::Mutex;
 
 use rayon::prelude::*;
 
-use super::{Field, Gradient, gather_rows, hash_grid_backward, set_len};
+use super::{
+    Appearance, AppearanceShape, Field, Gradient, gather_rows, hash_grid_backward, set_len,
+};
+use crate::engine::cpu::appearance::{KeptAppearance, appearance_backward, write_appearance};
 use crate::engine::cpu::dense::{
     Backend, InputGradient, MlpGradients, MlpWorkspace, mlp_backward, mlp_forward, mlp_inference,
     mlp_inference_leading,
@@ -82,12 +85,14 @@ impl NgpShape {
         });
     }
 
-    /// Inference of σ and colour at unit-cube positions and directions.
+    /// Inference of σ and colour at unit-cube positions and directions,
+    /// with `appearance` where the field has embeddings.
     pub fn radiance(
         &self,
         params: &[f32],
         positions: &[f32],
         directions: &[f32],
+        appearance: Appearance<'_>,
         sigma: &mut [f32],
         rgb: &mut [f32],
     ) {
@@ -125,6 +130,17 @@ impl NgpShape {
             &mut colour_input[density_width..],
             colour_width,
         );
+        if let Some(table) = &self.appearance {
+            write_appearance(
+                table,
+                &params[self.appearance_range()],
+                appearance,
+                &mut colour_input,
+                colour_width,
+                self.appearance_column(),
+                None,
+            );
+        }
         mlp_inference(
             &self.colour,
             &params[self.colour_range()],
@@ -132,6 +148,14 @@ impl NgpShape {
             n,
             rgb,
         );
+    }
+}
+
+impl NgpShape {
+    /// The colour network's first appearance column: after the density
+    /// outputs and the spherical harmonics.
+    fn appearance_column(&self) -> usize {
+        self.density.output_width() + self.network.sh_coefficients()
     }
 }
 
@@ -162,6 +186,11 @@ pub struct NgpField {
     colour_input: Vec<f32>,
     d_density_out: Vec<f32>,
     d_encoded: Vec<f32>,
+    /// Which appearance vector each row of the last forward pass took, and
+    /// the gradient of the colour network's whole input (fields with
+    /// embeddings).
+    appearance: KeptAppearance,
+    d_colour_input: Vec<f32>,
     /// Hash features and scratch of σ inference through `&self` (the
     /// occupancy grid's updates).
     inference: Mutex<(Vec<f32>, Vec<f32>)>,
@@ -183,6 +212,8 @@ impl NgpField {
             colour_input: Vec::new(),
             d_density_out: Vec::new(),
             d_encoded: Vec::new(),
+            appearance: KeptAppearance::default(),
+            d_colour_input: Vec::new(),
             inference: Mutex::new((Vec::new(), Vec::new())),
         }
     }
@@ -193,7 +224,13 @@ impl NgpField {
 
     /// The networks' forward pass on the rows whose hash features are in
     /// `self.encoded` and σ in `self.sigma`: the colour of each into `rgb`.
-    fn networks_forward(&mut self, params: &[f32], directions: &[f32], rgb: &mut [f32]) {
+    fn networks_forward(
+        &mut self,
+        params: &[f32],
+        directions: &[f32],
+        appearance: Appearance<'_>,
+        rgb: &mut [f32],
+    ) {
         let shape = &self.shape;
         let u = self.sigma.len();
         let density_width = shape.density.output_width();
@@ -230,6 +267,17 @@ impl NgpField {
                 .unwrap_or_default(),
             colour_width,
         );
+        if let Some(table) = &shape.appearance {
+            write_appearance(
+                table,
+                &params[shape.appearance_range()],
+                appearance,
+                &mut self.colour_input,
+                colour_width,
+                shape.appearance_column(),
+                Some(&mut self.appearance),
+            );
+        }
         self.colour_workspace.reserve(u);
         mlp_forward(
             &shape.colour,
@@ -301,6 +349,7 @@ impl Field for NgpField {
         positions: &[f32],
         _variances: Option<&[f32]>,
         directions: &[f32],
+        appearance: Appearance<'_>,
         sigma: &mut [f32],
         rgb: &mut [f32],
     ) {
@@ -313,7 +362,7 @@ impl Field for NgpField {
         gather_rows(&self.marched_sigma, 1, rows, &mut self.sigma);
         self.positions.clear();
         self.positions.extend_from_slice(positions);
-        self.networks_forward(params, directions, rgb);
+        self.networks_forward(params, directions, appearance, rgb);
         sigma.copy_from_slice(&self.sigma);
     }
 
@@ -329,6 +378,7 @@ impl Field for NgpField {
         positions: &[f32],
         _variances: Option<&[f32]>,
         directions: &[f32],
+        appearance: Appearance<'_>,
         sigma: &mut [f32],
         rgb: &mut [f32],
     ) {
@@ -346,7 +396,7 @@ impl Field for NgpField {
         self.positions.extend_from_slice(positions);
         // σ from the density network's output 0 once the pass has run.
         set_len(&mut self.sigma, n);
-        self.networks_forward(params, directions, rgb);
+        self.networks_forward(params, directions, appearance, rgb);
         let density_width = self.shape.density.output_width();
         let scale = self.shape.density_scale;
         for (s, row) in self
@@ -382,24 +432,64 @@ impl Field for NgpField {
             network_grad.fill(0.0);
         }
         let (density_grad, colour_grad) = network_grad.split_at_mut(shape.density.param_count());
-        // The colour network's input gradient is wanted for its density
-        // features only (the first columns), not for the direction encoding.
+        let (colour_grad, appearance_grad) = colour_grad.split_at_mut(shape.colour.param_count());
         set_len(&mut self.d_density_out, u * density_width);
-        mlp_backward(
-            &shape.colour,
-            &params[shape.colour_range()],
-            &self.colour_input,
-            u,
-            &mut self.colour_workspace,
-            MlpGradients {
-                output: d_rgb,
-                params: colour_grad,
-                input: Some(InputGradient {
-                    values: &mut self.d_density_out,
-                    columns: 0..density_width,
-                }),
-            },
-        );
+        match &shape.appearance {
+            // The colour network's input gradient is wanted for its density
+            // features only (the first columns), not for the direction
+            // encoding.
+            None => mlp_backward(
+                &shape.colour,
+                &params[shape.colour_range()],
+                &self.colour_input,
+                u,
+                &mut self.colour_workspace,
+                MlpGradients {
+                    output: d_rgb,
+                    params: colour_grad,
+                    input: Some(InputGradient {
+                        values: &mut self.d_density_out,
+                        columns: 0..density_width,
+                    }),
+                },
+            ),
+            // And for the appearance columns, after the direction's: the
+            // whole input's gradient, split.
+            Some(table) => {
+                let colour_width = shape.colour.input_width();
+                set_len(&mut self.d_colour_input, u * colour_width);
+                mlp_backward(
+                    &shape.colour,
+                    &params[shape.colour_range()],
+                    &self.colour_input,
+                    u,
+                    &mut self.colour_workspace,
+                    MlpGradients {
+                        output: d_rgb,
+                        params: colour_grad,
+                        input: Some(InputGradient::every_column(
+                            &mut self.d_colour_input,
+                            &shape.colour,
+                        )),
+                    },
+                );
+                for (d_out, d_in) in self
+                    .d_density_out
+                    .chunks_exact_mut(density_width)
+                    .zip(self.d_colour_input.chunks_exact(colour_width))
+                {
+                    d_out.copy_from_slice(&d_in[..density_width]);
+                }
+                appearance_backward(
+                    table,
+                    &self.appearance,
+                    &self.d_colour_input,
+                    colour_width,
+                    shape.appearance_column(),
+                    appearance_grad,
+                );
+            }
+        }
         let sigma_at_clamp = shape.density_scale * DENSITY_EXP_CLAMP.exp();
         for ((d_out, &d_sigma), &sigma) in self
             .d_density_out
@@ -445,11 +535,16 @@ impl Field for NgpField {
         positions: &[f32],
         _variances: Option<&[f32]>,
         directions: &[f32],
+        appearance: Appearance<'_>,
         sigma: &mut [f32],
         rgb: &mut [f32],
     ) {
         self.shape
-            .radiance(params, positions, directions, sigma, rgb);
+            .radiance(params, positions, directions, appearance, sigma, rgb);
+    }
+
+    fn appearance(&self) -> Option<AppearanceShape> {
+        self.shape.appearance
     }
 
     fn macs_per_sample(&self) -> usize {
@@ -472,11 +567,13 @@ impl Field for NgpField {
             &self.colour_input,
             &self.d_density_out,
             &self.d_encoded,
+            &self.d_colour_input,
         ]
         .iter()
         .map(|v| v.capacity())
         .sum::<usize>()
             + self.density_workspace.bytes()
             + self.colour_workspace.bytes()
+            + self.appearance.bytes()
     }
 }

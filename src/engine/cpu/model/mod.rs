@@ -31,7 +31,7 @@ use rayon::prelude::*;
 use super::composite_batch::{
     CompositeGradients, CompositeOutputs, {self},
 };
-use super::fields::{Field, Gradient, gather_rows, set_len};
+use super::fields::{Appearance, AppearanceShape, Field, Gradient, gather_rows, set_len};
 use super::frustum::{contracted_frustum_gaussians, frustum_gaussians};
 use super::loss::loss_and_gradient;
 use super::march::{MarchWorkspace, march};
@@ -115,6 +115,10 @@ struct StepBuffers {
     backgrounds: Vec<f32>,
     rays: RayScratch,
     gradients: Vec<f32>,
+    /// Each ray's training image, and each sample's (models with
+    /// appearance embeddings).
+    ray_images: Vec<u32>,
+    sample_images: Vec<u32>,
 }
 
 /// A model on the `cpu` engine built from a recipe and its fields.
@@ -152,6 +156,9 @@ pub struct CpuModel {
     /// own activations until the proposals' backward passes; `None` where
     /// the level uses the field itself.
     twins: Vec<Option<Box<dyn Field>>>,
+    /// The training image whose appearance vector renders use (`None`:
+    /// the mean of them all), for models with appearance embeddings.
+    render_appearance: Option<usize>,
 }
 
 impl CpuModel {
@@ -276,6 +283,22 @@ impl CpuModel {
             crop: None,
             samplers,
             twins,
+            render_appearance: None,
+        }
+    }
+
+    /// The table of appearance embeddings of the fields that give colour,
+    /// if they have one.
+    fn appearance(&self) -> Option<AppearanceShape> {
+        self.fields.iter().find_map(|field| field.appearance())
+    }
+
+    /// The appearance renders use: [`Appearance::Mean`] or the chosen
+    /// training image's.
+    fn rendered_appearance(&self) -> Appearance<'static> {
+        match self.render_appearance {
+            None => Appearance::Mean,
+            Some(image) => Appearance::Image(image as u32),
         }
     }
 
@@ -453,6 +476,20 @@ impl CpuModel {
             b.targets.extend_from_slice(&batch.targets[r]);
             b.backgrounds.extend_from_slice(&batch.backgrounds[r]);
         }
+        b.ray_images.clear();
+        if let Some(table) = self.fields.iter().find_map(|field| field.appearance()) {
+            assert_eq!(
+                batch.images.len(),
+                batch.len(),
+                "a model with appearance embeddings trains on rays that name their image"
+            );
+            assert!(
+                batch.images.iter().all(|&image| (image as usize) < table.images),
+                "a ray's image beyond the {} with embeddings",
+                table.images
+            );
+            b.ray_images.extend_from_slice(&batch.images);
+        }
         set_len(&mut b.gradients, self.params.len());
         if self.core.recipe.levels[0].sampler == SamplerKind::Occupancy {
             self.marched_step(step)
@@ -516,6 +553,7 @@ impl RadianceModel for CpuModel {
                 let frustums = self.core.recipe.samples == SampleShape::ConicalFrustums;
                 let unit_cube = field.coordinates() == Coordinates::UnitCube;
                 let (mut world, mut variances) = (Vec::new(), Vec::new());
+                let appearance = self.rendered_appearance();
                 render_through_grid(
                     grid,
                     &self.mapping,
@@ -531,6 +569,7 @@ impl RadianceModel for CpuModel {
                                 samples.positions,
                                 None,
                                 samples.directions,
+                                appearance,
                                 sigma,
                                 rgb,
                             );
@@ -554,6 +593,7 @@ impl RadianceModel for CpuModel {
                             &world,
                             frustums.then_some(&variances[..]),
                             samples.directions,
+                            appearance,
                             sigma,
                             rgb,
                         );
@@ -639,6 +679,7 @@ impl RadianceModel for CpuModel {
                 &world,
                 frustums.then_some(&variances[..]),
                 &flat_directions,
+                self.rendered_appearance(),
                 &mut sigma,
                 rgb,
             );
@@ -648,6 +689,24 @@ impl RadianceModel for CpuModel {
 
     fn set_crop(&mut self, crop: Option<crate::scene::crop::CropBox>) -> Result<(), String> {
         self.crop = crop;
+        Ok(())
+    }
+
+    fn appearance_images(&self) -> Option<usize> {
+        self.appearance().map(|table| table.images)
+    }
+
+    fn set_render_appearance(&mut self, image: Option<usize>) -> Result<(), String> {
+        let Some(table) = self.appearance() else {
+            return Err(format!("{} has no appearance embeddings", self.describe()));
+        };
+        if let Some(image) = image.filter(|&image| image >= table.images) {
+            return Err(format!(
+                "no training image {image}: the model has embeddings of {}",
+                table.images
+            ));
+        }
+        self.render_appearance = image;
         Ok(())
     }
 
@@ -738,6 +797,29 @@ impl RadianceModel for CpuModel {
                 .iter()
                 .map(|f| f.workspace_bytes())
                 .sum::<usize>()
+    }
+}
+
+/// Each sample's training image into `out`, its ray's of `ray_images`
+/// (ray r owns samples `ray_offsets[r]..ray_offsets[r + 1]`); nothing where
+/// `ray_images` is empty (a model without appearance embeddings).
+fn sample_images(ray_images: &[u32], ray_offsets: &[u32], out: &mut Vec<u32>) {
+    out.clear();
+    if ray_images.is_empty() {
+        return;
+    }
+    for (r, ends) in ray_offsets.windows(2).enumerate() {
+        out.extend(std::iter::repeat_n(ray_images[r], (ends[1] - ends[0]) as usize));
+    }
+}
+
+/// The appearance of a training pass's samples: each its ray's image where
+/// the model has embeddings (`images` not empty), else none.
+fn training_appearance(images: &[u32]) -> Appearance<'_> {
+    if images.is_empty() {
+        Appearance::None
+    } else {
+        Appearance::PerSample(images)
     }
 }
 

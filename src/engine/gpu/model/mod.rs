@@ -387,6 +387,12 @@ impl GpuModel {
         let plan = request.plan(scene, request.kind.spec().gpu_batch_samples);
         let shapes = plan.shapes;
         let settings = &request.settings;
+        if shapes.iter().any(|shape| shape.appearance().is_some()) {
+            return Err(
+                "appearance embeddings are on the cpu engine only so far: give --engine cpu"
+                    .into(),
+            );
+        }
         Self::new(
             context,
             plan.core,
