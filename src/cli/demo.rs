@@ -43,6 +43,16 @@ pub struct DemoArgs {
     /// instant-ngp transforms.json; the held-out views are without it.
     #[arg(long, conflicts_with_all = ["large", "unbounded", "forward_facing"])]
     moving_object: bool,
+    /// Each training view's exposure scaled by 2^s, s uniform in ± this
+    /// many stops (held-out views keep the rendered exposure), the true
+    /// factors written to appearance_truth.json beside transforms.json
+    /// (instant-ngp layout).
+    #[arg(long, value_name = "STOPS", conflicts_with_all = ["large", "unbounded", "forward_facing", "moving_object"])]
+    exposure_jitter: Option<f32>,
+    /// Each training view's channels scaled by 1 + w, w uniform in ± this
+    /// (0.15: ±15 %), written as --exposure-jitter's are.
+    #[arg(long, value_name = "SHARE", conflicts_with_all = ["large", "unbounded", "forward_facing", "moving_object"])]
+    white_balance_jitter: Option<f32>,
     /// Write into a folder that is not empty, replacing the scene's
     /// files there (others are left alone).
     #[arg(long)]
@@ -101,6 +111,8 @@ pub fn write_demo(args: DemoArgs) -> anyhow::Result<()> {
         unbounded,
         forward_facing,
         moving_object,
+        exposure_jitter,
+        white_balance_jitter,
         force,
     } = args;
     let config = demo_config(size, views)?;
@@ -128,6 +140,10 @@ pub fn write_demo(args: DemoArgs) -> anyhow::Result<()> {
         demo::write_large(&config, &out).context("writing the large demo scene")?;
     } else if unbounded {
         demo::write_unbounded(&config, &out).context("writing the unbounded demo scene")?;
+    } else if exposure_jitter.is_some() || white_balance_jitter.is_some() {
+        let jitter = appearance_jitter(exposure_jitter, white_balance_jitter)?;
+        demo::write_appearance_jitter(&config, &jitter, &out)
+            .context("writing the demo scene with jittered appearance")?;
     } else if moving_object {
         demo::write_moving_object(&config, &out)
             .context("writing the demo scene with a moving object")?;
@@ -143,6 +159,33 @@ pub fn write_demo(args: DemoArgs) -> anyhow::Result<()> {
         started.elapsed().as_secs_f64()
     );
     Ok(())
+}
+
+/// The seed of `--exposure-jitter` and `--white-balance-jitter`'s draws:
+/// fixed, so a demo folder is the same wherever it is written.
+const APPEARANCE_JITTER_SEED: u64 = 46;
+
+/// The jitter `--exposure-jitter` and `--white-balance-jitter` ask for (an
+/// absent one is none), refused outside the ranges that keep every factor
+/// positive and every image visible.
+fn appearance_jitter(
+    exposure: Option<f32>,
+    white_balance: Option<f32>,
+) -> anyhow::Result<demo::AppearanceJitter> {
+    let (exposure_stops, white_balance) = (exposure.unwrap_or(0.0), white_balance.unwrap_or(0.0));
+    anyhow::ensure!(
+        (0.0..=4.0).contains(&exposure_stops),
+        "--exposure-jitter must be 0 to 4 stops, got {exposure_stops}"
+    );
+    anyhow::ensure!(
+        (0.0..=0.9).contains(&white_balance),
+        "--white-balance-jitter must be 0 to 0.9, got {white_balance}"
+    );
+    Ok(demo::AppearanceJitter {
+        exposure_stops,
+        white_balance,
+        seed: APPEARANCE_JITTER_SEED,
+    })
 }
 
 /// Refuses an `--out` that holds files, or that is something other than a

@@ -43,7 +43,7 @@ use crate::engine::shared::march::{
     GridSamples, MarchParams, MarchedSamples, mix_seed, render_through_grid,
 };
 use crate::engine::shared::occupancy::OccupancyGrid;
-use crate::engine::shared::state::{ModelHeader, ModelState};
+use crate::engine::shared::state::{ModelHeader, ModelState, check_appearance};
 use crate::field::common::{BatchSize, Coordinates, LossKind, SampleShape, SamplerKind};
 use crate::field::contraction::Contraction;
 use crate::field::params::ParamLayout;
@@ -723,6 +723,7 @@ impl RadianceModel for CpuModel {
                 // Only where it chooses the next step's order.
                 used_fraction: self.chooses_pass_order().then_some(self.used_fraction),
                 grid_extent: self.grid_extent(),
+                appearance_images: self.appearance().map(|table| table.images),
             },
             params: self.params.clone(),
             adam: self.adam.clone(),
@@ -732,6 +733,7 @@ impl RadianceModel for CpuModel {
     }
 
     fn load(&mut self, checkpoint: &Checkpoint) -> Result<(), String> {
+        check_appearance(checkpoint, self.appearance().map(|table| table.images))?;
         let state = ModelState::from_checkpoint(
             checkpoint,
             self.core.identity.key,

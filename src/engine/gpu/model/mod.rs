@@ -970,6 +970,7 @@ impl RadianceModel for GpuModel {
                     .then(|| self.grid.as_ref().map(|g| g.used_fraction))
                     .flatten(),
                 grid_extent: self.grid_extent(),
+                appearance_images: None,
             },
             params: self.params(),
             adam,
