@@ -118,7 +118,11 @@ mod tests {
         assert_ne!(table, shape.init_params(4));
         let n = table.len() as f64;
         let mean = table.iter().map(|&v| v as f64).sum::<f64>() / n;
-        let variance = table.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n;
+        let variance = table
+            .iter()
+            .map(|&v| (v as f64 - mean).powi(2))
+            .sum::<f64>()
+            / n;
         // 6400 draws: the mean's standard error is 1/80, the variance's
         // about √(2/6400) ≈ 0.018; 4 of each.
         assert!(mean.abs() < 0.05, "mean {mean}");
@@ -141,6 +145,9 @@ mod tests {
             shape.shared_vector(&table, Appearance::None),
             Some(vec![2.0, 3.0, 5.0])
         );
-        assert_eq!(shape.shared_vector(&table, Appearance::PerSample(&[0])), None);
+        assert_eq!(
+            shape.shared_vector(&table, Appearance::PerSample(&[0])),
+            None
+        );
     }
 }

@@ -7,6 +7,7 @@
 //! the colour branch and σ's activation, also Mip-NeRF's), which both
 //! engines build their NeRF field from.
 
+use super::appearance::AppearanceShape;
 use super::common::{
     BatchSize, Level, LrSchedule, MarchConfig, OccupancyConfig, OptimiserConfig, RayBounds, Recipe,
     SampleShape, SamplerKind, Sampling,
@@ -14,7 +15,6 @@ use super::common::{
 use super::contraction::{Contraction, ContractionNorm};
 use super::encoding::FrequencyEncoding;
 use super::mlp::{Activation, MlpLayout, Precision};
-use super::appearance::AppearanceShape;
 use super::params::{APPEARANCE_PART, ParamLayout, Update};
 
 /// Frequencies of the position encoding γ(x): 2⁰ … 2⁹ (paper, section 5.1:

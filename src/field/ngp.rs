@@ -12,9 +12,9 @@ use super::common::{LrSchedule, MarchConfig, OccupancyConfig, OptimiserConfig};
 use super::encoding::HashGridConfig;
 use super::mlp::NetworkConfig;
 
+use super::appearance::AppearanceShape;
 use super::encoding::HashGridLayout;
 use super::mlp::{Activation, MlpLayout, Precision};
-use super::appearance::AppearanceShape;
 use super::params::{APPEARANCE_PART, ParamLayout, Update};
 use crate::scene::{Scene, UnitCubeMapping};
 

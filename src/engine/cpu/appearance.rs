@@ -86,10 +86,20 @@ pub(crate) fn appearance_backward(
     table_gradient: &mut [f32],
 ) {
     let width = shape.width;
-    assert_eq!(table_gradient.len(), shape.param_count(), "the table's gradient");
-    let rows = d_input.chunks_exact(d_width).map(|row| &row[column..column + width]);
+    assert_eq!(
+        table_gradient.len(),
+        shape.param_count(),
+        "the table's gradient"
+    );
+    let rows = d_input
+        .chunks_exact(d_width)
+        .map(|row| &row[column..column + width]);
     if kept.per_sample {
-        assert_eq!(kept.images.len(), d_input.len() / d_width, "an image per row");
+        assert_eq!(
+            kept.images.len(),
+            d_input.len() / d_width,
+            "an image per row"
+        );
         for (row, &image) in rows.zip(&kept.images) {
             let target = &mut table_gradient[image as usize * width..][..width];
             for (t, &g) in target.iter_mut().zip(row) {

@@ -63,7 +63,10 @@ impl ModelHeader {
 /// without), before its parameter count is compared: a checkpoint of the
 /// other kind says so rather than that the counts differ. A header that
 /// does not read is left to [`ModelState::from_checkpoint`] to refuse.
-pub(crate) fn check_appearance(checkpoint: &Checkpoint, images: Option<usize>) -> Result<(), String> {
+pub(crate) fn check_appearance(
+    checkpoint: &Checkpoint,
+    images: Option<usize>,
+) -> Result<(), String> {
     let Ok(header) = serde_json::from_value::<ModelHeader>(checkpoint.header.clone()) else {
         return Ok(());
     };

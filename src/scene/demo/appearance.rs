@@ -144,7 +144,10 @@ mod tests {
         assert_ne!(views, AppearanceJitter { seed: 8, ..jitter }.draw(200));
         for view in &views {
             assert!((0.5..=2.0).contains(&view.exposure), "{view:?}");
-            assert!(view.gains.iter().all(|g| (0.85..=1.15).contains(g)), "{view:?}");
+            assert!(
+                view.gains.iter().all(|g| (0.85..=1.15).contains(g)),
+                "{view:?}"
+            );
         }
         // Both ends of the exposure range are reached.
         let (low, high) = views.iter().fold((2f32, 0f32), |(l, h), v| {

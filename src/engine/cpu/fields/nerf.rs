@@ -467,9 +467,12 @@ impl Field for NerfField {
         let (width, enc_dir) = (s.width(), s.direction.output_width());
         // The vector every sample takes, where the field has embeddings:
         // a render's samples share one.
-        let shared = s
-            .appearance
-            .map(|table| (table, table.shared_vector(&params[s.appearance_range()], appearance)));
+        let shared = s.appearance.map(|table| {
+            (
+                table,
+                table.shared_vector(&params[s.appearance_range()], appearance),
+            )
+        });
         let rows = INFERENCE_ROWS.min(sigma.len().max(1));
         let mut trunk = TrunkInput::new(s, rows);
         let mut feature = vec![0f32; rows * width];

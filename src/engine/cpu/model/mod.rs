@@ -484,7 +484,10 @@ impl CpuModel {
                 "a model with appearance embeddings trains on rays that name their image"
             );
             assert!(
-                batch.images.iter().all(|&image| (image as usize) < table.images),
+                batch
+                    .images
+                    .iter()
+                    .all(|&image| (image as usize) < table.images),
                 "a ray's image beyond the {} with embeddings",
                 table.images
             );
@@ -811,7 +814,10 @@ fn sample_images(ray_images: &[u32], ray_offsets: &[u32], out: &mut Vec<u32>) {
         return;
     }
     for (r, ends) in ray_offsets.windows(2).enumerate() {
-        out.extend(std::iter::repeat_n(ray_images[r], (ends[1] - ends[0]) as usize));
+        out.extend(std::iter::repeat_n(
+            ray_images[r],
+            (ends[1] - ends[0]) as usize,
+        ));
     }
 }
 

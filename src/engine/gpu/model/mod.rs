@@ -389,8 +389,7 @@ impl GpuModel {
         let settings = &request.settings;
         if shapes.iter().any(|shape| shape.appearance().is_some()) {
             return Err(
-                "appearance embeddings are on the cpu engine only so far: give --engine cpu"
-                    .into(),
+                "appearance embeddings are on the cpu engine only so far: give --engine cpu".into(),
             );
         }
         Self::new(
