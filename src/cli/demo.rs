@@ -43,14 +43,14 @@ pub struct DemoArgs {
     /// instant-ngp transforms.json; the held-out views are without it.
     #[arg(long, conflicts_with_all = ["large", "unbounded", "forward_facing"])]
     moving_object: bool,
-    /// Each training view's exposure scaled by 2^s, s uniform in ± this
-    /// many stops (held-out views keep the rendered exposure), the true
-    /// factors written to appearance_truth.json beside transforms.json
-    /// (instant-ngp layout).
+    /// Each training view's exposure scaled by up to this many stops
+    /// either way (held-out views keep the rendered exposure, the training
+    /// views' mean), the true factors written to appearance_truth.json
+    /// beside transforms.json (instant-ngp layout).
     #[arg(long, value_name = "STOPS", conflicts_with_all = ["large", "unbounded", "forward_facing", "moving_object"])]
     exposure_jitter: Option<f32>,
-    /// Each training view's channels scaled by 1 + w, w uniform in ± this
-    /// (0.15: ±15 %), written as --exposure-jitter's are.
+    /// Each training view's channels scaled by up to this share either
+    /// way (0.15: ±15 %), written as --exposure-jitter's are.
     #[arg(long, value_name = "SHARE", conflicts_with_all = ["large", "unbounded", "forward_facing", "moving_object"])]
     white_balance_jitter: Option<f32>,
     /// Write into a folder that is not empty, replacing the scene's

@@ -154,7 +154,7 @@ fn check_embedding_gradient(scene: &Arc<Scene>, request: &ModelRequest, used_fra
             // miniature: errors 0.0–1.2 % at 0.025, up to 7 % at 0.1 and
             // 0.4, and 1.6 % at 0.006, where the loss's rounding shows).
             let h = 0.025;
-            let mut shifted = |sign: f64, model: &mut CpuModel| {
+            let shifted = |sign: f64, model: &mut CpuModel| {
                 for (k, index) in range.clone().enumerate() {
                     model.params_mut()[index] =
                         original[k] + (sign * h * gradient[index] as f64 / norm) as f32;
@@ -273,10 +273,10 @@ fn a_checkpoint_with_or_without_embeddings_is_refused_by_the_other_kind() {
     assert_eq!(again.params(), on.params());
 }
 
-/// The jittered demo's views: 64 pixels, 60 training views, 5 held out.
+/// The jittered demo's views: 48 pixels, 40 training views, 5 held out.
 const JITTERED_DEMO: DemoConfig = DemoConfig {
-    size: 64,
-    train_views: 60,
+    size: 48,
+    train_views: 40,
     val_views: 5,
     test_views: 1,
 };
@@ -288,13 +288,19 @@ const JITTER: AppearanceJitter = AppearanceJitter {
     seed: 46,
 };
 
-/// Steps each run of the jittered demo trains.
-const JITTERED_STEPS: u32 = 400;
+/// Steps each run of the jittered demo trains. Measured (2 shared cores,
+/// both runs and the renders in 169 s): with embeddings 27.53 dB held out,
+/// without 23.53 dB; rank correlation 0.977. Fewer, larger steps narrow
+/// the gap: 400 steps of 2^15 samples gave 26.30 against 24.39 dB, 600
+/// of 2^15 27.64 against 25.58 dB (the run without embeddings fits the
+/// views' average appearance in fewer steps, the run with them goes on
+/// to fit each view's).
+const JITTERED_STEPS: u32 = 700;
 
 /// Instant-NGP trained [`JITTERED_STEPS`] on `scene`, with embeddings or
-/// without, 2^16 samples a step.
+/// without, 2^14 samples a step.
 fn trained_on_jittered_demo(scene: &Arc<Scene>, appearance: bool) -> Trainer {
-    let mut request = common::request(ModelKind::Ngp, 0, LossKind::Huber, Some(1 << 16));
+    let mut request = common::request(ModelKind::Ngp, 0, LossKind::Huber, Some(1 << 14));
     request.settings.appearance = appearance;
     let mut trainer = Trainer::new(Box::new(CpuModel::build(&request, scene)), scene.clone(), 0);
     while trainer.step < JITTERED_STEPS {

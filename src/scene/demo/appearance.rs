@@ -18,10 +18,11 @@ pub const APPEARANCE_TRUTH_FILE: &str = "appearance_truth.json";
 /// How far each training view's appearance strays.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AppearanceJitter {
-    /// Exposure: each view's brightness scaled by 2^s, s uniform in ±this
-    /// many stops.
+    /// Exposure: each view's brightness scaled by 2^(s·u), u uniform in
+    /// [−1, 1]: up to this many stops (s) either way.
     pub exposure_stops: f32,
-    /// White balance: each channel scaled by 1 + w, w uniform in ±this.
+    /// White balance: each channel scaled by (1 + w)^u, u uniform in
+    /// [−1, 1] per channel: up to this share (w) either way.
     pub white_balance: f32,
     /// The draws' seed.
     pub seed: u64,
@@ -59,19 +60,30 @@ impl AppearanceTruth {
 }
 
 impl AppearanceJitter {
-    /// The appearance of each of `views` training views: exposure and
-    /// gains drawn in turn from the seed.
+    /// The appearance of each of `views` training views, drawn from the
+    /// seed in pairs: view 2k draws its four u, view 2k + 1 takes their
+    /// negatives (an odd last view none). The factors' logarithms then
+    /// average to zero over the training views, so the held-out views'
+    /// unscaled appearance is the training views' mean, which is what a
+    /// model renders them with.
     pub fn draw(&self, views: usize) -> Vec<ViewAppearance> {
         let mut rng = Pcg32::new(self.seed, 0x6a69_7474_6572);
-        let mut symmetric = || 2.0 * rng.next_f32() - 1.0;
+        let mut draws: [f32; 4] = [0.0; 4];
         (0..views)
             .map(|index| {
-                let stops = self.exposure_stops * symmetric();
-                let gains = std::array::from_fn(|_| 1.0 + self.white_balance * symmetric());
+                if index % 2 == 0 {
+                    draws = if index + 1 < views {
+                        std::array::from_fn(|_| 2.0 * rng.next_f32() - 1.0)
+                    } else {
+                        [0.0; 4]
+                    };
+                } else {
+                    draws = draws.map(|u| -u);
+                }
                 ViewAppearance {
                     file_path: format!("train/r_{index}.png"),
-                    exposure: stops.exp2(),
-                    gains,
+                    exposure: (self.exposure_stops * draws[0]).exp2(),
+                    gains: std::array::from_fn(|c| (1.0 + self.white_balance).powf(draws[c + 1])),
                 }
             })
             .collect()
@@ -145,10 +157,19 @@ mod tests {
         for view in &views {
             assert!((0.5..=2.0).contains(&view.exposure), "{view:?}");
             assert!(
-                view.gains.iter().all(|g| (0.85..=1.15).contains(g)),
+                view.gains.iter().all(|g| (1.0 / 1.15..=1.15).contains(g)),
                 "{view:?}"
             );
         }
+        // Their logarithms average to zero: the held-out views' appearance
+        // is the mean.
+        let mean_stops = views.iter().map(|v| v.exposure.log2()).sum::<f32>() / 200.0;
+        let mean_gain = views.iter().map(|v| v.gains[1].ln()).sum::<f32>() / 200.0;
+        assert!(mean_stops.abs() < 1e-5 && mean_gain.abs() < 1e-5);
+        assert!((views[0].exposure * views[1].exposure - 1.0).abs() < 1e-6);
+        // An odd last view is left as rendered.
+        let odd = jitter.draw(5);
+        assert_eq!((odd[4].exposure, odd[4].gains), (1.0, [1.0; 3]));
         // Both ends of the exposure range are reached.
         let (low, high) = views.iter().fold((2f32, 0f32), |(l, h), v| {
             (l.min(v.exposure), h.max(v.exposure))
