@@ -234,6 +234,7 @@ pub fn self_check(context: &GpuContext, kind: ModelKind, size: CheckSize) -> Vec
         sampling: Sampling::Occupancy,
         precision: Precision::F32,
         refine_cameras: false,
+        appearance: false,
     };
     let cpu_choice = EngineChoice {
         kind: EngineKind::Cpu,

@@ -185,6 +185,7 @@ fn bench_settings(
         sampling,
         precision,
         refine_cameras: false,
+        appearance: false,
     }
 }
 

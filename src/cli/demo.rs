@@ -56,6 +56,16 @@ pub struct DemoArgs {
         conflicts_with_all = ["large", "unbounded", "forward_facing", "moving_object"]
     )]
     perturb_cameras: Option<demo::CameraPerturbation>,
+    /// Each training view's exposure scaled by up to this many stops
+    /// either way (held-out views keep the rendered exposure, the training
+    /// views' mean), the true factors written to appearance_truth.json
+    /// beside transforms.json (instant-ngp layout).
+    #[arg(long, value_name = "STOPS", conflicts_with_all = ["large", "unbounded", "forward_facing", "moving_object", "perturb_cameras"])]
+    exposure_jitter: Option<f32>,
+    /// Each training view's channels scaled by up to this share either
+    /// way (0.15: ±15 %), written as --exposure-jitter's are.
+    #[arg(long, value_name = "SHARE", conflicts_with_all = ["large", "unbounded", "forward_facing", "moving_object", "perturb_cameras"])]
+    white_balance_jitter: Option<f32>,
     /// Write into a folder that is not empty, replacing the scene's
     /// files there (others are left alone).
     #[arg(long)]
@@ -115,6 +125,8 @@ pub fn write_demo(args: DemoArgs) -> anyhow::Result<()> {
         forward_facing,
         moving_object,
         perturb_cameras,
+        exposure_jitter,
+        white_balance_jitter,
         force,
     } = args;
     let config = demo_config(size, views)?;
@@ -145,6 +157,10 @@ pub fn write_demo(args: DemoArgs) -> anyhow::Result<()> {
     } else if let Some(perturbation) = perturb_cameras {
         demo::write_with_perturbed_cameras(&config, perturbation, &out)
             .context("writing the demo scene with perturbed cameras")?;
+    } else if exposure_jitter.is_some() || white_balance_jitter.is_some() {
+        let jitter = appearance_jitter(exposure_jitter, white_balance_jitter)?;
+        demo::write_appearance_jitter(&config, &jitter, &out)
+            .context("writing the demo scene with jittered appearance")?;
     } else if moving_object {
         demo::write_moving_object(&config, &out)
             .context("writing the demo scene with a moving object")?;
@@ -178,6 +194,33 @@ fn parse_perturbation(text: &str) -> Result<demo::CameraPerturbation, String> {
     Ok(demo::CameraPerturbation {
         degrees: number(degrees, "the angle", 180.0)?,
         offset_fraction: number(fraction, "the offset", 1.0)?,
+    })
+}
+
+/// The seed of `--exposure-jitter` and `--white-balance-jitter`'s draws:
+/// fixed, so a demo folder is the same wherever it is written.
+const APPEARANCE_JITTER_SEED: u64 = 46;
+
+/// The jitter `--exposure-jitter` and `--white-balance-jitter` ask for (an
+/// absent one is none), refused outside the ranges that keep every factor
+/// positive and every image visible.
+fn appearance_jitter(
+    exposure: Option<f32>,
+    white_balance: Option<f32>,
+) -> anyhow::Result<demo::AppearanceJitter> {
+    let (exposure_stops, white_balance) = (exposure.unwrap_or(0.0), white_balance.unwrap_or(0.0));
+    anyhow::ensure!(
+        (0.0..=4.0).contains(&exposure_stops),
+        "--exposure-jitter must be 0 to 4 stops, got {exposure_stops}"
+    );
+    anyhow::ensure!(
+        (0.0..=0.9).contains(&white_balance),
+        "--white-balance-jitter must be 0 to 0.9, got {white_balance}"
+    );
+    Ok(demo::AppearanceJitter {
+        exposure_stops,
+        white_balance,
+        seed: APPEARANCE_JITTER_SEED,
     })
 }
 

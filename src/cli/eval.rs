@@ -113,6 +113,9 @@ pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
     if let Some(masks) = scores.describe_masks() {
         note(&masks);
     }
+    if let Some(appearance) = zrak::train::eval::describe_appearance(trainer.model.as_ref()) {
+        note(&appearance);
+    }
     let window = zrak::metrics::SSIM_WINDOW as u32;
     let small = frames
         .iter()

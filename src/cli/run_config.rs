@@ -162,6 +162,7 @@ pub fn build_trainer(
         sampling: config.sampling,
         precision: config.precision,
         refine_cameras: config.photographs.refine_cameras.on,
+        appearance: config.photographs.appearance.on,
     };
     let model = build(&ModelRequest::new(config.model, settings), choice, &scene)?;
     Ok(Trainer::new(model, scene, config.seed))

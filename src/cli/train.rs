@@ -381,6 +381,9 @@ fn train_to_limits(
         trainer.scene.resolution().map_or(0, |r| r.0),
         trainer.scene.resolution().map_or(0, |r| r.1),
     ));
+    if let Some(appearance) = zrak::train::eval::describe_appearance(trainer.model.as_ref()) {
+        note(&appearance);
+    }
     let limits = args.limits();
     let bar = match (limits.steps, limits.seconds) {
         (Some(steps), _) => ProgressBar::new(steps as u64),

@@ -5,6 +5,7 @@
 //! [`crate::field::MODELS`]; [`crate::engine::build`] builds it.
 
 use super::shared::driver::{DriverCore, ModelIdentity};
+use crate::field::appearance::AppearanceShape;
 use crate::field::common::{BatchSize, LossKind, Recipe, Sampling};
 use crate::field::mlp::Precision;
 use crate::field::{FieldShape, ModelKind, model_layout, model_params};
@@ -30,6 +31,10 @@ pub struct ModelSettings {
     /// that march through the occupancy grid with a field that gives its
     /// inputs' gradient: Instant-NGP).
     pub refine_cameras: bool,
+    /// Whether the fields that give colour learn a vector per training
+    /// image (NeRF in the Wild's appearance embeddings,
+    /// [`crate::field::appearance`]). Off by default.
+    pub appearance: bool,
 }
 
 impl ModelSettings {
@@ -43,6 +48,7 @@ impl ModelSettings {
             sampling: kind.spec().samplings[0],
             precision: Precision::F32,
             refine_cameras: false,
+            appearance: false,
         }
     }
 }
@@ -110,10 +116,15 @@ impl ModelRequest {
             .recipe
             .clone()
             .unwrap_or_else(|| (spec.recipe)(scene, settings.sampling));
-        let shape = self
+        let mut shape = self
             .shape
             .clone()
             .unwrap_or_else(|| (spec.shape)(scene, settings.sampling));
+        if settings.appearance {
+            // A vector per training view: each is drawn as a ray's image.
+            let images = scene.train.len().max(1);
+            shape = shape.with_appearance(Some(AppearanceShape::for_images(images)));
+        }
         let shapes = shape.for_recipe(&recipe);
         let (params, ranges) = model_params(&shapes, settings.seed);
         let layout = model_layout(&shapes);

@@ -1,6 +1,7 @@
 //! What is learned: each model's encodings, network shapes, activations,
 //! sampling strategy and paper defaults, one place per model.
 
+pub mod appearance;
 pub mod camera;
 pub mod common;
 pub mod contraction;
@@ -348,6 +349,26 @@ impl FieldShape {
             FieldShape::Nerf(_) | FieldShape::Density(_) | FieldShape::NerfDensity(_) => {
                 field_seed(model_seed, index)
             }
+        }
+    }
+
+    /// The same field with a table of appearance embeddings of `appearance`
+    /// for its colour network, or without (`None`); density-only fields
+    /// have no colour and stay as they are.
+    pub fn with_appearance(self, appearance: Option<appearance::AppearanceShape>) -> Self {
+        match self {
+            FieldShape::Ngp(shape) => FieldShape::Ngp(shape.with_appearance(appearance)),
+            FieldShape::Nerf(shape) => FieldShape::Nerf(shape.with_appearance(appearance)),
+            FieldShape::Density(_) | FieldShape::NerfDensity(_) => self,
+        }
+    }
+
+    /// The table of appearance embeddings of the field, if it has one.
+    pub fn appearance(&self) -> Option<appearance::AppearanceShape> {
+        match self {
+            FieldShape::Ngp(shape) => shape.appearance,
+            FieldShape::Nerf(shape) => shape.appearance,
+            FieldShape::Density(_) | FieldShape::NerfDensity(_) => None,
         }
     }
 

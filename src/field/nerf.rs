@@ -7,6 +7,7 @@
 //! the colour branch and σ's activation, also Mip-NeRF's), which both
 //! engines build their NeRF field from.
 
+use super::appearance::AppearanceShape;
 use super::common::{
     BatchSize, Level, LrSchedule, MarchConfig, OccupancyConfig, OptimiserConfig, RayBounds, Recipe,
     SampleShape, SamplerKind, Sampling,
@@ -14,7 +15,7 @@ use super::common::{
 use super::contraction::{Contraction, ContractionNorm};
 use super::encoding::FrequencyEncoding;
 use super::mlp::{Activation, MlpLayout, Precision};
-use super::params::{ParamLayout, Update};
+use super::params::{APPEARANCE_PART, ParamLayout, Update};
 
 /// Frequencies of the position encoding γ(x): 2⁰ … 2⁹ (paper, section 5.1:
 /// L = 10; reference `multires` 10).
@@ -403,6 +404,9 @@ pub struct NerfShape {
     /// The sigmoid's output widened to [−p, 1 + p]: rgb · (1 + 2p) − p
     /// (Mip-NeRF's `rgb_padding`; 0 for NeRF).
     pub colour_padding: f32,
+    /// Per-image appearance embeddings, appended to the colour network's
+    /// input after the direction's encoding; `None` without.
+    pub appearance: Option<AppearanceShape>,
 }
 
 impl NerfShape {
@@ -439,17 +443,30 @@ impl NerfShape {
     pub fn layout(&self) -> ParamLayout {
         let [a, b, c] = self.ranges();
         let dense = Update::Dense { l2: true };
-        ParamLayout::new()
+        let layout = ParamLayout::new()
             .with("trunk A", a.len(), dense)
             .with("trunk B", b.len(), dense)
-            .with("colour network", c.len(), dense)
+            .with("colour network", c.len(), dense);
+        match &self.appearance {
+            // No weight decay on the embeddings.
+            Some(appearance) => layout.with(
+                APPEARANCE_PART,
+                appearance.param_count(),
+                Update::Dense { l2: false },
+            ),
+            None => layout,
+        }
     }
 
-    /// Initial parameters, each network from its own seed.
+    /// Initial parameters, each network from its own seed, the appearance
+    /// embeddings from theirs.
     pub fn init_params(&self, seed: u64) -> Vec<f32> {
         let mut params = self.trunk_a.init_params(seed ^ 0x7472_756e_6b61);
         params.extend(self.trunk_b.init_params(seed ^ 0x7472_756e_6b62));
         params.extend(self.colour.init_params(seed ^ 0x636f_6c6f));
+        if let Some(appearance) = &self.appearance {
+            params.extend(appearance.init_params(seed ^ 0x6170_7065));
+        }
         params
     }
 
@@ -514,7 +531,25 @@ impl NerfShape {
             ),
             density,
             colour_padding: 0.0,
+            appearance: None,
         }
+    }
+
+    /// The same field with a vector per training image of `appearance`
+    /// in its colour network's input ([feature | γ(d) | appearance]), or
+    /// without (`None`).
+    pub fn with_appearance(mut self, appearance: Option<AppearanceShape>) -> Self {
+        self.colour.widths[0] = self.trunk_a.output_width()
+            + self.direction.output_width()
+            + appearance.map_or(0, |a| a.width);
+        self.appearance = appearance;
+        self
+    }
+
+    /// The appearance embeddings, after the colour network (empty without).
+    pub fn appearance_range(&self) -> std::ops::Range<usize> {
+        let start = self.ranges()[2].end;
+        start..start + self.appearance.map_or(0, |a| a.param_count())
     }
 }
 

@@ -12,9 +12,10 @@ use super::common::{LrSchedule, MarchConfig, OccupancyConfig, OptimiserConfig};
 use super::encoding::HashGridConfig;
 use super::mlp::NetworkConfig;
 
+use super::appearance::AppearanceShape;
 use super::encoding::HashGridLayout;
 use super::mlp::{Activation, MlpLayout, Precision};
-use super::params::{ParamLayout, Update};
+use super::params::{APPEARANCE_PART, ParamLayout, Update};
 use crate::scene::{Scene, UnitCubeMapping};
 
 impl HashGridConfig {
@@ -392,6 +393,9 @@ pub struct NgpShape {
     /// x: 1 as in the paper, [`PROPOSAL_INIT_DENSITY`] in the contracted
     /// space.
     pub density_scale: f32,
+    /// Per-image appearance embeddings, appended to the colour network's
+    /// input after the spherical harmonics; `None` without.
+    pub appearance: Option<AppearanceShape>,
 }
 
 impl NgpShape {
@@ -418,7 +422,20 @@ impl NgpShape {
             network,
             mapping: scene.unit_cube,
             density_scale: 1.0,
+            appearance: None,
         }
+    }
+
+    /// The same field with a vector per training image of `appearance`
+    /// in its colour network's input ([16 density outputs | 16 SH |
+    /// 32 appearance]), or without (`None`).
+    pub fn with_appearance(mut self, appearance: Option<AppearanceShape>) -> Self {
+        let network = &self.network;
+        self.colour.widths[0] = network.density_output_width
+            + network.sh_coefficients()
+            + appearance.map_or(0, |a| a.width);
+        self.appearance = appearance;
+        self
     }
 
     /// The same model with its networks' products at `precision`.
@@ -456,28 +473,46 @@ impl NgpShape {
         start..start + self.colour.param_count()
     }
 
+    /// The appearance embeddings, after the colour network (empty without).
+    pub fn appearance_range(&self) -> Range<usize> {
+        let start = self.colour_range().end;
+        start..start + self.appearance.map_or(0, |a| a.param_count())
+    }
+
     pub fn param_count(&self) -> usize {
-        self.colour_range().end
+        self.appearance_range().end
     }
 
     /// Initial parameters: the grid's entries uniform in ±1e-4 (paper,
-    /// section 4), each network from its own seed.
+    /// section 4), each network from its own seed, the appearance
+    /// embeddings from theirs.
     pub fn init_params(&self, seed: u64) -> Vec<f32> {
         let mut params = self.grid.init_params(seed);
         params.extend(self.density.init_params(seed ^ 0x64656e73));
         params.extend(self.colour.init_params(seed ^ 0x636f6c6f));
+        if let Some(appearance) = &self.appearance {
+            params.extend(appearance.init_params(seed ^ 0x6170_7065));
+        }
         assert_eq!(params.len(), self.param_count());
         params
     }
 
     /// The parameters part by part: the grid sparse, the networks dense
-    /// with weight decay.
+    /// with weight decay, the appearance embeddings dense without.
     pub fn layout(&self) -> ParamLayout {
         let dense = Update::Dense { l2: true };
-        ParamLayout::new()
+        let layout = ParamLayout::new()
             .with("hash grid", self.grid.param_count(), Update::Sparse)
             .with("density network", self.density.param_count(), dense)
-            .with("colour network", self.colour.param_count(), dense)
+            .with("colour network", self.colour.param_count(), dense);
+        match &self.appearance {
+            Some(appearance) => layout.with(
+                APPEARANCE_PART,
+                appearance.param_count(),
+                Update::Dense { l2: false },
+            ),
+            None => layout,
+        }
     }
 }
 

@@ -19,6 +19,10 @@ pub enum Update {
     Sparse,
 }
 
+/// The name of a field's part that holds its appearance embeddings
+/// ([`crate::field::appearance`]).
+pub const APPEARANCE_PART: &str = "appearance embeddings";
+
 /// A named part of the parameters.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct ParamRange {

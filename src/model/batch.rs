@@ -16,8 +16,9 @@ pub struct RayBatch {
     pub backgrounds: Vec<[f32; 3]>,
     /// Cone radius at unit distance of each ray ([`crate::scene::Ray::radius`]).
     pub radii: Vec<f32>,
-    /// The training image of each ray (its index among the frames drawn
-    /// from), whose pose correction camera refinement applies; may be
+    /// Each ray's training image: its index among the frames it was drawn
+    /// from (the scene's training views), which picks its appearance
+    /// vector and its pose correction in a model that learns them; may be
     /// empty for rays of no image.
     pub images: Vec<u32>,
 }
@@ -105,8 +106,8 @@ pub fn sample_rays_cropped(
     }
     for _ in 0..count {
         let choice = rng.below(choices as u32) as usize;
-        let image = drawable.as_ref().map_or(choice, |d| d[choice]);
-        let frame = &frames[image];
+        let index = drawable.as_ref().map_or(choice, |d| d[choice]);
+        let frame = &frames[index];
         let k = frame.camera.intrinsics;
         let (x, y) = match (crop, &frame.mask) {
             (None, None) => (rng.below(k.width), rng.below(k.height)),
@@ -138,7 +139,7 @@ pub fn sample_rays_cropped(
         batch.radii.push(ray.radius());
         batch.targets.push(frame.image.rgb_over(x, y, bg));
         batch.backgrounds.push(bg);
-        batch.images.push(image as u32);
+        batch.images.push(index as u32);
     }
 }
 

@@ -372,6 +372,20 @@ pub trait RadianceModel: Send {
         None
     }
 
+    /// Training images with an appearance vector of their own, for a
+    /// model with appearance embeddings (`None` without).
+    fn appearance_images(&self) -> Option<usize> {
+        None
+    }
+
+    /// The appearance [`Self::render`] draws with: the training image
+    /// `image`'s vector, or the mean of them all (`None`, the default: a
+    /// view that is no training image's, as held-out views are evaluated).
+    fn set_render_appearance(&mut self, image: Option<usize>) -> Result<(), String> {
+        let _ = image;
+        Err(format!("{} has no appearance embeddings", self.describe()))
+    }
+
     /// Limits what [`Self::render`] shows to a crop box (`None`: the whole
     /// scene): samples outside it have no density, so the background shows
     /// through.

@@ -51,6 +51,17 @@ impl SplitScores {
     }
 }
 
+/// How a model with appearance embeddings renders held-out views, for the
+/// evaluation's output: `None` for a model without them.
+pub fn describe_appearance(model: &dyn RadianceModel) -> Option<String> {
+    model.appearance_images().map(|images| {
+        format!(
+            "held-out views have no appearance embedding of their own: they are rendered with \
+             the mean of the {images} training images' (nerfacto's choice)"
+        )
+    })
+}
+
 /// Renders `frame`'s camera over white and scores it against the image.
 /// A render that is not finite (a diverged model) scores NaN, which the
 /// callers report; it is not a reason to panic.

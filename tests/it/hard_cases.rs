@@ -222,6 +222,7 @@ fn settings(sampling: Sampling) -> ModelSettings {
         sampling,
         precision: Precision::F32,
         refine_cameras: false,
+        appearance: false,
     }
 }
 

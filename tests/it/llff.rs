@@ -296,6 +296,7 @@ fn trained_in_ndc(steps: u32, scene: Scene) -> zrak::train::trainer::Trainer {
                 sampling: Sampling::Occupancy,
                 precision: Precision::F32,
                 refine_cameras: false,
+                appearance: false,
             },
         ),
         &scene,

@@ -10,6 +10,7 @@
 mod common;
 
 mod adam_gpu;
+mod appearance;
 mod captures;
 mod cli;
 mod cli_camera_path;

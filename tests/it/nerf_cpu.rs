@@ -35,6 +35,7 @@ fn model_of(scene: &Scene, kind: NerfKind, sampling: Sampling) -> CpuModel {
         sampling,
         precision: zrak::field::mlp::Precision::F32,
         refine_cameras: false,
+        appearance: false,
     };
     match kind {
         NerfKind::Nerf => CpuModel::build(
@@ -106,6 +107,7 @@ fn check_field_gradient(kind: NerfKind) {
             &positions,
             variances,
             &directions,
+            zrak::field::appearance::Appearance::None,
             &mut sigma,
             &mut rgb,
         );
@@ -131,6 +133,7 @@ fn check_field_gradient(kind: NerfKind) {
         &positions,
         variances,
         &directions,
+        zrak::field::appearance::Appearance::None,
         &mut sigma,
         &mut rgb,
     );
@@ -140,6 +143,7 @@ fn check_field_gradient(kind: NerfKind) {
         &positions,
         variances,
         &directions,
+        zrak::field::appearance::Appearance::None,
         &mut sigma_inf,
         &mut rgb_inf,
     );

@@ -507,7 +507,15 @@ fn check_parity(shape: &NerfShape, rows: usize, seed: u64) {
 
     let mut cpu = NerfField::new(shape.clone());
     let (mut sigma, mut rgb) = (vec![0.0; rows], vec![0.0; 3 * rows]);
-    cpu.forward(&params, &positions, None, &directions, &mut sigma, &mut rgb);
+    cpu.forward(
+        &params,
+        &positions,
+        None,
+        &directions,
+        zrak::field::appearance::Appearance::None,
+        &mut sigma,
+        &mut rgb,
+    );
     let mut grad = vec![0.0; params.len()];
     cpu.backward(&params, &d_sigma, &d_rgb, &mut grad, Gradient::Add);
     let mut cpu_density = vec![0.0; rows];

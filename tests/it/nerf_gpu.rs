@@ -150,6 +150,7 @@ fn settings(sampling: Sampling) -> ModelSettings {
         sampling,
         precision: zrak::field::mlp::Precision::F32,
         refine_cameras: false,
+        appearance: false,
     }
 }
 

@@ -57,6 +57,7 @@ fn demo_trainer(
         sampling: Sampling::Occupancy,
         precision,
         refine_cameras: false,
+        appearance: false,
     };
     let model_kind = match kind {
         Kind::Nerf => ModelKind::Nerf,

@@ -146,7 +146,15 @@ fn gpu_ngp_field_matches_the_cpu_field() {
 
     let mut cpu = NgpField::new(shape.clone());
     let (mut sigma, mut rgb) = (vec![0.0; ROWS], vec![0.0; 3 * ROWS]);
-    cpu.forward(&params, &positions, None, &directions, &mut sigma, &mut rgb);
+    cpu.forward(
+        &params,
+        &positions,
+        None,
+        &directions,
+        zrak::field::appearance::Appearance::None,
+        &mut sigma,
+        &mut rgb,
+    );
     let mut gradient = vec![0.0; params.len()];
     cpu.backward(&params, &d_sigma, &d_rgb, &mut gradient, Gradient::Add);
     let mut density = vec![0.0; ROWS];

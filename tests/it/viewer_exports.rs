@@ -133,6 +133,7 @@ fn the_viewers_mesh_and_points_are_the_commands_and_an_existing_file_stays() {
         sampling: sampling.unwrap_or(zrak::field::common::Sampling::Occupancy),
         precision: Precision::F32,
         refine_cameras: false,
+        appearance: false,
     };
     let mut trainer = Trainer::new(
         Box::new(zrak::engine::cpu::model::CpuModel::build(

@@ -59,6 +59,7 @@ fn settings() -> ModelSettings {
         sampling: zrak::field::common::Sampling::Occupancy,
         precision: zrak::field::mlp::Precision::F32,
         refine_cameras: false,
+        appearance: false,
     }
 }
 

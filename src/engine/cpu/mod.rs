@@ -1,6 +1,7 @@
 //! The `cpu` engine: every stage in plain Rust, and the reference the `gpu`
 //! engine is tested against.
 
+pub(crate) mod appearance;
 pub mod composite;
 pub mod composite_batch;
 pub mod dense;

@@ -30,6 +30,11 @@ pub(crate) struct ModelHeader {
     /// the box rather than the unit cube.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub grid_extent: Option<f32>,
+    /// Training images with appearance embeddings, for a model that has
+    /// them (absent otherwise, and from checkpoints written before they
+    /// existed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub appearance_images: Option<usize>,
 }
 
 impl ModelHeader {
@@ -50,6 +55,37 @@ impl ModelHeader {
                  whole box (aabb_scale {extent}); its field does not carry over: train the scene again"
             )),
         }
+    }
+}
+
+/// Whether `checkpoint` was trained with the appearance embeddings the
+/// model has (`images`: its training images with embeddings, `None`
+/// without), before its parameter count is compared: a checkpoint of the
+/// other kind says so rather than that the counts differ. A header that
+/// does not read is left to [`ModelState::from_checkpoint`] to refuse.
+pub(crate) fn check_appearance(
+    checkpoint: &Checkpoint,
+    images: Option<usize>,
+) -> Result<(), String> {
+    let Ok(header) = serde_json::from_value::<ModelHeader>(checkpoint.header.clone()) else {
+        return Ok(());
+    };
+    match (header.appearance_images, images) {
+        (saved, wanted) if saved == wanted => Ok(()),
+        (Some(saved), None) => Err(format!(
+            "the checkpoint was trained with appearance embeddings (of {saved} training images) \
+             and this model has none: load it with appearance on"
+        )),
+        (None, Some(_)) => Err(
+            "the checkpoint was trained without appearance embeddings and this model has them: \
+             load it with appearance off"
+                .into(),
+        ),
+        (Some(saved), Some(wanted)) => Err(format!(
+            "the checkpoint has appearance embeddings of {saved} training images, this scene \
+             {wanted}"
+        )),
+        (None, None) => Ok(()),
     }
 }
 

@@ -884,11 +884,16 @@ fn intersect_shape(
     }
 }
 
+mod appearance;
 mod moving;
 #[cfg(test)]
 mod tests;
 mod unbounded;
 
+pub use appearance::{
+    APPEARANCE_TRUTH_FILE, AppearanceJitter, AppearanceTruth, ViewAppearance, apply_appearance,
+    build_appearance_jitter, write_appearance_jitter,
+};
 pub use moving::{
     MOVING_PLACES, MOVING_RADIUS, build_moving_object, moving_object_centre, write_moving_object,
 };

@@ -645,6 +645,7 @@ impl Worker {
             sampling,
             precision: self.options.precision,
             refine_cameras: self.scene.photographs.refine_cameras.on,
+            appearance: self.scene.photographs.appearance.on,
         };
         let engine = self.engine.choice()?;
         let mut model = build_viewer_model(

@@ -63,6 +63,7 @@ pub fn trained(steps: u32) -> Trainer {
                 sampling: Sampling::Occupancy,
                 precision: Precision::F32,
                 refine_cameras: false,
+                appearance: false,
             },
         ),
         &scene,

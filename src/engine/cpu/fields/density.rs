@@ -14,7 +14,7 @@
 
 use std::sync::Mutex;
 
-use super::{Field, Gradient, hash_grid_backward, set_len};
+use super::{Appearance, Field, Gradient, hash_grid_backward, set_len};
 use crate::engine::cpu::dense::{
     Backend, InputGradient, MlpGradients, MlpWorkspace, mlp_backward, mlp_forward, mlp_inference,
 };
@@ -103,6 +103,7 @@ impl Field for DensityField {
         positions: &[f32],
         _variances: Option<&[f32]>,
         _directions: &[f32],
+        _appearance: Appearance<'_>,
         sigma: &mut [f32],
         rgb: &mut [f32],
     ) {
@@ -182,6 +183,7 @@ impl Field for DensityField {
         positions: &[f32],
         variances: Option<&[f32]>,
         _directions: &[f32],
+        _appearance: Appearance<'_>,
         sigma: &mut [f32],
         rgb: &mut [f32],
     ) {

@@ -9,6 +9,7 @@ pub mod nerf_density;
 pub mod ngp;
 
 use crate::field::FieldShape;
+pub use crate::field::appearance::{Appearance, AppearanceShape};
 use crate::field::params::ParamLayout;
 
 // Where a field's positions live is a property of the field on either
@@ -106,8 +107,8 @@ pub trait Field: Send + Sync {
     /// [`Field::forward`] on the samples before each ray's cut: `rows` are
     /// their indices among the samples of the last
     /// [`Field::density_for_cut`], and `positions`, `variances` and
-    /// `directions` those rows gathered. By default the forward pass on the
-    /// gathered rows.
+    /// `directions` those rows gathered; `appearance` is theirs too (per
+    /// gathered row). By default the forward pass on the gathered rows.
     #[allow(clippy::too_many_arguments)]
     fn forward_before_cut(
         &mut self,
@@ -116,11 +117,14 @@ pub trait Field: Send + Sync {
         positions: &[f32],
         variances: Option<&[f32]>,
         directions: &[f32],
+        appearance: Appearance<'_>,
         sigma: &mut [f32],
         rgb: &mut [f32],
     ) {
         let _ = rows;
-        self.forward(params, positions, variances, directions, sigma, rgb);
+        self.forward(
+            params, positions, variances, directions, appearance, sigma, rgb,
+        );
     }
 
     /// Whether a marched step may find the cut in a forward pass over every
@@ -132,14 +136,17 @@ pub trait Field: Send + Sync {
     }
 
     /// σ (n) and colour (n × 3) at positions (with `variances` as in
-    /// [`Field::density`]) and unit directions (n × 3 each), keeping what
-    /// [`Field::backward`] needs.
+    /// [`Field::density`]) and unit directions (n × 3 each), each sample's
+    /// colour with its `appearance` where the field has embeddings, keeping
+    /// what [`Field::backward`] needs.
+    #[allow(clippy::too_many_arguments)]
     fn forward(
         &mut self,
         params: &[f32],
         positions: &[f32],
         variances: Option<&[f32]>,
         directions: &[f32],
+        appearance: Appearance<'_>,
         sigma: &mut [f32],
         rgb: &mut [f32],
     );
@@ -147,7 +154,8 @@ pub trait Field: Send + Sync {
     /// Writes or adds (`mode`) to `gradients` (this field's parameters) the
     /// gradient of the loss given its gradients with respect to the last
     /// forward pass's σ and colour. Positions and directions get no
-    /// gradient: no model here learns its sample positions.
+    /// gradient: no model here learns its sample positions. The appearance
+    /// embeddings the forward pass used get theirs.
     fn backward(
         &mut self,
         params: &[f32],
@@ -181,15 +189,22 @@ pub trait Field: Send + Sync {
     }
 
     /// σ and colour without keeping activations (rendering).
+    #[allow(clippy::too_many_arguments)]
     fn radiance(
         &self,
         params: &[f32],
         positions: &[f32],
         variances: Option<&[f32]>,
         directions: &[f32],
+        appearance: Appearance<'_>,
         sigma: &mut [f32],
         rgb: &mut [f32],
     );
+
+    /// Its table of appearance embeddings, if it has one.
+    fn appearance(&self) -> Option<AppearanceShape> {
+        None
+    }
 
     /// A field of the same shape with scratch of its own, for a later level
     /// that evaluates the same parameters while this field's activations

@@ -22,7 +22,8 @@
 
 use rayon::prelude::*;
 
-use super::{Field, Gradient, set_len};
+use super::{Appearance, Field, Gradient, set_len};
+use crate::engine::cpu::appearance::{KeptAppearance, appearance_backward, write_appearance};
 use crate::engine::cpu::dense::{
     InputGradient, MlpGradients, MlpWorkspace, mlp_backward, mlp_forward, mlp_inference,
     mlp_inference_leading,
@@ -69,6 +70,10 @@ struct Activations {
     d_trunk_a_out: Vec<f32>,
     /// The colour gradient through the padding.
     d_colour: Vec<f32>,
+    /// Which appearance vector each row took, and the gradient of the
+    /// colour network's whole input (fields with embeddings).
+    appearance: KeptAppearance,
+    d_colour_in: Vec<f32>,
 }
 
 /// NeRF's field on the `cpu` engine.
@@ -98,6 +103,8 @@ impl NerfField {
                 d_feature: Vec::new(),
                 d_trunk_a_out: Vec::new(),
                 d_colour: Vec::new(),
+                appearance: KeptAppearance::default(),
+                d_colour_in: Vec::new(),
             },
         }
     }
@@ -231,6 +238,7 @@ impl Field for NerfField {
         positions: &[f32],
         variances: Option<&[f32]>,
         directions: &[f32],
+        appearance: Appearance<'_>,
         sigma: &mut [f32],
         rgb: &mut [f32],
     ) {
@@ -277,24 +285,37 @@ impl Field for NerfField {
         for (sigma, row) in sigma.iter_mut().zip(k.trunk_b_out.chunks_exact(width + 1)) {
             *sigma = s.density.apply(row[0]);
         }
-        // The colour network's input: the feature columns, then γ(d).
-        set_len(&mut k.colour_in, n * (width + enc_dir));
+        // The colour network's input: the feature columns, then γ(d), then
+        // the appearance vector where the field has embeddings.
+        let colour_width = s.colour.input_width();
+        set_len(&mut k.colour_in, n * colour_width);
         let mut encoded_direction = vec![0f32; n * enc_dir];
         frequency::encode(&s.direction, directions, None, &mut encoded_direction);
         k.colour_in
-            .par_chunks_mut(ROWS_PER_TASK * (width + enc_dir))
+            .par_chunks_mut(ROWS_PER_TASK * colour_width)
             .zip(k.trunk_b_out.par_chunks(ROWS_PER_TASK * (width + 1)))
             .zip(encoded_direction.par_chunks(ROWS_PER_TASK * enc_dir))
             .for_each(|((out, b), d)| {
                 for ((o, b), d) in out
-                    .chunks_exact_mut(width + enc_dir)
+                    .chunks_exact_mut(colour_width)
                     .zip(b.chunks_exact(width + 1))
                     .zip(d.chunks_exact(enc_dir))
                 {
                     o[..width].copy_from_slice(&b[1..]);
-                    o[width..].copy_from_slice(d);
+                    o[width..width + enc_dir].copy_from_slice(d);
                 }
             });
+        if let Some(table) = &s.appearance {
+            write_appearance(
+                table,
+                &params[s.appearance_range()],
+                appearance,
+                &mut k.colour_in,
+                colour_width,
+                width + enc_dir,
+                Some(&mut k.appearance),
+            );
+        }
         self.c.reserve(n);
         mlp_forward(&s.colour, &params[rc], &k.colour_in, n, &mut self.c, rgb);
         s.pad_colours(rgb);
@@ -333,25 +354,55 @@ impl Field for NerfField {
             d_rgb
         };
         let (grad_a, rest) = gradients.split_at_mut(ra.end);
-        let (grad_b, grad_c) = rest.split_at_mut(rb.len());
-        // Colour network; the input gradient of its feature columns only
-        // (the direction encoding has no parameters).
+        let (grad_b, rest) = rest.split_at_mut(rb.len());
+        let (grad_c, grad_appearance) = rest.split_at_mut(rc.len());
         set_len(&mut k.d_feature, n * width);
-        mlp_backward(
-            &s.colour,
-            &params[rc],
-            &k.colour_in,
-            n,
-            &mut self.c,
-            MlpGradients {
-                output: d_rgb,
-                params: grad_c,
-                input: Some(InputGradient {
-                    values: &mut k.d_feature,
-                    columns: 0..width,
-                }),
-            },
-        );
+        match &s.appearance {
+            // Colour network; the input gradient of its feature columns
+            // only (the direction encoding has no parameters).
+            None => mlp_backward(
+                &s.colour,
+                &params[rc],
+                &k.colour_in,
+                n,
+                &mut self.c,
+                MlpGradients {
+                    output: d_rgb,
+                    params: grad_c,
+                    input: Some(InputGradient {
+                        values: &mut k.d_feature,
+                        columns: 0..width,
+                    }),
+                },
+            ),
+            // And of the appearance columns, after the direction's: the
+            // whole input's gradient, split.
+            Some(table) => {
+                let colour_width = s.colour.input_width();
+                set_len(&mut k.d_colour_in, n * colour_width);
+                mlp_backward(
+                    &s.colour,
+                    &params[rc],
+                    &k.colour_in,
+                    n,
+                    &mut self.c,
+                    MlpGradients {
+                        output: d_rgb,
+                        params: grad_c,
+                        input: Some(InputGradient::every_column(&mut k.d_colour_in, &s.colour)),
+                    },
+                );
+                take_columns(&k.d_colour_in, colour_width, 0..width, &mut k.d_feature);
+                appearance_backward(
+                    table,
+                    &k.appearance,
+                    &k.d_colour_in,
+                    colour_width,
+                    width + s.direction.output_width(),
+                    grad_appearance,
+                );
+            }
+        }
         // [dσ_raw | d feature] for trunk B's output.
         set_len(&mut k.d_trunk_b_out, n * (width + 1));
         let density = s.density;
@@ -407,18 +458,28 @@ impl Field for NerfField {
         positions: &[f32],
         variances: Option<&[f32]>,
         directions: &[f32],
+        appearance: Appearance<'_>,
         sigma: &mut [f32],
         rgb: &mut [f32],
     ) {
         let s = &self.shape;
         let [ra, rb, rc] = s.ranges();
         let (width, enc_dir) = (s.width(), s.direction.output_width());
+        // The vector every sample takes, where the field has embeddings:
+        // a render's samples share one.
+        let shared = s.appearance.map(|table| {
+            (
+                table,
+                table.shared_vector(&params[s.appearance_range()], appearance),
+            )
+        });
         let rows = INFERENCE_ROWS.min(sigma.len().max(1));
         let mut trunk = TrunkInput::new(s, rows);
         let mut feature = vec![0f32; rows * width];
         let mut b_out = vec![0f32; rows * (width + 1)];
         let mut encoded_direction = vec![0f32; rows * enc_dir];
         let mut colour_in = vec![0f32; rows * (width + enc_dir)];
+        let mut widened = Vec::new();
         for (chunk, (((positions, directions), sigma), rgb)) in positions
             .chunks(3 * rows)
             .zip(directions.chunks(3 * rows))
@@ -458,15 +519,37 @@ impl Field for NerfField {
                 enc_dir,
                 &mut colour_in[..m * (width + enc_dir)],
             );
-            mlp_inference(
-                &s.colour,
-                &params[rc.clone()],
-                &colour_in[..m * (width + enc_dir)],
-                m,
-                rgb,
-            );
+            let colour_in = match &shared {
+                None => &colour_in[..m * (width + enc_dir)],
+                Some((table, vector)) => {
+                    let colour_width = width + enc_dir + table.width;
+                    set_len(&mut widened, m * colour_width);
+                    for ((out, row), image) in widened
+                        .chunks_exact_mut(colour_width)
+                        .zip(colour_in.chunks_exact(width + enc_dir))
+                        .zip(0..)
+                    {
+                        out[..width + enc_dir].copy_from_slice(row);
+                        let vector = match (vector, appearance) {
+                            (Some(vector), _) => &vector[..],
+                            (None, Appearance::PerSample(images)) => {
+                                let row = images[chunk * rows + image] as usize;
+                                &params[s.appearance_range()][row * table.width..][..table.width]
+                            }
+                            (None, _) => unreachable!("only per-sample appearance varies"),
+                        };
+                        out[width + enc_dir..].copy_from_slice(vector);
+                    }
+                    &widened[..]
+                }
+            };
+            mlp_inference(&s.colour, &params[rc.clone()], colour_in, m, rgb);
             s.pad_colours(rgb);
         }
+    }
+
+    fn appearance(&self) -> Option<crate::field::appearance::AppearanceShape> {
+        self.shape.appearance
     }
 
     fn macs_per_sample(&self) -> usize {
@@ -489,6 +572,7 @@ impl Field for NerfField {
             &k.d_feature,
             &k.d_trunk_a_out,
             &k.d_colour,
+            &k.d_colour_in,
         ]
         .iter()
         .map(|v| v.capacity())
@@ -496,5 +580,6 @@ impl Field for NerfField {
             + self.a.bytes()
             + self.b.bytes()
             + self.c.bytes()
+            + k.appearance.bytes()
     }
 }

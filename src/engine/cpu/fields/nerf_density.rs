@@ -9,7 +9,7 @@
 //! It has no colour: a proposal level composites weights only, and its
 //! colour output is zero. Its parameters are the one network's.
 
-use super::{Field, Gradient, set_len};
+use super::{Appearance, Field, Gradient, set_len};
 use crate::engine::cpu::dense::{
     Backend, MlpGradients, MlpWorkspace, mlp_backward, mlp_forward, mlp_inference,
 };
@@ -86,6 +86,7 @@ impl Field for NerfDensityField {
         positions: &[f32],
         variances: Option<&[f32]>,
         _directions: &[f32],
+        _appearance: Appearance<'_>,
         sigma: &mut [f32],
         rgb: &mut [f32],
     ) {
@@ -148,6 +149,7 @@ impl Field for NerfDensityField {
         positions: &[f32],
         variances: Option<&[f32]>,
         _directions: &[f32],
+        _appearance: Appearance<'_>,
         sigma: &mut [f32],
         rgb: &mut [f32],
     ) {

@@ -24,7 +24,10 @@ use std::sync::Mutex;
 
 use rayon::prelude::*;
 
-use super::{Field, Gradient, gather_rows, hash_grid_backward, set_len};
+use super::{
+    Appearance, AppearanceShape, Field, Gradient, gather_rows, hash_grid_backward, set_len,
+};
+use crate::engine::cpu::appearance::{KeptAppearance, appearance_backward, write_appearance};
 use crate::engine::cpu::dense::{
     Backend, InputGradient, MlpGradients, MlpWorkspace, mlp_backward, mlp_forward, mlp_inference,
     mlp_inference_leading,
@@ -82,12 +85,14 @@ impl NgpShape {
         });
     }
 
-    /// Inference of σ and colour at unit-cube positions and directions.
+    /// Inference of σ and colour at unit-cube positions and directions,
+    /// with `appearance` where the field has embeddings.
     pub fn radiance(
         &self,
         params: &[f32],
         positions: &[f32],
         directions: &[f32],
+        appearance: Appearance<'_>,
         sigma: &mut [f32],
         rgb: &mut [f32],
     ) {
@@ -125,6 +130,17 @@ impl NgpShape {
             &mut colour_input[density_width..],
             colour_width,
         );
+        if let Some(table) = &self.appearance {
+            write_appearance(
+                table,
+                &params[self.appearance_range()],
+                appearance,
+                &mut colour_input,
+                colour_width,
+                self.appearance_column(),
+                None,
+            );
+        }
         mlp_inference(
             &self.colour,
             &params[self.colour_range()],
@@ -132,6 +148,14 @@ impl NgpShape {
             n,
             rgb,
         );
+    }
+}
+
+impl NgpShape {
+    /// The colour network's first appearance column: after the density
+    /// outputs and the spherical harmonics.
+    fn appearance_column(&self) -> usize {
+        self.density.output_width() + self.network.sh_coefficients()
     }
 }
 
@@ -162,13 +186,18 @@ pub struct NgpField {
     colour_input: Vec<f32>,
     d_density_out: Vec<f32>,
     d_encoded: Vec<f32>,
-    /// With camera refinement: the gradient of the colour network's whole
-    /// input, direction encoding included (rows × its width), kept by the
-    /// backward pass for [`Field::input_gradients`].
+    /// With camera refinement: whether the backward pass keeps the
+    /// gradient of the colour network's whole input, direction encoding
+    /// included, for [`Field::input_gradients`].
     keep_input_gradients: bool,
-    d_colour_input: Vec<f32>,
     /// With camera refinement: the last forward pass's directions.
     directions: Vec<f32>,
+    /// Which appearance vector each row of the last forward pass took
+    /// (fields with embeddings).
+    appearance: KeptAppearance,
+    /// The gradient of the colour network's whole input (rows × its
+    /// width), with camera refinement or appearance embeddings.
+    d_colour_input: Vec<f32>,
     /// Hash features and scratch of σ inference through `&self` (the
     /// occupancy grid's updates).
     inference: Mutex<(Vec<f32>, Vec<f32>)>,
@@ -191,8 +220,9 @@ impl NgpField {
             d_density_out: Vec::new(),
             d_encoded: Vec::new(),
             keep_input_gradients: false,
-            d_colour_input: Vec::new(),
             directions: Vec::new(),
+            appearance: KeptAppearance::default(),
+            d_colour_input: Vec::new(),
             inference: Mutex::new((Vec::new(), Vec::new())),
         }
     }
@@ -203,7 +233,13 @@ impl NgpField {
 
     /// The networks' forward pass on the rows whose hash features are in
     /// `self.encoded` and σ in `self.sigma`: the colour of each into `rgb`.
-    fn networks_forward(&mut self, params: &[f32], directions: &[f32], rgb: &mut [f32]) {
+    fn networks_forward(
+        &mut self,
+        params: &[f32],
+        directions: &[f32],
+        appearance: Appearance<'_>,
+        rgb: &mut [f32],
+    ) {
         if self.keep_input_gradients {
             self.directions.clear();
             self.directions.extend_from_slice(directions);
@@ -244,6 +280,17 @@ impl NgpField {
                 .unwrap_or_default(),
             colour_width,
         );
+        if let Some(table) = &shape.appearance {
+            write_appearance(
+                table,
+                &params[shape.appearance_range()],
+                appearance,
+                &mut self.colour_input,
+                colour_width,
+                shape.appearance_column(),
+                Some(&mut self.appearance),
+            );
+        }
         self.colour_workspace.reserve(u);
         mlp_forward(
             &shape.colour,
@@ -315,6 +362,7 @@ impl Field for NgpField {
         positions: &[f32],
         _variances: Option<&[f32]>,
         directions: &[f32],
+        appearance: Appearance<'_>,
         sigma: &mut [f32],
         rgb: &mut [f32],
     ) {
@@ -327,7 +375,7 @@ impl Field for NgpField {
         gather_rows(&self.marched_sigma, 1, rows, &mut self.sigma);
         self.positions.clear();
         self.positions.extend_from_slice(positions);
-        self.networks_forward(params, directions, rgb);
+        self.networks_forward(params, directions, appearance, rgb);
         sigma.copy_from_slice(&self.sigma);
     }
 
@@ -343,6 +391,7 @@ impl Field for NgpField {
         positions: &[f32],
         _variances: Option<&[f32]>,
         directions: &[f32],
+        appearance: Appearance<'_>,
         sigma: &mut [f32],
         rgb: &mut [f32],
     ) {
@@ -360,7 +409,7 @@ impl Field for NgpField {
         self.positions.extend_from_slice(positions);
         // σ from the density network's output 0 once the pass has run.
         set_len(&mut self.sigma, n);
-        self.networks_forward(params, directions, rgb);
+        self.networks_forward(params, directions, appearance, rgb);
         let density_width = self.shape.density.output_width();
         let scale = self.shape.density_scale;
         for (s, row) in self
@@ -396,12 +445,13 @@ impl Field for NgpField {
             network_grad.fill(0.0);
         }
         let (density_grad, colour_grad) = network_grad.split_at_mut(shape.density.param_count());
-        // The colour network's input gradient is wanted for its density
-        // features only (the first columns), not for the direction encoding.
+        let (colour_grad, appearance_grad) = colour_grad.split_at_mut(shape.colour.param_count());
         set_len(&mut self.d_density_out, u * density_width);
-        if self.keep_input_gradients {
-            // Every column, the direction encoding's too; the density
-            // features' columns then go where the pass below reads them.
+        if self.keep_input_gradients || shape.appearance.is_some() {
+            // Every column: the density features' go where the pass below
+            // reads them, the direction encoding's stay for
+            // [`Field::input_gradients`] (camera refinement) and the
+            // appearance columns' go to their images' rows.
             let colour_width = shape.colour.input_width();
             set_len(&mut self.d_colour_input, u * colour_width);
             mlp_backward(
@@ -419,14 +469,27 @@ impl Field for NgpField {
                     )),
                 },
             );
-            for (d_out, d_input) in self
+            for (d_out, d_in) in self
                 .d_density_out
                 .chunks_exact_mut(density_width)
                 .zip(self.d_colour_input.chunks_exact(colour_width))
             {
-                d_out.copy_from_slice(&d_input[..density_width]);
+                d_out.copy_from_slice(&d_in[..density_width]);
+            }
+            if let Some(table) = &shape.appearance {
+                appearance_backward(
+                    table,
+                    &self.appearance,
+                    &self.d_colour_input,
+                    colour_width,
+                    shape.appearance_column(),
+                    appearance_grad,
+                );
             }
         } else {
+            // The colour network's input gradient is wanted for its density
+            // features only (the first columns), not for the direction
+            // encoding.
             mlp_backward(
                 &shape.colour,
                 &params[shape.colour_range()],
@@ -528,11 +591,16 @@ impl Field for NgpField {
         positions: &[f32],
         _variances: Option<&[f32]>,
         directions: &[f32],
+        appearance: Appearance<'_>,
         sigma: &mut [f32],
         rgb: &mut [f32],
     ) {
         self.shape
-            .radiance(params, positions, directions, sigma, rgb);
+            .radiance(params, positions, directions, appearance, sigma, rgb);
+    }
+
+    fn appearance(&self) -> Option<AppearanceShape> {
+        self.shape.appearance
     }
 
     fn macs_per_sample(&self) -> usize {
@@ -555,11 +623,13 @@ impl Field for NgpField {
             &self.colour_input,
             &self.d_density_out,
             &self.d_encoded,
+            &self.d_colour_input,
         ]
         .iter()
         .map(|v| v.capacity())
         .sum::<usize>()
             + self.density_workspace.bytes()
             + self.colour_workspace.bytes()
+            + self.appearance.bytes()
     }
 }

@@ -63,11 +63,14 @@ impl CpuModel {
                     .then_some(&lb.variances[..]);
                 let field =
                     Self::level_field(&mut self.fields, &mut self.twins, level_index, level.field);
+                let ray_images = b.ray_images.get(start..end).unwrap_or_default();
+                sample_images(ray_images, &lb.ray_offsets, &mut b.sample_images);
                 field.forward(
                     field_params,
                     &lb.positions,
                     variances,
                     &lb.directions,
+                    training_appearance(&b.sample_images),
                     &mut lb.sigma,
                     &mut lb.rgb,
                 );
@@ -301,6 +304,7 @@ impl CpuModel {
                     &lb.positions,
                     frustums.then_some(&lb.variances[..]),
                     &lb.directions,
+                    self.rendered_appearance(),
                     &mut lb.sigma,
                     &mut lb.rgb,
                 );

@@ -117,11 +117,17 @@ impl CpuModel {
         if forward_first {
             set_len(&mut b.sigma_forward, s);
             set_len(&mut b.rgb_marched, 3 * s);
+            sample_images(
+                &b.ray_images,
+                &b.marched.ray_offsets[..kept + 1],
+                &mut b.sample_images,
+            );
             self.fields[level.field].forward(
                 field_params,
                 positions,
                 frustums.then_some(&b.variances_marched[..]),
                 &b.marched.directions,
+                training_appearance(&b.sample_images),
                 &mut b.sigma_forward,
                 &mut b.rgb_marched,
             );
@@ -179,12 +185,14 @@ impl CpuModel {
             // the σ-only inference in the last bits).
             set_len(&mut b.sigma_forward, u);
             set_len(&mut lb.rgb, 3 * u);
+            sample_images(&b.ray_images, &lb.ray_offsets, &mut b.sample_images);
             self.fields[level.field].forward_before_cut(
                 field_params,
                 &b.source,
                 &lb.positions,
                 frustums.then_some(&lb.variances[..]),
                 &lb.directions,
+                training_appearance(&b.sample_images),
                 &mut b.sigma_forward,
                 &mut lb.rgb,
             );

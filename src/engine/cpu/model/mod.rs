@@ -31,7 +31,7 @@ use rayon::prelude::*;
 use super::composite_batch::{
     CompositeGradients, CompositeOutputs, {self},
 };
-use super::fields::{Field, Gradient, gather_rows, set_len};
+use super::fields::{Appearance, AppearanceShape, Field, Gradient, gather_rows, set_len};
 use super::frustum::{contracted_frustum_gaussians, frustum_gaussians};
 use super::loss::loss_and_gradient;
 use super::march::{MarchWorkspace, march};
@@ -44,7 +44,7 @@ use crate::engine::shared::march::{
     GridSamples, MarchParams, MarchedSamples, mix_seed, render_through_grid,
 };
 use crate::engine::shared::occupancy::OccupancyGrid;
-use crate::engine::shared::state::{CameraState, ModelHeader, ModelState};
+use crate::engine::shared::state::{CameraState, ModelHeader, ModelState, check_appearance};
 use crate::field::common::{BatchSize, Coordinates, LossKind, SampleShape, SamplerKind};
 use crate::field::contraction::Contraction;
 use crate::field::params::ParamLayout;
@@ -126,6 +126,10 @@ struct StepBuffers {
     d_sample_directions: Vec<f32>,
     d_origins: Vec<f32>,
     d_directions: Vec<f32>,
+    /// Each ray's training image, and each sample's (models with
+    /// appearance embeddings).
+    ray_images: Vec<u32>,
+    sample_images: Vec<u32>,
 }
 
 /// A model on the `cpu` engine built from a recipe and its fields.
@@ -166,6 +170,9 @@ pub struct CpuModel {
     /// The training images' pose corrections, where the settings ask for
     /// them and the model can learn them (see [`Self::refine_cameras`]).
     refinement: Option<CameraRefinement>,
+    /// The training image whose appearance vector renders use (`None`:
+    /// the mean of them all), for models with appearance embeddings.
+    render_appearance: Option<usize>,
 }
 
 impl CpuModel {
@@ -317,6 +324,22 @@ impl CpuModel {
             samplers,
             twins,
             refinement: None,
+            render_appearance: None,
+        }
+    }
+
+    /// The table of appearance embeddings of the fields that give colour,
+    /// if they have one.
+    fn appearance(&self) -> Option<AppearanceShape> {
+        self.fields.iter().find_map(|field| field.appearance())
+    }
+
+    /// The appearance renders use: [`Appearance::Mean`] or the chosen
+    /// training image's.
+    fn rendered_appearance(&self) -> Appearance<'static> {
+        match self.render_appearance {
+            None => Appearance::Mean,
+            Some(image) => Appearance::Image(image as u32),
         }
     }
 
@@ -504,6 +527,23 @@ impl CpuModel {
             b.images.resize(batch.len(), u32::MAX);
             refinement.apply(&b.images, &mut b.origins, &mut b.directions);
         }
+        b.ray_images.clear();
+        if let Some(table) = self.fields.iter().find_map(|field| field.appearance()) {
+            assert_eq!(
+                batch.images.len(),
+                batch.len(),
+                "a model with appearance embeddings trains on rays that name their image"
+            );
+            assert!(
+                batch
+                    .images
+                    .iter()
+                    .all(|&image| (image as usize) < table.images),
+                "a ray's image beyond the {} with embeddings",
+                table.images
+            );
+            b.ray_images.extend_from_slice(&batch.images);
+        }
         set_len(&mut b.gradients, self.params.len());
         if self.core.recipe.levels[0].sampler == SamplerKind::Occupancy {
             self.marched_step(step)
@@ -570,6 +610,7 @@ impl RadianceModel for CpuModel {
                 let frustums = self.core.recipe.samples == SampleShape::ConicalFrustums;
                 let unit_cube = field.coordinates() == Coordinates::UnitCube;
                 let (mut world, mut variances) = (Vec::new(), Vec::new());
+                let appearance = self.rendered_appearance();
                 render_through_grid(
                     grid,
                     &self.mapping,
@@ -585,6 +626,7 @@ impl RadianceModel for CpuModel {
                                 samples.positions,
                                 None,
                                 samples.directions,
+                                appearance,
                                 sigma,
                                 rgb,
                             );
@@ -608,6 +650,7 @@ impl RadianceModel for CpuModel {
                             &world,
                             frustums.then_some(&variances[..]),
                             samples.directions,
+                            appearance,
                             sigma,
                             rgb,
                         );
@@ -693,6 +736,7 @@ impl RadianceModel for CpuModel {
                 &world,
                 frustums.then_some(&variances[..]),
                 &flat_directions,
+                self.rendered_appearance(),
                 &mut sigma,
                 rgb,
             );
@@ -709,6 +753,24 @@ impl RadianceModel for CpuModel {
         self.refinement.as_ref().map(|r| r.values().to_vec())
     }
 
+    fn appearance_images(&self) -> Option<usize> {
+        self.appearance().map(|table| table.images)
+    }
+
+    fn set_render_appearance(&mut self, image: Option<usize>) -> Result<(), String> {
+        let Some(table) = self.appearance() else {
+            return Err(format!("{} has no appearance embeddings", self.describe()));
+        };
+        if let Some(image) = image.filter(|&image| image >= table.images) {
+            return Err(format!(
+                "no training image {image}: the model has embeddings of {}",
+                table.images
+            ));
+        }
+        self.render_appearance = image;
+        Ok(())
+    }
+
     fn save(&self) -> Checkpoint {
         ModelState {
             header: ModelHeader {
@@ -722,6 +784,7 @@ impl RadianceModel for CpuModel {
                 // Only where it chooses the next step's order.
                 used_fraction: self.chooses_pass_order().then_some(self.used_fraction),
                 grid_extent: self.grid_extent(),
+                appearance_images: self.appearance().map(|table| table.images),
             },
             params: self.params.clone(),
             adam: self.adam.clone(),
@@ -735,6 +798,7 @@ impl RadianceModel for CpuModel {
     }
 
     fn load(&mut self, checkpoint: &Checkpoint) -> Result<(), String> {
+        check_appearance(checkpoint, self.appearance().map(|table| table.images))?;
         let state = ModelState::from_checkpoint(
             checkpoint,
             self.core.identity.key,
@@ -804,6 +868,32 @@ impl RadianceModel for CpuModel {
                 .iter()
                 .map(|f| f.workspace_bytes())
                 .sum::<usize>()
+    }
+}
+
+/// Each sample's training image into `out`, its ray's of `ray_images`
+/// (ray r owns samples `ray_offsets[r]..ray_offsets[r + 1]`); nothing where
+/// `ray_images` is empty (a model without appearance embeddings).
+fn sample_images(ray_images: &[u32], ray_offsets: &[u32], out: &mut Vec<u32>) {
+    out.clear();
+    if ray_images.is_empty() {
+        return;
+    }
+    for (r, ends) in ray_offsets.windows(2).enumerate() {
+        out.extend(std::iter::repeat_n(
+            ray_images[r],
+            (ends[1] - ends[0]) as usize,
+        ));
+    }
+}
+
+/// The appearance of a training pass's samples: each its ray's image where
+/// the model has embeddings (`images` not empty), else none.
+fn training_appearance(images: &[u32]) -> Appearance<'_> {
+    if images.is_empty() {
+        Appearance::None
+    } else {
+        Appearance::PerSample(images)
     }
 }
 

@@ -387,6 +387,11 @@ impl GpuModel {
         let plan = request.plan(scene, request.kind.spec().gpu_batch_samples);
         let shapes = plan.shapes;
         let settings = &request.settings;
+        if shapes.iter().any(|shape| shape.appearance().is_some()) {
+            return Err(
+                "appearance embeddings are on the cpu engine only so far: give --engine cpu".into(),
+            );
+        }
         Self::new(
             context,
             plan.core,
@@ -964,6 +969,7 @@ impl RadianceModel for GpuModel {
                     .then(|| self.grid.as_ref().map(|g| g.used_fraction))
                     .flatten(),
                 grid_extent: self.grid_extent(),
+                appearance_images: None,
             },
             params: self.params(),
             adam,
