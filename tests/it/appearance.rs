@@ -154,7 +154,7 @@ fn check_embedding_gradient(scene: &Arc<Scene>, request: &ModelRequest, used_fra
             // miniature: errors 0.0–1.2 % at 0.025, up to 7 % at 0.1 and
             // 0.4, and 1.6 % at 0.006, where the loss's rounding shows).
             let h = 0.025;
-            let mut shifted = |sign: f64, model: &mut CpuModel| {
+            let shifted = |sign: f64, model: &mut CpuModel| {
                 for (k, index) in range.clone().enumerate() {
                     model.params_mut()[index] =
                         original[k] + (sign * h * gradient[index] as f64 / norm) as f32;
