@@ -1,9 +1,10 @@
 // Gradient accumulation on any device: the f32 is kept as its bits in an
 // atomic<u32> and added with a compare-and-swap loop, retried until no other
 // invocation wrote the entry in between. Exact f32 additions, like the
-// native atomics; only the order varies.
+// native atomics; only the order varies. The kernel that appends it
+// declares `d_params: array<GradientCell>` at its own binding.
 
-@group(0) @binding(4) var<storage, read_write> d_params: array<atomic<u32>>;
+alias GradientCell = atomic<u32>;
 
 fn add_gradient(i: u32, value: f32) {
     var old = atomicLoad(&d_params[i]);

@@ -1,7 +1,9 @@
 // Gradient accumulation with native f32 atomics (wgpu feature
-// SHADER_FLOAT32_ATOMIC: `atomic<f32>` in storage, with atomicAdd).
+// SHADER_FLOAT32_ATOMIC: `atomic<f32>` in storage, with atomicAdd). The
+// kernel that appends it declares `d_params: array<GradientCell>` at its
+// own binding.
 
-@group(0) @binding(4) var<storage, read_write> d_params: array<atomic<f32>>;
+alias GradientCell = atomic<f32>;
 
 fn add_gradient(i: u32, value: f32) {
     atomicAdd(&d_params[i], value);

@@ -1,11 +1,12 @@
 // Hash encoding backward: scatters w_c · d_encoded[s · width + l · F + f]
 // into d_params[(index_c) · F + f] with atomic adds, since samples in
 // different invocations share entries. Appended to hash_common.wgsl and to
-// one of hash_accumulate_float.wgsl / hash_accumulate_cas.wgsl, which bind
-// d_params at binding 4 and define add_gradient.
+// one of hash_accumulate_float.wgsl / hash_accumulate_cas.wgsl, which
+// define GradientCell and add_gradient.
 
 @group(0) @binding(2) var<storage, read> positions: array<f32>;
 @group(0) @binding(3) var<storage, read> d_encoded: array<f32>;
+@group(0) @binding(4) var<storage, read_write> d_params: array<GradientCell>;
 
 @compute @workgroup_size(64)
 fn main(@builtin(workgroup_id) group: vec3<u32>, @builtin(local_invocation_index) lane: u32) {

@@ -11,6 +11,7 @@ mod common;
 
 mod adam_gpu;
 mod appearance;
+mod appearance_gpu;
 mod captures;
 mod cli;
 mod cli_camera_path;

@@ -50,7 +50,7 @@ use zrak::engine::cpu::fields::{Field, Gradient};
 use zrak::engine::cpu::frequency::encode;
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::fields::nerf::GpuNerfField;
-use zrak::engine::gpu::fields::{FieldInputs, FieldOutputs};
+use zrak::engine::gpu::fields::{FieldInputs, FieldOutputs, GpuAppearance};
 use zrak::engine::gpu::kernel::{Recorder, read_buffer, storage_buffer};
 use zrak::field::encoding::FrequencyEncoding;
 use zrak::field::mlp::{Activation, MlpLayout};
@@ -655,7 +655,7 @@ fn backward_accumulates() {
         sigma: &sigma,
         rgb: &rgb,
     };
-    gpu.record_forward(&mut rec, &p, inputs, rows, outputs);
+    gpu.record_forward(&mut rec, &p, inputs, GpuAppearance::Mean, rows, outputs);
     gpu.record_backward(&mut rec, &p, &ds, &dc, rows, &gradients);
     rec.submit();
     let accumulated: Vec<f32> = read_buffer(&context, &gradients, params.len());

@@ -18,7 +18,7 @@ use zrak::engine::cpu::fields::ngp::NgpField;
 use zrak::engine::cpu::fields::{Field, Gradient};
 use zrak::engine::gpu::GpuContext;
 use zrak::engine::gpu::fields::ngp::GpuNgpField;
-use zrak::engine::gpu::fields::{FieldInputs, FieldOutputs, GpuField};
+use zrak::engine::gpu::fields::{FieldInputs, FieldOutputs, GpuAppearance, GpuField};
 use zrak::engine::gpu::kernel::{Recorder, read_buffer, storage_buffer, zeroed_storage_buffer};
 use zrak::field::encoding::{HashGridConfig, HashGridLayout};
 use zrak::field::ngp::NgpShape;
@@ -99,7 +99,14 @@ fn gpu_outputs(
         sigma: &sigma,
         rgb: &rgb,
     };
-    field.record_forward(&mut rec, &params_buffer, inputs, ROWS, outputs);
+    field.record_forward(
+        &mut rec,
+        &params_buffer,
+        inputs,
+        GpuAppearance::Mean,
+        ROWS,
+        outputs,
+    );
     field.record_backward(&mut rec, &params_buffer, &d_sigma, &d_rgb, ROWS, &gradients);
     rec.submit();
     let (sigma, rgb) = (

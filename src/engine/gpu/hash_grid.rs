@@ -26,8 +26,9 @@ const MAX_GROUPS_PER_DIMENSION: u32 = 65535;
 const COMMON: &str = include_str!("../../../shaders/hash_common.wgsl");
 const ENCODE: &str = include_str!("../../../shaders/hash_encode.wgsl");
 const BACKWARD: &str = include_str!("../../../shaders/hash_backward.wgsl");
-const ACCUMULATE_FLOAT: &str = include_str!("../../../shaders/hash_accumulate_float.wgsl");
-const ACCUMULATE_CAS: &str = include_str!("../../../shaders/hash_accumulate_cas.wgsl");
+pub(crate) const ACCUMULATE_FLOAT: &str =
+    include_str!("../../../shaders/hash_accumulate_float.wgsl");
+pub(crate) const ACCUMULATE_CAS: &str = include_str!("../../../shaders/hash_accumulate_cas.wgsl");
 
 /// `Params` in hash_common.wgsl.
 #[repr(C)]

@@ -6,6 +6,7 @@ pub mod kernel;
 
 pub use context::{CounterReading, GpuContext, GpuCounters, GpuError};
 pub mod adam;
+pub mod appearance;
 pub mod compact;
 pub mod composite;
 pub mod dense;

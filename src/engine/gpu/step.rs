@@ -28,6 +28,9 @@ pub struct RayBuffers {
     pub directions: wgpu::Buffer,
     /// R cone radii at unit distance (Mip-NeRF's frustums).
     pub radii: wgpu::Buffer,
+    /// R training images (u32), whose appearance vectors the rays' samples
+    /// take in a model with appearance embeddings.
+    pub images: wgpu::Buffer,
     /// R × 3 target colours, composited on the ray's background.
     pub targets: wgpu::Buffer,
     /// R × 3.
@@ -56,6 +59,7 @@ impl RayBuffers {
             origins: f("ray origins", 3 * capacity),
             directions: f("ray directions", 3 * capacity),
             radii: f("ray radii", capacity),
+            images: zeroed_storage_buffer::<u32>(context, "ray images", capacity),
             targets: f("ray targets", 3 * capacity),
             backgrounds: f("ray backgrounds", 3 * capacity),
             rgb: f("ray rgb", 3 * capacity),
@@ -71,11 +75,12 @@ impl RayBuffers {
 
     /// Bytes on the device.
     pub fn bytes(&self) -> usize {
-        self.capacity * 4 * (3 * 7 + 5) + 4
+        self.capacity * 4 * (3 * 7 + 6) + 4
     }
 
     /// Writes rays `rays` of `batch` (origins, directions, cone radii,
-    /// targets and backgrounds) to the start of the buffers; the queue applies the
+    /// targets, backgrounds and, where the batch names them, training
+    /// images) to the start of the buffers; the queue applies the
     /// writes before its next submission. `scratch` is reused between
     /// calls.
     pub fn upload(
@@ -108,6 +113,9 @@ impl RayBuffers {
             (&batch.backgrounds, &self.backgrounds),
         ] {
             queue.write_buffer(buffer, 0, bytemuck::cast_slice(&colours[rays.clone()]));
+        }
+        if let Some(images) = batch.images.get(rays.clone()) {
+            queue.write_buffer(&self.images, 0, bytemuck::cast_slice(images));
         }
         self.upload_radii(
             context,

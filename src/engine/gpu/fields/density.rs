@@ -16,7 +16,7 @@
 
 use crate::engine::gpu::dense::{GpuDense, GpuMlpWorkspace, MlpGradients};
 use crate::engine::gpu::fields::nerf::{DENSITY_COMMON, DensityUniform};
-use crate::engine::gpu::fields::{FieldInputs, FieldOutputs, GpuField};
+use crate::engine::gpu::fields::{FieldInputs, FieldOutputs, GpuAppearance, GpuField};
 use crate::engine::gpu::frequency::GpuFrequency;
 use crate::engine::gpu::hash_grid::GpuHashGrid;
 use crate::engine::gpu::kernel::{
@@ -188,6 +188,7 @@ impl GpuField for GpuDensityField {
         rec: &mut Recorder,
         params: &wgpu::Buffer,
         inputs: FieldInputs,
+        _appearance: GpuAppearance,
         rows: usize,
         out: FieldOutputs,
     ) {
@@ -408,6 +409,7 @@ impl GpuField for GpuNerfDensityField {
         rec: &mut Recorder,
         params: &wgpu::Buffer,
         inputs: FieldInputs,
+        _appearance: GpuAppearance,
         rows: usize,
         out: FieldOutputs,
     ) {

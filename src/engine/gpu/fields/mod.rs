@@ -9,8 +9,10 @@ pub mod nerf;
 pub mod ngp;
 
 use super::kernel::Recorder;
+pub use crate::engine::gpu::appearance::GpuAppearance;
 use crate::engine::gpu::{GpuContext, GpuError};
 use crate::field::FieldShape;
+use crate::field::appearance::AppearanceShape;
 use crate::field::common::Coordinates;
 
 /// One field of `shape` on the `gpu` engine, for passes of up to
@@ -95,19 +97,28 @@ pub trait GpuField: Send {
         None
     }
 
-    /// Records σ and colour at `rows` samples `inputs` into `out`, as the
-    /// cpu's [`crate::engine::cpu::fields::Field::forward`].
+    /// Its table of appearance embeddings, if it has one.
+    fn appearance(&self) -> Option<AppearanceShape> {
+        None
+    }
+
+    /// Records σ and colour at `rows` samples `inputs` into `out`, each
+    /// sample's colour with its `appearance` where the field has
+    /// embeddings, as the cpu's
+    /// [`crate::engine::cpu::fields::Field::forward`].
     fn record_forward(
         &mut self,
         rec: &mut Recorder,
         params: &wgpu::Buffer,
         inputs: FieldInputs,
+        appearance: GpuAppearance,
         rows: usize,
         out: FieldOutputs,
     );
 
     /// Records the backward pass of the last forward pass, adding (+=)
-    /// the parameter gradient into `gradients`.
+    /// the parameter gradient into `gradients` (the appearance embeddings
+    /// the forward pass used get theirs).
     fn record_backward(
         &self,
         rec: &mut Recorder,

@@ -8,15 +8,19 @@
 //! [h | γ(x)] ─ dense B ─► [σ_raw | feature] ─ density ─► σ
 //! directions ─ frequency ─► γ(d) ─┐
 //! [σ_raw | feature] ──────────────┴ concat (feature columns) ─► [feature | γ(d)]
-//! [feature | γ(d)] ─ dense C ─► RGB (sigmoid, widened by the padding)
+//! [feature | γ(d) | appearance] ─ dense C ─► RGB (sigmoid, widened by the padding)
 //! ```
+//!
+//! The appearance columns are there where the shape has per-image
+//! embeddings ([`crate::engine::gpu::appearance`]).
 //!
 //! Mip-NeRF is the same field with other constants (its `NerfShape`): the
 //! position encoding is the integrated one when the samples come with
 //! covariances (frustums), σ a shifted softplus, the colour widened
 //! (`shaders/nerf_colour_padding.wgsl`).
 //!
-//! The parameters are one flat buffer `[A | B | C]`, each network's
+//! The parameters are one flat buffer `[A | B | C]` (then the appearance
+//! embeddings, where the shape has them), each network's
 //! `MlpLayout` in the cpu engine's layout; the dense kernels read each
 //! network at its offset in that buffer and accumulate its gradients at the
 //! same offset of the gradient buffer ([`GpuDense::record_forward`]), so
@@ -29,6 +33,7 @@
 
 use std::ops::Range;
 
+use crate::engine::gpu::appearance::{GpuAppearance, GpuAppearanceTable};
 use crate::engine::gpu::dense::{GpuDense, GpuMlpWorkspace, MlpGradients};
 use crate::engine::gpu::fields::{FieldInputs, FieldOutputs};
 use crate::engine::gpu::frequency::GpuFrequency;
@@ -38,6 +43,7 @@ use crate::engine::gpu::kernel::{
 };
 use crate::engine::gpu::march::dispatch_grid;
 use crate::engine::gpu::{GpuContext, GpuError};
+use crate::field::appearance::AppearanceShape;
 use crate::field::nerf::{DensityActivation, NerfShape};
 
 /// Threads per workgroup of the nerf_* kernels.
@@ -58,6 +64,9 @@ struct ConcatUniform {
     right_stride: u32,
     right_start: u32,
     right_width: u32,
+    output_stride: u32,
+    output_start: u32,
+    _pad: [u32; 2],
 }
 
 /// `Params` in shaders/nerf_colour_padding.wgsl.
@@ -149,7 +158,7 @@ pub struct GpuNerfField {
     trunk_b_in: wgpu::Buffer,
     /// γ(d), rows × direction encoding width.
     encoded_direction: wgpu::Buffer,
-    /// [feature | γ(d)], the colour network's input.
+    /// [feature | γ(d) | appearance], the colour network's input.
     colour_in: wgpu::Buffer,
     // Gradients with respect to the same matrices.
     d_colour_in: wgpu::Buffer,
@@ -159,6 +168,8 @@ pub struct GpuNerfField {
     /// ∂L/∂(the sigmoid's output), when the colour is widened (else one
     /// float, unused).
     d_colour: wgpu::Buffer,
+    /// The appearance embeddings' kernels, where the shape has them.
+    appearance: Option<GpuAppearanceTable>,
     /// Rows of the last recorded forward pass whose activations are still
     /// held (None after [`Self::record_density`], which overwrites them).
     forward_rows: Option<usize>,
@@ -178,7 +189,7 @@ impl GpuNerfField {
         let capacity = capacity_rows.max(1);
         let width = shape.trunk_a.output_width();
         let enc = shape.position.output_width();
-        let enc_dir = shape.direction.output_width();
+        let colour_width = shape.colour.input_width();
         let f = |label: &str, n: usize| zeroed_storage_buffer::<f32>(context, label, n);
         Ok(Self {
             kernels: GpuNerfKernels::new(context)?,
@@ -187,9 +198,12 @@ impl GpuNerfField {
             c: GpuMlpWorkspace::new(context, &shape.colour, capacity),
             encoded_position: f("nerf encoded position", capacity * enc),
             trunk_b_in: f("nerf trunk B input", capacity * (width + enc)),
-            encoded_direction: f("nerf encoded direction", capacity * enc_dir),
-            colour_in: f("nerf colour input", capacity * (width + enc_dir)),
-            d_colour_in: f("nerf d colour input", capacity * (width + enc_dir)),
+            encoded_direction: f(
+                "nerf encoded direction",
+                capacity * shape.direction.output_width(),
+            ),
+            colour_in: f("nerf colour input", capacity * colour_width),
+            d_colour_in: f("nerf d colour input", capacity * colour_width),
             d_trunk_b_out: f("nerf d trunk B output", capacity * (width + 1)),
             d_trunk_b_in: f("nerf d trunk B input", capacity * (width + enc)),
             d_trunk_a_out: f("nerf d trunk A output", capacity * width),
@@ -201,6 +215,10 @@ impl GpuNerfField {
                     1
                 },
             ),
+            appearance: shape
+                .appearance
+                .map(|table| GpuAppearanceTable::new(context, table, capacity))
+                .transpose()?,
             forward_rows: None,
             param_offset: 0,
             shape: shape.clone(),
@@ -216,10 +234,10 @@ impl GpuNerfField {
         self.capacity
     }
 
-    /// Parameters of the field, `[A | B | C]`.
+    /// Parameters of the field, `[A | B | C]` and the appearance
+    /// embeddings.
     pub fn param_count(&self) -> usize {
-        let s = &self.shape;
-        s.trunk_a.param_count() + s.trunk_b.param_count() + s.colour.param_count()
+        self.shape.appearance_range().end
     }
 
     /// Reads the field's parameters (and writes its gradients) from f32
@@ -252,18 +270,24 @@ impl GpuNerfField {
         );
     }
 
-    /// Records `output` = [left columns | right columns] for `rows` rows.
+    /// Records `output`'s columns = [left columns | right columns] for
+    /// `rows` rows.
     fn record_concat<'a>(
         &self,
         rec: &mut Recorder,
         left: Columns<'a>,
         right: Columns<'a>,
-        output: &wgpu::Buffer,
+        output: Columns<'a>,
         rows: usize,
     ) {
         let context = rec.context;
         let out_w = left.width + right.width;
-        let widest = left.stride.max(right.stride).max(out_w);
+        assert_eq!(output.width, out_w, "the concatenation's columns");
+        assert!(
+            output.start + out_w <= output.stride,
+            "columns overrun the row"
+        );
+        let widest = left.stride.max(right.stride).max(output.stride);
         for piece in pieces(rows, rows_per_piece(context, widest, 1)) {
             let (groups, row_stride) = dispatch_grid(piece.len() * out_w, WORKGROUP);
             let uniform = ConcatUniform {
@@ -275,6 +299,9 @@ impl GpuNerfField {
                 right_stride: right.stride as u32,
                 right_start: right.start as u32,
                 right_width: right.width as u32,
+                output_stride: output.stride as u32,
+                output_start: output.start as u32,
+                _pad: [0; 2],
             };
             let uniform = uniform_buffer(context, "nerf concat", &uniform);
             let bind = |m: &Columns<'a>| {
@@ -286,7 +313,7 @@ impl GpuNerfField {
                     uniform.as_entire_buffer_binding(),
                     bind(&left),
                     bind(&right),
-                    float_range(output, out_w * piece.start, out_w * piece.len()),
+                    bind(&output),
                 ],
                 groups,
             );
@@ -371,7 +398,7 @@ impl GpuNerfField {
             rec,
             Columns::all(self.a.output(), width),
             Columns::all(&self.encoded_position, enc),
-            &self.trunk_b_in,
+            Columns::all(&self.trunk_b_in, width + enc),
             rows,
         );
         k.dense.record_forward(
@@ -395,6 +422,7 @@ impl GpuNerfField {
         rec: &mut Recorder,
         params: &wgpu::Buffer,
         inputs: FieldInputs,
+        appearance: GpuAppearance,
         rows: usize,
         out: FieldOutputs,
     ) {
@@ -421,7 +449,9 @@ impl GpuNerfField {
             rows as u32,
             &self.encoded_direction,
         );
-        // The colour input: trunk B's output without its σ column, then γ(d).
+        // The colour input: trunk B's output without its σ column, then γ(d),
+        // then the appearance vector where the field has embeddings.
+        let colour_width = self.shape.colour.input_width();
         self.record_concat(
             rec,
             Columns {
@@ -431,9 +461,27 @@ impl GpuNerfField {
                 width,
             },
             Columns::all(&self.encoded_direction, enc_dir),
-            &self.colour_in,
+            Columns {
+                buffer: &self.colour_in,
+                stride: colour_width,
+                start: 0,
+                width: width + enc_dir,
+            },
             rows,
         );
+        if let Some(table) = self.appearance.as_mut() {
+            let at = FloatsAt {
+                buffer: params,
+                offset: self.param_offset + self.shape.appearance_range().start,
+            };
+            let columns = Columns {
+                buffer: &self.colour_in,
+                stride: colour_width,
+                start: width + enc_dir,
+                width: table.shape().width,
+            };
+            table.record_forward(rec, at, appearance, rows, columns);
+        }
         k.dense.record_forward(
             rec,
             FloatsAt {
@@ -543,9 +591,22 @@ impl GpuNerfField {
             },
             rows,
         );
+        let colour_w = self.shape.colour.input_width();
+        if let Some(table) = &self.appearance {
+            let d_appearance = Columns {
+                buffer: &self.d_colour_in,
+                stride: colour_w,
+                start: width + self.shape.direction.output_width(),
+                width: table.shape().width,
+            };
+            let at = FloatsAt {
+                buffer: gradients,
+                offset: self.param_offset + self.shape.appearance_range().start,
+            };
+            table.record_backward(rec, d_appearance, rows, at);
+        }
         // [∂L/∂σ_raw | ∂L/∂feature] for trunk B's output.
         let raw_w = width + 1;
-        let colour_w = self.shape.colour.input_width();
         for piece in pieces(rows, rows_per_piece(context, raw_w.max(colour_w), 1)) {
             let (groups, uniform) = self.density_uniform(piece.len(), piece.len() * raw_w);
             let uniform = uniform_buffer(context, "nerf density backward", &uniform);
@@ -594,7 +655,7 @@ impl GpuNerfField {
                 start: 0,
                 width: 0,
             },
-            &self.d_trunk_a_out,
+            Columns::all(&self.d_trunk_a_out, width),
             rows,
         );
         k.dense.record_backward(
@@ -649,6 +710,7 @@ impl GpuNerfField {
             &mut rec,
             &buffers.params,
             buffers.inputs(),
+            GpuAppearance::Mean,
             rows,
             buffers.outputs(),
         );
@@ -684,6 +746,7 @@ impl GpuNerfField {
             &mut rec,
             &buffers.params,
             buffers.inputs(),
+            GpuAppearance::Mean,
             rows,
             buffers.outputs(),
         );
@@ -781,15 +844,20 @@ impl super::GpuField for GpuNerfField {
         self.capacity
     }
 
+    fn appearance(&self) -> Option<AppearanceShape> {
+        self.shape.appearance
+    }
+
     fn record_forward(
         &mut self,
         rec: &mut Recorder,
         params: &wgpu::Buffer,
         inputs: FieldInputs,
+        appearance: GpuAppearance,
         rows: usize,
         out: FieldOutputs,
     ) {
-        GpuNerfField::record_forward(self, rec, params, inputs, rows, out)
+        GpuNerfField::record_forward(self, rec, params, inputs, appearance, rows, out)
     }
 
     fn record_backward(
@@ -840,6 +908,10 @@ impl super::GpuField for GpuNerfField {
             + self.a.bytes()
             + self.b.bytes()
             + self.c.bytes()
+            + self
+                .appearance
+                .as_ref()
+                .map_or(0, GpuAppearanceTable::bytes)
     }
 }
 
@@ -890,7 +962,9 @@ mod uniform_mirrors {
                 left_width,
                 right_stride,
                 right_start,
-                right_width
+                right_width,
+                output_stride,
+                output_start
             ]
         );
     }

@@ -4,17 +4,19 @@
 //!
 //! ```text
 //! position ─ hash grid ─► features ─ density MLP ─► raw ─ ngp_density ─► σ
-//!                                                     └───────────────► [raw | SH(d)] ─ colour MLP ─► RGB
+//!                                                     └───────────────► [raw | SH(d) | appearance] ─ colour MLP ─► RGB
 //! ```
 //!
-//! The parameters are one flat buffer `[hash grid | density | colour]`; the
+//! The parameters are one flat buffer `[hash grid | density | colour]`,
+//! then the appearance embeddings where the shape has them; the
 //! hash kernels and the dense kernels read each part at its offset of the
 //! model's buffer and accumulate its gradient at the same offset of the
 //! gradient buffer, so nothing is copied in or out. Positions are the unit
 //! cube's, as marched.
 
+use crate::engine::gpu::appearance::GpuAppearanceTable;
 use crate::engine::gpu::dense::{GpuDense, GpuMlpWorkspace, MlpGradients};
-use crate::engine::gpu::fields::{FieldInputs, FieldOutputs, GpuField};
+use crate::engine::gpu::fields::{FieldInputs, FieldOutputs, GpuAppearance, GpuField};
 use crate::engine::gpu::hash_grid::GpuHashGrid;
 use crate::engine::gpu::kernel::{
     Columns, FloatsAt, Kernel, Recorder, float_range, pieces, rows_per_piece, uniform_buffer,
@@ -23,6 +25,7 @@ use crate::engine::gpu::kernel::{
 use crate::engine::gpu::march::dispatch_grid;
 use crate::engine::gpu::sh::GpuSh;
 use crate::engine::gpu::{GpuContext, GpuError};
+use crate::field::appearance::AppearanceShape;
 use crate::field::common::Coordinates;
 use crate::field::encoding::sh_coefficients;
 use crate::field::mlp::DENSITY_EXP_CLAMP;
@@ -64,6 +67,8 @@ pub struct GpuNgpField {
     d_colour_input: wgpu::Buffer,
     d_density_out: wgpu::Buffer,
     d_encoded: wgpu::Buffer,
+    /// The appearance embeddings' kernels, where the shape has them.
+    appearance: Option<GpuAppearanceTable>,
     /// The positions and σ of the last forward pass (handles to the
     /// driver's buffers).
     forward_inputs: Option<(wgpu::Buffer, wgpu::Buffer)>,
@@ -107,6 +112,10 @@ impl GpuNgpField {
             d_colour_input: f("ngp d colour input", capacity * colour_width),
             d_density_out: f("ngp d density out", capacity * density_width),
             d_encoded: f("ngp d encoded", capacity * grid_width),
+            appearance: shape
+                .appearance
+                .map(|table| GpuAppearanceTable::new(context, table, capacity))
+                .transpose()?,
             forward_inputs: None,
             param_offset: 0,
             shape: shape.clone(),
@@ -124,6 +133,28 @@ impl GpuNgpField {
 
     fn colour_offset(&self) -> usize {
         self.param_offset + self.shape.colour_range().start
+    }
+
+    /// The appearance columns of the colour network's input (or of its
+    /// gradient, `buffer`): after the density outputs and the spherical
+    /// harmonics.
+    fn appearance_columns<'a>(&self, buffer: &'a wgpu::Buffer, width: usize) -> Columns<'a> {
+        Columns {
+            buffer,
+            stride: self.shape.colour.input_width(),
+            start: self.shape.density.output_width()
+                + sh_coefficients(self.shape.network.sh_degree),
+            width,
+        }
+    }
+
+    /// Where the appearance embeddings start in `buffer` (the model's
+    /// parameters or their gradient).
+    fn appearance_at<'a>(&self, buffer: &'a wgpu::Buffer) -> FloatsAt<'a> {
+        FloatsAt {
+            buffer,
+            offset: self.param_offset + self.shape.appearance_range().start,
+        }
     }
 
     /// Records the density activation over `count` samples (forward: σ
@@ -242,11 +273,16 @@ impl GpuField for GpuNgpField {
         Some(self.shape.grid.config().extent)
     }
 
+    fn appearance(&self) -> Option<AppearanceShape> {
+        self.shape.appearance
+    }
+
     fn record_forward(
         &mut self,
         rec: &mut Recorder,
         params: &wgpu::Buffer,
         inputs: FieldInputs,
+        appearance: GpuAppearance,
         rows: usize,
         out: FieldOutputs,
     ) {
@@ -264,6 +300,12 @@ impl GpuField for GpuNgpField {
                 width: sh_coefficients(sh_degree),
             },
         );
+        if let Some(table) = &self.appearance {
+            let columns = self.appearance_columns(&self.colour_input, table.shape().width);
+            let at = self.appearance_at(params);
+            let table = self.appearance.as_mut().expect("checked above");
+            table.record_forward(rec, at, appearance, rows, columns);
+        }
         self.dense.record_forward(
             rec,
             FloatsAt {
@@ -317,6 +359,14 @@ impl GpuField for GpuNgpField {
             },
             rows,
         );
+        if let Some(table) = &self.appearance {
+            table.record_backward(
+                rec,
+                self.appearance_columns(&self.d_colour_input, table.shape().width),
+                rows,
+                self.appearance_at(gradients),
+            );
+        }
         self.record_activation(rec, rows, sigma, Some(d_sigma));
         self.dense.record_backward(
             rec,
@@ -387,6 +437,10 @@ impl GpuField for GpuNgpField {
         .sum::<usize>()
             + self.density.bytes()
             + self.colour.bytes()
+            + self
+                .appearance
+                .as_ref()
+                .map_or(0, GpuAppearanceTable::bytes)
     }
 }
 

@@ -3,7 +3,7 @@
 //! step with the paper samplers' fixed samples per ray.
 
 use super::*;
-use crate::engine::gpu::fields::{FieldInputs, FieldOutputs};
+use crate::engine::gpu::fields::{FieldInputs, FieldOutputs, GpuAppearance};
 use crate::engine::gpu::proposal::{CompositedSamples, ContractedInputs, IntervalBuffers};
 use crate::engine::gpu::sampling::{RayBounds, SamplePoints};
 use crate::engine::gpu::step::LevelLoss;
@@ -147,6 +147,17 @@ impl GpuModel {
                     positions: &lb.positions,
                     variances: frustums.then_some(&lb.variances),
                     directions: &lb.directions,
+                },
+                // Training: each sample its ray's image (ray r's samples
+                // are rows r · per_ray ..).
+                if training {
+                    GpuAppearance::PerRay {
+                        images: &rays.images,
+                        ray_offsets: &lb.ray_offsets,
+                        rays: count,
+                    }
+                } else {
+                    self.rendered_appearance()
                 },
                 rows,
                 FieldOutputs {

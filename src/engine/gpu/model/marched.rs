@@ -3,7 +3,7 @@
 //! marched samples for rendering.
 
 use super::*;
-use crate::engine::gpu::fields::{FieldInputs, FieldOutputs};
+use crate::engine::gpu::fields::{FieldInputs, FieldOutputs, GpuAppearance};
 use crate::engine::gpu::frustum::Gaussians;
 use crate::engine::gpu::step::LevelLoss;
 use crate::engine::shared::composite::Distortion;
@@ -252,6 +252,13 @@ impl GpuModel {
                 positions: field_positions,
                 variances: field_variances,
                 directions,
+            },
+            // Each sample its ray's image: the kept rays are the batch's
+            // first, in order.
+            GpuAppearance::PerRay {
+                images: &marched.rays.images,
+                ray_offsets: offsets,
+                rays: kept,
             },
             used,
             FieldOutputs {
@@ -507,6 +514,7 @@ impl GpuModel {
                     variances: frustums.then_some(&marched.variances),
                     directions: &marched.out.directions,
                 },
+                self.rendered_appearance(),
                 count,
                 FieldOutputs {
                     sigma: &marched.sigma,

@@ -55,6 +55,7 @@ use std::time::Instant;
 use glam::Vec3;
 
 use super::adam::GpuAdam;
+use super::appearance::GpuAppearance;
 use super::compact::{CompactedSamples, GpuCompaction, MarchedInputs};
 use super::composite::{CompositeOutputBuffers, GpuComposite};
 use super::fields::{GpuField, fields_for};
@@ -81,7 +82,8 @@ use crate::engine::shared::driver::{
 };
 use crate::engine::shared::march::{GridSamples, MarchParams, mix_seed, render_through_grid};
 use crate::engine::shared::occupancy::OccupancyGrid;
-use crate::engine::shared::state::{ModelHeader, ModelState};
+use crate::engine::shared::state::{ModelHeader, ModelState, check_appearance};
+use crate::field::appearance::AppearanceShape;
 use crate::field::common::{BatchSize, Coordinates, LossKind, Recipe, SampleShape, SamplerKind};
 use crate::model::batch::RayBatch;
 use crate::model::checkpoint::Checkpoint;
@@ -371,6 +373,9 @@ pub struct GpuModel {
     /// Buffers of the last texture render, kept for the next frame of the
     /// same size.
     render_buffers: Mutex<Option<RenderBuffers>>,
+    /// The training image whose appearance vector renders use (`None`:
+    /// the mean of them all), for models with appearance embeddings.
+    render_appearance: Option<usize>,
 }
 
 impl GpuModel {
@@ -387,11 +392,6 @@ impl GpuModel {
         let plan = request.plan(scene, request.kind.spec().gpu_batch_samples);
         let shapes = plan.shapes;
         let settings = &request.settings;
-        if shapes.iter().any(|shape| shape.appearance().is_some()) {
-            return Err(
-                "appearance embeddings are on the cpu engine only so far: give --engine cpu".into(),
-            );
-        }
         Self::new(
             context,
             plan.core,
@@ -636,6 +636,7 @@ impl GpuModel {
                 .transpose()
                 .map_err(gpu)?,
             render_buffers: Mutex::new(None),
+            render_appearance: None,
             core,
             samplers,
             context,
@@ -781,8 +782,40 @@ impl GpuModel {
         }
     }
 
+    /// The table of appearance embeddings of the fields that give colour,
+    /// if they have one.
+    fn appearance(&self) -> Option<AppearanceShape> {
+        self.work()
+            .fields
+            .iter()
+            .find_map(|field| field.appearance())
+    }
+
+    /// The appearance renders use: the mean or the chosen training
+    /// image's.
+    fn rendered_appearance(&self) -> GpuAppearance<'static> {
+        GpuAppearance::rendered(self.render_appearance)
+    }
+
     /// One step on `batch`; with `optimise`, Adam updates the parameters.
     fn run(&mut self, batch: &RayBatch, step: u32, optimise: bool) -> StepStats {
+        if let Some(table) = self.appearance() {
+            // As the cpu engine: the rays must name images that have
+            // vectors (the device would read some other row).
+            assert_eq!(
+                batch.images.len(),
+                batch.len(),
+                "a model with appearance embeddings trains on rays that name their image"
+            );
+            assert!(
+                batch
+                    .images
+                    .iter()
+                    .all(|&image| (image as usize) < table.images),
+                "a ray's image beyond the {} with embeddings",
+                table.images
+            );
+        }
         if self.grid.is_some() {
             self.run_marched(batch, step, optimise)
         } else {
@@ -941,6 +974,24 @@ impl RadianceModel for GpuModel {
         Ok(())
     }
 
+    fn appearance_images(&self) -> Option<usize> {
+        self.appearance().map(|table| table.images)
+    }
+
+    fn set_render_appearance(&mut self, image: Option<usize>) -> Result<(), String> {
+        let Some(table) = self.appearance() else {
+            return Err(format!("{} has no appearance embeddings", self.describe()));
+        };
+        if let Some(image) = image.filter(|&image| image >= table.images) {
+            return Err(format!(
+                "no training image {image}: the model has embeddings of {}",
+                table.images
+            ));
+        }
+        self.render_appearance = image;
+        Ok(())
+    }
+
     fn density_at(&self, query: PointQuery, sigma: &mut [f32]) -> Result<(), String> {
         self.evaluate_points(query.positions, query.footprint, sigma, None);
         Ok(())
@@ -969,7 +1020,7 @@ impl RadianceModel for GpuModel {
                     .then(|| self.grid.as_ref().map(|g| g.used_fraction))
                     .flatten(),
                 grid_extent: self.grid_extent(),
-                appearance_images: None,
+                appearance_images: self.appearance().map(|table| table.images),
             },
             params: self.params(),
             adam,
@@ -981,6 +1032,7 @@ impl RadianceModel for GpuModel {
     }
 
     fn load(&mut self, checkpoint: &Checkpoint) -> Result<(), String> {
+        check_appearance(checkpoint, self.appearance().map(|table| table.images))?;
         let state = ModelState::from_checkpoint(
             checkpoint,
             self.core.identity.key,

@@ -82,6 +82,7 @@ impl GpuModel {
                             variances,
                             directions: &direction_buffer,
                         },
+                        self.rendered_appearance(),
                         n,
                         FieldOutputs {
                             sigma: &sigma_buffer,

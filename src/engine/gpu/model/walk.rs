@@ -197,6 +197,7 @@ impl GpuModel {
                         variances: frustums.then_some(&marched.variances),
                         directions: &out.directions,
                     },
+                    self.rendered_appearance(),
                     samples,
                     FieldOutputs {
                         sigma: &marched.sigma,
