@@ -119,6 +119,10 @@ pub enum Command {
     /// Show and export only what is inside this box (`None`: everything),
     /// on every model; the thread answers with [`Event::CropSet`].
     SetCrop(Option<CropBox>),
+    /// Draw every model that has appearance embeddings with training
+    /// image `i`'s vector, or the mean of them all (`None`, as held-out
+    /// views are evaluated); models without embeddings ignore it.
+    SetAppearance(Option<usize>),
     Shutdown,
 }
 

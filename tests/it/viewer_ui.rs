@@ -846,3 +846,32 @@ fn the_scene_panel_shows_the_space_and_why() {
         harness.get_by_label(&format!("• {reason}"));
     }
 }
+
+/// Where the scene's photographs have appearance vectors, the Render panel
+/// chooses which the models draw with: the mean, or a training image's.
+#[test]
+fn the_appearance_control_shows_where_the_photographs_have_vectors() {
+    let _cores = crate::common::shared();
+    let (mut harness, link) = harness_with_scene();
+    assert!(
+        harness.query_by_label("Mean").is_none(),
+        "no appearance control on a render"
+    );
+    let mut info = small_demo();
+    info.photographs.appearance.on = true;
+    link.push(Event::SceneLoaded(info));
+    harness.run_steps(3);
+    link.clear();
+    harness.state_mut().set_appearance_view(Some(2));
+    harness.run_steps(2);
+    harness.get_by_label("Mean").click();
+    harness.run_steps(2);
+    let chosen: Vec<String> = link
+        .sent()
+        .into_iter()
+        .filter(|c| matches!(c, Command::SetAppearance(_)))
+        .map(|c| format!("{c:?}"))
+        .collect();
+    assert_eq!(chosen, ["SetAppearance(Some(2))", "SetAppearance(None)"]);
+    assert_eq!(harness.state().appearance_view(), None);
+}

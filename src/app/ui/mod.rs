@@ -129,6 +129,9 @@ pub struct ViewerUi {
     histories: Vec<History>,
     balance: Balance,
     mode: RenderMode,
+    /// The training image whose appearance vector models with embeddings
+    /// draw with (`None`: their mean).
+    appearance_view: Option<usize>,
     camera: Option<ViewCamera>,
     viewport: ViewportState,
     plot_axis: PlotAxis,
@@ -198,6 +201,7 @@ impl ViewerUi {
             histories: Vec::new(),
             balance: Balance::default(),
             mode: RenderMode::Rgb,
+            appearance_view: None,
             camera: None,
             viewport: ViewportState::default(),
             plot_axis: PlotAxis::Step,
@@ -406,6 +410,20 @@ impl ViewerUi {
         }
     }
 
+    /// Models with appearance embeddings draw with training image
+    /// `image`'s vector, or their mean (`None`).
+    pub fn set_appearance_view(&mut self, image: Option<usize>) {
+        if self.appearance_view != image {
+            self.appearance_view = image;
+            self.link.send(Command::SetAppearance(image));
+        }
+    }
+
+    /// The training image models with appearance embeddings draw with.
+    pub fn appearance_view(&self) -> Option<usize> {
+        self.appearance_view
+    }
+
     pub fn set_render_mode(&mut self, mode: RenderMode) {
         // The next frame's request carries the mode; nothing else to send.
         self.mode = mode;
@@ -598,6 +616,7 @@ impl ViewerUi {
                     .scene_changed(info.scene.bounds, self.scene.is_none());
                 self.histories.clear();
                 self.viewport.scene_changed();
+                self.appearance_view = None;
                 self.scene = Some(info);
             }
             Event::SceneFailed { source, error } => {

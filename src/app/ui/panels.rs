@@ -428,6 +428,7 @@ fn render_section(state: &mut ViewerUi, ui: &mut egui::Ui) {
             }
         }
     });
+    appearance_row(state, ui);
     ui.horizontal(|ui| {
         ui.label("Resolution");
         for scale in viewport::RENDER_SCALES {
@@ -461,6 +462,44 @@ fn render_section(state: &mut ViewerUi, ui: &mut egui::Ui) {
             ui.label(format!("PSNR of this view: {psnr:.2} dB"));
         }
     }
+}
+
+/// Which appearance vector the models draw with, where the scene's
+/// photographs have them: the mean (as held-out views are scored) or a
+/// training image's.
+fn appearance_row(state: &mut ViewerUi, ui: &mut egui::Ui) {
+    let Some(images) = state
+        .scene
+        .as_ref()
+        .filter(|info| info.photographs.appearance.on)
+        .map(|info| info.scene.train.len())
+        .filter(|&n| n > 0)
+    else {
+        return;
+    };
+    let mut chosen = state.appearance_view();
+    ui.horizontal(|ui| {
+        ui.label("Appearance");
+        if ui
+            .selectable_label(chosen.is_none(), "Mean")
+            .on_hover_text("the mean of the training images' vectors, as held-out views are scored")
+            .clicked()
+        {
+            chosen = None;
+        }
+        let mut image = chosen.unwrap_or(0);
+        let picker = ui
+            .add(
+                egui::DragValue::new(&mut image)
+                    .range(0..=images - 1)
+                    .prefix("image "),
+            )
+            .on_hover_text("draw with this training image's appearance vector");
+        if picker.changed() || (picker.clicked() && chosen.is_none()) {
+            chosen = Some(image);
+        }
+    });
+    state.set_appearance_view(chosen);
 }
 
 fn camera_section(state: &mut ViewerUi, ui: &mut egui::Ui) {

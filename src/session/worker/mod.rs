@@ -657,6 +657,10 @@ impl Worker {
         )?;
         // The crop box was checked with the models of this engine already.
         let _ = model.set_crop(self.scene.crop);
+        if model.appearance_images().is_some() {
+            // An image beyond the model's table leaves it on the mean.
+            let _ = model.set_render_appearance(self.scene.render_appearance);
+        }
         Ok(Trainer::new(
             model,
             self.scene.scene.clone(),
@@ -740,6 +744,7 @@ impl Worker {
             Command::ExportMesh(order) => self.start_export(ExportOrder::Mesh(order))?,
             Command::ExportPoints(order) => self.start_export(ExportOrder::Points(order))?,
             Command::SetCrop(crop) => self.set_crop(crop)?,
+            Command::SetAppearance(image) => self.set_appearance(image),
             Command::CancelExport => {
                 if self.jobs.stop_export() {
                     self.send(Event::ExportFinished(
@@ -921,6 +926,18 @@ impl Worker {
     /// Sets the crop box on every model (and on those built later); a
     /// model that refuses it (the gpu engine may) keeps rendering the whole
     /// scene, and the refusal goes to the window.
+    /// Every model with appearance embeddings draws with `image`'s vector
+    /// (or the mean); so do the models built later on this scene.
+    fn set_appearance(&mut self, image: Option<usize>) {
+        self.scene.render_appearance = image;
+        for slot in self.training.slots_mut() {
+            if slot.trainer.model.appearance_images().is_some() {
+                let _ = slot.trainer.model.set_render_appearance(image);
+            }
+        }
+        self.viewing.restart();
+    }
+
     fn set_crop(&mut self, crop: Option<CropBox>) -> Result<(), UiGone> {
         let crop = match crop.map(|c| c.check().map(|()| c)).transpose() {
             Ok(crop) => crop,

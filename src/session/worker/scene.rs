@@ -38,6 +38,9 @@ pub(super) struct SceneState {
     /// masks), as the switches leave it.
     pub(super) photographs: PhotographAnalysis,
     switches: Switches,
+    /// The training image whose appearance vector the models draw with
+    /// (`None`: the mean), chosen in the window.
+    pub(super) render_appearance: Option<usize>,
 }
 
 impl SceneState {
@@ -58,6 +61,7 @@ impl SceneState {
             crop: None,
             loading: None,
             switches,
+            render_appearance: None,
         }
     }
 
@@ -123,6 +127,7 @@ impl SceneState {
         self.source = source;
         self.val_frames = held_out_views(&self.scene, val_views);
         self.photographs = photographs::analyse(&self.scene, self.switches);
+        self.render_appearance = None;
     }
 }
 
