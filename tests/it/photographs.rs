@@ -49,6 +49,36 @@ fn renders_keep_appearance_refinement_and_masks_off_and_say_why() {
     }
 }
 
+/// The demo with each training view's exposure and white balance
+/// jittered (±1 stop, ±15 %): its overlapping views differ, so appearance
+/// turns on; the same demo without jitter keeps it off.
+#[test]
+fn jittered_exposure_turns_appearance_on() {
+    let _cores = crate::common::shared();
+    let dir = tempfile::tempdir().unwrap();
+    for (name, jitter, expected) in [
+        ("plain", &[][..], "off"),
+        (
+            "jittered",
+            &["--exposure-jitter", "1", "--white-balance-jitter", "0.15"][..],
+            "on",
+        ),
+    ] {
+        let out = dir.path().join(name);
+        let out = out.to_str().unwrap();
+        let mut args = vec!["demo", "--out", out, "--size", "32", "--views", "40"];
+        args.extend_from_slice(jitter);
+        zrak(&args);
+        let printed = zrak(&["info", out]);
+        assert!(
+            printed.contains(&format!(
+                "\nappearance  {expected} (from the scene)\n  - overlapping views differ"
+            )),
+            "{name}: {printed}"
+        );
+    }
+}
+
 #[test]
 fn the_phone_capture_gets_appearance_and_camera_refinement_with_reasons() {
     let _cores = crate::common::shared();
