@@ -28,6 +28,61 @@ pub struct EvalArgs {
     /// much a model aliases when it sees the scene from further away).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=64))]
     downscale: u32,
+    /// NeRF in the Wild's protocol for a run with appearance vectors: each
+    /// view's vector fitted to its left half (the field held still), its
+    /// right half scored, beside the same half drawn with the training
+    /// vectors' mean.
+    #[arg(long)]
+    appearance_from_left_half: bool,
+    /// With --appearance-from-left-half: this many views spread over the
+    /// split (each view's fit takes a hundred steps), all by default.
+    #[arg(long, requires = "appearance_from_left_half")]
+    views: Option<usize>,
+}
+
+/// Each view's right half with the training vectors' mean and with the
+/// vector fitted to its left half, then the means: printed, not written
+/// (the split's scores are the whole views').
+fn eval_right_halves(
+    model: &mut dyn zrak::model::RadianceModel,
+    frames: &[Frame],
+    split: Split,
+) -> anyhow::Result<()> {
+    println!(
+        "right halves of the {} views: appearance fitted to each left half (NeRF in the Wild, \
+         section 6) against the training vectors' mean",
+        split.name()
+    );
+    println!("{:>5}  {:>10}  {:>10}  image", "view", "mean", "fitted");
+    let (mut mean, mut fitted, mut count) = (0.0, None::<f64>, 0usize);
+    let shown = |psnr: Option<f64>| psnr.map_or("-".to_string(), |p| format!("{p:.3}"));
+    for (index, frame) in frames.iter().enumerate() {
+        if interrupt::requested() {
+            break;
+        }
+        let scores = zrak::train::eval::score_right_half(model, frame)
+            .map_err(|problem| anyhow::anyhow!("view {index}: {problem}"))?;
+        println!(
+            "{index:>5}  {:>10.3}  {:>10}  {}",
+            scores.mean_psnr,
+            shown(scores.fitted_psnr),
+            frame.image_path.display()
+        );
+        mean += scores.mean_psnr;
+        if let Some(psnr) = scores.fitted_psnr {
+            *fitted.get_or_insert(0.0) += psnr;
+        }
+        count += 1;
+    }
+    let count = count.max(1) as f64;
+    println!(
+        "{:>5}  {:>10.3}  {:>10}  (PSNR, dB, {} views)",
+        "mean",
+        mean / count,
+        shown(fitted.map(|f| f / count)),
+        count
+    );
+    Ok(())
 }
 
 pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
@@ -36,10 +91,13 @@ pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
         split,
         engine,
         downscale,
+        appearance_from_left_half,
+        views,
     } = args;
     let folder = RunFolder::open(&run).map_err(anyhow::Error::msg)?;
-    let (_, trainer) = restore_run(&folder, engine, None)?;
-    let frames = trainer.scene.split(split);
+    let (_, mut trainer) = restore_run(&folder, engine, None)?;
+    let scene = trainer.scene.clone();
+    let frames = scene.split(split);
     if frames.is_empty() {
         bail!("the scene has no {} views", split.name());
     }
@@ -60,6 +118,23 @@ pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
     } else {
         frames
     };
+    if appearance_from_left_half {
+        if trainer.model.appearance_images().is_none() {
+            note(&format!(
+                "{}: the run has no appearance vectors: its right halves are scored as they \
+                 render, for comparison with a run that has them",
+                folder.dir.display()
+            ));
+        }
+        let chosen: Vec<Frame> = match views {
+            Some(count) => zrak::train::eval::spread_views(frames, count)
+                .into_iter()
+                .cloned()
+                .collect(),
+            None => frames.to_vec(),
+        };
+        return eval_right_halves(trainer.model.as_mut(), &chosen, split);
+    }
     println!("{:>5}  {:>8}  {:>7}  image", "view", "PSNR", "SSIM");
     let scores: SplitScores = evaluate_split_until(
         trainer.model.as_ref(),

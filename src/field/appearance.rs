@@ -11,6 +11,16 @@ use crate::rng::Pcg32;
 /// `NerfactoModelConfig.appearance_embed_dim` 32).
 pub const EMBEDDING_WIDTH: usize = 32;
 
+/// NeRF in the Wild's evaluation of a held-out view (section 6): its
+/// appearance vector is optimised on the view's left half with the field
+/// held still, and its right half is scored. Steps of Adam from the
+/// training vectors' mean, rays drawn from the left half each step, and the
+/// rate: zrak's choice (the paper gives none), enough for the vector to
+/// move a unit (its N(0, 1) start's spread) in a few dozen steps.
+pub const FIT_STEPS: u32 = 100;
+pub const FIT_RAYS: usize = 2048;
+pub const FIT_LEARNING_RATE: f32 = 0.05;
+
 /// A field's table of appearance embeddings: `images` rows of `width`
 /// values, after the field's other parameters.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -386,6 +386,25 @@ pub trait RadianceModel: Send {
         Err(format!("{} has no appearance embeddings", self.describe()))
     }
 
+    /// NeRF in the Wild's protocol for a view that is no training image's
+    /// (Martin-Brualla et al. 2021, section 6): the appearance vector that
+    /// best explains `fit` (rays of the view's left half, with their
+    /// targets), found with the field held still, then `rays` (its right
+    /// half) rendered with it. Nothing the model keeps changes.
+    fn render_with_fitted_appearance(
+        &mut self,
+        fit: &batch::RayBatch,
+        rays: RenderRays,
+        out: &mut [RenderedPixel],
+    ) -> Result<(), String> {
+        let _ = (fit, rays, out);
+        Err(format!(
+            "{} cannot fit a held-out view's appearance (models with appearance embeddings on \
+             the cpu engine can)",
+            self.describe()
+        ))
+    }
+
     /// Limits what [`Self::render`] shows to a crop box (`None`: the whole
     /// scene): samples outside it have no density, so the background shows
     /// through.

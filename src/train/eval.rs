@@ -93,6 +93,85 @@ pub fn score_prediction(prediction: &RgbImage, frame: &Frame, with_ssim: bool) -
     ImageScores { psnr, ssim }
 }
 
+/// A held-out view's right half scored two ways (NeRF in the Wild's
+/// protocol): drawn with the training vectors' mean (or as it renders, for
+/// a model without them), and with the vector fitted to its left half
+/// (`None` without vectors).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HalfScores {
+    pub mean_psnr: f64,
+    pub fitted_psnr: Option<f64>,
+}
+
+/// [`HalfScores`] of `frame` (over white; masked pixels count in neither
+/// half): its left half's pixels (x below half the width) fit the vector,
+/// its right half is scored.
+pub fn score_right_half(
+    model: &mut dyn RadianceModel,
+    frame: &Frame,
+) -> Result<HalfScores, String> {
+    let k = frame.camera.intrinsics;
+    let counts = |x: u32, y: u32| frame.mask.as_ref().is_none_or(|mask| mask.counts(x, y));
+    let split = k.width / 2;
+    let mut fit = crate::model::batch::RayBatch::default();
+    let (mut right, mut truth) = (Vec::new(), Vec::new());
+    for y in 0..k.height {
+        for x in 0..k.width {
+            if !counts(x, y) {
+                continue;
+            }
+            let ray = frame.camera.pixel_ray(x, y);
+            let target = frame.image.rgb_over(x, y, WHITE);
+            if x < split {
+                fit.origins.push(ray.origin);
+                fit.directions.push(ray.direction);
+                fit.radii.push(ray.radius());
+                fit.targets.push(target);
+                fit.backgrounds.push(WHITE);
+            } else {
+                right.push(ray);
+                truth.push(target);
+            }
+        }
+    }
+    if right.is_empty() || fit.is_empty() {
+        return Err("the view has no pixels to fit or to score in one of its halves".into());
+    }
+    let columns = RayColumns::of(&right);
+    let rays = || crate::model::RenderRays {
+        origins: &columns.origins,
+        directions: &columns.directions,
+        radii: &columns.radii,
+        background: WHITE,
+    };
+    let psnr = |pixels: &[crate::model::RenderedPixel]| {
+        let squared: f64 = pixels
+            .iter()
+            .zip(&truth)
+            .map(|(p, t)| {
+                (0..3)
+                    .map(|c| ((p.rgb[c] - t[c]) as f64).powi(2))
+                    .sum::<f64>()
+            })
+            .sum();
+        metrics::psnr_from_mse(squared / (3 * pixels.len()) as f64)
+    };
+    let mut pixels = vec![crate::model::RenderedPixel::default(); right.len()];
+    model.render(rays(), &mut pixels);
+    let mean_psnr = psnr(&pixels);
+    if model.appearance_images().is_none() {
+        return Ok(HalfScores {
+            mean_psnr,
+            fitted_psnr: None,
+        });
+    }
+    model.render_with_fitted_appearance(&fit, rays(), &mut pixels)?;
+    Ok(HalfScores {
+        mean_psnr,
+        fitted_psnr: Some(psnr(&pixels)),
+    })
+}
+
 /// Mean PSNR over `frames` (no SSIM), for progress reports.
 pub fn mean_psnr(model: &dyn RadianceModel, frames: &[&Frame]) -> f64 {
     if frames.is_empty() {

@@ -366,6 +366,36 @@ fn on_the_jittered_demo_embeddings_score_higher_and_follow_the_true_exposures() 
     let correlation = spearman(&brightness, &exposures);
     eprintln!("rank correlation of rendered brightness and true exposure: {correlation:.3}");
     assert!(correlation >= 0.8, "rank correlation {correlation:.3}");
+
+    // NeRF in the Wild's protocol: a held-out view photographed two thirds
+    // of a stop darker and warmer than the mean has its vector fitted to its
+    // left half; its right half then scores well above the mean's, and a
+    // view at the mean's own appearance loses nothing by the fit.
+    model.set_render_appearance(None).unwrap();
+    let plain = &scene.val[0];
+    let mut darker = plain.clone();
+    darker.image = demo::apply_appearance(
+        &plain.image,
+        &demo::ViewAppearance {
+            file_path: String::new(),
+            exposure: 0.63,
+            gains: [1.1, 1.0, 0.9],
+        },
+    );
+    let shifted = zrak::train::eval::score_right_half(model, &darker).unwrap();
+    let same = zrak::train::eval::score_right_half(model, plain).unwrap();
+    eprintln!("right halves: {shifted:?} (a darker, warmer view), {same:?} (as rendered)");
+    assert!(
+        shifted.fitted_psnr.unwrap() >= shifted.mean_psnr + 3.0,
+        "fitting the darker view's appearance: {shifted:?}"
+    );
+    assert!(
+        same.fitted_psnr.unwrap() >= same.mean_psnr - 0.5,
+        "fitting a view at the mean appearance: {same:?}"
+    );
+    // The fit changed nothing the model keeps.
+    let after = zrak::train::eval::score_right_half(model, plain).unwrap();
+    assert_eq!(after.mean_psnr, same.mean_psnr);
 }
 
 #[test]

@@ -322,3 +322,105 @@ fn refinement_recovers_perturbed_cameras_and_exports_them() {
         assert_eq!(frame.camera.intrinsics, camera.intrinsics);
     }
 }
+
+/// `zrak export cameras` end to end: a run that refined its cameras writes
+/// them as a transforms.json that loads as a scene with the run's training
+/// images, each camera moved a little from the one given; a run that did not
+/// refine is refused, saying so.
+#[test]
+fn zrak_export_cameras_writes_the_refined_cameras() {
+    let _cores = crate::common::shared();
+    let dir = tempfile::tempdir().unwrap();
+    let scene_dir = dir.path().join("scene");
+    let zrak = |args: &[&str]| {
+        std::process::Command::new(crate::common::zrak_bin())
+            .args(args)
+            .output()
+            .unwrap()
+    };
+    let scene = scene_dir.to_str().unwrap();
+    let made = zrak(&[
+        "demo",
+        "--out",
+        scene,
+        "--size",
+        "24",
+        "--views",
+        "8",
+        "--perturb-cameras",
+        "1,0.02",
+    ]);
+    assert!(
+        made.status.success(),
+        "{}",
+        String::from_utf8_lossy(&made.stderr)
+    );
+    let cameras_of = |refine: &str| {
+        let run = dir.path().join(format!("run-{refine}"));
+        let trained = zrak(&[
+            "train",
+            scene,
+            "--steps",
+            "20",
+            "--engine",
+            "cpu",
+            "--refine-cameras",
+            refine,
+            "--out",
+            run.to_str().unwrap(),
+        ]);
+        assert!(
+            trained.status.success(),
+            "{}",
+            String::from_utf8_lossy(&trained.stderr)
+        );
+        let out = dir.path().join(format!("cameras-{refine}.json"));
+        let exported = zrak(&[
+            "export",
+            "cameras",
+            run.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        (exported, out)
+    };
+    let (refused, _) = cameras_of("off");
+    assert!(!refused.status.success());
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        stderr.contains("the run did not refine its cameras"),
+        "{stderr}"
+    );
+
+    let (exported, out) = cameras_of("on");
+    assert!(
+        exported.status.success(),
+        "{}",
+        String::from_utf8_lossy(&exported.stderr)
+    );
+    let given = Scene::load(&scene_dir, LoadOptions::default()).unwrap();
+    let back = Scene::load(&out, LoadOptions::default()).unwrap();
+    let mut read: Vec<_> = back
+        .train
+        .iter()
+        .chain(&back.val)
+        .chain(&back.test)
+        .collect();
+    assert_eq!(read.len(), given.train.len());
+    read.sort_by_key(|f| f.image_path.clone());
+    let mut moved = 0;
+    for frame in &given.train {
+        let corrected = read
+            .iter()
+            .find(|f| f.image_path.file_name() == frame.image_path.file_name())
+            .expect("every training image in the export");
+        assert_eq!(corrected.camera.intrinsics, frame.camera.intrinsics);
+        let (degrees, offset) = pose_error(
+            corrected.camera.camera_to_world,
+            frame.camera.camera_to_world,
+        );
+        assert!(degrees < 1.0 && offset < 0.05, "{degrees}° {offset}");
+        moved += usize::from(degrees > 0.0 || offset > 0.0);
+    }
+    assert!(moved > 0, "no camera moved in 20 steps");
+}

@@ -757,6 +757,95 @@ impl RadianceModel for CpuModel {
         self.appearance().map(|table| table.images)
     }
 
+    fn render_with_fitted_appearance(
+        &mut self,
+        fit: &RayBatch,
+        rays: RenderRays,
+        out: &mut [RenderedPixel],
+    ) -> Result<(), String> {
+        use crate::field::appearance::{FIT_LEARNING_RATE, FIT_RAYS, FIT_STEPS};
+        let Some(table) = self.appearance() else {
+            return Err(format!("{} has no appearance embeddings", self.describe()));
+        };
+        if fit.is_empty() {
+            return Err("no rays to fit the appearance to".into());
+        }
+        // Each field with a table (NeRF's coarse and fine fields both have
+        // one): its table is its last part; row 0 holds the fitted vector
+        // while the view is fitted and drawn, and is put back after.
+        let rows: Vec<Range<usize>> = self
+            .fields
+            .iter()
+            .zip(self.core.ranges.iter())
+            .filter(|(field, _)| field.appearance().is_some())
+            .map(|(_, range)| {
+                let start = range.end - table.param_count();
+                start..start + table.width
+            })
+            .collect();
+        let saved: Vec<Vec<f32>> = rows
+            .iter()
+            .map(|r| self.params[r.clone()].to_vec())
+            .collect();
+        for row in &rows {
+            let whole = row.start..row.start + table.param_count();
+            let mean = table.mean(&self.params[whole]);
+            self.params[row.clone()].copy_from_slice(&mean);
+        }
+        // The view is no training image: no training camera's correction.
+        let refinement = self.refinement.take();
+        let (mut first, mut second) = (
+            vec![0f32; rows.len() * table.width],
+            vec![0f32; rows.len() * table.width],
+        );
+        let mut rng = crate::rng::Pcg32::new(0x6e65_7266_7721, 0);
+        let mut batch = RayBatch::default();
+        for step in 0..FIT_STEPS {
+            batch.origins.clear();
+            batch.directions.clear();
+            batch.targets.clear();
+            batch.backgrounds.clear();
+            batch.radii.clear();
+            batch.images.clear();
+            for _ in 0..FIT_RAYS.min(fit.len()) {
+                let r = rng.below(fit.len() as u32) as usize;
+                batch.origins.push(fit.origins[r]);
+                batch.directions.push(fit.directions[r]);
+                batch.targets.push(fit.targets[r]);
+                batch.backgrounds.push(fit.backgrounds[r]);
+                batch.radii.push(fit.radii.get(r).copied().unwrap_or(0.0));
+                batch.images.push(0);
+            }
+            self.forward_backward(&batch, step);
+            // Adam on the vector alone (torch's β and ε), no bias
+            // correction needed past its first steps: applied anyway.
+            let t = (step + 1) as i32;
+            let (b1, b2) = (0.9f32, 0.999f32);
+            for (k, row) in rows.iter().enumerate() {
+                for i in 0..table.width {
+                    let g = self.buffers.gradients[row.start + i];
+                    let (m, v) = (
+                        &mut first[k * table.width + i],
+                        &mut second[k * table.width + i],
+                    );
+                    *m = b1 * *m + (1.0 - b1) * g;
+                    *v = b2 * *v + (1.0 - b2) * g * g;
+                    let m_hat = *m / (1.0 - b1.powi(t));
+                    let v_hat = *v / (1.0 - b2.powi(t));
+                    self.params[row.start + i] -= FIT_LEARNING_RATE * m_hat / (v_hat.sqrt() + 1e-8);
+                }
+            }
+        }
+        self.refinement = refinement;
+        let chosen = self.render_appearance.replace(0);
+        self.render(rays, out);
+        self.render_appearance = chosen;
+        for (row, values) in rows.iter().zip(saved) {
+            self.params[row.clone()].copy_from_slice(&values);
+        }
+        Ok(())
+    }
+
     fn set_render_appearance(&mut self, image: Option<usize>) -> Result<(), String> {
         let Some(table) = self.appearance() else {
             return Err(format!("{} has no appearance embeddings", self.describe()));
