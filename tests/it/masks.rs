@@ -238,9 +238,9 @@ fn view_with_box(inside: impl Fn(u32, u32) -> [u8; 3]) -> zrak::scene::Frame {
 
 #[test]
 fn masked_garbage_changes_neither_psnr_nor_ssim() {
+    let _cores = crate::common::shared();
     use zrak::metrics::{RgbImage, WHITE};
     use zrak::train::eval::score_prediction;
-    let _cores = crate::common::shared();
     let clean = view_with_box(|x, y| [(x * 7) as u8, (y * 5 + 20) as u8, ((x + y) * 3) as u8]);
     let garbage = view_with_box(|x, y| [(x * 97 + y * 31) as u8, (x * y) as u8, 255]);
     // The prediction: the clean texture 0.05 brighter, black in the box.
